@@ -1,0 +1,3 @@
+"""Material calibration workflow and the ``phantom-calib`` command line."""
+
+__all__: list[str] = []

@@ -1,0 +1,5 @@
+"""``python -m calib``."""
+
+from .cli import main
+
+main()

@@ -1,0 +1,83 @@
+"""The ``phantom-calib`` command line."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="Calibrate a breast phantom's hyperelastic material from multi-posture MRI.",
+)
+
+
+def _version_callback(value: bool) -> None:
+    if value:
+        from importlib.metadata import version
+
+        typer.echo(f"phantom-calib {version('phantom-calib')}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    version: Annotated[
+        bool,
+        typer.Option("--version", callback=_version_callback, is_eager=True, help="Show version."),
+    ] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log progress details.")] = False,
+) -> None:
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(message)s"
+    )
+
+
+def fail(exc: Exception) -> None:
+    """Report an expected error in one line and exit with status 2."""
+    typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
+    raise typer.Exit(code=2)
+
+
+@app.command()
+def simulate(
+    mesh: Annotated[Path, typer.Argument(help="Tetrahedral mesh (any meshio format), in mm.")],
+    c1: Annotated[float, typer.Option("--c1", help="Neo-Hookean c1 in Pa (shear modulus 2 c1).")],
+    gravity: Annotated[str, typer.Option("--gravity", help="Gravity direction X,Y,Z.")],
+    out: Annotated[Path, typer.Option("--out", help="Deformed mesh to write, e.g. RESULT.vtu.")],
+    nu: Annotated[float, typer.Option("--nu", help="Poisson's ratio (< 0.5).")] = 0.499,
+    density: Annotated[float, typer.Option("--density", help="Density in kg/m^3.")] = 1000.0,
+    g: Annotated[float, typer.Option("--g", help="Gravitational acceleration, m/s^2.")] = 9.81,
+    bc: Annotated[str, typer.Option("--bc", help="Back plane: clamped or sliding.")] = "clamped",
+    back_plane: Annotated[
+        str, typer.Option("--back-plane", help="auto, or z=VALUE (mm).")
+    ] = "auto",
+    formulation: Annotated[
+        str, typer.Option("--formulation", help="taylor-hood, mini, p2 or p1.")
+    ] = "taylor-hood",
+) -> None:
+    """Deform a mesh under gravity; write the deformed mesh and RESULT.json."""
+    from .simulate import SimulateOptions, parse_vector, run_simulate
+
+    try:
+        opts = SimulateOptions(
+            c1_pa=c1, nu=nu, density_kg_m3=density, gravity=parse_vector(gravity), g_m_s2=g,
+            bc=bc, back_plane=back_plane, formulation=formulation,
+        )  # fmt: skip
+        summary = run_simulate(mesh, out, opts)
+    except (ValueError, OSError, RuntimeError) as exc:
+        fail(exc)
+    typer.echo(
+        f"converged={summary['converged']}  nipple displacement "
+        f"{summary['nipple_displacement_mm']:.2f} mm  max {summary['max_displacement_mm']:.2f} mm  "
+        f"{summary['newton_iterations']} Newton iterations, {summary['load_steps']} load steps, "
+        f"{summary['dofs']} dofs, {summary['wall_s']:.1f} s -> {out}"
+    )
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()

@@ -1,0 +1,31 @@
+"""Tetrahedral meshes and a nearly-incompressible hyperelastic gravity solver."""
+
+from .discretize import FORMULATIONS, Discretization, discretize
+from .materials import FebioNeoHookean, MooneyRivlin, NeoHookean, Volumetric
+from .mesh import MeshError, MeshQuality, TetMesh, boundary_faces, mesh_quality
+from .model import Clamped, Constrained, ElasticSupport, Model, Sliding
+from .solver import ConvergenceError, Solution, SolverOptions, solve
+
+__all__ = [
+    "FORMULATIONS",
+    "Clamped",
+    "Constrained",
+    "ConvergenceError",
+    "Discretization",
+    "ElasticSupport",
+    "FebioNeoHookean",
+    "MeshError",
+    "MeshQuality",
+    "Model",
+    "MooneyRivlin",
+    "NeoHookean",
+    "Sliding",
+    "Solution",
+    "SolverOptions",
+    "TetMesh",
+    "Volumetric",
+    "boundary_faces",
+    "discretize",
+    "mesh_quality",
+    "solve",
+]

@@ -1,0 +1,149 @@
+"""Vectorised residual and consistent tangent of the hyperelastic weak form.
+
+Total Lagrangian, in the solver frame and SI units. For the mixed formulations the
+volumetric energy ``kappa/2 G(J)^2`` is replaced by ``p G(J) - p^2 / (2 kappa)``
+(a perturbed Lagrangian), which stays stable as ``kappa -> infinity``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .discretize import Discretization
+from .kinematics import invariants, piola, piola_and_tangent
+from .model import Model
+
+__all__ = ["ElementState", "assemble", "external_force", "min_jacobian"]
+
+_EYE = np.eye(3)
+
+
+@dataclass(frozen=True)
+class ElementState:
+    """Element vectors (and matrices) of one assembly, plus the smallest J found."""
+
+    vectors: np.ndarray  # (E, n_loc)
+    matrices: np.ndarray | None  # (E, n_loc, n_loc)
+    min_J: float
+
+
+def deformation_gradient(disc: Discretization, x: np.ndarray) -> np.ndarray:
+    """``F`` at every quadrature point, shape (E, Q, 3, 3), from the full vector ``x``."""
+    u = x[: 3 * disc.n_scalar_u].reshape(-1, 3)[disc.udofs]  # (E, Au, 3)
+    return np.einsum("eai,eqaj->eqij", u, disc.grad_u, optimize=True) + _EYE
+
+
+def min_jacobian(disc: Discretization, x: np.ndarray) -> float:
+    """Smallest ``det F`` over all quadrature points."""
+    return float(np.linalg.det(deformation_gradient(disc, x)).min())
+
+
+def _pressure(disc: Discretization, x: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    p = x[3 * disc.n_scalar_u :][disc.pdofs[idx]]  # (e, Ap)
+    return np.einsum("eb,eqb->eq", p, disc.shape_p[idx])
+
+
+def _energy_terms(material, F, p):
+    """Energy partials with the volumetric part (or its pressure replacement) added."""
+    I1, I2, J, _, _ = invariants(F)
+    (W1, W2, WJ), (W11, W12, W1J, W22, W2J, WJJ) = material.partials(I1, I2, J)
+    G, G1, G2 = material.volumetric.g(J)
+    if p is None:
+        k = material.volumetric.kappa_pa
+        WJ, WJJ = WJ + k * G * G1, WJJ + k * (G1**2 + G * G2)
+    else:
+        WJ, WJJ = WJ + p * G1, WJJ + p * G2
+    return (W1, W2, WJ), (W11, W12, W1J, W22, W2J, WJJ), J, G, G1
+
+
+def _group(disc: Discretization, x, F, idx, material, tangent: bool):
+    """Element vectors/matrices of the elements ``idx`` sharing one material."""
+    Fg, w, dN = F[idx], disc.weights[idx], disc.grad_u[idx]
+    p = _pressure(disc, x, idx) if disc.mixed else None
+    first, second, J, G, G1 = _energy_terms(material, Fg, p)
+    if tangent:
+        P, A = piola_and_tangent(Fg, first, second)
+    else:
+        P, A = piola(Fg, first), None
+    ne, na = len(idx), dN.shape[2]
+    r_u = np.einsum("eqij,eqaj->eai", P * w[..., None, None], dN, optimize=True).reshape(ne, -1)
+    K = None
+    if tangent:
+        T = np.einsum("eqaj,eqijkl->eqaikl", dN, A * w[..., None, None, None, None], optimize=True)
+        K = np.einsum("eqaikl,eqbl->eaibk", T, dN, optimize=True).reshape(ne, 3 * na, 3 * na)
+    if not disc.mixed:
+        return r_u, K, J
+    Np = disc.shape_p[idx]
+    kappa = material.volumetric.kappa_pa
+    r_p = np.einsum("eq,eqb->eb", w * (G - p / kappa), Np)
+    if tangent:
+        cof = invariants(Fg)[4]
+        K_up = np.einsum("eqij,eqaj,eqb->eaib", cof * (w * G1)[..., None, None], dN, Np)
+        K_up = K_up.reshape(ne, 3 * na, -1)
+        K_pp = -np.einsum("eq,eqb,eqc->ebc", w / kappa, Np, Np)
+        K = np.block([[K, K_up], [K_up.transpose(0, 2, 1), K_pp]])
+    return np.hstack([r_u, r_p]), K, J
+
+
+def assemble(disc: Discretization, model: Model, x: np.ndarray, *, tangent: bool = True):
+    """Internal-force element vectors and (optionally) tangent element matrices.
+
+    Parameters
+    ----------
+    disc : Discretization
+    model : Model
+        Supplies the material of each region.
+    x : ndarray, shape (n_dofs,)
+        Full unknown vector (displacements in m, node-major; then pressures in Pa).
+    tangent : bool
+        Also compute element tangent matrices.
+
+    Returns
+    -------
+    ElementState
+        With ``min_J``; when any ``J <= 0`` the vectors are not meaningful.
+    """
+    F = deformation_gradient(disc, x)
+    n_loc = _n_loc(disc)
+    vec = np.zeros((len(F), n_loc))
+    mat = np.zeros((len(F), n_loc, n_loc)) if tangent else None
+    J_all = np.linalg.det(F)
+    min_J = float(J_all.min())
+    if min_J <= 0:
+        return ElementState(vec, mat, min_J)
+    for idx, material, _ in model.element_material_groups():
+        r, K, _ = _group(disc, x, F, idx, material, tangent)
+        vec[idx] = r
+        if tangent:
+            mat[idx] = K
+    return ElementState(vec, mat, min_J)
+
+
+def _n_loc(disc: Discretization) -> int:
+    n = 3 * disc.udofs.shape[1]
+    return n + (disc.pdofs.shape[1] if disc.mixed else 0)
+
+
+def scatter(disc: Discretization, vectors: np.ndarray) -> np.ndarray:
+    """Sum element vectors ``(E, n_loc)`` into a full global vector."""
+    edofs = disc.element_dofs()
+    return np.bincount(edofs.ravel(), weights=vectors.ravel(), minlength=disc.n_dofs)
+
+
+def external_force(disc: Discretization, model: Model, gravity_m_s2: np.ndarray) -> np.ndarray:
+    """Consistent nodal body force of gravity, full vector in N (solver frame).
+
+    Parameters
+    ----------
+    gravity_m_s2 : ndarray, shape (3,)
+        Gravitational acceleration vector in the model frame, m/s^2.
+    """
+    g = disc.R_solver_from_model @ np.asarray(gravity_m_s2, dtype=float)
+    f = np.zeros(disc.n_dofs)
+    integral = np.einsum("eq,eqa->ea", disc.weights, disc.shape_u)  # int N_a dV, m^3
+    for idx, _, rho in model.element_material_groups():
+        vec = (rho * integral[idx])[:, :, None] * g  # (e, Au, 3)
+        np.add.at(f, (3 * disc.udofs[idx][:, :, None] + np.arange(3)).ravel(), vec.ravel())
+    return f

@@ -1,0 +1,338 @@
+"""Finite element spaces, quadrature data and the sparsity pattern of a mesh.
+
+A :class:`Discretization` holds everything that depends on the mesh, the
+formulation and the support but not on the material or the load, so one
+discretization serves every solve of a calibration or a gravity sweep.
+Internally lengths are in metres and the back plane's outward normal is -z
+(the "solver frame"); conversions happen here and in :mod:`fem.solver`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Literal
+
+import numpy as np
+import scipy.sparse as sp
+
+from .mesh import MeshError, TetMesh
+from .model import Clamped, Constrained, ElasticSupport, Sliding, Support, as_supports
+from .units import M_PER_MM
+
+__all__ = ["FORMULATIONS", "Discretization", "Formulation", "discretize", "plane_fit"]
+
+Formulation = Literal["p1", "p2", "mini", "taylor-hood"]
+# name -> (displacement element, pressure element or None, quadrature order)
+FORMULATIONS = {
+    "p1": ("ElementTetP1", None, 1),
+    "p2": ("ElementTetP2", None, 2),
+    "mini": ("ElementTetMini", "ElementTetP1", 4),
+    "taylor-hood": ("ElementTetP2", "ElementTetP1", 2),
+}
+
+
+@dataclass(frozen=True)
+class Pattern:
+    """CSR structure of the reduced (free-dof) matrix and the scatter map into it."""
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    keys: np.ndarray  # sorted row * n_free + col of every stored entry
+    valid: np.ndarray  # flat mask over (element, local row, local col) entries kept
+    slot: np.ndarray  # data slot of each kept entry
+    n_free: int
+
+    def matrix(self, element_matrices: np.ndarray) -> sp.csr_matrix:
+        """Sum element matrices ``(E, n, n)`` into the reduced CSR matrix."""
+        vals = element_matrices.reshape(-1)[self.valid]
+        data = np.bincount(self.slot, weights=vals, minlength=len(self.keys))
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_free,) * 2)
+
+
+@dataclass(frozen=True)
+class Discretization:
+    """Mesh-dependent data of one formulation (see module docstring for frames)."""
+
+    mesh: TetMesh
+    formulation: str
+    R_solver_from_model: np.ndarray  # (3, 3)
+    grad_u: np.ndarray  # (E, Q, Au, 3) reference gradients of displacement shape functions, 1/m
+    shape_u: np.ndarray  # (E, Q, Au)
+    shape_p: np.ndarray | None  # (E, Q, Ap)
+    weights: np.ndarray  # (E, Q) quadrature weights times |det J|, m^3
+    udofs: np.ndarray  # (E, Au) scalar displacement dofs
+    pdofs: np.ndarray | None  # (E, Ap) pressure dofs
+    n_scalar_u: int
+    n_p: int
+    fixed: np.ndarray  # (n_dofs,) bool, Dirichlet dofs of the full vector
+    pattern: Pattern
+    spring: sp.csr_matrix | None  # full-size spring matrix of an elastic support, N/m
+    skfem_basis: object  # scalar displacement basis (for probes and cross-checks)
+
+    @property
+    def mixed(self) -> bool:
+        """True for displacement-pressure formulations."""
+        return self.shape_p is not None
+
+    @property
+    def n_dofs(self) -> int:
+        """Size of the full unknown vector (3 per displacement dof, plus pressures)."""
+        return 3 * self.n_scalar_u + self.n_p
+
+    @property
+    def free(self) -> np.ndarray:
+        """Indices of the unknowns that are solved for."""
+        return np.flatnonzero(~self.fixed)
+
+    def element_dofs(self) -> np.ndarray:
+        """Global dofs of each element, shape (E, 3 Au + Ap), u (node-major) then p."""
+        u = (3 * self.udofs[:, :, None] + np.arange(3)).reshape(len(self.udofs), -1)
+        if not self.mixed:
+            return u
+        return np.hstack([u, 3 * self.n_scalar_u + self.pdofs])
+
+    def with_nodes(self, nodes_mm: np.ndarray) -> Discretization:
+        """Same topology, support and pattern on moved nodes (for reference recovery)."""
+        mesh = self.mesh.with_nodes(nodes_mm)
+        geo = _geometry(mesh, self.formulation, self.R_solver_from_model)
+        return replace(self, mesh=mesh, **geo)
+
+
+def plane_fit(points_mm: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Least-squares plane through points: unit normal, offset (n.x = d) and RMS error in mm."""
+    c = points_mm.mean(axis=0)
+    _, s, vt = np.linalg.svd(points_mm - c, full_matrices=False)
+    n = vt[-1]
+    return n, float(n @ c), float(s[-1] / np.sqrt(len(points_mm)))
+
+
+def _rotation_to_minus_z(n: np.ndarray) -> np.ndarray:
+    """Smallest rotation taking unit vector ``n`` to (0, 0, -1)."""
+    t = np.array([0.0, 0.0, -1.0])
+    v, c = np.cross(n, t), float(n @ t)
+    if c < -1.0 + 1e-12:
+        return np.diag([1.0, -1.0, -1.0])
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+def _outward_back_normal(mesh: TetMesh, support) -> np.ndarray:
+    back = mesh.node_set(support.node_set)
+    if len(back) < 3:
+        raise MeshError(f"node set {support.node_set!r} has {len(back)} nodes; need >= 3")
+    n, d, _ = plane_fit(mesh.nodes_mm[back])
+    if mesh.nodes_mm.mean(axis=0) @ n > d:  # body lies on the +n side: flip outward
+        n = -n
+    return n
+
+
+def _skfem_mesh(mesh: TetMesh, R: np.ndarray):
+    from skfem import MeshTet
+
+    p = (mesh.nodes_mm * M_PER_MM) @ R.T
+    return MeshTet(np.ascontiguousarray(p.T), np.ascontiguousarray(mesh.tets.T), sort_t=False)
+
+
+def _element(name: str):
+    import skfem
+
+    return getattr(skfem, name)()
+
+
+def _geometry(mesh: TetMesh, formulation: str, R: np.ndarray) -> dict:
+    from skfem import Basis
+
+    eu, ep, order = FORMULATIONS[formulation]
+    m = _skfem_mesh(mesh, R)
+    bu = Basis(m, _element(eu), intorder=order)
+    grads = np.stack([phi[0].grad for phi in bu.basis], axis=0)  # (Au, 3, E, Q)
+    vals = np.stack([phi[0].value for phi in bu.basis], axis=0)  # (Au, E, Q)
+    geo = {
+        "grad_u": np.ascontiguousarray(grads.transpose(2, 3, 0, 1)),
+        "shape_u": np.ascontiguousarray(vals.transpose(1, 2, 0)),
+        "weights": np.asarray(bu.dx),
+        "skfem_basis": bu,
+        "shape_p": None,
+    }
+    if ep is not None:
+        bp = Basis(m, _element(ep), quadrature=bu.quadrature)
+        pv = np.stack([phi[0].value for phi in bp.basis], axis=0)
+        geo["shape_p"] = np.ascontiguousarray(pv.transpose(1, 2, 0))
+    return geo
+
+
+def _dofs(mesh: TetMesh, formulation: str) -> dict:
+    from skfem import Basis
+
+    eu, ep, _ = FORMULATIONS[formulation]
+    m = _skfem_mesh(mesh, np.eye(3))
+    bu = Basis(m, _element(eu), intorder=1)
+    out = {"udofs": bu.element_dofs.T.copy(), "n_scalar_u": bu.N, "pdofs": None, "n_p": 0}
+    if ep is not None:
+        bp = Basis(m, _element(ep), intorder=1)
+        out.update(pdofs=bp.element_dofs.T.copy(), n_p=bp.N)
+    return out
+
+
+def _face_dofs(basis, mesh: TetMesh, node_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Scalar dofs on the boundary facets whose nodes all lie in ``node_ids``; and the facets."""
+    m = basis.mesh
+    bf = m.boundary_facets()
+    inset = np.zeros(mesh.n_nodes, dtype=bool)
+    inset[node_ids] = True
+    facets = bf[inset[m.facets[:, bf]].all(axis=0)]
+    if facets.size == 0:
+        raise MeshError("the support's node set contains no boundary face")
+    return np.unique(basis.get_dofs(facets=facets).flatten()), facets
+
+
+def _rim_nodes(mesh: TetMesh, facets_nodes: np.ndarray) -> np.ndarray:
+    """Nodes on the boundary edges of a set of triangles (edges used by one triangle)."""
+    e = np.sort(facets_nodes[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    uniq, counts = np.unique(e, axis=0, return_counts=True)
+    return np.unique(uniq[counts == 1])
+
+
+def _constrained_dofs(basis, mesh: TetMesh, support: Constrained) -> np.ndarray:
+    """Scalar dofs of a constrained node set: its vertices and P2 edges among them."""
+    nodes = mesh.node_set(support.node_set)
+    dofs = [basis.nodal_dofs[0, nodes]]
+    if basis.edge_dofs.size:
+        dofs.append(basis.edge_dofs[0, np.isin(basis.mesh.edges, nodes).all(axis=0)])
+    return np.unique(np.concatenate(dofs))
+
+
+def _support_dofs(basis, mesh: TetMesh, support: Support, fixed: np.ndarray):
+    """Mark the support's fixed dofs (solver frame, back normal -z); return its facets."""
+    if isinstance(support, Constrained):
+        sdofs = _constrained_dofs(basis, mesh, support)
+        for c in support.components:
+            fixed[3 * sdofs + c] = True
+        return None
+    sdofs, facets = _face_dofs(basis, mesh, mesh.node_set(support.node_set))
+    if isinstance(support, Clamped):
+        for c in range(3):
+            fixed[3 * sdofs + c] = True
+    elif isinstance(support, Sliding):
+        fixed[3 * sdofs + 2] = True
+        if support.hold == "rim":
+            rim = _rim_nodes(mesh, basis.mesh.facets[:, facets].T)
+            rim_dofs = _rim_dofs(basis, rim, sdofs)
+            fixed[3 * rim_dofs] = True
+            fixed[3 * rim_dofs + 1] = True
+    return facets
+
+
+def _rim_dofs(basis, rim_nodes: np.ndarray, face_dofs: np.ndarray) -> np.ndarray:
+    """Scalar dofs at rim vertices and on rim edges (P2 midside dofs) of the face."""
+    m = basis.mesh
+    dofs = [basis.nodal_dofs[0, rim_nodes]]
+    if basis.edge_dofs.size:
+        on_rim = np.isin(m.edges, rim_nodes).all(axis=0)
+        dofs.append(np.intersect1d(basis.edge_dofs[0, on_rim], face_dofs))
+    return np.unique(np.concatenate(dofs))
+
+
+def _spring_matrix(basis, facets, support: ElasticSupport, n_total: int) -> sp.csr_matrix:
+    from skfem import BilinearForm, FacetBasis
+
+    @BilinearForm
+    def mass(u, v, _):
+        return u * v
+
+    fb = FacetBasis(basis.mesh, basis.elem, facets=facets)
+    M = mass.assemble(fb)
+    kn = support.normal_stiffness_pa_per_mm / M_PER_MM
+    kt = support.tangent_stiffness_pa_per_mm / M_PER_MM
+    S = np.diag([kt, kt, kn])  # back normal is z in the solver frame
+    K = sp.kron(M, sp.csr_matrix(S), format="csr")
+    K.resize((n_total, n_total))
+    return K.tocsr()
+
+
+def _pattern(edofs: np.ndarray, fixed: np.ndarray) -> Pattern:
+    free_index = np.full(fixed.size, -1, dtype=np.int64)
+    free_index[~fixed] = np.arange(int((~fixed).sum()))
+    n_free = int((~fixed).sum())
+    nloc = edofs.shape[1]
+    rows = free_index[np.repeat(edofs, nloc, axis=1)].ravel()
+    cols = free_index[np.tile(edofs, (1, nloc))].ravel()
+    valid = (rows >= 0) & (cols >= 0)
+    keys, slot = np.unique(rows[valid] * n_free + cols[valid], return_inverse=True)
+    indptr = np.searchsorted(keys // n_free, np.arange(n_free + 1)).astype(np.int64)
+    indices = (keys % n_free).astype(np.int64)
+    return Pattern(indptr, indices, keys, valid, slot.astype(np.int64), n_free)
+
+
+def discretize(
+    mesh: TetMesh, support: Support, *, formulation: Formulation = "taylor-hood"
+) -> Discretization:
+    """Build the finite element data of a mesh for one formulation and support.
+
+    Parameters
+    ----------
+    mesh : TetMesh
+        Positively oriented linear tets, nodes in mm, with the support's node set.
+    support : Clamped, Sliding or ElasticSupport
+        Boundary condition of the back plane.
+    formulation : {"p1", "p2", "mini", "taylor-hood"}
+        Displacement P1 or P2, or mixed displacement-pressure MINI (P1+bubble/P1)
+        or Taylor-Hood (P2/P1), the locking-free choices for nearly
+        incompressible material.
+
+    Returns
+    -------
+    Discretization
+    """
+    if formulation not in FORMULATIONS:
+        raise ValueError(f"unknown formulation {formulation!r}; choose {sorted(FORMULATIONS)}")
+    if np.any(mesh.volumes_mm3() <= 0):
+        raise MeshError("mesh has inverted or degenerate elements; call TetMesh.oriented()")
+    supports = as_supports(support)
+    R = _solver_rotation(mesh, supports)
+    geo = _geometry(mesh, formulation, R)
+    dofs = _dofs(mesh, formulation)
+    n_total = 3 * dofs["n_scalar_u"] + dofs["n_p"]
+    fixed = np.zeros(n_total, dtype=bool)
+    spring = None
+    for sup in supports:
+        facets = _support_dofs(geo["skfem_basis"], mesh, sup, fixed)
+        K = _support_springs(geo["skfem_basis"], facets, sup, n_total)
+        if K is not None:
+            spring = K if spring is None else spring + K
+    disc = Discretization(
+        mesh=mesh,
+        formulation=formulation,
+        R_solver_from_model=R,
+        fixed=fixed,
+        pattern=None,  # type: ignore[arg-type]
+        spring=spring,
+        **geo,
+        **dofs,
+    )
+    return replace(disc, pattern=_pattern(disc.element_dofs(), fixed))
+
+
+def _solver_rotation(mesh: TetMesh, supports: tuple) -> np.ndarray:
+    """Rotation making the plane support's outward normal -z; identity when not needed."""
+    planar = [s for s in supports if isinstance(s, (Sliding, ElasticSupport))]
+    if any(isinstance(s, Constrained) for s in supports) and planar:
+        raise ValueError("Constrained node sets cannot be combined with a sliding/elastic plane")
+    return _rotation_to_minus_z(_outward_back_normal(mesh, planar[0])) if planar else np.eye(3)
+
+
+def _support_springs(basis, facets, support: Support, n_total: int):
+    if isinstance(support, ElasticSupport):
+        return _spring_matrix(basis, facets, support, n_total)
+    if isinstance(support, Sliding) and support.tangent_stiffness_pa_per_mm > 0:
+        springs = ElasticSupport(support.node_set, 1.0, support.tangent_stiffness_pa_per_mm)
+        return _drop_normal(_spring_matrix(basis, facets, springs, n_total))
+    return None
+
+
+def _drop_normal(K: sp.csr_matrix) -> sp.csr_matrix:
+    """Remove the z (normal) rows and columns of a node-major spring matrix."""
+    keep = np.ones(K.shape[0])
+    keep[2::3] = 0.0
+    D = sp.diags(keep)
+    return (D @ K @ D).tocsr()

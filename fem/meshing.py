@@ -1,0 +1,286 @@
+"""Tetrahedral meshing with TetGen, automatic surface repair, tags and node sets."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from .discretize import plane_fit
+from .geometry import Phantom, sphere_surface
+from .mesh import REGION_IDS, MeshError, TetMesh, boundary_faces
+
+__all__ = ["find_back_plane", "mesh_phantom", "tag_node_sets", "tetrahedralize"]
+
+log = logging.getLogger(__name__)
+
+
+def _tetgen(vertices, faces, max_volume, min_ratio, min_dihedral, regions):
+    import tetgen
+
+    tg = tetgen.TetGen(np.asarray(vertices, float), np.asarray(faces, np.int32))
+    for tag, point in regions:
+        tg.add_region(int(tag), np.asarray(point, float), -1.0)
+    nodes, tets, attrib, _ = tg.tetrahedralize(
+        quality=True,
+        minratio=min_ratio,
+        mindihedral=min_dihedral,
+        maxvolume=max_volume if max_volume else -1.0,
+        fixedvolume=bool(max_volume),
+        regionattrib=bool(regions),
+    )
+    region = attrib[:, 0].astype(int) if regions else np.full(len(tets), REGION_IDS["bulk"])
+    return nodes, tets, region
+
+
+def _repair_surface(vertices, faces):
+    """Merge duplicates, drop degenerate faces, fix winding and fill small holes."""
+    import trimesh
+
+    m = trimesh.Trimesh(vertices, faces, process=True)
+    m.update_faces(m.nondegenerate_faces())
+    m.update_faces(m.unique_faces())
+    m.remove_unreferenced_vertices()
+    trimesh.repair.fill_holes(m)
+    trimesh.repair.fix_normals(m)
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def remesh_surface(vertices, faces, *, size_mm: float):
+    """Rebuild a clean, closed, manifold surface from a possibly self-intersecting one.
+
+    The inside is sampled on a grid (majority of ray-parity votes, robust to
+    self-intersections), then marching cubes, Taubin smoothing and decimation.
+    """
+    import open3d as o3d
+    import trimesh
+    from skimage.measure import marching_cubes
+
+    h = size_mm / 3.0
+    lo, hi = vertices.min(0) - 2 * h, vertices.max(0) + 2 * h
+    axes = [np.arange(a, b + h, h) for a, b in zip(lo, hi, strict=True)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32))
+    )
+    occ = scene.compute_occupancy(o3d.core.Tensor(grid.astype(np.float32)), nsamples=5).numpy()
+    vol = occ.reshape([len(a) for a in axes]).astype(float)
+    v, f, _, _ = marching_cubes(vol, 0.5, spacing=(h, h, h))
+    m = trimesh.Trimesh(v + lo, f[:, ::-1], process=True)
+    m = max(m.split(only_watertight=True), key=lambda s: s.volume)
+    trimesh.smoothing.filter_taubin(m, iterations=10)
+    target = int(4 * m.area / (np.sqrt(3) * size_mm**2))
+    if len(m.faces) > target:
+        m = m.simplify_quadric_decimation(face_count=target)
+    trimesh.repair.fix_normals(m)
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def tetrahedralize(
+    vertices_mm: np.ndarray,
+    faces: np.ndarray,
+    *,
+    max_volume_mm3: float | None = None,
+    min_ratio: float = 1.5,
+    min_dihedral_deg: float = 10.0,
+    regions: list | tuple = (),
+    repair: bool = True,
+    size_mm: float = 5.0,
+) -> TetMesh:
+    """Quality tetrahedral mesh of a closed surface (TetGen).
+
+    Parameters
+    ----------
+    vertices_mm : ndarray, shape (n, 3)
+    faces : ndarray, shape (m, 3)
+        A closed triangle surface; internal closed surfaces (inclusions) may be added.
+    max_volume_mm3 : float, optional
+        Upper bound of element volume.
+    min_ratio : float
+        Bound of the radius-edge ratio (TetGen ``-q``).
+    min_dihedral_deg : float
+        Bound of the smallest dihedral angle.
+    regions : sequence of (tag, point_mm)
+        Region seeds: every element of the closed region containing the point gets the tag.
+    repair : bool
+        When TetGen rejects the surface (self-intersections, holes), repair it and, if
+        that fails, remesh it, then try again; logs what was done.
+    size_mm : float
+        Edge length used if the surface must be remeshed.
+
+    Returns
+    -------
+    TetMesh
+        Positively oriented, with region tags (``bulk`` = 1 when no regions are given).
+    """
+    attempts = [("as given", lambda v, f: (v, f))]
+    if repair:
+        attempts += [("repaired", _repair_surface)]
+        attempts += [("remeshed", lambda v, f: remesh_surface(v, f, size_mm=size_mm))]
+    errors = []
+    for label, fix in attempts:
+        try:
+            v, f = fix(np.asarray(vertices_mm, float), np.asarray(faces, np.int64))
+            nodes, tets, region = _tetgen(
+                v, f, max_volume_mm3, min_ratio, min_dihedral_deg, regions
+            )
+        except (RuntimeError, ValueError) as exc:
+            errors.append(f"{label}: {exc}")
+            continue
+        if label != "as given":
+            log.warning("TetGen rejected the surface; meshed it after it was %s", label)
+        names = {k: v for k, v in REGION_IDS.items() if v in set(np.unique(region))}
+        names = names or {"bulk": int(region[0])}
+        return TetMesh(nodes, tets, region, names).oriented()
+    raise MeshError("TetGen could not mesh the surface: " + "; ".join(errors))
+
+
+def find_back_plane(mesh: TetMesh, *, angle_tol_deg: float = 2.0, dist_tol_mm: float = 0.05):
+    """Nodes of the largest flat part of the boundary (the back face).
+
+    Parameters
+    ----------
+    mesh : TetMesh
+    angle_tol_deg, dist_tol_mm : float
+        Boundary triangles whose normals lie within the angle of the group's and whose
+        vertices lie within the distance of its plane belong to it.
+
+    Returns
+    -------
+    nodes : ndarray of int
+    normal : ndarray, shape (3,)
+        Outward unit normal.
+    offset_mm : float
+        Plane offset, ``normal . x = offset`` on the plane.
+    """
+    faces = boundary_faces(mesh.tets)
+    x = mesh.nodes_mm[faces]
+    n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    area = np.linalg.norm(n, axis=1) / 2
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    best, best_area = None, 0.0
+    cos_tol = np.cos(np.radians(angle_tol_deg))
+    order = np.argsort(-area)
+    tried = np.zeros(len(faces), dtype=bool)
+    for seed in order[:200]:
+        if tried[seed]:
+            continue
+        d = n[seed] @ x[seed, 0]
+        member = (n @ n[seed] > cos_tol) & (np.abs(x @ n[seed] - d).max(axis=1) < dist_tol_mm)
+        tried |= member
+        if area[member].sum() > best_area:
+            best, best_area = member, area[member].sum()
+    if best is None or best_area < 0.05 * area.sum():
+        raise MeshError("no flat back face found: no planar part covers 5 % of the boundary")
+    nodes = np.unique(faces[best])
+    normal, offset, _ = plane_fit(mesh.nodes_mm[nodes])
+    if n[best].mean(axis=0) @ normal < 0:
+        normal, offset = -normal, -offset
+    return nodes, normal, offset
+
+
+def tag_node_sets(mesh: TetMesh, back_nodes: np.ndarray, back_normal: np.ndarray) -> TetMesh:
+    """Add node sets ``back``, ``surface`` (boundary without the back) and ``nipple``."""
+    bnodes = np.unique(boundary_faces(mesh.tets))
+    surface = np.setdiff1d(bnodes, back_nodes)
+    height = -(mesh.nodes_mm[surface] - mesh.nodes_mm[back_nodes].mean(0)) @ back_normal
+    nipple = surface[[int(np.argmax(height))]]
+    return mesh.with_node_sets(back=back_nodes, surface=surface, nipple=nipple)
+
+
+def _skin_regions(mesh: TetMesh, thickness_mm: float, back_nodes) -> TetMesh:
+    """Tag elements whose centroid lies within ``thickness_mm`` of the outer surface."""
+    import open3d as o3d
+
+    faces = boundary_faces(mesh.tets)
+    on_back = np.isin(faces, back_nodes).all(axis=1)
+    outer = faces[~on_back]
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(mesh.nodes_mm.astype(np.float32)), o3d.core.Tensor(outer.astype(np.uint32))
+    )
+    cent = mesh.nodes_mm[mesh.tets].mean(axis=1).astype(np.float32)
+    dist = scene.compute_distance(o3d.core.Tensor(cent)).numpy()
+    region = mesh.region.copy()
+    region[(dist < thickness_mm) & (region == REGION_IDS["bulk"])] = REGION_IDS["skin"]
+    names = {**mesh.region_names, "skin": REGION_IDS["skin"]}
+    return mesh.with_regions(region, names)
+
+
+def _inclusion_plc(phantom: Phantom, vertices, faces):
+    verts, tris, off = [vertices], [faces], len(vertices)
+    for c, d in zip(phantom.inclusion_centres_mm, phantom.inclusion_diameters_mm, strict=True):
+        v, f = sphere_surface(c, d / 2, subdivisions=1 if d < 6 else 2)
+        verts.append(v)
+        tris.append(f + off)
+        off += len(v)
+    return np.vstack(verts), np.vstack(tris)
+
+
+def mesh_phantom(
+    phantom: Phantom,
+    *,
+    size_mm: float = 6.0,
+    embed_inclusions: bool = False,
+    skin_thickness_mm: float | None = None,
+    min_ratio: float = 1.5,
+) -> TetMesh:
+    """Tetrahedral mesh of the phantom with region tags and node sets.
+
+    Parameters
+    ----------
+    phantom : Phantom
+        Its surface should be triangulated at about ``size_mm`` (``PhantomSpec.resolution_mm``).
+    size_mm : float
+        Target element edge length in mm.
+    embed_inclusions : bool
+        Mesh the inclusions as conforming regions; else tag elements whose centroid
+        lies inside an inclusion (cheaper, staircase boundaries).
+    skin_thickness_mm : float, optional
+        Tag a skin band of this thickness (defaults to the phantom spec's).
+
+    Returns
+    -------
+    TetMesh
+        Regions ``bulk``, ``inclusion`` (and ``skin``); node sets ``back``,
+        ``surface`` and ``nipple``.
+    """
+    vol = size_mm**3 / (6 * np.sqrt(2))
+    v, f = phantom.vertices_mm, phantom.faces
+    regions: list = []
+    if embed_inclusions and len(phantom.inclusion_centres_mm):
+        v, f = _inclusion_plc(phantom, v, f)
+        bulk_seed = _bulk_seed(phantom)
+        regions = [(REGION_IDS["bulk"], bulk_seed)]
+        regions += [(REGION_IDS["inclusion"], c) for c in phantom.inclusion_centres_mm]
+    mesh = tetrahedralize(v, f, max_volume_mm3=vol, min_ratio=min_ratio, regions=regions)
+    if not embed_inclusions:
+        mesh = _tag_inclusions_by_centroid(mesh, phantom)
+    back = np.flatnonzero(np.abs(mesh.nodes_mm[:, 2]) < 1e-6)
+    mesh = tag_node_sets(mesh, back, np.array([0.0, 0.0, -1.0]))
+    skin = phantom.spec.skin_thickness_mm if skin_thickness_mm is None else skin_thickness_mm
+    return _skin_regions(mesh, skin, back) if skin > 0 else mesh
+
+
+def _bulk_seed(phantom: Phantom) -> np.ndarray:
+    """A point inside the body, away from every inclusion (just above the back plate)."""
+    rng = np.random.default_rng(0)
+    lo, hi = phantom.vertices_mm.min(0), phantom.vertices_mm.max(0)
+    for _ in range(1000):
+        p = np.array([*rng.uniform(lo[:2] * 0.3, hi[:2] * 0.3), rng.uniform(0.5, 2.0)])
+        d = np.linalg.norm(phantom.inclusion_centres_mm - p, axis=1)
+        if np.all(d > phantom.inclusion_diameters_mm / 2 + 0.5):
+            return p
+    raise MeshError("could not find a bulk seed point outside the inclusions")
+
+
+def _tag_inclusions_by_centroid(mesh: TetMesh, phantom: Phantom) -> TetMesh:
+    cent = mesh.nodes_mm[mesh.tets].mean(axis=1)
+    region = mesh.region.copy()
+    for c, d in zip(phantom.inclusion_centres_mm, phantom.inclusion_diameters_mm, strict=True):
+        region[np.linalg.norm(cent - c, axis=1) < d / 2] = REGION_IDS["inclusion"]
+    names = {"bulk": REGION_IDS["bulk"]}
+    if np.any(region == REGION_IDS["inclusion"]):
+        names["inclusion"] = REGION_IDS["inclusion"]
+    return mesh.with_regions(region, names)

@@ -1,0 +1,169 @@
+"""The model description: mesh, a material and density per region, and the support.
+
+A physical effect is added by describing it here — a new region with its own
+material (a skin layer, stiff inclusions), another material law, another density,
+another support of the back plane — never by changing the solver.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from types import MappingProxyType
+from typing import Literal
+
+import numpy as np
+
+from .materials import Material
+from .mesh import MeshError, TetMesh
+
+__all__ = ["Clamped", "Constrained", "ElasticSupport", "Model", "Sliding", "Support"]
+
+
+@dataclass(frozen=True)
+class Clamped:
+    """All displacement components fixed on a node set (the dissertation's back plane)."""
+
+    node_set: str = "back"
+
+
+@dataclass(frozen=True)
+class Sliding:
+    """Normal displacement fixed on a planar node set; the face slides in its plane.
+
+    A sliding face alone cannot carry an in-plane load, so by default the rim of the
+    face (its boundary edge) is held in the plane as well (``hold="rim"``), as a
+    phantom glued at its perimeter. ``hold="none"`` leaves the in-plane motion to
+    ``tangent_stiffness_pa_per_mm`` springs, which must then be positive.
+    """
+
+    node_set: str = "back"
+    hold: Literal["rim", "none"] = "rim"
+    tangent_stiffness_pa_per_mm: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.hold not in ("rim", "none"):
+            raise ValueError(f"Sliding.hold must be 'rim' or 'none', got {self.hold!r}")
+        if self.hold == "none" and not self.tangent_stiffness_pa_per_mm > 0:
+            raise ValueError("Sliding(hold='none') needs tangent_stiffness_pa_per_mm > 0")
+
+
+@dataclass(frozen=True)
+class ElasticSupport:
+    """Distributed springs on a face: traction = -k u (stiffness per area, Pa/mm)."""
+
+    node_set: str = "back"
+    normal_stiffness_pa_per_mm: float = 1.0e3
+    tangent_stiffness_pa_per_mm: float = 1.0e3
+
+    def __post_init__(self) -> None:
+        if self.normal_stiffness_pa_per_mm <= 0 or self.tangent_stiffness_pa_per_mm < 0:
+            raise ValueError("ElasticSupport needs normal stiffness > 0 and tangent >= 0")
+
+
+@dataclass(frozen=True)
+class Constrained:
+    """Chosen displacement components (model-frame axes 0, 1, 2) fixed on a node set.
+
+    Used for symmetry planes and for prescribed displacements (see ``fem.solve``).
+    """
+
+    node_set: str
+    components: tuple[int, ...] = (0, 1, 2)
+
+    def __post_init__(self) -> None:
+        if not set(self.components) <= {0, 1, 2} or not self.components:
+            raise ValueError(f"components must be a subset of (0, 1, 2), got {self.components}")
+
+
+Support = Clamped | Sliding | ElasticSupport | Constrained
+
+
+def as_supports(support) -> tuple:
+    """A support or a tuple of supports, as a tuple."""
+    return tuple(support) if isinstance(support, (tuple, list)) else (support,)
+
+
+@dataclass(frozen=True)
+class Model:
+    """Everything the solver needs besides the load.
+
+    Parameters
+    ----------
+    mesh : TetMesh
+        Geometry in mm, with region tags and the support's node set.
+    materials : mapping of str to Material
+        Material law of each region present in the mesh.
+    density_kg_m3 : mapping of str to float
+        Density of each region in kg/m^3.
+    support : Support or tuple of Support
+        How the back plane is held (``Clamped``, ``Sliding``, ``ElasticSupport``),
+        possibly with extra ``Constrained`` node sets.
+    """
+
+    mesh: TetMesh
+    materials: Mapping[str, Material]
+    density_kg_m3: Mapping[str, float]
+    support: Support | tuple = field(default_factory=Clamped)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "materials", MappingProxyType(dict(self.materials)))
+        object.__setattr__(self, "density_kg_m3", MappingProxyType(dict(self.density_kg_m3)))
+        present = {n for n, t in self.mesh.region_names.items() if np.any(self.mesh.region == t)}
+        unnamed = set(np.unique(self.mesh.region)) - set(self.mesh.region_names.values())
+        if unnamed:
+            raise MeshError(f"element region tags {sorted(unnamed)} have no name")
+        for what, table in (("material", self.materials), ("density", self.density_kg_m3)):
+            missing = present - set(table)
+            if missing:
+                raise ValueError(f"no {what} given for region(s) {sorted(missing)}")
+        for name, rho in self.density_kg_m3.items():
+            if not rho > 0:
+                raise ValueError(f"density of region {name!r} must be positive, got {rho}")
+        for sup in as_supports(self.support):
+            self.mesh.node_set(sup.node_set)
+
+    @classmethod
+    def homogeneous(
+        cls,
+        mesh: TetMesh,
+        material: Material,
+        *,
+        density_kg_m3: float = 1000.0,
+        support: Support | None = None,
+    ) -> Model:
+        """One material and density for every region of the mesh."""
+        names = list(mesh.region_names)
+        return cls(
+            mesh,
+            {n: material for n in names},
+            {n: density_kg_m3 for n in names},
+            support if support is not None else Clamped(),
+        )
+
+    def with_material(self, region: str, material: Material) -> Model:
+        """A copy with the material of one region replaced."""
+        return replace(self, materials={**self.materials, region: material})
+
+    def with_materials(self, material_for: Mapping[str, Material]) -> Model:
+        """A copy with several regions' materials replaced."""
+        return replace(self, materials={**self.materials, **material_for})
+
+    def with_density(self, region: str, density_kg_m3: float) -> Model:
+        """A copy with the density of one region replaced."""
+        return replace(self, density_kg_m3={**self.density_kg_m3, region: density_kg_m3})
+
+    def with_support(self, support: Support) -> Model:
+        """A copy with another support."""
+        return replace(self, support=support)
+
+    def with_mesh(self, mesh: TetMesh) -> Model:
+        """A copy on another mesh (same region names)."""
+        return replace(self, mesh=mesh)
+
+    def element_material_groups(self):
+        """Yield ``(element_indices, material, density)`` for each region present."""
+        for name, tag in self.mesh.region_names.items():
+            idx = np.flatnonzero(self.mesh.region == tag)
+            if idx.size:
+                yield idx, self.materials[name], self.density_kg_m3[name]

@@ -1,0 +1,378 @@
+"""Newton-Raphson with line search and adaptive load stepping."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .assemble import assemble, external_force, scatter
+from .discretize import Discretization, Formulation, discretize
+from .linalg import LinearSolver, solve_sparse
+from .model import Model
+from .units import M_PER_MM, MM_PER_M
+
+__all__ = [
+    "ConvergenceError",
+    "Solution",
+    "SolverOptions",
+    "gravity_vector",
+    "solve",
+    "vertex_displacement_mm",
+]
+
+log = logging.getLogger(__name__)
+
+
+class ConvergenceError(RuntimeError):
+    """The load could not be applied: Newton failed even at the smallest load step."""
+
+
+@dataclass(frozen=True)
+class SolverOptions:
+    """Controls of the nonlinear solve.
+
+    Attributes
+    ----------
+    rtol : float
+        Convergence when the free residual force is below ``rtol`` times the norm of
+        the full external load (and the pressure residual below ``rtol`` times the
+        body volume for mixed formulations).
+    max_newton : int
+        Newton iterations per load step before the step is cut back.
+    initial_step, min_step : float
+        First and smallest load-factor increments.
+    max_steps : int
+        Most load steps (successful or not) in one solve.
+    line_search : bool
+        Backtracking on the residual norm.
+    linear_solver : {"auto", "pardiso", "superlu"}
+    """
+
+    rtol: float = 1e-8
+    max_newton: int = 12
+    initial_step: float = 1.0
+    min_step: float = 1.0 / 1024
+    max_steps: int = 200
+    line_search: bool = True
+    linear_solver: LinearSolver = "auto"
+
+
+@dataclass(frozen=True)
+class Solution:
+    """Result of one static solve.
+
+    Attributes
+    ----------
+    displacement_mm : ndarray, shape (n_nodes, 3)
+        Displacement of the mesh vertices, model frame, mm.
+    state : ndarray, shape (n_dofs,)
+        Full solver vector (solver frame, SI); pass as ``x0`` to warm-start.
+    converged : bool
+    newton_iterations : int
+        Total over all load steps, including failed ones.
+    load_steps : int
+        Successful load increments.
+    cutbacks : int
+        Failed increments that were retried with a smaller step.
+    residual_history : tuple of float
+        Relative residual after every Newton iteration.
+    timings_s : dict
+        ``assembly``, ``linear_solve`` and ``total`` wall times in s.
+    dofs : int
+        Free unknowns of the linear systems.
+    formulation : str
+    """
+
+    displacement_mm: np.ndarray
+    state: np.ndarray
+    converged: bool
+    newton_iterations: int
+    load_steps: int
+    cutbacks: int
+    residual_history: tuple[float, ...]
+    timings_s: dict = field(default_factory=dict)
+    dofs: int = 0
+    formulation: str = ""
+
+    @property
+    def max_displacement_mm(self) -> float:
+        """Largest vertex displacement magnitude in mm."""
+        return float(np.linalg.norm(self.displacement_mm, axis=1).max())
+
+
+@dataclass
+class _Stats:
+    newton: int = 0
+    history: list = field(default_factory=list)
+    t_asm: float = 0.0
+    t_lin: float = 0.0
+
+
+class _Problem:
+    """One load case on one discretization: residual, tangent and norms."""
+
+    def __init__(self, disc: Discretization, model: Model, f_ext: np.ndarray, opts, stats):
+        self.disc, self.model, self.f_ext, self.opts, self.stats = disc, model, f_ext, opts, stats
+        self.free = disc.free
+        nu = 3 * disc.n_scalar_u
+        self.u_free = self.free < nu
+        self.f_scale = max(np.linalg.norm(f_ext), 1e-300)
+        self.v_scale = float(disc.weights.sum())
+        if disc.spring is not None:
+            self.spring_ff = disc.spring[self.free][:, self.free].tocsr()
+
+    def residual(self, x, lam, tangent):
+        t0 = time.perf_counter()
+        st = assemble(self.disc, self.model, x, tangent=tangent)
+        if st.min_J <= 0:
+            self.stats.t_asm += time.perf_counter() - t0
+            return None, None
+        r = scatter(self.disc, st.vectors) - lam * self.f_ext
+        if self.disc.spring is not None:
+            r += self.disc.spring @ x
+        K = None
+        if tangent:
+            K = self.disc.pattern.matrix(st.matrices)
+            if self.disc.spring is not None:
+                K = K + self.spring_ff
+        self.stats.t_asm += time.perf_counter() - t0
+        return r[self.free], K
+
+    def merit(self, r_free) -> float:
+        ru = np.linalg.norm(r_free[self.u_free]) / self.f_scale
+        rp = np.linalg.norm(r_free[~self.u_free]) / self.v_scale if self.disc.mixed else 0.0
+        return float(np.hypot(ru, rp))
+
+    def linear_solve(self, K, r):
+        t0 = time.perf_counter()
+        dx = solve_sparse(K, -r, method=self.opts.linear_solver)
+        self.stats.t_lin += time.perf_counter() - t0
+        return dx
+
+
+def _line_search(prob: _Problem, x, dx_free, lam, m0):
+    """Backtrack until the residual norm decreases; returns (x, r, K, merit) or None.
+
+    The full step is evaluated with its tangent (the usual, accepted case); shorter
+    trial steps evaluate the residual alone and the tangent only once accepted.
+    """
+    alpha = 1.0
+    for k in range(6 if prob.opts.line_search else 1):
+        xt = x.copy()
+        xt[prob.free] += alpha * dx_free
+        r, K = prob.residual(xt, lam, tangent=k == 0)
+        if r is not None:
+            m = prob.merit(r)
+            if np.isfinite(m) and (m < m0 or not prob.opts.line_search or alpha < 0.05):
+                if K is None:
+                    r, K = prob.residual(xt, lam, tangent=True)
+                return xt, r, K, m
+        alpha *= 0.5
+    return None
+
+
+def _newton(prob: _Problem, x, lam):
+    """Newton iterations at load factor ``lam``; returns the converged x or None."""
+    r, K = prob.residual(x, lam, tangent=True)
+    if r is None:
+        return None
+    m = prob.merit(r)
+    for _ in range(prob.opts.max_newton):
+        if m <= prob.opts.rtol:
+            return x
+        dx = prob.linear_solve(K, r)
+        prob.stats.newton += 1
+        step = _line_search(prob, x, dx, lam, m)
+        if step is None:
+            return None
+        x, r, K, m_new = step
+        prob.stats.history.append(m_new)
+        if not np.isfinite(m_new) or m_new > 1e6 * max(m, prob.opts.rtol):
+            return None
+        m = m_new
+    return x if m <= prob.opts.rtol else None
+
+
+def _apply_dirichlet(disc: Discretization, x, prescribed, lam):
+    if prescribed is not None:
+        x = x.copy()
+        x[prescribed[0]] = lam * prescribed[1]
+    return x
+
+
+def _load_steps(prob: _Problem, x, prescribed, opts: SolverOptions):
+    """Adaptive load stepping from ``lam = 0`` to 1; returns (x, steps, cutbacks, ok)."""
+    lam, dlam, steps, cuts = 0.0, opts.initial_step, 0, 0
+    x_prev, dlam_prev = None, opts.initial_step
+    for _ in range(opts.max_steps):
+        trial = min(1.0, lam + dlam)
+        guess = _apply_dirichlet(prob.disc, x, prescribed, trial)
+        if x_prev is not None and steps > 0:
+            pred = guess + (trial - lam) / dlam_prev * (x - x_prev)
+            guess = _apply_dirichlet(prob.disc, pred, prescribed, trial)
+        n0 = prob.stats.newton
+        x_new = _newton(prob, guess, trial)
+        if x_new is None and x_prev is not None:
+            x_new = _newton(prob, _apply_dirichlet(prob.disc, x, prescribed, trial), trial)
+        if x_new is None:
+            cuts += 1
+            dlam *= 0.25
+            if dlam < opts.min_step:
+                return x, steps, cuts, False
+            continue
+        x_prev, dlam_prev, x, lam, steps = x, trial - lam, x_new, trial, steps + 1
+        if lam >= 1.0:
+            return x, steps, cuts, True
+        iters = prob.stats.newton - n0
+        dlam = min(dlam * (2.0 if iters <= 5 else 1.0), 1.0 - lam)
+    return x, steps, cuts, False
+
+
+def _prescribed_dofs(disc: Discretization, prescribed: dict | None):
+    """``{(node_set, component): value_mm}`` to solver-frame full-vector dofs and values (m)."""
+    if not prescribed:
+        return None
+    if not np.allclose(disc.R_solver_from_model, np.eye(3)):
+        raise ValueError("prescribed displacements need supports without a rotated plane")
+    from .discretize import _constrained_dofs
+    from .model import Constrained
+
+    dofs, vals = [], []
+    for (name, comp), value_mm in prescribed.items():
+        sd = _constrained_dofs(disc.skfem_basis, disc.mesh, Constrained(name, (comp,)))
+        d = 3 * sd + comp
+        if not disc.fixed[d].all():
+            raise ValueError(f"prescribed component {comp} of node set {name!r} is not constrained")
+        dofs.append(d)
+        vals.append(np.full(d.size, value_mm * M_PER_MM))
+    return np.concatenate(dofs), np.concatenate(vals)
+
+
+def gravity_vector(direction, g_m_s2: float) -> np.ndarray:
+    """Gravity acceleration vector (m/s^2) from a direction (any length) and magnitude."""
+    d = np.asarray(direction, dtype=float).reshape(3)
+    n = np.linalg.norm(d)
+    if g_m_s2 != 0 and n == 0:
+        raise ValueError("gravity direction must be a non-zero vector")
+    return d / n * g_m_s2 if n > 0 else np.zeros(3)
+
+
+def vertex_displacement_mm(disc: Discretization, x: np.ndarray) -> np.ndarray:
+    """Displacement of the mesh vertices in the model frame (mm) from a solver vector."""
+    u = x[: 3 * disc.n_scalar_u].reshape(-1, 3)
+    nodal = disc.skfem_basis.nodal_dofs[0]
+    return u[nodal] @ disc.R_solver_from_model * MM_PER_M
+
+
+def solve(
+    model: Model,
+    *,
+    gravity: np.ndarray | None = None,
+    g_m_s2: float = 9.81,
+    prescribed: dict | None = None,
+    point_forces_n: dict | None = None,
+    disc: Discretization | None = None,
+    formulation: Formulation = "taylor-hood",
+    options: SolverOptions | None = None,
+    x0: np.ndarray | None = None,
+    raise_on_failure: bool = True,
+) -> Solution:
+    """Static equilibrium of the model under gravity and prescribed displacements.
+
+    Parameters
+    ----------
+    model : Model
+        Mesh (mm), materials, densities and support.
+    gravity : array_like, shape (3,), optional
+        Gravity direction in the model frame (normalised here); ``None`` for none.
+    g_m_s2 : float
+        Gravitational acceleration magnitude in m/s^2.
+    prescribed : dict, optional
+        ``{(node_set, component): value_mm}``; the set must be ``Constrained``.
+    point_forces_n : dict, optional
+        ``{node_index: force (3,)}`` dead loads in N, model frame.
+    disc : Discretization, optional
+        Reuse a discretization of ``model.mesh`` (else one is built).
+    formulation : {"p1", "p2", "mini", "taylor-hood"}
+        Used when ``disc`` is not given.
+    options : SolverOptions, optional
+    x0 : ndarray, optional
+        Warm start (``Solution.state`` of a solve on the same discretization); the full
+        load is tried from it first, then load stepping from zero.
+    raise_on_failure : bool
+        Raise :class:`ConvergenceError` when the load cannot be applied (default),
+        else return a solution with ``converged=False``.
+
+    Returns
+    -------
+    Solution
+    """
+    t_start = time.perf_counter()
+    opts = options or SolverOptions()
+    disc = disc or discretize(model.mesh, model.support, formulation=formulation)
+    g = np.zeros(3) if gravity is None else gravity_vector(gravity, g_m_s2)
+    f_ext = external_force(disc, model, g) + _point_forces(disc, point_forces_n)
+    pres = _prescribed_dofs(disc, prescribed)
+    stats = _Stats()
+    prob = _Problem(disc, model, f_ext, opts, stats)
+    if pres is not None:
+        prob.f_scale = max(prob.f_scale, _reaction_scale(prob, pres))
+    x, steps, cuts, ok = _warm_or_stepped(prob, x0, pres, opts)
+    if not ok and raise_on_failure:
+        raise ConvergenceError(
+            f"load not applied: Newton failed at a load step below {opts.min_step:g} "
+            f"after {stats.newton} iterations ({cuts} cut-backs); the load may be too large "
+            "for the material (elements invert) or the support leaves the body free"
+        )
+    total = time.perf_counter() - t_start
+    return Solution(
+        displacement_mm=vertex_displacement_mm(disc, x),
+        state=x,
+        converged=ok,
+        newton_iterations=stats.newton,
+        load_steps=steps,
+        cutbacks=cuts,
+        residual_history=tuple(stats.history),
+        timings_s={"assembly": stats.t_asm, "linear_solve": stats.t_lin, "total": total},
+        dofs=int(disc.pattern.n_free),
+        formulation=disc.formulation,
+    )
+
+
+def _point_forces(disc: Discretization, forces: dict | None) -> np.ndarray:
+    f = np.zeros(disc.n_dofs)
+    for node, force in (forces or {}).items():
+        dof = 3 * disc.skfem_basis.nodal_dofs[0, node]
+        f[dof : dof + 3] += disc.R_solver_from_model @ np.asarray(force, dtype=float)
+    return f
+
+
+def _warm_or_stepped(prob: _Problem, x0, pres, opts: SolverOptions):
+    if x0 is not None:
+        if x0.shape != (prob.disc.n_dofs,):
+            raise ValueError(f"x0 has shape {x0.shape}, expected ({prob.disc.n_dofs},)")
+        x = _newton(prob, _apply_dirichlet(prob.disc, x0, pres, 1.0), 1.0)
+        if x is not None:
+            return x, 1, 0, True
+    return _load_steps(prob, np.zeros(prob.disc.n_dofs), pres, opts)
+
+
+def _reaction_scale(prob: _Problem, pres) -> float:
+    """Force scale for displacement-driven problems: the first-iteration reaction."""
+    x = _apply_dirichlet(prob.disc, np.zeros(prob.disc.n_dofs), pres, 1.0)
+    st = assemble(prob.disc, prob.model, np.zeros_like(x), tangent=True)
+    K_full = _full_matrix(prob.disc, st.matrices)
+    return float(np.linalg.norm(K_full @ x)) or 1.0
+
+
+def _full_matrix(disc: Discretization, matrices: np.ndarray):
+    import scipy.sparse as sp
+
+    edofs = disc.element_dofs()
+    n = edofs.shape[1]
+    rows = np.repeat(edofs, n, axis=1).ravel()
+    cols = np.tile(edofs, (1, n)).ravel()
+    return sp.csr_matrix((matrices.ravel(), (rows, cols)), shape=(disc.n_dofs,) * 2)

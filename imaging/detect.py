@@ -1,0 +1,287 @@
+"""Fiducial markers and inclusions in a segmented, bias-corrected scan.
+
+Both detectors work on the normalised image of :func:`imaging.segment.segment_body` (body
+level 1). Sub-voxel positions are intensity-weighted centroids of the partial-volume
+fractions; an inclusion's equivalent diameter comes from the sum of its partial-volume
+fractions (its volume), ``d = (6 V / pi)^(1/3)``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from imaging.errors import FiducialError, SegmentationError
+from imaging.segment import BodySegmentation
+from imaging.volume import Volume
+
+__all__ = [
+    "FiducialDetection",
+    "InclusionDetection",
+    "InclusionMask",
+    "detect_fiducials",
+    "detect_inclusions",
+    "segment_inclusion_at",
+]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class FiducialDetection:
+    """Fiducial markers found in a scan.
+
+    ``centres_lps_mm`` (k, 3), ``radii_mm`` (k,) volume-equivalent,
+    ``peak`` (k,) normalised peak intensity, and ``quality`` (``n_candidates``, ``threshold``).
+    """
+
+    centres_lps_mm: np.ndarray
+    radii_mm: np.ndarray
+    peak: np.ndarray
+    quality: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True, eq=False)
+class InclusionDetection:
+    """Inclusions found in a scan.
+
+    ``centres_lps_mm`` (n, 3), ``diameters_mm`` (n,) volume-equivalent,
+    ``contrast`` (n,) relative to the body level (positive: brighter), ``quality``.
+    """
+
+    centres_lps_mm: np.ndarray
+    diameters_mm: np.ndarray
+    contrast: np.ndarray
+    quality: dict = field(default_factory=dict)
+
+
+def _weighted_centroid(weights: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    ijk = np.argwhere(weights > 0)
+    w = weights[weights > 0]
+    return (ijk * w[:, None]).sum(0) / w.sum() + offset
+
+
+def detect_fiducials(
+    seg: BodySegmentation,
+    *,
+    expected: int | None = 3,
+    marker_ratio: float = 2.0,
+    radius_range_mm: tuple[float, float] = (1.0, 6.0),
+) -> FiducialDetection:
+    """Find the small, very bright, compact marker blobs.
+
+    Parameters
+    ----------
+    seg : BodySegmentation
+        Output of :func:`imaging.segment.segment_body`.
+    expected : int or None
+        Expected marker count; ``None`` accepts any count.
+    marker_ratio : float
+        Threshold on the smoothed normalised image (body = 1).
+    radius_range_mm : (float, float)
+        Accepted volume-equivalent radii of a blob.
+
+    Raises
+    ------
+    FiducialError
+        The number of markers found differs from ``expected``; the message lists them.
+    """
+    vol = seg.smoothed
+    sp, vv = vol.spacing_mm, vol.voxel_volume_mm3
+    crop = seg.crop
+    ns = seg.smoothed.array[crop]
+    n = seg.normalised.array[crop]
+    lab, nlab = ndimage.label(ns > marker_ratio)
+    offset = np.array([s.start for s in crop], float)
+    centres, radii, peaks = [], [], []
+    for k, sl in enumerate(ndimage.find_objects(lab), start=1):
+        pad = tuple(
+            slice(max(s.start - 3, 0), min(s.stop + 3, dim))
+            for s, dim in zip(sl, ns.shape, strict=True)
+        )
+        comp = lab[pad] == k
+        core = ndimage.binary_dilation(comp, iterations=2)
+        shell = ndimage.binary_dilation(comp, iterations=3) & ~core
+        base = float(np.median(n[pad][shell])) if shell.any() else 0.0
+        peak = float(ns[pad][comp].max())
+        w = np.where(core, np.clip(n[pad] - base, 0.0, None), 0.0)
+        frac_vol = float(np.clip(w / max(peak - base, 1e-6), 0, 1).sum() * vv)
+        r_eq = (3.0 * frac_vol / (4.0 * np.pi)) ** (1.0 / 3.0)
+        extent = (np.array([s.stop - s.start for s in sl]) * sp).max()
+        if (
+            not (radius_range_mm[0] <= r_eq <= radius_range_mm[1])
+            or extent > 4.0 * r_eq + 2 * sp.max()
+        ):
+            log.debug("rejected bright blob %d: r_eq %.2f mm, extent %.1f mm", k, r_eq, extent)
+            continue
+        offs = offset + np.array([s.start for s in pad], float)
+        centres.append(vol.index_to_lps(_weighted_centroid(w, offs)[None])[0])
+        radii.append(r_eq)
+        peaks.append(peak)
+    found = len(centres)
+    quality = {"n_candidates": int(nlab), "threshold": float(marker_ratio), "n_found": found}
+    if expected is not None and found != expected:
+        listing = "; ".join(
+            f"({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) r={r:.1f} mm"
+            for c, r in zip(centres, radii, strict=True)
+        )
+        raise FiducialError(
+            f"{seg.mask.source.replace(' [body mask]', '')}: found {found} fiducial markers, "
+            f"expected {expected}" + (f": {listing}" if listing else "")
+        )
+    order = np.lexsort(np.array(centres).T[::-1]) if centres else np.array([], int)
+    return FiducialDetection(
+        np.array(centres, float).reshape(-1, 3)[order],
+        np.array(radii, float)[order],
+        np.array(peaks, float)[order],
+        quality,
+    )
+
+
+def detect_inclusions(
+    seg: BodySegmentation,
+    *,
+    min_contrast: float = 0.15,
+    diameter_range_mm: tuple[float, float] = (2.0, 15.0),
+    edge_margin_mm: float = 2.0,
+    polarity: str = "bright",
+) -> InclusionDetection:
+    """Find compact regions of distinct intensity inside the body.
+
+    Parameters
+    ----------
+    seg : BodySegmentation
+        Output of :func:`imaging.segment.segment_body`.
+    min_contrast : float
+        Minimum relative difference from the body level (smoothed image) of a candidate.
+    diameter_range_mm : (float, float)
+        Accepted volume-equivalent diameters.
+    edge_margin_mm : float
+        Voxels closer than this to the body surface are ignored (skin, partial volume).
+    polarity : {"bright", "dark", "both"}
+        Which contrast sign to look for.
+    """
+    if polarity not in ("bright", "dark", "both"):
+        raise ValueError(f"polarity must be 'bright', 'dark' or 'both', got {polarity!r}")
+    from skimage.segmentation import expand_labels
+
+    crop = seg.crop
+    body = seg.mask.array[crop].astype(bool)
+    sp, vv = seg.mask.spacing_mm, seg.mask.voxel_volume_mm3
+    inner = ndimage.distance_transform_edt(body, sampling=sp) > edge_margin_mm
+    ns, n = seg.smoothed.array[crop], seg.normalised.array[crop]
+    level = float(np.median(ns[inner])) if inner.any() else 1.0
+    signs = {"bright": [1.0], "dark": [-1.0], "both": [1.0, -1.0]}[polarity]
+    offset = np.array([s.start for s in crop], float)
+    centres, diams, contrasts = [], [], []
+    for sgn in signs:
+        dev_s, dev = sgn * (ns - level), sgn * (n - level)
+        lab, nlab = ndimage.label((dev_s > min_contrast) & inner)
+        region = expand_labels(lab, distance=2) * inner
+        for k, sl in enumerate(ndimage.find_objects(region), start=1):
+            if sl is None:
+                continue
+            comp, reg = lab[sl] == k, region[sl] == k
+            top = float(dev_s[sl][comp].max())
+            c = float(np.median(dev[sl][comp & (dev_s[sl] >= 0.9 * top)]))
+            f = np.where(reg, dev[sl] / max(c, 1e-6), 0.0)
+            d_eq = float((6.0 * f.sum() * vv / np.pi) ** (1.0 / 3.0)) if f.sum() > 0 else 0.0
+            if not diameter_range_mm[0] <= d_eq <= diameter_range_mm[1]:
+                continue
+            w = np.clip(f, 0.0, 1.0)
+            idx = _weighted_centroid(w, offset + np.array([s.start for s in sl], float))
+            centres.append(seg.mask.index_to_lps(idx[None])[0])
+            diams.append(d_eq)
+            contrasts.append(sgn * c)
+    quality = {"body_level": level, "min_contrast": float(min_contrast), "n_found": len(diams)}
+    return InclusionDetection(
+        np.array(centres, float).reshape(-1, 3), np.array(diams), np.array(contrasts), quality
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class InclusionMask:
+    """Lesion or inclusion grown from a seed.
+
+    ``mask`` (uint8 Volume on the scan grid),
+    ``centre_lps_mm`` (3,), ``diameter_mm`` (volume-equivalent), ``threshold`` (raw units).
+    """
+
+    mask: Volume
+    centre_lps_mm: np.ndarray
+    diameter_mm: float
+    threshold: float
+
+
+def _ball(radius_mm: float, spacing_mm: np.ndarray) -> np.ndarray:
+    """Boolean structuring element: voxel offsets within an ellipsoid of radius_mm."""
+    half = np.floor(radius_mm / spacing_mm).astype(int)
+    grids = np.meshgrid(
+        *[np.arange(-h, h + 1) * s for h, s in zip(half, spacing_mm, strict=True)], indexing="ij"
+    )
+    return sum(g**2 for g in grids) <= radius_mm**2 + 1e-9
+
+
+def segment_inclusion_at(
+    volume: Volume,
+    seed_lps_mm: np.ndarray,
+    *,
+    radius_mm: float = 20.0,
+    smoothing_mm: float = 0.5,
+    opening_mm: float = 0.8,
+) -> InclusionMask:
+    """Segment the bright object that contains a seed point (local threshold + region growing).
+
+    Inside a box of half-size ``radius_mm`` around the seed the image is lightly smoothed;
+    the threshold is half-way between the object level (median of the seed's neighbourhood)
+    and the surrounding tissue level (median of the box); a morphological opening with a
+    ball of radius ``opening_mm`` cuts thin bright bridges (vessels) to neighbouring
+    structures; the connected component holding the seed (or the nearest one) is kept,
+    its opened rim restored within the threshold mask, and its holes are filled slice by
+    slice and in 3-D.
+
+    Raises
+    ------
+    SegmentationError
+        The seed lies outside the volume, or no object brighter than its surroundings is there.
+    """
+    seed = np.asarray(seed_lps_mm, float).reshape(3)
+    ijk = np.rint(volume.lps_to_index(seed[None])[0]).astype(int)
+    shape = np.array(volume.shape)
+    if np.any(ijk < 0) or np.any(ijk >= shape):
+        raise SegmentationError(f"{volume.source}: seed {seed.tolist()} mm lies outside the volume")
+    sp = volume.spacing_mm
+    half = np.ceil(radius_mm / sp).astype(int)
+    lo, hi = np.maximum(ijk - half, 0), np.minimum(ijk + half + 1, shape)
+    box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+    a = ndimage.gaussian_filter(np.asarray(volume.array[box], np.float32), smoothing_mm / sp)
+    s = ijk - lo
+    nb = a[tuple(slice(max(v - 1, 0), v + 2) for v in s)]
+    obj, tissue = float(np.median(nb)), float(np.median(a))
+    if obj <= tissue:
+        raise SegmentationError(
+            f"{volume.source}: no bright object at {seed.tolist()} mm (level {obj:.3g} <= "
+            f"surroundings {tissue:.3g})"
+        )
+    thr = 0.5 * (obj + tissue)
+    above = a > thr
+    st = _ball(opening_mm, sp)
+    lab, _ = ndimage.label(ndimage.binary_opening(above, st) if st.sum() > 1 else above)
+    k = lab[tuple(s)]
+    if k == 0:
+        pts = np.argwhere(lab > 0)
+        k = lab[tuple(pts[np.argmin(np.linalg.norm((pts - s) * sp, axis=1))])]
+    comp = lab == k
+    if st.sum() > 1:  # give back the rim the opening took, within the threshold mask
+        comp = ndimage.binary_dilation(comp, st) & above
+    for z in range(comp.shape[2]):
+        comp[:, :, z] = ndimage.binary_fill_holes(comp[:, :, z])
+    comp = ndimage.binary_fill_holes(comp)
+    mask = np.zeros(volume.shape, np.uint8)
+    mask[box] = comp
+    centre = volume.index_to_lps((np.argwhere(comp).mean(0) + lo)[None])[0]
+    d = float((6.0 * comp.sum() * volume.voxel_volume_mm3 / np.pi) ** (1.0 / 3.0))
+    return InclusionMask(Volume(mask, volume.affine_lps_from_index, volume.source), centre, d, thr)

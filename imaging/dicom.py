@@ -1,0 +1,339 @@
+"""DICOM MR series: a checked reader and a deterministic writer.
+
+The reader lists the series of a folder with SimpleITK's GDCM series ids and then checks and
+decodes every file with pydicom: modality MR, one ImageOrientationPatient, one in-plane
+geometry, uniform slice spacing from ImagePositionPatient (never SliceThickness), no missing
+or duplicated slice. Rescale slope/intercept are applied per slice and MONOCHROME1 is
+inverted so that bright means high signal.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from imaging.errors import DicomSeriesError
+from imaging.volume import Volume
+
+__all__ = ["read_dicom_series", "write_dicom_series"]
+
+log = logging.getLogger(__name__)
+
+MR_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.4"
+_SKIP_SUFFIXES = {".txt", ".json", ".md", ".toml", ".xml", ".csv", ".log"}
+
+
+def _candidate_files(folder: Path) -> list[Path]:
+    return sorted(
+        p
+        for p in folder.iterdir()
+        if p.is_file()
+        and not p.name.startswith(".")
+        and p.suffix.lower() not in _SKIP_SUFFIXES
+        and p.name.upper() != "DICOMDIR"
+    )
+
+
+def _read_file(path: Path):  # noqa: ANN202 - pydicom Dataset
+    import pydicom
+    from pydicom.errors import InvalidDicomError
+
+    try:
+        return pydicom.dcmread(path)
+    except (InvalidDicomError, OSError, EOFError, ValueError, KeyError, TypeError) as exc:
+        raise DicomSeriesError(f"{path}: not a readable DICOM file ({exc})") from exc
+
+
+def _list_series(folder: Path, datasets: dict[Path, object]) -> None:
+    """Raise when the folder holds several series (GDCM ids cross-checked with the headers)."""
+    import SimpleITK as sitk
+
+    gdcm_ids = list(sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder)))
+    uids: dict[str, list[Path]] = {}
+    for path, ds in datasets.items():
+        uid = str(getattr(ds, "SeriesInstanceUID", ""))
+        if not uid:
+            raise DicomSeriesError(f"{path}: missing SeriesInstanceUID")
+        uids.setdefault(uid, []).append(path)
+    if len(uids) > 1 or len(gdcm_ids) > 1:
+        lines = []
+        for uid, paths in sorted(uids.items()):
+            ds = datasets[paths[0]]
+            desc = getattr(ds, "SeriesDescription", "")
+            mod = getattr(ds, "Modality", "?")
+            lines.append(f"  {uid} ({len(paths)} files, {mod}, {desc!r}, e.g. {paths[0].name})")
+        raise DicomSeriesError(
+            f"{folder}: folder holds {max(len(uids), len(gdcm_ids))} DICOM series, expected one:\n"
+            + "\n".join(lines)
+        )
+
+
+def _slice_pixels(path: Path, ds) -> np.ndarray:  # noqa: ANN001
+    """Decode and rescale a slice; returns it in (i, j) order (columns, rows), float32."""
+    try:
+        pix = ds.pixel_array
+    except Exception as exc:  # truncated data, unsupported compression, ...
+        raise DicomSeriesError(f"{path}: cannot decode pixel data ({exc})") from exc
+    if pix.ndim != 2:
+        raise DicomSeriesError(f"{path}: expected one 2-D frame, got pixel shape {pix.shape}")
+    slope = float(getattr(ds, "RescaleSlope", 1.0) or 1.0)
+    intercept = float(getattr(ds, "RescaleIntercept", 0.0) or 0.0)
+    pix = pix.astype(np.float32)
+    if str(getattr(ds, "PhotometricInterpretation", "MONOCHROME2")).strip() == "MONOCHROME1":
+        # Invert within the stored range so that bright means high signal.
+        bits = int(ds.BitsStored)
+        lo, hi = (
+            (-(2 ** (bits - 1)), 2 ** (bits - 1) - 1)
+            if int(ds.PixelRepresentation)
+            else (0, 2**bits - 1)
+        )
+        pix = np.float32(lo + hi) - pix
+    out = pix * np.float32(slope) + np.float32(intercept)
+    return out.T
+
+
+def _check_header(path: Path, ds, ref) -> None:  # noqa: ANN001
+    modality = str(getattr(ds, "Modality", "")).strip()
+    if modality != "MR":
+        raise DicomSeriesError(f"{path}: Modality is {modality or 'missing'!r}, expected 'MR'")
+    for tag in ("ImageOrientationPatient", "ImagePositionPatient", "PixelSpacing"):
+        if tag not in ds:
+            raise DicomSeriesError(f"{path}: missing {tag}")
+    if ref is None:
+        return
+    iop = np.array(ds.ImageOrientationPatient, float)
+    iop0 = np.array(ref.ImageOrientationPatient, float)
+    if np.max(np.abs(iop - iop0)) > 1e-4:
+        raise DicomSeriesError(
+            f"{path}: ImageOrientationPatient {iop.round(5).tolist()} differs from the "
+            f"series' {iop0.round(5).tolist()}"
+        )
+    if (int(ds.Rows), int(ds.Columns)) != (int(ref.Rows), int(ref.Columns)):
+        raise DicomSeriesError(f"{path}: Rows/Columns differ from the rest of the series")
+    if np.max(np.abs(np.array(ds.PixelSpacing, float) - np.array(ref.PixelSpacing, float))) > 1e-4:
+        raise DicomSeriesError(f"{path}: PixelSpacing differs from the rest of the series")
+
+
+def _slice_order(paths: list[Path], datasets: dict, normal: np.ndarray) -> tuple[list[int], float]:
+    pos = np.array([np.array(datasets[p].ImagePositionPatient, float) for p in paths])
+    s = pos @ normal
+    order = list(np.argsort(s, kind="stable"))
+    s_sorted = s[order]
+    gaps = np.diff(s_sorted)
+    for a, g in enumerate(gaps):
+        if g < 1e-3:
+            raise DicomSeriesError(
+                f"{paths[order[a + 1]]}: duplicate slice position (same as {paths[order[a]].name})"
+            )
+    dz = float(np.median(gaps))
+    for a, g in enumerate(gaps):
+        if g > 1.5 * dz:
+            n_missing = int(round(g / dz)) - 1
+            raise DicomSeriesError(
+                f"{paths[order[0]].parent}: {max(n_missing, 1)} missing slice(s) between "
+                f"{paths[order[a]].name} and {paths[order[a + 1]].name} (gap {g:.3f} mm, "
+                f"slice spacing {dz:.3f} mm from ImagePositionPatient)"
+            )
+        if abs(g - dz) > max(0.01, 0.01 * dz):
+            raise DicomSeriesError(
+                f"{paths[order[a + 1]]}: non-uniform slice spacing ({g:.4f} mm vs {dz:.4f} mm)"
+            )
+    lateral = (pos - pos[order[0]]) - np.outer((pos - pos[order[0]]) @ normal, normal)
+    worst = int(np.argmax(np.linalg.norm(lateral, axis=1)))
+    if np.linalg.norm(lateral[worst]) > 0.01 + 1e-3 * abs(s_sorted[-1] - s_sorted[0]):
+        raise DicomSeriesError(
+            f"{paths[worst]}: ImagePositionPatient is off the slice-normal line (gantry tilt "
+            "or mixed stacks are not supported)"
+        )
+    return order, dz
+
+
+def read_dicom_series(folder: str | os.PathLike) -> Volume:
+    """Read one MR DICOM series from a folder.
+
+    Parameters
+    ----------
+    folder : path-like
+        Folder holding the files of exactly one series (hidden files, ``DICOMDIR`` and text
+        files are ignored).
+
+    Returns
+    -------
+    Volume
+        Rescaled float32 intensities in (i, j, k) order; the affine maps to LPS mm.
+
+    Raises
+    ------
+    DicomSeriesError
+        Unreadable or truncated file, several series, non-MR modality, inconsistent
+        orientation or in-plane geometry, duplicated or missing slice, non-uniform spacing.
+    """
+    folder = Path(folder)
+    files = _candidate_files(folder)
+    if not files:
+        raise DicomSeriesError(f"{folder}: folder holds no DICOM files")
+    datasets = {p: _read_file(p) for p in files}
+    _list_series(folder, datasets)
+    ref = None
+    for p in files:
+        _check_header(p, datasets[p], ref)
+        ref = ref if ref is not None else datasets[p]
+    if len(files) < 2:
+        raise DicomSeriesError(f"{folder}: series has {len(files)} slice, need at least 2")
+    iop = np.array(ref.ImageOrientationPatient, float)
+    row_cos, col_cos = iop[:3], iop[3:]
+    normal = np.cross(row_cos, col_cos)
+    if abs(np.linalg.norm(normal) - 1.0) > 1e-3 or abs(row_cos @ col_cos) > 1e-3:
+        raise DicomSeriesError(f"{files[0]}: ImageOrientationPatient is not orthonormal")
+    normal /= np.linalg.norm(normal)
+    order, dz = _slice_order(files, datasets, normal)
+    slices = [_slice_pixels(files[o], datasets[files[o]]) for o in order]
+    arr = np.stack(slices, axis=2)
+    row_spacing, col_spacing = (float(v) for v in ref.PixelSpacing)
+    A = np.eye(4)
+    A[:3, 0] = row_cos * col_spacing
+    A[:3, 1] = col_cos * row_spacing
+    A[:3, 2] = normal * dz
+    A[:3, 3] = np.array(datasets[files[order[0]]].ImagePositionPatient, float)
+    log.debug("read %d slices from %s", len(files), folder)
+    return Volume(arr, A, str(folder))
+
+
+def _ds(v: float, fmt: str = ".10g") -> str:
+    out = format(float(v), fmt)
+    return "0" if out in ("-0", "-0.0") else out
+
+
+def _quantise(arr: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Return stored uint16 values and the (slope, intercept) that map them back."""
+    a = np.asarray(arr)
+    if np.issubdtype(a.dtype, np.integer) and a.min() >= 0 and a.max() <= 65535:
+        return a.astype(np.uint16), 1.0, 0.0
+    lo, hi = float(a.min()), float(a.max())
+    intercept = float(_ds(lo))
+    slope = float(_ds(max(hi - intercept, 1e-6) / 65000.0))
+    stored = np.clip(np.rint((a - intercept) / slope), 0, 65535).astype(np.uint16)
+    return stored, slope, intercept
+
+
+def write_dicom_series(
+    volume: Volume,
+    folder: str | os.PathLike,
+    *,
+    seed: int = 0,
+    patient_name: str = "PHANTOM^CIRS073",
+    patient_id: str = "PHANTOM",
+    series_description: str = "synthetic T2",
+    series_number: int = 1,
+    study_date: str = "20240101",
+    modality: str = "MR",
+    photometric: str = "MONOCHROME2",
+    overwrite: bool = False,
+) -> list[Path]:
+    """Write a volume as a DICOM MR image series (one file per k slice), atomically.
+
+    Parameters
+    ----------
+    volume : Volume
+        Intensities in (i, j, k) order; i, j become the row/column directions of
+        ImageOrientationPatient and k the slice direction (must be normal to the slices).
+    folder : path-like
+        Output folder; written to a temporary sibling and renamed when complete.
+    seed : int
+        Seeds the Study/Series/SOP/FrameOfReference UIDs, so that two runs with the same seed
+        produce byte-identical files.
+    patient_name, patient_id, series_description, series_number, study_date : str or int
+        Header values.
+    modality, photometric : str
+        Written as given (tests use them to produce invalid series).
+    overwrite : bool
+        Replace an existing folder.
+
+    Returns
+    -------
+    list of Path
+        Files written, in slice order.
+    """
+    import pydicom
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    folder = Path(folder)
+    if folder.exists() and not overwrite:
+        raise FileExistsError(f"{folder}: exists (pass overwrite=True to replace it)")
+    A = volume.affine_lps_from_index
+    sp = volume.spacing_mm
+    d = volume.direction
+    normal = np.cross(d[:, 0], d[:, 1])
+    if abs(abs(normal @ d[:, 2]) - 1.0) > 1e-6:
+        raise ValueError(f"{volume.source}: slice axis k is not normal to the i, j plane")
+    stored, slope, intercept = _quantise(volume.array)
+    if photometric == "MONOCHROME1":
+        # The reader maps stored s to (65535 - s) * slope + intercept for MONOCHROME1.
+        stored = (65535 - stored.astype(np.int64)).astype(np.uint16)
+    uid = lambda name: generate_uid(entropy_srcs=[f"phantom-calib:{seed}:{name}"])  # noqa: E731
+    study_uid, series_uid, frame_uid = uid("study"), uid(f"series{series_number}"), uid("frame")
+    iop = [_ds(c, ".8f") for c in np.concatenate([d[:, 0], d[:, 1]])]
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f".{folder.name}."))
+    names = []
+    try:
+        for k in range(volume.shape[2]):
+            meta = FileMetaDataset()
+            meta.MediaStorageSOPClassUID = MR_IMAGE_STORAGE
+            meta.MediaStorageSOPInstanceUID = uid(f"series{series_number}:sop{k}")
+            meta.TransferSyntaxUID = ExplicitVRLittleEndian
+            ds = Dataset()
+            ds.file_meta = meta
+            ds.SOPClassUID = MR_IMAGE_STORAGE
+            ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
+            ds.StudyDate = ds.SeriesDate = ds.ContentDate = study_date
+            ds.StudyTime = ds.SeriesTime = ds.ContentTime = "120000"
+            ds.Modality = modality
+            ds.Manufacturer = "phantom-calib"
+            ds.PatientName = patient_name
+            ds.PatientID = patient_id
+            ds.PatientBirthDate = ""
+            ds.PatientSex = "O"
+            ds.StudyInstanceUID = study_uid
+            ds.SeriesInstanceUID = series_uid
+            ds.FrameOfReferenceUID = frame_uid
+            ds.StudyID = "1"
+            ds.SeriesNumber = series_number
+            ds.InstanceNumber = k + 1
+            ds.SeriesDescription = series_description
+            ds.ScanningSequence = "SE"
+            ds.SequenceVariant = "NONE"
+            ds.ScanOptions = ""
+            ds.MRAcquisitionType = "2D"
+            ds.SliceThickness = _ds(sp[2], ".8g")
+            ds.SpacingBetweenSlices = _ds(sp[2], ".8g")
+            ds.ImagePositionPatient = [_ds(x, ".6f") for x in A[:3, :3] @ [0, 0, k] + A[:3, 3]]
+            ds.ImageOrientationPatient = iop
+            ds.SliceLocation = _ds(float((A[:3, 3] + k * A[:3, 2]) @ normal), ".6f")
+            ds.PositionReferenceIndicator = ""
+            ds.SamplesPerPixel = 1
+            ds.PhotometricInterpretation = photometric
+            ds.Rows, ds.Columns = volume.shape[1], volume.shape[0]
+            ds.PixelSpacing = [_ds(sp[1], ".8g"), _ds(sp[0], ".8g")]
+            ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16, 16, 15
+            ds.PixelRepresentation = 0
+            ds.RescaleIntercept = _ds(intercept)
+            ds.RescaleSlope = _ds(slope)
+            ds.RescaleType = "US"
+            ds.PixelData = np.ascontiguousarray(stored[:, :, k].T).astype("<u2").tobytes()
+            name = f"IM{k + 1:05d}.dcm"
+            pydicom.dcmwrite(tmp / name, ds, enforce_file_format=True)
+            names.append(name)
+        if folder.exists():
+            shutil.rmtree(folder)
+        os.replace(tmp, folder)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+    return [folder / n for n in names]

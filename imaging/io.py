@@ -1,0 +1,156 @@
+"""Volume readers and writers: DICOM series folders, NIfTI, NRRD and MHA.
+
+All readers return a :class:`~imaging.volume.Volume` in LPS millimetres; NIfTI's RAS world
+frame is converted to LPS. Writers are atomic (a temporary file in the same folder, then
+:func:`os.replace`).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from imaging.errors import VolumeReadError
+from imaging.volume import Volume
+
+__all__ = ["read_volume", "write_nifti", "write_volume"]
+
+log = logging.getLogger(__name__)
+
+_RAS_FROM_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
+_ITK_SUFFIXES = (".nrrd", ".nhdr", ".mha", ".mhd")
+
+
+def _suffix(path: Path) -> str:
+    name = path.name.lower()
+    if name.endswith(".nii.gz"):
+        return ".nii.gz"
+    return path.suffix.lower()
+
+
+def read_volume(path: str | os.PathLike) -> Volume:
+    """Read a scan volume, dispatching on the path.
+
+    Parameters
+    ----------
+    path : path-like
+        A folder holding one DICOM series, or a ``.nii``/``.nii.gz``, ``.nrrd``/``.nhdr`` or
+        ``.mha``/``.mhd`` file.
+
+    Returns
+    -------
+    Volume
+        Array in (i, j, k) order and its index-to-LPS affine (mm).
+
+    Raises
+    ------
+    VolumeReadError
+        Missing, truncated, corrupt or unsupported input; the message names the file.
+    """
+    p = Path(path)
+    if p.is_dir():
+        from imaging.dicom import read_dicom_series
+
+        return read_dicom_series(p)
+    if not p.is_file():
+        raise VolumeReadError(f"{p}: no such file or folder")
+    suffix = _suffix(p)
+    if suffix in (".nii", ".nii.gz"):
+        return _read_nifti(p)
+    if suffix in _ITK_SUFFIXES:
+        return _read_itk(p)
+    raise VolumeReadError(
+        f"{p}: unsupported volume format {suffix!r} (expected a DICOM folder, .nii, .nii.gz, "
+        ".nrrd, .nhdr, .mha or .mhd)"
+    )
+
+
+def _read_nifti(path: Path) -> Volume:
+    import nibabel as nib
+
+    try:
+        img = nib.load(str(path))
+        arr = np.asanyarray(img.dataobj)
+    except Exception as exc:  # nibabel raises many types for broken files
+        raise VolumeReadError(f"{path}: cannot read NIfTI file ({exc})") from exc
+    if arr.ndim == 4 and arr.shape[3] == 1:
+        arr = arr[..., 0]
+    if arr.ndim != 3:
+        raise VolumeReadError(f"{path}: expected a 3-D volume, got shape {arr.shape}")
+    affine = _RAS_FROM_LPS @ np.asarray(img.affine, float)
+    if not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < 1e-12:
+        raise VolumeReadError(f"{path}: NIfTI affine is missing or singular")
+    return Volume(np.array(arr), affine, str(path))
+
+
+def _read_itk(path: Path) -> Volume:
+    import SimpleITK as sitk
+
+    try:
+        img = sitk.ReadImage(str(path))
+    except RuntimeError as exc:
+        msg = str(exc).strip().splitlines()[-1] if str(exc).strip() else "unknown reason"
+        raise VolumeReadError(f"{path}: cannot read image ({msg})") from exc
+    if img.GetDimension() != 3 or img.GetNumberOfComponentsPerPixel() != 1:
+        raise VolumeReadError(f"{path}: expected a 3-D scalar volume")
+    return Volume.from_sitk(img, source=str(path))
+
+
+def _atomic_target(path: Path) -> tuple[Path, str]:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=_suffix(path))
+    os.close(fd)
+    return path, tmp
+
+
+def write_nifti(volume: Volume, path: str | os.PathLike) -> Path:
+    """Write a volume as NIfTI-1 (``.nii`` or ``.nii.gz``), atomically.
+
+    The LPS affine is converted to RAS and stored as both sform and qform (code 1,
+    scanner). Returns the path written.
+    """
+    import nibabel as nib
+
+    target, tmp = _atomic_target(Path(path))
+    if _suffix(target) not in (".nii", ".nii.gz"):
+        os.unlink(tmp)
+        raise ValueError(f"{target}: NIfTI path must end in .nii or .nii.gz")
+    affine_ras = _RAS_FROM_LPS @ volume.affine_lps_from_index
+    arr = volume.array
+    if arr.dtype == bool:
+        arr = arr.astype(np.uint8)
+    img = nib.Nifti1Image(arr, affine_ras)
+    img.set_sform(affine_ras, code=1)
+    img.set_qform(affine_ras, code=1)
+    img.header.set_xyzt_units("mm")
+    try:
+        nib.save(img, tmp)
+        os.replace(tmp, target)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return target
+
+
+def write_volume(volume: Volume, path: str | os.PathLike) -> Path:
+    """Write a volume as NIfTI, NRRD or MHA (chosen by the suffix), atomically."""
+    target = Path(path)
+    if _suffix(target) in (".nii", ".nii.gz"):
+        return write_nifti(volume, target)
+    if _suffix(target) not in (".nrrd", ".mha"):
+        raise ValueError(f"{target}: unsupported output suffix (use .nii[.gz], .nrrd or .mha)")
+    import SimpleITK as sitk
+
+    target, tmp = _atomic_target(target)
+    arr = volume.array.astype(np.uint8) if volume.array.dtype == bool else volume.array
+    try:
+        sitk.WriteImage(volume.with_array(arr).to_sitk(), tmp, useCompression=True)
+        os.replace(tmp, target)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return target

@@ -1,0 +1,168 @@
+"""One call from a scan volume to everything later stages need: :func:`process_scan`."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from imaging.detect import InclusionDetection, detect_fiducials, detect_inclusions
+from imaging.landmarks import BackPlane, estimate_back_plane, find_nipple, select_tumour
+from imaging.segment import segment_body
+from imaging.surface import SurfaceMesh, extract_surface, mark_back_plate
+from imaging.volume import Volume
+
+__all__ = ["ScanResult", "process_scan"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class ScanResult:
+    """Everything extracted from one scan, in the scan's LPS frame (mm).
+
+    Attributes
+    ----------
+    surface : SurfaceMesh
+        Closed body surface with ``back_plate`` vertex flags.
+    mask : Volume
+        uint8 body mask on the scan grid.
+    fiducials_lps_mm : (k, 3) ndarray
+        Fiducial marker centroids (sorted lexicographically by L, P, S).
+    nipple_lps_mm : (3,) ndarray
+    tumour_lps_mm : (3,) ndarray or None
+        Tracked inclusion centre (None when no inclusion was found).
+    inclusions : InclusionDetection
+        All inclusions: centres (n, 3) and volume-equivalent diameters (n,) in mm.
+    back_plane : BackPlane
+    voxel_size_mm : (3,) ndarray
+        Spacing along i, j, k.
+    quality : dict
+        Segmentation, surface and landmark quality figures and stage timings (``time_*_s``).
+    """
+
+    surface: SurfaceMesh
+    mask: Volume
+    fiducials_lps_mm: np.ndarray
+    nipple_lps_mm: np.ndarray
+    tumour_lps_mm: np.ndarray | None
+    inclusions: InclusionDetection
+    back_plane: BackPlane
+    voxel_size_mm: np.ndarray
+    quality: dict = field(default_factory=dict)
+
+    def to_json_dict(self) -> dict:
+        """JSON-ready summary (lists and floats) for ``ingest.json``."""
+        t = None if self.tumour_lps_mm is None else self.tumour_lps_mm.tolist()
+        return {
+            "fiducials_lps_mm": self.fiducials_lps_mm.tolist(),
+            "nipple_lps_mm": self.nipple_lps_mm.tolist(),
+            "tumour_lps_mm": t,
+            "inclusions": [
+                {"centre_lps_mm": c.tolist(), "diameter_mm": float(d)}
+                for c, d in zip(
+                    self.inclusions.centres_lps_mm, self.inclusions.diameters_mm, strict=True
+                )
+            ],
+            "voxel_size_mm": self.voxel_size_mm.tolist(),
+            "back_plane": {
+                "point_lps_mm": self.back_plane.point_lps_mm.tolist(),
+                "normal": self.back_plane.normal.tolist(),
+                "method": self.back_plane.method,
+            },
+            "quality": {
+                k: (v if isinstance(v, (bool, int, str)) else float(v))
+                for k, v in self.quality.items()
+            },
+        }
+
+
+def process_scan(
+    volume: Volume,
+    *,
+    expected_fiducials: int | None = 3,
+    tumour_hint_lps_mm: np.ndarray | None = None,
+    target_faces: int = 20000,
+    smooth_iterations: int = 10,
+    back_plate_tol_mm: float = 1.5,
+    marker_ratio: float = 2.0,
+    inclusion_min_contrast: float = 0.15,
+    seed: int = 0,
+) -> ScanResult:
+    """Segment a scan and extract its surface, fiducials, inclusions, nipple and tumour.
+
+    Parameters
+    ----------
+    volume : Volume
+        The MR scan (see :func:`imaging.io.read_volume`).
+    expected_fiducials : int or None
+        Expected marker count (``None``: accept any).
+    tumour_hint_lps_mm : (3,) array, optional
+        The tracked tumour is the inclusion nearest to this point (else the largest).
+    target_faces : int
+        Surface decimation target.
+    smooth_iterations : int
+        Taubin smoothing iterations.
+    back_plate_tol_mm : float
+        Vertices within this height of the back face are flagged ``back_plate``.
+    marker_ratio, inclusion_min_contrast : float
+        Detector thresholds relative to the body level (see :mod:`imaging.detect`).
+    seed : int
+        Seeds the bias-fit subsample and the RANSAC plane fallback.
+
+    Raises
+    ------
+    ImagingError
+        Empty segmentation, wrong marker count, ... (messages name the volume's source).
+    """
+    times = {}
+    t0 = time.perf_counter()
+    seg = segment_body(volume, marker_ratio=marker_ratio, seed=seed)
+    times["time_segment_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    fid = detect_fiducials(seg, expected=expected_fiducials, marker_ratio=marker_ratio)
+    inc = detect_inclusions(seg, min_contrast=inclusion_min_contrast)
+    times["time_detect_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    surf = extract_surface(
+        seg.smoothed, mask=seg.mask, smooth_iterations=smooth_iterations, target_faces=target_faces
+    )
+    times["time_surface_s"] = time.perf_counter() - t0
+    plane = estimate_back_plane(
+        surf.vertices_lps_mm, fiducials_lps_mm=fid.centres_lps_mm, seed=seed
+    )
+    flags = mark_back_plate(
+        surf.vertices_lps_mm,
+        plane_point_lps_mm=plane.point_lps_mm,
+        plane_normal=plane.normal,
+        tol_mm=back_plate_tol_mm,
+    )
+    nipple = find_nipple(surf.vertices_lps_mm, plane)
+    tumour = None
+    if len(inc.diameters_mm):
+        k = select_tumour(inc.centres_lps_mm, inc.diameters_mm, hint_lps_mm=tumour_hint_lps_mm)
+        tumour = inc.centres_lps_mm[k]
+    quality = {**{f"seg_{k}": v for k, v in seg.quality.items()}}
+    quality.update({f"surface_{k}": v for k, v in surf.quality.items()})
+    quality.update(
+        n_fiducials=len(fid.centres_lps_mm),
+        n_inclusions=len(inc.diameters_mm),
+        back_plate_fraction=float(flags.mean()),
+        nipple_height_mm=nipple.height_mm,
+        nipple_refined=bool(nipple.quality["refined"]),
+        **times,
+    )
+    surface = SurfaceMesh(surf.vertices_lps_mm, surf.faces, flags, surf.quality)
+    return ScanResult(
+        surface=surface,
+        mask=seg.mask,
+        fiducials_lps_mm=fid.centres_lps_mm,
+        nipple_lps_mm=nipple.position_lps_mm,
+        tumour_lps_mm=tumour,
+        inclusions=inc,
+        back_plane=plane,
+        voxel_size_mm=volume.spacing_mm,
+        quality=quality,
+    )

@@ -1,0 +1,66 @@
+"""Rigid registration of phantom scans: fiducial fit, gravity, ICP and surface distances.
+
+Heavy dependencies (open3d) are imported inside the functions that need them.
+"""
+
+from registration.distances import (
+    DistanceSummary,
+    PointError,
+    SurfaceError,
+    closest_point_distances,
+    hausdorff_mm,
+    landmark_errors,
+    nipple_error,
+    point_to_surface_distances,
+    summarise,
+    surface_errors,
+)
+from registration.errors import (
+    AmbiguousCorrespondenceError,
+    DegenerateMarkersError,
+    MarkerCountError,
+    PostureMismatchError,
+    PostureMismatchWarning,
+    RegistrationError,
+)
+from registration.gravity import (
+    PostureCheck,
+    angle_between_deg,
+    check_posture,
+    gravity_in_reference,
+)
+from registration.icp import IcpLevel, IcpResult, icp_refine
+from registration.rigid import RigidFit, apply_transform, fit_rigid
+from registration.session import ScanRegistration, format_registration_table, register_scans
+
+__all__ = [
+    "AmbiguousCorrespondenceError",
+    "DegenerateMarkersError",
+    "DistanceSummary",
+    "IcpLevel",
+    "IcpResult",
+    "MarkerCountError",
+    "PointError",
+    "PostureCheck",
+    "PostureMismatchError",
+    "PostureMismatchWarning",
+    "RegistrationError",
+    "RigidFit",
+    "ScanRegistration",
+    "SurfaceError",
+    "angle_between_deg",
+    "apply_transform",
+    "check_posture",
+    "closest_point_distances",
+    "fit_rigid",
+    "format_registration_table",
+    "gravity_in_reference",
+    "hausdorff_mm",
+    "icp_refine",
+    "landmark_errors",
+    "nipple_error",
+    "point_to_surface_distances",
+    "register_scans",
+    "summarise",
+    "surface_errors",
+]

@@ -1,0 +1,259 @@
+"""Register every scan of a session to the reference scan by its fiducial markers."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from registration.errors import MarkerCountError, RegistrationError
+from registration.gravity import angle_between_deg, check_posture, gravity_in_reference
+from registration.rigid import fit_rigid
+
+__all__ = ["ScanRegistration", "format_registration_table", "register_scans"]
+
+log = logging.getLogger(__name__)
+
+
+def _frozen(a) -> np.ndarray:
+    a = np.array(a, dtype=float, copy=True)
+    a.flags.writeable = False
+    return a
+
+
+def _opt(x: float | None) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+@dataclass(frozen=True, eq=False)
+class ScanRegistration:
+    """Fiducial registration of one scan to the reference scan.
+
+    Attributes
+    ----------
+    scan : str
+        Scan name.
+    is_reference : bool
+        True for the reference scan (identity transform, zero errors by definition).
+    T_ref_from_scan : numpy.ndarray, shape (4, 4)
+        Maps the scan's LPS mm to the reference scan's LPS mm.
+    fre_mm : float
+        Fiducial registration error (RMS over markers), millimetres.
+    tre_nipple_mm, tre_tumour_mm : float or None
+        Expected target registration error (Fitzpatrick) at the scan's nipple / tumour,
+        millimetres; None where the landmark is not given.
+    gravity_ref : numpy.ndarray, shape (3,)
+        Unit gravity vector of this scan in the reference frame.
+    residuals_mm : numpy.ndarray, shape (k,)
+        Per-marker residuals in the scan's marker order, millimetres.
+    permutation : tuple of int
+        Scan marker i corresponds to reference marker ``permutation[i]``.
+    fle_mm : float
+        Fiducial localisation error used for the TRE (given or estimated from the FRE).
+    """
+
+    scan: str
+    is_reference: bool
+    T_ref_from_scan: np.ndarray
+    fre_mm: float
+    tre_nipple_mm: float | None
+    tre_tumour_mm: float | None
+    gravity_ref: np.ndarray
+    residuals_mm: np.ndarray
+    permutation: tuple[int, ...]
+    fle_mm: float
+
+    def __post_init__(self) -> None:
+        for f in ("T_ref_from_scan", "gravity_ref", "residuals_mm"):
+            object.__setattr__(self, f, _frozen(getattr(self, f)))
+
+    def to_json(self) -> dict:
+        """Plain JSON-ready dict (lists and floats; None for a missing TRE).
+
+        Returns
+        -------
+        dict
+            Keys ``T_ref_from_scan``, ``fre_mm``, ``tre_nipple_mm``, ``tre_tumour_mm``,
+            ``gravity_ref``, plus ``residuals_mm``, ``marker_permutation``, ``fle_mm``,
+            ``is_reference``, ``frame`` and ``tre_method``.
+        """
+        return {
+            "T_ref_from_scan": self.T_ref_from_scan.tolist(),
+            "fre_mm": float(self.fre_mm),
+            "tre_nipple_mm": _opt(self.tre_nipple_mm),
+            "tre_tumour_mm": _opt(self.tre_tumour_mm),
+            "gravity_ref": self.gravity_ref.tolist(),
+            "residuals_mm": self.residuals_mm.tolist(),
+            "marker_permutation": list(self.permutation),
+            "fle_mm": _opt(self.fle_mm),
+            "is_reference": bool(self.is_reference),
+            "frame": "fiducial",
+            "tre_method": "Fitzpatrick, West & Maurer 1998 (expected RMS)",
+        }
+
+
+def _gravity_for(scan: str, gravity_scanner) -> np.ndarray:
+    if isinstance(gravity_scanner, dict):
+        if scan not in gravity_scanner:
+            raise RegistrationError(f"gravity_scanner: no entry for scan {scan!r}")
+        return np.asarray(gravity_scanner[scan], dtype=float)
+    return np.asarray(gravity_scanner, dtype=float)
+
+
+def register_scans(
+    fiducials_by_scan: dict[str, np.ndarray],
+    *,
+    reference: str,
+    gravity_scanner: Sequence[float] | dict[str, Sequence[float]] = (0.0, 1.0, 0.0),
+    nominal_angles_deg: dict[str, float] | None = None,
+    landmarks_by_scan: dict[str, dict[str, np.ndarray]] | None = None,
+    correspondence: str = "auto",
+    fle_mm: float | None = None,
+    max_fre_mm: float | None = 2.0,
+    ambiguity_margin_mm: float = 1.0,
+    posture_warn_deg: float = 2.0,
+    posture_error_deg: float = 10.0,
+) -> dict[str, ScanRegistration]:
+    """Register every scan to the reference scan by its fiducial markers.
+
+    Parameters
+    ----------
+    fiducials_by_scan : dict of str to array_like, shape (k, 3)
+        Marker centroids per scan in that scan's LPS frame, millimetres (any order with
+        ``correspondence="auto"``).
+    reference : str
+        Name of the reference scan (its LPS frame is the phantom frame).
+    gravity_scanner : array_like, shape (3,), or dict of str to it
+        Gravity direction in the scanner LPS frame, for all scans or per scan.
+    nominal_angles_deg : dict of str to float, optional
+        Nominal posture angles (one common rotation plane); checked against the registered
+        gravity with :func:`registration.gravity.check_posture`.
+    landmarks_by_scan : dict of str to dict of str to array_like, shape (3,), optional
+        Per scan, ``"nipple"`` and/or ``"tumour"`` in the scan's LPS frame, millimetres; the
+        TRE is evaluated there.
+    correspondence : {"auto", "given"}
+        Marker correspondence, see :func:`registration.rigid.fit_rigid`.
+    fle_mm : float, optional
+        Known fiducial localisation error for the TRE; default estimated from each FRE.
+    max_fre_mm : float or None
+        Raise if a scan's FRE exceeds this (missing or spurious marker); None disables.
+    ambiguity_margin_mm : float
+        See :func:`registration.rigid.fit_rigid`.
+    posture_warn_deg, posture_error_deg : float
+        Thresholds of the posture cross-check.
+
+    Returns
+    -------
+    dict of str to ScanRegistration
+        Per scan, in input order.
+
+    Raises
+    ------
+    RegistrationError
+        Unknown reference, bad markers (see ``fit_rigid``), posture mismatch.
+    """
+    if reference not in fiducials_by_scan:
+        raise RegistrationError(
+            f"reference scan {reference!r} has no fiducials (scans: {sorted(fiducials_by_scan)})"
+        )
+    ref_markers = np.asarray(fiducials_by_scan[reference], dtype=float)
+    landmarks_by_scan = landmarks_by_scan or {}
+    out: dict[str, ScanRegistration] = {}
+    for scan, markers in fiducials_by_scan.items():
+        markers = np.asarray(markers, dtype=float)
+        if markers.ndim != 2 or markers.shape != ref_markers.shape:
+            raise MarkerCountError(
+                f"scan {scan!r}: markers have shape {markers.shape}, the reference scan "
+                f"{reference!r} has {ref_markers.shape}"
+            )
+        fit = fit_rigid(
+            markers,
+            ref_markers,
+            correspondence="given" if scan == reference else correspondence,
+            max_fre_mm=max_fre_mm,
+            ambiguity_margin_mm=ambiguity_margin_mm,
+            name=f"scan {scan!r}",
+        )
+        is_ref = scan == reference
+        T = np.eye(4) if is_ref else fit.T_target_from_source
+        fle = 0.0 if is_ref else (fit.fle_estimate_mm if fle_mm is None else float(fle_mm))
+        tre = {}
+        for key in ("nipple", "tumour"):
+            point = landmarks_by_scan.get(scan, {}).get(key)
+            if point is None:
+                tre[key] = None
+            else:
+                tre[key] = 0.0 if is_ref else fit.tre_mm(np.reshape(point, 3), fle_mm=fle)
+        out[scan] = ScanRegistration(
+            scan=scan,
+            is_reference=is_ref,
+            T_ref_from_scan=T,
+            fre_mm=0.0 if is_ref else fit.fre_mm,
+            tre_nipple_mm=tre["nipple"],
+            tre_tumour_mm=tre["tumour"],
+            gravity_ref=gravity_in_reference(T, _gravity_for(scan, gravity_scanner)),
+            residuals_mm=np.zeros(len(markers)) if is_ref else fit.residuals_mm,
+            permutation=tuple(range(len(markers))) if is_ref else fit.permutation,
+            fle_mm=fle,
+        )
+        log.info("registered %s: FRE %.3f mm", scan, out[scan].fre_mm)
+    if nominal_angles_deg:
+        check_posture(
+            {s: r.gravity_ref for s, r in out.items()},
+            nominal_angles_deg,
+            warn_deg=posture_warn_deg,
+            error_deg=posture_error_deg,
+        )
+    return out
+
+
+def _fmt(x: float | None, spec: str = ".2f") -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def format_registration_table(registrations: dict[str, ScanRegistration]) -> str:
+    """Plain-text summary table of a session's registrations for the CLI.
+
+    Parameters
+    ----------
+    registrations : dict of str to ScanRegistration
+        Output of :func:`register_scans`.
+
+    Returns
+    -------
+    str
+        One header line, a rule and one line per scan (FRE, TRE at nipple and tumour in mm,
+        gravity in the reference frame and its angle to the reference scan's gravity).
+    """
+    ref = next((r for r in registrations.values() if r.is_reference), None)
+    header = [
+        "scan",
+        "role",
+        "FRE mm",
+        "TRE nipple mm",
+        "TRE tumour mm",
+        "gravity_ref",
+        "g angle deg",
+    ]
+    rows = []
+    for name, r in registrations.items():
+        angle = None if ref is None else angle_between_deg(r.gravity_ref, ref.gravity_ref)
+        rows.append(
+            [
+                name,
+                "reference" if r.is_reference else "",
+                _fmt(r.fre_mm, ".3f"),
+                _fmt(r.tre_nipple_mm),
+                _fmt(r.tre_tumour_mm),
+                "[" + ", ".join(f"{g:+.3f}" for g in r.gravity_ref) + "]",
+                _fmt(angle),
+            ]
+        )
+    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows, strict=True)]
+    lines = ["  ".join(h.ljust(w) for h, w in zip(header, widths, strict=True))]
+    lines.append("  ".join("-" * w for w in widths))
+    lines += ["  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)) for row in rows]
+    return "\n".join(lines)

@@ -1,0 +1,206 @@
+import itertools
+
+import numpy as np
+import pytest
+from conftest import MARKERS_MM, random_rigid, rotation_error_deg
+
+from registration import (
+    AmbiguousCorrespondenceError,
+    DegenerateMarkersError,
+    MarkerCountError,
+    RegistrationError,
+    apply_transform,
+    fit_rigid,
+)
+
+
+def _naive_arun(p, q):
+    """Arun et al. without the reflection correction (what the correction must fix)."""
+    H = (p - p.mean(0)).T @ (q - q.mean(0))
+    U, _, Vt = np.linalg.svd(H)
+    return Vt.T @ U.T
+
+
+def test_random_transforms_recovered_from_three_noisy_markers():
+    rng = np.random.default_rng(20240401)
+    # "0.2 mm isotropic noise" read as a 3D RMS localisation error of 0.2 mm, i.e. sigma =
+    # 0.2/sqrt(3) mm per axis.  The translation error at the marker centroid is then
+    # N(0, sigma^2/3) per axis, whose 99th percentile norm is 3.37 * 0.067 = 0.22 mm < 0.3 mm;
+    # with 0.2 mm *per axis* that percentile would be 0.39 mm and the 0.3 mm bound could not
+    # hold for any estimator.  The rotation error for this ~120 mm triangle is ~0.1 deg RMS.
+    sigma = 0.2 / np.sqrt(3.0)
+    n_trials = 1000
+    ok, dets = 0, []
+    for _ in range(n_trials):
+        T = random_rigid(rng)
+        target = apply_transform(T, MARKERS_MM) + rng.normal(0.0, sigma, (3, 3))
+        fit = fit_rigid(MARKERS_MM, target)
+        dets.append(np.linalg.det(fit.rotation))
+        rot = rotation_error_deg(fit.rotation, T[:3, :3])
+        trans = np.linalg.norm(fit.translation_mm - T[:3, 3])
+        ok += rot <= 0.3 and trans <= 0.3
+    # Markers are centred on the origin of the source frame, so translation_mm is the
+    # displacement at the markers (not a lever-arm artefact).
+    assert ok / n_trials >= 0.99, f"only {ok / n_trials:.3f} of trials within bounds"
+    # det of a rotation is +1 to round-off (1e-12 is ~1e4 double epsilons).
+    np.testing.assert_allclose(dets, 1.0, atol=1e-12)
+
+
+def _random_planar_layout(rng, n):
+    """Random markers in the plane z = 0, redrawn until clearly non-degenerate."""
+    while True:
+        src = np.c_[rng.uniform(-70, 70, (n, 2)), np.zeros(n)]
+        d = np.linalg.norm(src[:, None] - src[None], axis=-1)[np.triu_indices(n, 1)]
+        s = np.linalg.svd(src - src.mean(0), compute_uv=False)
+        if d.min() > 10.0 and s[1] / np.sqrt(n) > 10.0:
+            return src
+
+
+def test_coplanar_markers_never_give_a_reflection():
+    rng = np.random.default_rng(7)
+    # Exactly coplanar, noise-free: H has rank 2, the third singular vectors have arbitrary
+    # sign and the naive SVD returns a reflection in a fair share of cases.
+    naive_reflections = 0
+    for n in (3, 4, 5):
+        for _ in range(100):
+            src = _random_planar_layout(rng, n)
+            T = random_rigid(rng)
+            tgt = apply_transform(T, src)
+            naive_reflections += np.linalg.det(_naive_arun(src, tgt)) < 0
+            fit = fit_rigid(src, tgt)
+            # exact data: recovered to round-off (1e-9 relative to 100 mm coordinates)
+            assert np.linalg.det(fit.rotation) == pytest.approx(1.0, abs=1e-12)
+            np.testing.assert_allclose(fit.T_target_from_source, T, atol=1e-9)
+            assert fit.fre_mm < 1e-9
+    assert naive_reflections > 0, "test set does not exercise the reflection case"
+
+
+def test_mirrored_target_still_gives_a_rotation():
+    # Target is the mirror image of a non-coplanar set: the best *rotation* is returned.
+    src = np.array([[0.0, 0, 0], [80, 0, 0], [0, 60, 0], [10, 20, 50]])
+    tgt = src * np.array([1.0, 1.0, -1.0])
+    fit = fit_rigid(src, tgt)
+    assert np.linalg.det(fit.rotation) == pytest.approx(1.0, abs=1e-12)
+    assert fit.fre_mm > 1.0  # a rotation cannot explain a mirror image
+
+
+def test_permuted_marker_order_recovered():
+    rng = np.random.default_rng(3)
+    for perm in itertools.permutations(range(3)):
+        T = random_rigid(rng)
+        tgt = apply_transform(T, MARKERS_MM) + rng.normal(0, 0.1, (3, 3))
+        shuffled = np.empty_like(tgt)
+        shuffled[list(perm)] = tgt  # source i is now at row perm[i]
+        fit = fit_rigid(MARKERS_MM, shuffled, correspondence="auto")
+        assert fit.permutation == perm
+        given = fit_rigid(MARKERS_MM, tgt)
+        # the same marker pairs give the same fit up to round-off
+        np.testing.assert_allclose(fit.T_target_from_source, given.T_target_from_source, atol=1e-9)
+        # wrong orderings of a scalene 116/124/130 mm triangle leave residuals of several mm
+        assert fit.second_best_fre_mm > 3.0
+
+
+def test_auto_correspondence_on_four_markers():
+    rng = np.random.default_rng(11)
+    src = np.array([[-60.0, -40, 0], [70, -30, 0], [-10, 65, 0], [40, 50, 5]])
+    T = random_rigid(rng)
+    perm = (2, 0, 3, 1)
+    tgt = np.empty_like(src)
+    tgt[list(perm)] = apply_transform(T, src)
+    fit = fit_rigid(src, tgt, correspondence="auto")
+    assert fit.permutation == perm
+    np.testing.assert_allclose(fit.T_target_from_source, T, atol=1e-9)  # exact data
+
+
+def test_symmetric_layout_is_ambiguous():
+    isosceles = np.array([[-50.0, 0, 0], [50, 0, 0], [0, 90, 0]])
+    with pytest.raises(AmbiguousCorrespondenceError, match="ambiguous"):
+        fit_rigid(isosceles, isosceles + 5.0, correspondence="auto")
+
+
+@pytest.mark.parametrize(
+    ("source", "target", "error", "match"),
+    [
+        (MARKERS_MM[:2], MARKERS_MM[:2], MarkerCountError, "at least 3"),
+        (MARKERS_MM, np.r_[MARKERS_MM, [[0.0, 0, 0]]], MarkerCountError, "mismatch"),
+        (
+            np.array([[0.0, 0, 0], [50, 0, 0], [120, 0, 0]]),
+            MARKERS_MM,
+            DegenerateMarkersError,
+            "collinear",
+        ),
+        (
+            MARKERS_MM,
+            np.array([[0.0, 0, 0], [50, 0, 0], [50, 0, 0.1]]),
+            DegenerateMarkersError,
+            "coincident",
+        ),
+        (MARKERS_MM, np.zeros((3, 2)), MarkerCountError, "shape"),
+        (np.r_[MARKERS_MM[:2], [[np.nan, 0, 0]]], MARKERS_MM, RegistrationError, "NaN"),
+    ],
+)
+def test_bad_marker_sets_give_clear_errors(source, target, error, match):
+    with pytest.raises(error, match=match):
+        fit_rigid(source, target, name="scan 'x'")
+    assert issubclass(error, ValueError)
+
+
+def test_max_fre_rejects_a_spurious_marker():
+    tgt = MARKERS_MM.copy()
+    # one marker 8 mm off along an edge: changes two pairwise distances by ~8 mm, which no
+    # rigid motion can absorb (an out-of-plane shift would be mostly absorbed by a tilt)
+    edge = tgt[2] - tgt[0]
+    tgt[2] += 8.0 * edge / np.linalg.norm(edge)
+    with pytest.raises(RegistrationError, match="exceeds"):
+        fit_rigid(MARKERS_MM, tgt, max_fre_mm=2.0)
+
+
+def test_weights_ignore_a_zero_weight_outlier():
+    rng = np.random.default_rng(5)
+    src = np.array([[-60.0, -40, 0], [70, -30, 0], [-10, 65, 0], [40, 50, 5]])
+    T = random_rigid(rng)
+    tgt = apply_transform(T, src)
+    tgt[3] += 10.0
+    fit = fit_rigid(src, tgt, weights=[1.0, 1.0, 1.0, 0.0])
+    np.testing.assert_allclose(fit.T_target_from_source, T, atol=1e-9)  # exact on 3 markers
+    assert fit.residuals_mm[3] == pytest.approx(np.sqrt(3) * 10.0, rel=1e-9)
+    # equal weights are the unweighted fit (two code paths agree to round-off)
+    a = fit_rigid(src, tgt, weights=np.full(4, 2.5))
+    b = fit_rigid(src, tgt)
+    np.testing.assert_allclose(a.T_target_from_source, b.T_target_from_source, atol=1e-12)
+
+
+def test_fitzpatrick_tre_and_fle_estimate_match_monte_carlo():
+    rng = np.random.default_rng(99)
+    fle = 0.5  # 3D RMS, mm
+    sigma = fle / np.sqrt(3.0)
+    targets = np.array([[0.0, 0.0, 80.0], [30.0, -20.0, 40.0], [150.0, 0.0, 0.0]])
+    n = 3000
+    err2 = np.zeros(len(targets))
+    fre2 = 0.0
+    fit0 = None
+    for _ in range(n):
+        T = random_rigid(rng)
+        fit = fit_rigid(MARKERS_MM, apply_transform(T, MARKERS_MM) + rng.normal(0, sigma, (3, 3)))
+        err = apply_transform(fit.T_target_from_source, targets) - apply_transform(T, targets)
+        err2 += np.sum(err**2, axis=1)
+        fre2 += fit.fre_mm**2
+        fit0 = fit
+    tre_mc = np.sqrt(err2 / n)
+    tre_formula = fit0.tre_mm(targets, fle_mm=fle)
+    # Monte Carlo RMS of ~3 dof: relative SE ~ 0.82/sqrt(3000)/2 = 0.75 %; the first-order
+    # formula is exact to O(FLE/distance) ~ 0.5 %; 5 % is > 5 SE.
+    np.testing.assert_allclose(tre_mc, tre_formula, rtol=0.05)
+    # E[FRE^2] = (1 - 2/N) FLE^2 (Fitzpatrick 1998), so the FLE estimate is unbiased in the
+    # mean square; relative SE of mean FRE^2 with 3 dof is ~ 0.82/sqrt(3000) = 1.5 %.
+    assert np.sqrt(fre2 / n / (1 - 2 / 3)) == pytest.approx(fle, rel=0.05)
+    assert fit0.fle_estimate_mm == pytest.approx(fit0.fre_mm * np.sqrt(3.0), rel=1e-12)
+    assert isinstance(fit0.tre_mm(targets[0]), float)
+
+
+def test_result_is_frozen():
+    fit = fit_rigid(MARKERS_MM, MARKERS_MM + 1.0)
+    with pytest.raises(ValueError, match="read-only"):
+        fit.T_target_from_source[0, 0] = 2.0
+    with pytest.raises(AttributeError):
+        fit.fre_mm = 0.0
