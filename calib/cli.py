@@ -78,6 +78,43 @@ def simulate(
     )
 
 
+@app.command()
+def init(
+    scans: Annotated[Path, typer.Argument(help="Folder of DICOM series folders / volume files.")],
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace session.toml.")] = False,
+) -> None:
+    """Scaffold a session.toml by finding the series in a folder."""
+    from .session import scaffold_session
+
+    try:
+        path = scaffold_session(scans, overwrite=overwrite)
+    except (ValueError, OSError) as exc:
+        fail(exc)
+    typer.echo(f"wrote {path}; edit the roles and postures before ingest")
+
+
+@app.command()
+def ingest(
+    scans: Annotated[Path, typer.Argument(help="Scan folder with session.toml.")],
+    out: Annotated[Path, typer.Option("--out", help="Work folder to write.")],
+) -> None:
+    """Segment, surface and register every scan of a session."""
+    from rich.progress import Progress
+
+    from .ingest import ingest_session
+    from .session import load_session
+
+    try:
+        n = len(load_session(scans).scans)
+        with Progress(transient=True) as bar:
+            task = bar.add_task("ingest", total=n)
+            result = ingest_session(scans, out, progress=lambda name: bar.advance(task))
+    except (ValueError, OSError, RuntimeError) as exc:
+        fail(exc)
+    typer.echo(result.summary_table)
+    typer.echo(f"wrote {out / 'scans'}")
+
+
 def main() -> None:
     """Console-script entry point."""
     app()

@@ -4,7 +4,7 @@ from .discretize import FORMULATIONS, Discretization, discretize
 from .materials import FebioNeoHookean, MooneyRivlin, NeoHookean, Volumetric
 from .mesh import MeshError, MeshQuality, TetMesh, boundary_faces, mesh_quality
 from .model import Clamped, Constrained, ElasticSupport, Model, Sliding
-from .solver import ConvergenceError, Solution, SolverOptions, solve
+from .solver import ConvergenceError, Solution, SolverOptions, displacement_at, solve
 
 __all__ = [
     "FORMULATIONS",
@@ -26,6 +26,7 @@ __all__ = [
     "Volumetric",
     "boundary_faces",
     "discretize",
+    "displacement_at",
     "mesh_quality",
     "solve",
 ]

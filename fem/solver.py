@@ -18,6 +18,7 @@ __all__ = [
     "ConvergenceError",
     "Solution",
     "SolverOptions",
+    "displacement_at",
     "gravity_vector",
     "solve",
     "vertex_displacement_mm",
@@ -376,3 +377,28 @@ def _full_matrix(disc: Discretization, matrices: np.ndarray):
     rows = np.repeat(edofs, n, axis=1).ravel()
     cols = np.tile(edofs, (1, n)).ravel()
     return sp.csr_matrix((matrices.ravel(), (rows, cols)), shape=(disc.n_dofs,) * 2)
+
+
+def displacement_at(disc: Discretization, state: np.ndarray, points_mm: np.ndarray) -> np.ndarray:
+    """Interpolate the FE displacement (full order of the formulation) at points.
+
+    Parameters
+    ----------
+    disc : Discretization
+    state : ndarray, shape (n_dofs,)
+        ``Solution.state`` of a solve on ``disc``.
+    points_mm : ndarray, shape (k, 3)
+        Points inside the (undeformed) mesh, model frame, mm.
+
+    Returns
+    -------
+    ndarray, shape (k, 3)
+        Displacements in mm, model frame.
+    """
+    pts = (np.asarray(points_mm, float).reshape(-1, 3) * M_PER_MM) @ disc.R_solver_from_model.T
+    try:
+        P = disc.skfem_basis.probes(pts.T)
+    except ValueError as exc:
+        raise ValueError("a point to interpolate at lies outside the mesh") from exc
+    u = state[: 3 * disc.n_scalar_u].reshape(-1, 3)
+    return (P @ u) @ disc.R_solver_from_model * MM_PER_M

@@ -33,11 +33,15 @@ Surface = tuple[np.ndarray, np.ndarray]
 
 @dataclass(frozen=True)
 class MRIntensities:
-    """Noise-free tissue intensities (arbitrary units) before the bias field."""
+    """Noise-free tissue intensities (arbitrary units) before the bias field.
+
+    The skin defaults to the body intensity (a layer that is mechanically distinct but not
+    visible on MR); the segmentation is not validated for a visible skin layer yet.
+    """
 
     background: float = 0.0
     body: float = 1000.0
-    skin: float = 1300.0
+    skin: float = 1000.0
     inclusion: float = 1600.0
     marker: float = 3500.0
 

@@ -176,3 +176,31 @@ def test_seed_outside_volume():
     )
     with pytest.raises(ValueError, match="x.nrrd: seed"):
         segment_inclusion_at(v, [50.0, 0.0, 0.0])
+
+
+def test_invisible_skin_changes_nothing_and_visible_skin_renders():
+    from imaging import MRIntensities
+
+    plain = make_scan(spacing=(1.2, 1.2, 1.5), seed=4, n_inclusions=0, bias=0.0, snr=np.inf)
+    skin = make_scan(
+        spacing=(1.2, 1.2, 1.5), seed=4, n_inclusions=0, bias=0.0, snr=np.inf, skin=1.5
+    )
+    # Default skin intensity equals the body's: the image is unchanged.
+    np.testing.assert_array_equal(plain.volume.array, skin.volume.array)
+    ph, T = plain.phantom, plain.T
+    grid = scan_grid_covering(plain.to_scanner(ph.body[0]), spacing_mm=(1.0, 1.0, 1.0))
+    vis = render_mr_volume(
+        ph.body,
+        T_scanner_from_phantom=T,
+        grid=grid,
+        skin_thickness_mm=2.0,
+        intensities=MRIntensities(skin=1500.0),
+        bias_amplitude=0.0,
+        snr=np.inf,
+    )
+    # A visible 2 mm skin band: some voxels reach the skin level, none exceed it; the apex
+    # region (well above the back face) carries it, the back face (z < 2 mm) does not.
+    assert vis.array.max() == pytest.approx(1500.0)
+    ijk = np.argwhere(vis.array > 1250.0)
+    z_ph = ((vis.index_to_lps(ijk) - T[:3, 3]) @ T[:3, :3])[:, 2]
+    assert z_ph.min() > 1.0 and z_ph.max() > 25.0

@@ -1,0 +1,202 @@
+"""The scan folder: ``session.toml`` and one series (folder) or volume file per scan."""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["ScanEntry", "Session", "SessionError", "load_session", "scaffold_session"]
+
+ROLES = ("reference", "calibration", "validation")
+VOLUME_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
+
+
+class SessionError(ValueError):
+    """A scan folder or its session.toml is not valid (the message says where and why)."""
+
+
+@dataclass(frozen=True)
+class ScanEntry:
+    """One scan of the session.
+
+    Attributes
+    ----------
+    name : str
+    path : Path
+        Absolute path to the DICOM series folder or the volume file.
+    role : {"reference", "calibration", "validation"}
+    posture_plane : str or None
+    posture_angle_deg : float or None
+        Nominal posture angle, checked against registration.
+    """
+
+    name: str
+    path: Path
+    role: str
+    posture_plane: str | None = None
+    posture_angle_deg: float | None = None
+
+
+@dataclass(frozen=True)
+class Session:
+    """A validated scan session.
+
+    Attributes
+    ----------
+    folder : Path
+    gravity_scanner : ndarray, shape (3,)
+        Unit gravity vector in the scanner's LPS frame.
+    density_kg_m3 : float
+    expected_fiducials : int
+    tumour_hint_lps_mm : ndarray or None
+        Landmark override: the tracked tumour near this point of the reference scan.
+    scans : tuple of ScanEntry
+    """
+
+    folder: Path
+    gravity_scanner: np.ndarray
+    density_kg_m3: float
+    expected_fiducials: int
+    tumour_hint_lps_mm: np.ndarray | None
+    scans: tuple[ScanEntry, ...] = field(default_factory=tuple)
+
+    @property
+    def reference(self) -> ScanEntry:
+        """The reference scan (its LPS frame is the phantom frame)."""
+        return next(s for s in self.scans if s.role == "reference")
+
+    def by_role(self, role: str) -> list[ScanEntry]:
+        """Scans with the given role."""
+        return [s for s in self.scans if s.role == role]
+
+
+def _vector(value, where: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=float) if isinstance(value, list) else None
+    if arr is None or arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise SessionError(f"{where} must be a list of 3 numbers, got {value!r}")
+    return arr
+
+
+def _table(doc: dict, key: str, where: Path) -> dict:
+    value = doc.get(key, {})
+    if not isinstance(value, dict):
+        raise SessionError(f"{where}: [{key}] must be a table")
+    return value
+
+
+def _scan(entry, index: int, folder: Path, toml: Path) -> ScanEntry:
+    where = f"{toml}: [[scans]] #{index + 1}"
+    if not isinstance(entry, dict):
+        raise SessionError(f"{where} must be a table")
+    unknown = set(entry) - {"name", "path", "role", "posture"}
+    if unknown:
+        raise SessionError(f"{where}: unknown key(s) {sorted(unknown)}")
+    for key in ("name", "path", "role"):
+        if not isinstance(entry.get(key), str) or not entry[key]:
+            raise SessionError(f"{where}: '{key}' must be a non-empty string")
+    if entry["role"] not in ROLES:
+        raise SessionError(f"{where}: role must be one of {ROLES}, got {entry['role']!r}")
+    path = (folder / entry["path"]).resolve()
+    if not path.exists():
+        raise SessionError(f"{where} ({entry['name']}): scan path {path} does not exist")
+    posture = entry.get("posture", {})
+    if not isinstance(posture, dict):
+        raise SessionError(f"{where}: posture must be an inline table")
+    angle = posture.get("angle_deg")
+    if angle is not None and not isinstance(angle, (int, float)):
+        raise SessionError(f"{where}: posture.angle_deg must be a number, got {angle!r}")
+    return ScanEntry(entry["name"], path, entry["role"], posture.get("plane"), angle)
+
+
+def load_session(folder: str | Path) -> Session:
+    """Read and validate ``folder/session.toml``.
+
+    Raises
+    ------
+    SessionError
+        Missing file, TOML syntax error, unknown roles, no or several reference scans,
+        duplicate names, missing scan paths, malformed vectors.
+    """
+    folder = Path(folder).resolve()
+    toml = folder / "session.toml"
+    if not toml.is_file():
+        raise SessionError(f"{folder}: no session.toml (create one with `phantom-calib init`)")
+    try:
+        doc = tomllib.loads(toml.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise SessionError(f"{toml}: not valid TOML: {exc}") from exc
+    scanner, phantom = _table(doc, "scanner", toml), _table(doc, "phantom", toml)
+    landmarks = _table(doc, "landmarks", toml)
+    g = _vector(scanner.get("gravity", [0.0, 1.0, 0.0]), f"{toml}: scanner.gravity")
+    if np.linalg.norm(g) == 0:
+        raise SessionError(f"{toml}: scanner.gravity must be non-zero")
+    density = phantom.get("density_kg_m3", 1000.0)
+    if not isinstance(density, (int, float)) or density <= 0:
+        raise SessionError(f"{toml}: phantom.density_kg_m3 must be positive, got {density!r}")
+    nfid = phantom.get("fiducials", 3)
+    if not isinstance(nfid, int) or nfid < 3:
+        raise SessionError(f"{toml}: phantom.fiducials must be an integer >= 3, got {nfid!r}")
+    tumour = landmarks.get("tumour")
+    hint = None if tumour is None else _vector(tumour, f"{toml}: landmarks.tumour")
+    raw = doc.get("scans")
+    if not isinstance(raw, list) or not raw:
+        raise SessionError(f"{toml}: no [[scans]] entries")
+    scans = tuple(_scan(e, i, folder, toml) for i, e in enumerate(raw))
+    _check_scans(scans, toml)
+    return Session(folder, g / np.linalg.norm(g), float(density), nfid, hint, scans)
+
+
+def _check_scans(scans: tuple[ScanEntry, ...], toml: Path) -> None:
+    names = [s.name for s in scans]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise SessionError(f"{toml}: duplicate scan name(s) {dup}")
+    refs = [s.name for s in scans if s.role == "reference"]
+    if len(refs) != 1:
+        raise SessionError(f"{toml}: exactly one scan must have role 'reference', found {refs}")
+
+
+def _find_scans(folder: Path) -> list[Path]:
+    found = []
+    for p in sorted(folder.iterdir()):
+        if p.is_dir() and any(f.is_file() and not f.name.startswith(".") for f in p.iterdir()):
+            found.append(p)
+        elif p.is_file() and p.name.lower().endswith(VOLUME_SUFFIXES):
+            found.append(p)
+    return found
+
+
+def scaffold_session(folder: str | Path, *, overwrite: bool = False) -> Path:
+    """Write a ``session.toml`` listing every series folder and volume file in ``folder``.
+
+    The first scan becomes the reference, the others calibration scans; edit the
+    roles and postures afterwards.
+    """
+    import tomli_w
+
+    from .io import atomic_write
+
+    folder = Path(folder)
+    target = folder / "session.toml"
+    if target.exists() and not overwrite:
+        raise SessionError(f"{target} exists; pass overwrite to replace it")
+    scans = _find_scans(folder)
+    if not scans:
+        raise SessionError(f"{folder}: no DICOM series folders or volume files found")
+    doc = {
+        "scanner": {"gravity": [0.0, 1.0, 0.0]},
+        "phantom": {"density_kg_m3": 1000.0, "fiducials": 3},
+        "scans": [
+            {
+                "name": p.name.split(".")[0],
+                "path": p.name,
+                "role": "reference" if i == 0 else "calibration",
+            }
+            for i, p in enumerate(scans)
+        ],  # fmt: skip
+    }
+    text = tomli_w.dumps(doc)
+    return atomic_write(target, lambda p: p.write_text(text))

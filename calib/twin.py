@@ -1,0 +1,267 @@
+"""``phantom-calib synth``: a digital twin of the multi-posture phantom experiment.
+
+Builds the stress-free phantom, meshes it finer than calibration meshes, solves each
+posture's gravity deformation with the truth model (which may hide effects), poses
+the phantom in the scanner, renders MR-like DICOM series and seals the truth apart::
+
+    OUT/scans/session.toml, OUT/scans/<name>/*.dcm     (what the pipeline sees)
+    OUT/truth/truth.json, OUT/truth/<name>_surface.ply (never read by the pipeline)
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+import fem
+from fem.geometry import PhantomSpec, build_phantom, sphere_surface
+from fem.meshing import mesh_phantom
+
+from .effects import TruthEffects, truth_model
+from .io import provenance, write_json_atomic
+from .postures import random_scanner_pose
+
+__all__ = ["PRESETS", "Posture", "TwinPreset", "synthesize"]
+
+log = logging.getLogger(__name__)
+G_SCANNER = np.array([0.0, 1.0, 0.0])
+
+
+@dataclass(frozen=True)
+class Posture:
+    """One scan of the experiment: name, nominal angle (deg) and session role."""
+
+    name: str
+    angle_deg: float
+    role: str
+
+
+DISSERTATION_POSTURES = (
+    Posture("left_lateral", 0.0, "reference"),
+    Posture("right_lateral", 180.0, "calibration"),
+    Posture("tilt_25", 25.0, "validation"),
+    Posture("tilt_50", 50.0, "validation"),
+)
+
+
+@dataclass(frozen=True)
+class TwinPreset:
+    """Resolution and imaging settings of a twin (see ``PRESETS``)."""
+
+    phantom_resolution_mm: float
+    truth_mesh_mm: float
+    spacing_mm: tuple[float, float, float]
+    min_shape: tuple[int, int, int] = (0, 0, 0)
+    snr: float = 30.0
+    bias_amplitude: float = 0.2
+    c1_pa: float = 420.0
+    formulation: str = "taylor-hood"
+    postures: tuple[Posture, ...] = DISSERTATION_POSTURES
+    effects: TruthEffects = field(
+        default_factory=lambda: TruthEffects(skin_thickness_mm=1.5, skin_ratio=8.0)
+    )
+
+
+PRESETS = {
+    "quick": TwinPreset(phantom_resolution_mm=10.0, truth_mesh_mm=10.0, spacing_mm=(1.5, 1.5, 1.5)),
+    "dissertation": TwinPreset(
+        phantom_resolution_mm=5.0,
+        truth_mesh_mm=5.0,
+        spacing_mm=(0.8, 0.8, 0.8),
+        min_shape=(256, 256, 0),
+    ),  # fmt: skip
+}
+
+
+def _transform(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return np.asarray(p, float) @ T[:3, :3].T + T[:3, 3]
+
+
+@dataclass(frozen=True)
+class _Truth:
+    """The true deformed state of one posture, phantom frame (mm)."""
+
+    gravity_phantom: np.ndarray
+    body: tuple[np.ndarray, np.ndarray]
+    inclusions: list
+    nipple_mm: np.ndarray
+    tumour_mm: np.ndarray
+    solution: fem.Solution
+
+
+def _deform(phantom, mesh, model, disc, g_phantom, x0) -> _Truth:
+    sol = fem.solve(model, gravity=g_phantom, disc=disc, x0=x0)
+    u = np.round(sol.displacement_mm, 9)  # deterministic to well below any image effect
+    faces = fem.boundary_faces(mesh.tets)
+    incl = []
+    for c, d in zip(phantom.inclusion_centres_mm, phantom.inclusion_diameters_mm, strict=True):
+        v, f = sphere_surface(c, d / 2, subdivisions=2)
+        incl.append((v + np.round(fem.displacement_at(disc, sol.state, v), 9), f))
+    tumour = phantom.tumour_mm + fem.displacement_at(disc, sol.state, phantom.tumour_mm[None])[0]
+    nipple = mesh.node_set("nipple")[0]
+    return _Truth(g_phantom, (mesh.nodes_mm + u, faces), incl,
+                  mesh.nodes_mm[nipple] + u[nipple], tumour, sol)  # fmt: skip
+
+
+def _render(truth: _Truth, phantom, T: np.ndarray, preset: TwinPreset, seed: int):
+    import imaging
+
+    pts = np.vstack([truth.body[0], phantom.fiducials_mm])
+    grid = imaging.scan_grid_covering(
+        _transform(T, pts), spacing_mm=preset.spacing_mm, margin_mm=12.0,
+        min_shape=preset.min_shape,
+    )  # fmt: skip
+    return imaging.render_mr_volume(
+        truth.body, T_scanner_from_phantom=T, grid=grid, inclusions=truth.inclusions,
+        fiducial_centres_mm=phantom.fiducials_mm, bias_amplitude=preset.bias_amplitude,
+        snr=preset.snr, seed=seed,
+    )  # fmt: skip
+
+
+def _session_toml(preset: TwinPreset) -> str:
+    import tomli_w
+
+    return tomli_w.dumps({
+        "scanner": {"gravity": G_SCANNER.tolist()},
+        "phantom": {"density_kg_m3": 1000.0, "fiducials": 3},
+        "scans": [
+            {"name": p.name, "path": p.name, "role": p.role,
+             "posture": {"plane": "transverse", "angle_deg": p.angle_deg}}
+            for p in preset.postures
+        ],
+    })  # fmt: skip
+
+
+def _scan_truth(name, truth: _Truth, T, phantom) -> dict:
+    return {
+        "T_scanner_from_phantom": T.tolist(),
+        "gravity_phantom": truth.gravity_phantom.tolist(),
+        "fiducials_lps_mm": _transform(T, phantom.fiducials_mm).tolist(),
+        "nipple_lps_mm": _transform(T, truth.nipple_mm).tolist(),
+        "tumour_lps_mm": _transform(T, truth.tumour_mm).tolist(),
+        "nipple_phantom_mm": truth.nipple_mm.tolist(),
+        "tumour_phantom_mm": truth.tumour_mm.tolist(),
+        "newton_iterations": truth.solution.newton_iterations,
+        "surface": f"{name}_surface.ply",
+    }
+
+
+def _write_truth_surface(path: Path, truth: _Truth, T) -> None:
+    import imaging
+
+    v, f = truth.body
+    surf = imaging.SurfaceMesh(_transform(T, v), f, np.abs(v[:, 2]) < 1e-6)
+    imaging.write_ply(path, surf)
+
+
+def synthesize(
+    out: str | os.PathLike,
+    *,
+    preset: str | TwinPreset = "quick",
+    seed: int = 0,
+    effects: TruthEffects | None = None,
+    overwrite: bool = False,
+    progress=None,
+) -> dict:
+    """Build a synthetic scan set with sealed truth (see the module docstring).
+
+    The folder is assembled beside ``out`` and moved into place only when complete,
+    so an interrupted run leaves no scan folder that looks complete.
+
+    Returns
+    -------
+    dict
+        The truth record written to ``OUT/truth/truth.json``.
+    """
+    if isinstance(preset, TwinPreset):
+        p, preset = preset, "custom"
+    elif preset in PRESETS:
+        p = PRESETS[preset]
+    else:
+        raise ValueError(f"unknown preset {preset!r}; choose {sorted(PRESETS)}")
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out} exists; choose another folder or pass --overwrite")
+    eff = p.effects if effects is None else effects
+    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        record = _build(tmp, p, preset, seed, eff, progress or (lambda msg: log.info(msg)))
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return record
+
+
+def _build(tmp: Path, p: TwinPreset, preset: str, seed: int, eff: TruthEffects, say) -> dict:
+    import imaging
+
+    t0 = time.perf_counter()
+    spec = PhantomSpec(resolution_mm=p.phantom_resolution_mm, seed=seed)
+    phantom = build_phantom(spec)
+    mesh = mesh_phantom(phantom, size_mm=p.truth_mesh_mm, skin_thickness_mm=eff.skin_thickness_mm)
+    model = truth_model(mesh, p.c1_pa, eff)
+    disc = fem.discretize(mesh, model.support, formulation=p.formulation)
+    say(f"truth mesh: {mesh.n_tets} tets, {disc.pattern.n_free} dofs")
+    rng = np.random.default_rng([seed, 2])
+    scans, x0 = {}, None
+    for i, post in enumerate(p.postures):
+        T = random_scanner_pose(post.angle_deg, G_SCANNER, rng, centre_mm=[0.0, 0.0, 35.0])
+        g_phantom = T[:3, :3].T @ G_SCANNER
+        truth = _deform(phantom, mesh, model, disc, g_phantom, x0)
+        x0 = truth.solution.state
+        vol = _render(truth, phantom, T, p, seed=seed * 1000 + i)
+        imaging.write_dicom_series(vol, tmp / "scans" / post.name, seed=seed * 1000 + i,
+                                   series_description=post.name, series_number=i + 1)  # fmt: skip
+        _write_truth_surface(tmp / "truth" / f"{post.name}_surface.ply", truth, T)
+        scans[post.name] = _scan_truth(post.name, truth, T, phantom) | {
+            "nominal_angle_deg": post.angle_deg, "role": post.role}  # fmt: skip
+        say(f"scan {post.name}: nipple moved "
+            f"{np.linalg.norm(truth.nipple_mm - phantom.nipple_mm):.1f} mm")  # fmt: skip
+    (tmp / "scans" / "session.toml").write_text(_session_toml(p))
+    record = _record(preset, p, seed, eff, phantom, mesh, disc, scans, time.perf_counter() - t0)
+    write_json_atomic(tmp / "truth" / "truth.json", record)
+    return record
+
+
+def _record(preset, p, seed, eff, phantom, mesh, disc, scans, wall_s) -> dict:
+    prov = provenance(parameters={"preset": preset, "seed": seed})
+    prov.pop("created_utc")  # the truth must be identical for identical seeds
+    prov.pop("command")
+    return {
+        "preset": preset,
+        "seed": seed,
+        "material": {
+            "law": "mooney-rivlin" if eff.c2_pa else "neo-hookean",
+            "c1_pa": p.c1_pa,
+            "c2_pa": eff.c2_pa,
+            "nu": eff.nu,
+        },  # fmt: skip
+        "effects": asdict(eff) | {"active": eff.active()},
+        "density_kg_m3": eff.density_kg_m3,
+        "stress_free": {
+            "nipple_phantom_mm": phantom.nipple_mm.tolist(),
+            "tumour_phantom_mm": phantom.tumour_mm.tolist(),
+            "fiducials_phantom_mm": phantom.fiducials_mm.tolist(),
+            "inclusion_centres_phantom_mm": phantom.inclusion_centres_mm.tolist(),
+            "inclusion_diameters_mm": phantom.inclusion_diameters_mm.tolist(),
+        },
+        "mesh": {
+            "n_tets": mesh.n_tets,
+            "n_nodes": mesh.n_nodes,
+            "size_mm": p.truth_mesh_mm,
+            "formulation": p.formulation,
+            "dofs": int(disc.pattern.n_free),
+        },  # fmt: skip
+        "scans": scans,
+        "versions": prov["versions"],
+        "wall_s_not_reproducible": wall_s,
+    }
