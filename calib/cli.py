@@ -115,6 +115,34 @@ def ingest(
     typer.echo(f"wrote {out / 'scans'}")
 
 
+@app.command()
+def synth(
+    out: Annotated[Path, typer.Argument(help="Folder to create (scans/ and truth/).")],
+    preset: Annotated[str, typer.Option("--preset", help="quick or dissertation.")] = "quick",
+    seed: Annotated[int, typer.Option("--seed", help="Seed of every random choice.")] = 0,
+    effect: Annotated[
+        list[str] | None,
+        typer.Option("--effect", help="Hidden effect NAME[=VALUE]; repeat for several."),
+    ] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace OUT.")] = False,
+) -> None:
+    """Build a digital-twin scan set with sealed truth."""
+    from .effects import parse_effects
+    from .twin import PRESETS, synthesize
+
+    try:
+        if preset not in PRESETS:
+            raise ValueError(f"unknown preset {preset!r}; choose {sorted(PRESETS)}")
+        effects = parse_effects(effect or [], default=PRESETS[preset].effects)
+        record = synthesize(out, preset=preset, seed=seed, effects=effects, overwrite=overwrite,
+                            progress=lambda msg: typer.echo(f"  {msg}"))  # fmt: skip
+    except (ValueError, OSError, RuntimeError) as exc:
+        fail(exc)
+    active = ", ".join(record["effects"]["active"]) or "none"
+    typer.echo(f"wrote {out}/scans (session.toml + {len(record['scans'])} DICOM series) and "
+               f"{out}/truth (hidden effects: {active})")  # fmt: skip
+
+
 def main() -> None:
     """Console-script entry point."""
     app()

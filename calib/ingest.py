@@ -94,8 +94,8 @@ def _write_scan(work: Path, name: str, res, reg, session: Session) -> None:
     folder = work / "scans" / name
     folder.mkdir(parents=True, exist_ok=True)
     imaging.write_ply(folder / "surface.ply", res.surface)
-    ref_surface = replace(res.surface, vertices_lps_mm=_map(reg.T_ref_from_scan,
-                                                            res.surface.vertices_lps_mm))  # fmt: skip
+    ref_vertices = _map(reg.T_ref_from_scan, res.surface.vertices_lps_mm)
+    ref_surface = replace(res.surface, vertices_lps_mm=ref_vertices)
     imaging.write_ply(folder / "surface_ref.ply", ref_surface)
     imaging.write_nifti(res.mask, folder / "mask.nii.gz")
     entry = next(s for s in session.scans if s.name == name)

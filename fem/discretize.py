@@ -92,10 +92,50 @@ class Discretization:
         return np.hstack([u, 3 * self.n_scalar_u + self.pdofs])
 
     def with_nodes(self, nodes_mm: np.ndarray) -> Discretization:
-        """Same topology, support and pattern on moved nodes (for reference recovery)."""
+        """Same topology, support and pattern on moved nodes (for reference recovery).
+
+        Elements are affine, so the new gradients and weights follow from the
+        reference-element data and the new vertex positions alone (no re-initialisation).
+        """
         mesh = self.mesh.with_nodes(nodes_mm)
-        geo = _geometry(mesh, self.formulation, self.R_solver_from_model)
-        return replace(self, mesh=mesh, **geo)
+        jac = _jacobians(mesh, self.R_solver_from_model)
+        ref = self.reference_data
+        grad = np.einsum("qam,emj->eqaj", ref["grad"], np.linalg.inv(jac), optimize=True)
+        weights = np.abs(np.linalg.det(jac))[:, None] * ref["weights"][None, :]
+        return replace(self, mesh=mesh, grad_u=grad, weights=weights)
+
+    def basis(self):
+        """A scikit-fem basis of the displacement space on the current nodes."""
+        from skfem import Basis
+
+        b = self.skfem_basis
+        p = (self.mesh.nodes_mm * M_PER_MM) @ self.R_solver_from_model.T
+        if np.array_equal(b.mesh.p, p.T):
+            return b
+        return Basis(
+            _skfem_mesh(self.mesh, self.R_solver_from_model), b.elem, quadrature=b.quadrature
+        )
+
+    @property
+    def reference_data(self) -> dict:
+        """Reference-element gradients (Q, Au, 3) and quadrature weights (Q,)."""
+        return _reference_data(self.skfem_basis)
+
+
+def _jacobians(mesh: TetMesh, R: np.ndarray) -> np.ndarray:
+    """Affine element maps ``[x1-x0, x2-x0, x3-x0]`` (columns), solver frame, m; (E, 3, 3)."""
+    x = (mesh.nodes_mm[mesh.tets] * M_PER_MM) @ R.T
+    return np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=2)
+
+
+def _reference_data(basis) -> dict:
+    """Reference gradients and weights from a basis built on its own (undeformed) mesh."""
+    m = basis.mesh
+    p, t = m.p.T, m.t.T
+    jac0 = np.stack([p[t[0, 1]] - p[t[0, 0]], p[t[0, 2]] - p[t[0, 0]], p[t[0, 3]] - p[t[0, 0]]], 1)
+    grads = np.stack([phi[0].grad[:, 0] for phi in basis.basis], axis=0)  # (Au, 3, Q)
+    grad_ref = np.einsum("ajq,jm->qam", grads, jac0)
+    return {"grad": grad_ref, "weights": np.asarray(basis.dx[0]) / abs(np.linalg.det(jac0))}
 
 
 def plane_fit(points_mm: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -146,7 +186,7 @@ def _geometry(mesh: TetMesh, formulation: str, R: np.ndarray) -> dict:
     m = _skfem_mesh(mesh, R)
     bu = Basis(m, _element(eu), intorder=order)
     grads = np.stack([phi[0].grad for phi in bu.basis], axis=0)  # (Au, 3, E, Q)
-    vals = np.stack([phi[0].value for phi in bu.basis], axis=0)  # (Au, E, Q)
+    vals = np.stack([np.asarray(phi[0]) for phi in bu.basis], axis=0)  # (Au, E, Q)
     geo = {
         "grad_u": np.ascontiguousarray(grads.transpose(2, 3, 0, 1)),
         "shape_u": np.ascontiguousarray(vals.transpose(1, 2, 0)),
@@ -156,7 +196,7 @@ def _geometry(mesh: TetMesh, formulation: str, R: np.ndarray) -> dict:
     }
     if ep is not None:
         bp = Basis(m, _element(ep), quadrature=bu.quadrature)
-        pv = np.stack([phi[0].value for phi in bp.basis], axis=0)
+        pv = np.stack([np.asarray(phi[0]) for phi in bp.basis], axis=0)
         geo["shape_p"] = np.ascontiguousarray(pv.transpose(1, 2, 0))
     return geo
 

@@ -182,12 +182,13 @@ def read_mesh(path: str | os.PathLike, *, orient: bool = True) -> TetMesh:
 
     try:
         m = meshio.read(path)
-    except Exception as exc:  # noqa: BLE001 - meshio raises many kinds for bad files
+    # meshio raises many kinds for bad files, and calls sys.exit when no reader succeeds
+    except (Exception, SystemExit) as exc:  # noqa: BLE001
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from exc
     return _to_tetmesh(m, path, orient=orient)
 
 
-def _meshio_mesh(mesh: TetMesh, path: Path, point_data, cell_data):
+def _meshio_mesh(mesh: TetMesh, path: Path, fmt: str, point_data, cell_data):
     import meshio
 
     pdata = {k: np.asarray(v) for k, v in (point_data or {}).items()}
@@ -197,8 +198,11 @@ def _meshio_mesh(mesh: TetMesh, path: Path, point_data, cell_data):
     ]:
         if len(arr) != n:
             raise ValueError(f"{path}: {what} data needs {n} rows, got {len(arr)}")
-    point_sets, cell_sets = {}, {}
-    if path.suffix.lower() == ".inp":
+    point_sets, cell_sets, field_data = {}, {}, {}
+    if fmt.startswith("gmsh"):  # gmsh keeps tags only as physical/geometrical entities
+        cdata["gmsh:physical"] = cdata["gmsh:geometrical"] = [mesh.region.astype(np.int32)]
+        field_data = {n: np.array([t, 3]) for n, t in mesh.region_names.items()}
+    if fmt == "abaqus":
         point_sets = {k: np.asarray(v) for k, v in mesh.node_sets.items()}
         cell_sets = {n: [np.flatnonzero(mesh.region == t)] for n, t in mesh.region_names.items()}
     else:
@@ -216,6 +220,7 @@ def _meshio_mesh(mesh: TetMesh, path: Path, point_data, cell_data):
         cell_data=cdata,
         point_sets=point_sets,
         cell_sets=cell_sets,
+        field_data=field_data,
     )
 
 
@@ -251,10 +256,10 @@ def write_mesh(
     if file_format is None and path.suffix.lower() in (".node", ".ele"):
         write_tetgen(mesh, path.with_suffix(""))
         return path
-    m = _meshio_mesh(mesh, path, point_data, cell_data)
     import meshio
 
     fmt = file_format or _format_for(path)
+    m = _meshio_mesh(mesh, path, fmt, point_data, cell_data)
     _atomic_write(path, lambda tmp: meshio.write(tmp, m, file_format=fmt))
     return path
 
@@ -263,6 +268,8 @@ def _format_for(path: Path) -> str:
     import meshio
 
     suffixes = "".join(path.suffixes[-2:]).lower()
+    if path.suffix.lower() == ".msh":
+        return "gmsh22"  # meshio's gmsh 4.1 writer drops the region tags
     for ext in (suffixes, path.suffix.lower()):
         if ext in meshio.extension_to_filetypes:
             return meshio.extension_to_filetypes[ext][0]
@@ -305,8 +312,8 @@ def _read_node(path: Path) -> tuple[np.ndarray, int]:
         n, dim = int(rows[0][0]), int(rows[0][1])
     except (IndexError, ValueError) as exc:
         raise MeshError(f"{path}: bad .node header {' '.join(rows[0])!r}") from exc
-    if dim != 3:
-        raise MeshError(f"{path}: expected 3-D nodes, got dimension {dim}")
+    if dim != 3 or n < 1:
+        raise MeshError(f"{path}: expected 3-D nodes, got {n} nodes of dimension {dim}")
     table = _table(path, rows, n, 4)
     first = int(table[0, 0])
     if not np.array_equal(table[:, 0], np.arange(first, first + n)):

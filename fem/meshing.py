@@ -10,7 +10,14 @@ from .discretize import plane_fit
 from .geometry import Phantom, sphere_surface
 from .mesh import REGION_IDS, MeshError, TetMesh, boundary_faces
 
-__all__ = ["find_back_plane", "mesh_phantom", "tag_node_sets", "tetrahedralize"]
+__all__ = [
+    "find_back_plane",
+    "mesh_phantom",
+    "remesh_surface",
+    "surface_defects",
+    "tag_node_sets",
+    "tetrahedralize",
+]
 
 log = logging.getLogger(__name__)
 
@@ -71,10 +78,32 @@ def remesh_surface(vertices, faces, *, size_mm: float):
     m = max(m.split(only_watertight=True), key=lambda s: s.volume)
     trimesh.smoothing.filter_taubin(m, iterations=10)
     target = int(4 * m.area / (np.sqrt(3) * size_mm**2))
+    om = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(np.asarray(m.vertices)),
+        o3d.utility.Vector3iVector(np.asarray(m.faces, dtype=np.int32)),
+    )
     if len(m.faces) > target:
-        m = m.simplify_quadric_decimation(face_count=target)
+        om = om.simplify_quadric_decimation(target_number_of_triangles=target)
+    m = trimesh.Trimesh(np.asarray(om.vertices), np.asarray(om.triangles), process=True)
     trimesh.repair.fix_normals(m)
     return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def surface_defects(vertices: np.ndarray, faces: np.ndarray) -> list[str]:
+    """What makes a surface unfit for TetGen (self-intersections, holes, non-manifold)."""
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(np.asarray(vertices, float)),
+        o3d.utility.Vector3iVector(np.asarray(faces, dtype=np.int32)),
+    )
+    checks = {
+        "self-intersecting": m.is_self_intersecting(),
+        "not edge-manifold": not m.is_edge_manifold(allow_boundary_edges=False),
+        "not vertex-manifold": not m.is_vertex_manifold(),
+        "not watertight": not m.is_watertight(),
+    }
+    return [name for name, bad in checks.items() if bad]
 
 
 def tetrahedralize(
@@ -122,6 +151,11 @@ def tetrahedralize(
     for label, fix in attempts:
         try:
             v, f = fix(np.asarray(vertices_mm, float), np.asarray(faces, np.int64))
+            # TetGen may crash the process on a defective surface: give it clean ones only.
+            # (Internal inclusion surfaces make the PLC non-manifold by design: not checked.)
+            defects = [] if regions else surface_defects(v, f)
+            if defects:
+                raise ValueError("surface is " + ", ".join(defects))
             nodes, tets, region = _tetgen(
                 v, f, max_volume_mm3, min_ratio, min_dihedral_deg, regions
             )

@@ -397,7 +397,7 @@ def displacement_at(disc: Discretization, state: np.ndarray, points_mm: np.ndarr
     """
     pts = (np.asarray(points_mm, float).reshape(-1, 3) * M_PER_MM) @ disc.R_solver_from_model.T
     try:
-        P = disc.skfem_basis.probes(pts.T)
+        P = disc.basis().probes(pts.T)
     except ValueError as exc:
         raise ValueError("a point to interpolate at lies outside the mesh") from exc
     u = state[: 3 * disc.n_scalar_u].reshape(-1, 3)

@@ -69,6 +69,8 @@ def recover_stress_free(
     tol_mm: float = 0.01,
     max_iter: int = 60,
     options: SolverOptions | None = None,
+    x0_nodes_mm: np.ndarray | None = None,
+    x0_state: np.ndarray | None = None,
 ) -> ReferenceRecovery:
     """Find the stress-free geometry whose deformation under ``gravity`` is the mesh.
 
@@ -87,6 +89,10 @@ def recover_stress_free(
     max_iter : int
         Most forward solves.
     options : SolverOptions, optional
+    x0_nodes_mm : ndarray, shape (n_nodes, 3), optional
+        Initial guess of the stress-free geometry (e.g. from a nearby material).
+    x0_state : ndarray, optional
+        Warm start of the first forward solve (``Solution.state``).
 
     Returns
     -------
@@ -94,7 +100,8 @@ def recover_stress_free(
     """
     x_m = model.mesh.nodes_mm
     disc0 = discretize(model.mesh, model.support, formulation=formulation)
-    X, alpha, r_old, state, history = x_m.copy(), 1.0, None, None, []
+    X = x_m.copy() if x0_nodes_mm is None else np.asarray(x0_nodes_mm, float).copy()
+    alpha, r_old, state, history = 1.0, None, x0_state, []
     for it in range(1, max_iter + 1):
         disc = disc0.with_nodes(X)
         sol = solve(

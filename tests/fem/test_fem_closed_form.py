@@ -1,8 +1,8 @@
 """Homogeneous uniaxial stretch: nominal stress vs stretch in closed form.
 
-For F = diag(l, t, t) the uncoupled Mooney-Rivlin energy with U = kappa/2 (J - 1)^2 is
-w(l, t) = c1 (J^-2/3 a - 3) + c2 (J^-4/3 b - 3) + kappa/2 (J - 1)^2 with J = l t^2,
-a = l^2 + 2 t^2, b = 2 l^2 t^2 + t^4. The nominal stress is P11 = dw/dl and free lateral
+For F = diag(s, t, t) the uncoupled Mooney-Rivlin energy with U = kappa/2 (J - 1)^2 is
+w(s, t) = c1 (J^-2/3 a - 3) + c2 (J^-4/3 b - 3) + kappa/2 (J - 1)^2 with J = s t^2,
+a = s^2 + 2 t^2, b = 2 s^2 t^2 + t^4. The nominal stress is P11 = dw/ds and free lateral
 faces need dw/dt = 2 P22 = 0. Derivatives written out by hand below, independent of
 fem.kinematics. The state is homogeneous, so any tet mesh (here an irregular one)
 must reproduce it to round-off: reaction force = P11 x reference area.
@@ -21,27 +21,27 @@ from fem.assemble import assemble, scatter
 M_PER_MM = 1e-3
 
 
-def _dw(l, t, c1, c2, kappa):
-    """(dw/dl, dw/dt) of the uniaxial energy (module docstring)."""
-    J, a, b = l * t**2, l**2 + 2 * t**2, 2 * l**2 * t**2 + t**4
-    dJ_dl, dJ_dt = t**2, 2 * l * t
+def _dw(s, t, c1, c2, kappa):
+    """(dw/ds, dw/dt) of the uniaxial energy (module docstring)."""
+    J, a, b = s * t**2, s**2 + 2 * t**2, 2 * s**2 * t**2 + t**4
+    dJ_dl, dJ_dt = t**2, 2 * s * t
     w_l = (
-        c1 * (-2 / 3 * J ** (-5 / 3) * dJ_dl * a + J ** (-2 / 3) * 2 * l)
-        + c2 * (-4 / 3 * J ** (-7 / 3) * dJ_dl * b + J ** (-4 / 3) * 4 * l * t**2)
+        c1 * (-2 / 3 * J ** (-5 / 3) * dJ_dl * a + J ** (-2 / 3) * 2 * s)
+        + c2 * (-4 / 3 * J ** (-7 / 3) * dJ_dl * b + J ** (-4 / 3) * 4 * s * t**2)
         + kappa * (J - 1) * dJ_dl
     )
     w_t = (
         c1 * (-2 / 3 * J ** (-5 / 3) * dJ_dt * a + J ** (-2 / 3) * 4 * t)
-        + c2 * (-4 / 3 * J ** (-7 / 3) * dJ_dt * b + J ** (-4 / 3) * (4 * l**2 * t + 4 * t**3))
+        + c2 * (-4 / 3 * J ** (-7 / 3) * dJ_dt * b + J ** (-4 / 3) * (4 * s**2 * t + 4 * t**3))
         + kappa * (J - 1) * dJ_dt
     )
     return w_l, w_t
 
 
-def uniaxial_closed_form(l, c1, c2, kappa):
-    """Lateral stretch t and nominal stress P11 (Pa) at axial stretch l."""
-    t = brentq(lambda t: _dw(l, t, c1, c2, kappa)[1], 0.2, 2.0, xtol=1e-15, rtol=1e-15)
-    return t, _dw(l, t, c1, c2, kappa)[0]
+def uniaxial_closed_form(s, c1, c2, kappa):
+    """Lateral stretch t and nominal stress P11 (Pa) at axial stretch s."""
+    t = brentq(lambda t: _dw(s, t, c1, c2, kappa)[1], 0.2, 2.0, xtol=1e-15, rtol=1e-15)
+    return t, _dw(s, t, c1, c2, kappa)[0]
 
 
 MATERIALS = {
@@ -66,14 +66,16 @@ def test_uniaxial_stretch_matches_closed_form(name, formulation, stretch):
         disc=disc,
         options=SolverOptions(rtol=1e-12),
     )
-    t, P11 = uniaxial_closed_form(stretch, material.c1_pa, material.c2_pa, material.volumetric.kappa_pa)
+    t, P11 = uniaxial_closed_form(
+        stretch, material.c1_pa, material.c2_pa, material.volumetric.kappa_pa
+    )
     # Newton stops at a relative residual 1e-12; the state is exact up to that and
     # round-off (condition ~ kappa/mu ~ 10): 1e-9 relative leaves a wide margin.
     expected = mesh.nodes_mm * (np.array([stretch, t, t]) - 1)
     np.testing.assert_allclose(sol.displacement_mm, expected, rtol=0, atol=1e-9 * size_mm.max())
     # reaction on the stretched face: sum of the internal forces of its dofs
     r = scatter(disc, assemble(disc, model, sol.state, tangent=False).vectors)
-    on_face = np.isclose(disc.skfem_basis.doflocs[0], size_mm[0] * M_PER_MM)
+    on_face = np.isclose(disc.basis().doflocs[0], size_mm[0] * M_PER_MM)
     reaction_n = r[3 * np.flatnonzero(on_face)].sum()
     area_m2 = size_mm[1] * size_mm[2] * M_PER_MM**2
     assert reaction_n == pytest.approx(P11 * area_m2, rel=1e-9)

@@ -8,7 +8,6 @@ each section carries the nominal stress rho g (L - X), so the local stretch solv
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 from femtest_meshes import box_mesh
 from scipy.integrate import quad

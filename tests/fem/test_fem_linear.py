@@ -80,16 +80,8 @@ def test_p1_tangent_at_rest_equals_scikit_fem_linear_elasticity():
 _NEEDS_PARDISO = pytest.mark.skipif(
     "pardiso" not in available_solvers(), reason="pypardiso (MKL) not installed"
 )
-_SUPERLU_UNSCALED = pytest.mark.xfail(
-    strict=True,
-    reason="fem.linalg's SuperLU path solves the u-p saddle-point system unscaled (rows in "
-    "N and m^3, K_pp ~ h^3/kappa): pressure error 5e-8 relative vs PARDISO's 1e-14; "
-    "symmetric diagonal scaling brings it to 1e-11",
-)
-
-
 @_NEEDS_PARDISO
-@pytest.mark.parametrize("formulation", ["p1", pytest.param("taylor-hood", marks=_SUPERLU_UNSCALED)])
+@pytest.mark.parametrize("formulation", ["p1", "taylor-hood"])
 def test_pardiso_and_superlu_agree(formulation):
     mesh = box_mesh((10.0, 10.0, 40.0), (3, 3, 9), jitter=0.2, seed=2)
     model = Model.homogeneous(mesh, NeoHookean(420.0, nu=0.49), support=Clamped("z1"))

@@ -43,7 +43,9 @@ def test_febio_te01_single_tet_uncoupled_mooney_rivlin():
     sets = {"sx": [0, 2, 3], "sy": [0, 1, 3], "sz": [0, 1, 2]}  # nodes on x=0, y=0, z=0
     mesh = TetMesh(nodes_mm, [[0, 1, 2, 3]], [1], {"bulk": 1}, sets)
     material = MooneyRivlin(1.0, 0.0, Volumetric(1000.0, "log"))
-    model = Model(mesh, {"bulk": material}, {"bulk": 1.0}, _symmetry(("sx", 0), ("sy", 1), ("sz", 2)))
+    model = Model(
+        mesh, {"bulk": material}, {"bulk": 1.0}, _symmetry(("sx", 0), ("sy", 1), ("sz", 2))
+    )
     sol = solve(model, point_forces_n={3: [0.0, 0.0, -0.5]}, formulation="p1")
     u_m = sol.displacement_mm * M_PER_MM
     free = np.array([u_m[1, 0], u_m[2, 1], u_m[3, 2]])

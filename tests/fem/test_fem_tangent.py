@@ -28,7 +28,7 @@ def _state(disc, noise_m, p_scale_pa, rng):
     """A random affine displacement (gradient ~ 0.15) plus dof noise, and random pressures."""
     x = np.zeros(disc.n_dofs)
     nu = 3 * disc.n_scalar_u
-    X = disc.skfem_basis.doflocs.T  # (n_scalar_u, 3), m
+    X = disc.basis().doflocs.T  # (n_scalar_u, 3), m
     X = np.where(np.isfinite(X), X, 0.0)  # MINI's bubble dofs have no location: noise only
     x[:nu] = (X @ rng.uniform(-0.15, 0.15, (3, 3)).T).ravel()
     x[:nu] += rng.uniform(-noise_m, noise_m, nu)

@@ -1,0 +1,209 @@
+"""The calibration's forward model: residuals of each scan and their derivative in log c1.
+
+Parameter ``theta = ln c1``; the material is homogeneous neo-Hookean with a fixed
+Poisson ratio, so the bulk modulus scales with c1. Derivatives use the converged
+tangent (direct sensitivity): ``K du/dtheta = -dR/dtheta``, one factorisation per scan.
+With ``reference_state="unload"`` the stress-free geometry ``X = x_ref - u0`` depends on
+theta too; its sensitivity solves the linearised unloading equation
+``(K0 - R0_X P) du0 = -R0_theta`` by GMRES preconditioned with ``K0``'s factors.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse.linalg as spla
+
+import fem
+from fem.assemble import assemble, external_force, scatter
+from fem.linalg import factorize
+from fem.solver import vertex_displacement_mm
+from fem.unload import recover_stress_free
+
+__all__ = ["ForwardModel", "ScanState"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ScanState:
+    """Converged state of one posture at the current theta (reused as warm start)."""
+
+    state: np.ndarray
+    positions_mm: np.ndarray  # deformed vertex positions, reference frame
+    dpositions_mm: np.ndarray | None = None  # d positions / d theta
+
+
+@dataclass
+class ForwardModel:
+    """Solves the postures of a calibration for a given ``theta = ln c1``.
+
+    Parameters
+    ----------
+    mesh : TetMesh
+        The reference scan's mesh (loaded geometry, reference frame, mm).
+    gravity_ref : ndarray, shape (3,)
+        Gravity of the reference scan (unit, reference frame).
+    nu, density_kg_m3 : float
+    reference_state : {"unload", "shortcut"}
+    formulation : str
+    """
+
+    mesh: fem.TetMesh
+    gravity_ref: np.ndarray
+    nu: float = 0.499
+    density_kg_m3: float = 1000.0
+    reference_state: str = "unload"
+    formulation: str = "taylor-hood"
+    g_m_s2: float = 9.81
+    solves: int = 0
+    _disc: fem.Discretization | None = None
+    _X: np.ndarray | None = None
+    _u0: np.ndarray | None = None
+    _states: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.reference_state not in ("unload", "shortcut"):
+            raise ValueError(
+                f"reference state must be unload or shortcut, not {self.reference_state!r}"
+            )
+        self._disc = fem.discretize(self.mesh, fem.Clamped(), formulation=self.formulation)
+
+    def model(self, theta: float, nodes_mm: np.ndarray | None = None) -> fem.Model:
+        """The homogeneous model at ``c1 = exp(theta)`` on the given nodes."""
+        mesh = self.mesh if nodes_mm is None else self.mesh.with_nodes(nodes_mm)
+        mat = fem.NeoHookean(float(np.exp(theta)), nu=self.nu)
+        return fem.Model.homogeneous(mesh, mat, density_kg_m3=self.density_kg_m3)
+
+    def _load(self, g_dir: np.ndarray) -> tuple[np.ndarray, float]:
+        if self.reference_state == "shortcut":
+            from fem.unload import shortcut_gravity
+
+            return shortcut_gravity(g_dir, self.gravity_ref, g_m_s2=self.g_m_s2)
+        return np.asarray(g_dir, float), self.g_m_s2
+
+    def _solve(self, theta, disc, g_dir, key):
+        direction, mag = self._load(g_dir)
+        model = self.model(theta, disc.mesh.nodes_mm)
+        prev = self._states.get(key)
+        x0 = prev.state if prev is not None else None
+        try:
+            sol = fem.solve(model, gravity=direction, g_m_s2=mag, disc=disc, x0=x0)
+        except fem.ConvergenceError:
+            log.warning("solve failed for %s at c1=%.1f Pa; retrying with small load steps",
+                        key, np.exp(theta))  # fmt: skip
+            opts = fem.SolverOptions(initial_step=0.125, min_step=1e-4, max_newton=20)
+            sol = fem.solve(model, gravity=direction, g_m_s2=mag, disc=disc, options=opts)
+        self.solves += 1
+        return model, sol, direction, mag
+
+    def stress_free(self, theta: float) -> np.ndarray:
+        """Stress-free vertex positions at theta (mm); the loaded scan for the shortcut."""
+        if self.reference_state == "shortcut":
+            self._X = self.mesh.nodes_mm
+            return self._X
+        start = self.model(theta)
+        rec = recover_stress_free(start, gravity=self.gravity_ref, g_m_s2=self.g_m_s2,
+                                  formulation=self.formulation, x0_nodes_mm=self._X,
+                                  x0_state=self._u0)  # fmt: skip
+        self.solves += rec.iterations
+        if not rec.converged:
+            log.warning("reference recovery stopped at %.3f mm after %d solves",
+                        rec.max_error_mm, rec.iterations)  # fmt: skip
+        self._X, self._u0 = rec.nodes_mm, rec.solution.state
+        return self._X
+
+    # -- derivatives -------------------------------------------------------------------
+
+    def _residual(self, theta, disc, state, direction, mag) -> np.ndarray:
+        """Full residual vector R_int - f_ext (N) at a state."""
+        model = self.model(theta, disc.mesh.nodes_mm)
+        g = fem.solver.gravity_vector(direction, mag)
+        st = assemble(disc, model, state, tangent=False)
+        return scatter(disc, st.vectors) - external_force(disc, model, g)
+
+    def _dR_dtheta(self, theta, disc, state, direction, mag, eps=1e-6) -> np.ndarray:
+        rp = self._residual(theta + eps, disc, state, direction, mag)
+        rm = self._residual(theta - eps, disc, state, direction, mag)
+        return (rp - rm) / (2.0 * eps)
+
+    def _dR_dX(self, theta, disc, state, direction, mag, dX_mm) -> np.ndarray:
+        """Directional derivative of the residual when the reference nodes move by dX."""
+        scale = float(np.abs(dX_mm).max())
+        if scale == 0.0:
+            return np.zeros(disc.n_dofs)
+        h = 1e-4 / scale
+        X = disc.mesh.nodes_mm
+        rp = self._residual(theta, disc.with_nodes(X + h * dX_mm), state, direction, mag)
+        rm = self._residual(theta, disc.with_nodes(X - h * dX_mm), state, direction, mag)
+        return (rp - rm) / (2.0 * h)
+
+    def _tangent(self, theta, disc, state):
+        st = assemble(disc, self.model(theta, disc.mesh.nodes_mm), state, tangent=True)
+        return disc.pattern.matrix(st.matrices)
+
+    def _du0_dtheta(self, theta, disc0):
+        """Sensitivity of the reference posture's displacement in unload mode (full vector)."""
+        g0 = (self.gravity_ref, self.g_m_s2)
+        free = disc0.free
+        K0 = self._tangent(theta, disc0, self._u0)
+        K0_solve = factorize(K0)
+        rhs = -self._dR_dtheta(theta, disc0, self._u0, *g0)[free]
+
+        def full(v):
+            out = np.zeros(disc0.n_dofs)
+            out[free] = v
+            return out
+
+        def apply(v):
+            dX = -vertex_displacement_mm(disc0, full(v))
+            return K0 @ v + self._dR_dX(theta, disc0, self._u0, *g0, dX)[free]
+
+        n = len(free)
+        A = spla.LinearOperator((n, n), matvec=apply)
+        M = spla.LinearOperator((n, n), matvec=K0_solve)
+        v, info = spla.gmres(A, rhs, M=M, rtol=1e-9, atol=0.0, restart=30, maxiter=10)
+        if info != 0:
+            log.warning("reference-state sensitivity: GMRES did not converge (info=%d)", info)
+        return full(v)
+
+    def evaluate(self, theta: float, gravities: dict, *, gradient: bool = True) -> dict:
+        """Solve every posture at ``theta``; positions and (optionally) their derivatives.
+
+        Parameters
+        ----------
+        theta : float
+            ``ln c1`` with c1 in Pa.
+        gravities : dict of str to ndarray (3,)
+            Gravity direction of each posture to solve, reference frame.
+        gradient : bool
+
+        Returns
+        -------
+        dict of str to ScanState
+        """
+        X = self.stress_free(theta)
+        disc = self._disc.with_nodes(X)
+        dX = np.zeros_like(X)
+        if gradient and self.reference_state == "unload":
+            du0 = self._du0_dtheta(theta, disc)
+            dX = -vertex_displacement_mm(disc, du0)
+        out = {}
+        for name, g in gravities.items():
+            _, sol, direction, mag = self._solve(theta, disc, g, name)
+            st = ScanState(sol.state, X + sol.displacement_mm)
+            if gradient:
+                rhs = -self._dR_dtheta(theta, disc, sol.state, direction, mag)
+                if self.reference_state == "unload":
+                    rhs -= self._dR_dX(theta, disc, sol.state, direction, mag, dX)
+                K = self._tangent(theta, disc, sol.state)
+                du = np.zeros(disc.n_dofs)
+                du[disc.free] = factorize(K)(rhs[disc.free])
+                st.dpositions_mm = dX + vertex_displacement_mm(disc, du)
+                st.dstate = du
+            out[name] = st
+            self._states[name] = st
+        self.current_disc, self.current_dX = disc, dX
+        return out

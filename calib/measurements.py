@@ -1,0 +1,112 @@
+"""What the scans measured, in the reference scan's LPS frame (the phantom frame), mm."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .session import Session
+
+__all__ = ["Measurements", "ScanMeasurement", "load_measurements"]
+
+
+@dataclass(frozen=True)
+class ScanMeasurement:
+    """One scan's measured geometry, reference frame (mm).
+
+    Attributes
+    ----------
+    name, role : str
+    gravity_ref : ndarray, shape (3,)
+        Unit gravity direction in the reference frame (from the fiducial registration).
+    vertices_mm, faces : ndarray
+        The measured closed surface (``surface_ref.ply``).
+    back_plate : ndarray of bool
+        Vertices on the back plate.
+    nipple_mm, tumour_mm : ndarray, shape (3,)
+        Landmarks (``tumour_mm`` may be None).
+    back_point_mm, back_normal : ndarray, shape (3,)
+        The back plane (outward normal) mapped into the reference frame.
+    T_ref_from_scan : ndarray, shape (4, 4)
+    """
+
+    name: str
+    role: str
+    gravity_ref: np.ndarray
+    vertices_mm: np.ndarray
+    faces: np.ndarray
+    back_plate: np.ndarray
+    nipple_mm: np.ndarray
+    tumour_mm: np.ndarray | None
+    back_point_mm: np.ndarray
+    back_normal: np.ndarray
+    T_ref_from_scan: np.ndarray
+
+    def surface_points(self, *, max_points: int = 4000, seed: int = 0) -> np.ndarray:
+        """Measured surface vertices off the back plate, a seeded subsample, (k, 3)."""
+        pts = self.vertices_mm[~self.back_plate]
+        if len(pts) > max_points:
+            rng = np.random.default_rng(seed)
+            pts = pts[np.sort(rng.choice(len(pts), max_points, replace=False))]
+        return pts
+
+
+@dataclass(frozen=True)
+class Measurements:
+    """All scans of a session after ingest."""
+
+    reference: ScanMeasurement
+    scans: dict[str, ScanMeasurement]
+
+    def with_role(self, role: str) -> list[ScanMeasurement]:
+        """Scans of one role."""
+        return [s for s in self.scans.values() if s.role == role]
+
+
+def _map(T: np.ndarray, p) -> np.ndarray:
+    return np.asarray(p, float) @ T[:3, :3].T + T[:3, 3]
+
+
+def _scan(work: Path, name: str) -> ScanMeasurement:
+    import imaging
+
+    folder = work / "scans" / name
+    doc = json.loads((folder / "ingest.json").read_text())
+    surf = imaging.read_ply(folder / "surface_ref.ply")
+    T = np.asarray(doc["T_ref_from_scan"], float)
+    tumour = doc.get("tumour_lps_mm")
+    plane = doc["back_plane"]
+    normal = T[:3, :3] @ np.asarray(plane["normal"], float)
+    back_point = _map(T, plane["point_lps_mm"])
+    centroid = surf.vertices_lps_mm.mean(axis=0)
+    if normal @ (centroid - back_point) > 0:  # make it point away from the body
+        normal = -normal
+    flags = surf.back_plate if surf.back_plate is not None else np.zeros(len(surf.faces), bool)
+    return ScanMeasurement(
+        name=name,
+        role=doc["role"],
+        gravity_ref=np.asarray(doc["gravity_ref"], float),
+        vertices_mm=surf.vertices_lps_mm,
+        faces=surf.faces,
+        back_plate=np.asarray(flags, bool),
+        nipple_mm=_map(T, doc["nipple_lps_mm"]),
+        tumour_mm=None if tumour is None else _map(T, tumour),
+        back_point_mm=back_point,
+        back_normal=normal / np.linalg.norm(normal),
+        T_ref_from_scan=T,
+    )
+
+
+def load_measurements(work: str | Path, session: Session) -> Measurements:
+    """Read every scan's ``ingest.json`` and ``surface_ref.ply`` from a work folder."""
+    work = Path(work)
+    missing = [
+        s.name for s in session.scans if not (work / "scans" / s.name / "ingest.json").is_file()
+    ]
+    if missing:
+        raise FileNotFoundError(f"{work}: no ingest results for {missing}; run ingest first")
+    scans = {s.name: _scan(work, s.name) for s in session.scans}
+    return Measurements(scans[session.reference.name], scans)

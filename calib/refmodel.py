@@ -1,0 +1,69 @@
+"""The FE model of the reference scan: its surface meshed, the back plane tagged."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+import fem
+from fem.meshing import tag_node_sets, tetrahedralize
+
+from .measurements import ScanMeasurement
+
+__all__ = ["reference_mesh"]
+
+log = logging.getLogger(__name__)
+
+
+def _decimate(vertices: np.ndarray, faces: np.ndarray, size_mm: float):
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(faces.astype(np.int32))
+    )
+    area = m.get_surface_area()
+    target = max(200, int(4.0 * area / (np.sqrt(3.0) * size_mm**2)))
+    if len(faces) > target:
+        m = m.simplify_quadric_decimation(target_number_of_triangles=target)
+    m.remove_degenerate_triangles()
+    m.remove_unreferenced_vertices()
+    return np.asarray(m.vertices), np.asarray(m.triangles)
+
+
+def reference_mesh(ref: ScanMeasurement, *, size_mm: float = 8.0, back_tol_mm: float = 1.0):
+    """Tetrahedral mesh of the reference scan's surface with node sets.
+
+    Boundary nodes within ``back_tol_mm`` of the measured back plane form the ``back``
+    set and are projected onto the plane, so the support is exactly flat.
+
+    Parameters
+    ----------
+    ref : ScanMeasurement
+        The reference scan (reference frame, mm).
+    size_mm : float
+        Target element edge length.
+    back_tol_mm : float
+
+    Returns
+    -------
+    TetMesh
+        Nodes in the reference frame (mm); node sets ``back``, ``surface``, ``nipple``.
+    """
+    v, f = _decimate(ref.vertices_mm, ref.faces, size_mm)
+    n, p0 = ref.back_normal, ref.back_point_mm
+    near = np.abs((v - p0) @ n) < back_tol_mm
+    if near.sum() < 3:
+        raise fem.MeshError(
+            f"reference scan {ref.name!r}: no surface vertices within {back_tol_mm} mm of the "
+            "back plane; check the fiducials and the back-plate segmentation"
+        )
+    v = v.copy()
+    v[near] -= np.outer((v[near] - p0) @ n, n)
+    vol = size_mm**3 / (6.0 * np.sqrt(2.0))
+    mesh = tetrahedralize(v, f, max_volume_mm3=vol, size_mm=size_mm)
+    bnodes = np.unique(fem.boundary_faces(mesh.tets))
+    back = bnodes[np.abs((mesh.nodes_mm[bnodes] - p0) @ n) < 1e-6 * size_mm]
+    log.info("reference mesh: %d tets, %d nodes, %d on the back plane", mesh.n_tets,
+             mesh.n_nodes, len(back))  # fmt: skip
+    return tag_node_sets(mesh, back, n)

@@ -1,0 +1,160 @@
+"""The ``phantom-calib`` command line: help, version and ``simulate``."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from importlib.metadata import version
+from pathlib import Path
+
+import numpy as np
+import pytest
+from calib_helpers import SKFEM_VALUE_DEPRECATION, small_phantom_mesh
+from typer.testing import CliRunner
+
+from calib.cli import app
+
+pytestmark = pytest.mark.filterwarnings(SKFEM_VALUE_DEPRECATION)
+
+COMMANDS = ("simulate", "init", "ingest", "synth")
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_help_lists_the_commands():
+    result = CliRunner().invoke(app, ["--help"])
+    assert result.exit_code == 0
+    for command in COMMANDS:
+        assert command in result.output
+
+
+def test_no_arguments_shows_help():
+    result = CliRunner().invoke(app, [])
+    assert all(command in result.output for command in COMMANDS)
+
+
+def test_version():
+    result = CliRunner().invoke(app, ["--version"])
+    assert result.exit_code == 0
+    assert result.output.strip() == f"phantom-calib {version('phantom-calib')}"
+
+
+def test_python_m_calib_help():
+    proc = subprocess.run(
+        [sys.executable, "-m", "calib", "--help"],
+        cwd=REPO, capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert all(command in proc.stdout for command in COMMANDS)
+
+
+@pytest.fixture(scope="module")
+def mesh_file(tmp_path_factory) -> Path:
+    """A coarse phantom mesh as a plain VTU (nodes and tets only, mm; back plate at z = 0)."""
+    import meshio
+
+    _, mesh = small_phantom_mesh(skin_thickness_mm=0)
+    path = tmp_path_factory.mktemp("mesh") / "phantom.vtu"
+    meshio.write(path, meshio.Mesh(mesh.nodes_mm, [("tetra", mesh.tets)]))
+    return path
+
+
+@pytest.fixture(scope="module")
+def simulated(mesh_file, tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim") / "RESULT.vtu"
+    args = ["simulate", str(mesh_file), "--c1", "420", "--gravity", "1,0,0", "--out", str(out)]
+    result = CliRunner().invoke(app, args)
+    return mesh_file, out, result
+
+
+def test_simulate_writes_result_and_summary(simulated):
+    import meshio
+
+    mesh_file, out, result = simulated
+    assert result.exit_code == 0, result.output
+    assert "converged=True" in result.output
+    summary = json.loads(out.with_suffix(".json").read_text())
+    keys = ("max_displacement_mm", "nipple_displacement_mm", "converged", "newton_iterations",
+            "load_steps", "dofs", "wall_s")  # fmt: skip
+    assert set(keys) <= set(summary)
+    assert summary["converged"] is True
+    assert summary["newton_iterations"] >= 1 and summary["load_steps"] >= 1
+    assert summary["dofs"] > 0 and summary["wall_s"] > 0
+    assert sorted(p.name for p in out.parent.iterdir()) == ["RESULT.json", "RESULT.vtu"]
+    # Two code paths: the summary agrees with the written mesh (float64 VTU, round-off).
+    original, deformed = meshio.read(mesh_file), meshio.read(out)
+    u = deformed.point_data["displacement_mm"]
+    np.testing.assert_allclose(deformed.points, original.points + u, atol=1e-9)
+    norms = np.linalg.norm(u, axis=1)
+    assert summary["max_displacement_mm"] == pytest.approx(norms.max(), rel=1e-9)
+    assert summary["nipple_displacement_mm"] == pytest.approx(
+        norms[summary["nipple_node"]], rel=1e-9
+    )
+    # The nipple is the node farthest from the back plate (z = 0) of the input mesh.
+    assert summary["nipple_node"] == int(np.argmax(original.points[:, 2]))
+    # Gravity along +x: the body sags along +x (a 420 Pa phantom under 1 g moves by
+    # centimetres, issue 5: 10-30 mm at the nipple for the twin's finer mesh).
+    assert u[summary["nipple_node"], 0] > 5.0
+    # The back plate is clamped: its nodes do not move (Dirichlet values are exact).
+    back = np.abs(original.points[:, 2]) < 1e-9
+    assert back.sum() >= 3 and np.abs(u[back]).max() == 0.0
+
+
+def test_simulate_back_plane_option_agrees_with_auto(simulated, tmp_path):
+    # The back plate at z = 0 named explicitly gives the same solve as auto-detection.
+    mesh_file, out_auto, _ = simulated
+    out = tmp_path / "explicit.vtu"
+    args = ["simulate", str(mesh_file), "--c1", "420", "--gravity", "1,0,0", "--out", str(out),
+            "--back-plane", "z=0"]  # fmt: skip
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    auto = json.loads(out_auto.with_suffix(".json").read_text())
+    explicit = json.loads(out.with_suffix(".json").read_text())
+    # Same mesh, constraints and solver: identical to round-off.
+    assert explicit["max_displacement_mm"] == pytest.approx(auto["max_displacement_mm"], rel=1e-9)
+    assert explicit["nipple_displacement_mm"] == pytest.approx(
+        auto["nipple_displacement_mm"], rel=1e-9
+    )
+
+
+BAD = [
+    (["--nu", "0.5"], r"0\.5"),
+    (["--nu", "0.7"], r"0\.7"),
+    (["--c1", "0"], r"c1"),
+    (["--c1", "-420"], r"c1"),
+    (["--gravity", "1,0"], r"expected a non-zero vector 'X,Y,Z', got '1,0'"),
+    (["--gravity", "x,y,z"], r"expected a non-zero vector 'X,Y,Z', got 'x,y,z'"),
+    (["--gravity", "0,0,0"], r"expected a non-zero vector"),
+    (["--back-plane", "y=3"], r"--back-plane must be 'auto' or 'z=VALUE' \(mm\), got 'y=3'"),
+    (["--back-plane", "z=abc"], r"--back-plane must be 'auto' or 'z=VALUE'"),
+    (["--back-plane", "z=40"], r"no back face found at z=40"),
+    (["--bc", "glued"], r"--bc must be 'clamped' or 'sliding', got 'glued'"),
+    (["--density", "-5"], r"--density must be positive"),
+]
+
+
+@pytest.mark.parametrize(("extra", "pattern"), BAD, ids=[" ".join(b[0]) for b in BAD])
+def test_simulate_bad_input(mesh_file, tmp_path, extra, pattern):
+    import re
+
+    out = tmp_path / "out" / "RESULT.vtu"
+    base = {"--c1": "420", "--gravity": "0,1,0", "--out": str(out)}
+    opts = dict(base, **dict(zip(extra[::2], extra[1::2], strict=True)))
+    args = ["simulate", str(mesh_file)] + [x for kv in opts.items() for x in kv]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2, result.output
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    assert re.search(pattern, lines[0]), lines[0]
+    assert not out.parent.exists() or list(out.parent.iterdir()) == []
+
+
+def test_simulate_missing_mesh(tmp_path):
+    out = tmp_path / "RESULT.vtu"
+    args = ["simulate", str(tmp_path / "absent.vtu"), "--c1", "420", "--gravity", "0,1,0",
+            "--out", str(out)]  # fmt: skip
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "absent.vtu" in lines[0] and "not found" in lines[0]
+    assert list(tmp_path.iterdir()) == []

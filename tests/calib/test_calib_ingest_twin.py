@@ -1,0 +1,220 @@
+"""The digital twin read back through ``ingest_session``, checked against its sealed truth.
+
+One ``quick`` twin (4 postures, about a minute on 2 cores) is built and ingested once per
+module. Tolerances are the accuracy bars of issues 3 (imaging), 4 (registration) and 5 (twin).
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from calib_helpers import SKFEM_VALUE_DEPRECATION
+
+import imaging
+import registration
+from calib.ingest import ingest_session, load_ingest
+from calib.twin import synthesize
+
+pytestmark = pytest.mark.filterwarnings(SKFEM_VALUE_DEPRECATION)
+
+
+@pytest.fixture(scope="module")
+def twin(tmp_path_factory):
+    base = tmp_path_factory.mktemp("twin")
+    out, work = base / "twin", base / "work"
+    record = synthesize(out, preset="quick", seed=0)
+    result = ingest_session(out / "scans", work)
+    truth = json.loads((out / "truth" / "truth.json").read_text())
+    assert truth == json.loads(json.dumps(record))  # the returned record is what was sealed
+    ingested = {name: load_ingest(work, name) for name in truth["scans"]}
+    return {"out": out, "work": work, "truth": truth, "ingest": ingested, "result": result}
+
+
+def _reference(truth) -> str:
+    (ref,) = [n for n, s in truth["scans"].items() if s["role"] == "reference"]
+    return ref
+
+
+def _T(matrix) -> np.ndarray:
+    T = np.asarray(matrix, float)
+    assert T.shape == (4, 4)
+    return T
+
+
+def _apply(T, points) -> np.ndarray:
+    return np.asarray(points, float) @ T[:3, :3].T + T[:3, 3]
+
+
+def _angle_deg(a, b) -> float:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    c = a @ b / (np.linalg.norm(a) * np.linalg.norm(b))
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def test_every_scan_reads_back(twin):
+    truth, work = twin["truth"], twin["work"]
+    assert set(twin["ingest"]) == set(truth["scans"]) and len(truth["scans"]) == 4
+    for name, doc in twin["ingest"].items():
+        folder = work / "scans" / name
+        for f in ("surface.ply", "surface_ref.ply", "mask.nii.gz", "ingest.json"):
+            assert (folder / f).is_file(), f"{name}: {f} missing"
+        assert doc["role"] == truth["scans"][name]["role"]
+        assert len(doc["fiducials_lps_mm"]) == 3
+        surface = imaging.read_ply(folder / "surface.ply")
+        assert len(surface.faces) > 1000
+        assert (work / "scans" / name / "surface_ref.ply").stat().st_size > 0
+    assert _reference(truth) == twin["result"].session.reference.name
+    assert not list(work.rglob(".*"))  # no temporary files left behind
+
+
+def test_fiducials(twin):
+    # Issue 3: fiducial centroids within 0.2 mm. The marker order of a scan is not the
+    # truth's (correspondence is solved later, by registration): match by nearest.
+    errors = {}
+    for name, doc in twin["ingest"].items():
+        found = np.asarray(doc["fiducials_lps_mm"])
+        true = np.asarray(twin["truth"]["scans"][name]["fiducials_lps_mm"])
+        d = np.linalg.norm(found[:, None] - true[None], axis=2)
+        assert sorted(d.argmin(axis=1)) == [0, 1, 2], f"{name}: two markers match one truth"
+        errors[name] = float(d.min(axis=1).max())
+    assert max(errors.values()) <= 0.2, errors
+
+
+def _nipple_errors(twin) -> dict:
+    return {
+        name: float(np.linalg.norm(np.subtract(doc["nipple_lps_mm"], truth_scan["nipple_lps_mm"])))
+        for name, doc in twin["ingest"].items()
+        for truth_scan in [twin["truth"]["scans"][name]]
+    }
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=AssertionError,
+    reason="measured nipple errors 2.16-2.27 mm (seed 0, quick preset; bar 1 mm): the "
+    "ingested nipple lies ~2.1 mm below the true nipple node along the back-plane normal "
+    "(imaging's smoothed surface + 8 mm quadratic cap fit round off the coarse twin's "
+    "pointed nipple)",
+)
+def test_nipple(twin):
+    # Issue 3: nipple within 1 mm (in each scan's own LPS frame).
+    errors = _nipple_errors(twin)
+    assert max(errors.values()) <= 1.0, errors
+
+
+def test_tracked_inclusion_is_detected(twin):
+    # Issue 3: inclusion centres within 0.5 mm; all 19 inclusions found. The true
+    # tumour must be among the detected inclusions (nearest one), whichever is tracked.
+    n_true = len(twin["truth"]["stress_free"]["inclusion_diameters_mm"])
+    errors = {}
+    for name, doc in twin["ingest"].items():
+        assert len(doc["inclusions"]) == n_true, f"{name}: {len(doc['inclusions'])} found"
+        centres = np.array([inc["centre_lps_mm"] for inc in doc["inclusions"]])
+        true = np.asarray(twin["truth"]["scans"][name]["tumour_lps_mm"])
+        errors[name] = float(np.linalg.norm(centres - true, axis=1).min())
+    assert max(errors.values()) <= 0.5, errors
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=AssertionError,
+    reason="measured tumour_lps_mm errors 27.1-42.9 mm (seed 0): the twin's session.toml has "
+    "no [landmarks] tumour hint, so ingest tracks the LARGEST inclusion, while the twin's "
+    "truth tracks phantom.tracked_inclusion (here an 8.1 mm one); the right inclusion is "
+    "detected within 0.1 mm (test_tracked_inclusion_is_detected)",
+)
+def test_tumour(twin):
+    # Issue 3: tracked tumour centre within 0.5 mm.
+    errors = {
+        name: float(np.linalg.norm(np.subtract(doc["tumour_lps_mm"], t["tumour_lps_mm"])))
+        for name, doc in twin["ingest"].items()
+        for t in [twin["truth"]["scans"][name]]
+    }
+    assert max(errors.values()) <= 0.5, errors
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=AssertionError,
+    reason="calib/ingest.py _track_tumour maps the reference's tumour into each scan by the "
+    "fiducial (rigid) frame and takes the nearest inclusion, ignoring the 10-20 mm gravity "
+    "deformation between postures: in right_lateral it tracks stress-free inclusion 4, in "
+    "the other scans inclusion 0",
+)
+def test_tracked_tumour_is_the_same_inclusion_in_every_scan(twin):
+    # The tracked inclusion of each scan, mapped back to the phantom frame by the true pose,
+    # must be nearest to the same stress-free inclusion. Displacements near the tracked
+    # inclusions (< 10 mm) are below the inclusion spacing (~15 mm) — measured: identity
+    # margins of 8 mm or more; the check compares indices, not distances.
+    truth = twin["truth"]
+    centres = np.asarray(truth["stress_free"]["inclusion_centres_phantom_mm"])
+    index = {}
+    for name, doc in twin["ingest"].items():
+        T_phantom_from_scan = np.linalg.inv(_T(truth["scans"][name]["T_scanner_from_phantom"]))
+        p = _apply(T_phantom_from_scan, doc["tumour_lps_mm"])
+        index[name] = int(np.linalg.norm(centres - p, axis=1).argmin())
+    assert len(set(index.values())) == 1, index
+
+
+def test_gravity_in_reference_frame(twin):
+    # Issue 4: gravity recovered per scan within 0.5 deg. The true gravity in the reference
+    # frame is R_ref (rotation of the reference's T_scanner_from_phantom) @ g_phantom.
+    truth = twin["truth"]
+    R_ref = _T(truth["scans"][_reference(truth)]["T_scanner_from_phantom"])[:3, :3]
+    errors = {}
+    for name, doc in twin["ingest"].items():
+        g_true = R_ref @ np.asarray(truth["scans"][name]["gravity_phantom"])
+        assert np.linalg.norm(doc["gravity_ref"]) == pytest.approx(1.0, abs=1e-9)
+        errors[name] = _angle_deg(doc["gravity_ref"], g_true)
+    assert max(errors.values()) <= 0.5, errors
+
+
+def test_registration_maps_fiducials_and_pose(twin):
+    # Issue 4: translation within 0.3 mm, rotation within 0.3 deg. The truth fiducials
+    # are listed in the same (phantom) order for every scan.
+    truth = twin["truth"]
+    ref = truth["scans"][_reference(truth)]
+    T_ref = _T(ref["T_scanner_from_phantom"])
+    for name, doc in twin["ingest"].items():
+        t = truth["scans"][name]
+        T = _T(doc["T_ref_from_scan"])
+        mapped = _apply(T, t["fiducials_lps_mm"])
+        err = np.linalg.norm(mapped - np.asarray(ref["fiducials_lps_mm"]), axis=1).max()
+        assert err <= 0.3, f"{name}: fiducials mapped to {err:.3f} mm"
+        T_true = T_ref @ np.linalg.inv(_T(t["T_scanner_from_phantom"]))
+        R_err = T[:3, :3] @ T_true[:3, :3].T
+        angle = np.degrees(np.arccos(np.clip((np.trace(R_err) - 1) / 2, -1.0, 1.0)))
+        assert angle <= 0.3, f"{name}: rotation off by {angle:.3f} deg"
+        assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0, abs=1e-9)  # never a reflection
+
+
+def test_surface_accuracy(twin):
+    # Issue 3: mean distance to the true surface <= 0.3 mm, 95th percentile <= 1 mm.
+    out, work = twin["out"], twin["work"]
+    stats = {}
+    for name, t in twin["truth"]["scans"].items():
+        ours = imaging.read_ply(work / "scans" / name / "surface.ply")
+        true = imaging.read_ply(out / "truth" / t["surface"])
+        d = registration.point_to_surface_distances(
+            ours.vertices_lps_mm, true.vertices_lps_mm, true.faces, signed=False
+        )
+        s = registration.summarise(d)
+        stats[name] = (round(s.mean_mm, 3), round(s.p95_mm, 3))
+    assert all(mean <= 0.3 and p95 <= 1.0 for mean, p95 in stats.values()), stats
+
+
+def test_true_deformation_is_physical(twin):
+    # Issue 5: nipple displacement from the stress-free state under a lateral 1 g of 10-30 mm
+    # (the dissertation's phantom moved by more than 10 mm over 40 % of its surface).
+    truth = twin["truth"]
+    free = np.asarray(truth["stress_free"]["nipple_phantom_mm"])
+    lateral = {n: s for n, s in truth["scans"].items() if s["nominal_angle_deg"] in (0, 180)}
+    assert set(lateral) == {"left_lateral", "right_lateral"}
+    moved = {n: float(np.linalg.norm(np.subtract(s["nipple_phantom_mm"], free)))
+             for n, s in lateral.items()}  # fmt: skip
+    assert all(10.0 <= m <= 30.0 for m in moved.values()), moved
+    # Left and right lateral gravity are opposite: the nipple moves to opposite sides (x).
+    dx = {n: s["nipple_phantom_mm"][0] - free[0] for n, s in lateral.items()}
+    assert dx["left_lateral"] > 5.0 and dx["right_lateral"] < -5.0, dx

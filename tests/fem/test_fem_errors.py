@@ -1,0 +1,112 @@
+"""Bad input gets a clear, specific error."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from femtest_meshes import box_mesh
+
+from fem import (
+    Clamped,
+    ConvergenceError,
+    FebioNeoHookean,
+    MeshError,
+    Model,
+    MooneyRivlin,
+    NeoHookean,
+    SolverOptions,
+    TetMesh,
+    discretize,
+    solve,
+)
+from fem.io import read_mesh
+
+
+def test_non_tetrahedral_mesh_file(tmp_path):
+    import meshio
+
+    hexa = meshio.Mesh(
+        np.array(
+            [
+                [0, 0, 0],
+                [1, 0, 0],
+                [1, 1, 0],
+                [0, 1, 0],
+                [0, 0, 1],
+                [1, 0, 1],
+                [1, 1, 1],
+                [0, 1, 1],
+            ],
+            float,
+        ),
+        [("hexahedron", np.arange(8)[None])],
+    )
+    path = tmp_path / "cube.vtu"
+    meshio.write(path, hexa)
+    with pytest.raises(MeshError, match=r"cube\.vtu.*hexahedron"):
+        read_mesh(path)
+    surface = tmp_path / "skin.vtk"
+    meshio.write(surface, meshio.Mesh(hexa.points[:3], [("triangle", np.array([[0, 1, 2]]))]))
+    with pytest.raises(MeshError, match=r"skin\.vtk.*triangle"):
+        read_mesh(surface)
+
+
+def test_inverted_mesh_rejected_by_discretize():
+    mesh = box_mesh((10.0, 10.0, 10.0), (2, 2, 2))
+    flipped = TetMesh(
+        mesh.nodes_mm, mesh.tets[:, [0, 2, 1, 3]], mesh.region, mesh.region_names, mesh.node_sets
+    )
+    with pytest.raises(MeshError, match="inverted"):
+        discretize(flipped, Clamped("z0"))
+    # a degenerate (flat) element cannot be fixed by re-orienting
+    flat = TetMesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], [[0, 1, 2, 3]], [1])
+    with pytest.raises(MeshError, match="degenerate"):
+        flat.oriented()
+
+
+@pytest.mark.parametrize("c1", [0.0, -5.0])
+def test_non_positive_c1(c1):
+    with pytest.raises(ValueError, match="c1_pa must be positive"):
+        NeoHookean(c1, nu=0.45)
+    with pytest.raises(ValueError, match="c1_pa must be positive"):
+        MooneyRivlin.from_poisson(c1, 10.0, 0.45)
+
+
+@pytest.mark.parametrize("nu", [0.5, 0.6])
+def test_poisson_ratio_at_or_above_half(nu):
+    with pytest.raises(ValueError, match="Poisson"):
+        NeoHookean(100.0, nu=nu)
+    with pytest.raises(ValueError, match="Poisson"):
+        FebioNeoHookean(1.0, nu)
+
+
+def test_missing_material_for_a_region():
+    mesh = box_mesh((10.0, 10.0, 10.0), (3, 3, 3))
+    region = np.where(mesh.nodes_mm[mesh.tets].mean(1)[:, 2] > 5, 2, 1)
+    mesh = mesh.with_regions(region, {"bulk": 1, "inclusion": 2})
+    with pytest.raises(ValueError, match=r"no material given for region\(s\) \['inclusion'\]"):
+        Model(mesh, {"bulk": NeoHookean(100.0, nu=0.45)}, {"bulk": 1000.0, "inclusion": 1000.0})
+    with pytest.raises(KeyError, match="unknown node set 'back'"):
+        Model.homogeneous(mesh, NeoHookean(100.0, nu=0.45))  # default Clamped("back")
+
+
+def test_load_that_cannot_converge_raises():
+    mesh = box_mesh((10.0, 10.0, 40.0), (2, 2, 5))
+    model = Model.homogeneous(mesh, NeoHookean(1e-3, nu=0.45), support=Clamped("z1"))
+    with pytest.raises(ConvergenceError, match="load not applied.*below 0.25"):
+        solve(
+            model,
+            gravity=[1.0, 0.0, 0.0],
+            g_m_s2=1e6,
+            formulation="p1",
+            options=SolverOptions(min_step=0.25),
+        )
+    sol = solve(
+        model,
+        gravity=[1.0, 0.0, 0.0],
+        g_m_s2=1e6,
+        formulation="p1",
+        options=SolverOptions(min_step=0.25),
+        raise_on_failure=False,
+    )
+    assert not sol.converged
