@@ -5,7 +5,8 @@ Poisson ratio, so the bulk modulus scales with c1. Derivatives use the converged
 tangent (direct sensitivity): ``K du/dtheta = -dR/dtheta``, one factorisation per scan.
 With ``reference_state="unload"`` the stress-free geometry ``X = x_ref - u0`` depends on
 theta too; its sensitivity solves the linearised unloading equation
-``(K0 - R0_X P) du0 = -R0_theta`` by GMRES preconditioned with ``K0``'s factors.
+``(K0 - D0) du0 = -R0_theta`` (``D0`` the residual's shape derivative), one more
+factorisation.
 """
 
 from __future__ import annotations
@@ -14,11 +15,11 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse.linalg as spla
 
 import fem
 from fem.assemble import assemble, external_force, scatter
 from fem.linalg import factorize
+from fem.shape_derivative import geometry_matrices
 from fem.solver import vertex_displacement_mm
 from fem.unload import recover_stress_free
 
@@ -106,8 +107,7 @@ class ForwardModel:
             return self._X
         start = self.model(theta)
         rec = recover_stress_free(start, gravity=self.gravity_ref, g_m_s2=self.g_m_s2,
-                                  formulation=self.formulation, x0_nodes_mm=self._X,
-                                  x0_state=self._u0)  # fmt: skip
+                                  formulation=self.formulation, x0_state=self._u0)  # fmt: skip
         self.solves += rec.iterations
         if not rec.converged:
             log.warning("reference recovery stopped at %.3f mm after %d solves",
@@ -129,45 +129,31 @@ class ForwardModel:
         rm = self._residual(theta - eps, disc, state, direction, mag)
         return (rp - rm) / (2.0 * eps)
 
-    def _dR_dX(self, theta, disc, state, direction, mag, dX_mm) -> np.ndarray:
-        """Directional derivative of the residual when the reference nodes move by dX."""
-        scale = float(np.abs(dX_mm).max())
-        if scale == 0.0:
-            return np.zeros(disc.n_dofs)
-        h = 1e-4 / scale
-        X = disc.mesh.nodes_mm
-        rp = self._residual(theta, disc.with_nodes(X + h * dX_mm), state, direction, mag)
-        rm = self._residual(theta, disc.with_nodes(X - h * dX_mm), state, direction, mag)
-        return (rp - rm) / (2.0 * h)
+    def _tangent(self, theta, disc, state, geometry=None):
+        """Free-dof tangent; with ``geometry=g`` minus the shape derivative (unload)."""
+        model = self.model(theta, disc.mesh.nodes_mm)
+        Ke = assemble(disc, model, state, tangent=True).matrices
+        if geometry is not None:
+            Ke = Ke - geometry_matrices(disc, model, state, geometry)
+        return disc.pattern.matrix(Ke)
 
-    def _tangent(self, theta, disc, state):
-        st = assemble(disc, self.model(theta, disc.mesh.nodes_mm), state, tangent=True)
-        return disc.pattern.matrix(st.matrices)
+    def _geometry_matrix(self, theta, disc, state, direction, mag):
+        model = self.model(theta, disc.mesh.nodes_mm)
+        g = fem.solver.gravity_vector(direction, mag)
+        return disc.pattern.matrix(geometry_matrices(disc, model, state, g))
 
     def _du0_dtheta(self, theta, disc0):
-        """Sensitivity of the reference posture's displacement in unload mode (full vector)."""
-        g0 = (self.gravity_ref, self.g_m_s2)
-        free = disc0.free
-        K0 = self._tangent(theta, disc0, self._u0)
-        K0_solve = factorize(K0)
-        rhs = -self._dR_dtheta(theta, disc0, self._u0, *g0)[free]
+        """Sensitivity of the reference posture's displacement in unload mode (full vector).
 
-        def full(v):
-            out = np.zeros(disc0.n_dofs)
-            out[free] = v
-            return out
-
-        def apply(v):
-            dX = -vertex_displacement_mm(disc0, full(v))
-            return K0 @ v + self._dR_dX(theta, disc0, self._u0, *g0, dX)[free]
-
-        n = len(free)
-        A = spla.LinearOperator((n, n), matvec=apply)
-        M = spla.LinearOperator((n, n), matvec=K0_solve)
-        v, info = spla.gmres(A, rhs, M=M, rtol=1e-9, atol=0.0, restart=30, maxiter=10)
-        if info != 0:
-            log.warning("reference-state sensitivity: GMRES did not converge (info=%d)", info)
-        return full(v)
+        Differentiates ``R(u0; X = x_ref - u0) = 0``: ``(K0 - D0) du0 = -dR/dtheta`` with
+        ``D0`` the residual's derivative in the reference geometry.
+        """
+        g = fem.solver.gravity_vector(self.gravity_ref, self.g_m_s2)
+        M = self._tangent(theta, disc0, self._u0, geometry=g)
+        rhs = -self._dR_dtheta(theta, disc0, self._u0, self.gravity_ref, self.g_m_s2)
+        du0 = np.zeros(disc0.n_dofs)
+        du0[disc0.free] = factorize(M)(rhs[disc0.free])
+        return du0
 
     def evaluate(self, theta: float, gravities: dict, *, gradient: bool = True) -> dict:
         """Solve every posture at ``theta``; positions and (optionally) their derivatives.
@@ -187,20 +173,24 @@ class ForwardModel:
         X = self.stress_free(theta)
         disc = self._disc.with_nodes(X)
         dX = np.zeros_like(X)
+        dX_vec = np.zeros(disc.n_dofs)  # -du0 on the vertex dofs (solver frame, m)
         if gradient and self.reference_state == "unload":
             du0 = self._du0_dtheta(theta, disc)
             dX = -vertex_displacement_mm(disc, du0)
+            vdofs = (3 * disc.skfem_basis.nodal_dofs[0][:, None] + np.arange(3)).ravel()
+            dX_vec[vdofs] = -du0[vdofs]
         out = {}
         for name, g in gravities.items():
             _, sol, direction, mag = self._solve(theta, disc, g, name)
             st = ScanState(sol.state, X + sol.displacement_mm)
             if gradient:
-                rhs = -self._dR_dtheta(theta, disc, sol.state, direction, mag)
+                free = disc.free
+                rhs = -self._dR_dtheta(theta, disc, sol.state, direction, mag)[free]
                 if self.reference_state == "unload":
-                    rhs -= self._dR_dX(theta, disc, sol.state, direction, mag, dX)
-                K = self._tangent(theta, disc, sol.state)
+                    D = self._geometry_matrix(theta, disc, sol.state, direction, mag)
+                    rhs -= D @ dX_vec[free]
                 du = np.zeros(disc.n_dofs)
-                du[disc.free] = factorize(K)(rhs[disc.free])
+                du[free] = factorize(self._tangent(theta, disc, sol.state))(rhs)
                 st.dpositions_mm = dX + vertex_displacement_mm(disc, du)
                 st.dstate = du
             out[name] = st

@@ -2,9 +2,15 @@
 
 A scan shows the phantom deformed by gravity ``g0``. The stress-free geometry ``X``
 is the one that deforms into the measured geometry ``x_m`` under ``g0``. Reversing
-gravity is not the inverse in nonlinear elasticity; here ``X`` is found by the
-backward-displacement fixed point ``X <- X - a (X + u(X) - x_m)`` with Aitken's
-adaptive relaxation ``a``, each forward solve warm-started from the last.
+gravity is not the inverse in nonlinear elasticity. Two methods find ``X``:
+
+- ``"newton"`` (default): inverse elastostatics in displacement form. The unknown is the
+  displacement ``u`` with ``X = x_m - u`` at the vertices; Newton's method on
+  ``R(u; x_m - u) = 0`` uses the consistent Jacobian ``K - D`` (``D`` the residual's
+  derivative in the reference geometry, :mod:`fem.shape_derivative`), with line search
+  and load stepping; the loaded geometry matches ``x_m`` by construction.
+- ``"fixed-point"``: the backward-displacement iteration ``X <- X - a (X + u(X) - x_m)``
+  with Aitken's adaptive relaxation ``a``, each forward solve warm-started from the last.
 """
 
 from __future__ import annotations
@@ -14,9 +20,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .assemble import assemble, external_force, scatter
 from .discretize import Formulation, discretize
+from .linalg import solve_sparse
 from .model import Model
-from .solver import Solution, SolverOptions, solve
+from .shape_derivative import geometry_matrices
+from .solver import (
+    ConvergenceError,
+    Solution,
+    SolverOptions,
+    gravity_vector,
+    solve,
+    vertex_displacement_mm,
+)
 
 __all__ = ["ReferenceRecovery", "recover_stress_free", "shortcut_gravity"]
 
@@ -71,6 +87,7 @@ def recover_stress_free(
     options: SolverOptions | None = None,
     x0_nodes_mm: np.ndarray | None = None,
     x0_state: np.ndarray | None = None,
+    method: str = "newton",
 ) -> ReferenceRecovery:
     """Find the stress-free geometry whose deformation under ``gravity`` is the mesh.
 
@@ -93,11 +110,17 @@ def recover_stress_free(
         Initial guess of the stress-free geometry (e.g. from a nearby material).
     x0_state : ndarray, optional
         Warm start of the first forward solve (``Solution.state``).
+    method : {"newton", "fixed-point"}
+        See the module docstring. With ``newton`` a warm start is ``x0_state`` alone.
 
     Returns
     -------
     ReferenceRecovery
     """
+    if method == "newton":
+        return _inverse_newton(model, gravity, g_m_s2, formulation, options, x0_state, tol_mm)
+    if method != "fixed-point":
+        raise ValueError(f"unknown recovery method {method!r}; choose newton or fixed-point")
     x_m = model.mesh.nodes_mm
     disc0 = discretize(model.mesh, model.support, formulation=formulation)
     X = x_m.copy() if x0_nodes_mm is None else np.asarray(x0_nodes_mm, float).copy()
@@ -143,3 +166,102 @@ def shortcut_gravity(g_target, g_reference, *, g_m_s2: float = 9.81) -> tuple[np
     d = (g - g0) * g_m_s2
     n = float(np.linalg.norm(d))
     return (d / n if n > 0 else g), n
+
+
+class _Inverse:
+    """Residual and Jacobian of ``R(u; x_m - u) = 0`` at load factor ``lam``."""
+
+    def __init__(self, model: Model, disc0, g_vec, opts: SolverOptions):
+        self.model, self.disc0, self.g, self.opts = model, disc0, g_vec, opts
+        self.x_m = disc0.mesh.nodes_mm
+        self.f_scale = max(np.linalg.norm(external_force(disc0, model, g_vec)), 1e-300)
+        self.v_scale = float(disc0.weights.sum())
+        self.u_free = disc0.free < 3 * disc0.n_scalar_u
+
+    def disc(self, u):
+        X = self.x_m - vertex_displacement_mm(self.disc0, u)
+        return self.disc0.with_nodes(X)
+
+    def residual(self, u, lam, jacobian: bool):
+        d = self.disc(u)
+        if np.any(d.weights <= 0) or np.any(np.linalg.det(_jac(d)) <= 0):
+            return None, None
+        mdl = self.model.with_mesh(d.mesh)
+        st = assemble(d, mdl, u, tangent=jacobian)
+        if st.min_J <= 0:
+            return None, None
+        r = scatter(d, st.vectors) - lam * external_force(d, mdl, self.g)
+        M = None
+        if jacobian:
+            M = d.pattern.matrix(st.matrices - geometry_matrices(d, mdl, u, lam * self.g))
+        return r[d.free], M
+
+    def merit(self, r) -> float:
+        ru = np.linalg.norm(r[self.u_free]) / self.f_scale
+        rp = np.linalg.norm(r[~self.u_free]) / self.v_scale if self.disc0.mixed else 0.0
+        return float(np.hypot(ru, rp))
+
+
+def _jac(disc):
+    from .discretize import _jacobians
+
+    return _jacobians(disc.mesh, disc.R_solver_from_model)
+
+
+def _inverse_step(prob: _Inverse, u, lam, stats):
+    """Newton with backtracking at one load factor; the converged u or None."""
+    free = prob.disc0.free
+    r, M = prob.residual(u, lam, True)
+    if r is None:
+        return None
+    m = prob.merit(r)
+    for _ in range(prob.opts.max_newton):
+        if m <= prob.opts.rtol:
+            return u
+        du = solve_sparse(M, -r, method=prob.opts.linear_solver)
+        stats["newton"] += 1
+        alpha = 1.0
+        for _ in range(6):
+            ut = u.copy()
+            ut[free] += alpha * du
+            rt, Mt = prob.residual(ut, lam, True)
+            if rt is not None and prob.merit(rt) < m:
+                break
+            alpha *= 0.5
+        else:
+            return None
+        u, r, M, m = ut, rt, Mt, prob.merit(rt)
+    return u if m <= prob.opts.rtol else None
+
+
+def _inverse_newton(model, gravity, g_m_s2, formulation, options, x0_state, tol_mm):
+    opts = options or SolverOptions()
+    disc0 = discretize(model.mesh, model.support, formulation=formulation)
+    prob = _Inverse(model, disc0, gravity_vector(gravity, g_m_s2), opts)
+    stats = {"newton": 0}
+    u, lam, dlam, steps = np.zeros(disc0.n_dofs), 0.0, opts.initial_step, 0
+    if x0_state is not None:
+        warm = _inverse_step(prob, np.asarray(x0_state, float).copy(), 1.0, stats)
+        if warm is not None:
+            u, lam, steps = warm, 1.0, 1
+    while lam < 1.0 and dlam >= opts.min_step:
+        trial = min(1.0, lam + dlam)
+        new = _inverse_step(prob, u, trial, stats)
+        if new is None:
+            dlam *= 0.25
+            continue
+        u, lam, steps = new, trial, steps + 1
+        dlam = min(2.0 * dlam, 1.0 - lam) if lam < 1.0 else dlam
+    converged = lam >= 1.0
+    if not converged:
+        raise ConvergenceError(
+            f"stress-free reference not recovered: inverse Newton stopped at load factor "
+            f"{lam:.3g} after {stats['newton']} iterations"
+        )
+    X = prob.x_m - vertex_displacement_mm(disc0, u)
+    sol = solve(model.with_mesh(model.mesh.with_nodes(X)), gravity=gravity, g_m_s2=g_m_s2,
+                disc=disc0.with_nodes(X), options=opts, x0=u)  # fmt: skip
+    err = float(np.linalg.norm(X + sol.displacement_mm - prob.x_m, axis=1).max())
+    if err > tol_mm:
+        log.warning("reference recovery: loaded geometry off by %.3g mm (tol %.3g)", err, tol_mm)
+    return ReferenceRecovery(X, err <= tol_mm, stats["newton"], err, (err,), sol)

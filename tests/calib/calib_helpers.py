@@ -11,7 +11,10 @@ SMALL_PRESET = TwinPreset(
     phantom_resolution_mm=14,
     truth_mesh_mm=14,
     spacing_mm=(2.0, 2.0, 2.0),
-    postures=(Posture("left_lateral", 0, "reference"), Posture("right_lateral", 180, "calibration")),
+    postures=(
+        Posture("left_lateral", 0, "reference"),
+        Posture("right_lateral", 180, "calibration"),
+    ),
 )
 
 VALID_TOML = """\
@@ -62,10 +65,3 @@ def small_phantom_mesh(*, skin_thickness_mm: float = 3.0):
     phantom = build_phantom(PhantomSpec(resolution_mm=14, n_inclusions=4))
     mesh = mesh_phantom(phantom, size_mm=14, skin_thickness_mm=skin_thickness_mm)
     return phantom, mesh
-
-
-# fem/discretize.py (_geometry) reads ``phi[0].value``, deprecated by scikit-fem 12 with a
-# DeprecationWarning that the project's "warnings are errors" turns into a failure of every
-# solve (reported to the lead; tests/fem carries the same narrow filter). Remove this once
-# fem reads ``phi[0]`` directly.
-SKFEM_VALUE_DEPRECATION = "ignore:Writing 'u.value' is unnecessary:DeprecationWarning"

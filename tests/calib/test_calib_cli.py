@@ -10,12 +10,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from calib_helpers import SKFEM_VALUE_DEPRECATION, small_phantom_mesh
+from calib_helpers import small_phantom_mesh
 from typer.testing import CliRunner
 
 from calib.cli import app
-
-pytestmark = pytest.mark.filterwarnings(SKFEM_VALUE_DEPRECATION)
 
 COMMANDS = ("simulate", "init", "ingest", "synth")
 REPO = Path(__file__).resolve().parents[2]

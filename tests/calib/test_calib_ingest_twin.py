@@ -10,14 +10,11 @@ import json
 
 import numpy as np
 import pytest
-from calib_helpers import SKFEM_VALUE_DEPRECATION
 
 import imaging
 import registration
 from calib.ingest import ingest_session, load_ingest
 from calib.twin import synthesize
-
-pytestmark = pytest.mark.filterwarnings(SKFEM_VALUE_DEPRECATION)
 
 
 @pytest.fixture(scope="module")

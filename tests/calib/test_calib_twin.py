@@ -8,7 +8,7 @@ import tomllib
 
 import numpy as np
 import pytest
-from calib_helpers import SKFEM_VALUE_DEPRECATION, SMALL_PRESET
+from calib_helpers import SMALL_PRESET
 from typer.testing import CliRunner
 
 import calib.twin
@@ -18,11 +18,11 @@ from calib.twin import synthesize
 
 NON_REPRODUCIBLE = "wall_s_not_reproducible"  # wall time, excluded from the truth by design
 
-pytestmark = pytest.mark.filterwarnings(SKFEM_VALUE_DEPRECATION)
-
 
 def _files(folder):
-    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+    return {
+        p.relative_to(folder).as_posix(): p.read_bytes() for p in folder.rglob("*") if p.is_file()
+    }
 
 
 def _pixels(folder):
@@ -96,7 +96,8 @@ def test_different_seed_differs(twin_a, tmp_path):
     out_a, rec_a = twin_a
     out_c = tmp_path / "twin"
     # Also exercises the effects override: `none` gives a homogeneous neo-Hookean truth.
-    rec_c = synthesize(out_c, preset=SMALL_PRESET, seed=4, effects=TruthEffects())
+    # (Seed 5: seeds 4 and 9 of this preset fail to mesh, see test_twin_truth_mesh_builds.)
+    rec_c = synthesize(out_c, preset=SMALL_PRESET, seed=5, effects=TruthEffects())
     assert rec_c["effects"]["active"] == []
     for name in ("left_lateral", "right_lateral"):
         T_a = np.asarray(rec_a["scans"][name]["T_scanner_from_phantom"])
@@ -124,8 +125,9 @@ def test_scans_do_not_reveal_the_truth(twin_a):
     for scan in doc["scans"]:
         assert set(scan) == {"name", "path", "role", "posture"}
         assert set(scan["posture"]) == {"plane", "angle_deg"}
-    secret = re.compile(r"c1|c2|effect|skin|T_scanner|truth|seed|420", re.IGNORECASE)
-    assert not secret.search(text), text
+    # Words of the truth record; digits are not searched in DICOM values (UIDs, positions).
+    secret = re.compile(r"c1|c2|effect|skin|T_scanner|truth|seed|mooney|hooke", re.IGNORECASE)
+    assert not secret.search(text) and "420" not in text, text  # 420 Pa: the true c1
     for name, scan in record["scans"].items():
         T = np.asarray(scan["T_scanner_from_phantom"])
         files = sorted((scans / name).glob("*.dcm"))
@@ -134,11 +136,34 @@ def test_scans_do_not_reveal_the_truth(twin_a):
             assert "ImageComments" not in ds and "StudyDescription" not in ds
             assert ds.SeriesDescription == name
             strings = [str(el.value) for el in ds.iterall() if el.keyword != "PixelData"]
-            assert not any(secret.search(s) for s in strings), [s for s in strings if secret.search(s)]
+            assert not any(secret.search(s) for s in strings), [
+                s for s in strings if secret.search(s)
+            ]
             # The grid is axis-aligned: its orientation carries nothing of the random pose.
             iop = np.asarray(ds.ImageOrientationPatient, float)
             np.testing.assert_array_equal(iop, [1, 0, 0, 0, 1, 0])
             assert not np.allclose(np.abs(T[:3, :2].T.ravel()), np.abs(iop), atol=1e-3)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="fem geometry/meshing: the twin's truth mesh fails for some seeds of the quick "
+    "preset: seed 4 'Mean of empty slice' RuntimeWarning (empty back-plate node set after "
+    "TetGen's fallback remesh), seed 7 MeshError '290 degenerate (zero-volume) elements', "
+    "seed 9 RuntimeError 'the phantom surface is not watertight'; so `phantom-calib synth "
+    "--seed 4|7|9` fails",
+)
+@pytest.mark.parametrize("seed", [4, 7, 9])
+def test_twin_truth_mesh_builds(seed):
+    # The first stage of calib.twin._build for the quick preset and its default skin layer.
+    from fem.geometry import PhantomSpec, build_phantom
+    from fem.meshing import mesh_phantom
+
+    p = calib.twin.PRESETS["quick"]
+    phantom = build_phantom(PhantomSpec(resolution_mm=p.phantom_resolution_mm, seed=seed))
+    mesh = mesh_phantom(phantom, size_mm=p.truth_mesh_mm,
+                        skin_thickness_mm=p.effects.skin_thickness_mm)  # fmt: skip
+    assert len(mesh.node_set("back")) >= 3
 
 
 class _Interrupt(RuntimeError):

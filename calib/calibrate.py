@@ -1,0 +1,168 @@
+"""BFGS calibration of c1 over a scan session, with honest uncertainty.
+
+The parameter is ``theta = ln c1``; L-BFGS-B minimises ``J = mean(r^2) / 2`` of the
+chosen objective's residuals over the calibration scans, with the analytic gradient
+of :mod:`calib.forward`, within bounds found from a cheap first estimate.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import fem
+
+from .forward import ForwardModel
+from .measurements import Measurements, ScanMeasurement
+from .refmodel import reference_mesh
+from .residuals import OBJECTIVES, Residuals, SimulatedSurface, scan_residuals
+
+__all__ = ["CalibrationOptions", "Calibrator", "TumourTracker"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    """Options of a calibration (see ``phantom-calib calibrate --help``)."""
+
+    objective: str = "surface"
+    reference_state: str = "unload"
+    mesh_size_mm: float = 10.0
+    formulation: str = "taylor-hood"
+    nu: float = 0.499
+    max_points: int = 3000
+    c1_guess_pa: float = 500.0
+    max_iterations: int = 30
+    profile_points: int = 5
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.objective not in OBJECTIVES:
+            raise ValueError(f"objective must be one of {OBJECTIVES}, got {self.objective!r}")
+        if self.reference_state not in ("unload", "shortcut"):
+            raise ValueError(
+                f"reference state must be unload or shortcut, not {self.reference_state}"
+            )
+        if not 1.0 <= self.mesh_size_mm <= 50.0:
+            raise ValueError(f"mesh size must lie in [1, 50] mm, got {self.mesh_size_mm}")
+
+
+class TumourTracker:
+    """A material point of the reference scan followed through the FE solutions."""
+
+    def __init__(self, fm: ForwardModel, point_ref_mm: np.ndarray):
+        from skfem import Basis, ElementTetP1
+
+        from fem.discretize import _skfem_mesh
+
+        disc = fm._disc
+        R = disc.R_solver_from_model
+        pts = (np.asarray(point_ref_mm, float).reshape(1, 3) * 1e-3) @ R.T
+        p1 = Basis(_skfem_mesh(fm.mesh, R), ElementTetP1(), intorder=1)
+        self.bary = p1.probes(pts.T)  # (1, n_vertices): barycentric weights
+        self.shape = disc.basis().probes(pts.T)  # (1, N_scalar)
+        self.R = R
+
+    def position(self, X_mm: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """Current position (mm) from stress-free vertices and a solver state."""
+        u = state[: 3 * self.shape.shape[1]].reshape(-1, 3)
+        return (self.bary @ X_mm)[0] + ((self.shape @ u) @ self.R)[0] * 1e3
+
+    def derivative(self, dX_mm: np.ndarray, dstate: np.ndarray) -> np.ndarray:
+        """Derivative of the position in theta (mm)."""
+        return self.position(dX_mm, dstate)
+
+
+@dataclass
+class Calibrator:
+    """Holds the model, the measurements and the history of one calibration."""
+
+    measurements: Measurements
+    options: CalibrationOptions
+    density_kg_m3: float = 1000.0
+    history: list = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        o = self.options
+        self.calibration_scans = self.measurements.with_role("calibration")
+        if not self.calibration_scans:
+            raise ValueError("the session has no scan with role 'calibration'")
+        ref = self.measurements.reference
+        self.mesh = reference_mesh(ref, size_mm=o.mesh_size_mm)
+        self.fm = ForwardModel(
+            self.mesh, ref.gravity_ref, nu=o.nu, density_kg_m3=self.density_kg_m3,
+            reference_state=o.reference_state, formulation=o.formulation,
+        )  # fmt: skip
+        self.sim = SimulatedSurface.of(self.mesh)
+        self.points = {s.name: s.surface_points(max_points=o.max_points, seed=o.seed)
+                       for s in self.measurements.scans.values()}  # fmt: skip
+        self.tracker = TumourTracker(self.fm, ref.tumour_mm) if ref.tumour_mm is not None else None
+        self.states: dict = {}
+
+    def targets(self) -> list[ScanMeasurement]:
+        """Every scan but the reference."""
+        return [s for s in self.measurements.scans.values() if s.role != "reference"]
+
+    def residuals(self, theta: float, scans, *, gradient: bool) -> dict[str, Residuals]:
+        """Solve the postures at theta and compute each scan's residuals."""
+        gravities = {s.name: s.gravity_ref for s in scans}
+        states = self.fm.evaluate(theta, gravities, gradient=gradient)
+        self.states = states
+        out = {}
+        for s in scans:
+            st = states[s.name]
+            tumour = self._tumour(st, gradient)
+            out[s.name] = scan_residuals(
+                self.options.objective, s, self.mesh, self.sim, st.positions_mm,
+                st.dpositions_mm if gradient else None, surface_points_mm=self.points[s.name],
+                tumour=tumour,
+            )  # fmt: skip
+        return out
+
+    def _tumour(self, st, gradient: bool):
+        if self.tracker is None:
+            return None
+        X = self.fm._X
+        p = self.tracker.position(X, st.state)
+        dp = self.tracker.derivative(self.fm.current_dX, st.dstate) if gradient else None
+        return p, dp
+
+    def objective(self, theta_arr: np.ndarray) -> tuple[float, np.ndarray]:
+        """``J(theta)`` and its gradient for scipy; a failed solve gives a steep penalty."""
+        theta = float(theta_arr[0])
+        t0 = time.perf_counter()
+        try:
+            res = self.residuals(theta, self.calibration_scans, gradient=True)
+        except fem.ConvergenceError as exc:
+            log.warning("FE failed at c1=%.1f Pa (%s); penalised", np.exp(theta), exc)
+            self.history.append({"c1_pa": float(np.exp(theta)), "objective": None, "failed": True})
+            return 1e6, np.array([-1e6])
+        r = np.concatenate([v.r for v in res.values()])
+        dr = np.concatenate([v.dr for v in res.values()])
+        J, g = 0.5 * float(np.mean(r**2)), float(np.mean(r * dr))
+        self.history.append({"c1_pa": float(np.exp(theta)), "objective": J, "gradient": g,
+                             "rms_mm": float(np.sqrt(np.mean(r**2))),
+                             "wall_s": time.perf_counter() - t0})  # fmt: skip
+        log.info("c1 = %8.2f Pa  J = %.5g mm^2  dJ/dln c1 = %.4g", np.exp(theta), J, g)
+        return J, np.array([g])
+
+    def first_estimate(self) -> float:
+        """c1 from one solve at the guess, scaling displacement ~ 1/c1 (nipple landmarks)."""
+        theta = np.log(self.options.c1_guess_pa)
+        states = self.fm.evaluate(theta, {s.name: s.gravity_ref for s in self.calibration_scans},
+                                  gradient=False)  # fmt: skip
+        nipple = int(self.mesh.node_set("nipple")[0])
+        x_ref = self.mesh.nodes_mm[nipple]
+        ref_n = self.measurements.reference.nipple_mm
+        ratios = []
+        for s in self.calibration_scans:
+            d_sim = np.linalg.norm(states[s.name].positions_mm[nipple] - x_ref)
+            d_meas = np.linalg.norm(s.nipple_mm - ref_n)
+            if d_meas > 0.5:
+                ratios.append(d_sim / d_meas)
+        est = self.options.c1_guess_pa * (float(np.median(ratios)) if ratios else 1.0)
+        return float(np.clip(est, 20.0, 1e5))

@@ -1,0 +1,129 @@
+"""Residuals of the calibration objectives and their derivatives in ``theta = ln c1``.
+
+All geometry is in the reference frame (mm), i.e. the fiducial frame: no ICP.
+
+- ``surface``: signed distance of each measured surface point (off the back plate) to
+  the simulated deformed surface (without its back face).
+- ``nipple``: signed distance of the simulated nipple node to the measured surface.
+- ``landmarks``: simulated minus measured nipple and tumour centre (3 components each).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+import fem
+
+from .measurements import ScanMeasurement
+
+__all__ = ["OBJECTIVES", "Residuals", "SimulatedSurface", "scan_residuals"]
+
+OBJECTIVES = ("nipple", "surface", "landmarks")
+
+
+def _scene(vertices: np.ndarray, faces: np.ndarray):
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(np.asarray(vertices, np.float32)),
+        o3d.core.Tensor(np.asarray(faces, np.uint32)),
+    )
+    return scene
+
+
+def closest_on_surface(vertices, faces, points):
+    """Closest points, triangle ids, barycentric weights (k, 3) and unit face normals."""
+    import open3d as o3d
+
+    ans = _scene(vertices, faces).compute_closest_points(
+        o3d.core.Tensor(np.asarray(points, np.float32))
+    )
+    tri = ans["primitive_ids"].numpy().astype(np.int64)
+    uv = ans["primitive_uvs"].numpy().astype(float)
+    w = np.column_stack([1.0 - uv.sum(1), uv[:, 0], uv[:, 1]])
+    v = np.asarray(vertices, float)[faces[tri]]  # (k, 3, 3)
+    closest = np.einsum("kc,kcj->kj", w, v)  # recomputed in double precision
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return closest, tri, w, n
+
+
+@dataclass(frozen=True)
+class SimulatedSurface:
+    """Boundary triangles of the FE mesh without the back face (outward)."""
+
+    faces: np.ndarray
+
+    @classmethod
+    def of(cls, mesh: fem.TetMesh) -> SimulatedSurface:
+        """The outer surface of a mesh with a ``back`` node set."""
+        faces = fem.boundary_faces(mesh.tets)
+        back = np.zeros(mesh.n_nodes, bool)
+        back[mesh.node_set("back")] = True
+        return cls(faces[~back[faces].all(axis=1)])
+
+
+@dataclass(frozen=True)
+class Residuals:
+    """Residuals ``r`` (mm) of one scan and ``dr/dtheta`` (mm per unit ln c1)."""
+
+    r: np.ndarray
+    dr: np.ndarray | None
+    points_mm: np.ndarray  # where each residual lives (for maps and correlation lengths)
+
+
+def _surface(meas: ScanMeasurement, sim: SimulatedSurface, pos, dpos, points) -> Residuals:
+    c, tri, w, n = closest_on_surface(pos, sim.faces, points)
+    r = np.einsum("kj,kj->k", n, points - c)
+    dr = None
+    if dpos is not None:
+        dc = np.einsum("kc,kcj->kj", w, dpos[sim.faces[tri]])
+        dr = -np.einsum("kj,kj->k", n, dc)
+    return Residuals(r, dr, points)
+
+
+def _nipple(meas: ScanMeasurement, nipple_node: int, pos, dpos) -> Residuals:
+    p = pos[nipple_node][None]
+    c, _, _, n = closest_on_surface(meas.vertices_mm, meas.faces, p)
+    r = np.einsum("kj,kj->k", n, p - c)
+    dr = None if dpos is None else np.einsum("kj,kj->k", n, dpos[nipple_node][None])
+    return Residuals(r, dr, p)
+
+
+def _landmarks(meas: ScanMeasurement, nipple_node, tumour, pos, dpos) -> Residuals:
+    """``tumour`` is ``(p, dp)`` of the simulated tumour centre, or None."""
+    p_n = pos[nipple_node]
+    r = [p_n - meas.nipple_mm]
+    dr = [None if dpos is None else dpos[nipple_node]]
+    pts = [p_n]
+    if tumour is not None and meas.tumour_mm is not None:
+        r.append(tumour[0] - meas.tumour_mm)
+        dr.append(tumour[1])
+        pts.append(tumour[0])
+    drv = None if dpos is None else np.concatenate(dr)
+    return Residuals(np.concatenate(r), drv, np.repeat(np.array(pts), 3, axis=0))
+
+
+def scan_residuals(
+    objective: str,
+    meas: ScanMeasurement,
+    mesh: fem.TetMesh,
+    sim: SimulatedSurface,
+    positions_mm: np.ndarray,
+    dpositions_mm: np.ndarray | None,
+    *,
+    surface_points_mm: np.ndarray,
+    tumour=None,
+) -> Residuals:
+    """Residuals of one scan for an objective (see the module docstring)."""
+    nipple = int(mesh.node_set("nipple")[0])
+    if objective == "surface":
+        return _surface(meas, sim, positions_mm, dpositions_mm, surface_points_mm)
+    if objective == "nipple":
+        return _nipple(meas, nipple, positions_mm, dpositions_mm)
+    if objective == "landmarks":
+        return _landmarks(meas, nipple, tumour, positions_mm, dpositions_mm)
+    raise ValueError(f"unknown objective {objective!r}; choose from {OBJECTIVES}")

@@ -1,0 +1,185 @@
+"""``phantom-calib calibrate``: ingest (when needed), calibrate, report."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import minimize
+
+from .calibrate import CalibrationOptions, Calibrator
+from .io import provenance, write_json_atomic
+from .measurements import load_measurements
+from .report import write_error_ply, write_error_png
+from .session import load_session
+from .uncertainty import gauss_newton_uncertainty
+
+__all__ = ["run_calibration"]
+
+log = logging.getLogger(__name__)
+
+
+def _summary(s) -> dict:
+    return {"mean": s.mean_mm, "sd": s.sd_mm, "median": s.median_mm, "p95": s.p95_mm,
+            "max": s.max_mm, "n": s.n}  # fmt: skip
+
+
+def _scan_metrics(cal: Calibrator, scan, st, work: Path, c1: float) -> dict:
+    import registration
+
+    pos, faces = st.positions_mm, cal.sim.faces
+    pts = scan.vertices_mm[~scan.back_plate]
+    icp = registration.icp_refine(pts, pos[np.unique(faces)])
+    T = icp.T_target_from_source
+    surf = registration.surface_errors(pts, pos, faces, frames=("fiducial", "icp"), T_icp=T)
+    nip = int(cal.mesh.node_set("nipple")[0])
+    nipple = registration.nipple_error(pos[nip], scan.vertices_mm, frames=("fiducial", "icp"),
+                                       T_icp=np.linalg.inv(T))  # fmt: skip
+    out = {
+        "role": scan.role,
+        "gravity_ref": scan.gravity_ref.tolist(),
+        "nipple_error_mm": {f: e.error_mm for f, e in nipple.items()},
+        "nipple_landmark_error_mm": {"fiducial": float(np.linalg.norm(pos[nip] - scan.nipple_mm))},
+        "surface_error_mm": {f: _summary(e.summary) for f, e in surf.items()},
+        "icp": {"fitness": icp.fitness, "inlier_rmse_mm": icp.inlier_rmse_mm},
+    }
+    tumour = cal._tumour(st, gradient=False)
+    if tumour is not None and scan.tumour_mm is not None:
+        p_icp = np.linalg.inv(T)[:3, :3] @ tumour[0] + np.linalg.inv(T)[:3, 3]
+        out["tumour_error_mm"] = {"fiducial": float(np.linalg.norm(tumour[0] - scan.tumour_mm)),
+                                  "icp": float(np.linalg.norm(p_icp - scan.tumour_mm))}  # fmt: skip
+    err = surf["fiducial"].distances_mm
+    folder = work / "calibration"
+    write_error_ply(folder / f"{scan.name}_error.ply", scan.vertices_mm, scan.faces,
+                    _per_vertex(scan, err))  # fmt: skip
+    write_error_png(folder / f"{scan.name}_error.png", pts, err,
+                    f"{scan.name}: c1 = {c1:.0f} Pa, fiducial frame, mean |e| = "
+                    f"{np.mean(np.abs(err)):.2f} mm")  # fmt: skip
+    _write_vtu(folder / f"{scan.name}_deformed.vtu", cal, pos)
+    out["files"] = [f"calibration/{scan.name}_error.ply", f"calibration/{scan.name}_error.png",
+                    f"calibration/{scan.name}_deformed.vtu"]  # fmt: skip
+    return out
+
+
+def _per_vertex(scan, err_off_back: np.ndarray) -> np.ndarray:
+    e = np.zeros(len(scan.vertices_mm))
+    e[~scan.back_plate] = err_off_back
+    return e
+
+
+def _write_vtu(path: Path, cal: Calibrator, positions: np.ndarray) -> None:
+    from fem.io import write_mesh
+
+    X = cal.fm._X
+    write_mesh(cal.mesh.with_nodes(positions), path, point_data={"displacement_mm": positions - X})
+
+
+def _optimise(cal: Calibrator, progress) -> tuple[float, object]:
+    c1_0 = cal.first_estimate()
+    progress(f"first estimate c1 = {c1_0:.0f} Pa")
+    lo, hi = np.log(c1_0 / 4.0), np.log(c1_0 * 4.0)
+    res = minimize(cal.objective, [np.log(c1_0)], jac=True, method="L-BFGS-B",
+                   bounds=[(lo, hi)], options={"maxiter": cal.options.max_iterations,
+                                               "ftol": 1e-10, "gtol": 1e-7})  # fmt: skip
+    theta = float(res.x[0])
+    if np.isclose(theta, lo) or np.isclose(theta, hi):
+        log.warning("c1 ended on a bound (%.0f Pa): the estimate may be poor", np.exp(theta))
+    return theta, res
+
+
+def _profile(cal: Calibrator, theta: float, se: float, n_eff: float) -> list[dict]:
+    k = cal.options.profile_points
+    if k < 2:
+        return []
+    half = max(2.0 * se, 0.05) if np.isfinite(se) else 0.2
+    rows, Js = [], []
+    for t in np.linspace(theta - half, theta + half, k):
+        res = cal.residuals(float(t), cal.calibration_scans, gradient=False)
+        r = np.concatenate([v.r for v in res.values()])
+        Js.append(0.5 * float(np.mean(r**2)))
+        rows.append({"c1_pa": float(np.exp(t)), "objective": Js[-1]})
+    jmin = min(Js)
+    for row in rows:
+        row["minus2_delta_loglik"] = float(n_eff * np.log(row["objective"] / jmin))
+    return rows
+
+
+def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=None) -> dict:
+    """Calibrate c1 on a scan session and write ``WORK/calibration.json`` and maps."""
+    say = progress or (lambda msg: log.info(msg))
+    t0 = time.perf_counter()
+    work = Path(work)
+    session = load_session(scans_dir)
+    if not all((work / "scans" / s.name / "ingest.json").is_file() for s in session.scans):
+        from .ingest import ingest_session
+
+        say("ingesting scans")
+        ingest_session(scans_dir, work)
+    meas = load_measurements(work, session)
+    cal = Calibrator(meas, options, density_kg_m3=session.density_kg_m3)
+    say(f"reference mesh: {cal.mesh.n_tets} tets; calibration scans: "
+        f"{[s.name for s in cal.calibration_scans]}")  # fmt: skip
+    theta, res = _optimise(cal, say)
+    c1 = float(np.exp(theta))
+    say(f"c1 = {c1:.1f} Pa after {res.nit} iterations ({cal.fm.solves} FE solves)")
+    final = cal.residuals(theta, cal.calibration_scans, gradient=True)
+    r = np.concatenate([v.r for v in final.values()])
+    dr = np.concatenate([v.dr for v in final.values()])
+    pts = np.concatenate([v.points_mm for v in final.values()])
+    area = _area(cal) if options.objective == "surface" else None
+    unc = gauss_newton_uncertainty(c1, r, dr, pts, area_mm2=area)
+    profile = _profile(cal, theta, unc.se_ln_c1, unc.n_effective)
+    targets = cal.targets()
+    states = cal.fm.evaluate(theta, {s.name: s.gravity_ref for s in targets}, gradient=False)
+    scans = {s.name: _scan_metrics(cal, s, states[s.name], work, c1) for s in targets}
+    doc = {
+        "c1_pa": c1,
+        "c1_ci95_pa": list(unc.c1_ci95_pa),
+        "objective": options.objective,
+        "objective_value_mm2": float(res.fun),
+        "reference_state": options.reference_state,
+        "uncertainty": asdict(unc),
+        "frames": {
+            "fiducial": "scans mapped by the fiducial registration only (no ICP)",
+            "icp": "after rigid ICP of the measured onto the simulated surface "
+            "(biased low: it absorbs part of the model error)",
+        },  # fmt: skip
+        "scans": scans,
+        "iterations": int(res.nit),
+        "fe_solves": int(cal.fm.solves),
+        "history": cal.history,
+        "profile": profile,
+        "mesh": {
+            "n_tets": cal.mesh.n_tets,
+            "n_nodes": cal.mesh.n_nodes,
+            "size_mm": options.mesh_size_mm,
+            "formulation": options.formulation,
+        },  # fmt: skip
+        "wall_s": time.perf_counter() - t0,
+        "provenance": provenance(
+            inputs={"session": session.folder / "session.toml"}
+            | {
+                f"{s.name}/ingest.json": work / "scans" / s.name / "ingest.json"
+                for s in session.scans
+            },
+            parameters=asdict(options),
+        ),
+    }
+    write_json_atomic(work / "calibration.json", doc)
+    return doc
+
+
+def _area(cal: Calibrator) -> float:
+    total = 0.0
+    for s in cal.calibration_scans:
+        v, f = s.vertices_mm, s.faces
+        off = ~s.back_plate[f].all(axis=1)
+        tri = v[f[off]]
+        total += (
+            0.5
+            * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+        )
+    return float(total)
