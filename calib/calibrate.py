@@ -102,6 +102,8 @@ class Calibrator:
                        for s in self.measurements.scans.values()}  # fmt: skip
         self.tracker = TumourTracker(self.fm, ref.tumour_mm) if ref.tumour_mm is not None else None
         self.states: dict = {}
+        self._cache = None
+        self.gauss_newton_curvature = 1.0
 
     def targets(self) -> list[ScanMeasurement]:
         """Every scan but the reference."""
@@ -134,6 +136,8 @@ class Calibrator:
     def objective(self, theta_arr: np.ndarray) -> tuple[float, np.ndarray]:
         """``J(theta)`` and its gradient for scipy; a failed solve gives a steep penalty."""
         theta = float(theta_arr[0])
+        if self._cache is not None and self._cache[0] == theta:
+            return self._cache[1]
         t0 = time.perf_counter()
         try:
             res = self.residuals(theta, self.calibration_scans, gradient=True)
@@ -144,17 +148,24 @@ class Calibrator:
         r = np.concatenate([v.r for v in res.values()])
         dr = np.concatenate([v.dr for v in res.values()])
         J, g = 0.5 * float(np.mean(r**2)), float(np.mean(r * dr))
+        self.gauss_newton_curvature = float(np.mean(dr**2))
         self.history.append({"c1_pa": float(np.exp(theta)), "objective": J, "gradient": g,
                              "rms_mm": float(np.sqrt(np.mean(r**2))),
                              "wall_s": time.perf_counter() - t0})  # fmt: skip
         log.info("c1 = %8.2f Pa  J = %.5g mm^2  dJ/dln c1 = %.4g", np.exp(theta), J, g)
+        self._cache = (theta, (J, np.array([g])))
         return J, np.array([g])
 
     def first_estimate(self) -> float:
         """c1 from one solve at the guess, scaling displacement ~ 1/c1 (nipple landmarks)."""
         theta = np.log(self.options.c1_guess_pa)
-        states = self.fm.evaluate(theta, {s.name: s.gravity_ref for s in self.calibration_scans},
-                                  gradient=False)  # fmt: skip
+        # the shortcut needs no reference recovery: cheap and robust at a poor guess
+        fm = ForwardModel(self.mesh, self.fm.gravity_ref, nu=self.fm.nu,
+                          density_kg_m3=self.fm.density_kg_m3, reference_state="shortcut",
+                          formulation=self.fm.formulation)  # fmt: skip
+        states = fm.evaluate(theta, {s.name: s.gravity_ref for s in self.calibration_scans},
+                             gradient=False)  # fmt: skip
+        self.fm.solves += fm.solves
         nipple = int(self.mesh.node_set("nipple")[0])
         x_ref = self.mesh.nodes_mm[nipple]
         ref_n = self.measurements.reference.nipple_mm

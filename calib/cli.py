@@ -143,6 +143,61 @@ def synth(
                f"{out}/truth (hidden effects: {active})")  # fmt: skip
 
 
+@app.command()
+def calibrate(
+    scans: Annotated[Path, typer.Argument(help="Scan folder with session.toml.")],
+    out: Annotated[Path, typer.Option("--out", help="Work folder (ingest results go here).")],
+    objective: Annotated[
+        str, typer.Option("--objective", help="surface, nipple or landmarks.")
+    ] = "surface",
+    reference_state: Annotated[
+        str, typer.Option("--reference-state", help="unload or shortcut.")
+    ] = "unload",
+    mesh_size: Annotated[
+        float, typer.Option("--mesh-size", help="Element edge length of the model, mm.")
+    ] = 12.0,
+    nu: Annotated[float, typer.Option("--nu", help="Poisson's ratio of the model.")] = 0.499,
+    profile: Annotated[
+        int, typer.Option("--profile", help="Points of the likelihood profile (0: none).")
+    ] = 5,
+) -> None:
+    """Fit c1 to the calibration scans; write calibration.json and error maps."""
+    from .calibrate import CalibrationOptions
+    from .run import run_calibration
+
+    try:
+        opts = CalibrationOptions(
+            objective=objective, reference_state=reference_state, mesh_size_mm=mesh_size,
+            nu=nu, profile_points=profile,
+        )  # fmt: skip
+        doc = run_calibration(scans, out, opts, progress=lambda msg: typer.echo(f"  {msg}"))
+    except (ValueError, OSError, RuntimeError) as exc:
+        fail(exc)
+    typer.echo(format_calibration(doc))
+    typer.echo(f"wrote {out / 'calibration.json'} and {out / 'calibration'}/")
+
+
+def format_calibration(doc: dict) -> str:
+    """A readable summary of calibration.json."""
+    lo, hi = doc["c1_ci95_pa"]
+    lines = [
+        f"c1 = {doc['c1_pa']:.1f} Pa  (95 % interval {lo:.1f} - {hi:.1f} Pa), objective "
+        f"{doc['objective']}, reference state {doc['reference_state']}",
+        f"{doc['iterations']} iterations, {doc['fe_solves']} FE solves, {doc['wall_s']:.0f} s",
+        f"{'scan':<16}{'role':<13}{'surface mean+-sd (fiducial)':>29}{'(icp)':>16}"
+        f"{'nipple mm':>11}{'tumour mm':>11}",
+    ]
+    for name, s in doc["scans"].items():
+        fid, icp = s["surface_error_mm"]["fiducial"], s["surface_error_mm"]["icp"]
+        tum = s.get("tumour_error_mm", {}).get("fiducial")
+        lines.append(
+            f"{name:<16}{s['role']:<13}{fid['mean']:>20.2f} +- {fid['sd']:.2f}"
+            f"{icp['mean']:>11.2f} +- {icp['sd']:.2f}{s['nipple_error_mm']['fiducial']:>9.2f}"
+            f"{'' if tum is None else f'{tum:.2f}':>11}"
+        )
+    return "\n".join(lines)
+
+
 def main() -> None:
     """Console-script entry point."""
     app()

@@ -111,12 +111,20 @@ def parse_effects(specs: list[str], *, default: TruthEffects) -> TruthEffects:
     if not specs:
         return default
     eff: dict = {}
+    seen: set[str] = set()
     for spec in specs:
         name, sep, value = spec.partition("=")
         name = name.strip().lower()
         if name not in EFFECTS:
             raise EffectError(f"unknown effect {name!r}; choose from {sorted(EFFECTS)}")
+        if name in seen:
+            raise EffectError(f"effect {name!r} given twice")
+        seen.add(name)
+        if sep and not value.strip():
+            raise EffectError(f"effect {name!r}: empty value after '='")
         if name == "none":
+            if sep:
+                raise EffectError("effect 'none' takes no value")
             if len(specs) > 1:
                 raise EffectError("effect 'none' cannot be combined with other effects")
             return TruthEffects()

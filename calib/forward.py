@@ -59,6 +59,7 @@ class ForwardModel:
     reference_state: str = "unload"
     formulation: str = "taylor-hood"
     g_m_s2: float = 9.81
+    unload_method: str = "newton"
     solves: int = 0
     _disc: fem.Discretization | None = None
     _X: np.ndarray | None = None
@@ -95,7 +96,8 @@ class ForwardModel:
         except fem.ConvergenceError:
             log.warning("solve failed for %s at c1=%.1f Pa; retrying with small load steps",
                         key, np.exp(theta))  # fmt: skip
-            opts = fem.SolverOptions(initial_step=0.125, min_step=1e-4, max_newton=20)
+            opts = fem.SolverOptions(initial_step=0.125, min_step=1e-3, max_newton=15,
+                                     max_steps=40)  # fmt: skip
             sol = fem.solve(model, gravity=direction, g_m_s2=mag, disc=disc, options=opts)
         self.solves += 1
         return model, sol, direction, mag
@@ -106,8 +108,18 @@ class ForwardModel:
             self._X = self.mesh.nodes_mm
             return self._X
         start = self.model(theta)
-        rec = recover_stress_free(start, gravity=self.gravity_ref, g_m_s2=self.g_m_s2,
-                                  formulation=self.formulation, x0_state=self._u0)  # fmt: skip
+        kw = {"gravity": self.gravity_ref, "g_m_s2": self.g_m_s2, "formulation": self.formulation}
+        rec = None
+        if self.unload_method == "newton":
+            try:
+                rec = recover_stress_free(start, x0_state=self._u0, **kw)
+            except fem.ConvergenceError as exc:
+                log.warning("inverse Newton failed at c1=%.1f Pa (%s); using the fixed point "
+                            "from now on", np.exp(theta), exc)  # fmt: skip
+                self.unload_method = "fixed-point"
+        if rec is None:
+            rec = recover_stress_free(start, method="fixed-point", x0_nodes_mm=self._X,
+                                      tol_mm=1e-3, **kw)  # fmt: skip
         self.solves += rec.iterations
         if not rec.converged:
             log.warning("reference recovery stopped at %.3f mm after %d solves",

@@ -44,22 +44,50 @@ def _map(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     return (T[:3, :3] @ np.asarray(p, float).T).T + T[:3, 3]
 
 
+def _match_constellation(ref_pts: np.ndarray, pts: np.ndarray, iterations: int = 15):
+    """Affine map taking ``pts`` onto ``ref_pts`` from iterated mutual nearest neighbours.
+
+    Gravity moves the inclusions by 10-20 mm between postures but keeps their
+    constellation: an affine fit of mutual matches absorbs most of the motion.
+    """
+    A = np.eye(4)
+    for _ in range(iterations):
+        moved = _map(A, pts)
+        d = np.linalg.norm(moved[:, None] - ref_pts[None], axis=2)
+        fwd, back = d.argmin(axis=1), d.argmin(axis=0)
+        mutual = np.flatnonzero(back[fwd] == np.arange(len(pts)))
+        if len(mutual) < 4:
+            break
+        src = np.column_stack([pts[mutual], np.ones(len(mutual))])
+        sol, *_ = np.linalg.lstsq(src, ref_pts[fwd[mutual]], rcond=None)
+        A = np.eye(4)
+        A[:3, :] = sol.T
+    return A
+
+
 def _track_tumour(session: Session, scans: dict, fiducial_regs: dict) -> dict:
-    """Choose the tracked inclusion in every scan consistently with the reference."""
+    """Choose the tracked inclusion in every scan consistently with the reference.
+
+    The reference scan's tumour is the inclusion nearest to the session's hint (else the
+    largest); in every other scan it is the inclusion that the constellation match
+    (:func:`_match_constellation`, in the reference frame) puts nearest to it.
+    """
     import imaging
 
     ref = session.reference.name
     r = scans[ref]
-    idx = {ref: imaging.select_tumour(r.inclusions.centres_lps_mm, r.inclusions.diameters_mm,
+    ref_pts = r.inclusions.centres_lps_mm
+    idx = {ref: imaging.select_tumour(ref_pts, r.inclusions.diameters_mm,
                                       hint_lps_mm=session.tumour_hint_lps_mm)}  # fmt: skip
-    target_ref = r.inclusions.centres_lps_mm[idx[ref]]
     for name, res in scans.items():
         if name == ref:
             continue
-        T_scan_from_ref = np.linalg.inv(fiducial_regs[name].T_ref_from_scan)
-        hint = _map(T_scan_from_ref, target_ref)
+        pts = _map(fiducial_regs[name].T_ref_from_scan, res.inclusions.centres_lps_mm)
+        if len(pts) == 0:
+            continue
+        A = _match_constellation(ref_pts, pts) if len(pts) >= 4 else np.eye(4)
         idx[name] = imaging.select_tumour(
-            res.inclusions.centres_lps_mm, res.inclusions.diameters_mm, hint_lps_mm=hint
+            _map(A, pts), res.inclusions.diameters_mm, hint_lps_mm=ref_pts[idx[ref]]
         )
     return idx
 

@@ -75,21 +75,34 @@ class Residuals:
     points_mm: np.ndarray  # where each residual lives (for maps and correlation lengths)
 
 
+def _signed(e: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distance ``|e|`` (sign of ``n . e``) and its unit direction.
+
+    When the closest point lies on an edge or a vertex, ``e`` is not along the face
+    normal; the direction of ``e`` (not ``n``) then gives the distance's derivative.
+    """
+    dist = np.linalg.norm(e, axis=1)
+    sign = np.where(np.einsum("kj,kj->k", n, e) < 0, -1.0, 1.0)
+    safe = dist > 1e-12
+    u = np.where(safe[:, None], e / np.where(safe, dist, 1.0)[:, None], n)
+    return sign * dist, sign[:, None] * u
+
+
 def _surface(meas: ScanMeasurement, sim: SimulatedSurface, pos, dpos, points) -> Residuals:
     c, tri, w, n = closest_on_surface(pos, sim.faces, points)
-    r = np.einsum("kj,kj->k", n, points - c)
+    r, u = _signed(points - c, n)
     dr = None
-    if dpos is not None:
+    if dpos is not None:  # envelope theorem: the closest point's barycentrics stay fixed
         dc = np.einsum("kc,kcj->kj", w, dpos[sim.faces[tri]])
-        dr = -np.einsum("kj,kj->k", n, dc)
+        dr = -np.einsum("kj,kj->k", u, dc)
     return Residuals(r, dr, points)
 
 
 def _nipple(meas: ScanMeasurement, nipple_node: int, pos, dpos) -> Residuals:
     p = pos[nipple_node][None]
     c, _, _, n = closest_on_surface(meas.vertices_mm, meas.faces, p)
-    r = np.einsum("kj,kj->k", n, p - c)
-    dr = None if dpos is None else np.einsum("kj,kj->k", n, dpos[nipple_node][None])
+    r, u = _signed(p - c, n)
+    dr = None if dpos is None else np.einsum("kj,kj->k", u, dpos[nipple_node][None])
     return Residuals(r, dr, p)
 
 

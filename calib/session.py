@@ -11,6 +11,7 @@ import numpy as np
 __all__ = ["ScanEntry", "Session", "SessionError", "load_session", "scaffold_session"]
 
 ROLES = ("reference", "calibration", "validation")
+PLANES = ("transverse", "sagittal", "coronal")
 VOLUME_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
 
 
@@ -73,17 +74,32 @@ class Session:
         return [s for s in self.scans if s.role == role]
 
 
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+
+
 def _vector(value, where: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=float) if isinstance(value, list) else None
-    if arr is None or arr.shape != (3,) or not np.all(np.isfinite(arr)):
-        raise SessionError(f"{where} must be a list of 3 numbers, got {value!r}")
-    return arr
+    if not isinstance(value, list) or len(value) != 3 or not all(map(_is_number, value)):
+        raise SessionError(f"{where} must be a list of 3 finite numbers, got {value!r}")
+    return np.asarray(value, dtype=float)
+
+
+_KEYS = {
+    "": {"scanner", "phantom", "landmarks", "scans"},
+    "scanner": {"gravity"},
+    "phantom": {"density_kg_m3", "fiducials"},
+    "landmarks": {"tumour"},
+}
 
 
 def _table(doc: dict, key: str, where: Path) -> dict:
     value = doc.get(key, {})
     if not isinstance(value, dict):
         raise SessionError(f"{where}: [{key}] must be a table")
+    unknown = set(value) - _KEYS[key]
+    if unknown:
+        raise SessionError(f"{where}: unknown key(s) {sorted(unknown)} in [{key}]; "
+                           f"expected {sorted(_KEYS[key])}")  # fmt: skip
     return value
 
 
@@ -105,10 +121,16 @@ def _scan(entry, index: int, folder: Path, toml: Path) -> ScanEntry:
     posture = entry.get("posture", {})
     if not isinstance(posture, dict):
         raise SessionError(f"{where}: posture must be an inline table")
+    unknown = set(posture) - {"plane", "angle_deg"}
+    if unknown:
+        raise SessionError(f"{where}: unknown posture key(s) {sorted(unknown)}")
     angle = posture.get("angle_deg")
-    if angle is not None and not isinstance(angle, (int, float)):
+    if angle is not None and not _is_number(angle):
         raise SessionError(f"{where}: posture.angle_deg must be a number, got {angle!r}")
-    return ScanEntry(entry["name"], path, entry["role"], posture.get("plane"), angle)
+    plane = posture.get("plane")
+    if plane is not None and plane not in PLANES:
+        raise SessionError(f"{where}: posture.plane must be one of {PLANES}, got {plane!r}")
+    return ScanEntry(entry["name"], path, entry["role"], plane, angle)
 
 
 def load_session(folder: str | Path) -> Session:
@@ -128,16 +150,20 @@ def load_session(folder: str | Path) -> Session:
         doc = tomllib.loads(toml.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise SessionError(f"{toml}: not valid TOML: {exc}") from exc
+    unknown = set(doc) - _KEYS[""]
+    if unknown:
+        raise SessionError(f"{toml}: unknown table(s) {sorted(unknown)}; "
+                           f"expected {sorted(_KEYS[''])}")  # fmt: skip
     scanner, phantom = _table(doc, "scanner", toml), _table(doc, "phantom", toml)
     landmarks = _table(doc, "landmarks", toml)
     g = _vector(scanner.get("gravity", [0.0, 1.0, 0.0]), f"{toml}: scanner.gravity")
     if np.linalg.norm(g) == 0:
         raise SessionError(f"{toml}: scanner.gravity must be non-zero")
     density = phantom.get("density_kg_m3", 1000.0)
-    if not isinstance(density, (int, float)) or density <= 0:
+    if not _is_number(density) or density <= 0:
         raise SessionError(f"{toml}: phantom.density_kg_m3 must be positive, got {density!r}")
     nfid = phantom.get("fiducials", 3)
-    if not isinstance(nfid, int) or nfid < 3:
+    if not isinstance(nfid, int) or isinstance(nfid, bool) or nfid < 3:
         raise SessionError(f"{toml}: phantom.fiducials must be an integer >= 3, got {nfid!r}")
     tumour = landmarks.get("tumour")
     hint = None if tumour is None else _vector(tumour, f"{toml}: landmarks.tumour")
@@ -167,6 +193,22 @@ def _find_scans(folder: Path) -> list[Path]:
         elif p.is_file() and p.name.lower().endswith(VOLUME_SUFFIXES):
             found.append(p)
     return found
+
+
+def _unique_names(paths: list[Path]) -> list[str]:
+    """Scan names from file names without volume suffixes, made unique."""
+    names = []
+    for p in paths:
+        stem = p.name
+        for suf in sorted(VOLUME_SUFFIXES, key=len, reverse=True):
+            if stem.lower().endswith(suf):
+                stem = stem[: -len(suf)]
+                break
+        name, k = stem or "scan", 2
+        while name in names:
+            name, k = f"{stem}_{k}", k + 1
+        names.append(name)
+    return names
 
 
 def scaffold_session(folder: str | Path, *, overwrite: bool = False) -> Path:

@@ -124,12 +124,13 @@ def _render(truth: _Truth, phantom, T: np.ndarray, preset: TwinPreset, seed: int
     )  # fmt: skip
 
 
-def _session_toml(preset: TwinPreset) -> str:
+def _session_toml(preset: TwinPreset, tumour_hint_lps_mm: np.ndarray) -> str:
     import tomli_w
 
     return tomli_w.dumps({
         "scanner": {"gravity": G_SCANNER.tolist()},
         "phantom": {"density_kg_m3": 1000.0, "fiducials": 3},
+        "landmarks": {"tumour": [round(float(c), 1) for c in tumour_hint_lps_mm]},
         "scans": [
             {"name": p.name, "path": p.name, "role": p.role,
              "posture": {"plane": "transverse", "angle_deg": p.angle_deg}}
@@ -156,7 +157,11 @@ def _write_truth_surface(path: Path, truth: _Truth, T) -> None:
     import imaging
 
     v, f = truth.body
-    surf = imaging.SurfaceMesh(_transform(T, v), f, np.abs(v[:, 2]) < 1e-6)
+    used = np.unique(f)  # the surface's own vertices only, not the interior nodes
+    remap = np.full(len(v), -1)
+    remap[used] = np.arange(len(used))
+    v = v[used]
+    surf = imaging.SurfaceMesh(_transform(T, v), remap[f], np.abs(v[:, 2]) < 1e-6)
     imaging.write_ply(path, surf)
 
 
@@ -226,13 +231,17 @@ def _build(tmp: Path, p: TwinPreset, preset: str, seed: int, eff: TruthEffects, 
             "nominal_angle_deg": post.angle_deg, "role": post.role}  # fmt: skip
         say(f"scan {post.name}: nipple moved "
             f"{np.linalg.norm(truth.nipple_mm - phantom.nipple_mm):.1f} mm")  # fmt: skip
-    (tmp / "scans" / "session.toml").write_text(_session_toml(p))
-    record = _record(preset, p, seed, eff, phantom, mesh, disc, scans, time.perf_counter() - t0)
+    # The experimenter names the tracked tumour by a rough point in the reference scan.
+    ref = next(n for n, post in zip(scans, p.postures, strict=True) if post.role == "reference")
+    hint = np.asarray(scans[ref]["tumour_lps_mm"]) + rng.normal(scale=1.5, size=3)
+    (tmp / "scans" / "session.toml").write_text(_session_toml(p, hint))
+    record = _record(preset, p, seed, eff, phantom, mesh, disc, scans)
     write_json_atomic(tmp / "truth" / "truth.json", record)
+    say(f"done in {time.perf_counter() - t0:.1f} s")
     return record
 
 
-def _record(preset, p, seed, eff, phantom, mesh, disc, scans, wall_s) -> dict:
+def _record(preset, p, seed, eff, phantom, mesh, disc, scans) -> dict:
     prov = provenance(parameters={"preset": preset, "seed": seed})
     prov.pop("created_utc")  # the truth must be identical for identical seeds
     prov.pop("command")
@@ -263,5 +272,4 @@ def _record(preset, p, seed, eff, phantom, mesh, disc, scans, wall_s) -> dict:
         },  # fmt: skip
         "scans": scans,
         "versions": prov["versions"],
-        "wall_s_not_reproducible": wall_s,
     }

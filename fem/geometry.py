@@ -123,57 +123,58 @@ def _nipple(points, spec: PhantomSpec, apex):
     return out
 
 
-def _disk_points(n_rings: int, scale_ring) -> np.ndarray:
-    """Concentric rings in the unit disk, ``scale_ring(k)`` points on ring k."""
+def _disk_points(radii: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Concentric rings in the unit disk: ``counts[k]`` points at radius ``radii[k]``."""
     pts = [np.zeros((1, 2))]
-    for k in range(1, n_rings + 1):
-        m = max(6, scale_ring(k))
+    for k, (r, m) in enumerate(zip(radii, counts, strict=True)):
         ang = 2 * np.pi * (np.arange(m) + 0.5 * (k % 2)) / m
-        pts.append(k / n_rings * np.stack([np.cos(ang), np.sin(ang)], axis=1))
+        pts.append(r * np.stack([np.cos(ang), np.sin(ang)], axis=1))
     return np.vstack(pts)
 
 
+def _rings(spec: PhantomSpec, quarter_mm: float, rim_n: int):
+    """Ring radii (unit disk) and point counts: uniform, plus finer rings at the nipple."""
+    n = max(4, int(np.ceil(quarter_mm / spec.resolution_mm)))
+    radii = list(np.arange(1, n + 1) / n)
+    counts = [max(6, int(round(rim_n * np.sin(r * np.pi / 2)))) for r in radii]
+    fine = min(spec.resolution_mm, spec.nipple_radius_mm / 2.5)
+    arcs = np.arange(fine, 1.5 * spec.nipple_radius_mm, fine)
+    arcs = arcs[arcs < 0.75 * quarter_mm / n]
+    radii = list(arcs / quarter_mm) + radii
+    counts = [max(6, int(round(2 * np.pi * a / fine))) for a in arcs] + counts
+    return np.array(radii), np.array(counts)
+
+
 def _dome_and_base(spec: PhantomSpec):
+    """Dome and flat base on one unit-disk triangulation, sharing the rim vertices.
+
+    The dome maps disk radius rho to the polar angle rho pi/2; the base maps the same
+    disk onto the rim polygon radially (the rim is star-shaped about the z axis), so
+    both triangulations are valid for any irregularity.
+    """
     a, b, h = spec.semi_axes_mm
     factor, tilt, phi_tilt = _shape_field(spec)
     quarter = np.pi / 2 * np.hypot(np.hypot(a, b) / np.sqrt(2), h)
-    n_rings = max(4, int(np.ceil(quarter / spec.resolution_mm)))
     rim_n = int(np.ceil(2 * np.pi * np.hypot(a, b) / np.sqrt(2) / spec.resolution_mm))
-    uv = _disk_points(n_rings, lambda k: int(round(rim_n * np.sin(k / n_rings * np.pi / 2))))
+    uv = _disk_points(*_rings(spec, quarter, rim_n))
     rho, phi = np.linalg.norm(uv, axis=1), np.arctan2(uv[:, 1], uv[:, 0])
     dome = _dome_point(spec, rho * np.pi / 2, phi, factor, tilt, phi_tilt)
-    dome[np.isclose(rho, 1.0), 2] = 0.0
-    tri = Delaunay(uv).simplices
-    rim = np.flatnonzero(np.isclose(rho, 1.0))
-    return dome, tri, rim, n_rings
-
-
-def _base(dome, rim, n_rings_dome, spec: PhantomSpec):
-    """Flat base triangulation inside the rim polygon (z = 0)."""
-    rim_xy = dome[rim, :2]
-    centre = rim_xy.mean(axis=0)
-    n_rings = max(3, int(np.ceil(np.ptp(rim_xy[:, 0]) / 2 / spec.resolution_mm)))
-    inner = []
-    for k in range(1, n_rings):
-        s = k / n_rings
-        m = max(6, int(round(len(rim) * s)))
-        idx = np.linspace(0, len(rim), m, endpoint=False).astype(int)
-        inner.append(centre + s * (rim_xy[idx] - centre))
-    inner = np.vstack([centre[None]] + inner)
-    xy = np.vstack([rim_xy, inner])
-    tri = Delaunay(xy).simplices
-    return inner, tri
+    on_rim = np.isclose(rho, 1.0)
+    dome[on_rim, 2] = 0.0
+    rim_xy = _dome_point(spec, np.full_like(phi, np.pi / 2), phi, factor, tilt, phi_tilt)[:, :2]
+    base = np.column_stack([rho[:, None] * rim_xy, np.zeros(len(rho))])
+    return dome, base, Delaunay(uv).simplices, on_rim
 
 
 def _closed_surface(spec: PhantomSpec):
-    dome, tri_dome, rim, n_rings = _dome_and_base(spec)
+    dome, base, tri, on_rim = _dome_and_base(spec)
     apex = dome[np.argmax(dome[:, 2])]
     dome = _nipple(dome, spec, apex)
-    inner, tri_base = _base(dome, rim, n_rings, spec)
-    n_dome = len(dome)
-    base_index = np.concatenate([rim, n_dome + np.arange(len(inner))])
-    verts = np.vstack([dome, np.column_stack([inner, np.zeros(len(inner))])])
-    faces = np.vstack([tri_dome, base_index[tri_base][:, ::-1]])
+    inner = np.flatnonzero(~on_rim)
+    base_index = np.arange(len(dome))  # rim vertices are shared with the dome
+    base_index[inner] = len(dome) + np.arange(len(inner))
+    verts = np.vstack([dome, base[inner]])
+    faces = np.vstack([tri, base_index[tri][:, ::-1]])
     return _orient_outward(verts, faces)
 
 

@@ -1,0 +1,88 @@
+"""Calibration: analytic gradient vs finite differences, and recovery of a known c1.
+
+The measurements here come straight from FE solves of a homogeneous truth (no imaging),
+so the only error between model and truth is the model's remeshing/discretisation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import fem
+from calib.calibrate import CalibrationOptions, Calibrator
+from calib.measurements import Measurements, ScanMeasurement
+from calib.run import _optimise
+from fem.geometry import PhantomSpec, build_phantom
+from fem.meshing import mesh_phantom
+
+C1_TRUE = 420.0
+G_REF = np.array([1.0, 0.0, 0.0])
+# Calibrate on a 50 deg tilt: the shortcut's "2 x gravity" between lateral postures
+# inverts elements of coarse test meshes (see the closing notes); validate on right lateral.
+G_CAL = np.array([np.cos(np.radians(50)), 0.0, np.sin(np.radians(50))])
+G_VAL = np.array([-1.0, 0.0, 0.0])
+
+
+def _surface(mesh: fem.TetMesh, positions: np.ndarray):
+    faces = fem.boundary_faces(mesh.tets)
+    used = np.unique(faces)
+    remap = np.full(mesh.n_nodes, -1)
+    remap[used] = np.arange(len(used))
+    v = positions[used]
+    return v, remap[faces], np.abs(mesh.nodes_mm[used, 2]) < 1e-6
+
+
+@pytest.fixture(scope="module")
+def measurements() -> Measurements:
+    ph = build_phantom(PhantomSpec(resolution_mm=12.0, n_inclusions=0, seed=3))
+    mesh = mesh_phantom(ph, size_mm=12.0)
+    model = fem.Model.homogeneous(mesh, fem.NeoHookean(C1_TRUE, nu=0.499))
+    disc = fem.discretize(mesh, model.support)
+    scans = {}
+    tumour = np.array([5.0, 0.0, 25.0])
+    for name, role, g in (("ref", "reference", G_REF), ("cal", "calibration", G_CAL),
+                          ("val", "validation", G_VAL)):  # fmt: skip
+        sol = fem.solve(model, gravity=g, disc=disc)
+        pos = mesh.nodes_mm + sol.displacement_mm
+        v, f, back = _surface(mesh, pos)
+        nip = int(mesh.node_set("nipple")[0])
+        t = tumour + fem.displacement_at(disc, sol.state, tumour[None])[0]
+        scans[name] = ScanMeasurement(name, role, g, v, f, back, pos[nip], t, np.zeros(3),
+                                      np.array([0.0, 0.0, -1.0]), np.eye(4))  # fmt: skip
+    return Measurements(scans["ref"], scans)
+
+
+@pytest.mark.parametrize(
+    ("reference_state", "objective"),
+    [("shortcut", "surface"), ("unload", "surface"), ("unload", "landmarks")],
+)
+def test_gradient_matches_central_differences(measurements, reference_state, objective):
+    opts = CalibrationOptions(objective=objective, reference_state=reference_state,
+                              mesh_size_mm=12.0, max_points=800)  # fmt: skip
+    cal = Calibrator(measurements, opts)
+    theta = np.log(380.0)
+    _, g = cal.objective(np.array([theta]))
+    h = 1e-3
+    jp, _ = cal.objective(np.array([theta + h]))
+    jm, _ = cal.objective(np.array([theta - h]))
+    fd = (jp - jm) / (2 * h)
+    # central differences are O(h^2) ~ 1e-6 relative here; the issue asks for 1e-4, and
+    # both the FE solves (rtol 1e-8) and the inverse-Newton unloading are far tighter.
+    # The closest-point residuals are piecewise smooth: a point that switches triangle
+    # between theta +- h adds a kink of O(h * edge) that the bound also covers.
+    assert g[0] == pytest.approx(fd, rel=1e-4)
+
+
+@pytest.mark.parametrize("reference_state", ["unload"])
+def test_recovers_known_c1(measurements, reference_state):
+    opts = CalibrationOptions(objective="surface", reference_state=reference_state,
+                              mesh_size_mm=12.0, max_points=1500, profile_points=0)  # fmt: skip
+    cal = Calibrator(measurements, opts)
+    theta, res = _optimise(cal, progress=lambda msg: None)
+    # the issue's bar: within 3 % of the truth for a homogeneous truth; the model mesh is
+    # a remeshed copy of the truth's loaded surface, so a small discretisation bias remains
+    assert np.exp(theta) == pytest.approx(C1_TRUE, rel=0.03)
+    r = np.concatenate([v.r for v in cal.residuals(theta, cal.calibration_scans,
+                                                   gradient=False).values()])  # fmt: skip
+    assert np.sqrt(np.mean(r**2)) < 0.5  # mm: remeshing error of a 12 mm surface
