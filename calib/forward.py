@@ -118,8 +118,9 @@ class ForwardModel:
                             "from now on", np.exp(theta), exc)  # fmt: skip
                 self.unload_method = "fixed-point"
         if rec is None:
+            # tight: the gradient assumes X + u0 = x_ref; 1e-3 mm already costs ~1 % of it
             rec = recover_stress_free(start, method="fixed-point", x0_nodes_mm=self._X,
-                                      tol_mm=1e-3, **kw)  # fmt: skip
+                                      tol_mm=1e-5, max_iter=200, **kw)  # fmt: skip
         self.solves += rec.iterations
         if not rec.converged:
             log.warning("reference recovery stopped at %.3f mm after %d solves",

@@ -80,7 +80,7 @@ def _is_number(value) -> bool:
 
 def _vector(value, where: str) -> np.ndarray:
     if not isinstance(value, list) or len(value) != 3 or not all(map(_is_number, value)):
-        raise SessionError(f"{where} must be a list of 3 finite numbers, got {value!r}")
+        raise SessionError(f"{where} must be a list of 3 numbers, got {value!r}")
     return np.asarray(value, dtype=float)
 
 
@@ -228,17 +228,14 @@ def scaffold_session(folder: str | Path, *, overwrite: bool = False) -> Path:
     scans = _find_scans(folder)
     if not scans:
         raise SessionError(f"{folder}: no DICOM series folders or volume files found")
+    names = _unique_names(scans)
     doc = {
         "scanner": {"gravity": [0.0, 1.0, 0.0]},
         "phantom": {"density_kg_m3": 1000.0, "fiducials": 3},
         "scans": [
-            {
-                "name": p.name.split(".")[0],
-                "path": p.name,
-                "role": "reference" if i == 0 else "calibration",
-            }
-            for i, p in enumerate(scans)
-        ],  # fmt: skip
+            {"name": n, "path": p.name, "role": "reference" if i == 0 else "calibration"}
+            for i, (n, p) in enumerate(zip(names, scans, strict=True))
+        ],
     }
     text = tomli_w.dumps(doc)
     return atomic_write(target, lambda p: p.write_text(text))

@@ -197,7 +197,7 @@ def find_back_plane(mesh: TetMesh, *, angle_tol_deg: float = 2.0, dist_tol_mm: f
     cos_tol = np.cos(np.radians(angle_tol_deg))
     order = np.argsort(-area)
     tried = np.zeros(len(faces), dtype=bool)
-    for seed in order[:200]:
+    for seed in order:
         if tried[seed]:
             continue
         d = n[seed] @ x[seed, 0]

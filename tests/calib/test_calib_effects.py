@@ -88,11 +88,6 @@ def test_effect_error_is_a_value_error():
     assert issubclass(EffectError, ValueError)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="calib/effects.py parse_effects: 'none' ignores its value ('none=3' silently gives "
-    "a neutral truth) instead of rejecting it",
-)
 def test_none_takes_no_value():
     with pytest.raises(EffectError, match="none"):
         parse_effects(["none=3"], default=DEFAULT)

@@ -90,10 +90,9 @@ def _nipple_errors(twin) -> dict:
 @pytest.mark.xfail(
     strict=True,
     raises=AssertionError,
-    reason="measured nipple errors 2.16-2.27 mm (seed 0, quick preset; bar 1 mm): the "
-    "ingested nipple lies ~2.1 mm below the true nipple node along the back-plane normal "
-    "(imaging's smoothed surface + 8 mm quadratic cap fit round off the coarse twin's "
-    "pointed nipple)",
+    reason="measured nipple errors 1.55-1.67 mm (seed 0, quick preset; bar 1 mm): imaging "
+    "places the nipple at the apex relative to the back plane (quadratic cap fit), while the "
+    "truth is the material nipple point; under gravity the bump tips over and the two differ",
 )
 def test_nipple(twin):
     # Issue 3: nipple within 1 mm (in each scan's own LPS frame).
@@ -114,14 +113,6 @@ def test_tracked_inclusion_is_detected(twin):
     assert max(errors.values()) <= 0.5, errors
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="measured tumour_lps_mm errors 27.1-42.9 mm (seed 0): the twin's session.toml has "
-    "no [landmarks] tumour hint, so ingest tracks the LARGEST inclusion, while the twin's "
-    "truth tracks phantom.tracked_inclusion (here an 8.1 mm one); the right inclusion is "
-    "detected within 0.1 mm (test_tracked_inclusion_is_detected)",
-)
 def test_tumour(twin):
     # Issue 3: tracked tumour centre within 0.5 mm.
     errors = {
@@ -132,14 +123,6 @@ def test_tumour(twin):
     assert max(errors.values()) <= 0.5, errors
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="calib/ingest.py _track_tumour maps the reference's tumour into each scan by the "
-    "fiducial (rigid) frame and takes the nearest inclusion, ignoring the 10-20 mm gravity "
-    "deformation between postures: in right_lateral it tracks stress-free inclusion 4, in "
-    "the other scans inclusion 0",
-)
 def test_tracked_tumour_is_the_same_inclusion_in_every_scan(twin):
     # The tracked inclusion of each scan, mapped back to the phantom frame by the true pose,
     # must be nearest to the same stress-free inclusion. Displacements near the tracked

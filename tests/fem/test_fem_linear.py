@@ -80,6 +80,8 @@ def test_p1_tangent_at_rest_equals_scikit_fem_linear_elasticity():
 _NEEDS_PARDISO = pytest.mark.skipif(
     "pardiso" not in available_solvers(), reason="pypardiso (MKL) not installed"
 )
+
+
 @_NEEDS_PARDISO
 @pytest.mark.parametrize("formulation", ["p1", "taylor-hood"])
 def test_pardiso_and_superlu_agree(formulation):
