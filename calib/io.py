@@ -7,35 +7,15 @@ import json
 import os
 import platform
 import sys
-import tempfile
-from collections.abc import Callable
 from datetime import UTC, datetime
 from importlib import metadata
 from pathlib import Path
 
+from fem.io import atomic_write
+
 __all__ = ["atomic_write", "file_sha256", "provenance", "write_json_atomic"]
 
 _PACKAGES = ("phantom-calib", "numpy", "scipy", "scikit-fem", "tetgen", "meshio", "open3d-cpu")
-
-
-def atomic_write(path: str | os.PathLike, writer: Callable[[Path], None]) -> Path:
-    """Write a file through ``writer(tmp_path)`` and move it into place atomically.
-
-    The temporary file lies in the destination folder and keeps the suffix, so
-    format-sniffing writers (meshio, PIL) work; on any error it is removed and the
-    destination is left untouched.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
-    os.close(fd)
-    try:
-        writer(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 def write_json_atomic(path: str | os.PathLike, data: dict) -> Path:

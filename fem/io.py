@@ -30,7 +30,14 @@ import numpy as np
 
 from .mesh import REGION_IDS, MeshError, TetMesh, boundary_faces
 
-__all__ = ["read_mesh", "read_tetgen", "read_tetgen_face", "write_mesh", "write_tetgen"]
+__all__ = [
+    "atomic_write",
+    "read_mesh",
+    "read_tetgen",
+    "read_tetgen_face",
+    "write_mesh",
+    "write_tetgen",
+]
 
 log = logging.getLogger(__name__)
 
@@ -40,8 +47,13 @@ _VOLUME_CELLS |= {"wedge15", "pyramid", "pyramid13", "polyhedron"}
 _SET_PREFIX, _REGION_PREFIX = "set:", "region:"
 
 
-def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    """Call ``write(tmp)`` on a temporary file next to ``path``, then rename it to ``path``."""
+def atomic_write(path: str | os.PathLike, write: Callable[[Path], None]) -> Path:
+    """Call ``write(tmp)`` on a temporary file next to ``path``, then rename it to ``path``.
+
+    The temporary file keeps the suffix (format-sniffing writers work); on any error it
+    is removed and ``path`` is left untouched.
+    """
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(
         prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent
@@ -53,6 +65,7 @@ def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    return path
 
 
 def _region_name_for(tag: int) -> str:
@@ -260,7 +273,7 @@ def write_mesh(
 
     fmt = file_format or _format_for(path)
     m = _meshio_mesh(mesh, path, fmt, point_data, cell_data)
-    _atomic_write(path, lambda tmp: meshio.write(tmp, m, file_format=fmt))
+    atomic_write(path, lambda tmp: meshio.write(tmp, m, file_format=fmt))
     return path
 
 
@@ -439,6 +452,6 @@ def write_tetgen(
     for suffix, lines in out.items():
         target = base.with_name(base.name + suffix)
         text = "# written by phantom-calib fem.io\n" + "\n".join(lines) + "\n"
-        _atomic_write(target, lambda tmp, text=text: tmp.write_text(text))
+        atomic_write(target, lambda tmp, text=text: tmp.write_text(text))
         written.append(target)
     return tuple(written)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .assemble import assemble, external_force, scatter
-from .discretize import Formulation, discretize
+from .discretize import Formulation, _jacobians, discretize
 from .linalg import solve_sparse
 from .model import Model
 from .shape_derivative import geometry_matrices
@@ -29,6 +29,8 @@ from .solver import (
     ConvergenceError,
     Solution,
     SolverOptions,
+    _newton,
+    _Stats,
     gravity_vector,
     solve,
     vertex_displacement_mm,
@@ -169,11 +171,17 @@ def shortcut_gravity(g_target, g_reference, *, g_m_s2: float = 9.81) -> tuple[np
 
 
 class _Inverse:
-    """Residual and Jacobian of ``R(u; x_m - u) = 0`` at load factor ``lam``."""
+    """``R(u; x_m - u) = 0`` at load factor ``lam``.
+
+    It has the interface of the forward solver's problems, so the same Newton
+    iteration and line search serve both.
+    """
 
     def __init__(self, model: Model, disc0, g_vec, opts: SolverOptions):
         self.model, self.disc0, self.g, self.opts = model, disc0, g_vec, opts
         self.x_m = disc0.mesh.nodes_mm
+        self.free = disc0.free
+        self.stats = _Stats()
         self.f_scale = max(np.linalg.norm(external_force(disc0, model, g_vec)), 1e-300)
         self.v_scale = float(disc0.weights.sum())
         self.u_free = disc0.free < 3 * disc0.n_scalar_u
@@ -182,71 +190,41 @@ class _Inverse:
         X = self.x_m - vertex_displacement_mm(self.disc0, u)
         return self.disc0.with_nodes(X)
 
-    def residual(self, u, lam, jacobian: bool):
+    def residual(self, u, lam, tangent: bool):
         d = self.disc(u)
-        if np.any(d.weights <= 0) or np.any(np.linalg.det(_jac(d)) <= 0):
-            return None, None
+        if np.any(np.linalg.det(_jacobians(d.mesh, d.R_solver_from_model)) <= 0):
+            return None, None  # the recovered reference would be inverted
         mdl = self.model.with_mesh(d.mesh)
-        st = assemble(d, mdl, u, tangent=jacobian)
+        st = assemble(d, mdl, u, tangent=tangent)
         if st.min_J <= 0:
             return None, None
         r = scatter(d, st.vectors) - lam * external_force(d, mdl, self.g)
         M = None
-        if jacobian:
+        if tangent:
             M = d.pattern.matrix(st.matrices - geometry_matrices(d, mdl, u, lam * self.g))
-        return r[d.free], M
+        return r[self.free], M
 
     def merit(self, r) -> float:
         ru = np.linalg.norm(r[self.u_free]) / self.f_scale
         rp = np.linalg.norm(r[~self.u_free]) / self.v_scale if self.disc0.mixed else 0.0
         return float(np.hypot(ru, rp))
 
-
-def _jac(disc):
-    from .discretize import _jacobians
-
-    return _jacobians(disc.mesh, disc.R_solver_from_model)
-
-
-def _inverse_step(prob: _Inverse, u, lam, stats):
-    """Newton with backtracking at one load factor; the converged u or None."""
-    free = prob.disc0.free
-    r, M = prob.residual(u, lam, True)
-    if r is None:
-        return None
-    m = prob.merit(r)
-    for _ in range(prob.opts.max_newton):
-        if m <= prob.opts.rtol:
-            return u
-        du = solve_sparse(M, -r, method=prob.opts.linear_solver)
-        stats["newton"] += 1
-        alpha = 1.0
-        for _ in range(6):
-            ut = u.copy()
-            ut[free] += alpha * du
-            rt, Mt = prob.residual(ut, lam, True)
-            if rt is not None and prob.merit(rt) < m:
-                break
-            alpha *= 0.5
-        else:
-            return None
-        u, r, M, m = ut, rt, Mt, prob.merit(rt)
-    return u if m <= prob.opts.rtol else None
+    def linear_solve(self, M, r):
+        return solve_sparse(M, -r, method=self.opts.linear_solver)
 
 
 def _inverse_newton(model, gravity, g_m_s2, formulation, options, x0_state, tol_mm):
     opts = options or SolverOptions()
     disc0 = discretize(model.mesh, model.support, formulation=formulation)
     prob = _Inverse(model, disc0, gravity_vector(gravity, g_m_s2), opts)
-    stats = {"newton": 0}
     u, lam, dlam, steps = np.zeros(disc0.n_dofs), 0.0, opts.initial_step, 0
     if x0_state is not None:
-        warm = _inverse_step(prob, np.asarray(x0_state, float).copy(), 1.0, stats)
+        warm = _newton(prob, np.asarray(x0_state, float).copy(), 1.0)
         if warm is not None:
             u, lam, steps = warm, 1.0, 1
     while lam < 1.0 and dlam >= opts.min_step:
         trial = min(1.0, lam + dlam)
-        new = _inverse_step(prob, u, trial, stats)
+        new = _newton(prob, u, trial)
         if new is None:
             dlam *= 0.25
             continue
@@ -256,7 +234,7 @@ def _inverse_newton(model, gravity, g_m_s2, formulation, options, x0_state, tol_
     if not converged:
         raise ConvergenceError(
             f"stress-free reference not recovered: inverse Newton stopped at load factor "
-            f"{lam:.3g} after {stats['newton']} iterations"
+            f"{lam:.3g} after {prob.stats.newton} iterations"
         )
     X = prob.x_m - vertex_displacement_mm(disc0, u)
     sol = solve(model.with_mesh(model.mesh.with_nodes(X)), gravity=gravity, g_m_s2=g_m_s2,
@@ -264,4 +242,4 @@ def _inverse_newton(model, gravity, g_m_s2, formulation, options, x0_state, tol_
     err = float(np.linalg.norm(X + sol.displacement_mm - prob.x_m, axis=1).max())
     if err > tol_mm:
         log.warning("reference recovery: loaded geometry off by %.3g mm (tol %.3g)", err, tol_mm)
-    return ReferenceRecovery(X, err <= tol_mm, stats["newton"], err, (err,), sol)
+    return ReferenceRecovery(X, err <= tol_mm, prob.stats.newton, err, (err,), sol)
