@@ -109,6 +109,18 @@ def _deform(phantom, mesh, model, disc, g_phantom, x0) -> _Truth:
                   mesh.nodes_mm[nipple] + u[nipple], tumour, sol)  # fmt: skip
 
 
+def _warm_start(solved: list, g: np.ndarray, max_angle_deg: float = 60.0):
+    """The solved state whose gravity is nearest to ``g``, if within ``max_angle_deg``.
+
+    A warm start from an opposite posture costs more Newton iterations than none.
+    """
+    if not solved:
+        return None
+    cosines = [float(gs @ g) for gs, _ in solved]
+    best = int(np.argmax(cosines))
+    return solved[best][1] if cosines[best] > np.cos(np.radians(max_angle_deg)) else None
+
+
 def _render(truth: _Truth, phantom, T: np.ndarray, preset: TwinPreset, seed: int):
     import imaging
 
@@ -217,12 +229,12 @@ def _build(tmp: Path, p: TwinPreset, preset: str, seed: int, eff: TruthEffects, 
     disc = fem.discretize(mesh, model.support, formulation=p.formulation)
     say(f"truth mesh: {mesh.n_tets} tets, {disc.pattern.n_free} dofs")
     rng = np.random.default_rng([seed, 2])
-    scans, x0 = {}, None
+    scans, solved = {}, []
     for i, post in enumerate(p.postures):
         T = random_scanner_pose(post.angle_deg, G_SCANNER, rng, centre_mm=[0.0, 0.0, 35.0])
         g_phantom = T[:3, :3].T @ G_SCANNER
-        truth = _deform(phantom, mesh, model, disc, g_phantom, x0)
-        x0 = truth.solution.state
+        truth = _deform(phantom, mesh, model, disc, g_phantom, _warm_start(solved, g_phantom))
+        solved.append((g_phantom, truth.solution.state))
         vol = _render(truth, phantom, T, p, seed=seed * 1000 + i)
         imaging.write_dicom_series(vol, tmp / "scans" / post.name, seed=seed * 1000 + i,
                                    series_description=post.name, series_number=i + 1)  # fmt: skip
