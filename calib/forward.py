@@ -61,6 +61,7 @@ class ForwardModel:
     g_m_s2: float = 9.81
     unload_method: str = "newton"
     solves: int = 0
+    inverted_reference_elements: int = 0
     _disc: fem.Discretization | None = None
     _X: np.ndarray | None = None
     _u0: np.ndarray | None = None
@@ -126,6 +127,12 @@ class ForwardModel:
             log.warning("reference recovery stopped at %.3f mm after %d solves",
                         rec.max_error_mm, rec.iterations)  # fmt: skip
         self._X, self._u0 = rec.nodes_mm, rec.solution.state
+        inverted = int((self.mesh.with_nodes(self._X).volumes_mm3() <= 0).sum())
+        if inverted:
+            log.warning("the recovered reference has %d inverted elements (steep gradients near "
+                        "the clamped rim on a coarse mesh): results near them are approximate",
+                        inverted)  # fmt: skip
+        self.inverted_reference_elements = inverted
         return self._X
 
     # -- derivatives -------------------------------------------------------------------

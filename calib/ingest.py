@@ -69,8 +69,8 @@ def _track_tumour(session: Session, scans: dict, fiducial_regs: dict) -> dict:
     """Choose the tracked inclusion in every scan consistently with the reference.
 
     The reference scan's tumour is the inclusion nearest to the session's hint (else the
-    largest); in every other scan it is the inclusion that the constellation match
-    (:func:`_match_constellation`, in the reference frame) puts nearest to it.
+    largest); in every other scan it is the inclusion of similar diameter that the
+    constellation match (:func:`_match_constellation`, in the reference frame) puts nearest.
     """
     import imaging
 
@@ -86,9 +86,13 @@ def _track_tumour(session: Session, scans: dict, fiducial_regs: dict) -> dict:
         if len(pts) == 0:
             continue
         A = _match_constellation(ref_pts, pts) if len(pts) >= 4 else np.eye(4)
-        idx[name] = imaging.select_tumour(
-            _map(A, pts), res.inclusions.diameters_mm, hint_lps_mm=ref_pts[idx[ref]]
-        )
+        # only inclusions of the tracked one's size (diameters are measured to ~0.2 mm)
+        d_ref = r.inclusions.diameters_mm[idx[ref]]
+        d = res.inclusions.diameters_mm
+        same = np.flatnonzero(np.abs(d - d_ref) <= max(1.0, 0.15 * d_ref))
+        cand = same if len(same) else np.arange(len(d))
+        k = imaging.select_tumour(_map(A, pts[cand]), d[cand], hint_lps_mm=ref_pts[idx[ref]])
+        idx[name] = int(cand[k])
     return idx
 
 

@@ -172,6 +172,12 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
         "scans": scans,
         "iterations": int(res.nit),
         "fe_solves": int(cal.fm.solves),
+        "reference_recovery": {
+            "method": cal.fm.unload_method
+            if options.reference_state == "unload"
+            else "none (shortcut)",
+            "inverted_elements": cal.fm.inverted_reference_elements,
+        },  # fmt: skip
         "history": cal.history,
         "profile": profile,
         "mesh": {
