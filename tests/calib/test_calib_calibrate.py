@@ -67,14 +67,15 @@ def test_gradient_matches_central_differences(measurements, reference_state, obj
     cal = Calibrator(measurements, opts)
     theta = np.log(380.0)
     _, g = cal.objective(np.array([theta]))
-    h = 1e-3
+    h = 3e-4
     jp, _ = cal.objective(np.array([theta + h]))
     jm, _ = cal.objective(np.array([theta - h]))
     fd = (jp - jm) / (2 * h)
-    # central differences are O(h^2) ~ 1e-6 relative here; the issue asks for 1e-4, and
+    # central differences are O(h^2) ~ 1e-7 relative here; the issue asks for 1e-4, and
     # both the FE solves (rtol 1e-8) and the inverse-Newton unloading are far tighter.
     # The closest-point residuals are piecewise smooth: a point that switches triangle
-    # between theta +- h adds a kink of O(h * edge) that the bound also covers.
+    # between theta +- h adds an O(h) kink (measured 2e-4 relative at h = 1e-3 on one
+    # mesh, 3e-8 at h = 3e-4), so h is kept small; below ~1e-4 solver noise dominates.
     assert g[0] == pytest.approx(fd, rel=1e-4)
 
 
