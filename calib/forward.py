@@ -35,6 +35,7 @@ class ScanState:
     state: np.ndarray
     positions_mm: np.ndarray  # deformed vertex positions, reference frame
     dpositions_mm: np.ndarray | None = None  # d positions / d theta
+    dstate: np.ndarray | None = None  # d state / d theta
 
 
 @dataclass
@@ -215,5 +216,5 @@ class ForwardModel:
                 st.dstate = du
             out[name] = st
             self._states[name] = st
-        self.current_disc, self.current_dX = disc, dX
+        self.current_dX = dX
         return out

@@ -112,6 +112,13 @@ class _Stats:
     t_lin: float = 0.0
 
 
+def merit(r_free, u_free, f_scale: float, v_scale: float, mixed: bool) -> float:
+    """Scaled residual norm: force part over the load norm, pressure part over the volume."""
+    ru = np.linalg.norm(r_free[u_free]) / f_scale
+    rp = np.linalg.norm(r_free[~u_free]) / v_scale if mixed else 0.0
+    return float(np.hypot(ru, rp))
+
+
 class _Problem:
     """One load case on one discretization: residual, tangent and norms."""
 
@@ -143,9 +150,7 @@ class _Problem:
         return r[self.free], K
 
     def merit(self, r_free) -> float:
-        ru = np.linalg.norm(r_free[self.u_free]) / self.f_scale
-        rp = np.linalg.norm(r_free[~self.u_free]) / self.v_scale if self.disc.mixed else 0.0
-        return float(np.hypot(ru, rp))
+        return merit(r_free, self.u_free, self.f_scale, self.v_scale, self.disc.mixed)
 
     def linear_solve(self, K, r):
         t0 = time.perf_counter()

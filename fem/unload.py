@@ -32,6 +32,7 @@ from .solver import (
     _newton,
     _Stats,
     gravity_vector,
+    merit,
     solve,
     vertex_displacement_mm,
 )
@@ -205,9 +206,7 @@ class _Inverse:
         return r[self.free], M
 
     def merit(self, r) -> float:
-        ru = np.linalg.norm(r[self.u_free]) / self.f_scale
-        rp = np.linalg.norm(r[~self.u_free]) / self.v_scale if self.disc0.mixed else 0.0
-        return float(np.hypot(ru, rp))
+        return merit(r, self.u_free, self.f_scale, self.v_scale, self.disc0.mixed)
 
     def linear_solve(self, M, r):
         return solve_sparse(M, -r, method=self.opts.linear_solver)
