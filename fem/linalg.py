@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ctypes
 import logging
 from functools import cache
 from typing import Literal
@@ -29,7 +30,7 @@ def _pardiso_solve(A: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
     key = (A.shape[0], A.nnz, hash(A.indptr.tobytes()), hash(A.indices.tobytes()))
     c = _PardisoCache
     if c.solver is None:
-        c.solver = _pardiso().PyPardisoSolver(mtype=11)
+        c.solver = _reproducible_pardiso()
     if c.pattern != key:
         c.solver._check_A(A)
         c.solver.set_phase(11)
@@ -38,6 +39,25 @@ def _pardiso_solve(A: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
     c.solver.set_phase(23)
     x = c.solver._call_pardiso(A, np.asarray(b, dtype=np.float64))
     return np.asarray(x).reshape(b.shape)
+
+
+def _reproducible_pardiso():
+    """A PARDISO solver (real unsymmetric) whose results are bitwise reproducible.
+
+    MKL's defaults use the parallel (OpenMP) nested dissection, whose ordering and hence
+    the last bits of the solution vary from run to run. We take MKL's own defaults
+    (``pardisoinit``), switch to the sequential METIS ordering (``iparm[1] = 2``) and turn
+    on conditional numerical reproducibility for the current thread count
+    (``iparm[33]``), so that the same input gives the same bits on the same machine.
+    """
+    solver = _pardiso().PyPardisoSolver(mtype=11)
+    init = solver.libmkl.pardisoinit
+    init.argtypes = [ctypes.c_void_p, ctypes.POINTER(ctypes.c_int32), ctypes.c_void_p]
+    init.restype = None
+    init(solver.pt.ctypes.data, ctypes.byref(ctypes.c_int32(11)), solver.iparm.ctypes.data)
+    solver.iparm[1] = 2
+    solver.iparm[33] = max(int(solver.libmkl.MKL_Get_Max_Threads()), 1)
+    return solver
 
 
 @cache
@@ -101,6 +121,6 @@ def factorize(A: sp.csr_matrix, *, method: LinearSolver = "auto"):
         raise ValueError(f"linear solver {method!r} is not available")
     A = A.tocsr()
     A.sort_indices()
-    solver = _pardiso().PyPardisoSolver(mtype=11)
+    solver = _reproducible_pardiso()
     solver.factorize(A)
     return lambda b: np.asarray(solver.solve(A, np.asarray(b, dtype=np.float64))).reshape(b.shape)
