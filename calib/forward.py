@@ -128,12 +128,7 @@ class ForwardModel:
             log.warning("reference recovery stopped at %.3f mm after %d solves",
                         rec.max_error_mm, rec.iterations)  # fmt: skip
         self._X, self._u0 = rec.nodes_mm, rec.solution.state
-        inverted = int((self.mesh.with_nodes(self._X).volumes_mm3() <= 0).sum())
-        if inverted:
-            log.warning("the recovered reference has %d inverted elements (steep gradients near "
-                        "the clamped rim on a coarse mesh): results near them are approximate",
-                        inverted)  # fmt: skip
-        self.inverted_reference_elements = inverted
+        self.inverted_reference_elements = rec.inverted_elements
         return self._X
 
     # -- derivatives -------------------------------------------------------------------

@@ -84,6 +84,17 @@ def _write_reference_mesh(path: Path, cal: Calibrator) -> None:
     write_mesh(cal.mesh.with_nodes(cal.fm._X), path)
 
 
+def _evaluate(cal: Calibrator, theta: float, progress) -> tuple[float, np.ndarray]:
+    """The objective at theta, with a progress line for every new FE evaluation."""
+    n = len(cal.history)
+    J, g = cal.objective(np.array([theta]))
+    if len(cal.history) > n:
+        h = cal.history[-1]
+        state = "failed" if h.get("failed") else f"rms {h['rms_mm']:.3f} mm, {h['wall_s']:.0f} s"
+        progress(f"evaluation {len(cal.history)}: c1 = {h['c1_pa']:.1f} Pa, {state}")
+    return J, g
+
+
 def _optimise(cal: Calibrator, progress) -> tuple[float, object]:
     """L-BFGS-B over ln c1, rescaled by the Gauss-Newton curvature at the first estimate.
 
@@ -94,11 +105,11 @@ def _optimise(cal: Calibrator, progress) -> tuple[float, object]:
     c1_0 = cal.first_estimate()
     progress(f"first estimate c1 = {c1_0:.0f} Pa")
     theta0 = float(np.log(c1_0))
-    cal.objective(np.array([theta0]))
+    _evaluate(cal, theta0, progress)
     s = float(np.sqrt(max(cal.gauss_newton_curvature, 1e-12)))
 
     def f(z):
-        J, g = cal.objective(np.array([theta0 + float(z[0]) / s]))
+        J, g = _evaluate(cal, theta0 + float(z[0]) / s, progress)
         return J, g / s
 
     bound = np.log(4.0) * s
@@ -152,9 +163,12 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     pts = np.concatenate([v.points_mm for v in final.values()])
     area = _area(cal) if options.objective == "surface" else None
     unc = gauss_newton_uncertainty(c1, r, dr, pts, area_mm2=area)
+    if options.profile_points >= 2:
+        say(f"likelihood profile over c1: {options.profile_points} points")
     profile = _profile(cal, theta, unc.se_ln_c1, unc.n_effective)
     _write_reference_mesh(work / "calibration" / "reference_mesh.vtu", cal)
     targets = cal.targets()
+    say(f"final state of {len(targets)} scans, error maps")
     states = cal.fm.evaluate(theta, {s.name: s.gravity_ref for s in targets}, gradient=False)
     scans = {s.name: _scan_metrics(cal, s, states[s.name], work, c1) for s in targets}
     doc = {

@@ -154,7 +154,8 @@ class _Problem:
 
     def linear_solve(self, K, r):
         t0 = time.perf_counter()
-        dx = solve_sparse(K, -r, method=self.opts.linear_solver)
+        # hyperelastic tangent with conservative loads and springs: symmetric
+        dx = solve_sparse(K, -r, method=self.opts.linear_solver, symmetric=True)
         self.stats.t_lin += time.perf_counter() - t0
         return dx
 
