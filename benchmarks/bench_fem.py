@@ -3,15 +3,36 @@
 Prints, per mesh size and formulation: DOFs, Newton iterations, load steps, wall time,
 peak memory and the nipple displacement with its error against the mesh-converged
 answer (Richardson extrapolation of Taylor-Hood on the two finest meshes, stored in
-benchmarks/fem_reference.json with the mesh sizes it came from). The felupe peer rows
-(MINI and P2 solids on the same meshes) are not implemented yet.
+benchmarks/fem_reference.json with the mesh sizes it came from).
+
+With ``--peers`` (the default when felupe is installed: ``pip install .[bench]``) each
+mesh is also solved by felupe, a GPL-3.0 FE code that is an optional benchmark peer only
+(imported here, never by the packages or the tests): the same tetrahedra (in m), the
+same law ``W = mu/2 (I1bar - 3) + K/2 (J - 1)^2`` with ``mu = 2 c1`` (felupe's
+``NeoHooke(mu)`` inside ``NearlyIncompressible(..., bulk=K)``, K from nu as ours), the
+same body force rho g x and the same clamped back faces. Both peers are felupe's
+(u, p, Jbar) three-field solids with continuous linear p and Jbar, which for this U is
+the same discrete problem as our perturbed-Lagrangian u-p form:
+
+- ``felupe-mini``: ``RegionTetraMINI`` (P1 + bubble) with felupe's 4-point quadrature
+  and its bubble points put at the origin so that the element maps are affine; ours
+  integrates MINI with 11 points, so the two rows differ by quadrature;
+- ``felupe-p2``: ``RegionQuadraticTetra`` (P2 displacement, P1 p and Jbar: Taylor-Hood).
+
+felupe's own Newton runs in a ``Step`` whose ramp goes from zero to the full load in
+``--peer-increments`` increments, with felupe's line search and cut-back plugins; the
+linear systems are solved by ``fem.linalg.solve_sparse`` as ours. Peer rows count the
+unknowns felupe solves for (u, p and Jbar), every Newton iteration (with the one at zero
+load that starts the ramp) and the converged increments (cut-backs included).
 
     python benchmarks/bench_fem.py [--sizes 9,6,4] [--max-dofs 150000] [--update-reference]
+                                   [--peers | --no-peers] [--peer-increments 1]
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import resource
 import time
@@ -21,10 +42,17 @@ import numpy as np
 
 import fem
 from fem.geometry import PhantomSpec, build_phantom
+from fem.linalg import solve_sparse
+from fem.materials import bulk_modulus_from_poisson
 from fem.meshing import mesh_phantom
+from fem.units import M_PER_MM, MM_PER_M, STANDARD_GRAVITY_M_S2
 
 REFERENCE = Path(__file__).with_name("fem_reference.json")
 FORMULATIONS = ("p1", "mini", "taylor-hood")
+PEERS = ("felupe-mini", "felupe-p2")
+PEER_MISSING = "felupe not installed: pip install .[bench]"
+C1_PA, NU, DENSITY_KG_M3 = 420.0, 0.499, 1000.0
+GRAVITY_DIRECTION = (1.0, 0.0, 0.0)  # lateral, model frame
 
 
 def _mesh(size_mm: float) -> fem.TetMesh:
@@ -34,7 +62,9 @@ def _mesh(size_mm: float) -> fem.TetMesh:
 def _estimate_dofs(mesh: fem.TetMesh, formulation: str) -> int:
     n_edges = int(1.2 * mesh.n_tets) + mesh.n_nodes  # ~ 6-7 edges per node in tet meshes
     return {"p1": 3 * mesh.n_nodes, "mini": 4 * mesh.n_nodes + 3 * mesh.n_tets,
-            "taylor-hood": 3 * (mesh.n_nodes + n_edges) + mesh.n_nodes}[formulation]  # fmt: skip
+            "taylor-hood": 3 * (mesh.n_nodes + n_edges) + mesh.n_nodes,
+            "felupe-mini": 5 * mesh.n_nodes + 3 * mesh.n_tets,
+            "felupe-p2": 3 * (mesh.n_nodes + n_edges) + 2 * mesh.n_nodes}[formulation]  # fmt: skip
 
 
 def _peak_mb() -> float:
@@ -42,14 +72,99 @@ def _peak_mb() -> float:
 
 
 def run_ours(mesh: fem.TetMesh, formulation: str) -> dict:
-    model = fem.Model.homogeneous(mesh, fem.NeoHookean(420.0, nu=0.499), density_kg_m3=1000.0)
+    material = fem.NeoHookean(C1_PA, nu=NU)
+    model = fem.Model.homogeneous(mesh, material, density_kg_m3=DENSITY_KG_M3)
     t0 = time.perf_counter()
     disc = fem.discretize(mesh, model.support, formulation=formulation)
-    sol = fem.solve(model, gravity=[1.0, 0.0, 0.0], disc=disc)
+    sol = fem.solve(model, gravity=GRAVITY_DIRECTION, g_m_s2=STANDARD_GRAVITY_M_S2, disc=disc)
     nip = int(mesh.node_set("nipple")[0])
     return {"dofs": sol.dofs, "newton": sol.newton_iterations, "steps": sol.load_steps,
             "wall_s": time.perf_counter() - t0, "peak_mb": _peak_mb(),
             "nipple_mm": float(np.linalg.norm(sol.displacement_mm[nip]))}  # fmt: skip
+
+
+def felupe_available() -> bool:
+    return importlib.util.find_spec("felupe") is not None
+
+
+def _felupe_region(fe, mesh: fem.TetMesh, formulation: str):
+    """felupe region of the peer element on our tetrahedra, node coordinates in m."""
+    tets = fe.Mesh(mesh.nodes_mm * M_PER_MM, mesh.tets, "tetra")
+    if formulation == "felupe-mini":
+        mini = tets.add_midpoints_volumes()  # one bubble point per tet, after our nodes
+        # felupe maps the geometry with all five MINI functions, so the bubble point's
+        # coordinates bend the map (and tie it to the origin); at the origin the map is
+        # affine: the same straight tetrahedra as ours.
+        mini.points[mesh.n_nodes :] = 0.0
+        region = fe.RegionTetraMINI(mini)
+    elif formulation == "felupe-p2":
+        region = fe.RegionQuadraticTetra(tets.add_midpoints_edges())  # midpoint per edge
+    else:
+        raise ValueError(f"unknown felupe peer {formulation!r}; choose from {PEERS}")
+    if not np.all(region.dV > 0):
+        raise ValueError("felupe sees inverted tetrahedra: the mesh is not positively oriented")
+    return region
+
+
+def _clamped_points(mesh: fem.TetMesh, region) -> np.ndarray:
+    """Boolean mask of the felupe points clamped as ours clamps the back (``Clamped()``).
+
+    Ours fixes every dof on the boundary triangles whose vertices all lie in the "back"
+    node set: their vertices and, for P2, the midpoints of their edges. felupe keeps our
+    node numbering and appends the added (edge or bubble) points after it.
+    """
+    inset = np.zeros(mesh.n_nodes, dtype=bool)
+    inset[mesh.node_set("back")] = True
+    faces = fem.boundary_faces(mesh.tets)
+    faces = faces[inset[faces].all(axis=1)]
+    mask = np.zeros(region.mesh.npoints, dtype=bool)
+    mask[faces] = True
+    cells, ref = region.mesh.cells, region.element.points
+    if cells.shape[1] == 10:  # quadratic tetra: point k is the midpoint of vertices (i, j)
+        back_edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        keys = back_edges[:, 0] * mesh.n_nodes + back_edges[:, 1]
+        for k in range(4, 10):
+            i, j = [(i, j) for i in range(4) for j in range(i + 1, 4)
+                    if np.allclose((ref[i] + ref[j]) / 2, ref[k])][0]  # fmt: skip
+            a, b = np.sort(cells[:, [i, j]], axis=1).T
+            mask[cells[np.isin(a * mesh.n_nodes + b, keys), k]] = True
+    return mask
+
+
+class _NewtonCount:
+    """felupe plugin (hooks looked up by name) counting Newton iterations, failed included."""
+
+    iterations = 0
+
+    def after_iteration(self, context, state):
+        self.iterations += 1
+
+
+def run_felupe(mesh: fem.TetMesh, formulation: str, *, increments: int = 1) -> dict:
+    """Solve the benchmark load case with felupe (GPL-3.0, optional peer); same mesh."""
+    import felupe as fe  # GPL-3.0: imported only here, never by the packages or tests
+
+    mu = 2.0 * C1_PA  # felupe's NeoHooke(mu): W = mu/2 (I1bar - 3), ours c1 (I1bar - 3)
+    bulk = bulk_modulus_from_poisson(mu, NU)  # K/2 (J - 1)^2, as fem.NeoHookean(nu=...)
+    g = STANDARD_GRAVITY_M_S2 * np.asarray(GRAVITY_DIRECTION)
+    t0 = time.perf_counter()
+    region = _felupe_region(fe, mesh, formulation)
+    field = fe.FieldsMixed(region, n=3)  # u, then continuous linear p and Jbar
+    umat = fe.NearlyIncompressible(fe.NeoHooke(mu=mu), bulk=bulk)
+    solid = fe.SolidBody(umat, field)
+    gravity = fe.SolidBodyForce(field, values=np.zeros(3), scale=DENSITY_KG_M3)
+    back = {"back": fe.Boundary(field[0], mask=_clamped_points(mesh, region))}
+    ramp = {gravity: np.linspace(0.0, 1.0, increments + 1)[:, None] * g}  # from zero load
+    step = fe.Step(items=[solid, gravity], ramp=ramp, boundaries=back)
+    count, cutback = _NewtonCount(), fe.CutbackPlugin()
+    job = fe.Job(steps=[step], plugins=[count, fe.LinesearchPlugin(), cutback])
+    job.evaluate(x0=field, verbose=0, solver=lambda A, b: solve_sparse(A.tocsr(), b))
+    wall = time.perf_counter() - t0
+    nip = int(mesh.node_set("nipple")[0])
+    return {"dofs": len(fe.dof.partition(field, back)[1]), "newton": count.iterations,
+            "steps": sum(len(f) for f in cutback.load_factors[1:]), "wall_s": wall,
+            "peak_mb": _peak_mb(),
+            "nipple_mm": float(np.linalg.norm(field[0].values[nip]) * MM_PER_M)}  # fmt: skip
 
 
 def _row(size, mesh, form, r, ref):
@@ -60,28 +175,55 @@ def _row(size, mesh, form, r, ref):
     )
 
 
+def _formulations(asked: list[str], peers: bool | None) -> list[str]:
+    """Ours as asked, then the felupe peers (``None``: when felupe is installed)."""
+    unknown = set(asked) - set(FORMULATIONS) - set(PEERS)
+    if unknown:
+        raise SystemExit(f"unknown formulation(s) {sorted(unknown)}; choose from "
+                         f"{FORMULATIONS + PEERS}")  # fmt: skip
+    if peers or (peers is None and felupe_available()):
+        asked = asked + [f for f in PEERS if f not in asked]
+    if any(f in PEERS for f in asked) and not felupe_available():
+        print(PEER_MISSING)
+        asked = [f for f in asked if f not in PEERS]
+    return asked
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="9,6", help="element sizes in mm (comma separated)")
     ap.add_argument("--max-dofs", type=int, default=150_000)
-    ap.add_argument("--formulations", default=",".join(FORMULATIONS))
+    ap.add_argument("--formulations", default=",".join(FORMULATIONS), help="ours (or peers)")
     ap.add_argument(
         "--update-reference",
         action="store_true",
         help="recompute the converged answer from the two finest sizes",
     )
+    ap.add_argument(
+        "--peers",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="also run the felupe peers (default: when felupe is installed)",
+    )
+    ap.add_argument("--peer-increments", type=int, default=1, help="felupe load ramp steps")
     args = ap.parse_args()
     sizes = [float(s) for s in args.sizes.split(",")]
+    if args.peer_increments < 1:
+        ap.error("--peer-increments must be at least 1")
+    forms = _formulations(args.formulations.split(","), args.peers)
     ref = json.loads(REFERENCE.read_text())["nipple_mm"] if REFERENCE.exists() else None
     print("size     tets formulation     dofs newton steps   wall s  peak MB  nipple mm  error")
     th = {}
     for size in sizes:
         mesh = _mesh(size)
-        for form in args.formulations.split(","):
+        for form in forms:
             if _estimate_dofs(mesh, form) > args.max_dofs:
                 print(f"{size:>5.1f} {mesh.n_tets:>8d} {form:<12} skipped (> --max-dofs)")
                 continue
-            r = run_ours(mesh, form)
+            if form in PEERS:
+                r = run_felupe(mesh, form, increments=args.peer_increments)
+            else:
+                r = run_ours(mesh, form)
             if form == "taylor-hood":
                 th[size] = r["nipple_mm"]
             print(_row(size, mesh, form, r, ref), flush=True)
