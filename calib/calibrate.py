@@ -31,7 +31,7 @@ class CalibrationOptions:
 
     objective: str = "surface"
     reference_state: str = "unload"
-    mesh_size_mm: float = 10.0
+    mesh_size_mm: float = 12.0
     formulation: str = "taylor-hood"
     nu: float = 0.499
     max_points: int = 3000
