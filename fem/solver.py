@@ -10,9 +10,10 @@ import numpy as np
 
 from .assemble import assemble, external_force, scatter
 from .discretize import Discretization, Formulation, discretize
+from .fields import _point_forces, displacement_at, gravity_vector, vertex_displacement_mm
 from .linalg import LinearSolver, solve_sparse
 from .model import Model
-from .units import M_PER_MM, MM_PER_M
+from .units import M_PER_MM
 
 __all__ = [
     "ConvergenceError",
@@ -258,22 +259,6 @@ def _prescribed_dofs(disc: Discretization, prescribed: dict | None):
     return np.concatenate(dofs), np.concatenate(vals)
 
 
-def gravity_vector(direction, g_m_s2: float) -> np.ndarray:
-    """Gravity acceleration vector (m/s^2) from a direction (any length) and magnitude."""
-    d = np.asarray(direction, dtype=float).reshape(3)
-    n = np.linalg.norm(d)
-    if g_m_s2 != 0 and n == 0:
-        raise ValueError("gravity direction must be a non-zero vector")
-    return d / n * g_m_s2 if n > 0 else np.zeros(3)
-
-
-def vertex_displacement_mm(disc: Discretization, x: np.ndarray) -> np.ndarray:
-    """Displacement of the mesh vertices in the model frame (mm) from a solver vector."""
-    u = x[: 3 * disc.n_scalar_u].reshape(-1, 3)
-    nodal = disc.skfem_basis.nodal_dofs[0]
-    return u[nodal] @ disc.R_solver_from_model * MM_PER_M
-
-
 def solve(
     model: Model,
     *,
@@ -349,14 +334,6 @@ def solve(
     )
 
 
-def _point_forces(disc: Discretization, forces: dict | None) -> np.ndarray:
-    f = np.zeros(disc.n_dofs)
-    for node, force in (forces or {}).items():
-        dof = 3 * disc.skfem_basis.nodal_dofs[0, node]
-        f[dof : dof + 3] += disc.R_solver_from_model @ np.asarray(force, dtype=float)
-    return f
-
-
 def _warm_or_stepped(prob: _Problem, x0, pres, opts: SolverOptions):
     if x0 is not None:
         if x0.shape != (prob.disc.n_dofs,):
@@ -383,28 +360,3 @@ def _full_matrix(disc: Discretization, matrices: np.ndarray):
     rows = np.repeat(edofs, n, axis=1).ravel()
     cols = np.tile(edofs, (1, n)).ravel()
     return sp.csr_matrix((matrices.ravel(), (rows, cols)), shape=(disc.n_dofs,) * 2)
-
-
-def displacement_at(disc: Discretization, state: np.ndarray, points_mm: np.ndarray) -> np.ndarray:
-    """Interpolate the FE displacement (full order of the formulation) at points.
-
-    Parameters
-    ----------
-    disc : Discretization
-    state : ndarray, shape (n_dofs,)
-        ``Solution.state`` of a solve on ``disc``.
-    points_mm : ndarray, shape (k, 3)
-        Points inside the (undeformed) mesh, model frame, mm.
-
-    Returns
-    -------
-    ndarray, shape (k, 3)
-        Displacements in mm, model frame.
-    """
-    pts = (np.asarray(points_mm, float).reshape(-1, 3) * M_PER_MM) @ disc.R_solver_from_model.T
-    try:
-        P = disc.basis().probes(pts.T)
-    except ValueError as exc:
-        raise ValueError("a point to interpolate at lies outside the mesh") from exc
-    u = state[: 3 * disc.n_scalar_u].reshape(-1, 3)
-    return (P @ u) @ disc.R_solver_from_model * MM_PER_M

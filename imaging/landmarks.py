@@ -81,42 +81,84 @@ def _plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def find_nipple(
-    vertices_lps_mm: np.ndarray, plane: BackPlane, *, cap_radius_mm: float = 8.0
+    vertices_lps_mm: np.ndarray,
+    plane: BackPlane,
+    *,
+    cap_radius_mm: float = 8.0,
+    search_radius_mm: float = 12.0,
+    fit_radius_mm: float = 10.0,
+    tip_radius_mm: float = 3.0,
+    min_protrusion_mm: float = 1.0,
 ) -> Nipple:
-    """Apex of the body relative to the back plane, refined by a quadratic cap fit.
+    """The nipple: the tip of the bump near the apex, or the apex of a bump-free body.
 
-    The vertex farthest from the plane is found first; the heights of the vertices within
-    ``cap_radius_mm`` (in-plane) of it are fitted by a quadratic in the plane coordinates and
-    the stationary point of a concave fit (inside the cap) is returned.
+    The apex is the vertex farthest from the back plane. Under a lateral load the nipple
+    tips over, so the apex is not the nipple's material tip (1.6-1.8 mm apart on the
+    digital twin). Near the apex (``search_radius_mm``) each vertex's protrusion is its
+    height above the plane fitted (PCA) to the surface within ``fit_radius_mm``; when the
+    largest protrusion stands ``min_protrusion_mm`` above the median there (a bump), the
+    tip is refined by a quadratic fit of the surface within ``tip_radius_mm`` of that
+    vertex in its local frame (``quality["method"] = "protrusion"``). Otherwise (a smooth
+    dome) the apex is refined by a quadratic cap fit of the heights within
+    ``cap_radius_mm`` in the plane coordinates (``"apex"``).
     """
     v = np.asarray(vertices_lps_mm, float)
     n = plane.normal
     h = (v - plane.point_lps_mm) @ n
     k = int(np.argmax(h))
-    apex = v[k]
     if h[k] <= 0:
         raise SegmentationError("no body above the back plane: cannot place the nipple")
-    e1, e2 = _plane_basis(n)
-    d = v - apex
-    u, w = d @ e1, d @ e2
-    near = (u**2 + w**2 <= cap_radius_mm**2) & (h > h[k] - 2.0 * cap_radius_mm)
-    quality = {"refined": False, "fit_rms_mm": float("nan"), "n_cap_vertices": int(near.sum())}
-    pos = apex
-    if near.sum() >= 10:
-        uu, ww, hh = u[near], w[near], h[near]
-        X = np.stack([np.ones_like(uu), uu, ww, uu**2, uu * ww, ww**2], 1)
-        c, *_ = np.linalg.lstsq(X, hh, rcond=None)
-        H = np.array([[2 * c[3], c[4]], [c[4], 2 * c[5]]])
-        if np.all(np.linalg.eigvalsh(H) < 0):
-            x = np.linalg.solve(H, -c[1:3])
-            if np.hypot(*x) <= cap_radius_mm:
-                hx = c[0] + c[1] * x[0] + c[2] * x[1] + c[3] * x[0] ** 2
-                hx += c[4] * x[0] * x[1] + c[5] * x[1] ** 2
-                pos = apex + x[0] * e1 + x[1] * e2 + (hx - h[k]) * n
-                quality["refined"] = True
-        quality["fit_rms_mm"] = float(np.sqrt(np.mean((X @ c - hh) ** 2)))
-    quality["shift_from_apex_mm"] = float(np.linalg.norm(pos - apex))
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(v)
+    near = np.asarray(tree.query_ball_point(v[k], search_radius_mm), dtype=int)
+    frames = [_local_frame(v[tree.query_ball_point(v[i], fit_radius_mm)], n) for i in near]
+    bump = np.array([(v[i] - c) @ f[2] for i, (c, f) in zip(near, frames, strict=True)])
+    j = int(np.argmax(bump))
+    quality = {"protrusion_mm": float(bump[j] - np.median(bump)), "method": "apex"}
+    if quality["protrusion_mm"] >= min_protrusion_mm:
+        tip = v[near[j]]
+        pts = v[tree.query_ball_point(tip, tip_radius_mm)] - tip
+        pos, q = _quadratic_peak(tip, pts, frames[j][1], tip_radius_mm)
+        quality |= q | {"method": "protrusion"}
+    else:
+        e1, e2 = _plane_basis(n)
+        cap = (np.linalg.norm(v - v[k] - np.outer(h - h[k], n), axis=1) <= cap_radius_mm) & (
+            h > h[k] - 2.0 * cap_radius_mm
+        )
+        pos, q = _quadratic_peak(v[k], v[cap] - v[k], (e1, e2, n), cap_radius_mm)
+        quality |= q
+    quality["shift_from_apex_mm"] = float(np.linalg.norm(pos - v[k]))
     return Nipple(pos, float((pos - plane.point_lps_mm) @ n), quality)
+
+
+def _local_frame(points: np.ndarray, outward: np.ndarray):
+    """Centroid and (e1, e2, normal) of a PCA plane; the normal along ``outward``."""
+    c = points.mean(0)
+    _, vec = np.linalg.eigh(np.cov((points - c).T))
+    normal = vec[:, 0] * (1.0 if vec[:, 0] @ outward >= 0 else -1.0)
+    return c, (vec[:, 2], vec[:, 1], normal)
+
+
+def _quadratic_peak(origin: np.ndarray, d: np.ndarray, frame, radius_mm: float):
+    """Stationary point of a concave quadratic fit of heights ``d . e3`` over ``(e1, e2)``."""
+    e1, e2, e3 = frame
+    u, w, hh = d @ e1, d @ e2, d @ e3
+    quality = {"refined": False, "fit_rms_mm": float("nan"), "n_cap_vertices": len(d)}
+    if len(d) < 10:
+        return origin, quality
+    X = np.stack([np.ones_like(u), u, w, u**2, u * w, w**2], 1)
+    c, *_ = np.linalg.lstsq(X, hh, rcond=None)
+    quality["fit_rms_mm"] = float(np.sqrt(np.mean((X @ c - hh) ** 2)))
+    H = np.array([[2 * c[3], c[4]], [c[4], 2 * c[5]]])
+    if not np.all(np.linalg.eigvalsh(H) < 0):
+        return origin, quality
+    x = np.linalg.solve(H, -c[1:3])
+    if np.hypot(*x) > radius_mm:
+        return origin, quality
+    hx = c[0] + c[1] * x[0] + c[2] * x[1] + c[3] * x[0] ** 2 + c[4] * x[0] * x[1] + c[5] * x[1] ** 2
+    quality["refined"] = True
+    return origin + x[0] * e1 + x[1] * e2 + hx * e3, quality
 
 
 def select_tumour(
