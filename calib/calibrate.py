@@ -38,6 +38,7 @@ class CalibrationOptions:
     c1_guess_pa: float = 500.0
     max_iterations: int = 30
     profile_points: int = 5
+    mesh_check_ratio: float = 1.4
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -49,6 +50,10 @@ class CalibrationOptions:
             )
         if not 1.0 <= self.mesh_size_mm <= 50.0:
             raise ValueError(f"mesh size must lie in [1, 50] mm, got {self.mesh_size_mm}")
+        if self.mesh_check_ratio:
+            from .meshcheck import _check_ratio
+
+            _check_ratio(self.mesh_check_ratio)
 
 
 class TumourTracker:

@@ -160,6 +160,14 @@ def calibrate(
     profile: Annotated[
         int, typer.Option("--profile", help="Points of the likelihood profile (0: none).")
     ] = 5,
+    mesh_check: Annotated[
+        float,
+        typer.Option(
+            "--mesh-check",
+            help="Element-size ratio of the check mesh whose c1 bounds the discretisation "
+            "error in the 95 % interval: >1 coarser (cheap), <1 finer (0: off, noise only).",
+        ),
+    ] = 1.4,
 ) -> None:
     """Fit c1 to the calibration scans; write calibration.json and error maps."""
     from .calibrate import CalibrationOptions
@@ -168,13 +176,23 @@ def calibrate(
     try:
         opts = CalibrationOptions(
             objective=objective, reference_state=reference_state, mesh_size_mm=mesh_size,
-            nu=nu, profile_points=profile,
+            nu=nu, profile_points=profile, mesh_check_ratio=mesh_check,
         )  # fmt: skip
         doc = run_calibration(scans, out, opts, progress=lambda msg: typer.echo(f"  {msg}"))
     except (ValueError, OSError, RuntimeError) as exc:
         fail(exc)
     typer.echo(format_calibration(doc))
     typer.echo(f"wrote {out / 'calibration.json'} and {out / 'calibration'}/")
+
+
+def _uncertainty_lines(unc: dict) -> list[str]:
+    check = unc.get("mesh_check")
+    if not check:
+        return []
+    lo, hi = unc["c1_ci95_pa"]
+    size, c1 = check["check_mesh_size_mm"], check["c1_check_pa"]
+    found = f"calibrates to {c1:.1f} Pa" if c1 is not None else f"failed: {check['failure']}"
+    return [f"  noise alone: {lo:.1f} - {hi:.1f} Pa; mesh check: the {size:.1f} mm mesh {found}"]
 
 
 def format_calibration(doc: dict) -> str:
@@ -184,6 +202,7 @@ def format_calibration(doc: dict) -> str:
         f"c1 = {doc['c1_pa']:.1f} Pa  (95 % interval {lo:.1f} - {hi:.1f} Pa), objective "
         f"{doc['objective']}, reference state {doc['reference_state']}",
         f"{doc['iterations']} iterations, {doc['fe_solves']} FE solves, {doc['wall_s']:.0f} s",
+        *_uncertainty_lines(doc.get("uncertainty", {})),
         f"{'scan':<16}{'role':<13}{'surface mean+-sd (fiducial)':>29}{'(icp)':>16}"
         f"{'nipple mm':>11}{'tumour mm':>11}",
     ]

@@ -51,6 +51,9 @@ class ForwardModel:
     nu, density_kg_m3 : float
     reference_state : {"unload", "shortcut"}
     formulation : str
+    fixed_point_fallback : bool
+        When the inverse Newton fails, recover the reference by the (slow) fixed point
+        instead of raising :class:`fem.ConvergenceError`.
     """
 
     mesh: fem.TetMesh
@@ -61,6 +64,7 @@ class ForwardModel:
     formulation: str = "taylor-hood"
     g_m_s2: float = 9.81
     unload_method: str = "newton"
+    fixed_point_fallback: bool = True
     solves: int = 0
     inverted_reference_elements: int = 0
     _disc: fem.Discretization | None = None
@@ -116,6 +120,8 @@ class ForwardModel:
             try:
                 rec = recover_stress_free(start, x0_state=self._u0, **kw)
             except fem.ConvergenceError as exc:
+                if not self.fixed_point_fallback:
+                    raise
                 log.warning("inverse Newton failed at c1=%.1f Pa (%s); using the fixed point "
                             "from now on", np.exp(theta), exc)  # fmt: skip
                 self.unload_method = "fixed-point"

@@ -13,6 +13,7 @@ from scipy.optimize import minimize
 from .calibrate import CalibrationOptions, Calibrator
 from .io import provenance, write_json_atomic
 from .measurements import load_measurements
+from .meshcheck import combined_ci95, mesh_check
 from .report import write_error_ply, write_error_png
 from .session import load_session
 from .uncertainty import gauss_newton_uncertainty
@@ -163,6 +164,15 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     pts = np.concatenate([v.points_mm for v in final.values()])
     area = _area(cal) if options.objective == "surface" else None
     unc = gauss_newton_uncertainty(c1, r, dr, pts, area_mm2=area)
+    check, ci95 = None, unc.c1_ci95_pa
+    if options.mesh_check_ratio:
+        size = options.mesh_size_mm * options.mesh_check_ratio
+        say(f"mesh check: the objective on a {size:.1f} mm mesh")
+        check = mesh_check(cal, theta, ratio=options.mesh_check_ratio)
+        if check.gci_ln_c1 is not None:
+            ci95 = combined_ci95(c1, unc.se_ln_c1, check.gci_ln_c1)
+        else:
+            say(f"mesh check failed ({check.failure}): the interval reflects noise only")
     if options.profile_points >= 2:
         say(f"likelihood profile over c1: {options.profile_points} points")
     profile = _profile(cal, theta, unc.se_ln_c1, unc.n_effective)
@@ -173,11 +183,11 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     scans = {s.name: _scan_metrics(cal, s, states[s.name], work, c1) for s in targets}
     doc = {
         "c1_pa": c1,
-        "c1_ci95_pa": list(unc.c1_ci95_pa),
+        "c1_ci95_pa": list(ci95),
         "objective": options.objective,
         "objective_value_mm2": float(res.fun),
         "reference_state": options.reference_state,
-        "uncertainty": asdict(unc),
+        "uncertainty": asdict(unc) | {"mesh_check": asdict(check) if check else None},
         "frames": {
             "fiducial": "scans mapped by the fiducial registration only (no ICP)",
             "icp": "after rigid ICP of the measured onto the simulated surface "

@@ -12,7 +12,9 @@ import pytest
 import fem
 from calib.calibrate import CalibrationOptions, Calibrator
 from calib.measurements import Measurements, ScanMeasurement
-from calib.run import _optimise
+from calib.meshcheck import combined_ci95, mesh_check
+from calib.run import _area, _optimise
+from calib.uncertainty import gauss_newton_uncertainty
 from fem.geometry import PhantomSpec, build_phantom
 from fem.meshing import mesh_phantom
 
@@ -89,9 +91,19 @@ def test_recovers_known_c1(measurements, reference_state):
     # the issue's bar: within 3 % of the truth for a homogeneous truth; the model mesh is
     # a remeshed copy of the truth's loaded surface, so a small discretisation bias remains
     assert np.exp(theta) == pytest.approx(C1_TRUE, rel=0.03)
-    r = np.concatenate([v.r for v in cal.residuals(theta, cal.calibration_scans,
-                                                   gradient=False).values()])  # fmt: skip
+    res = cal.residuals(theta, cal.calibration_scans, gradient=True)
+    r = np.concatenate([v.r for v in res.values()])
     assert np.sqrt(np.mean(r**2)) < 0.5  # mm: remeshing error of a 12 mm surface
+    # Here the model error is discretisation alone, so the 95 % interval with the grid
+    # convergence check must contain the truth (issue 6), and the check must widen it.
+    dr = np.concatenate([v.dr for v in res.values()])
+    pts = np.concatenate([v.points_mm for v in res.values()])
+    unc = gauss_newton_uncertainty(np.exp(theta), r, dr, pts, area_mm2=_area(cal))
+    check = mesh_check(cal, theta)
+    assert check.gci_ln_c1 is not None, check.failure
+    lo, hi = combined_ci95(float(np.exp(theta)), unc.se_ln_c1, check.gci_ln_c1)
+    assert lo <= C1_TRUE <= hi, (lo, hi, unc.c1_ci95_pa, check)
+    assert hi - lo > unc.c1_ci95_pa[1] - unc.c1_ci95_pa[0]
 
 
 @pytest.mark.parametrize("reference_state", ["unload", "shortcut"])
