@@ -19,13 +19,14 @@ from __future__ import annotations
 import argparse
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 import fem
-from calib.effects import truth_model
+from calib.effects import TruthEffects, truth_model
 from calib.postures import gravity_for_angle
 from calib.twin import PRESETS, synthesize
 from fem.geometry import PhantomSpec, build_phantom
@@ -58,14 +59,17 @@ def _surface_nodes(mesh: fem.TetMesh, vertices_mm: np.ndarray) -> np.ndarray:
     return idx
 
 
-def convergence(preset: str, refine: float) -> None:
+def convergence(preset: str, refine: float, *, homogeneous: bool = False) -> None:
     p = PRESETS[preset]
+    if homogeneous:
+        p = replace(p, effects=TruthEffects())
     phantom = build_phantom(PhantomSpec(resolution_mm=p.phantom_resolution_mm, seed=0))
     coarse = _solve(phantom, p, p.truth_mesh_mm)
     fine = _solve(phantom, p, p.truth_mesh_mm / refine)
     ic, jf = (_surface_nodes(m["mesh"], phantom.vertices_mm) for m in (coarse, fine))
     nip = int(np.argmin(np.linalg.norm(phantom.vertices_mm - phantom.nipple_mm, axis=1)))
-    print(f"{preset}: truth mesh {coarse['tets']} tets vs refined {fine['tets']} tets")
+    label = "homogeneous" if homogeneous else f"effects {p.effects.active()}"
+    print(f"{preset} ({label}): truth mesh {coarse['tets']} tets vs refined {fine['tets']} tets")
     print("posture        nipple mm  d nipple  d tumour  d surface mean  d surface max")
     for name, (u_c, t_c) in coarse["postures"].items():
         u_f, t_f = fine["postures"][name]
@@ -79,11 +83,12 @@ def main() -> None:
     ap.add_argument("--presets", default="quick", help="comma-separated preset names")
     ap.add_argument("--refine", type=float, default=1.26, help="element-size ratio")
     ap.add_argument("--skip-synth", action="store_true")
+    ap.add_argument("--homogeneous", action="store_true", help="check the --effect none truth")
     args = ap.parse_args()
     for preset in args.presets.split(","):
         if not args.skip_synth:
             print(f"{preset}: synth {time_synth(preset):.1f} s", flush=True)
-        convergence(preset, args.refine)
+        convergence(preset, args.refine, homogeneous=args.homogeneous)
 
 
 if __name__ == "__main__":
