@@ -140,6 +140,24 @@ def _profile(cal: Calibrator, theta: float, se: float, n_eff: float) -> list[dic
     return rows
 
 
+def _mesh_check(cal: Calibrator, theta: float, unc, say):
+    """The mesh check (coarser, then finer if that fails) and the combined 95 % interval."""
+    o = cal.options
+    if not o.mesh_check_ratio:
+        return None, unc.c1_ci95_pa
+    say(f"mesh check: the objective on a {o.mesh_size_mm * o.mesh_check_ratio:.1f} mm mesh")
+    check = mesh_check(cal, theta, ratio=o.mesh_check_ratio)
+    if check.gci_ln_c1 is None and o.mesh_check_ratio > 1.0:
+        finer = 1.0 / o.mesh_check_ratio
+        say(f"mesh check on the coarser mesh failed ({check.failure}); checking on a "
+            f"{o.mesh_size_mm * finer:.1f} mm mesh instead")  # fmt: skip
+        check = mesh_check(cal, theta, ratio=finer)
+    if check.gci_ln_c1 is None:
+        say(f"mesh check failed ({check.failure}): the interval reflects noise only")
+        return check, unc.c1_ci95_pa
+    return check, combined_ci95(float(np.exp(theta)), unc.se_ln_c1, check.gci_ln_c1)
+
+
 def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=None) -> dict:
     """Calibrate c1 on a scan session and write ``WORK/calibration.json`` and maps."""
     say = progress or (lambda msg: log.info(msg))
@@ -164,15 +182,7 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     pts = np.concatenate([v.points_mm for v in final.values()])
     area = _area(cal) if options.objective == "surface" else None
     unc = gauss_newton_uncertainty(c1, r, dr, pts, area_mm2=area)
-    check, ci95 = None, unc.c1_ci95_pa
-    if options.mesh_check_ratio:
-        size = options.mesh_size_mm * options.mesh_check_ratio
-        say(f"mesh check: the objective on a {size:.1f} mm mesh")
-        check = mesh_check(cal, theta, ratio=options.mesh_check_ratio)
-        if check.gci_ln_c1 is not None:
-            ci95 = combined_ci95(c1, unc.se_ln_c1, check.gci_ln_c1)
-        else:
-            say(f"mesh check failed ({check.failure}): the interval reflects noise only")
+    check, ci95 = _mesh_check(cal, theta, unc, say)
     if options.profile_points >= 2:
         say(f"likelihood profile over c1: {options.profile_points} points")
     profile = _profile(cal, theta, unc.se_ln_c1, unc.n_effective)
