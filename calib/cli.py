@@ -189,6 +189,8 @@ def _uncertainty_lines(unc: dict) -> list[str]:
     check = unc.get("mesh_check")
     if not check:
         return []
+    if unc.get("c1_ci95_pa") is None:
+        return []
     lo, hi = unc["c1_ci95_pa"]
     size, c1 = check["check_mesh_size_mm"], check["c1_check_pa"]
     found = f"calibrates to {c1:.1f} Pa" if c1 is not None else f"failed: {check['failure']}"
@@ -197,9 +199,11 @@ def _uncertainty_lines(unc: dict) -> list[str]:
 
 def format_calibration(doc: dict) -> str:
     """A readable summary of calibration.json."""
-    lo, hi = doc["c1_ci95_pa"]
+    ci = doc["c1_ci95_pa"]
+    interval = (f"95 % interval {ci[0]:.1f} - {ci[1]:.1f} Pa" if ci is not None else
+                "95 % interval not estimable from one residual")  # fmt: skip
     lines = [
-        f"c1 = {doc['c1_pa']:.1f} Pa  (95 % interval {lo:.1f} - {hi:.1f} Pa), objective "
+        f"c1 = {doc['c1_pa']:.1f} Pa  ({interval}), objective "
         f"{doc['objective']}, reference state {doc['reference_state']}",
         f"{doc['iterations']} iterations, {doc['fe_solves']} FE solves, {doc['wall_s']:.0f} s",
         *_uncertainty_lines(doc.get("uncertainty", {})),

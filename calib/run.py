@@ -123,11 +123,11 @@ def _optimise(cal: Calibrator, progress) -> tuple[float, object]:
     return theta, res
 
 
-def _profile(cal: Calibrator, theta: float, se: float, n_eff: float) -> list[dict]:
+def _profile(cal: Calibrator, theta: float, se: float | None, n_eff: float) -> list[dict]:
     k = cal.options.profile_points
     if k < 2:
         return []
-    half = max(2.0 * se, 0.05) if np.isfinite(se) else 0.2
+    half = max(2.0 * se, 0.05) if se is not None and np.isfinite(se) else 0.2
     rows, Js = [], []
     for t in np.linspace(theta - half, theta + half, k):
         res = cal.residuals(float(t), cal.calibration_scans, gradient=False)
@@ -143,7 +143,7 @@ def _profile(cal: Calibrator, theta: float, se: float, n_eff: float) -> list[dic
 def _mesh_check(cal: Calibrator, theta: float, unc, say):
     """The mesh check (coarser, then finer if that fails) and the combined 95 % interval."""
     o = cal.options
-    if not o.mesh_check_ratio:
+    if not o.mesh_check_ratio or unc.se_ln_c1 is None:
         return None, unc.c1_ci95_pa
     say(f"mesh check: the objective on a {o.mesh_size_mm * o.mesh_check_ratio:.1f} mm mesh")
     check = mesh_check(cal, theta, ratio=o.mesh_check_ratio)
@@ -193,7 +193,7 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     scans = {s.name: _scan_metrics(cal, s, states[s.name], work, c1) for s in targets}
     doc = {
         "c1_pa": c1,
-        "c1_ci95_pa": list(ci95),
+        "c1_ci95_pa": list(ci95) if ci95 is not None else None,
         "objective": options.objective,
         "objective_value_mm2": float(res.fun),
         "reference_state": options.reference_state,

@@ -41,9 +41,10 @@ class Uncertainty:
 
     Attributes
     ----------
-    se_ln_c1 : float
-        Standard error of ln c1.
-    c1_ci95_pa : tuple of float
+    se_ln_c1 : float or None
+        Standard error of ln c1; None when the residuals leave no degree of freedom to
+        estimate their noise (a single residual: the ``nipple`` objective).
+    c1_ci95_pa : tuple of float or None
     residual_sd_mm : float
         Residual noise estimate.
     n_residuals, n_effective : float
@@ -51,8 +52,8 @@ class Uncertainty:
     correlation_length_mm : float
     """
 
-    se_ln_c1: float
-    c1_ci95_pa: tuple[float, float]
+    se_ln_c1: float | None
+    c1_ci95_pa: tuple[float, float] | None
     residual_sd_mm: float
     n_residuals: int
     n_effective: float
@@ -75,7 +76,9 @@ def gauss_newton_uncertainty(
         Measured area the residuals cover; None treats the residuals as independent.
     """
     n = len(r)
-    sd = float(np.sqrt(np.sum(r**2) / max(n - 1, 1)))
+    if n < 2:  # one residual and one parameter: no degree of freedom left for the noise
+        return Uncertainty(None, None, float(np.abs(r).sum()), n, float(n), 0.0)
+    sd = float(np.sqrt(np.sum(r**2) / (n - 1)))
     ell = correlation_length_mm(points_mm, r) if area_mm2 else 0.0
     n_eff = (
         float(n) if not area_mm2 or ell == 0 else float(np.clip(area_mm2 / (np.pi * ell**2), 2, n))

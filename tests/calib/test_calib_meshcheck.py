@@ -56,3 +56,16 @@ def test_a_check_that_fails_both_ways_keeps_the_noise_interval(monkeypatch):
     check, ci = run._mesh_check(cal, np.log(400.0), unc, said.append)
     assert ci == (395.0, 405.0) and check.failure == "MeshError: test"
     assert "noise only" in said[-1]
+
+
+def test_one_residual_leaves_the_noise_unknown():
+    # The nipple objective has one residual for one parameter: no degree of freedom remains
+    # to estimate the noise, so no interval is claimed (it printed 0 - 3e51 Pa before).
+    from calib.uncertainty import gauss_newton_uncertainty
+
+    unc = gauss_newton_uncertainty(420.0, np.array([0.44]), np.array([0.1]), np.zeros((1, 3)),
+                                   area_mm2=None)  # fmt: skip
+    assert unc.se_ln_c1 is None and unc.c1_ci95_pa is None
+    cal = SimpleNamespace(options=SimpleNamespace(mesh_size_mm=14.0, mesh_check_ratio=1.4))
+    check, ci = run._mesh_check(cal, np.log(420.0), unc, lambda msg: None)
+    assert check is None and ci is None
