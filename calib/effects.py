@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import fem
-from fem.mesh import REGION_IDS
+from fem.meshing import skin_fraction
 
 __all__ = ["EFFECTS", "EffectError", "TruthEffects", "parse_effects", "truth_model"]
 
@@ -142,9 +142,14 @@ def truth_model(mesh: fem.TetMesh, c1_pa: float, effects: TruthEffects) -> fem.M
     materials = {"bulk": _law(c1_pa, e.c2_pa, e.nu)}
     if "inclusion" in mesh.region_names:
         materials["inclusion"] = _law(c1_pa * e.inclusion_ratio, e.c2_pa * e.inclusion_ratio, e.nu)
-    if "skin" in mesh.region_names:
-        materials["skin"] = _law(c1_pa * e.skin_ratio, e.c2_pa * e.skin_ratio, e.nu)
+    for name in mesh.region_names:
+        frac = skin_fraction(name)
+        if frac is not None:  # volume mix of skin and bulk (Voigt): exact as h -> 0
+            ratio = 1.0 + (e.skin_ratio - 1.0) * frac
+            materials[name] = _law(c1_pa * ratio, e.c2_pa * ratio, e.nu)
     density = {name: e.density_kg_m3 for name in materials}
     support = fem.Sliding() if e.sliding else fem.Clamped()
-    assert set(materials) <= set(REGION_IDS)
+    unknown = set(mesh.region_names) - set(materials)
+    if unknown:
+        raise ValueError(f"truth model has no material for region(s) {sorted(unknown)}")
     return fem.Model(mesh, materials, density, support)

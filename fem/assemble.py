@@ -12,8 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .discretize import Discretization
-from .kinematics import invariants, piola, piola_and_tangent
+from .kinematics import invariants, piola
 from .model import Model
+from .stiffness import stiffness_uu
 
 __all__ = ["ElementState", "assemble", "external_force", "min_jacobian"]
 
@@ -63,28 +64,37 @@ def _group(disc: Discretization, x, F, idx, material, tangent: bool):
     Fg, w, dN = F[idx], disc.weights[idx], disc.grad_u[idx]
     p = _pressure(disc, x, idx) if disc.mixed else None
     first, second, J, G, G1 = _energy_terms(material, Fg, p)
-    if tangent:
-        P, A = piola_and_tangent(Fg, first, second)
-    else:
-        P, A = piola(Fg, first), None
-    ne, na = len(idx), dN.shape[2]
+    P = piola(Fg, first)
+    ne = len(idx)
     r_u = np.einsum("eqij,eqaj->eai", P * w[..., None, None], dN, optimize=True).reshape(ne, -1)
-    K = None
-    if tangent:
-        T = np.einsum("eqaj,eqijkl->eqaikl", dN, A * w[..., None, None, None, None], optimize=True)
-        K = np.einsum("eqaikl,eqbl->eaibk", T, dN, optimize=True).reshape(ne, 3 * na, 3 * na)
+    K = stiffness_uu(dN, w, Fg, first, second) if tangent else None
     if not disc.mixed:
         return r_u, K, J
     Np = disc.shape_p[idx]
     kappa = material.volumetric.kappa_pa
     r_p = np.einsum("eq,eqb->eb", w * (G - p / kappa), Np)
     if tangent:
-        cof = invariants(Fg)[4]
-        K_up = np.einsum("eqij,eqaj,eqb->eaib", cof * (w * G1)[..., None, None], dN, Np)
-        K_up = K_up.reshape(ne, 3 * na, -1)
-        K_pp = -np.einsum("eq,eqb,eqc->ebc", w / kappa, Np, Np)
-        K = np.block([[K, K_up], [K_up.transpose(0, 2, 1), K_pp]])
+        K = _mixed_block(K, dN, Np, w, invariants(Fg)[4] * G1[..., None, None], -w / kappa)
     return np.hstack([r_u, r_p]), K, J
+
+
+def _mixed_block(K_uu, dN, Np, w, cof_G1, pp_weight) -> np.ndarray:
+    """Saddle-point element matrix ``[[K_uu, K_up], [K_up^T, K_pp]]``, (E, 3A + B, 3A + B).
+
+    ``K_up[(a,i), b] = sum_q w G'(J) (cof dN_a)_i N_b`` and ``K_pp = sum_q w/kappa N N``
+    (with its sign in ``pp_weight``), written as batched matrix products.
+    """
+    ne, nq, na = dN.shape[:3]
+    nu = 3 * na
+    h = (dN @ np.swapaxes(cof_G1, -1, -2)) * w[..., None, None]  # (E, Q, A, 3)
+    K_up = np.swapaxes(h.reshape(ne, nq, nu), 1, 2) @ Np  # (E, 3A, B)
+    K_pp = np.swapaxes(Np * pp_weight[..., None], 1, 2) @ Np
+    out = np.empty((ne, nu + Np.shape[2], nu + Np.shape[2]))
+    out[:, :nu, :nu] = K_uu
+    out[:, :nu, nu:] = K_up
+    out[:, nu:, :nu] = np.swapaxes(K_up, 1, 2)
+    out[:, nu:, nu:] = K_pp
+    return out
 
 
 def assemble(disc: Discretization, model: Model, x: np.ndarray, *, tangent: bool = True):
@@ -107,13 +117,16 @@ def assemble(disc: Discretization, model: Model, x: np.ndarray, *, tangent: bool
     """
     F = deformation_gradient(disc, x)
     n_loc = _n_loc(disc)
+    min_J = float(np.linalg.det(F).min())
+    if min_J <= 0:
+        return ElementState(np.zeros((len(F), n_loc)), None, min_J)
+    groups = list(model.element_material_groups())
+    if len(groups) == 1 and len(groups[0][0]) == len(F):  # one law: no scatter copies
+        r, K, _ = _group(disc, x, F, groups[0][0], groups[0][1], tangent)
+        return ElementState(r, K, min_J)
     vec = np.zeros((len(F), n_loc))
     mat = np.zeros((len(F), n_loc, n_loc)) if tangent else None
-    J_all = np.linalg.det(F)
-    min_J = float(J_all.min())
-    if min_J <= 0:
-        return ElementState(vec, mat, min_J)
-    for idx, material, _ in model.element_material_groups():
+    for idx, material, _ in groups:
         r, K, _ = _group(disc, x, F, idx, material, tangent)
         vec[idx] = r
         if tangent:

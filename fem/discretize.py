@@ -17,6 +17,7 @@ import scipy.sparse as sp
 
 from .mesh import MeshError, TetMesh
 from .model import Clamped, Constrained, ElasticSupport, Sliding, Support, as_supports
+from .pattern import Pattern, build_pattern
 from .units import M_PER_MM
 
 __all__ = ["FORMULATIONS", "Discretization", "Formulation", "discretize", "plane_fit"]
@@ -29,24 +30,6 @@ FORMULATIONS = {
     "mini": ("ElementTetMini", "ElementTetP1", 4),
     "taylor-hood": ("ElementTetP2", "ElementTetP1", 2),
 }
-
-
-@dataclass(frozen=True)
-class Pattern:
-    """CSR structure of the reduced (free-dof) matrix and the scatter map into it."""
-
-    indptr: np.ndarray
-    indices: np.ndarray
-    keys: np.ndarray  # sorted row * n_free + col of every stored entry
-    valid: np.ndarray  # flat mask over (element, local row, local col) entries kept
-    slot: np.ndarray  # data slot of each kept entry
-    n_free: int
-
-    def matrix(self, element_matrices: np.ndarray) -> sp.csr_matrix:
-        """Sum element matrices ``(E, n, n)`` into the reduced CSR matrix."""
-        vals = element_matrices.reshape(-1)[self.valid]
-        data = np.bincount(self.slot, weights=vals, minlength=len(self.keys))
-        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_free,) * 2)
 
 
 @dataclass(frozen=True)
@@ -290,20 +273,6 @@ def _spring_matrix(basis, facets, support: ElasticSupport, n_total: int) -> sp.c
     return K.tocsr()
 
 
-def _pattern(edofs: np.ndarray, fixed: np.ndarray) -> Pattern:
-    free_index = np.full(fixed.size, -1, dtype=np.int64)
-    free_index[~fixed] = np.arange(int((~fixed).sum()))
-    n_free = int((~fixed).sum())
-    nloc = edofs.shape[1]
-    rows = free_index[np.repeat(edofs, nloc, axis=1)].ravel()
-    cols = free_index[np.tile(edofs, (1, nloc))].ravel()
-    valid = (rows >= 0) & (cols >= 0)
-    keys, slot = np.unique(rows[valid] * n_free + cols[valid], return_inverse=True)
-    indptr = np.searchsorted(keys // n_free, np.arange(n_free + 1)).astype(np.int64)
-    indices = (keys % n_free).astype(np.int64)
-    return Pattern(indptr, indices, keys, valid, slot.astype(np.int64), n_free)
-
-
 def discretize(
     mesh: TetMesh, support: Support, *, formulation: Formulation = "taylor-hood"
 ) -> Discretization:
@@ -350,7 +319,7 @@ def discretize(
         **geo,
         **dofs,
     )
-    return replace(disc, pattern=_pattern(disc.element_dofs(), fixed))
+    return replace(disc, pattern=build_pattern(disc.udofs, disc.pdofs, disc.n_scalar_u, fixed))
 
 
 def _solver_rotation(mesh: TetMesh, supports: tuple) -> np.ndarray:

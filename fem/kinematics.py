@@ -23,8 +23,9 @@ def invariants(F: np.ndarray) -> tuple[np.ndarray, ...]:
     C = np.einsum("...ki,...kj->...ij", F, F)
     I1 = np.einsum("...ii->...", C)
     I2 = 0.5 * (I1**2 - np.einsum("...ij,...ji->...", C, C))
-    J = np.linalg.det(F)
-    return I1, I2, J, C, cofactor(F)
+    cof = cofactor(F)
+    J = np.einsum("...j,...j->...", F[..., 0, :], cof[..., 0, :])  # Laplace expansion
+    return I1, I2, J, C, cof
 
 
 def cofactor(F: np.ndarray) -> np.ndarray:

@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import ctypes
+import glob
 import logging
+import os
+import sys
+from collections.abc import Callable
 from functools import cache
 from typing import Literal
 
@@ -11,39 +15,56 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-__all__ = ["available_solvers", "factorize", "solve_sparse"]
+__all__ = ["available_solvers", "factorize", "solve_preconditioned", "solve_sparse"]
 
 log = logging.getLogger(__name__)
 LinearSolver = Literal["auto", "pardiso", "superlu"]
 
 
 class _PardisoCache:
-    """One PARDISO instance per matrix type, reusing its symbolic analysis per pattern."""
+    """One PARDISO instance per matrix type, reusing its symbolic analysis per pattern.
 
-    solvers: dict = {}  # mtype -> [solver, pattern key]
+    Each entry is ``[solver, pattern key, owner]``: ``owner`` is the token of the
+    factorization the instance holds now, so a factor handed out earlier can tell
+    whether it was overwritten (and then factorises its matrix again).
+    """
+
+    solvers: dict = {}  # mtype -> [solver, pattern key, owner token]
 
     @classmethod
     def clear(cls) -> None:
         cls.solvers = {}
 
 
-def _pardiso_solve(A: sp.csr_matrix, b: np.ndarray, symmetric: bool) -> np.ndarray:
+def _pardiso_factor(A: sp.csr_matrix, symmetric: bool) -> Callable[[np.ndarray], np.ndarray]:
     mtype = -2 if symmetric else 11
     A = sp.triu(A, format="csr") if symmetric else A.tocsr()
     A.sort_indices()
     key = (A.shape[0], A.nnz, hash(A.indptr.tobytes()), hash(A.indices.tobytes()))
     if mtype not in _PardisoCache.solvers:
-        _PardisoCache.solvers[mtype] = [_reproducible_pardiso(mtype), None]
+        _PardisoCache.solvers[mtype] = [_reproducible_pardiso(mtype), None, None]
     entry = _PardisoCache.solvers[mtype]
-    solver = entry[0]
-    if entry[1] != key:
-        solver._check_A(A)
-        solver.set_phase(11)
-        solver._call_pardiso(A, b)
-        entry[1] = key
-    solver.set_phase(23)
-    x = solver._call_pardiso(A, np.asarray(b, dtype=np.float64))
-    return np.asarray(x).reshape(b.shape)
+    solver, token = entry[0], object()
+
+    def factor() -> None:
+        if entry[1] != key:
+            solver._check_A(A)
+            solver.set_phase(11)
+            solver._call_pardiso(A, np.zeros(A.shape[0]))
+            entry[1] = key
+        solver.set_phase(22)
+        solver._call_pardiso(A, np.zeros(A.shape[0]))
+        entry[2] = token
+
+    def solve(b: np.ndarray) -> np.ndarray:
+        if entry[2] is not token:  # another matrix was factorised since: redo ours
+            factor()
+        solver.set_phase(33)
+        x = solver._call_pardiso(A, np.asarray(b, dtype=np.float64))
+        return np.asarray(x).reshape(np.shape(b))
+
+    factor()
+    return solve
 
 
 def _reproducible_pardiso(mtype: int = 11):
@@ -70,8 +91,23 @@ def _reproducible_pardiso(mtype: int = 11):
     return solver
 
 
+def _point_pypardiso_at_mkl() -> None:
+    """Tell pypardiso where MKL's runtime lies, when it sits in this environment's ``lib``.
+
+    Without ``PYPARDISO_MKL_RT`` every new solver walks ``sys.prefix`` recursively for
+    the library (about 0.7 s per solver in a virtual environment with many packages).
+    A user's own setting is kept.
+    """
+    if os.environ.get("PYPARDISO_MKL_RT"):
+        return
+    found = sorted(glob.glob(os.path.join(sys.prefix, "lib", "libmkl_rt.so*")), key=len)
+    if found:
+        os.environ["PYPARDISO_MKL_RT"] = found[0]
+
+
 @cache
 def _pardiso():
+    _point_pypardiso_at_mkl()
     try:
         import pypardiso
     except Exception as exc:  # noqa: BLE001 - any import failure means "not available"
@@ -104,27 +140,28 @@ def solve_sparse(
     -------
     ndarray, shape (n,)
     """
-    if method == "auto":
-        method = "pardiso" if _pardiso() is not None else "superlu"
-    if method == "pardiso":
-        if _pardiso() is None:
-            raise RuntimeError("linear solver 'pardiso' requested but pypardiso/MKL is missing")
-        return _pardiso_solve(A, b, symmetric)
-    if method == "superlu":
-        return factorize(A, method="superlu")(b)
-    raise ValueError(f"unknown linear solver {method!r}; choose auto, pardiso or superlu")
+    return factorize(A, method=method, symmetric=symmetric)(b)
 
 
-def factorize(A: sp.csr_matrix, *, method: LinearSolver = "auto"):
+def factorize(
+    A: sp.csr_matrix, *, method: LinearSolver = "auto", symmetric: bool = False
+) -> Callable[[np.ndarray], np.ndarray]:
     """Factorize once, solve many: returns ``solve(b) -> x`` for the matrix ``A``.
 
     Parameters
     ----------
     A : scipy.sparse matrix, shape (n, n)
     method : {"auto", "pardiso", "superlu"}
+    symmetric : bool
+        As in :func:`solve_sparse`.
+
+    Notes
+    -----
+    PARDISO factors share one solver instance per matrix type (so that the symbolic
+    analysis of a sparsity pattern is done once per process); a factor whose instance
+    has since factorised another matrix factorises its own again before solving.
     """
-    if method == "auto":
-        method = "pardiso" if _pardiso() is not None else "superlu"
+    method = _resolve(method)
     if method == "superlu":
         # Symmetric diagonal scaling: the mixed (u-p) blocks differ by many orders of
         # magnitude, which costs SuperLU's unscaled pivoting several digits.
@@ -132,10 +169,56 @@ def factorize(A: sp.csr_matrix, *, method: LinearSolver = "auto"):
         D = sp.diags(d)
         lu = spla.splu((D @ A @ D).tocsc(), permc_spec="COLAMD")
         return lambda b: d * lu.solve(d * np.asarray(b, dtype=float))
-    if method != "pardiso" or _pardiso() is None:
-        raise ValueError(f"linear solver {method!r} is not available")
-    A = A.tocsr()
-    A.sort_indices()
-    solver = _reproducible_pardiso()
-    solver.factorize(A)
-    return lambda b: np.asarray(solver.solve(A, np.asarray(b, dtype=np.float64))).reshape(b.shape)
+    return _pardiso_factor(A, symmetric)
+
+
+def _resolve(method: str) -> str:
+    if method == "auto":
+        return "pardiso" if _pardiso() is not None else "superlu"
+    if method == "pardiso" and _pardiso() is None:
+        raise RuntimeError("linear solver 'pardiso' requested but pypardiso/MKL is missing")
+    if method not in ("pardiso", "superlu"):
+        raise ValueError(f"unknown linear solver {method!r}; choose auto, pardiso or superlu")
+    return method
+
+
+def solve_preconditioned(
+    A: sp.csr_matrix,
+    b: np.ndarray,
+    factor: Callable[[np.ndarray], np.ndarray],
+    *,
+    scale: np.ndarray,
+    rtol: float,
+    max_iterations: int = 8,
+) -> np.ndarray | None:
+    """Solve ``A x = b`` by GMRES, preconditioned by the factor of a nearby matrix.
+
+    Used for Newton steps late in an iteration, where the tangent changed little since
+    it was last factorised: a few back-substitutions replace a factorization.
+
+    Parameters
+    ----------
+    A : scipy.sparse matrix, shape (n, n)
+    b : ndarray, shape (n,)
+    factor : callable
+        ``factor(y)`` approximately solves ``A x = y`` (e.g. :func:`factorize` of an
+        earlier tangent).
+    scale : ndarray, shape (n,)
+        Row weights ``D``: convergence is measured as ``|D (A x - b)| <= rtol |D b|``
+        (the solver's scaled residual norm, so force and volume rows count alike).
+    rtol : float
+        Relative tolerance on that scaled residual.
+    max_iterations : int
+        Krylov iterations (back-substitutions) before giving up.
+
+    Returns
+    -------
+    ndarray, shape (n,), or None
+        ``None`` when the tolerance was not reached: factorise ``A`` instead.
+    """
+    n = A.shape[0]
+    op = spla.LinearOperator((n, n), matvec=lambda y: scale * (A @ factor(y / scale)))
+    y, _ = spla.gmres(op, scale * b, rtol=rtol, atol=0.0, restart=max_iterations, maxiter=1)
+    x = factor(y / scale)
+    achieved = np.linalg.norm(scale * (A @ x - b)) / max(np.linalg.norm(scale * b), 1e-300)
+    return x if achieved <= rtol else None

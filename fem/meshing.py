@@ -223,22 +223,77 @@ def tag_node_sets(mesh: TetMesh, back_nodes: np.ndarray, back_normal: np.ndarray
     return mesh.with_node_sets(back=back_nodes, surface=surface, nipple=nipple)
 
 
-def _skin_regions(mesh: TetMesh, thickness_mm: float, back_nodes) -> TetMesh:
-    """Tag elements whose centroid lies within ``thickness_mm`` of the outer surface."""
+SKIN_FRACTION_BINS = 20
+_PARTIAL_SKIN_TAG = 300  # tags 301..319: bulk elements partly inside the skin band
+
+
+def skin_fraction(region_name: str) -> float | None:
+    """Volume fraction of skin of a region: 1 for ``skin``, ``f`` for ``skin:f``, else None."""
+    if region_name == "skin":
+        return 1.0
+    if region_name.startswith("skin:"):
+        return float(region_name.split(":", 1)[1])
+    return None
+
+
+def _subtet_centroids(levels: int = 2) -> np.ndarray:
+    """Barycentric centroids of the ``8**levels`` equal-volume tets of a red refinement."""
+    tets = [np.eye(4)]
+    for _ in range(levels):
+        children = []
+        for v in tets:
+            m = {(i, j): (v[i] + v[j]) / 2 for i in range(4) for j in range(i + 1, 4)}
+            children += [
+                np.array([v[0], m[0, 1], m[0, 2], m[0, 3]]),
+                np.array([m[0, 1], v[1], m[1, 2], m[1, 3]]),
+                np.array([m[0, 2], m[1, 2], v[2], m[2, 3]]),
+                np.array([m[0, 3], m[1, 3], m[2, 3], v[3]]),
+            ]
+            # the inner octahedron, split along its diagonal m02-m13 into 4 tets
+            ring = [m[0, 1], m[1, 2], m[2, 3], m[0, 3]]
+            for a, b in zip(ring, ring[1:] + ring[:1], strict=True):
+                children.append(np.array([m[0, 2], m[1, 3], a, b]))
+        tets = children
+    return np.array([t.mean(axis=0) for t in tets])
+
+
+def _band_fraction(mesh: TetMesh, thickness_mm: float, back_nodes) -> np.ndarray:
+    """Fraction of each element's volume within ``thickness_mm`` of the outer surface."""
     import open3d as o3d
 
     faces = boundary_faces(mesh.tets)
-    on_back = np.isin(faces, back_nodes).all(axis=1)
-    outer = faces[~on_back]
+    outer = faces[~np.isin(faces, back_nodes).all(axis=1)]
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
         o3d.core.Tensor(mesh.nodes_mm.astype(np.float32)), o3d.core.Tensor(outer.astype(np.uint32))
     )
-    cent = mesh.nodes_mm[mesh.tets].mean(axis=1).astype(np.float32)
-    dist = scene.compute_distance(o3d.core.Tensor(cent)).numpy()
+    bary = _subtet_centroids()
+    pts = np.einsum("pk,ekj->epj", bary, mesh.nodes_mm[mesh.tets]).reshape(-1, 3)
+    dist = scene.compute_distance(o3d.core.Tensor(pts.astype(np.float32))).numpy()
+    return (dist.reshape(mesh.n_tets, len(bary)) < thickness_mm).mean(axis=1)
+
+
+def _skin_regions(mesh: TetMesh, thickness_mm: float, back_nodes) -> TetMesh:
+    """Tag bulk elements by the volume fraction of them inside the skin band.
+
+    Elements (nearly) wholly inside the band become ``skin``; elements partly inside
+    become ``skin:f`` with the fraction ``f`` rounded to 1/20 (a law can then mix the
+    two materials by volume, so the layer's stiffness times volume does not depend on
+    the mesh); elements (nearly) outside stay ``bulk``. Fractions are sampled at the
+    centroids of the 64 equal sub-tetrahedra of two red refinements.
+    """
+    frac = _band_fraction(mesh, thickness_mm, back_nodes)
+    k = np.rint(frac * SKIN_FRACTION_BINS).astype(int)
+    bulk = mesh.region == REGION_IDS["bulk"]
     region = mesh.region.copy()
-    region[(dist < thickness_mm) & (region == REGION_IDS["bulk"])] = REGION_IDS["skin"]
-    names = {**mesh.region_names, "skin": REGION_IDS["skin"]}
+    names = dict(mesh.region_names)
+    full = bulk & (k == SKIN_FRACTION_BINS)
+    region[full] = REGION_IDS["skin"]
+    if full.any():
+        names["skin"] = REGION_IDS["skin"]
+    for kk in np.unique(k[bulk & (k > 0) & (k < SKIN_FRACTION_BINS)]):
+        region[bulk & (k == kk)] = _PARTIAL_SKIN_TAG + kk
+        names[f"skin:{kk / SKIN_FRACTION_BINS:.2f}"] = _PARTIAL_SKIN_TAG + kk
     return mesh.with_regions(region, names)
 
 
@@ -272,7 +327,8 @@ def mesh_phantom(
         Mesh the inclusions as conforming regions; else tag elements whose centroid
         lies inside an inclusion (cheaper, staircase boundaries).
     skin_thickness_mm : float, optional
-        Tag a skin band of this thickness (defaults to the phantom spec's).
+        Tag a skin band of this thickness (defaults to the phantom spec's): regions
+        ``skin`` and ``skin:f`` for elements partly in the band (see :func:`skin_fraction`).
 
     Returns
     -------

@@ -162,8 +162,37 @@ class Model:
         return replace(self, mesh=mesh)
 
     def element_material_groups(self):
-        """Yield ``(element_indices, material, density)`` for each region present."""
+        """Yield ``(element_indices, material, density)``, regions of equal law merged.
+
+        Regions that share one material object (or an equal one) and one density are
+        assembled as a single group, so a homogeneous model is one vectorised pass.
+        """
+        groups: dict = {}
         for name, tag in self.mesh.region_names.items():
             idx = np.flatnonzero(self.mesh.region == tag)
             if idx.size:
-                yield idx, self.materials[name], self.density_kg_m3[name]
+                key = (_hashable(self.materials[name]), self.density_kg_m3[name])
+                groups.setdefault(key, []).append(idx)
+        for (material, rho), parts in groups.items():
+            law = material.obj if isinstance(material, _ByIdentity) else material
+            yield np.sort(np.concatenate(parts)), law, rho
+
+
+@dataclass(frozen=True, eq=False)
+class _ByIdentity:
+    obj: object
+
+    def __hash__(self) -> int:
+        return id(self.obj)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, _ByIdentity) and other.obj is self.obj
+
+
+def _hashable(material):
+    """The material itself as a dict key when hashable, else a by-identity wrapper."""
+    try:
+        hash(material)
+    except TypeError:
+        return _ByIdentity(material)
+    return material

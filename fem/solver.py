@@ -11,7 +11,7 @@ import numpy as np
 from .assemble import assemble, external_force, scatter
 from .discretize import Discretization, Formulation, discretize
 from .fields import _point_forces, displacement_at, gravity_vector, vertex_displacement_mm
-from .linalg import LinearSolver, solve_sparse
+from .linalg import LinearSolver, factorize, solve_preconditioned
 from .model import Model
 from .units import M_PER_MM
 
@@ -51,6 +51,11 @@ class SolverOptions:
     line_search : bool
         Backtracking on the residual norm.
     linear_solver : {"auto", "pardiso", "superlu"}
+    reuse_factor_below : float
+        Below this scaled residual a Newton step first tries the previous tangent's
+        factorization as a GMRES preconditioner (a few back-substitutions instead of a
+        new factorization) and factorises only when that does not reach the step
+        accuracy; 0 always factorises.
     """
 
     rtol: float = 1e-8
@@ -60,6 +65,7 @@ class SolverOptions:
     max_steps: int = 200
     line_search: bool = True
     linear_solver: LinearSolver = "auto"
+    reuse_factor_below: float = 1e-2
 
 
 @dataclass(frozen=True)
@@ -86,6 +92,8 @@ class Solution:
     dofs : int
         Free unknowns of the linear systems.
     formulation : str
+    factorizations : int
+        Sparse factorizations; Newton steps beyond these reused an earlier one.
     """
 
     displacement_mm: np.ndarray
@@ -98,6 +106,7 @@ class Solution:
     timings_s: dict = field(default_factory=dict)
     dofs: int = 0
     formulation: str = ""
+    factorizations: int = 0
 
     @property
     def max_displacement_mm(self) -> float:
@@ -111,6 +120,8 @@ class _Stats:
     history: list = field(default_factory=list)
     t_asm: float = 0.0
     t_lin: float = 0.0
+    factorizations: int = 0
+    reused: int = 0
 
 
 def merit(r_free, u_free, f_scale: float, v_scale: float, mixed: bool) -> float:
@@ -118,6 +129,11 @@ def merit(r_free, u_free, f_scale: float, v_scale: float, mixed: bool) -> float:
     ru = np.linalg.norm(r_free[u_free]) / f_scale
     rp = np.linalg.norm(r_free[~u_free]) / v_scale if mixed else 0.0
     return float(np.hypot(ru, rp))
+
+
+def merit_weights(u_free, f_scale: float, v_scale: float) -> np.ndarray:
+    """Row weights ``D`` with ``merit = |D r|`` (force rows over the load, others over volume)."""
+    return np.where(u_free, 1.0 / f_scale, 1.0 / max(v_scale, 1e-300))
 
 
 class _Problem:
@@ -132,6 +148,7 @@ class _Problem:
         self.v_scale = float(disc.weights.sum())
         if disc.spring is not None:
             self.spring_ff = disc.spring[self.free][:, self.free].tocsr()
+        self.factor = None
 
     def residual(self, x, lam, tangent):
         t0 = time.perf_counter()
@@ -150,32 +167,62 @@ class _Problem:
         self.stats.t_asm += time.perf_counter() - t0
         return r[self.free], K
 
+    @property
+    def scale(self) -> np.ndarray:
+        """Row weights of the free residual whose norm is :meth:`merit`."""
+        return merit_weights(self.u_free, self.f_scale, self.v_scale)
+
     def merit(self, r_free) -> float:
         return merit(r_free, self.u_free, self.f_scale, self.v_scale, self.disc.mixed)
 
-    def linear_solve(self, K, r):
-        t0 = time.perf_counter()
-        # hyperelastic tangent with conservative loads and springs: symmetric
-        dx = solve_sparse(K, -r, method=self.opts.linear_solver, symmetric=True)
-        self.stats.t_lin += time.perf_counter() - t0
-        return dx
+    def linear_solve(self, K, r, m: float):
+        """Newton step ``K dx = -r`` (the tangent is symmetric: conservative loads)."""
+        return newton_step(self, K, r, m, symmetric=True)
+
+
+def newton_step(prob, K, r, m: float, *, symmetric: bool) -> np.ndarray:
+    """Solve ``K dx = -r``; late steps reuse ``prob.factor``, an earlier factorization.
+
+    Below ``opts.reuse_factor_below`` the step is first sought by GMRES preconditioned
+    with the previous factorization, to a scaled linear residual ``min(1e-3, m)`` times
+    the merit ``m`` (an inexact Newton step that keeps the quadratic rate); when that is
+    not reached in a few back-substitutions, ``K`` is factorised.
+    """
+    t0 = time.perf_counter()
+    dx = None
+    if prob.factor is not None and m < prob.opts.reuse_factor_below:
+        dx = solve_preconditioned(K, -r, prob.factor, scale=prob.scale, rtol=min(1e-3, m))
+        prob.stats.reused += dx is not None
+    if dx is None:
+        method = prob.opts.linear_solver
+        prob.factor = factorize(K, method=method, symmetric=symmetric)
+        prob.stats.factorizations += 1
+        dx = prob.factor(-r)
+    prob.stats.t_lin += time.perf_counter() - t0
+    return dx
 
 
 def _line_search(prob: _Problem, x, dx_free, lam, m0):
     """Backtrack until the residual norm decreases; returns (x, r, K, merit) or None.
 
-    The full step is evaluated with its tangent (the usual, accepted case); shorter
-    trial steps evaluate the residual alone and the tangent only once accepted.
+    In Newton's region the full step is evaluated with its tangent (the usual, accepted
+    case); far from it (often backtracked) or where it is expected to converge, and
+    for every shorter trial step, the residual alone is checked first. The tangent of
+    an accepted point is assembled only when another Newton step needs it (``K`` is
+    None for a converged point).
     """
-    alpha = 1.0
+    alpha, rtol = 1.0, prob.opts.rtol
+    # the tangent goes with the full step where that step is expected to be accepted
+    # (m0 small, Newton's region) and not to be the last (m0^2 well above rtol)
+    full_with_tangent = 10.0 * np.sqrt(rtol) < m0 < 0.1 or not prob.opts.line_search
     for k in range(6 if prob.opts.line_search else 1):
         xt = x.copy()
         xt[prob.free] += alpha * dx_free
-        r, K = prob.residual(xt, lam, tangent=k == 0)
+        r, K = prob.residual(xt, lam, tangent=k == 0 and full_with_tangent)
         if r is not None:
             m = prob.merit(r)
             if np.isfinite(m) and (m < m0 or not prob.opts.line_search or alpha < 0.05):
-                if K is None:
+                if K is None and m > rtol:
                     r, K = prob.residual(xt, lam, tangent=True)
                 return xt, r, K, m
         alpha *= 0.5
@@ -184,14 +231,16 @@ def _line_search(prob: _Problem, x, dx_free, lam, m0):
 
 def _newton(prob: _Problem, x, lam):
     """Newton iterations at load factor ``lam``; returns the converged x or None."""
-    r, K = prob.residual(x, lam, tangent=True)
+    r, K = prob.residual(x, lam, tangent=False)
     if r is None:
         return None
     m = prob.merit(r)
+    if m > prob.opts.rtol:
+        r, K = prob.residual(x, lam, tangent=True)
     for _ in range(prob.opts.max_newton):
         if m <= prob.opts.rtol:
             return x
-        dx = prob.linear_solve(K, r)
+        dx = prob.linear_solve(K, r, m)
         prob.stats.newton += 1
         step = _line_search(prob, x, dx, lam, m)
         if step is None:
@@ -331,6 +380,7 @@ def solve(
         timings_s={"assembly": stats.t_asm, "linear_solve": stats.t_lin, "total": total},
         dofs=int(disc.pattern.n_free),
         formulation=disc.formulation,
+        factorizations=stats.factorizations,
     )
 
 

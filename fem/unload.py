@@ -29,7 +29,6 @@ import numpy as np
 
 from .assemble import assemble, external_force, scatter
 from .discretize import Formulation, discretize
-from .linalg import solve_sparse
 from .model import Model
 from .shape_derivative import geometry_matrices
 from .solver import (
@@ -40,6 +39,8 @@ from .solver import (
     _Stats,
     gravity_vector,
     merit,
+    merit_weights,
+    newton_step,
     solve,
     vertex_displacement_mm,
 )
@@ -205,6 +206,7 @@ class _Inverse:
         self.f_scale = max(np.linalg.norm(external_force(disc0, model, g_vec)), 1e-300)
         self.v_scale = float(disc0.weights.sum())
         self.u_free = disc0.free < 3 * disc0.n_scalar_u
+        self.factor = None
 
     def disc(self, u):
         X = self.x_m - vertex_displacement_mm(self.disc0, u)
@@ -225,8 +227,14 @@ class _Inverse:
     def merit(self, r) -> float:
         return merit(r, self.u_free, self.f_scale, self.v_scale, self.disc0.mixed)
 
-    def linear_solve(self, M, r):
-        return solve_sparse(M, -r, method=self.opts.linear_solver)
+    @property
+    def scale(self) -> np.ndarray:
+        """Row weights of the free residual whose norm is :meth:`merit`."""
+        return merit_weights(self.u_free, self.f_scale, self.v_scale)
+
+    def linear_solve(self, M, r, m: float):
+        """Newton step; the inverse problem's tangent is not symmetric."""
+        return newton_step(self, M, r, m, symmetric=False)
 
 
 def _inverse_newton(model, gravity, g_m_s2, formulation, options, x0_state, tol_mm):

@@ -121,13 +121,18 @@ def _kappa(c1, c2, nu):
 
 def test_truth_model_regions_and_materials(meshes):
     mesh = meshes["skin"]
-    assert set(mesh.region_names) == {"bulk", "inclusion", "skin"}
+    partial = {n for n in mesh.region_names if n.startswith("skin:")}
+    assert partial  # 14 mm elements against a 3 mm band: most skin elements are partial
+    assert set(mesh.region_names) == {"bulk", "inclusion", "skin"} | partial
     eff = TruthEffects(skin_thickness_mm=3.0, skin_ratio=8.0, inclusion_ratio=5.0,
                        c2_pa=100.0, nu=0.45, density_kg_m3=1100.0)  # fmt: skip
     model = truth_model(mesh, 420.0, eff)
     assert model.mesh is mesh
-    assert set(model.materials) == {"bulk", "inclusion", "skin"}
+    assert set(model.materials) == set(mesh.region_names)
     expected = {"bulk": (420.0, 100.0), "inclusion": (2100.0, 500.0), "skin": (3360.0, 800.0)}
+    for name in partial:  # volume (Voigt) mix: 1 + (8 - 1) f times the bulk's constants
+        f = float(name.split(":")[1])
+        expected[name] = (420.0 * (1 + 7 * f), 100.0 * (1 + 7 * f))
     for region, (c1, c2) in expected.items():
         law = model.materials[region]
         assert isinstance(law, fem.MooneyRivlin)
@@ -135,7 +140,7 @@ def test_truth_model_regions_and_materials(meshes):
         assert law.c1_pa == pytest.approx(c1, rel=1e-12)
         assert law.c2_pa == pytest.approx(c2, rel=1e-12)
         assert law.volumetric.kappa_pa == pytest.approx(_kappa(c1, c2, 0.45), rel=1e-12)
-    assert dict(model.density_kg_m3) == {"bulk": 1100.0, "inclusion": 1100.0, "skin": 1100.0}
+    assert set(model.density_kg_m3.values()) == {1100.0}
     assert isinstance(model.support, fem.Clamped)
 
 
@@ -152,4 +157,4 @@ def test_truth_model_neutral_and_sliding(meshes):
 def test_truth_model_neutral_skin_is_the_bulk(meshes):
     # A tagged skin band with ratio 1 is the bulk material (no hidden effect).
     model = truth_model(meshes["skin"], 420.0, TruthEffects(skin_thickness_mm=3.0))
-    assert model.materials["skin"] == model.materials["bulk"] == model.materials["inclusion"]
+    assert all(law == model.materials["bulk"] for law in model.materials.values())

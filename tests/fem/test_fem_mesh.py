@@ -145,3 +145,27 @@ def test_find_back_plane_of_dome_and_none_on_sphere():
     assert offset == pytest.approx(0.0, abs=1e-9)
     assert np.allclose(dome.nodes_mm[nodes, 2], 0.0)
     assert len(nodes) >= 0.9 * np.sum(np.abs(dome.nodes_mm[:, 2]) < 1e-9)
+
+
+@pytest.mark.parametrize("n", [9, 13])
+def test_skin_band_volume_by_element_fractions(n):
+    """Sum of (skin fraction x element volume) against the exact band volume of a box.
+
+    Box 40 x 40 x 20 mm on its z = 0 back face: the points within t of the other five
+    faces fill V - (40 - 2t)^2 (20 - t). Fractions sampled at 64 sub-tet centroids
+    (a midpoint rule on a cut element, error O(1/4) of the cut elements' share) and
+    rounded to 1/20 measured 0.1-0.3 % here on 5 and 3.3 mm elements; 1 % bound.
+    """
+    from femtest_meshes import box_mesh
+
+    from fem.meshing import _skin_regions, skin_fraction
+
+    t = 3.0
+    mesh = box_mesh((40.0, 40.0, 20.0), (n, n, (n + 1) // 2), jitter=0.2, seed=1)
+    tagged = _skin_regions(mesh, t, mesh.node_set("z0"))
+    vol = tagged.volumes_mm3()
+    frac_of_tag = {tag: skin_fraction(name) or 0.0 for name, tag in tagged.region_names.items()}
+    band = sum(frac_of_tag[tag] * vol[tagged.region == tag].sum() for tag in frac_of_tag)
+    exact = 40.0 * 40.0 * 20.0 - (40.0 - 2 * t) ** 2 * (20.0 - t)
+    assert band == pytest.approx(exact, rel=0.01)
+    assert {n for n in tagged.region_names if n.startswith("skin:")}  # partial elements exist

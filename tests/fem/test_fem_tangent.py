@@ -124,3 +124,23 @@ def test_piola_and_tangent_match_finite_differences_of_energy(name):
     assert np.linalg.norm(A[0] - A_fd) / np.linalg.norm(A_fd) < TANGENT_RTOL
     # major symmetry of a hyperelastic tangent, A_iJkL = A_kLiJ (round-off)
     np.testing.assert_allclose(A[0], A[0].transpose(2, 3, 0, 1), atol=1e-12 * abs(A).max())
+
+
+@pytest.mark.parametrize("name", ["neo-hookean", "neo-hookean-log", "febio-neo-hookean"])
+def test_structured_stiffness_equals_full_tangent_contraction(name):
+    """The W(I1, J) fast path and the general fourth-order contraction: same matrices."""
+    from fem.assemble import _energy_terms, deformation_gradient
+    from fem.stiffness import stiffness_uu, stiffness_uu_general, stiffness_uu_i1j
+
+    rng = np.random.default_rng(5)
+    mesh = box_mesh((10.0, 10.0, 10.0), (2, 2, 2), jitter=0.25, seed=3)
+    disc = discretize(mesh, Constrained("z0"), formulation="taylor-hood")
+    x = _state(disc, 0.1e-3, 300.0, rng)
+    F = deformation_gradient(disc, x)
+    p = rng.uniform(-300.0, 300.0, F.shape[:2])
+    first, second, *_ = _energy_terms(MATERIALS[name], F, p)
+    fast = stiffness_uu_i1j(disc.grad_u, disc.weights, F, first, second)
+    full = stiffness_uu_general(disc.grad_u, disc.weights, F, first, second)
+    # the same sums in another order: round-off of the largest entries only
+    np.testing.assert_allclose(fast, full, rtol=0, atol=1e-12 * abs(full).max())
+    assert np.array_equal(stiffness_uu(disc.grad_u, disc.weights, F, first, second), fast)
