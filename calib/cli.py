@@ -194,12 +194,7 @@ def _uncertainty_lines(unc: dict) -> list[str]:
     lo, hi = unc["c1_ci95_pa"]
     size, c1 = check["check_mesh_size_mm"], check["c1_check_pa"]
     found = f"calibrates to {c1:.1f} Pa" if c1 is not None else f"failed: {check['failure']}"
-    noise = (
-        "landmark localisation (one residual)"
-        if unc.get("noise_source") == ("landmark prior")
-        else "noise alone"
-    )
-    return [f"  {noise}: {lo:.1f} - {hi:.1f} Pa; mesh check: the {size:.1f} mm mesh {found}"]
+    return [f"  noise alone: {lo:.1f} - {hi:.1f} Pa; mesh check: the {size:.1f} mm mesh {found}"]
 
 
 def format_calibration(doc: dict) -> str:

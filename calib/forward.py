@@ -25,6 +25,9 @@ from fem.unload import recover_stress_free
 
 __all__ = ["ForwardModel", "ScanState"]
 
+# Inverse Newton inside the loop: 10 load steps at most (a sagging scan on a coarse mesh
+# can leave no valid stress-free state, where cut-backs would go on for many minutes).
+_UNLOAD_NEWTON = fem.SolverOptions(max_steps=10)
 log = logging.getLogger(__name__)
 
 
@@ -118,7 +121,8 @@ class ForwardModel:
         rec = None
         if self.unload_method == "newton":
             try:
-                rec = recover_stress_free(start, x0_state=self._u0, **kw)
+                # a bounded effort: past it the fixed point takes over (and says so)
+                rec = recover_stress_free(start, x0_state=self._u0, options=_UNLOAD_NEWTON, **kw)
             except fem.ConvergenceError as exc:
                 if not self.fixed_point_fallback:
                     raise
@@ -128,7 +132,7 @@ class ForwardModel:
         if rec is None:
             # tight: the gradient assumes X + u0 = x_ref; 1e-3 mm already costs ~1 % of it
             rec = recover_stress_free(start, method="fixed-point", x0_nodes_mm=self._X,
-                                      tol_mm=1e-5, max_iter=200, **kw)  # fmt: skip
+                                      tol_mm=1e-5, max_iter=20, **kw)  # fmt: skip
         self.solves += rec.iterations
         if not rec.converged:
             log.warning("reference recovery stopped at %.3f mm after %d solves",

@@ -31,10 +31,6 @@ class ScanMeasurement:
     back_point_mm, back_normal : ndarray, shape (3,)
         The back plane (outward normal) mapped into the reference frame.
     T_ref_from_scan : ndarray, shape (4, 4)
-    landmark_sd_mm : float or None
-        Expected 3-D error of a landmark located in this scan: the voxel quantisation
-        ``sqrt(sum(s_i^2) / 12)`` and the registration's expected target error at the
-        nipple, added in quadrature (None when unknown).
     """
 
     name: str
@@ -48,7 +44,6 @@ class ScanMeasurement:
     back_point_mm: np.ndarray
     back_normal: np.ndarray
     T_ref_from_scan: np.ndarray
-    landmark_sd_mm: float | None = None
 
     def surface_points(self, *, max_points: int = 4000, seed: int = 0) -> np.ndarray:
         """Measured surface vertices off the back plate, a seeded subsample, (k, 3)."""
@@ -102,17 +97,7 @@ def _scan(work: Path, name: str) -> ScanMeasurement:
         back_point_mm=back_point,
         back_normal=normal / np.linalg.norm(normal),
         T_ref_from_scan=T,
-        landmark_sd_mm=_landmark_sd(doc),
     )
-
-
-def _landmark_sd(doc: dict) -> float | None:
-    """Voxel quantisation (uniform within a voxel: s^2/12 per axis) and TRE, in quadrature."""
-    voxel = doc.get("voxel_size_mm")
-    if voxel is None:
-        return None
-    tre = doc.get("tre_nipple_mm") or 0.0
-    return float(np.sqrt(np.sum(np.square(voxel)) / 12.0 + tre**2))
 
 
 def load_measurements(work: str | Path, session: Session) -> Measurements:

@@ -181,7 +181,7 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     dr = np.concatenate([v.dr for v in final.values()])
     pts = np.concatenate([v.points_mm for v in final.values()])
     area = _area(cal) if options.objective == "surface" else None
-    unc = gauss_newton_uncertainty(c1, r, dr, pts, area_mm2=area, prior_sd_mm=_landmark_prior(cal))
+    unc = gauss_newton_uncertainty(c1, r, dr, pts, area_mm2=area)
     check, ci95 = _mesh_check(cal, theta, unc, say)
     if options.profile_points >= 2:
         say(f"likelihood profile over c1: {options.profile_points} points")
@@ -232,15 +232,6 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     }
     write_json_atomic(work / "calibration.json", doc)
     return doc
-
-
-def _landmark_prior(cal: Calibrator) -> float | None:
-    """Noise of one landmark residual: its localisation in the reference and a scan."""
-    sds = [cal.measurements.reference.landmark_sd_mm]
-    sds += [s.landmark_sd_mm for s in cal.calibration_scans]
-    if any(sd is None for sd in sds):
-        return None
-    return float(np.sqrt(sds[0] ** 2 + np.mean(np.square(sds[1:]))))
 
 
 def _area(cal: Calibrator) -> float:

@@ -43,18 +43,13 @@ class Uncertainty:
     ----------
     se_ln_c1 : float or None
         Standard error of ln c1; None when the residuals leave no degree of freedom to
-        estimate their noise (a single residual: the ``nipple`` objective with one
-        calibration scan) and no prior noise level was given.
+        estimate their noise (a single residual: the ``nipple`` objective).
     c1_ci95_pa : tuple of float or None
     residual_sd_mm : float
-        Residual noise estimate (or the prior noise level, see ``noise_source``).
+        Residual noise estimate.
     n_residuals, n_effective : float
         Residual count and effective independent samples.
     correlation_length_mm : float
-    noise_source : str
-        ``"residuals"`` (estimated from them) or ``"landmark prior"`` (a single residual:
-        the expected localisation error of the landmarks, from the scans' voxel sizes
-        and registration).
     """
 
     se_ln_c1: float | None
@@ -63,17 +58,10 @@ class Uncertainty:
     n_residuals: int
     n_effective: float
     correlation_length_mm: float
-    noise_source: str = "residuals"
 
 
 def gauss_newton_uncertainty(
-    c1_pa: float,
-    r: np.ndarray,
-    dr: np.ndarray,
-    points_mm: np.ndarray,
-    *,
-    area_mm2: float | None,
-    prior_sd_mm: float | None = None,
+    c1_pa: float, r: np.ndarray, dr: np.ndarray, points_mm: np.ndarray, *, area_mm2: float | None
 ) -> Uncertainty:
     """Gauss-Newton standard error of ln c1, inflated by ``n / n_eff``.
 
@@ -86,14 +74,10 @@ def gauss_newton_uncertainty(
         Where the residuals live (correlation length).
     area_mm2 : float or None
         Measured area the residuals cover; None treats the residuals as independent.
-    prior_sd_mm : float, optional
-        Noise level of a single residual, used only when there is one residual (its
-        value then says nothing about the noise): the interval is ``c1 exp(+-1.96 se)``
-        with ``se = prior_sd_mm / |dr|``.
     """
     n = len(r)
     if n < 2:  # one residual and one parameter: no degree of freedom left for the noise
-        return _single_residual(c1_pa, r, dr, prior_sd_mm)
+        return Uncertainty(None, None, float(np.abs(r).sum()), n, float(n), 0.0)
     sd = float(np.sqrt(np.sum(r**2) / (n - 1)))
     ell = correlation_length_mm(points_mm, r) if area_mm2 else 0.0
     n_eff = (
@@ -103,11 +87,3 @@ def gauss_newton_uncertainty(
     se = sd / np.sqrt(info) * np.sqrt(n / n_eff) if info > 0 else np.inf
     ci = (c1_pa * float(np.exp(-1.96 * se)), c1_pa * float(np.exp(1.96 * se)))
     return Uncertainty(float(se), ci, sd, n, n_eff, ell)
-
-
-def _single_residual(c1_pa: float, r, dr, prior_sd_mm: float | None) -> Uncertainty:
-    if prior_sd_mm is None or not np.any(dr):
-        return Uncertainty(None, None, float(np.abs(r).sum()), len(r), float(len(r)), 0.0)
-    se = float(prior_sd_mm / np.sqrt(np.sum(dr**2)))
-    ci = (c1_pa * float(np.exp(-1.96 * se)), c1_pa * float(np.exp(1.96 * se)))
-    return Uncertainty(se, ci, float(prior_sd_mm), len(r), float(len(r)), 0.0, "landmark prior")

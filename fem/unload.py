@@ -246,7 +246,9 @@ def _inverse_newton(model, gravity, g_m_s2, formulation, options, x0_state, tol_
         warm = _newton(prob, np.asarray(x0_state, float).copy(), 1.0)
         if warm is not None:
             u, lam, steps = warm, 1.0, 1
-    while lam < 1.0 and dlam >= opts.min_step:
+    attempts = 0
+    while lam < 1.0 and dlam >= opts.min_step and attempts < opts.max_steps:
+        attempts += 1
         trial = min(1.0, lam + dlam)
         new = _newton(prob, u, trial)
         if new is None:
@@ -258,7 +260,8 @@ def _inverse_newton(model, gravity, g_m_s2, formulation, options, x0_state, tol_
     if not converged:
         raise ConvergenceError(
             f"stress-free reference not recovered: inverse Newton stopped at load factor "
-            f"{lam:.3g} after {prob.stats.newton} iterations"
+            f"{lam:.3g} after {prob.stats.newton} iterations in {attempts} load steps "
+            f"(limit {opts.max_steps})"
         )
     X = prob.x_m - vertex_displacement_mm(disc0, u)
     sol = solve(model.with_mesh(model.mesh.with_nodes(X)), gravity=gravity, g_m_s2=g_m_s2,

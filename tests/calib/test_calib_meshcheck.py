@@ -69,27 +69,3 @@ def test_one_residual_leaves_the_noise_unknown():
     cal = SimpleNamespace(options=SimpleNamespace(mesh_size_mm=14.0, mesh_check_ratio=1.4))
     check, ci = run._mesh_check(cal, np.log(420.0), unc, lambda msg: None)
     assert check is None and ci is None
-
-
-def test_one_residual_with_a_landmark_prior():
-    """With a prior noise level the single residual gets se = sd / |dr| (closed form)."""
-    from calib.uncertainty import gauss_newton_uncertainty
-
-    unc = gauss_newton_uncertainty(420.0, np.array([0.44]), np.array([-8.0]), np.zeros((1, 3)),
-                                   area_mm2=None, prior_sd_mm=0.6)  # fmt: skip
-    assert unc.noise_source == "landmark prior"
-    assert unc.se_ln_c1 == pytest.approx(0.6 / 8.0, rel=1e-12)  # arithmetic only
-    lo, hi = unc.c1_ci95_pa
-    assert lo == pytest.approx(420.0 * np.exp(-1.96 * 0.075), rel=1e-12)
-    assert hi == pytest.approx(420.0 * np.exp(1.96 * 0.075), rel=1e-12)
-
-
-def test_landmark_sd_from_voxel_size_and_tre():
-    from calib.measurements import _landmark_sd
-
-    # uniform quantisation error in a 1.5 mm voxel: 1.5^2/12 per axis, 3 axes; TRE 0.2 mm
-    expected = np.sqrt(3 * 1.5**2 / 12 + 0.2**2)
-    assert _landmark_sd({"voxel_size_mm": [1.5] * 3, "tre_nipple_mm": 0.2}) == pytest.approx(
-        expected, rel=1e-12
-    )
-    assert _landmark_sd({}) is None
