@@ -41,6 +41,8 @@ test-all: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m pip install -q -c constraints.txt -e '.[bench]'
 	$(PY) benchmarks/bench_fem.py
+	$(PY) benchmarks/bench_twin.py --presets quick
+	$(PY) benchmarks/bench_calib.py --presets quick
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
