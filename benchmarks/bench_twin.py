@@ -12,6 +12,7 @@ truth mesh is checked against a refined one (the dissertation compared 167,853 w
    the phantom surface (those vertices are nodes of both meshes).
 
     python benchmarks/bench_twin.py [--presets quick,dissertation] [--refine 1.26]
+                                    [--skip-synth] [--homogeneous] [--postures left_lateral]
 """
 
 from __future__ import annotations
@@ -40,12 +41,14 @@ def time_synth(preset: str) -> float:
         return time.perf_counter() - t0
 
 
-def _solve(phantom, p, size_mm: float) -> dict:
+def _solve(phantom, p, size_mm: float, postures=None) -> dict:
     mesh = mesh_phantom(phantom, size_mm=size_mm, skin_thickness_mm=p.effects.skin_thickness_mm)
     model = truth_model(mesh, p.c1_pa, p.effects)
     disc = fem.discretize(mesh, model.support, formulation=p.formulation)
     out = {"mesh": mesh, "tets": mesh.n_tets, "postures": {}}
     for post in p.postures:
+        if postures and post.name not in postures:
+            continue
         sol = fem.solve(model, gravity=gravity_for_angle(post.angle_deg), disc=disc)
         tumour = fem.displacement_at(disc, sol.state, phantom.tumour_mm[None])[0]
         out["postures"][post.name] = (sol.displacement_mm, tumour)
@@ -59,13 +62,15 @@ def _surface_nodes(mesh: fem.TetMesh, vertices_mm: np.ndarray) -> np.ndarray:
     return idx
 
 
-def convergence(preset: str, refine: float, *, homogeneous: bool = False) -> None:
+def convergence(
+    preset: str, refine: float, *, homogeneous: bool = False, postures: list | None = None
+) -> None:
     p = PRESETS[preset]
     if homogeneous:
         p = replace(p, effects=TruthEffects())
     phantom = build_phantom(PhantomSpec(resolution_mm=p.phantom_resolution_mm, seed=0))
-    coarse = _solve(phantom, p, p.truth_mesh_mm)
-    fine = _solve(phantom, p, p.truth_mesh_mm / refine)
+    coarse = _solve(phantom, p, p.truth_mesh_mm, postures)
+    fine = _solve(phantom, p, p.truth_mesh_mm / refine, postures)
     ic, jf = (_surface_nodes(m["mesh"], phantom.vertices_mm) for m in (coarse, fine))
     nip = int(np.argmin(np.linalg.norm(phantom.vertices_mm - phantom.nipple_mm, axis=1)))
     label = "homogeneous" if homogeneous else f"effects {p.effects.active()}"
@@ -84,11 +89,13 @@ def main() -> None:
     ap.add_argument("--refine", type=float, default=1.26, help="element-size ratio")
     ap.add_argument("--skip-synth", action="store_true")
     ap.add_argument("--homogeneous", action="store_true", help="check the --effect none truth")
+    ap.add_argument("--postures", default="", help="comma-separated subset (default: all)")
     args = ap.parse_args()
     for preset in args.presets.split(","):
         if not args.skip_synth:
             print(f"{preset}: synth {time_synth(preset):.1f} s", flush=True)
-        convergence(preset, args.refine, homogeneous=args.homogeneous)
+        subset = [n for n in args.postures.split(",") if n] or None
+        convergence(preset, args.refine, homogeneous=args.homogeneous, postures=subset)
 
 
 if __name__ == "__main__":
