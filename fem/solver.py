@@ -121,7 +121,6 @@ class _Stats:
     t_asm: float = 0.0
     t_lin: float = 0.0
     factorizations: int = 0
-    reused: int = 0
 
 
 def merit(r_free, u_free, f_scale: float, v_scale: float, mixed: bool) -> float:
@@ -192,7 +191,6 @@ def newton_step(prob, K, r, m: float, *, symmetric: bool) -> np.ndarray:
     dx = None
     if prob.factor is not None and m < prob.opts.reuse_factor_below:
         dx = solve_preconditioned(K, -r, prob.factor, scale=prob.scale, rtol=min(1e-3, m))
-        prob.stats.reused += dx is not None
     if dx is None:
         method = prob.opts.linear_solver
         prob.factor = factorize(K, method=method, symmetric=symmetric)
