@@ -14,6 +14,7 @@ from .calibrate import CalibrationOptions, Calibrator
 from .io import provenance, write_json_atomic
 from .measurements import load_measurements
 from .meshcheck import combined_ci95, mesh_check
+from .nipple_interval import nipple_interval, profile_rows
 from .report import write_error_ply, write_error_png
 from .session import load_session
 from .uncertainty import gauss_newton_uncertainty
@@ -140,6 +141,21 @@ def _profile(cal: Calibrator, theta: float, se: float | None, n_eff: float) -> l
     return rows
 
 
+def _nipple_uncertainty(cal: Calibrator, theta: float, r: np.ndarray, say):
+    """The nipple objective's interval from its likelihood profile; no mesh check.
+
+    The mesh check's Gauss-Newton step needs the residual's derivative, which is about
+    zero at the nipple objective's optimum (see :mod:`calib.nipple_interval`).
+    """
+    say("95 % interval from the likelihood profile of the nipple error")
+    unc, prof = nipple_interval(cal, theta, r)
+    say(f"  noise {unc.residual_sd_mm:.3f} mm (surface near the nipple), "
+        f"{prof.evaluations} evaluations")  # fmt: skip
+    say("mesh check: not run for the nipple objective (its residual is flat in c1 at the "
+        "optimum, so a Gauss-Newton step on another mesh is meaningless)")  # fmt: skip
+    return unc, None, unc.c1_ci95_pa, profile_rows(prof, len(r))
+
+
 def _mesh_check(cal: Calibrator, theta: float, unc, say):
     """The mesh check (coarser, then finer if that fails) and the combined 95 % interval."""
     o = cal.options
@@ -182,10 +198,13 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     pts = np.concatenate([v.points_mm for v in final.values()])
     area = _area(cal) if options.objective == "surface" else None
     unc = gauss_newton_uncertainty(c1, r, dr, pts, area_mm2=area)
-    check, ci95 = _mesh_check(cal, theta, unc, say)
-    if options.profile_points >= 2:
-        say(f"likelihood profile over c1: {options.profile_points} points")
-    profile = _profile(cal, theta, unc.se_ln_c1, unc.n_effective)
+    if options.objective == "nipple":
+        unc, check, ci95, profile = _nipple_uncertainty(cal, theta, r, say)
+    else:
+        check, ci95 = _mesh_check(cal, theta, unc, say)
+        if options.profile_points >= 2:
+            say(f"likelihood profile over c1: {options.profile_points} points")
+        profile = _profile(cal, theta, unc.se_ln_c1, unc.n_effective)
     _write_reference_mesh(work / "calibration" / "reference_mesh.vtu", cal)
     targets = cal.targets()
     say(f"final state of {len(targets)} scans, error maps")

@@ -10,7 +10,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Uncertainty", "correlation_length_mm", "gauss_newton_uncertainty"]
+__all__ = [
+    "ProfileInterval",
+    "Uncertainty",
+    "correlation_length_mm",
+    "gauss_newton_uncertainty",
+    "profile_ci95",
+]
 
 
 def correlation_length_mm(points_mm: np.ndarray, r: np.ndarray, *, seed: int = 0) -> float:
@@ -50,6 +56,9 @@ class Uncertainty:
     n_residuals, n_effective : float
         Residual count and effective independent samples.
     correlation_length_mm : float
+    method : str
+        ``gauss-newton`` (noise estimated from the residuals) or ``profile`` (the
+        likelihood profile with a noise level measured apart: :func:`profile_ci95`).
     """
 
     se_ln_c1: float | None
@@ -58,6 +67,7 @@ class Uncertainty:
     n_residuals: int
     n_effective: float
     correlation_length_mm: float
+    method: str = "gauss-newton"
 
 
 def gauss_newton_uncertainty(
@@ -87,3 +97,113 @@ def gauss_newton_uncertainty(
     se = sd / np.sqrt(info) * np.sqrt(n / n_eff) if info > 0 else np.inf
     ci = (c1_pa * float(np.exp(-1.96 * se)), c1_pa * float(np.exp(1.96 * se)))
     return Uncertainty(float(se), ci, sd, n, n_eff, ell)
+
+
+CHI2_1_95 = 3.841458820694124  # 95 % quantile of chi-square with one degree of freedom
+
+
+@dataclass(frozen=True)
+class ProfileInterval:
+    """Result of :func:`profile_ci95`.
+
+    Attributes
+    ----------
+    ln_c1_bounds : tuple of (float or None)
+        Lower and upper 95 % bounds of ln c1; None where the interval reaches past the
+        search limit (the data do not bound c1 on that side).
+    evaluations : int
+        Objective evaluations (FE solves of every calibration scan) spent.
+    points : tuple of (float, float, float)
+        Every ``(ln c1, S in mm^2, -2 delta log-likelihood)`` evaluated, by ln c1.
+    """
+
+    ln_c1_bounds: tuple[float | None, float | None]
+    evaluations: int
+    points: tuple[tuple[float, float, float], ...]
+
+
+def profile_ci95(
+    sum_sq,
+    theta_hat: float,
+    sum_sq_min: float,
+    noise_sd_mm: float,
+    *,
+    first_step: float = 0.05,
+    limit: float = float(np.log(4.0)),
+    tol: float = 0.005,
+) -> ProfileInterval:
+    """95 % likelihood-profile interval of ``theta = ln c1`` for residuals of known noise.
+
+    With Gaussian residual noise of standard deviation ``s``,
+    ``-2 delta log L(theta) = (S(theta) - S_min) / s**2`` with ``S`` the residuals' sum of
+    squares; the bounds are where it reaches the chi-square(1) 95 % quantile, 3.84. Unlike
+    the Gauss-Newton interval this needs no non-zero derivative at the optimum (the
+    nipple's distance to the measured surface is flat there). Each side is bracketed by
+    doubling steps from ``theta_hat``, then refined by false position on
+    ``sqrt(-2 delta log L)`` to ``tol``.
+
+    Parameters
+    ----------
+    sum_sq : callable
+        ``sum_sq(theta) -> S`` in mm^2; may raise ``fem.ConvergenceError``, which ends
+        the search on that side (the bound is then reported as open).
+    theta_hat, sum_sq_min : float
+        The optimum and ``S`` there.
+    noise_sd_mm : float
+        Standard deviation of one residual, mm (> 0).
+    first_step, limit, tol : float
+        First step, largest distance searched and bound tolerance, all in ln c1.
+
+    Returns
+    -------
+    ProfileInterval
+    """
+    if not noise_sd_mm > 0:
+        raise ValueError(f"the noise standard deviation must be positive, got {noise_sd_mm}")
+    points: list[tuple[float, float, float]] = []
+
+    def root(t: float) -> float:  # sqrt(-2 dlogL) - sqrt(3.84) at offset t
+        from fem import ConvergenceError
+
+        try:
+            s = float(sum_sq(theta_hat + t))
+        except ConvergenceError:
+            return np.inf
+        dev = max(s - sum_sq_min, 0.0) / noise_sd_mm**2
+        points.append((theta_hat + t, s, dev))
+        return float(np.sqrt(dev) - np.sqrt(CHI2_1_95))
+
+    bounds = tuple(_bound(root, side, first_step, limit, tol) for side in (-1.0, 1.0))
+    lo, hi = (None if b is None else theta_hat + b for b in bounds)
+    return ProfileInterval((lo, hi), len(points), tuple(sorted(points)))
+
+
+def _bound(root, side: float, step: float, limit: float, tol: float) -> float | None:
+    """Signed offset where ``root`` crosses zero on one side, or None past ``limit``."""
+    a, fa, b = 0.0, -np.sqrt(CHI2_1_95), side * step
+    fb = root(b)
+    while fb < 0:
+        if abs(b) >= limit:
+            return None
+        a, fa, b = b, fb, side * min(2.0 * abs(b), limit)
+        fb = root(b)
+    if not np.isfinite(fb):  # the solve failed: the search cannot go on, report open
+        return None
+    return _false_position(root, a, fa, b, fb, tol)
+
+
+def _false_position(root, a, fa, b, fb, tol: float) -> float:
+    """Illinois false position for the root in ``[a, b]`` (``fa < 0 <= fb``)."""
+    keep = 0
+    while abs(b - a) > tol:
+        c = b - fb * (b - a) / (fb - fa)
+        fc = root(c)
+        if not np.isfinite(fc) or fc >= 0:
+            b, fb = c, (fc if np.isfinite(fc) else fb)
+            fa, keep = (fa / 2.0 if keep == 1 else fa), 1
+        else:
+            a, fa = c, fc
+            fb, keep = (fb / 2.0 if keep == -1 else fb), -1
+        if np.isfinite(fc) and abs(fc) < 1e-3:
+            return c
+    return 0.5 * (a + b)

@@ -1,0 +1,102 @@
+"""The 95 % interval of c1 for the ``nipple`` objective, from its likelihood profile.
+
+The nipple objective has one residual per scan: the signed distance of the simulated
+nipple to the measured surface. At the optimum the simulated nipple slides along the
+measured surface near its tip, so the residual's derivative in c1 is close to zero and
+the Gauss-Newton interval is useless (0 to infinity). The residual still grows
+(quadratically) away from the optimum, and with a known noise level the likelihood
+profile bounds c1 (:func:`calib.uncertainty.profile_ci95`).
+
+The noise level is measured apart from the nipple residual: the root mean square of the
+surface residuals (measured points to the simulated surface, fiducial frame) within
+``radius_mm`` of each scan's measured nipple, at the calibrated c1. It holds the surface's
+localisation noise and whatever the model misses near the nipple, so the interval is
+conservative rather than optimistic.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from .residuals import scan_residuals
+from .uncertainty import ProfileInterval, Uncertainty, profile_ci95
+
+__all__ = ["PATCH_RADIUS_MM", "nipple_interval", "nipple_noise_sd_mm", "profile_rows"]
+
+log = logging.getLogger(__name__)
+PATCH_RADIUS_MM = 15.0
+MIN_PATCH_POINTS = 10
+
+
+def nipple_noise_sd_mm(cal, *, radius_mm: float = PATCH_RADIUS_MM) -> float:
+    """RMS surface residual (mm) near the measured nipples, at the current states.
+
+    Parameters
+    ----------
+    cal : Calibrator
+        After :meth:`Calibrator.residuals` at the calibrated c1 (its ``states``).
+    radius_mm : float
+        Patch radius around each calibration scan's measured nipple.
+    """
+    r = []
+    for s in cal.calibration_scans:
+        pts = cal.points[s.name]
+        near = pts[np.linalg.norm(pts - s.nipple_mm, axis=1) < radius_mm]
+        if len(near) < MIN_PATCH_POINTS:
+            raise ValueError(
+                f"scan {s.name!r}: {len(near)} measured surface points within {radius_mm} mm "
+                f"of the nipple (at least {MIN_PATCH_POINTS} needed for its noise level)"
+            )
+        st = cal.states[s.name]
+        res = scan_residuals("surface", s, cal.mesh, cal.sim, st.positions_mm, None,
+                             surface_points_mm=near)  # fmt: skip
+        r.append(res.r)
+    return float(np.sqrt(np.mean(np.concatenate(r) ** 2)))
+
+
+def nipple_interval(cal, theta: float, r_hat: np.ndarray) -> tuple[Uncertainty, ProfileInterval]:
+    """Profile-likelihood 95 % interval of c1 for the nipple objective.
+
+    Parameters
+    ----------
+    cal : Calibrator
+        With its states at ``theta`` (the calibrated ``ln c1``).
+    theta : float
+    r_hat : ndarray, shape (n_scans,)
+        The nipple residuals at ``theta``, mm.
+
+    Returns
+    -------
+    Uncertainty
+        ``method="profile"``; ``se_ln_c1`` is the interval's half width in ln c1 over
+        1.96 (None when a side is open), ``residual_sd_mm`` the noise level used.
+    ProfileInterval
+        The evaluated profile.
+    """
+    sd = nipple_noise_sd_mm(cal)
+
+    def sum_sq(t: float) -> float:
+        res = cal.residuals(float(t), cal.calibration_scans, gradient=False)
+        return float(sum(np.sum(v.r**2) for v in res.values()))
+
+    prof = profile_ci95(sum_sq, theta, float(np.sum(r_hat**2)), sd)
+    lo, hi = prof.ln_c1_bounds
+    n = len(r_hat)
+    if lo is None or hi is None:
+        log.warning("the nipple error does not bound c1 within a factor 4 on the %s side",
+                    "lower" if lo is None else "upper")  # fmt: skip
+        return Uncertainty(None, None, sd, n, float(n), 0.0, method="profile"), prof
+    se = (hi - lo) / (2.0 * 1.959963984540054)
+    ci = (float(np.exp(lo)), float(np.exp(hi)))
+    return Uncertainty(float(se), ci, sd, n, float(n), 0.0, method="profile"), prof
+
+
+def profile_rows(prof: ProfileInterval, n_residuals: int) -> list[dict]:
+    """The evaluated profile as ``calibration.json`` rows (as the Gauss-Newton profile)."""
+    return [
+        {"c1_pa": float(np.exp(t)), "objective": 0.5 * s / n_residuals,
+         "minus2_delta_loglik": float(dev)}
+        for t, s, dev in prof.points
+    ]  # fmt: skip
