@@ -32,6 +32,7 @@ class CalibrationOptions:
     objective: str = "surface"
     reference_state: str = "unload"
     mesh_size_mm: float = 12.0
+    mesh_retry_mm: tuple[float, ...] = (14.0, 16.0)  # when the reference cannot be unloaded
     formulation: str = "taylor-hood"
     nu: float = 0.499
     max_points: int = 3000
@@ -48,8 +49,9 @@ class CalibrationOptions:
             raise ValueError(
                 f"reference state must be unload or shortcut, not {self.reference_state}"
             )
-        if not 1.0 <= self.mesh_size_mm <= 50.0:
-            raise ValueError(f"mesh size must lie in [1, 50] mm, got {self.mesh_size_mm}")
+        for size in (self.mesh_size_mm, *self.mesh_retry_mm):
+            if not 1.0 <= size <= 50.0:
+                raise ValueError(f"mesh size must lie in [1, 50] mm, got {size}")
         if self.mesh_check_ratio:
             from .meshcheck import _check_ratio
 
@@ -101,6 +103,7 @@ class Calibrator:
         self.fm = ForwardModel(
             self.mesh, ref.gravity_ref, nu=o.nu, density_kg_m3=self.density_kg_m3,
             reference_state=o.reference_state, formulation=o.formulation,
+            fixed_point_fallback=False,  # a failed recovery is a failed evaluation
         )  # fmt: skip
         self.sim = SimulatedSurface.of(self.mesh)
         self.points = {s.name: s.surface_points(max_points=o.max_points, seed=o.seed)

@@ -154,8 +154,13 @@ def calibrate(
         str, typer.Option("--reference-state", help="unload or shortcut.")
     ] = "unload",
     mesh_size: Annotated[
-        float, typer.Option("--mesh-size", help="Element edge length of the model, mm.")
-    ] = 12.0,
+        float | None,
+        typer.Option(
+            "--mesh-size",
+            help="Element edge length of the model, mm. Default: 12, then 14 and 16 if no "
+            "stress-free reference exists on the mesh (each retry is reported).",
+        ),
+    ] = None,
     nu: Annotated[float, typer.Option("--nu", help="Poisson's ratio of the model.")] = 0.499,
     profile: Annotated[
         int, typer.Option("--profile", help="Points of the likelihood profile (0: none).")
@@ -175,7 +180,8 @@ def calibrate(
 
     try:
         opts = CalibrationOptions(
-            objective=objective, reference_state=reference_state, mesh_size_mm=mesh_size,
+            objective=objective, reference_state=reference_state,
+            **({} if mesh_size is None else {"mesh_size_mm": mesh_size, "mesh_retry_mm": ()}),
             nu=nu, profile_points=profile, mesh_check_ratio=mesh_check,
         )  # fmt: skip
         doc = run_calibration(scans, out, opts, progress=lambda msg: typer.echo(f"  {msg}"))

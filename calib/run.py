@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
 from scipy.optimize import minimize
+
+import fem
 
 from .calibrate import CalibrationOptions, Calibrator
 from .io import provenance, write_json_atomic
@@ -86,6 +88,65 @@ def _write_reference_mesh(path: Path, cal: Calibrator) -> None:
     write_mesh(cal.mesh.with_nodes(cal.fm._X), path)
 
 
+def _start(cal: Calibrator, progress) -> float:
+    """The first estimate of ln c1, with the stress-free reference recovered there."""
+    c1_0 = cal.first_estimate()
+    progress(f"first estimate c1 = {c1_0:.0f} Pa")
+    theta0 = float(np.log(c1_0))
+    _check_reference(cal, theta0, progress)
+    return theta0
+
+
+def _calibrator(meas, options: CalibrationOptions, density: float, say):
+    """A calibrator whose model mesh admits a stress-free reference at the first estimate.
+
+    Tries ``mesh_size_mm`` and then each of ``mesh_retry_mm``; every attempt that fails
+    is reported and recorded, the last one's error is raised. Returns
+    ``(calibrator, theta0, failed_attempts)``.
+    """
+    attempts: list[dict] = []
+
+    def attempt(size: float):
+        cal = Calibrator(meas, replace(options, mesh_size_mm=size, mesh_retry_mm=()),
+                         density_kg_m3=density)  # fmt: skip
+        say(f"reference mesh: {cal.mesh.n_tets} tets ({size:g} mm); calibration scans: "
+            f"{[s.name for s in cal.calibration_scans]}")  # fmt: skip
+        return cal, _start(cal, say), attempts
+
+    sizes = (options.mesh_size_mm, *options.mesh_retry_mm)
+    for size in sizes[:-1]:
+        try:
+            return attempt(size)
+        except fem.ConvergenceError as exc:
+            attempts.append({"mesh_size_mm": size, "failure": str(exc)})
+            say(f"no stress-free reference on the {size:g} mm model mesh (the clamped rim "
+                "degenerates); trying the next size")  # fmt: skip
+    return attempt(sizes[-1])
+
+
+def _check_reference(cal: Calibrator, theta0: float, progress) -> None:
+    """Recover the stress-free reference at the first estimate, or stop with remedies.
+
+    Where the inverse problem has no valid solution on the model mesh (a strongly
+    sagging reference whose clamped-rim elements degenerate), no c1 nearby will do
+    better: stop now, with what to change, instead of failing every evaluation.
+    """
+    if cal.options.reference_state != "unload":
+        return
+    progress("stress-free reference at the first estimate (inverse elastostatics)")
+    try:
+        cal.fm.stress_free(theta0)
+    except fem.ConvergenceError as exc:
+        size = cal.options.mesh_size_mm
+        raise fem.ConvergenceError(
+            f"reference scan {cal.measurements.reference.name!r}: no stress-free geometry "
+            f"found on the {size:g} mm model mesh at the first estimate c1 = "
+            f"{np.exp(theta0):.0f} Pa ({exc}). The scan sags so far that elements at the "
+            "clamped rim degenerate on this mesh; try another --mesh-size (the mesh at the "
+            f"rim changes with it, e.g. {size + 2:g}) or --reference-state shortcut"
+        ) from exc
+
+
 def _evaluate(cal: Calibrator, theta: float, progress) -> tuple[float, np.ndarray]:
     """The objective at theta, with a progress line for every new FE evaluation."""
     n = len(cal.history)
@@ -97,16 +158,15 @@ def _evaluate(cal: Calibrator, theta: float, progress) -> tuple[float, np.ndarra
     return J, g
 
 
-def _optimise(cal: Calibrator, progress) -> tuple[float, object]:
+def _optimise(cal: Calibrator, progress, theta0: float | None = None) -> tuple[float, object]:
     """L-BFGS-B over ln c1, rescaled by the Gauss-Newton curvature at the first estimate.
 
     With ``z = s (theta - theta0)`` and ``s^2`` the curvature, the objective's Hessian in
     ``z`` is about 1, so the optimiser's first trial step is well sized, and ``gtol`` in
     ``z`` (1e-3) stops it once the Newton step in ln c1 is below about 1e-3 / s.
     """
-    c1_0 = cal.first_estimate()
-    progress(f"first estimate c1 = {c1_0:.0f} Pa")
-    theta0 = float(np.log(c1_0))
+    if theta0 is None:
+        theta0 = _start(cal, progress)
     _evaluate(cal, theta0, progress)
     s = float(np.sqrt(max(cal.gauss_newton_curvature, 1e-12)))
 
@@ -186,10 +246,9 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
         say("ingesting scans")
         ingest_session(scans_dir, work)
     meas = load_measurements(work, session)
-    cal = Calibrator(meas, options, density_kg_m3=session.density_kg_m3)
-    say(f"reference mesh: {cal.mesh.n_tets} tets; calibration scans: "
-        f"{[s.name for s in cal.calibration_scans]}")  # fmt: skip
-    theta, res = _optimise(cal, say)
+    cal, theta0, attempts = _calibrator(meas, options, session.density_kg_m3, say)
+    options = cal.options
+    theta, res = _optimise(cal, say, theta0)
     c1 = float(np.exp(theta))
     say(f"c1 = {c1:.1f} Pa after {res.nit} iterations ({cal.fm.solves} FE solves)")
     final = cal.residuals(theta, cal.calibration_scans, gradient=True)
@@ -237,6 +296,7 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
             "n_tets": cal.mesh.n_tets,
             "n_nodes": cal.mesh.n_nodes,
             "size_mm": options.mesh_size_mm,
+            "failed_sizes": attempts,
             "formulation": options.formulation,
         },  # fmt: skip
         "wall_s": time.perf_counter() - t0,
