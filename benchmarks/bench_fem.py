@@ -31,7 +31,7 @@ inside). With straight-sided (P1-geometry) elements the faceted surface loses vo
 0.9 % at 9 mm, and the nipple error follows it; a finer surface with a coarse inside
 buys accuracy for few unknowns.
 
-    python benchmarks/bench_fem.py [--sizes 9,12/6.5,6] [--max-dofs 150000] [--update-reference]
+    python benchmarks/bench_fem.py [--sizes 9,13/7,6] [--max-dofs 150000] [--update-reference]
                                    [--peers | --no-peers] [--peer-increments 1]
 """
 
@@ -211,7 +211,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
         "--sizes",
-        default="9,12/6.5,6",
+        default="9,13/7,6",
         help="meshes, comma separated: SIZE (uniform, mm) or SIZE/SURFACE (graded)",
     )
     ap.add_argument("--max-dofs", type=int, default=150_000)

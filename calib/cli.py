@@ -34,6 +34,8 @@ def _main(
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(message)s"
     )
+    # scikit-fem logs every basis it builds at INFO: hundreds of lines per calibration
+    logging.getLogger("skfem").setLevel(logging.WARNING)
 
 
 def fail(exc: Exception) -> None:
@@ -207,7 +209,7 @@ def format_calibration(doc: dict) -> str:
     """A readable summary of calibration.json."""
     ci = doc["c1_ci95_pa"]
     interval = (f"95 % interval {ci[0]:.1f} - {ci[1]:.1f} Pa" if ci is not None else
-                "95 % interval not estimable from one residual")  # fmt: skip
+                "no 95 % interval: the data do not bound c1")  # fmt: skip
     lines = [
         f"c1 = {doc['c1_pa']:.1f} Pa  ({interval}), objective "
         f"{doc['objective']}, reference state {doc['reference_state']}",
@@ -217,6 +219,9 @@ def format_calibration(doc: dict) -> str:
         f"{'nipple mm':>11}{'tumour mm':>11}",
     ]
     for name, s in doc["scans"].items():
+        if s.get("failed"):
+            lines.append(f"{name:<16}{s['role']:<13}  no FE solution: {s['failed']}")
+            continue
         fid, icp = s["surface_error_mm"]["fiducial"], s["surface_error_mm"]["icp"]
         tum = s.get("tumour_error_mm", {}).get("fiducial")
         lines.append(

@@ -68,6 +68,16 @@ def _scan_metrics(cal: Calibrator, scan, st, work: Path, c1: float) -> dict:
     return out
 
 
+def _final_scan(cal: Calibrator, scan, theta: float, work: Path) -> dict:
+    """Errors and maps of one scan at the calibrated c1; a failed solve is reported."""
+    try:
+        st = cal.fm.evaluate(theta, {scan.name: scan.gravity_ref}, gradient=False)[scan.name]
+    except fem.ConvergenceError as exc:
+        log.warning("scan %s: no FE solution at the calibrated c1 (%s)", scan.name, exc)
+        return {"role": scan.role, "gravity_ref": scan.gravity_ref.tolist(), "failed": str(exc)}
+    return _scan_metrics(cal, scan, st, work, float(np.exp(theta)))
+
+
 def _per_vertex(scan, err_off_back: np.ndarray) -> np.ndarray:
     e = np.zeros(len(scan.vertices_mm))
     e[~scan.back_plate] = err_off_back
@@ -189,16 +199,23 @@ def _profile(cal: Calibrator, theta: float, se: float | None, n_eff: float) -> l
     if k < 2:
         return []
     half = max(2.0 * se, 0.05) if se is not None and np.isfinite(se) else 0.2
-    rows, Js = [], []
-    for t in np.linspace(theta - half, theta + half, k):
-        res = cal.residuals(float(t), cal.calibration_scans, gradient=False)
-        r = np.concatenate([v.r for v in res.values()])
-        Js.append(0.5 * float(np.mean(r**2)))
-        rows.append({"c1_pa": float(np.exp(t)), "objective": Js[-1]})
-    jmin = min(Js)
+    rows = [_profile_point(cal, float(t)) for t in np.linspace(theta - half, theta + half, k)]
+    jmin = min((row["objective"] for row in rows if not row.get("failed")), default=None)
     for row in rows:
-        row["minus2_delta_loglik"] = float(n_eff * np.log(row["objective"] / jmin))
+        if not row.get("failed"):
+            row["minus2_delta_loglik"] = float(n_eff * np.log(row["objective"] / jmin))
     return rows
+
+
+def _profile_point(cal: Calibrator, theta: float) -> dict:
+    """One profile row; a point whose FE solve fails is recorded as failed, not fatal."""
+    try:
+        res = cal.residuals(theta, cal.calibration_scans, gradient=False)
+    except fem.ConvergenceError as exc:
+        log.warning("likelihood profile: FE failed at c1=%.1f Pa (%s)", np.exp(theta), exc)
+        return {"c1_pa": float(np.exp(theta)), "objective": None, "failed": True}
+    r = np.concatenate([v.r for v in res.values()])
+    return {"c1_pa": float(np.exp(theta)), "objective": 0.5 * float(np.mean(r**2))}
 
 
 def _nipple_uncertainty(cal: Calibrator, theta: float, r: np.ndarray, say):
@@ -267,8 +284,7 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     _write_reference_mesh(work / "calibration" / "reference_mesh.vtu", cal)
     targets = cal.targets()
     say(f"final state of {len(targets)} scans, error maps")
-    states = cal.fm.evaluate(theta, {s.name: s.gravity_ref for s in targets}, gradient=False)
-    scans = {s.name: _scan_metrics(cal, s, states[s.name], work, c1) for s in targets}
+    scans = {s.name: _final_scan(cal, s, theta, work) for s in targets}
     doc = {
         "c1_pa": c1,
         "c1_ci95_pa": list(ci95) if ci95 is not None else None,

@@ -111,3 +111,38 @@ def test_unrecoverable_reference_stops_early_with_remedies(twin_scans, tmp_path,
     for part in ("'left_lateral'", "14 mm model mesh", "--mesh-size", "--reference-state shortcut"):
         assert part in res.output, res.output
     assert not (tmp_path / "w" / "calibration.json").exists()
+
+
+def _failing_calibrator(fail_below_pa: float):
+    """A stand-in calibrator whose FE fails below a c1 (the shortcut's 2 g flip does)."""
+    from types import SimpleNamespace
+
+    def residuals(theta, scans, *, gradient):
+        if np.exp(theta) < fail_below_pa:
+            raise fem.ConvergenceError("load not applied (test)")
+        return {"s": SimpleNamespace(r=np.array([np.exp(theta) - 500.0]))}
+
+    def evaluate(theta, gravities, *, gradient):
+        residuals(theta, None, gradient=gradient)
+        raise AssertionError("only the failing branch is exercised here")
+
+    return SimpleNamespace(options=SimpleNamespace(profile_points=5), calibration_scans=[],
+                           residuals=residuals, fm=SimpleNamespace(evaluate=evaluate))  # fmt: skip
+
+
+def test_failed_profile_point_is_recorded_not_fatal():
+    # Found on the skin twin with --reference-state shortcut: a profile point below the
+    # calibrated c1 failed and the whole (finished) calibration was lost.
+    rows = calib.run._profile(_failing_calibrator(480.0), np.log(500.0), 0.05, 10.0)
+    failed = [r for r in rows if r.get("failed")]
+    assert failed and all(r["c1_pa"] < 480.0 and r["objective"] is None for r in failed)
+    ok = [r for r in rows if not r.get("failed")]
+    assert len(ok) == 5 - len(failed) and min(r["minus2_delta_loglik"] for r in ok) == 0.0
+
+
+def test_scan_without_solution_at_the_calibrated_c1_is_reported(tmp_path):
+    from types import SimpleNamespace
+
+    scan = SimpleNamespace(name="tilt", role="validation", gravity_ref=np.array([0.0, 0, 1]))
+    out = calib.run._final_scan(_failing_calibrator(1e9), scan, np.log(500.0), tmp_path)
+    assert out["role"] == "validation" and "load not applied" in out["failed"]
