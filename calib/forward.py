@@ -138,6 +138,10 @@ class ForwardModel:
             log.warning("reference recovery stopped at %.3f mm after %d solves",
                         rec.max_error_mm, rec.iterations)  # fmt: skip
         self._X, self._u0 = rec.nodes_mm, rec.solution.state
+        if rec.inverted_elements != self.inverted_reference_elements:
+            log.warning("recovered reference at c1=%.1f Pa: %d vertex tetrahedra inverted "
+                        "(clamped rim; the loaded quadratic elements stay valid)",
+                        np.exp(theta), rec.inverted_elements)  # fmt: skip
         self.inverted_reference_elements = rec.inverted_elements
         return self._X
 
