@@ -117,10 +117,12 @@ class Calibrator:
         """Every scan but the reference."""
         return [s for s in self.measurements.scans.values() if s.role != "reference"]
 
-    def residuals(self, theta: float, scans, *, gradient: bool) -> dict[str, Residuals]:
+    def residuals(
+        self, theta: float, scans, *, gradient: bool, retry: bool = True
+    ) -> dict[str, Residuals]:
         """Solve the postures at theta and compute each scan's residuals."""
         gravities = {s.name: s.gravity_ref for s in scans}
-        states = self.fm.evaluate(theta, gravities, gradient=gradient)
+        states = self.fm.evaluate(theta, gravities, gradient=gradient, retry=retry)
         self.states = states
         out = {}
         for s in scans:

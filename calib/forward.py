@@ -95,7 +95,7 @@ class ForwardModel:
             return shortcut_gravity(g_dir, self.gravity_ref, g_m_s2=self.g_m_s2)
         return np.asarray(g_dir, float), self.g_m_s2
 
-    def _solve(self, theta, disc, g_dir, key):
+    def _solve(self, theta, disc, g_dir, key, retry: bool = True):
         direction, mag = self._load(g_dir)
         model = self.model(theta, disc.mesh.nodes_mm)
         prev = self._states.get(key)
@@ -103,6 +103,8 @@ class ForwardModel:
         try:
             sol = fem.solve(model, gravity=direction, g_m_s2=mag, disc=disc, x0=x0)
         except fem.ConvergenceError:
+            if not retry:
+                raise
             log.warning("solve failed for %s at c1=%.1f Pa; retrying with small load steps",
                         key, np.exp(theta))  # fmt: skip
             opts = fem.SolverOptions(initial_step=0.125, min_step=1e-3, max_newton=15,
@@ -185,7 +187,9 @@ class ForwardModel:
         du0[disc0.free] = factorize(M)(rhs[disc0.free])
         return du0
 
-    def evaluate(self, theta: float, gravities: dict, *, gradient: bool = True) -> dict:
+    def evaluate(
+        self, theta: float, gravities: dict, *, gradient: bool = True, retry: bool = True
+    ) -> dict:
         """Solve every posture at ``theta``; positions and (optionally) their derivatives.
 
         Parameters
@@ -195,6 +199,9 @@ class ForwardModel:
         gravities : dict of str to ndarray (3,)
             Gravity direction of each posture to solve, reference frame.
         gradient : bool
+        retry : bool
+            Retry a failed solve with small load steps (slow); off where a failure is
+            merely recorded (likelihood-profile points).
 
         Returns
         -------
@@ -211,7 +218,7 @@ class ForwardModel:
             dX_vec[vdofs] = -du0[vdofs]
         out = {}
         for name, g in gravities.items():
-            _, sol, direction, mag = self._solve(theta, disc, g, name)
+            _, sol, direction, mag = self._solve(theta, disc, g, name, retry)
             st = ScanState(sol.state, X + sol.displacement_mm)
             if gradient:
                 free = disc.free

@@ -210,7 +210,7 @@ def _profile(cal: Calibrator, theta: float, se: float | None, n_eff: float) -> l
 def _profile_point(cal: Calibrator, theta: float) -> dict:
     """One profile row; a point whose FE solve fails is recorded as failed, not fatal."""
     try:
-        res = cal.residuals(theta, cal.calibration_scans, gradient=False)
+        res = cal.residuals(theta, cal.calibration_scans, gradient=False, retry=False)
     except fem.ConvergenceError as exc:
         log.warning("likelihood profile: FE failed at c1=%.1f Pa (%s)", np.exp(theta), exc)
         return {"c1_pa": float(np.exp(theta)), "objective": None, "failed": True}

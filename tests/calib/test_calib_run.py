@@ -117,7 +117,8 @@ def _failing_calibrator(fail_below_pa: float):
     """A stand-in calibrator whose FE fails below a c1 (the shortcut's 2 g flip does)."""
     from types import SimpleNamespace
 
-    def residuals(theta, scans, *, gradient):
+    def residuals(theta, scans, *, gradient, retry=True):
+        calls.append(retry)
         if np.exp(theta) < fail_below_pa:
             raise fem.ConvergenceError("load not applied (test)")
         return {"s": SimpleNamespace(r=np.array([np.exp(theta) - 500.0]))}
@@ -126,14 +127,18 @@ def _failing_calibrator(fail_below_pa: float):
         residuals(theta, None, gradient=gradient)
         raise AssertionError("only the failing branch is exercised here")
 
+    calls: list[bool] = []
     return SimpleNamespace(options=SimpleNamespace(profile_points=5), calibration_scans=[],
-                           residuals=residuals, fm=SimpleNamespace(evaluate=evaluate))  # fmt: skip
+                           residuals=residuals, fm=SimpleNamespace(evaluate=evaluate),
+                           retries=calls)  # fmt: skip
 
 
 def test_failed_profile_point_is_recorded_not_fatal():
     # Found on the skin twin with --reference-state shortcut: a profile point below the
     # calibrated c1 failed and the whole (finished) calibration was lost.
-    rows = calib.run._profile(_failing_calibrator(480.0), np.log(500.0), 0.05, 10.0)
+    cal = _failing_calibrator(480.0)
+    rows = calib.run._profile(cal, np.log(500.0), 0.05, 10.0)
+    assert cal.retries == [False] * 5  # a profile point is not worth the slow retry
     failed = [r for r in rows if r.get("failed")]
     assert failed and all(r["c1_pa"] < 480.0 and r["objective"] is None for r in failed)
     ok = [r for r in rows if not r.get("failed")]
