@@ -73,6 +73,7 @@ class ForwardModel:
     _disc: fem.Discretization | None = None
     _X: np.ndarray | None = None
     _u0: np.ndarray | None = None
+    _X_theta: float | None = None  # theta of a converged recovery held in _X
     _states: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -118,6 +119,8 @@ class ForwardModel:
         if self.reference_state == "shortcut":
             self._X = self.mesh.nodes_mm
             return self._X
+        if theta == self._X_theta:  # recovered already (first estimate, final states)
+            return self._X
         start = self.model(theta)
         kw = {"gravity": self.gravity_ref, "g_m_s2": self.g_m_s2, "formulation": self.formulation}
         rec = None
@@ -140,6 +143,7 @@ class ForwardModel:
             log.warning("reference recovery stopped at %.3f mm after %d solves",
                         rec.max_error_mm, rec.iterations)  # fmt: skip
         self._X, self._u0 = rec.nodes_mm, rec.solution.state
+        self._X_theta = theta if rec.converged else None
         if rec.inverted_elements != self.inverted_reference_elements:
             log.warning("recovered reference at c1=%.1f Pa: %d vertex tetrahedra inverted "
                         "(clamped rim; the loaded quadratic elements stay valid)",

@@ -270,13 +270,13 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     say(f"c1 = {c1:.1f} Pa after {res.nit} iterations ({cal.fm.solves} FE solves)")
     final = cal.residuals(theta, cal.calibration_scans, gradient=True)
     r = np.concatenate([v.r for v in final.values()])
-    dr = np.concatenate([v.dr for v in final.values()])
-    pts = np.concatenate([v.points_mm for v in final.values()])
-    area = _area(cal) if options.objective == "surface" else None
-    unc = gauss_newton_uncertainty(c1, r, dr, pts, area_mm2=area)
     if options.objective == "nipple":
         unc, check, ci95, profile = _nipple_uncertainty(cal, theta, r, say)
     else:
+        dr = np.concatenate([v.dr for v in final.values()])
+        pts = np.concatenate([v.points_mm for v in final.values()])
+        area = _area(cal) if options.objective == "surface" else None
+        unc = gauss_newton_uncertainty(c1, r, dr, pts, area_mm2=area)
         check, ci95 = _mesh_check(cal, theta, unc, say)
         if options.profile_points >= 2:
             say(f"likelihood profile over c1: {options.profile_points} points")

@@ -158,13 +158,13 @@ def profile_ci95(
     -------
     ProfileInterval
     """
+    from fem import ConvergenceError
+
     if not noise_sd_mm > 0:
         raise ValueError(f"the noise standard deviation must be positive, got {noise_sd_mm}")
     points: list[tuple[float, float, float]] = []
 
     def root(t: float) -> float:  # sqrt(-2 dlogL) - sqrt(3.84) at offset t
-        from fem import ConvergenceError
-
         try:
             s = float(sum_sq(theta_hat + t))
         except ConvergenceError:
