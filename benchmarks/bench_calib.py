@@ -19,10 +19,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from calib.calibrate import CalibrationOptions
-from calib.ingest import ingest_session
-from calib.run import run_calibration
+from calib.fitting import CalibrationOptions
 from calib.twin import synthesize
+from calib.workflows.calibrate import run_calibration
+from calib.workflows.ingest import run_ingest
 
 
 def _twin(root: Path, preset: str) -> tuple[Path, float]:
@@ -38,7 +38,7 @@ def run(preset: str, root: Path, options: CalibrationOptions) -> dict:
     scans, t_synth = _twin(root, preset)
     work = root / f"{preset}-work-{options.objective}-{options.reference_state}"
     t0 = time.perf_counter()
-    ingest_session(scans, work)
+    run_ingest(scans, work)
     t_ingest = time.perf_counter() - t0
     doc = run_calibration(scans, work, options)
     return {"synth_s": t_synth, "ingest_s": t_ingest, **doc}

@@ -27,11 +27,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 import fem
-from calib.effects import TruthEffects, truth_model
-from calib.postures import gravity_for_angle
+from calib.model.effects import TruthEffects, truth_model
 from calib.twin import PRESETS, synthesize
 from fem.geometry import PhantomSpec, build_phantom
 from fem.meshing import mesh_phantom
+from fem.postures import gravity_for_angle
 
 
 def time_synth(preset: str) -> float:

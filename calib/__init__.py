@@ -1,3 +1,58 @@
-"""Material calibration workflow and the ``phantom-calib`` command line."""
+"""Calibrate a breast phantom's hyperelastic material from multi-posture MRI.
 
-__all__: list[str] = []
+The Python API for notebooks and scripts (the ``phantom-calib`` command line calls the
+same functions)::
+
+    import calib
+    calib.synthesize("twin", preset="quick", seed=0)       # a digital twin scan set
+    calib.ingest("twin/scans", "work")                    # surfaces, landmarks, frames
+    result = calib.calibrate("twin/scans", "work")         # fit c1, write WORK/
+    work = calib.load_work("work")                        # everything in WORK/, with plots
+
+and, without files: ``calib.fit(measurements, options) -> Calibration`` and
+``calib.evaluate(calibration) -> {scan: ScanEvaluation}``. Subpackages: ``data``,
+``model``, ``fitting``, ``report``, ``workflows``, ``twin``, ``cli``. Heavy
+dependencies load on first use, so ``import calib`` stays fast.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+__all__ = [
+    "Calibration",
+    "CalibrationOptions",
+    "calibrate",
+    "evaluate",
+    "fit",
+    "ingest",
+    "load_measurements",
+    "load_session",
+    "synthesize",
+]
+
+# public name -> (module, attribute); imported on first access (PEP 562)
+_LAZY = {
+    "Calibration": ("calib.fitting", "Calibration"),
+    "CalibrationOptions": ("calib.fitting", "CalibrationOptions"),
+    "fit": ("calib.fitting", "fit"),
+    "evaluate": ("calib.evaluation", "evaluate"),
+    "load_measurements": ("calib.data", "load_measurements"),
+    "load_session": ("calib.data", "load_session"),
+    "synthesize": ("calib.twin", "synthesize"),
+    "ingest": ("calib.api", "ingest"),
+    "calibrate": ("calib.api", "calibrate"),
+}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        module, attr = _LAZY[name]
+        value = getattr(importlib.import_module(module), attr)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'calib' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -1,4 +1,4 @@
-"""Atomic output files and provenance records."""
+"""Atomic output files, run-level atomic output folders and provenance records."""
 
 from __future__ import annotations
 
@@ -13,7 +13,16 @@ from pathlib import Path
 
 from fem.io import atomic_write
 
-__all__ = ["atomic_write", "file_sha256", "provenance", "write_json_atomic"]
+__all__ = [
+    "RunOutputs",
+    "StaleOutputError",
+    "atomic_write",
+    "check_run",
+    "clean_stale",
+    "file_sha256",
+    "provenance",
+    "write_json_atomic",
+]
 
 _PACKAGES = ("phantom-calib", "numpy", "scipy", "scikit-fem", "tetgen", "meshio", "open3d-cpu")
 
@@ -53,3 +62,147 @@ def provenance(*, inputs: dict[str, str | os.PathLike] | None = None, parameters
         },
         "parameters": parameters or {},
     }
+
+
+class StaleOutputError(RuntimeError):
+    """A result folder and its record are not from the same run (an interrupted write)."""
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _dir_mode() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o777 & ~mask
+
+
+def clean_stale(work: Path, names: tuple[str, ...]) -> list[Path]:
+    """Remove temporary entries left in ``work`` by killed runs; return what was removed.
+
+    Staging folders ``.NAME.staging-PID``, replaced folders ``.NAME.old-PID`` and atomic
+    writes' temporary files ``.STEM.*.tmp*`` of the given output names, whose process is
+    no longer alive.
+    """
+    import re
+    import shutil
+
+    removed = []
+    if not work.is_dir():
+        return removed
+    stems = {Path(n).stem for n in names} | set(names)
+    for entry in work.iterdir():
+        m = re.fullmatch(r"\.(.+)\.(staging|old|partial)-(\d+)", entry.name)
+        if m and m.group(1) in stems and not _pid_alive(int(m.group(3))):
+            shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() else entry.unlink()
+            removed.append(entry)
+            continue
+        if entry.name.startswith(".") and ".tmp" in entry.name and entry.is_file():
+            if any(entry.name.startswith(f".{s}.") for s in stems):
+                entry.unlink(missing_ok=True)
+                removed.append(entry)
+    return removed
+
+
+class RunOutputs:
+    """One run's outputs, staged apart and swapped in as a whole.
+
+    A command writes a folder of outputs (``WORK/calibration/``) and a record
+    (``WORK/calibration.json``). Files go into a staging folder
+    (``WORK/.calibration.staging-PID``); :meth:`commit` then removes the old record,
+    swaps the folders by renames and writes the new record last, with a ``run_id`` that
+    the folder's ``RUN`` file repeats. Killed at any point, WORK holds either the old
+    run (record and folder), or the new one, or a folder with no record (no result):
+    never a record beside another run's files. :func:`check_run` tells them apart for
+    readers; stale staging folders are removed at the next start.
+
+    Parameters
+    ----------
+    work : path
+    folder : str
+        Name of the output folder inside ``work``.
+    record : str
+        Name of the record file inside ``work`` (written last).
+    """
+
+    def __init__(self, work: str | os.PathLike, *, folder: str, record: str):
+        self.work = Path(work)
+        self.folder, self.record = folder, record
+        self.work.mkdir(parents=True, exist_ok=True)
+        clean_stale(self.work, (folder, record))
+        pid = os.getpid()
+        self.stage = self.work / f".{folder}.staging-{pid}"
+        import shutil
+
+        shutil.rmtree(self.stage, ignore_errors=True)
+        self.stage.mkdir(mode=_dir_mode())
+        self.run_id = f"{datetime.now(UTC).strftime('%Y%m%dT%H%M%S.%fZ')}-{pid}"
+
+    def path(self, name: str) -> Path:
+        """Where to write ``name`` of the output folder (inside the staging folder)."""
+        return self.stage / name
+
+    def commit(self, record: dict) -> dict:
+        """Swap the staged folder in and write the record (with ``run_id``) last."""
+        import shutil
+
+        write_json_atomic(self.stage / "RUN", {"run_id": self.run_id})
+        target, record_path = self.work / self.folder, self.work / self.record
+        record_path.unlink(missing_ok=True)
+        old = self.work / f".{self.folder}.old-{os.getpid()}"
+        if target.exists():
+            os.replace(target, old)
+        os.replace(self.stage, target)
+        doc = {"run_id": self.run_id} | record
+        write_json_atomic(record_path, doc)
+        shutil.rmtree(old, ignore_errors=True)
+        return doc
+
+    def abort(self) -> None:
+        """Remove the staging folder (the previous outputs stay as they were)."""
+        import shutil
+
+        shutil.rmtree(self.stage, ignore_errors=True)
+
+    def __enter__(self) -> RunOutputs:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if self.stage.exists():
+            self.abort()
+
+
+def check_run(work: str | os.PathLike, *, folder: str, record: str) -> dict:
+    """Read a run's record and check that its folder is from the same run.
+
+    Raises
+    ------
+    FileNotFoundError
+        No record (the command never finished here).
+    StaleOutputError
+        The folder's ``RUN`` differs from the record's ``run_id``.
+    """
+    work = Path(work)
+    path = work / record
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} not found")
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise StaleOutputError(f"{path}: not valid JSON ({exc})") from exc
+    run = work / folder / "RUN"
+    if "run_id" in doc:
+        found = json.loads(run.read_text()).get("run_id") if run.is_file() else None
+        if found != doc["run_id"]:
+            raise StaleOutputError(
+                f"{work / folder} is not from the run recorded in {path} (an interrupted "
+                "run?); run the command again"
+            )
+    return doc

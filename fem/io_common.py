@@ -16,11 +16,18 @@ from .mesh import REGION_IDS
 __all__ = ["atomic_write"]
 
 
+def _file_mode() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[Path], None]) -> Path:
     """Call ``write(tmp)`` on a temporary file next to ``path``, then rename it to ``path``.
 
     The temporary file keeps the suffix (format-sniffing writers work); on any error it
-    is removed and ``path`` is left untouched.
+    is removed and ``path`` is left untouched. The file gets the mode an ordinary
+    ``open`` would give under the current umask (not ``mkstemp``'s private 0600).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -30,6 +37,7 @@ def atomic_write(path: str | os.PathLike, write: Callable[[Path], None]) -> Path
     os.close(fd)
     try:
         write(Path(tmp))
+        os.chmod(tmp, _file_mode())  # mkstemp's 0600 -> what open() would give (umask)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -11,13 +11,12 @@ from __future__ import annotations
 
 import logging
 import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from imaging.errors import DicomSeriesError
+from imaging.files import atomic_folder
 from imaging.volume import Volume
 
 __all__ = ["read_dicom_series", "write_dicom_series"]
@@ -279,10 +278,9 @@ def write_dicom_series(
     uid = lambda name: generate_uid(entropy_srcs=[f"phantom-calib:{seed}:{name}"])  # noqa: E731
     study_uid, series_uid, frame_uid = uid("study"), uid(f"series{series_number}"), uid("frame")
     iop = [_ds(c, ".8f") for c in np.concatenate([d[:, 0], d[:, 1]])]
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f".{folder.name}."))
-    names = []
-    try:
+    names: list[str] = []
+
+    def fill(tmp: Path) -> None:
         for k in range(volume.shape[2]):
             meta = FileMetaDataset()
             meta.MediaStorageSOPClassUID = MR_IMAGE_STORAGE
@@ -330,10 +328,6 @@ def write_dicom_series(
             name = f"IM{k + 1:05d}.dcm"
             pydicom.dcmwrite(tmp / name, ds, enforce_file_format=True)
             names.append(name)
-        if folder.exists():
-            shutil.rmtree(folder)
-        os.replace(tmp, folder)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
+
+    atomic_folder(folder, fill)
     return [folder / n for n in names]

@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import logging
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from imaging.errors import VolumeReadError
+from imaging.files import atomic_write
 from imaging.volume import Volume
 
 __all__ = ["read_volume", "write_nifti", "write_volume"]
@@ -100,13 +100,6 @@ def _read_itk(path: Path) -> Volume:
     return Volume.from_sitk(img, source=str(path))
 
 
-def _atomic_target(path: Path) -> tuple[Path, str]:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=_suffix(path))
-    os.close(fd)
-    return path, tmp
-
-
 def write_nifti(volume: Volume, path: str | os.PathLike) -> Path:
     """Write a volume as NIfTI-1 (``.nii`` or ``.nii.gz``), atomically.
 
@@ -115,9 +108,8 @@ def write_nifti(volume: Volume, path: str | os.PathLike) -> Path:
     """
     import nibabel as nib
 
-    target, tmp = _atomic_target(Path(path))
+    target = Path(path)
     if _suffix(target) not in (".nii", ".nii.gz"):
-        os.unlink(tmp)
         raise ValueError(f"{target}: NIfTI path must end in .nii or .nii.gz")
     affine_ras = _RAS_FROM_LPS @ volume.affine_lps_from_index
     arr = volume.array
@@ -127,13 +119,7 @@ def write_nifti(volume: Volume, path: str | os.PathLike) -> Path:
     img.set_sform(affine_ras, code=1)
     img.set_qform(affine_ras, code=1)
     img.header.set_xyzt_units("mm")
-    try:
-        nib.save(img, tmp)
-        os.replace(tmp, target)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return target
+    return atomic_write(target, lambda tmp: nib.save(img, tmp), suffix=_suffix(target))
 
 
 def write_volume(volume: Volume, path: str | os.PathLike) -> Path:
@@ -145,12 +131,7 @@ def write_volume(volume: Volume, path: str | os.PathLike) -> Path:
         raise ValueError(f"{target}: unsupported output suffix (use .nii[.gz], .nrrd or .mha)")
     import SimpleITK as sitk
 
-    target, tmp = _atomic_target(target)
     arr = volume.array.astype(np.uint8) if volume.array.dtype == bool else volume.array
-    try:
-        sitk.WriteImage(volume.with_array(arr).to_sitk(), tmp, useCompression=True)
-        os.replace(tmp, target)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return target
+    image = volume.with_array(arr).to_sitk()
+    return atomic_write(target, lambda tmp: sitk.WriteImage(image, str(tmp), useCompression=True),
+                        suffix=_suffix(target))  # fmt: skip

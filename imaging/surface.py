@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import logging
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import numpy as np
 from scipy import ndimage, sparse
 
 from imaging.errors import SurfaceError
+from imaging.files import atomic_write
 from imaging.volume import Volume
 
 __all__ = [
@@ -245,20 +245,39 @@ _PLY_TYPES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int":
               "float32": "f4", "float64": "f8"}  # fmt: skip
 
 
-def write_ply(path: str | os.PathLike, surface: SurfaceMesh) -> Path:
+def write_ply(
+    path: str | os.PathLike, surface: SurfaceMesh, *, vertex_scalars: dict | None = None
+) -> Path:
     """Write a surface as binary little-endian PLY, atomically.
 
-    Vertices as double x, y, z in LPS mm, with an optional uchar ``back_plate`` property.
+    Vertices as double x, y, z in LPS mm, with an optional uchar ``back_plate`` property
+    and optional float per-vertex properties (e.g. ``{"error_mm": e}``, shown as a colour
+    map by MeshLab and ParaView).
+
+    Parameters
+    ----------
+    path : path-like
+    surface : SurfaceMesh
+    vertex_scalars : dict of str to ndarray, shape (n_vertices,), optional
+        Extra per-vertex float properties, by name.
     """
     path = Path(path)
     v, f = np.asarray(surface.vertices_lps_mm, "<f8"), np.asarray(surface.faces)
+    extra = {k: np.asarray(a, "<f4").reshape(-1) for k, a in (vertex_scalars or {}).items()}
+    for name, a in extra.items():
+        if len(a) != len(v) or not name.isidentifier():
+            raise ValueError(f"{path}: vertex property {name!r} needs one value per vertex "
+                             f"({len(v)}), got {len(a)}")  # fmt: skip
     props = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
     if surface.back_plate is not None:
         props.append(("back_plate", "u1"))
+    props += [(k, "<f4") for k in extra]
     vert = np.empty(len(v), dtype=props)
     vert["x"], vert["y"], vert["z"] = v[:, 0], v[:, 1], v[:, 2]
     if surface.back_plate is not None:
         vert["back_plate"] = np.asarray(surface.back_plate, bool)
+    for k, a in extra.items():
+        vert[k] = a
     face = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
     face["n"], face["i"] = 3, f
     header = ["ply", "format binary_little_endian 1.0", "comment phantom-calib surface, LPS mm",
@@ -266,19 +285,16 @@ def write_ply(path: str | os.PathLike, surface: SurfaceMesh) -> Path:
               "property double z"]  # fmt: skip
     if surface.back_plate is not None:
         header.append("property uchar back_plate")
+    header += [f"property float {k}" for k in extra]
     header += [f"element face {len(f)}", "property list uchar int vertex_indices", "end_header"]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "wb") as fh:
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:
             fh.write(("\n".join(header) + "\n").encode("ascii"))
             fh.write(vert.tobytes())
             fh.write(face.tobytes())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+
+    return atomic_write(path, write)
 
 
 def read_ply(path: str | os.PathLike) -> SurfaceMesh:

@@ -6,7 +6,7 @@ import pytest
 from calib_helpers import small_phantom_mesh
 
 import fem
-from calib.effects import EFFECTS, EffectError, TruthEffects, parse_effects, truth_model
+from calib.model.effects import EFFECTS, EffectError, TruthEffects, parse_effects, truth_model
 
 DEFAULT = TruthEffects(skin_thickness_mm=1.5, skin_ratio=8.0)  # a preset's default
 

@@ -1,4 +1,4 @@
-"""The digital twin read back through ``ingest_session``, checked against its sealed truth.
+"""The digital twin read back through ``run_ingest``, checked against its sealed truth.
 
 One ``quick`` twin (4 postures, about a minute on 2 cores) is built and ingested once per
 module. Tolerances are the accuracy bars of issues 3 (imaging), 4 (registration) and 5 (twin).
@@ -13,8 +13,9 @@ import pytest
 
 import imaging
 import registration
-from calib.ingest import ingest_session, load_ingest
+from calib.data.ingest import load_ingest
 from calib.twin import synthesize
+from calib.workflows.ingest import run_ingest
 
 
 @pytest.fixture(scope="module")
@@ -22,7 +23,7 @@ def twin(tmp_path_factory):
     base = tmp_path_factory.mktemp("twin")
     out, work = base / "twin", base / "work"
     record = synthesize(out, preset="quick", seed=0)
-    result = ingest_session(out / "scans", work)
+    result = run_ingest(out / "scans", work)
     truth = json.loads((out / "truth" / "truth.json").read_text())
     assert truth == json.loads(json.dumps(record))  # the returned record is what was sealed
     ingested = {name: load_ingest(work, name) for name in truth["scans"]}

@@ -7,8 +7,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from calib import run
-from calib.meshcheck import MeshCheck, _check_ratio, combined_ci95
+from calib.fitting import pipeline as run
+from calib.fitting.meshcheck import MeshCheck, combined_ci95
+from calib.fitting.options import check_mesh_check_ratio
 
 
 def test_combined_interval_adds_in_quadrature():
@@ -21,7 +22,7 @@ def test_combined_interval_adds_in_quadrature():
 @pytest.mark.parametrize("ratio", [0.4, 1.0, 1.05, 3.5])
 def test_bad_ratios_are_refused(ratio):
     with pytest.raises(ValueError, match="mesh check ratio"):
-        _check_ratio(ratio)
+        check_mesh_check_ratio(ratio)
 
 
 def test_a_failed_coarse_check_falls_back_to_a_finer_mesh(monkeypatch):
@@ -61,7 +62,7 @@ def test_a_check_that_fails_both_ways_keeps_the_noise_interval(monkeypatch):
 def test_one_residual_leaves_the_noise_unknown():
     # The nipple objective has one residual for one parameter: no degree of freedom remains
     # to estimate the noise, so no interval is claimed (it printed 0 - 3e51 Pa before).
-    from calib.uncertainty import gauss_newton_uncertainty
+    from calib.fitting.uncertainty import gauss_newton_uncertainty
 
     unc = gauss_newton_uncertainty(420.0, np.array([0.44]), np.array([0.1]), np.zeros((1, 3)),
                                    area_mm2=None)  # fmt: skip

@@ -14,8 +14,9 @@ import pytest
 from calib_helpers import SMALL_PRESET
 from typer.testing import CliRunner
 
-import calib.forward
-import calib.run
+import calib.fitting.optimise
+import calib.fitting.profile
+import calib.model.forward
 import fem
 from calib.cli import app
 from calib.twin import synthesize
@@ -39,7 +40,7 @@ def nipple_run(twin_scans, tmp_path_factory):
     # Default mesh sizes (12 mm, retried at 14 and 16 mm when the reference cannot be
     # unloaded); the 12 mm recovery is made to fail here, so the retry path is exercised
     # and the run uses the 14 mm mesh (the size the homogeneous twin needs).
-    real = calib.run._check_reference
+    real = calib.fitting.optimise._check_reference
 
     def fail_on_12(cal, theta0, progress):
         if cal.options.mesh_size_mm == 12.0:
@@ -47,7 +48,7 @@ def nipple_run(twin_scans, tmp_path_factory):
         real(cal, theta0, progress)
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(calib.run, "_check_reference", fail_on_12)
+        mp.setattr(calib.fitting.optimise, "_check_reference", fail_on_12)
         return _calibrate(twin_scans, tmp_path_factory.mktemp("work"), "--objective", "nipple")
 
 
@@ -97,14 +98,14 @@ def test_error_maps_and_meshes_are_written(nipple_run):
 def test_unrecoverable_reference_stops_early_with_remedies(twin_scans, tmp_path, monkeypatch):
     # An explicit --mesh-size is not retried; the error names the scan, the mesh and what
     # to change, before any optimisation.
-    real = calib.forward.ForwardModel.stress_free
+    real = calib.model.forward.ForwardModel.stress_free
 
     def no_reference(self, theta):
         if self.reference_state == "unload":
             raise fem.ConvergenceError("inverse Newton stopped at load factor 0.8 (test)")
         return real(self, theta)
 
-    monkeypatch.setattr(calib.forward.ForwardModel, "stress_free", no_reference)
+    monkeypatch.setattr(calib.model.forward.ForwardModel, "stress_free", no_reference)
     res = CliRunner().invoke(app, ["calibrate", str(twin_scans), "--out", str(tmp_path / "w"),
                                    "--mesh-size", "14"])  # fmt: skip
     assert res.exit_code != 0
@@ -137,7 +138,7 @@ def test_failed_profile_point_is_recorded_not_fatal():
     # Found on the skin twin with --reference-state shortcut: a profile point below the
     # calibrated c1 failed and the whole (finished) calibration was lost.
     cal = _failing_calibrator(480.0)
-    rows = calib.run._profile(cal, np.log(500.0), 0.05, 10.0)
+    rows = calib.fitting.profile.likelihood_profile(cal, np.log(500.0), 0.05, 10.0)
     assert cal.retries == [False] * 5  # a profile point is not worth the slow retry
     failed = [r for r in rows if r.get("failed")]
     assert failed and all(r["c1_pa"] < 480.0 and r["objective"] is None for r in failed)
@@ -145,9 +146,17 @@ def test_failed_profile_point_is_recorded_not_fatal():
     assert len(ok) == 5 - len(failed) and min(r["minus2_delta_loglik"] for r in ok) == 0.0
 
 
-def test_scan_without_solution_at_the_calibrated_c1_is_reported(tmp_path):
+def test_scan_without_solution_at_the_calibrated_c1_is_reported():
     from types import SimpleNamespace
 
+    from calib.evaluation import evaluate
+
     scan = SimpleNamespace(name="tilt", role="validation", gravity_ref=np.array([0.0, 0, 1]))
-    out = calib.run._final_scan(_failing_calibrator(1e9), scan, np.log(500.0), tmp_path)
-    assert out["role"] == "validation" and "load not applied" in out["failed"]
+    cal = _failing_calibrator(1e9)
+    cal.mesh = SimpleNamespace(node_set=lambda name: np.array([0]))
+    cal.measurements = SimpleNamespace(scans={"tilt": scan})
+    calibration = SimpleNamespace(calibrator=cal, theta=float(np.log(500.0)))
+    out = evaluate(calibration, scans=["tilt"])["tilt"]
+    assert out.failed is not None and "load not applied" in out.failed
+    assert out.to_json() == {"role": "validation", "gravity_ref": [0.0, 0.0, 1.0],
+                             "failed": out.failed}  # fmt: skip

@@ -10,7 +10,7 @@ from calib_helpers import VALID_TOML, make_scan_folder
 from typer.testing import CliRunner
 
 from calib.cli import app
-from calib.session import SessionError, load_session, scaffold_session
+from calib.data.session import SessionError, load_session, scaffold_session
 
 
 def test_valid_session_loads(tmp_path):

@@ -11,9 +11,9 @@ import pytest
 from calib_helpers import SMALL_PRESET
 from typer.testing import CliRunner
 
-import calib.twin
+import calib.twin.synth
 from calib.cli import app
-from calib.effects import TruthEffects
+from calib.model.effects import TruthEffects
 from calib.twin import synthesize
 
 
@@ -148,11 +148,11 @@ def test_scans_do_not_reveal_the_truth(twin_a):
 
 @pytest.mark.parametrize("seed", [4, 7, 9])
 def test_twin_truth_mesh_builds(seed):
-    # The first stage of calib.twin._build for the quick preset and its default skin layer.
+    # The first stage of calib.twin.synth._build for the quick preset and its default skin layer.
     from fem.geometry import PhantomSpec, build_phantom
     from fem.meshing import mesh_phantom
 
-    p = calib.twin.PRESETS["quick"]
+    p = calib.twin.synth.PRESETS["quick"]
     phantom = build_phantom(PhantomSpec(resolution_mm=p.phantom_resolution_mm, seed=seed))
     mesh = mesh_phantom(phantom, size_mm=p.truth_mesh_mm,
                         skin_thickness_mm=p.effects.skin_thickness_mm)  # fmt: skip
@@ -164,7 +164,7 @@ class _Interrupt(RuntimeError):
 
 
 def _interrupt_second_render(monkeypatch):
-    real, calls = calib.twin._render, []
+    real, calls = calib.twin.synth._render, []
 
     def render(*args, **kwargs):
         calls.append(1)
@@ -172,7 +172,7 @@ def _interrupt_second_render(monkeypatch):
             raise _Interrupt("interrupted on the second posture")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(calib.twin, "_render", render)
+    monkeypatch.setattr(calib.twin.synth, "_render", render)
     return calls
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import fem
-from calib.uncertainty import CHI2_1_95, profile_ci95
+from calib.fitting.uncertainty import CHI2_1_95, profile_ci95
 
 TOL = 0.005  # profile_ci95's default bound tolerance in ln c1
 Z95 = np.sqrt(CHI2_1_95)

@@ -9,7 +9,7 @@ import numpy as np
 import fem
 from fem.meshing import tag_node_sets, tetrahedralize
 
-from .measurements import ScanMeasurement
+from ..data.measurements import ScanMeasurement
 
 __all__ = ["reference_mesh"]
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .session import Session
+from .session import ScanEntry, Session
 
 __all__ = ["Measurements", "ScanMeasurement", "load_measurements"]
 
@@ -66,13 +66,14 @@ class Measurements:
         return [s for s in self.scans.values() if s.role == role]
 
 
-def _map(T: np.ndarray, p) -> np.ndarray:
-    return np.asarray(p, float) @ T[:3, :3].T + T[:3, 3]
+BACK_PLATE_TOL_MM = 1.5  # as imaging.process_scan flags the back plate
 
 
-def _scan(work: Path, name: str) -> ScanMeasurement:
+def _scan(work: Path, entry: ScanEntry) -> ScanMeasurement:
     import imaging
+    from registration import apply_transform
 
+    name = entry.name
     folder = work / "scans" / name
     doc = json.loads((folder / "ingest.json").read_text())
     surf = imaging.read_ply(folder / "surface_ref.ply")
@@ -80,22 +81,26 @@ def _scan(work: Path, name: str) -> ScanMeasurement:
     tumour = doc.get("tumour_lps_mm")
     plane = doc["back_plane"]
     normal = T[:3, :3] @ np.asarray(plane["normal"], float)
-    back_point = _map(T, plane["point_lps_mm"])
+    back_point = apply_transform(T, plane["point_lps_mm"])
     centroid = surf.vertices_lps_mm.mean(axis=0)
     if normal @ (centroid - back_point) > 0:  # make it point away from the body
         normal = -normal
-    flags = surf.back_plate if surf.back_plate is not None else np.zeros(len(surf.faces), bool)
+    normal = normal / np.linalg.norm(normal)
+    if surf.back_plate is not None:
+        flags = np.asarray(surf.back_plate, bool)
+    else:  # a surface written without flags: the vertices on the back plane are the plate
+        flags = np.abs((surf.vertices_lps_mm - back_point) @ normal) < BACK_PLATE_TOL_MM
     return ScanMeasurement(
         name=name,
-        role=doc["role"],
+        role=entry.role,  # the current session's role, never a stale ingest record
         gravity_ref=np.asarray(doc["gravity_ref"], float),
         vertices_mm=surf.vertices_lps_mm,
         faces=surf.faces,
-        back_plate=np.asarray(flags, bool),
-        nipple_mm=_map(T, doc["nipple_lps_mm"]),
-        tumour_mm=None if tumour is None else _map(T, tumour),
+        back_plate=flags,
+        nipple_mm=apply_transform(T, doc["nipple_lps_mm"]),
+        tumour_mm=None if tumour is None else apply_transform(T, tumour),
         back_point_mm=back_point,
-        back_normal=normal / np.linalg.norm(normal),
+        back_normal=normal,
         T_ref_from_scan=T,
     )
 
@@ -108,5 +113,5 @@ def load_measurements(work: str | Path, session: Session) -> Measurements:
     ]
     if missing:
         raise FileNotFoundError(f"{work}: no ingest results for {missing}; run ingest first")
-    scans = {s.name: _scan(work, s.name) for s in session.scans}
+    scans = {s.name: _scan(work, s) for s in session.scans}
     return Measurements(scans[session.reference.name], scans)

@@ -219,7 +219,7 @@ def scaffold_session(folder: str | Path, *, overwrite: bool = False) -> Path:
     """
     import tomli_w
 
-    from .io import atomic_write
+    from ..io import atomic_write
 
     folder = Path(folder)
     target = folder / "session.toml"

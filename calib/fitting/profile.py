@@ -1,11 +1,14 @@
-"""The 95 % interval of c1 for the ``nipple`` objective, from its likelihood profile.
+"""Likelihood profiles over c1, and the ``nipple`` objective's 95 % interval from one.
+
+:func:`likelihood_profile` evaluates the objective on a few values of c1 around the
+optimum (reported in ``calibration.json``'s ``profile``).
 
 The nipple objective has one residual per scan: the signed distance of the simulated
 nipple to the measured surface. At the optimum the simulated nipple slides along the
 measured surface near its tip, so the residual's derivative in c1 is close to zero and
 the Gauss-Newton interval is useless (0 to infinity). The residual still grows
 (quadratically) away from the optimum, and with a known noise level the likelihood
-profile bounds c1 (:func:`calib.uncertainty.profile_ci95`).
+profile bounds c1 (:func:`calib.fitting.uncertainty.profile_ci95`).
 
 The noise level is measured apart from the nipple residual: the root mean square of the
 surface residuals (measured points to the simulated surface, fiducial frame) within
@@ -20,10 +23,16 @@ import logging
 
 import numpy as np
 
-from .residuals import scan_residuals
+from ..model.residuals import scan_residuals
 from .uncertainty import ProfileInterval, Uncertainty, profile_ci95
 
-__all__ = ["PATCH_RADIUS_MM", "nipple_interval", "nipple_noise_sd_mm", "profile_rows"]
+__all__ = [
+    "PATCH_RADIUS_MM",
+    "likelihood_profile",
+    "nipple_interval",
+    "nipple_noise_sd_mm",
+    "profile_rows",
+]
 
 log = logging.getLogger(__name__)
 PATCH_RADIUS_MM = 15.0
@@ -100,3 +109,35 @@ def profile_rows(prof: ProfileInterval, n_residuals: int) -> list[dict]:
          "minus2_delta_loglik": float(dev)}
         for t, s, dev in prof.points
     ]  # fmt: skip
+
+
+def likelihood_profile(cal, theta: float, se: float | None, n_eff: float) -> list[dict]:
+    """The objective on ``profile_points`` values of ln c1 around ``theta`` (+-2 se).
+
+    Each row has ``c1_pa``, ``objective`` and ``minus2_delta_loglik`` (``n_eff ln(J/J_min)``,
+    the Gaussian profile with the noise level profiled out); a point whose FE solve fails
+    is recorded with ``"failed": true``, not fatal.
+    """
+    k = cal.options.profile_points
+    if k < 2:
+        return []
+    half = max(2.0 * se, 0.05) if se is not None and np.isfinite(se) else 0.2
+    rows = [_profile_point(cal, float(t)) for t in np.linspace(theta - half, theta + half, k)]
+    jmin = min((row["objective"] for row in rows if not row.get("failed")), default=None)
+    for row in rows:
+        if not row.get("failed"):
+            row["minus2_delta_loglik"] = float(n_eff * np.log(row["objective"] / jmin))
+    return rows
+
+
+def _profile_point(cal, theta: float) -> dict:
+    """One profile row; a point whose FE solve fails is recorded as failed, not fatal."""
+    import fem
+
+    try:
+        res = cal.residuals(theta, cal.calibration_scans, gradient=False, retry=False)
+    except fem.ConvergenceError as exc:
+        log.warning("likelihood profile: FE failed at c1=%.1f Pa (%s)", np.exp(theta), exc)
+        return {"c1_pa": float(np.exp(theta)), "objective": None, "failed": True}
+    r = np.concatenate([v.r for v in res.values()])
+    return {"c1_pa": float(np.exp(theta)), "objective": 0.5 * float(np.mean(r**2))}

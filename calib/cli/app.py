@@ -1,4 +1,4 @@
-"""The ``phantom-calib`` command line."""
+"""The ``phantom-calib`` command line: typer commands that call :mod:`calib.workflows`."""
 
 from __future__ import annotations
 
@@ -62,7 +62,7 @@ def simulate(
     ] = "taylor-hood",
 ) -> None:
     """Deform a mesh under gravity; write the deformed mesh and RESULT.json."""
-    from .simulate import SimulateOptions, parse_vector, run_simulate
+    from ..workflows.simulate import SimulateOptions, parse_vector, run_simulate
 
     try:
         opts = SimulateOptions(
@@ -86,7 +86,7 @@ def init(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace session.toml.")] = False,
 ) -> None:
     """Scaffold a session.toml by finding the series in a folder."""
-    from .session import scaffold_session
+    from ..data.session import scaffold_session
 
     try:
         path = scaffold_session(scans, overwrite=overwrite)
@@ -103,14 +103,14 @@ def ingest(
     """Segment, surface and register every scan of a session."""
     from rich.progress import Progress
 
-    from .ingest import ingest_session
-    from .session import load_session
+    from ..data.session import load_session
+    from ..workflows.ingest import run_ingest
 
     try:
         n = len(load_session(scans).scans)
         with Progress(transient=True) as bar:
             task = bar.add_task("ingest", total=n)
-            result = ingest_session(scans, out, progress=lambda name: bar.advance(task))
+            result = run_ingest(scans, out, progress=lambda name: bar.advance(task))
     except (ValueError, OSError, RuntimeError) as exc:
         fail(exc)
     typer.echo(result.summary_table)
@@ -129,8 +129,8 @@ def synth(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace OUT.")] = False,
 ) -> None:
     """Build a digital-twin scan set with sealed truth."""
-    from .effects import parse_effects
-    from .twin import PRESETS, synthesize
+    from ..model.effects import parse_effects
+    from ..twin import PRESETS, synthesize
 
     try:
         if preset not in PRESETS:
@@ -177,8 +177,9 @@ def calibrate(
     ] = 1.4,
 ) -> None:
     """Fit c1 to the calibration scans; write calibration.json and error maps."""
-    from .calibrate import CalibrationOptions
-    from .run import run_calibration
+    from ..fitting import CalibrationOptions
+    from ..report.tables import format_calibration
+    from ..workflows.calibrate import run_calibration
 
     try:
         opts = CalibrationOptions(
@@ -191,45 +192,6 @@ def calibrate(
         fail(exc)
     typer.echo(format_calibration(doc))
     typer.echo(f"wrote {out / 'calibration.json'} and {out / 'calibration'}/")
-
-
-def _uncertainty_lines(unc: dict) -> list[str]:
-    check = unc.get("mesh_check")
-    if not check:
-        return []
-    if unc.get("c1_ci95_pa") is None:
-        return []
-    lo, hi = unc["c1_ci95_pa"]
-    size, c1 = check["check_mesh_size_mm"], check["c1_check_pa"]
-    found = f"calibrates to {c1:.1f} Pa" if c1 is not None else f"failed: {check['failure']}"
-    return [f"  noise alone: {lo:.1f} - {hi:.1f} Pa; mesh check: the {size:.1f} mm mesh {found}"]
-
-
-def format_calibration(doc: dict) -> str:
-    """A readable summary of calibration.json."""
-    ci = doc["c1_ci95_pa"]
-    interval = (f"95 % interval {ci[0]:.1f} - {ci[1]:.1f} Pa" if ci is not None else
-                "no 95 % interval: the data do not bound c1")  # fmt: skip
-    lines = [
-        f"c1 = {doc['c1_pa']:.1f} Pa  ({interval}), objective "
-        f"{doc['objective']}, reference state {doc['reference_state']}",
-        f"{doc['iterations']} iterations, {doc['fe_solves']} FE solves, {doc['wall_s']:.0f} s",
-        *_uncertainty_lines(doc.get("uncertainty", {})),
-        f"{'scan':<16}{'role':<13}{'surface mean+-sd (fiducial)':>29}{'(icp)':>16}"
-        f"{'nipple mm':>11}{'tumour mm':>11}",
-    ]
-    for name, s in doc["scans"].items():
-        if s.get("failed"):
-            lines.append(f"{name:<16}{s['role']:<13}  no FE solution: {s['failed']}")
-            continue
-        fid, icp = s["surface_error_mm"]["fiducial"], s["surface_error_mm"]["icp"]
-        tum = s.get("tumour_error_mm", {}).get("fiducial")
-        lines.append(
-            f"{name:<16}{s['role']:<13}{fid['mean']:>20.2f} +- {fid['sd']:.2f}"
-            f"{icp['mean']:>11.2f} +- {icp['sd']:.2f}{s['nipple_error_mm']['fiducial']:>9.2f}"
-            f"{'' if tum is None else f'{tum:.2f}':>11}"
-        )
-    return "\n".join(lines)
 
 
 def main() -> None:

@@ -1,8 +1,8 @@
-"""BFGS calibration of c1 over a scan session, with honest uncertainty.
+"""The calibration objective: the model, the measurements and ``J(ln c1)`` with its gradient.
 
-The parameter is ``theta = ln c1``; L-BFGS-B minimises ``J = mean(r^2) / 2`` of the
-chosen objective's residuals over the calibration scans, with the analytic gradient
-of :mod:`calib.forward`, within bounds found from a cheap first estimate.
+The parameter is ``theta = ln c1``; ``J = mean(r^2) / 2`` of the chosen objective's
+residuals over the calibration scans, with the analytic gradient of
+:mod:`calib.model.forward`. The optimiser is in :mod:`calib.fitting.optimise`.
 """
 
 from __future__ import annotations
@@ -14,74 +14,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import fem
+from fem.probe import MaterialPoint
 
-from .forward import ForwardModel
-from .measurements import Measurements, ScanMeasurement
-from .refmodel import reference_mesh
-from .residuals import OBJECTIVES, Residuals, SimulatedSurface, scan_residuals
+from ..data.measurements import Measurements, ScanMeasurement
+from ..model.forward import ForwardModel
+from ..model.reference import reference_mesh
+from ..model.residuals import Residuals, SimulatedSurface, scan_residuals
+from .options import CalibrationOptions
 
-__all__ = ["CalibrationOptions", "Calibrator", "TumourTracker"]
+__all__ = ["Calibrator"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class CalibrationOptions:
-    """Options of a calibration (see ``phantom-calib calibrate --help``)."""
-
-    objective: str = "surface"
-    reference_state: str = "unload"
-    mesh_size_mm: float = 12.0
-    mesh_retry_mm: tuple[float, ...] = (14.0, 16.0)  # when the reference cannot be unloaded
-    formulation: str = "taylor-hood"
-    nu: float = 0.499
-    max_points: int = 3000
-    c1_guess_pa: float = 500.0
-    max_iterations: int = 30
-    profile_points: int = 5
-    mesh_check_ratio: float = 1.4
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if self.objective not in OBJECTIVES:
-            raise ValueError(f"objective must be one of {OBJECTIVES}, got {self.objective!r}")
-        if self.reference_state not in ("unload", "shortcut"):
-            raise ValueError(
-                f"reference state must be unload or shortcut, not {self.reference_state}"
-            )
-        for size in (self.mesh_size_mm, *self.mesh_retry_mm):
-            if not 1.0 <= size <= 50.0:
-                raise ValueError(f"mesh size must lie in [1, 50] mm, got {size}")
-        if self.mesh_check_ratio:
-            from .meshcheck import _check_ratio
-
-            _check_ratio(self.mesh_check_ratio)
-
-
-class TumourTracker:
-    """A material point of the reference scan followed through the FE solutions."""
-
-    def __init__(self, fm: ForwardModel, point_ref_mm: np.ndarray):
-        from skfem import Basis, ElementTetP1
-
-        from fem.discretize import _skfem_mesh
-
-        disc = fm._disc
-        R = disc.R_solver_from_model
-        pts = (np.asarray(point_ref_mm, float).reshape(1, 3) * 1e-3) @ R.T
-        p1 = Basis(_skfem_mesh(fm.mesh, R), ElementTetP1(), intorder=1)
-        self.bary = p1.probes(pts.T)  # (1, n_vertices): barycentric weights
-        self.shape = disc.basis().probes(pts.T)  # (1, N_scalar)
-        self.R = R
-
-    def position(self, X_mm: np.ndarray, state: np.ndarray) -> np.ndarray:
-        """Current position (mm) from stress-free vertices and a solver state."""
-        u = state[: 3 * self.shape.shape[1]].reshape(-1, 3)
-        return (self.bary @ X_mm)[0] + ((self.shape @ u) @ self.R)[0] * 1e3
-
-    def derivative(self, dX_mm: np.ndarray, dstate: np.ndarray) -> np.ndarray:
-        """Derivative of the position in theta (mm)."""
-        return self.position(dX_mm, dstate)
 
 
 @dataclass
@@ -108,7 +51,12 @@ class Calibrator:
         self.sim = SimulatedSurface.of(self.mesh)
         self.points = {s.name: s.surface_points(max_points=o.max_points, seed=o.seed)
                        for s in self.measurements.scans.values()}  # fmt: skip
-        self.tracker = TumourTracker(self.fm, ref.tumour_mm) if ref.tumour_mm is not None else None
+        # the tumour: a material point of the reference scan, followed through the solves
+        self.tumour = (
+            MaterialPoint.locate(self.fm.discretization, ref.tumour_mm)
+            if ref.tumour_mm is not None
+            else None
+        )
         self.states: dict = {}
         self._cache = None
         self.gauss_newton_curvature = 1.0
@@ -127,7 +75,7 @@ class Calibrator:
         out = {}
         for s in scans:
             st = states[s.name]
-            tumour = self._tumour(st, gradient)
+            tumour = self.tumour_position(st, gradient)
             out[s.name] = scan_residuals(
                 self.options.objective, s, self.mesh, self.sim, st.positions_mm,
                 st.dpositions_mm if gradient else None, surface_points_mm=self.points[s.name],
@@ -135,12 +83,12 @@ class Calibrator:
             )  # fmt: skip
         return out
 
-    def _tumour(self, st, gradient: bool):
-        if self.tracker is None:
+    def tumour_position(self, st, gradient: bool):
+        """``(p, dp)`` of the simulated tumour centre (mm; dp per unit ln c1), or None."""
+        if self.tumour is None:
             return None
-        X = self.fm._X
-        p = self.tracker.position(X, st.state)
-        dp = self.tracker.derivative(self.fm.current_dX, st.dstate) if gradient else None
+        p = self.tumour.position_mm(self.fm.stress_free_nodes_mm, st.state)
+        dp = self.tumour.position_mm(self.fm.current_dX, st.dstate) if gradient else None
         return p, dp
 
     def objective(self, theta_arr: np.ndarray) -> tuple[float, np.ndarray]:

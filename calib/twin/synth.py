@@ -22,10 +22,10 @@ import numpy as np
 import fem
 from fem.geometry import PhantomSpec, build_phantom, sphere_surface
 from fem.meshing import mesh_phantom
+from fem.postures import random_scanner_pose
 
-from .effects import TruthEffects, truth_model
-from .io import provenance, write_json_atomic
-from .postures import random_scanner_pose
+from ..io import provenance, write_json_atomic
+from ..model.effects import TruthEffects, truth_model
 
 __all__ = ["PRESETS", "Posture", "TwinPreset", "synthesize"]
 

@@ -16,7 +16,7 @@ import numpy as np
 
 import fem
 
-from .measurements import ScanMeasurement
+from ..data.measurements import ScanMeasurement
 
 __all__ = ["OBJECTIVES", "Residuals", "SimulatedSurface", "scan_residuals"]
 

@@ -17,10 +17,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import fem
-from fem.assemble import assemble, external_force, scatter
-from fem.linalg import factorize
-from fem.shape_derivative import geometry_matrices
-from fem.solver import vertex_displacement_mm
+from fem.fields import gravity_vector, vertex_displacement_mm
+from fem.sensitivity import state_sensitivity, stress_free_sensitivity, vertex_dofs
+from fem.units import STANDARD_GRAVITY_M_S2
 from fem.unload import recover_stress_free
 
 __all__ = ["ForwardModel", "ScanState"]
@@ -28,6 +27,7 @@ __all__ = ["ForwardModel", "ScanState"]
 # Inverse Newton inside the loop: 10 load steps at most (a sagging scan on a coarse mesh
 # can leave no valid stress-free state, where cut-backs would go on for many minutes).
 _UNLOAD_NEWTON = fem.SolverOptions(max_steps=10)
+_RECOVERIES_KEPT = 16  # converged recoveries kept by theta (a few MB each at most)
 log = logging.getLogger(__name__)
 
 
@@ -65,7 +65,7 @@ class ForwardModel:
     density_kg_m3: float = 1000.0
     reference_state: str = "unload"
     formulation: str = "taylor-hood"
-    g_m_s2: float = 9.81
+    g_m_s2: float = STANDARD_GRAVITY_M_S2
     unload_method: str = "newton"
     fixed_point_fallback: bool = True
     solves: int = 0
@@ -74,7 +74,9 @@ class ForwardModel:
     _X: np.ndarray | None = None
     _u0: np.ndarray | None = None
     _X_theta: float | None = None  # theta of a converged recovery held in _X
+    current_dX: np.ndarray | None = None  # d stress-free nodes / d theta of the last evaluate
     _states: dict = field(default_factory=dict)
+    _recovered: dict = field(default_factory=dict)  # theta -> (X, u0, inverted elements)
 
     def __post_init__(self) -> None:
         if self.reference_state not in ("unload", "shortcut"):
@@ -82,6 +84,16 @@ class ForwardModel:
                 f"reference state must be unload or shortcut, not {self.reference_state!r}"
             )
         self._disc = fem.discretize(self.mesh, fem.Clamped(), formulation=self.formulation)
+
+    @property
+    def discretization(self) -> fem.Discretization:
+        """Discretization of the loaded reference mesh (its nodes as given)."""
+        return self._disc
+
+    @property
+    def stress_free_nodes_mm(self) -> np.ndarray | None:
+        """Stress-free vertex positions of the last recovery (mm), None before any."""
+        return self._X
 
     def model(self, theta: float, nodes_mm: np.ndarray | None = None) -> fem.Model:
         """The homogeneous model at ``c1 = exp(theta)`` on the given nodes."""
@@ -121,6 +133,10 @@ class ForwardModel:
             return self._X
         if theta == self._X_theta:  # recovered already (first estimate, final states)
             return self._X
+        if theta in self._recovered:  # e.g. the calibrated c1 again after the profile
+            self._X, self._u0, self.inverted_reference_elements = self._recovered[theta]
+            self._X_theta = theta
+            return self._X
         start = self.model(theta)
         kw = {"gravity": self.gravity_ref, "g_m_s2": self.g_m_s2, "formulation": self.formulation}
         rec = None
@@ -144,52 +160,16 @@ class ForwardModel:
                         rec.max_error_mm, rec.iterations)  # fmt: skip
         self._X, self._u0 = rec.nodes_mm, rec.solution.state
         self._X_theta = theta if rec.converged else None
+        if rec.converged:
+            self._recovered[theta] = (self._X, self._u0, rec.inverted_elements)
+            while len(self._recovered) > _RECOVERIES_KEPT:
+                self._recovered.pop(next(iter(self._recovered)))
         if rec.inverted_elements != self.inverted_reference_elements:
             log.warning("recovered reference at c1=%.1f Pa: %d vertex tetrahedra inverted "
                         "(clamped rim; the loaded quadratic elements stay valid)",
                         np.exp(theta), rec.inverted_elements)  # fmt: skip
         self.inverted_reference_elements = rec.inverted_elements
         return self._X
-
-    # -- derivatives -------------------------------------------------------------------
-
-    def _residual(self, theta, disc, state, direction, mag) -> np.ndarray:
-        """Full residual vector R_int - f_ext (N) at a state."""
-        model = self.model(theta, disc.mesh.nodes_mm)
-        g = fem.solver.gravity_vector(direction, mag)
-        st = assemble(disc, model, state, tangent=False)
-        return scatter(disc, st.vectors) - external_force(disc, model, g)
-
-    def _dR_dtheta(self, theta, disc, state, direction, mag, eps=1e-6) -> np.ndarray:
-        rp = self._residual(theta + eps, disc, state, direction, mag)
-        rm = self._residual(theta - eps, disc, state, direction, mag)
-        return (rp - rm) / (2.0 * eps)
-
-    def _tangent(self, theta, disc, state, geometry=None):
-        """Free-dof tangent; with ``geometry=g`` minus the shape derivative (unload)."""
-        model = self.model(theta, disc.mesh.nodes_mm)
-        Ke = assemble(disc, model, state, tangent=True).matrices
-        if geometry is not None:
-            Ke = Ke - geometry_matrices(disc, model, state, geometry)
-        return disc.pattern.matrix(Ke)
-
-    def _geometry_matrix(self, theta, disc, state, direction, mag):
-        model = self.model(theta, disc.mesh.nodes_mm)
-        g = fem.solver.gravity_vector(direction, mag)
-        return disc.pattern.matrix(geometry_matrices(disc, model, state, g))
-
-    def _du0_dtheta(self, theta, disc0):
-        """Sensitivity of the reference posture's displacement in unload mode (full vector).
-
-        Differentiates ``R(u0; X = x_ref - u0) = 0``: ``(K0 - D0) du0 = -dR/dtheta`` with
-        ``D0`` the residual's derivative in the reference geometry.
-        """
-        g = fem.solver.gravity_vector(self.gravity_ref, self.g_m_s2)
-        M = self._tangent(theta, disc0, self._u0, geometry=g)
-        rhs = -self._dR_dtheta(theta, disc0, self._u0, self.gravity_ref, self.g_m_s2)
-        du0 = np.zeros(disc0.n_dofs)
-        du0[disc0.free] = factorize(M)(rhs[disc0.free])
-        return du0
 
     def evaluate(
         self, theta: float, gravities: dict, *, gradient: bool = True, retry: bool = True
@@ -213,28 +193,37 @@ class ForwardModel:
         """
         X = self.stress_free(theta)
         disc = self._disc.with_nodes(X)
-        dX = np.zeros_like(X)
-        dX_vec = np.zeros(disc.n_dofs)  # -du0 on the vertex dofs (solver frame, m)
+        model_at = self._model_at(disc)
+        dX, dX_state = np.zeros_like(X), None
         if gradient and self.reference_state == "unload":
-            du0 = self._du0_dtheta(theta, disc)
-            dX = -vertex_displacement_mm(disc, du0)
-            vdofs = (3 * disc.skfem_basis.nodal_dofs[0][:, None] + np.arange(3)).ravel()
-            dX_vec[vdofs] = -du0[vdofs]
+            g0 = gravity_vector(self.gravity_ref, self.g_m_s2)
+            du0 = stress_free_sensitivity(disc, model_at, theta, self._u0, g0)
+            dX = -vertex_displacement_mm(disc, du0)  # X = x_ref - u0
+            dX_state = np.zeros(disc.n_dofs)
+            v = vertex_dofs(disc)
+            dX_state[v] = -du0[v]
         out = {}
         for name, g in gravities.items():
             _, sol, direction, mag = self._solve(theta, disc, g, name, retry)
             st = ScanState(sol.state, X + sol.displacement_mm)
             if gradient:
-                free = disc.free
-                rhs = -self._dR_dtheta(theta, disc, sol.state, direction, mag)[free]
-                if self.reference_state == "unload":
-                    D = self._geometry_matrix(theta, disc, sol.state, direction, mag)
-                    rhs -= D @ dX_vec[free]
-                du = np.zeros(disc.n_dofs)
-                du[free] = factorize(self._tangent(theta, disc, sol.state))(rhs)
+                g_vec = gravity_vector(direction, mag)
+                du = state_sensitivity(disc, model_at, theta, sol.state, g_vec, dX_state=dX_state)
                 st.dpositions_mm = dX + vertex_displacement_mm(disc, du)
                 st.dstate = du
             out[name] = st
             self._states[name] = st
         self.current_dX = dX
         return out
+
+    def _model_at(self, disc: fem.Discretization):
+        """``theta -> Model`` on the nodes of ``disc`` (for :mod:`fem.sensitivity`)."""
+        return lambda t: self.model(t, disc.mesh.nodes_mm)
+
+    def set_stress_free(self, theta: float, nodes_mm: np.ndarray) -> None:
+        """Use known stress-free nodes at ``theta`` (a saved calibration) instead of recovering.
+
+        Gradients of the unload reference need the recovery's state and are then not
+        available: evaluate with ``gradient=False``.
+        """
+        self._X, self._X_theta, self._u0 = np.asarray(nodes_mm, float), theta, None

@@ -21,6 +21,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .options import check_mesh_check_ratio
+
 __all__ = ["MeshCheck", "combined_ci95", "mesh_check"]
 
 log = logging.getLogger(__name__)
@@ -56,11 +58,6 @@ class MeshCheck:
     safety_factor: float = SAFETY_FACTOR
 
 
-def _check_ratio(ratio: float) -> None:
-    if not (0.5 <= ratio <= 0.9 or 1.1 <= ratio <= 3.0):
-        raise ValueError(f"mesh check ratio must lie in [0.5, 0.9] or [1.1, 3], got {ratio}")
-
-
 def mesh_check(cal, theta: float, *, ratio: float = 1.4) -> MeshCheck:
     """Re-evaluate the calibration at ``theta = ln c1`` on a mesh ``ratio`` times as coarse.
 
@@ -79,9 +76,9 @@ def mesh_check(cal, theta: float, *, ratio: float = 1.4) -> MeshCheck:
     """
     import fem
 
-    from .calibrate import Calibrator
+    from .objective import Calibrator
 
-    _check_ratio(ratio)
+    check_mesh_check_ratio(ratio)
     size = cal.options.mesh_size_mm
     opts = replace(cal.options, mesh_size_mm=size * ratio)
     tets, failure = 0, ""

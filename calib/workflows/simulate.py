@@ -11,8 +11,9 @@ import numpy as np
 
 import fem
 from fem.meshing import find_back_plane, tag_node_sets
+from fem.units import STANDARD_GRAVITY_M_S2
 
-from .io import atomic_write, provenance, write_json_atomic
+from ..io import atomic_write, provenance, write_json_atomic
 
 __all__ = ["SimulateOptions", "parse_back_plane", "parse_vector", "run_simulate"]
 
@@ -27,7 +28,7 @@ class SimulateOptions:
     nu: float = 0.499
     density_kg_m3: float = 1000.0
     gravity: tuple[float, float, float] = (0.0, 1.0, 0.0)
-    g_m_s2: float = 9.81
+    g_m_s2: float = STANDARD_GRAVITY_M_S2
     bc: str = "clamped"
     back_plane: str = "auto"
     formulation: str = "taylor-hood"

@@ -1,7 +1,7 @@
-"""``phantom-calib ingest``: every scan of a session to surfaces, landmarks and frames.
+"""Every scan of a session to surfaces, landmarks and frames (no files written).
 
-Writes per scan ``WORK/scans/<name>/surface.ply`` (scan LPS mm), ``surface_ref.ply``
-(reference LPS mm), ``mask.nii.gz`` and ``ingest.json`` (see the README).
+:func:`ingest_scans` segments, surfaces and registers the scans;
+:mod:`calib.workflows.ingest` writes the results into ``WORK/scans/<name>/``.
 """
 
 from __future__ import annotations
@@ -12,10 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import provenance, write_json_atomic
-from .session import Session, load_session
+from registration import apply_transform
 
-__all__ = ["IngestResult", "ingest_session", "load_ingest"]
+from .session import Session
+
+__all__ = ["IngestResult", "ingest_scans", "load_ingest"]
 
 log = logging.getLogger(__name__)
 
@@ -40,10 +41,6 @@ def _process(entry, session: Session, progress):
     return result
 
 
-def _map(T: np.ndarray, p: np.ndarray) -> np.ndarray:
-    return (T[:3, :3] @ np.asarray(p, float).T).T + T[:3, 3]
-
-
 def _match_constellation(ref_pts: np.ndarray, pts: np.ndarray, iterations: int = 15):
     """Affine map taking ``pts`` onto ``ref_pts`` from iterated mutual nearest neighbours.
 
@@ -52,7 +49,7 @@ def _match_constellation(ref_pts: np.ndarray, pts: np.ndarray, iterations: int =
     """
     A = np.eye(4)
     for _ in range(iterations):
-        moved = _map(A, pts)
+        moved = apply_transform(A, pts)
         d = np.linalg.norm(moved[:, None] - ref_pts[None], axis=2)
         fwd, back = d.argmin(axis=1), d.argmin(axis=0)
         mutual = np.flatnonzero(back[fwd] == np.arange(len(pts)))
@@ -82,7 +79,7 @@ def _track_tumour(session: Session, scans: dict, fiducial_regs: dict) -> dict:
     for name, res in scans.items():
         if name == ref:
             continue
-        pts = _map(fiducial_regs[name].T_ref_from_scan, res.inclusions.centres_lps_mm)
+        pts = apply_transform(fiducial_regs[name].T_ref_from_scan, res.inclusions.centres_lps_mm)
         if len(pts) == 0:
             continue
         A = _match_constellation(ref_pts, pts) if len(pts) >= 4 else np.eye(4)
@@ -91,7 +88,8 @@ def _track_tumour(session: Session, scans: dict, fiducial_regs: dict) -> dict:
         d = res.inclusions.diameters_mm
         same = np.flatnonzero(np.abs(d - d_ref) <= max(1.0, 0.15 * d_ref))
         cand = same if len(same) else np.arange(len(d))
-        k = imaging.select_tumour(_map(A, pts[cand]), d[cand], hint_lps_mm=ref_pts[idx[ref]])
+        k = imaging.select_tumour(apply_transform(A, pts[cand]), d[cand],
+                                  hint_lps_mm=ref_pts[idx[ref]])  # fmt: skip
         idx[name] = int(cand[k])
     return idx
 
@@ -120,37 +118,15 @@ def _register(session: Session, scans: dict, landmarks: bool):
     )
 
 
-def _write_scan(work: Path, name: str, res, reg, session: Session) -> None:
-    import imaging
-
-    folder = work / "scans" / name
-    folder.mkdir(parents=True, exist_ok=True)
-    imaging.write_ply(folder / "surface.ply", res.surface)
-    ref_vertices = _map(reg.T_ref_from_scan, res.surface.vertices_lps_mm)
-    ref_surface = replace(res.surface, vertices_lps_mm=ref_vertices)
-    imaging.write_ply(folder / "surface_ref.ply", ref_surface)
-    imaging.write_nifti(res.mask, folder / "mask.nii.gz")
-    entry = next(s for s in session.scans if s.name == name)
-    doc = {"name": name, "role": entry.role, "source": str(entry.path)}
-    doc |= res.to_json_dict() | reg.to_json()
-    doc["frames"] = {
-        "scan": "this scan's LPS frame (mm): fiducials_lps_mm, nipple_lps_mm, tumour_lps_mm, "
-        "inclusions, surface.ply",
-        "reference": "the reference scan's LPS frame (mm): surface_ref.ply, gravity_ref; "
-        "T_ref_from_scan maps scan points to it",
-    }
-    write_json_atomic(folder / "ingest.json", doc)
-
-
-def ingest_session(scans_dir: str | Path, work: str | Path, *, progress=None) -> IngestResult:
+def ingest_scans(session: Session, *, progress=None) -> IngestResult:
     """Process every scan of a session and register them to the reference scan.
+
+    Pure: reads the scan volumes and returns the results; writing them into a work
+    folder is :func:`calib.workflows.ingest.run_ingest`'s job.
 
     Parameters
     ----------
-    scans_dir : path
-        Folder with ``session.toml``.
-    work : path
-        Output folder (created); per-scan results go to ``work/scans/<name>/``.
+    session : Session
     progress : callable, optional
         Called with each scan's name when it has been processed.
 
@@ -160,22 +136,13 @@ def ingest_session(scans_dir: str | Path, work: str | Path, *, progress=None) ->
     """
     import registration
 
-    session = load_session(scans_dir)
-    work = Path(work)
     tick = progress or (lambda name: log.info("processed scan %s", name))
     scans = {s.name: _process(s, session, tick) for s in session.scans}
     regs = _register(session, scans, landmarks=False)
     tumour = _track_tumour(session, scans, regs)
     scans = {n: _with_tumour(r, tumour[n]) for n, r in scans.items()}
     regs = _register(session, scans, landmarks=True)
-    for name, res in scans.items():
-        _write_scan(work, name, res, regs[name], session)
     table = registration.format_registration_table(regs)
-    write_json_atomic(
-        work / "ingest_summary.json",
-        {"scans": {n: r.to_json() for n, r in regs.items()},
-         "provenance": provenance(inputs={"session": session.folder / "session.toml"})},
-    )  # fmt: skip
     return IngestResult(session, scans, regs, tumour, table)
 
 

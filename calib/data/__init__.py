@@ -1,0 +1,15 @@
+"""What the scans say: the session, the ingest of every scan, the measurements they give."""
+
+from .measurements import Measurements, ScanMeasurement, load_measurements
+from .session import ScanEntry, Session, SessionError, load_session, scaffold_session
+
+__all__ = [
+    "Measurements",
+    "ScanEntry",
+    "ScanMeasurement",
+    "Session",
+    "SessionError",
+    "load_measurements",
+    "load_session",
+    "scaffold_session",
+]

@@ -1,0 +1,220 @@
+"""Per-scan results of a calibrated model: surface, nipple and tumour errors (no I/O).
+
+:func:`scan_metrics` measures one simulated posture against its scan from positions
+alone (so saved deformed states can be re-measured without FE, :mod:`calib.validation`);
+:func:`evaluate` solves the postures at the calibrated c1 and measures them.
+
+Frames (as in the dissertation, ch. 3.4): ``fiducial`` maps the scan by the fiducial
+registration only; ``icp`` adds a rigid ICP of the measured surface onto the simulated
+one, which absorbs part of the model error and so is biased low.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+import fem
+
+from .data.measurements import Measurements, ScanMeasurement
+
+__all__ = ["ScanEvaluation", "ScanMetrics", "evaluate", "scan_metrics"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ScanMetrics:
+    """Errors of one simulated posture against its scan.
+
+    Attributes
+    ----------
+    nipple_error_mm : dict of str to float
+        The dissertation's nipple error (closest measured surface point to the simulated
+        nipple), by frame.
+    nipple_landmark_error_mm : float
+        Simulated nipple node to the measured nipple landmark, fiducial frame.
+    surface_error_mm : dict of str to dict
+        By frame: ``mean``, ``sd``, ``median``, ``p95``, ``max``, ``n`` of the absolute
+        distances of the measured surface points (off the back plate) to the simulated
+        surface.
+    tumour_error_mm : dict of str to float or None
+        Simulated to measured tumour centre, by frame (None without a tumour).
+    icp : dict
+        ``fitness`` and ``inlier_rmse_mm`` of the ICP.
+    T_icp : ndarray, shape (4, 4)
+        ICP transform, measured points -> simulated surface.
+    vertex_error_mm : ndarray, shape (n_vertices,)
+        Signed distance of every measured vertex to the simulated surface, fiducial frame
+        (0 on the back plate, which is not compared).
+    """
+
+    nipple_error_mm: dict
+    nipple_landmark_error_mm: float
+    surface_error_mm: dict
+    tumour_error_mm: dict | None
+    icp: dict
+    T_icp: np.ndarray
+    vertex_error_mm: np.ndarray
+
+    def to_json(self) -> dict:
+        """The per-scan error block of ``calibration.json``."""
+        out = {
+            "nipple_error_mm": self.nipple_error_mm,
+            "nipple_landmark_error_mm": {"fiducial": self.nipple_landmark_error_mm},
+            "surface_error_mm": self.surface_error_mm,
+            "icp": self.icp,
+        }
+        if self.tumour_error_mm is not None:
+            out["tumour_error_mm"] = self.tumour_error_mm
+        return out
+
+
+def _summary(s) -> dict:
+    return {"mean": s.mean_mm, "sd": s.sd_mm, "median": s.median_mm, "p95": s.p95_mm,
+            "max": s.max_mm, "n": s.n}  # fmt: skip
+
+
+def scan_metrics(
+    scan: ScanMeasurement,
+    positions_mm: np.ndarray,
+    faces: np.ndarray,
+    nipple_node: int,
+    tumour_mm: np.ndarray | None = None,
+) -> ScanMetrics:
+    """Measure a simulated posture against its scan.
+
+    Parameters
+    ----------
+    scan : ScanMeasurement
+        The measured scan (reference frame, mm).
+    positions_mm : ndarray, shape (n_nodes, 3)
+        Simulated (deformed) vertex positions of the model mesh, reference frame.
+    faces : ndarray, shape (f, 3)
+        The model's outer surface without its back face (``SimulatedSurface.faces``).
+    nipple_node : int
+        The model's nipple vertex.
+    tumour_mm : ndarray, shape (3,), optional
+        The simulated tumour centre.
+    """
+    import registration
+
+    pos = np.asarray(positions_mm, float)
+    pts = scan.vertices_mm[~scan.back_plate]
+    icp = registration.icp_refine(pts, pos[np.unique(faces)])
+    T = icp.T_target_from_source
+    T_inv = np.linalg.inv(T)
+    surf = registration.surface_errors(pts, pos, faces, frames=("fiducial", "icp"), T_icp=T)
+    nipple = registration.nipple_error(pos[nipple_node], scan.vertices_mm,
+                                       frames=("fiducial", "icp"), T_icp=T_inv)  # fmt: skip
+    tumour = None
+    if tumour_mm is not None and scan.tumour_mm is not None:
+        tumour = {
+            "fiducial": float(np.linalg.norm(tumour_mm - scan.tumour_mm)),
+            "icp": float(np.linalg.norm(registration.apply_transform(T_inv, tumour_mm)
+                                        - scan.tumour_mm)),
+        }  # fmt: skip
+    vertex_error = np.zeros(len(scan.vertices_mm))
+    vertex_error[~scan.back_plate] = surf["fiducial"].distances_mm
+    return ScanMetrics(
+        nipple_error_mm={f: e.error_mm for f, e in nipple.items()},
+        nipple_landmark_error_mm=float(np.linalg.norm(pos[nipple_node] - scan.nipple_mm)),
+        surface_error_mm={f: _summary(e.summary) for f, e in surf.items()},
+        tumour_error_mm=tumour,
+        icp={"fitness": icp.fitness, "inlier_rmse_mm": icp.inlier_rmse_mm},
+        T_icp=T,
+        vertex_error_mm=vertex_error,
+    )
+
+
+@dataclass(frozen=True)
+class ScanEvaluation:
+    """A scan at the calibrated c1: the simulated state and its errors.
+
+    Attributes
+    ----------
+    name, role : str
+    gravity_ref : ndarray, shape (3,)
+    positions_mm : ndarray, shape (n_nodes, 3) or None
+        Simulated vertex positions (None when the FE solve failed).
+    dpositions_mm : ndarray, shape (n_nodes, 3) or None
+        Their derivative in ln c1 (mm per unit ln c1), for intervals of every error.
+    tumour_mm, dtumour_mm : ndarray, shape (3,) or None
+        Simulated tumour centre and its derivative in ln c1.
+    metrics : ScanMetrics or None
+    failed : str or None
+        Why there is no FE solution at the calibrated c1.
+    """
+
+    name: str
+    role: str
+    gravity_ref: np.ndarray
+    positions_mm: np.ndarray | None
+    dpositions_mm: np.ndarray | None
+    tumour_mm: np.ndarray | None
+    dtumour_mm: np.ndarray | None
+    metrics: ScanMetrics | None
+    failed: str | None = None
+
+    def to_json(self) -> dict:
+        """The scan's block of ``calibration.json`` (``scans.<name>``)."""
+        out = {"role": self.role, "gravity_ref": self.gravity_ref.tolist()}
+        if self.failed is not None:
+            return out | {"failed": self.failed}
+        return out | self.metrics.to_json()
+
+
+def evaluate(
+    calibration,
+    measurements: Measurements | None = None,
+    *,
+    scans: list[str] | None = None,
+    gradient: bool = True,
+) -> dict[str, ScanEvaluation]:
+    """Solve every scan's posture at the calibrated c1 and measure it.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        The result of :func:`calib.fit`.
+    measurements : Measurements, optional
+        Defaults to the measurements the calibration was fitted to.
+    scans : list of str, optional
+        Scan names; default every scan but the reference.
+    gradient : bool
+        Also the derivatives in ln c1 (one more factorisation per scan).
+
+    Returns
+    -------
+    dict of str to ScanEvaluation
+        A scan whose FE solve fails at the calibrated c1 has ``failed`` set (and a
+        warning is logged), the others are evaluated regardless.
+    """
+    cal = calibration.calibrator
+    if cal is None:
+        raise ValueError("this Calibration carries no model to solve (it was loaded from JSON)")
+    meas = measurements or cal.measurements
+    names = scans or [n for n, s in meas.scans.items() if s.role != "reference"]
+    unknown = sorted(set(names) - set(meas.scans))
+    if unknown:
+        raise ValueError(f"unknown scan(s) {unknown}; the session has {sorted(meas.scans)}")
+    nipple = int(cal.mesh.node_set("nipple")[0])
+    theta = calibration.theta
+    out = {}
+    for name in names:
+        scan = meas.scans[name]
+        try:
+            st = cal.fm.evaluate(theta, {name: scan.gravity_ref}, gradient=gradient)[name]
+        except fem.ConvergenceError as exc:
+            log.warning("scan %s: no FE solution at the calibrated c1 (%s)", name, exc)
+            out[name] = ScanEvaluation(name, scan.role, scan.gravity_ref, None, None, None,
+                                       None, None, failed=str(exc))  # fmt: skip
+            continue
+        tumour = cal.tumour_position(st, gradient)
+        t, dt = (None, None) if tumour is None else tumour
+        metrics = scan_metrics(scan, st.positions_mm, cal.sim.faces, nipple, t)
+        out[name] = ScanEvaluation(name, scan.role, scan.gravity_ref, st.positions_mm,
+                                   st.dpositions_mm, t, dt, metrics)  # fmt: skip
+    return out

@@ -1,0 +1,10 @@
+"""Fitting c1: options, objective, optimiser, uncertainty, mesh check, likelihood profile.
+
+:func:`fit` is pure: measurements in, a frozen :class:`Calibration` out, no files.
+"""
+
+from .pipeline import fit
+from .options import CalibrationOptions
+from .result import SCHEMA_VERSION, Calibration
+
+__all__ = ["SCHEMA_VERSION", "Calibration", "CalibrationOptions", "fit"]

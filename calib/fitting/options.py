@@ -1,0 +1,87 @@
+"""Options of a calibration (``phantom-calib calibrate``), checked before any work."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from ..model.residuals import OBJECTIVES
+
+__all__ = ["CalibrationOptions", "check_mesh_check_ratio"]
+
+Objective = Literal["surface", "nipple", "landmarks"]
+ReferenceState = Literal["unload", "shortcut"]
+
+
+def check_mesh_check_ratio(ratio: float) -> None:
+    """Raise ``ValueError`` unless ``ratio`` lies in [0.5, 0.9] (finer) or [1.1, 3] (coarser)."""
+    if not (0.5 <= ratio <= 0.9 or 1.1 <= ratio <= 3.0):
+        raise ValueError(f"mesh check ratio must lie in [0.5, 0.9] or [1.1, 3], got {ratio}")
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    """Options of a calibration (see ``phantom-calib calibrate --help``).
+
+    Attributes
+    ----------
+    objective : {"surface", "nipple", "landmarks"}
+        The residuals fitted (:mod:`calib.model.residuals`).
+    reference_state : {"unload", "shortcut"}
+        Stress-free reference recovered by inverse elastostatics, or the dissertation's
+        shortcut (the loaded reference scan taken as stress-free, load ``g - g0``).
+    mesh_size_mm : float
+        Element edge length of the model mesh.
+    mesh_retry_mm : tuple of float
+        Sizes tried in turn when no stress-free reference exists on a mesh.
+    formulation : str
+        FE formulation (:data:`fem.FORMULATIONS`).
+    nu : float
+        Poisson's ratio of the model, in (0, 0.5).
+    max_points : int
+        Measured surface points per scan (a seeded subsample).
+    c1_guess_pa : float
+        Starting value of the first estimate.
+    max_iterations : int
+        L-BFGS-B iterations.
+    profile_points : int
+        Points of the likelihood profile over c1 (0 or 1: none).
+    mesh_check_ratio : float
+        Element-size ratio of the check mesh (0: no mesh check).
+    seed : int
+        Seed of the surface subsample.
+    """
+
+    objective: Objective = "surface"
+    reference_state: ReferenceState = "unload"
+    mesh_size_mm: float = 12.0
+    mesh_retry_mm: tuple[float, ...] = (14.0, 16.0)  # when the reference cannot be unloaded
+    formulation: str = "taylor-hood"
+    nu: float = 0.499
+    max_points: int = 3000
+    c1_guess_pa: float = 500.0
+    max_iterations: int = 30
+    profile_points: int = 5
+    mesh_check_ratio: float = 1.4
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.objective not in OBJECTIVES:
+            raise ValueError(f"objective must be one of {OBJECTIVES}, got {self.objective!r}")
+        if self.reference_state not in ("unload", "shortcut"):
+            raise ValueError(
+                f"reference state must be unload or shortcut, not {self.reference_state!r}"
+            )
+        for size in (self.mesh_size_mm, *self.mesh_retry_mm):
+            if not 1.0 <= size <= 50.0:
+                raise ValueError(f"mesh size must lie in [1, 50] mm, got {size}")
+        if not 0.0 < self.nu < 0.5:
+            raise ValueError(f"Poisson's ratio must lie in (0, 0.5), got {self.nu}")
+        if self.profile_points < 0:
+            raise ValueError(f"profile points must be >= 0, got {self.profile_points}")
+        if self.max_points < 10:
+            raise ValueError(f"max points must be >= 10, got {self.max_points}")
+        if not self.c1_guess_pa > 0:
+            raise ValueError(f"c1 guess must be positive, got {self.c1_guess_pa}")
+        if self.mesh_check_ratio:
+            check_mesh_check_ratio(self.mesh_check_ratio)

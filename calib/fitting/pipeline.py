@@ -1,0 +1,162 @@
+"""``fit``: the calibration of c1 as a pure function, measurements in, a Calibration out.
+
+No files are written and nothing is printed: progress goes to the ``progress``
+callback (or the ``calib.fitting`` logger at INFO). The steps are those of the README's
+"calib: the calibration": first estimate and stress-free reference
+(:mod:`calib.fitting.optimise`), L-BFGS-B, the 95 % interval (Gauss-Newton with the
+mesh check, or the likelihood profile for the ``nipple`` objective) and the likelihood
+profile over c1.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from ..data.measurements import Measurements
+from .meshcheck import MeshCheck, combined_ci95, mesh_check
+from .objective import Calibrator
+from .optimise import optimise, prepare
+from .options import CalibrationOptions
+from .profile import likelihood_profile, nipple_interval, profile_rows
+from .result import Calibration
+from .uncertainty import Uncertainty, gauss_newton_uncertainty
+
+__all__ = ["fit"]
+
+log = logging.getLogger(__name__)
+
+
+def _nipple_uncertainty(cal: Calibrator, theta: float, r: np.ndarray, say):
+    """The nipple objective's interval from its likelihood profile; no mesh check.
+
+    The mesh check's Gauss-Newton step needs the residual's derivative, which is about
+    zero at the nipple objective's optimum (see :mod:`calib.fitting.profile`).
+    """
+    say("95 % interval from the likelihood profile of the nipple error")
+    unc, prof = nipple_interval(cal, theta, r)
+    say(f"  noise {unc.residual_sd_mm:.3f} mm (surface near the nipple), "
+        f"{prof.evaluations} evaluations")  # fmt: skip
+    say("mesh check: not run for the nipple objective (its residual is flat in c1 at the "
+        "optimum, so a Gauss-Newton step on another mesh is meaningless)")  # fmt: skip
+    return unc, None, unc.c1_ci95_pa, profile_rows(prof, len(r))
+
+
+def _mesh_check(cal: Calibrator, theta: float, unc: Uncertainty, say):
+    """The mesh check (coarser, then finer if that fails) and the combined 95 % interval."""
+    o = cal.options
+    if not o.mesh_check_ratio or unc.se_ln_c1 is None:
+        return None, unc.c1_ci95_pa
+    say(f"mesh check: the objective on a {o.mesh_size_mm * o.mesh_check_ratio:.1f} mm mesh")
+    check = mesh_check(cal, theta, ratio=o.mesh_check_ratio)
+    if check.gci_ln_c1 is None and o.mesh_check_ratio > 1.0:
+        finer = 1.0 / o.mesh_check_ratio
+        say(f"mesh check on the coarser mesh failed ({check.failure}); checking on a "
+            f"{o.mesh_size_mm * finer:.1f} mm mesh instead")  # fmt: skip
+        check = mesh_check(cal, theta, ratio=finer)
+    if check.gci_ln_c1 is None:
+        say(f"mesh check failed ({check.failure}): the interval reflects noise only")
+        return check, unc.c1_ci95_pa
+    return check, combined_ci95(float(np.exp(theta)), unc.se_ln_c1, check.gci_ln_c1)
+
+
+def _measured_area_mm2(cal: Calibrator) -> float:
+    """Area of the calibration scans' measured surfaces off the back plate, mm^2."""
+    total = 0.0
+    for s in cal.calibration_scans:
+        off = ~s.back_plate[s.faces].all(axis=1)
+        tri = s.vertices_mm[s.faces[off]]
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        total += 0.5 * float(np.linalg.norm(cross, axis=1).sum())
+    return total
+
+
+def _uncertainty(cal: Calibrator, theta: float, say):
+    """Interval, mesh check and likelihood profile at the calibrated ``theta``."""
+    final = cal.residuals(theta, cal.calibration_scans, gradient=True)
+    r = np.concatenate([v.r for v in final.values()])
+    if cal.options.objective == "nipple":
+        return _nipple_uncertainty(cal, theta, r, say)
+    dr = np.concatenate([v.dr for v in final.values()])
+    pts = np.concatenate([v.points_mm for v in final.values()])
+    area = _measured_area_mm2(cal) if cal.options.objective == "surface" else None
+    unc = gauss_newton_uncertainty(float(np.exp(theta)), r, dr, pts, area_mm2=area)
+    check, ci95 = _mesh_check(cal, theta, unc, say)
+    if cal.options.profile_points >= 2:
+        say(f"likelihood profile over c1: {cal.options.profile_points} points")
+    profile = likelihood_profile(cal, theta, unc.se_ln_c1, unc.n_effective)
+    return unc, check, ci95, profile
+
+
+def fit(
+    measurements: Measurements,
+    options: CalibrationOptions | None = None,
+    *,
+    density_kg_m3: float = 1000.0,
+    progress: Callable[[str], None] | None = None,
+) -> Calibration:
+    """Calibrate c1 on the calibration scans of a session.
+
+    Parameters
+    ----------
+    measurements : Measurements
+        Every scan after ingest (:func:`calib.data.load_measurements`), reference frame.
+    options : CalibrationOptions, optional
+        Defaults to ``CalibrationOptions()`` (surface objective, unload, 12 mm mesh).
+    density_kg_m3 : float
+        Phantom density (the session's ``phantom.density_kg_m3``).
+    progress : callable, optional
+        Called with a line of text at every step and FE evaluation.
+
+    Returns
+    -------
+    Calibration
+
+    Raises
+    ------
+    ValueError
+        No scan with role ``calibration``.
+    fem.ConvergenceError
+        No stress-free reference on any model mesh tried.
+    """
+    options = options or CalibrationOptions()
+    say = progress or log.info
+    t0 = time.perf_counter()
+    cal, theta0, failed_sizes = prepare(measurements, options, density_kg_m3, say)
+    theta, value, status = optimise(cal, say, theta0)
+    c1 = float(np.exp(theta))
+    say(f"c1 = {c1:.1f} Pa after {status.iterations} iterations ({cal.fm.solves} FE solves)")
+    unc, check, ci95, profile = _uncertainty(cal, theta, say)
+    cal.fm.stress_free(theta)  # the calibrated c1's geometry again (the profile moved it)
+    o = cal.options
+    return Calibration(
+        c1_pa=c1,
+        c1_ci95_pa=None if ci95 is None else (float(ci95[0]), float(ci95[1])),
+        objective=o.objective,
+        objective_value_mm2=value,
+        reference_state=o.reference_state,
+        uncertainty=unc,
+        mesh_check=check if isinstance(check, MeshCheck) else None,
+        optimiser=status,
+        history=tuple(cal.history),
+        profile=tuple(profile),
+        mesh={
+            "n_tets": cal.mesh.n_tets,
+            "n_nodes": cal.mesh.n_nodes,
+            "size_mm": o.mesh_size_mm,
+            "failed_sizes": failed_sizes,
+            "formulation": o.formulation,
+        },  # fmt: skip
+        reference_recovery={
+            "method": cal.fm.unload_method if o.reference_state == "unload" else "none (shortcut)",
+            "inverted_elements": cal.fm.inverted_reference_elements,
+        },
+        fe_solves=int(cal.fm.solves),
+        wall_s=time.perf_counter() - t0,
+        options=o,
+        density_kg_m3=density_kg_m3,
+        calibrator=cal,
+    )

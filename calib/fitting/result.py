@@ -1,0 +1,173 @@
+"""The result of a calibration: a frozen :class:`Calibration` and its JSON form."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from .meshcheck import MeshCheck
+from .optimise import OptimiserStatus
+from .options import CalibrationOptions
+from .uncertainty import Uncertainty
+
+__all__ = ["SCHEMA_VERSION", "Calibration"]
+
+#: Version of ``calibration.json``. 1: the keys of phantom-calib 0.1 plus
+#: ``schema_version``, ``optimiser`` and ``model``.
+SCHEMA_VERSION = 1
+
+FRAMES = {
+    "fiducial": "scans mapped by the fiducial registration only (no ICP)",
+    "icp": "after rigid ICP of the measured onto the simulated surface "
+    "(biased low: it absorbs part of the model error)",
+}
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A fitted c1 with its uncertainty, the optimiser's record and the fitted model.
+
+    Attributes
+    ----------
+    c1_pa : float
+        Calibrated neo-Hookean c1 (shear modulus 2 c1), Pa.
+    c1_ci95_pa : tuple of float or None
+        95 % interval (noise and mesh check; the likelihood profile for ``nipple``);
+        None when the data do not bound c1 within x/÷ 4.
+    objective : str
+    objective_value_mm2 : float
+        ``J = mean(r^2) / 2`` at ``c1_pa``.
+    reference_state : str
+    uncertainty : Uncertainty
+    mesh_check : MeshCheck or None
+    optimiser : OptimiserStatus
+    history : tuple of dict
+        Every objective evaluation (``c1_pa``, ``objective``, ``gradient``, ``rms_mm``,
+        ``wall_s``; ``failed`` for a failed FE solve).
+    profile : tuple of dict
+        The likelihood profile's rows.
+    mesh : dict
+        ``n_tets``, ``n_nodes``, ``size_mm``, ``failed_sizes``, ``formulation``.
+    reference_recovery : dict
+        ``method`` and ``inverted_elements`` of the stress-free recovery.
+    fe_solves : int
+    wall_s : float
+    options : CalibrationOptions
+    density_kg_m3 : float
+    calibrator : Calibrator
+        The live model at the calibrated c1 (mesh, stress-free geometry, warm starts),
+        used by :func:`calib.evaluate`; not part of the JSON form.
+    """
+
+    c1_pa: float
+    c1_ci95_pa: tuple[float, float] | None
+    objective: str
+    objective_value_mm2: float
+    reference_state: str
+    uncertainty: Uncertainty
+    mesh_check: MeshCheck | None
+    optimiser: OptimiserStatus
+    history: tuple[dict, ...]
+    profile: tuple[dict, ...]
+    mesh: dict
+    reference_recovery: dict
+    fe_solves: int
+    wall_s: float
+    options: CalibrationOptions
+    density_kg_m3: float
+    calibrator: object = field(repr=False, compare=False, default=None)
+
+    @property
+    def theta(self) -> float:
+        """``ln c1`` (c1 in Pa), the fitted parameter."""
+        return float(np.log(self.c1_pa))
+
+    def model_json(self) -> dict:
+        """The fitted model's physical description (the ``model`` block)."""
+        cal = self.calibrator
+        o = self.options
+        doc = {
+            "law": "neo-hookean (uncoupled), W = c1 (I1bar - 3) + U(J)",
+            "nu": o.nu,
+            "density_kg_m3": self.density_kg_m3,
+            "formulation": o.formulation,
+            "support": "clamped",
+            "g_m_s2": None,
+            "reference_scan": None,
+            "tumour_stress_free_mm": None,
+            "nipple_node": None,
+        }
+        if cal is not None:
+            fm = cal.fm
+            doc["g_m_s2"] = fm.g_m_s2
+            doc["reference_scan"] = cal.measurements.reference.name
+            doc["nipple_node"] = int(cal.mesh.node_set("nipple")[0])
+            if cal.tumour is not None and fm.stress_free_nodes_mm is not None:
+                doc["tumour_stress_free_mm"] = cal.tumour.place_mm(fm.stress_free_nodes_mm).tolist()
+        return doc
+
+    def to_json(self, *, scans: dict | None = None, provenance: dict | None = None) -> dict:
+        """The ``calibration.json`` document (see the README's output contract).
+
+        Parameters
+        ----------
+        scans : dict, optional
+            Per-scan results (``ScanEvaluation.to_json()`` of :func:`calib.evaluate`).
+        provenance : dict, optional
+            Versions, input hashes and options (:func:`calib.io.provenance`).
+        """
+        ci = self.c1_ci95_pa
+        return {
+            "schema_version": SCHEMA_VERSION,
+            "c1_pa": self.c1_pa,
+            "c1_ci95_pa": list(ci) if ci is not None else None,
+            "objective": self.objective,
+            "objective_value_mm2": self.objective_value_mm2,
+            "reference_state": self.reference_state,
+            "uncertainty": asdict(self.uncertainty)
+            | {"mesh_check": asdict(self.mesh_check) if self.mesh_check else None},
+            "frames": FRAMES,
+            "scans": scans or {},
+            "iterations": self.optimiser.iterations,
+            "fe_solves": self.fe_solves,
+            "optimiser": self.optimiser.to_json(),
+            "reference_recovery": self.reference_recovery,
+            "history": list(self.history),
+            "profile": list(self.profile),
+            "mesh": self.mesh,
+            "model": self.model_json(),
+            "wall_s": self.wall_s,
+            "provenance": provenance or {},
+        }
+
+    def summary(self) -> str:
+        """One line: c1, interval, objective, reference state."""
+        ci = self.c1_ci95_pa
+        interval = (f"95 % interval {ci[0]:.1f} - {ci[1]:.1f} Pa" if ci is not None else
+                    "no 95 % interval: the data do not bound c1")  # fmt: skip
+        return (f"c1 = {self.c1_pa:.1f} Pa ({interval}), objective {self.objective}, "
+                f"reference state {self.reference_state}")  # fmt: skip
+
+    def __repr__(self) -> str:
+        return (f"Calibration({self.summary()}; {self.optimiser.iterations} iterations, "
+                f"{self.fe_solves} FE solves, {self.wall_s:.0f} s)")  # fmt: skip
+
+    def _repr_html_(self) -> str:
+        from html import escape
+
+        ci = self.c1_ci95_pa
+        rows = [
+            ("c1", f"{self.c1_pa:.1f} Pa"),
+            ("95 % interval", f"{ci[0]:.1f} – {ci[1]:.1f} Pa" if ci else "not bounded"),
+            ("objective", f"{self.objective} ({self.objective_value_mm2:.4g} mm²)"),
+            ("reference state", self.reference_state),
+            ("optimiser", f"{'converged' if self.optimiser.success else 'NOT converged'}: "
+                          f"{self.optimiser.message}"),
+            ("iterations / FE solves", f"{self.optimiser.iterations} / {self.fe_solves}"),
+            ("model mesh", f"{self.mesh.get('n_tets')} tets, {self.mesh.get('size_mm')} mm"),
+            ("wall time", f"{self.wall_s:.0f} s"),
+        ]  # fmt: skip
+        body = "".join(f"<tr><th style='text-align:left'>{escape(k)}</th><td>{escape(v)}</td></tr>"
+                       for k, v in rows)  # fmt: skip
+        return f"<table><caption>Calibration</caption>{body}</table>"

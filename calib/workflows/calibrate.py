@@ -1,0 +1,147 @@
+"""``phantom-calib calibrate``: ingest (when needed), fit, evaluate, write WORK.
+
+Writes ``WORK/calibration.json`` and ``WORK/calibration/`` as one run
+(:class:`calib.io.RunOutputs`): the stress-free reference mesh, and per scan the
+deformed mesh (with the derivative of every vertex position in ln c1, so the
+validation can propagate the c1 interval without FE), the error map (PNG, two views)
+and the measured surface with a per-vertex error (PLY).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from ..data.measurements import load_measurements
+from ..data.session import load_session
+from ..evaluation import ScanEvaluation, evaluate
+from ..fitting import Calibration, CalibrationOptions, fit
+from ..io import RunOutputs, provenance
+from ..report.maps import error_map_figure, save_figure, write_error_ply
+
+__all__ = ["check_work_folder", "run_calibration", "write_calibration"]
+
+log = logging.getLogger(__name__)
+
+FOLDER, RECORD = "calibration", "calibration.json"
+
+
+def check_work_folder(work: Path) -> None:
+    """Fail early when ``work`` cannot hold results (a file, or not writable)."""
+    if work.exists() and not work.is_dir():
+        raise NotADirectoryError(f"--out {work}: exists and is not a folder")
+    probe = work if work.exists() else next((p for p in work.parents if p.exists()), Path("."))
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise PermissionError(f"--out {work}: {probe} is not writable")
+
+
+def _scan_files(run: RunOutputs, cal: Calibration, ev: ScanEvaluation) -> list[str]:
+    from fem.io import write_mesh
+
+    c = cal.calibrator
+    scan = c.measurements.scans[ev.name]
+    m = ev.metrics
+    write_error_ply(run.path(f"{ev.name}_error.ply"), scan.vertices_mm, scan.faces,
+                    m.vertex_error_mm)  # fmt: skip
+    off = ~scan.back_plate
+    err = m.vertex_error_mm[off]
+    fig = error_map_figure(scan.vertices_mm[off], err,
+                           f"{ev.name}: c1 = {cal.c1_pa:.0f} Pa, fiducial frame, mean |e| = "
+                           f"{np.mean(np.abs(err)):.2f} mm")  # fmt: skip
+    save_figure(fig, run.path(f"{ev.name}_error.png"))
+    X = c.fm.stress_free_nodes_mm
+    data = {"displacement_mm": ev.positions_mm - X}
+    if ev.dpositions_mm is not None:
+        data["dposition_dlnc1_mm"] = ev.dpositions_mm
+    write_mesh(c.mesh.with_nodes(ev.positions_mm), run.path(f"{ev.name}_deformed.vtu"),
+               point_data=data)  # fmt: skip
+    return [f"{FOLDER}/{ev.name}_error.ply", f"{FOLDER}/{ev.name}_error.png",
+            f"{FOLDER}/{ev.name}_deformed.vtu"]  # fmt: skip
+
+
+def _scan_json(ev: ScanEvaluation, files: list[str]) -> dict:
+    out = ev.to_json()
+    if ev.failed is None:
+        out["model"] = {
+            "nipple_mm": None,
+            "tumour_mm": None if ev.tumour_mm is None else ev.tumour_mm.tolist(),
+            "dtumour_dlnc1_mm": None if ev.dtumour_mm is None else ev.dtumour_mm.tolist(),
+        }
+        out["files"] = files
+    return out
+
+
+def write_calibration(
+    work: str | Path,
+    calibration: Calibration,
+    evaluations: dict[str, ScanEvaluation],
+    *,
+    inputs: dict,
+    wall_s: float,
+) -> dict:
+    """Write ``WORK/calibration.json`` and ``WORK/calibration/`` as one run; return the record."""
+    from fem.io import write_mesh
+
+    c = calibration.calibrator
+    nipple = int(c.mesh.node_set("nipple")[0])
+    with RunOutputs(work, folder=FOLDER, record=RECORD) as run:
+        write_mesh(c.mesh.with_nodes(c.fm.stress_free_nodes_mm), run.path("reference_mesh.vtu"))
+        scans = {}
+        for name, ev in evaluations.items():
+            files = _scan_files(run, calibration, ev) if ev.failed is None else []
+            scans[name] = _scan_json(ev, files)
+            if ev.failed is None:
+                scans[name]["model"]["nipple_mm"] = ev.positions_mm[nipple].tolist()
+        doc = calibration.to_json(
+            scans=scans,
+            provenance=provenance(inputs=inputs, parameters=asdict(calibration.options)),
+        )
+        doc["model"]["reference_mesh"] = f"{FOLDER}/reference_mesh.vtu"
+        doc["fe_solves"] = int(c.fm.solves)  # with the final states of every scan
+        doc["wall_s"] = wall_s
+        return run.commit(doc)
+
+
+def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=None) -> dict:
+    """Calibrate c1 on a scan session and write ``WORK/calibration.json`` and maps.
+
+    Parameters
+    ----------
+    scans_dir : path
+        Folder with ``session.toml``.
+    work : path
+        Work folder; the scans are ingested into it first when their results are missing.
+    options : CalibrationOptions
+    progress : callable, optional
+        Called with a line of text at every step.
+
+    Returns
+    -------
+    dict
+        The ``calibration.json`` record.
+    """
+    say = progress or log.info
+    t0 = time.perf_counter()
+    work = Path(work)
+    check_work_folder(work)
+    session = load_session(scans_dir)
+    if not all((work / "scans" / s.name / "ingest.json").is_file() for s in session.scans):
+        from .ingest import run_ingest
+
+        say("ingesting scans")
+        run_ingest(scans_dir, work)
+    meas = load_measurements(work, session)
+    calibration = fit(meas, options, density_kg_m3=session.density_kg_m3, progress=say)
+    targets = [n for n, s in meas.scans.items() if s.role != "reference"]
+    say(f"final state of {len(targets)} scans, error maps")
+    evaluations = evaluate(calibration, meas, scans=targets)
+    inputs = {"session": session.folder / "session.toml"} | {
+        f"{s.name}/ingest.json": work / "scans" / s.name / "ingest.json" for s in session.scans
+    }
+    return write_calibration(work, calibration, evaluations, inputs=inputs,
+                             wall_s=time.perf_counter() - t0)  # fmt: skip

@@ -1,0 +1,77 @@
+"""``phantom-calib ingest``: write every scan's surfaces, landmarks and frames into WORK.
+
+Per scan ``WORK/scans/<name>/surface.ply`` (scan LPS mm), ``surface_ref.ply`` (reference
+LPS mm), ``mask.nii.gz`` and ``ingest.json``, and ``WORK/ingest_summary.json`` (see the
+README's output contract).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+from pathlib import Path
+
+from ..data.ingest import IngestResult, ingest_scans
+from ..data.session import Session, load_session
+from ..io import provenance, write_json_atomic
+
+__all__ = ["run_ingest", "write_ingest"]
+
+log = logging.getLogger(__name__)
+
+
+def _write_scan(work: Path, name: str, res, reg, session: Session) -> None:
+    import imaging
+    from registration import apply_transform
+
+    folder = work / "scans" / name
+    folder.mkdir(parents=True, exist_ok=True)
+    imaging.write_ply(folder / "surface.ply", res.surface)
+    ref_vertices = apply_transform(reg.T_ref_from_scan, res.surface.vertices_lps_mm)
+    imaging.write_ply(
+        folder / "surface_ref.ply", replace(res.surface, vertices_lps_mm=ref_vertices)
+    )
+    imaging.write_nifti(res.mask, folder / "mask.nii.gz")
+    entry = next(s for s in session.scans if s.name == name)
+    doc = {"name": name, "role": entry.role, "source": str(entry.path)}
+    doc |= res.to_json_dict() | reg.to_json()
+    doc["frames"] = {
+        "scan": "this scan's LPS frame (mm): fiducials_lps_mm, nipple_lps_mm, tumour_lps_mm, "
+        "inclusions, surface.ply",
+        "reference": "the reference scan's LPS frame (mm): surface_ref.ply, gravity_ref; "
+        "T_ref_from_scan maps scan points to it",
+    }
+    write_json_atomic(folder / "ingest.json", doc)
+
+
+def write_ingest(work: str | Path, result: IngestResult) -> None:
+    """Write an :class:`~calib.data.ingest.IngestResult` into ``work``."""
+    work = Path(work)
+    for name, res in result.scans.items():
+        _write_scan(work, name, res, result.registrations[name], result.session)
+    write_json_atomic(
+        work / "ingest_summary.json",
+        {"scans": {n: r.to_json() for n, r in result.registrations.items()},
+         "provenance": provenance(inputs={"session": result.session.folder / "session.toml"})},
+    )  # fmt: skip
+
+
+def run_ingest(scans_dir: str | Path, work: str | Path, *, progress=None) -> IngestResult:
+    """Ingest the session in ``scans_dir`` and write the results into ``work``.
+
+    Parameters
+    ----------
+    scans_dir : path
+        Folder with ``session.toml``.
+    work : path
+        Output folder (created); per-scan results go to ``work/scans/<name>/``.
+    progress : callable, optional
+        Called with each scan's name when it has been processed.
+
+    Returns
+    -------
+    IngestResult
+    """
+    result = ingest_scans(load_session(scans_dir), progress=progress)
+    write_ingest(work, result)
+    return result

@@ -1,0 +1,87 @@
+"""Material points: follow a point of the body (a tumour centre, a marker) through solves.
+
+A material point is fixed by the element that contains it and its barycentric
+coordinates there. Elements are affine, so these coordinates do not change when the
+nodes move: the point's position in any configuration of the same mesh (the loaded
+scan, the recovered stress-free geometry) is the barycentric mix of that element's
+vertices, and its displacement is the formulation's full-order interpolation of the
+solver state at the same coordinates (P2 for Taylor-Hood).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from .discretize import Discretization, _skfem_mesh
+from .units import MM_PER_M, mm_to_m
+
+__all__ = ["MaterialPoint"]
+
+
+@dataclass(frozen=True)
+class MaterialPoint:
+    """A point of the body, followed by its barycentric coordinates.
+
+    Attributes
+    ----------
+    vertex_weights : scipy.sparse.csr_matrix, shape (1, n_nodes)
+        Barycentric weights on the mesh vertices (4 non-zeros).
+    shape_weights : scipy.sparse.csr_matrix, shape (1, n_scalar_u)
+        Values of the displacement shape functions at the point.
+    R_solver_from_model : ndarray, shape (3, 3)
+        The discretization's rotation (solver vectors are in its frame, metres).
+    """
+
+    vertex_weights: sp.csr_matrix
+    shape_weights: sp.csr_matrix
+    R_solver_from_model: np.ndarray
+
+    @classmethod
+    def locate(cls, disc: Discretization, point_mm: np.ndarray) -> MaterialPoint:
+        """The material point at ``point_mm`` of ``disc.mesh``'s current geometry.
+
+        Parameters
+        ----------
+        disc : Discretization
+            Of the mesh in the configuration where ``point_mm`` is given.
+        point_mm : array_like, shape (3,)
+            Model frame, mm.
+
+        Raises
+        ------
+        ValueError
+            The point lies outside the mesh.
+        """
+        from skfem import Basis, ElementTetP1
+
+        R = disc.R_solver_from_model
+        pts = mm_to_m(np.asarray(point_mm, float).reshape(1, 3)) @ R.T
+        try:
+            p1 = Basis(_skfem_mesh(disc.mesh, R), ElementTetP1(), intorder=1)
+            vertex = p1.probes(pts.T)
+            shape = disc.basis().probes(pts.T)
+        except ValueError as exc:
+            raise ValueError(f"material point {np.ravel(point_mm)} lies outside the mesh") from exc
+        return cls(sp.csr_matrix(vertex), sp.csr_matrix(shape), R)
+
+    def place_mm(self, nodes_mm: np.ndarray) -> np.ndarray:
+        """Position (mm) of the point in a configuration of the mesh's vertices, (3,)."""
+        return np.asarray(self.vertex_weights @ nodes_mm)[0]
+
+    def displacement_mm(self, state: np.ndarray) -> np.ndarray:
+        """Displacement (mm, model frame) of the point from a solver state, (3,)."""
+        n = self.shape_weights.shape[1]
+        u = np.asarray(state[: 3 * n]).reshape(-1, 3)
+        return np.asarray(self.shape_weights @ u)[0] @ self.R_solver_from_model * MM_PER_M
+
+    def position_mm(self, nodes_mm: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """Current position (mm): the point in ``nodes_mm`` plus its displacement, (3,).
+
+        By linearity the same call maps derivatives: ``position_mm(dX, dstate)`` is the
+        derivative of the position when the nodes and the state have derivatives
+        ``dX`` and ``dstate``.
+        """
+        return self.place_mm(nodes_mm) + self.displacement_mm(state)
