@@ -11,7 +11,7 @@ from .optimise import OptimiserStatus
 from .options import CalibrationOptions
 from .uncertainty import Uncertainty
 
-__all__ = ["SCHEMA_VERSION", "Calibration"]
+__all__ = ["SCHEMA_VERSION", "Calibration", "phantom_frame"]
 
 #: Version of ``calibration.json``. 1: the keys of phantom-calib 0.1 plus
 #: ``schema_version``, ``optimiser`` and ``model``.
@@ -22,6 +22,31 @@ FRAMES = {
     "icp": "after rigid ICP of the measured onto the simulated surface "
     "(biased low: it absorbs part of the model error)",
 }
+
+
+def phantom_frame(reference) -> np.ndarray:
+    """Rotation ``R_ref_from_phantom`` (3, 3) of the phantom frame of posture angles.
+
+    The phantom frame's columns in the reference scan's frame: ``z`` points from the back
+    plate into the breast (minus the back plate's outward normal), ``x`` is the reference
+    scan's gravity made orthogonal to ``z`` (posture angle 0, left lateral), ``y = z x x``.
+    A posture angle ``a`` in the transverse (x-z) plane is the gravity
+    ``R_ref_from_phantom @ (cos a, 0, sin a)`` (:func:`fem.postures.gravity_for_angle`).
+
+    Parameters
+    ----------
+    reference : ScanMeasurement
+        The reference scan (its gravity and back plane, reference frame).
+    """
+    z = -np.asarray(reference.back_normal, float)
+    z /= np.linalg.norm(z)
+    x = np.asarray(reference.gravity_ref, float)
+    x = x - (x @ z) * z
+    if np.linalg.norm(x) < 1e-6:
+        raise ValueError("the reference scan's gravity is normal to the back plate: "
+                         "its posture angle is undefined")  # fmt: skip
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z])
 
 
 @dataclass(frozen=True)
@@ -97,12 +122,14 @@ class Calibration:
             "reference_scan": None,
             "tumour_stress_free_mm": None,
             "nipple_node": None,
+            "R_ref_from_phantom": None,
         }
         if cal is not None:
             fm = cal.fm
             doc["g_m_s2"] = fm.g_m_s2
             doc["reference_scan"] = cal.measurements.reference.name
             doc["nipple_node"] = int(cal.mesh.node_set("nipple")[0])
+            doc["R_ref_from_phantom"] = phantom_frame(cal.measurements.reference).tolist()
             if cal.tumour is not None and fm.stress_free_nodes_mm is not None:
                 doc["tumour_stress_free_mm"] = cal.tumour.place_mm(fm.stress_free_nodes_mm).tolist()
         return doc
