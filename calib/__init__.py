@@ -28,7 +28,9 @@ __all__ = [
     "ingest",
     "load_measurements",
     "load_session",
+    "load_work",
     "synthesize",
+    "validate",
 ]
 
 # public name -> (module, attribute); imported on first access (PEP 562)
@@ -42,6 +44,8 @@ _LAZY = {
     "synthesize": ("calib.twin", "synthesize"),
     "ingest": ("calib.api", "ingest"),
     "calibrate": ("calib.api", "calibrate"),
+    "validate": ("calib.api", "validate"),
+    "load_work": ("calib.api", "load_work"),
 }
 
 

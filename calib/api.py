@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["calibrate", "ingest"]
+__all__ = ["calibrate", "ingest", "load_work", "validate"]
 
 
 def ingest(scans: str | Path, work: str | Path, *, progress=None):
@@ -35,3 +35,23 @@ def calibrate(scans: str | Path, work: str | Path, *, progress=None, **options) 
     from .workflows.calibrate import run_calibration
 
     return run_calibration(scans, work, CalibrationOptions(**options), progress=progress)
+
+
+def validate(work: str | Path, *, progress=None) -> dict:
+    """Write the validation report of a calibrated work folder (``phantom-calib validate``).
+
+    Returns
+    -------
+    dict
+        The ``validation.json`` record.
+    """
+    from .workflows.validate import run_validation
+
+    return run_validation(work, progress=progress)
+
+
+def load_work(work: str | Path):
+    """A calibrated work folder as an object (:class:`calib.notebook.Work`), for notebooks."""
+    from .notebook import Work
+
+    return Work.load(work)

@@ -73,8 +73,14 @@ class ScanMetrics:
 
 
 def _summary(s) -> dict:
-    return {"mean": s.mean_mm, "sd": s.sd_mm, "median": s.median_mm, "p95": s.p95_mm,
-            "max": s.max_mm, "n": s.n}  # fmt: skip
+    return {
+        "mean": s.mean_mm,
+        "sd": s.sd_mm,
+        "median": s.median_mm,
+        "p95": s.p95_mm,
+        "max": s.max_mm,
+        "n": s.n,
+    }
 
 
 def scan_metrics(
@@ -107,15 +113,17 @@ def scan_metrics(
     T = icp.T_target_from_source
     T_inv = np.linalg.inv(T)
     surf = registration.surface_errors(pts, pos, faces, frames=("fiducial", "icp"), T_icp=T)
-    nipple = registration.nipple_error(pos[nipple_node], scan.vertices_mm,
-                                       frames=("fiducial", "icp"), T_icp=T_inv)  # fmt: skip
+    nipple = registration.nipple_error(
+        pos[nipple_node], scan.vertices_mm, frames=("fiducial", "icp"), T_icp=T_inv
+    )
     tumour = None
     if tumour_mm is not None and scan.tumour_mm is not None:
         tumour = {
             "fiducial": float(np.linalg.norm(tumour_mm - scan.tumour_mm)),
-            "icp": float(np.linalg.norm(registration.apply_transform(T_inv, tumour_mm)
-                                        - scan.tumour_mm)),
-        }  # fmt: skip
+            "icp": float(
+                np.linalg.norm(registration.apply_transform(T_inv, tumour_mm) - scan.tumour_mm)
+            ),
+        }
     vertex_error = np.zeros(len(scan.vertices_mm))
     vertex_error[~scan.back_plate] = surf["fiducial"].distances_mm
     return ScanMetrics(
@@ -209,12 +217,14 @@ def evaluate(
             st = cal.fm.evaluate(theta, {name: scan.gravity_ref}, gradient=gradient)[name]
         except fem.ConvergenceError as exc:
             log.warning("scan %s: no FE solution at the calibrated c1 (%s)", name, exc)
-            out[name] = ScanEvaluation(name, scan.role, scan.gravity_ref, None, None, None,
-                                       None, None, failed=str(exc))  # fmt: skip
+            out[name] = ScanEvaluation(
+                name, scan.role, scan.gravity_ref, None, None, None, None, None, failed=str(exc)
+            )
             continue
         tumour = cal.tumour_position(st, gradient)
         t, dt = (None, None) if tumour is None else tumour
         metrics = scan_metrics(scan, st.positions_mm, cal.sim.faces, nipple, t)
-        out[name] = ScanEvaluation(name, scan.role, scan.gravity_ref, st.positions_mm,
-                                   st.dpositions_mm, t, dt, metrics)  # fmt: skip
+        out[name] = ScanEvaluation(
+            name, scan.role, scan.gravity_ref, st.positions_mm, st.dpositions_mm, t, dt, metrics
+        )
     return out

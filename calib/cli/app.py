@@ -192,6 +192,27 @@ def calibrate(
         fail(exc)
     typer.echo(format_calibration(doc))
     typer.echo(f"wrote {out / 'calibration.json'} and {out / 'calibration'}/")
+    _validate(out)
+
+
+def _validate(work: Path) -> None:
+    from ..report.tables import format_validation
+    from ..workflows.validate import run_validation
+
+    try:
+        doc = run_validation(work, progress=lambda msg: typer.echo(f"  {msg}"))
+    except (ValueError, OSError, RuntimeError, KeyError) as exc:
+        fail(exc)
+    typer.echo(format_validation(doc))
+    typer.echo(f"wrote {work / 'validation.json'} and {work / 'validation'}/report.html")
+
+
+@app.command()
+def validate(
+    work: Annotated[Path, typer.Argument(help="A work folder that `calibrate` wrote.")],
+) -> None:
+    """Validate the calibrated model against the validation scans (no FE: saved states)."""
+    _validate(work)
 
 
 def main() -> None:

@@ -2,14 +2,18 @@
 
 from .measurements import Measurements, ScanMeasurement, load_measurements
 from .session import ScanEntry, Session, SessionError, load_session, scaffold_session
+from .work import SavedState, WorkFolder, read_work
 
 __all__ = [
     "Measurements",
+    "SavedState",
     "ScanEntry",
     "ScanMeasurement",
     "Session",
     "SessionError",
     "load_measurements",
     "load_session",
+    "read_work",
     "scaffold_session",
+    "WorkFolder",
 ]

@@ -10,7 +10,7 @@ import numpy as np
 
 from .session import ScanEntry, Session
 
-__all__ = ["Measurements", "ScanMeasurement", "load_measurements"]
+__all__ = ["Measurements", "ScanMeasurement", "load_measurements", "read_scan"]
 
 
 @dataclass(frozen=True)
@@ -69,7 +69,8 @@ class Measurements:
 BACK_PLATE_TOL_MM = 1.5  # as imaging.process_scan flags the back plate
 
 
-def _scan(work: Path, entry: ScanEntry) -> ScanMeasurement:
+def read_scan(work: Path, entry: ScanEntry) -> ScanMeasurement:
+    """One scan's measurements from ``WORK/scans/<name>/`` (role from ``entry``)."""
     import imaging
     from registration import apply_transform
 
@@ -113,5 +114,5 @@ def load_measurements(work: str | Path, session: Session) -> Measurements:
     ]
     if missing:
         raise FileNotFoundError(f"{work}: no ingest results for {missing}; run ingest first")
-    scans = {s.name: _scan(work, s) for s in session.scans}
+    scans = {s.name: read_scan(work, s) for s in session.scans}
     return Measurements(scans[session.reference.name], scans)

@@ -52,9 +52,14 @@ class OptimiserStatus:
 
     def to_json(self) -> dict:
         """The ``optimiser`` block of ``calibration.json``."""
-        return {"success": self.success, "message": self.message,
-                "iterations": self.iterations, "evaluations": self.evaluations,
-                "failed_evaluations": self.failed_evaluations, "bound": self.bound}  # fmt: skip
+        return {
+            "success": self.success,
+            "message": self.message,
+            "iterations": self.iterations,
+            "evaluations": self.evaluations,
+            "failed_evaluations": self.failed_evaluations,
+            "bound": self.bound,
+        }
 
 
 def _start(cal: Calibrator, progress) -> float:
@@ -85,10 +90,15 @@ def prepare(
     attempts: list[dict] = []
 
     def attempt(size: float):
-        cal = Calibrator(measurements, replace(options, mesh_size_mm=size, mesh_retry_mm=()),
-                         density_kg_m3=density_kg_m3)  # fmt: skip
-        say(f"reference mesh: {cal.mesh.n_tets} tets ({size:g} mm); calibration scans: "
-            f"{[s.name for s in cal.calibration_scans]}")  # fmt: skip
+        cal = Calibrator(
+            measurements,
+            replace(options, mesh_size_mm=size, mesh_retry_mm=()),
+            density_kg_m3=density_kg_m3,
+        )
+        say(
+            f"reference mesh: {cal.mesh.n_tets} tets ({size:g} mm); calibration scans: "
+            f"{[s.name for s in cal.calibration_scans]}"
+        )
         return cal, _start(cal, say), attempts
 
     sizes = (options.mesh_size_mm, *options.mesh_retry_mm)
@@ -97,8 +107,10 @@ def prepare(
             return attempt(size)
         except fem.ConvergenceError as exc:
             attempts.append({"mesh_size_mm": size, "failure": str(exc)})
-            say(f"no stress-free reference on the {size:g} mm model mesh (the clamped rim "
-                "degenerates); trying the next size")  # fmt: skip
+            say(
+                f"no stress-free reference on the {size:g} mm model mesh (the clamped rim "
+                "degenerates); trying the next size"
+            )
     return attempt(sizes[-1])
 
 
@@ -159,18 +171,27 @@ def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, Op
         return J, g / s
 
     bound = np.log(4.0) * s
-    res = minimize(f, [0.0], jac=True, method="L-BFGS-B", bounds=[(-bound, bound)],
-                   options={"maxiter": cal.options.max_iterations, "ftol": 1e-9,
-                            "gtol": 1e-3})  # fmt: skip
+    res = minimize(
+        f,
+        [0.0],
+        jac=True,
+        method="L-BFGS-B",
+        bounds=[(-bound, bound)],
+        options={"maxiter": cal.options.max_iterations, "ftol": 1e-9, "gtol": 1e-3},
+    )
     theta = theta0 + float(res.x[0]) / s
     side = None
     if abs(float(res.x[0])) >= 0.999 * bound:
         side = "upper" if res.x[0] > 0 else "lower"
-        log.warning("c1 ended on the %s bound (%.0f Pa): the estimate may be poor", side,
-                    np.exp(theta))  # fmt: skip
+        log.warning(
+            "c1 ended on the %s bound (%.0f Pa): the estimate may be poor", side, np.exp(theta)
+        )
     status = OptimiserStatus(
-        success=bool(res.success), message=str(res.message), iterations=int(res.nit),
+        success=bool(res.success),
+        message=str(res.message),
+        iterations=int(res.nit),
         evaluations=len(cal.history),
-        failed_evaluations=sum(1 for h in cal.history if h.get("failed")), bound=side,
-    )  # fmt: skip
+        failed_evaluations=sum(1 for h in cal.history if h.get("failed")),
+        bound=side,
+    )
     return theta, float(res.fun), status

@@ -38,10 +38,14 @@ def _nipple_uncertainty(cal: Calibrator, theta: float, r: np.ndarray, say):
     """
     say("95 % interval from the likelihood profile of the nipple error")
     unc, prof = nipple_interval(cal, theta, r)
-    say(f"  noise {unc.residual_sd_mm:.3f} mm (surface near the nipple), "
-        f"{prof.evaluations} evaluations")  # fmt: skip
-    say("mesh check: not run for the nipple objective (its residual is flat in c1 at the "
-        "optimum, so a Gauss-Newton step on another mesh is meaningless)")  # fmt: skip
+    say(
+        f"  noise {unc.residual_sd_mm:.3f} mm (surface near the nipple), "
+        f"{prof.evaluations} evaluations"
+    )
+    say(
+        "mesh check: not run for the nipple objective (its residual is flat in c1 at the "
+        "optimum, so a Gauss-Newton step on another mesh is meaningless)"
+    )
     return unc, None, unc.c1_ci95_pa, profile_rows(prof, len(r))
 
 
@@ -54,8 +58,10 @@ def _mesh_check(cal: Calibrator, theta: float, unc: Uncertainty, say):
     check = mesh_check(cal, theta, ratio=o.mesh_check_ratio)
     if check.gci_ln_c1 is None and o.mesh_check_ratio > 1.0:
         finer = 1.0 / o.mesh_check_ratio
-        say(f"mesh check on the coarser mesh failed ({check.failure}); checking on a "
-            f"{o.mesh_size_mm * finer:.1f} mm mesh instead")  # fmt: skip
+        say(
+            f"mesh check on the coarser mesh failed ({check.failure}); checking on a "
+            f"{o.mesh_size_mm * finer:.1f} mm mesh instead"
+        )
         check = mesh_check(cal, theta, ratio=finer)
     if check.gci_ln_c1 is None:
         say(f"mesh check failed ({check.failure}): the interval reflects noise only")
@@ -149,7 +155,7 @@ def fit(
             "size_mm": o.mesh_size_mm,
             "failed_sizes": failed_sizes,
             "formulation": o.formulation,
-        },  # fmt: skip
+        },
         reference_recovery={
             "method": cal.fm.unload_method if o.reference_state == "unload" else "none (shortcut)",
             "inverted_elements": cal.fm.inverted_reference_elements,

@@ -43,8 +43,10 @@ def phantom_frame(reference) -> np.ndarray:
     x = np.asarray(reference.gravity_ref, float)
     x = x - (x @ z) * z
     if np.linalg.norm(x) < 1e-6:
-        raise ValueError("the reference scan's gravity is normal to the back plate: "
-                         "its posture angle is undefined")  # fmt: skip
+        raise ValueError(
+            "the reference scan's gravity is normal to the back plate: "
+            "its posture angle is undefined"
+        )
     x /= np.linalg.norm(x)
     return np.column_stack([x, np.cross(z, x), z])
 
@@ -171,14 +173,21 @@ class Calibration:
     def summary(self) -> str:
         """One line: c1, interval, objective, reference state."""
         ci = self.c1_ci95_pa
-        interval = (f"95 % interval {ci[0]:.1f} - {ci[1]:.1f} Pa" if ci is not None else
-                    "no 95 % interval: the data do not bound c1")  # fmt: skip
-        return (f"c1 = {self.c1_pa:.1f} Pa ({interval}), objective {self.objective}, "
-                f"reference state {self.reference_state}")  # fmt: skip
+        interval = (
+            f"95 % interval {ci[0]:.1f} - {ci[1]:.1f} Pa"
+            if ci is not None
+            else "no 95 % interval: the data do not bound c1"
+        )
+        return (
+            f"c1 = {self.c1_pa:.1f} Pa ({interval}), objective {self.objective}, "
+            f"reference state {self.reference_state}"
+        )
 
     def __repr__(self) -> str:
-        return (f"Calibration({self.summary()}; {self.optimiser.iterations} iterations, "
-                f"{self.fe_solves} FE solves, {self.wall_s:.0f} s)")  # fmt: skip
+        return (
+            f"Calibration({self.summary()}; {self.optimiser.iterations} iterations, "
+            f"{self.fe_solves} FE solves, {self.wall_s:.0f} s)"
+        )
 
     def _repr_html_(self) -> str:
         from html import escape
@@ -189,12 +198,17 @@ class Calibration:
             ("95 % interval", f"{ci[0]:.1f} – {ci[1]:.1f} Pa" if ci else "not bounded"),
             ("objective", f"{self.objective} ({self.objective_value_mm2:.4g} mm²)"),
             ("reference state", self.reference_state),
-            ("optimiser", f"{'converged' if self.optimiser.success else 'NOT converged'}: "
-                          f"{self.optimiser.message}"),
+            (
+                "optimiser",
+                f"{'converged' if self.optimiser.success else 'NOT converged'}: "
+                f"{self.optimiser.message}",
+            ),
             ("iterations / FE solves", f"{self.optimiser.iterations} / {self.fe_solves}"),
             ("model mesh", f"{self.mesh.get('n_tets')} tets, {self.mesh.get('size_mm')} mm"),
             ("wall time", f"{self.wall_s:.0f} s"),
-        ]  # fmt: skip
-        body = "".join(f"<tr><th style='text-align:left'>{escape(k)}</th><td>{escape(v)}</td></tr>"
-                       for k, v in rows)  # fmt: skip
+        ]
+        body = "".join(
+            f"<tr><th style='text-align:left'>{escape(k)}</th><td>{escape(v)}</td></tr>"
+            for k, v in rows
+        )
         return f"<table><caption>Calibration</caption>{body}</table>"

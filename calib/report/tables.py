@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["format_calibration"]
+__all__ = ["format_calibration", "format_validation"]
 
 
 def _uncertainty_lines(unc: dict) -> list[str]:
@@ -24,19 +24,25 @@ def _optimiser_lines(opt: dict | None) -> list[str]:
     if not opt["success"]:
         lines.append(f"  WARNING: the optimiser did not converge: {opt['message']}")
     if opt.get("bound"):
-        lines.append(f"  WARNING: c1 ended on the {opt['bound']} bound of its search range "
-                     "(x/÷ 4 around the first estimate)")  # fmt: skip
+        lines.append(
+            f"  WARNING: c1 ended on the {opt['bound']} bound of its search range "
+            "(x/÷ 4 around the first estimate)"
+        )
     if opt.get("failed_evaluations"):
-        lines.append(f"  {opt['failed_evaluations']} of {opt['evaluations']} evaluations had "
-                     "no FE solution")  # fmt: skip
+        lines.append(
+            f"  {opt['failed_evaluations']} of {opt['evaluations']} evaluations had no FE solution"
+        )
     return lines
 
 
 def format_calibration(doc: dict) -> str:
     """A readable summary of calibration.json."""
     ci = doc["c1_ci95_pa"]
-    interval = (f"95 % interval {ci[0]:.1f} - {ci[1]:.1f} Pa" if ci is not None else
-                "no 95 % interval: the data do not bound c1")  # fmt: skip
+    interval = (
+        f"95 % interval {ci[0]:.1f} - {ci[1]:.1f} Pa"
+        if ci is not None
+        else "no 95 % interval: the data do not bound c1"
+    )
     lines = [
         f"c1 = {doc['c1_pa']:.1f} Pa  ({interval}), objective "
         f"{doc['objective']}, reference state {doc['reference_state']}",
@@ -56,5 +62,38 @@ def format_calibration(doc: dict) -> str:
             f"{name:<16}{s['role']:<13}{fid['mean']:>20.2f} +- {fid['sd']:.2f}"
             f"{icp['mean']:>11.2f} +- {icp['sd']:.2f}{s['nipple_error_mm']['fiducial']:>9.2f}"
             f"{'' if tum is None else f'{tum:.2f}':>11}"
+        )
+    return "\n".join(lines)
+
+
+def _band(b: dict | None, fmt: str = ".2f") -> str:
+    if b is None:
+        return "–"
+    ci = b.get("ci95")
+    return f"{b['value']:{fmt}}" + ("" if ci is None else f" ({ci[0]:{fmt}}–{ci[1]:{fmt}})")
+
+
+def _reference(ref: dict) -> str:
+    if ref.get("surface_mean_mm") is not None:
+        return f"{ref['surface_mean_mm']} ± {ref['surface_sd_mm']}"
+    if ref.get("nipple_mm") is not None:
+        return f"nipple {ref['nipple_mm']}"
+    return ""
+
+
+def format_validation(doc: dict) -> str:
+    """A readable summary of validation.json: one line per scan (fiducial frame, mm)."""
+    lines = [
+        f"{'scan':<16}{'role':<13}{'posture':>8}  {'surface mean (95 % band)':<26}"
+        f"{'sd':>6}  {'nipple':<22}{'tumour':<22}{'dissertation':<20}"
+    ]
+    for name, s in doc["scans"].items():
+        surf = s["surface_error_mm"]["fiducial"]
+        tumour = (s.get("tumour_error_mm") or {}).get("fiducial")
+        nipple = s["nipple_error_mm"]["fiducial"]
+        lines.append(
+            f"{name:<16}{s['role']:<13}{s['posture_angle_deg']:>7.0f}°  "
+            f"{_band(surf['mean']):<26}{surf['sd']['value']:>6.2f}  "
+            f"{_band(nipple):<22}{_band(tumour):<22}{_reference(s.get('dissertation') or {}):<20}"
         )
     return "\n".join(lines)

@@ -46,22 +46,33 @@ def _scan_files(run: RunOutputs, cal: Calibration, ev: ScanEvaluation) -> list[s
     c = cal.calibrator
     scan = c.measurements.scans[ev.name]
     m = ev.metrics
-    write_error_ply(run.path(f"{ev.name}_error.ply"), scan.vertices_mm, scan.faces,
-                    m.vertex_error_mm)  # fmt: skip
+    write_error_ply(
+        run.path(f"{ev.name}_error.ply"), scan.vertices_mm, scan.faces, m.vertex_error_mm
+    )
     off = ~scan.back_plate
     err = m.vertex_error_mm[off]
-    fig = error_map_figure(scan.vertices_mm[off], err,
-                           f"{ev.name}: c1 = {cal.c1_pa:.0f} Pa, fiducial frame, mean |e| = "
-                           f"{np.mean(np.abs(err)):.2f} mm")  # fmt: skip
+    fig = error_map_figure(
+        scan.vertices_mm[off],
+        err,
+        f"{ev.name}: c1 = {cal.c1_pa:.0f} Pa, fiducial frame, mean |e| = "
+        f"{np.mean(np.abs(err)):.2f} mm",
+    )
     save_figure(fig, run.path(f"{ev.name}_error.png"))
     X = c.fm.stress_free_nodes_mm
-    data = {"displacement_mm": ev.positions_mm - X}
+    data = {
+        "displacement_mm": ev.positions_mm - X,
+        "displacement_from_reference_mm": ev.positions_mm - c.mesh.nodes_mm,
+    }
     if ev.dpositions_mm is not None:
         data["dposition_dlnc1_mm"] = ev.dpositions_mm
-    write_mesh(c.mesh.with_nodes(ev.positions_mm), run.path(f"{ev.name}_deformed.vtu"),
-               point_data=data)  # fmt: skip
-    return [f"{FOLDER}/{ev.name}_error.ply", f"{FOLDER}/{ev.name}_error.png",
-            f"{FOLDER}/{ev.name}_deformed.vtu"]  # fmt: skip
+    write_mesh(
+        c.mesh.with_nodes(ev.positions_mm), run.path(f"{ev.name}_deformed.vtu"), point_data=data
+    )
+    return [
+        f"{FOLDER}/{ev.name}_error.ply",
+        f"{FOLDER}/{ev.name}_error.png",
+        f"{FOLDER}/{ev.name}_deformed.vtu",
+    ]
 
 
 def _scan_json(ev: ScanEvaluation, files: list[str]) -> dict:
@@ -143,5 +154,6 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     inputs = {"session": session.folder / "session.toml"} | {
         f"{s.name}/ingest.json": work / "scans" / s.name / "ingest.json" for s in session.scans
     }
-    return write_calibration(work, calibration, evaluations, inputs=inputs,
-                             wall_s=time.perf_counter() - t0)  # fmt: skip
+    return write_calibration(
+        work, calibration, evaluations, inputs=inputs, wall_s=time.perf_counter() - t0
+    )

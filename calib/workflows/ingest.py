@@ -51,9 +51,11 @@ def write_ingest(work: str | Path, result: IngestResult) -> None:
         _write_scan(work, name, res, result.registrations[name], result.session)
     write_json_atomic(
         work / "ingest_summary.json",
-        {"scans": {n: r.to_json() for n, r in result.registrations.items()},
-         "provenance": provenance(inputs={"session": result.session.folder / "session.toml"})},
-    )  # fmt: skip
+        {
+            "scans": {n: r.to_json() for n, r in result.registrations.items()},
+            "provenance": provenance(inputs={"session": result.session.folder / "session.toml"}),
+        },
+    )
 
 
 def run_ingest(scans_dir: str | Path, work: str | Path, *, progress=None) -> IngestResult:

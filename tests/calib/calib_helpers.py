@@ -17,6 +17,18 @@ SMALL_PRESET = TwinPreset(
     ),
 )
 
+# The same with a 50 deg tilt as a validation scan (the validation report needs one).
+SMALL_VALIDATION_PRESET = TwinPreset(
+    phantom_resolution_mm=14,
+    truth_mesh_mm=14,
+    spacing_mm=(2.0, 2.0, 2.0),
+    postures=(
+        Posture("left_lateral", 0, "reference"),
+        Posture("right_lateral", 180, "calibration"),
+        Posture("tilt_50", 50, "validation"),
+    ),
+)
+
 VALID_TOML = """\
 [scanner]
 gravity = [0.0, 2.0, 0.0]

@@ -11,11 +11,11 @@ import pytest
 
 import fem
 from calib.data.measurements import Measurements, ScanMeasurement
-from calib.fitting.pipeline import _measured_area_mm2
 from calib.fitting.meshcheck import combined_ci95, mesh_check
 from calib.fitting.objective import Calibrator
 from calib.fitting.optimise import _start, optimise
 from calib.fitting.options import CalibrationOptions
+from calib.fitting.pipeline import _measured_area_mm2
 from calib.fitting.uncertainty import gauss_newton_uncertainty
 from fem.geometry import PhantomSpec, build_phantom
 from fem.meshing import mesh_phantom

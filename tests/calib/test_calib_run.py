@@ -1,8 +1,9 @@
 """``phantom-calib calibrate`` end to end on a small twin: the public output contract.
 
-The twin (two lateral postures, 14 mm phantom, 2 mm voxels) keeps this in the default
-suite; the accuracy of the calibration is tested on FE-made measurements in
-test_calib_calibrate.py and measured on the full presets by benchmarks/bench_calib.py.
+The twin (two lateral postures and a 50 deg validation tilt, 14 mm phantom, 2 mm voxels)
+keeps this in the default suite; the accuracy of the calibration is tested on FE-made
+measurements in test_calib_calibrate.py and measured on the full presets by
+benchmarks/bench_calib.py.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import json
 
 import numpy as np
 import pytest
-from calib_helpers import SMALL_PRESET
+from calib_helpers import SMALL_VALIDATION_PRESET
 from typer.testing import CliRunner
 
 import calib.fitting.optimise
@@ -25,7 +26,7 @@ from calib.twin import synthesize
 @pytest.fixture(scope="module")
 def twin_scans(tmp_path_factory):
     out = tmp_path_factory.mktemp("twin") / "twin"
-    synthesize(out, preset=SMALL_PRESET, seed=3)
+    synthesize(out, preset=SMALL_VALIDATION_PRESET, seed=3)
     return out / "scans"
 
 
@@ -58,6 +59,30 @@ def test_failed_mesh_size_is_reported_and_retried(nipple_run):
     (failed,) = doc["mesh"]["failed_sizes"]
     assert failed["mesh_size_mm"] == 12.0 and "load factor 0.8" in failed["failure"]
     assert "trying the next size" in output
+
+
+# calibration.json of phantom-calib 0.1 (before the library issue): its keys stay, new
+# ones are only added (schema_version 1 adds schema_version, run_id, optimiser, model).
+KEYS_0_1 = {"c1_pa", "c1_ci95_pa", "objective", "objective_value_mm2", "reference_state",
+            "uncertainty", "frames", "scans", "iterations", "fe_solves", "reference_recovery",
+            "history", "profile", "mesh", "wall_s", "provenance"}  # fmt: skip
+KEYS_ADDED = {"schema_version", "run_id", "optimiser", "model"}
+SCAN_KEYS_0_1 = {"role", "gravity_ref", "nipple_error_mm", "nipple_landmark_error_mm",
+                 "surface_error_mm", "icp", "tumour_error_mm", "files"}  # fmt: skip
+UNCERTAINTY_KEYS_0_1 = {"se_ln_c1", "c1_ci95_pa", "residual_sd_mm", "n_residuals",
+                        "n_effective", "correlation_length_mm", "method", "mesh_check"}  # fmt: skip
+MESH_KEYS_0_1 = {"n_tets", "n_nodes", "size_mm", "failed_sizes", "formulation"}
+
+
+def test_calibration_json_keys_are_those_of_0_1_plus_the_documented_additions(nipple_run):
+    doc, _, _ = nipple_run
+    assert set(doc) == KEYS_0_1 | KEYS_ADDED
+    assert doc["schema_version"] == 1
+    for name, scan in doc["scans"].items():
+        assert set(scan) == SCAN_KEYS_0_1 | {"model"}, name
+    assert set(doc["uncertainty"]) == UNCERTAINTY_KEYS_0_1
+    assert set(doc["mesh"]) == MESH_KEYS_0_1
+    assert {"success", "message", "iterations", "bound"} <= set(doc["optimiser"])
 
 
 def test_calibration_json_contract(nipple_run):
@@ -93,6 +118,39 @@ def test_error_maps_and_meshes_are_written(nipple_run):
     for rel in doc["scans"]["right_lateral"]["files"]:
         assert (work / rel).is_file(), rel
     assert (work / "calibration" / "reference_mesh.vtu").is_file()
+
+
+def test_calibrate_ends_with_the_validation_report(nipple_run):
+    doc, output, work = nipple_run
+    val = json.loads((work / "validation.json").read_text())
+    assert val["calibration_run_id"] == doc["run_id"] and "validation" in output
+    tilt = val["scans"]["tilt_50"]
+    # the posture angle comes from the registered gravity, not from session.toml: the twin
+    # poses the 50 deg scan with up to 1 deg of tilt (fem.postures.random_scanner_pose)
+    assert tilt["role"] == "validation" and tilt["posture_angle_deg"] == pytest.approx(50, abs=2)
+    mean = tilt["surface_error_mm"]["fiducial"]["mean"]
+    # the same saved state measured twice (calibrate's evaluation, validate's re-measure)
+    same = doc["scans"]["tilt_50"]["surface_error_mm"]["fiducial"]["mean"]
+    assert mean["value"] == pytest.approx(same, rel=1e-9)
+    lo, hi = mean["ci95"]
+    assert lo <= mean["value"] <= hi and hi > lo  # a c1 interval of non-zero width moves it
+    assert tilt["dissertation"]["surface_mean_mm"] == 2.69  # the 50 deg row of Table 4.1
+    for rel in val["files"]:
+        assert (work / rel).is_file(), rel
+    assert "tilt_50" in (work / "validation" / "report.html").read_text()
+
+
+def test_work_folder_api(nipple_run):
+    import calib
+
+    doc, _, work = nipple_run
+    w = calib.load_work(work)
+    assert w.c1_pa == doc["c1_pa"] and "tilt_50 (validation)" in repr(w)
+    assert "<table>" in w._repr_html_() and "| tilt_50 |" in w.validation_table()
+    for fig in (w.plot_error_map("tilt_50"), w.plot_error_by_displacement(), w.plot_profile()):
+        assert fig.axes
+    with pytest.raises(KeyError, match="left_lateral"):
+        w.plot_error_map("left_lateral")  # the reference has no simulated state
 
 
 def test_unrecoverable_reference_stops_early_with_remedies(twin_scans, tmp_path, monkeypatch):

@@ -1,0 +1,160 @@
+"""A calibrated work folder read back: the record, the measurements and the saved states.
+
+Everything :mod:`calib.workflows.calibrate` wrote into ``WORK/`` — the
+``calibration.json`` record, the stress-free model mesh and every scan's deformed
+state (vertex positions and their derivative in ln c1) — with the measurements of
+``WORK/scans/``, so results can be re-measured, validated and plotted without FE.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..io import check_run
+from .measurements import Measurements, ScanMeasurement, read_scan
+from .session import ScanEntry
+
+__all__ = ["SavedState", "WorkFolder", "read_work"]
+
+
+@dataclass(frozen=True)
+class SavedState:
+    """A scan's simulated state at the calibrated c1, as saved by ``calibrate``.
+
+    Attributes
+    ----------
+    positions_mm : ndarray, shape (n_nodes, 3)
+        Deformed vertex positions of the model mesh, reference frame.
+    dpositions_mm : ndarray, shape (n_nodes, 3) or None
+        Their derivative in ln c1 (mm per unit ln c1).
+    reference_positions_mm : ndarray, shape (n_nodes, 3) or None
+        The same vertices in the loaded reference scan (for displacement magnitudes).
+    tumour_mm, dtumour_mm : ndarray, shape (3,) or None
+        Simulated tumour centre and its derivative in ln c1.
+    """
+
+    positions_mm: np.ndarray
+    dpositions_mm: np.ndarray | None
+    reference_positions_mm: np.ndarray | None
+    tumour_mm: np.ndarray | None
+    dtumour_mm: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class WorkFolder:
+    """A calibrated ``WORK/`` folder (see :func:`read_work`).
+
+    Attributes
+    ----------
+    path : Path
+    record : dict
+        ``calibration.json``.
+    measurements : Measurements
+        Every scan of the calibration, with the roles it was calibrated with.
+    mesh : fem.TetMesh
+        The stress-free model mesh (node sets ``back``, ``nipple``, ``surface``).
+    states : dict of str to SavedState
+        Scans with a solution at the calibrated c1.
+    """
+
+    path: Path
+    record: dict
+    measurements: Measurements
+    mesh: object
+    states: dict
+
+    @property
+    def c1_pa(self) -> float:
+        """The calibrated c1 (Pa)."""
+        return float(self.record["c1_pa"])
+
+    @property
+    def ln_c1_interval(self) -> tuple[float, float] | None:
+        """The 95 % interval of ln c1, or None."""
+        ci = self.record.get("c1_ci95_pa")
+        return None if ci is None else (float(np.log(ci[0])), float(np.log(ci[1])))
+
+    @property
+    def nipple_node(self) -> int:
+        """The model's nipple vertex."""
+        return int(self.mesh.node_set("nipple")[0])
+
+
+def _vec(value) -> np.ndarray | None:
+    return None if value is None else np.asarray(value, float)
+
+
+def read_work(work: str | Path) -> WorkFolder:
+    """Read a calibrated work folder.
+
+    Raises
+    ------
+    FileNotFoundError
+        No ``calibration.json`` (run ``phantom-calib calibrate`` first) or a missing file
+        it names.
+    calib.io.StaleOutputError
+        ``calibration/`` is not from the run ``calibration.json`` records.
+    """
+    from fem.io import read_mesh
+
+    work = Path(work)
+    try:
+        record = check_run(work, folder="calibration", record="calibration.json")
+    except FileNotFoundError as exc:
+        raise FileNotFoundError(
+            f"{work}: no calibration.json (run `phantom-calib calibrate` first)"
+        ) from exc
+    model = record.get("model") or {}
+    ref_name = model.get("reference_scan")
+    if ref_name is None or "reference_mesh" not in model:
+        raise ValueError(
+            f"{work / 'calibration.json'}: written by an older phantom-calib "
+            "(no `model` block); run `phantom-calib calibrate` again"
+        )
+    entries = [ScanEntry(ref_name, work, "reference")] + [
+        ScanEntry(name, work, s["role"]) for name, s in record["scans"].items()
+    ]
+    scans = {e.name: read_scan(work, e) for e in entries}
+    measurements = Measurements(scans[ref_name], scans)
+    mesh = read_mesh(work / model["reference_mesh"], orient=False)
+    states = {}
+    for name, s in record["scans"].items():
+        if s.get("failed"):
+            continue
+        deformed = work / "calibration" / f"{name}_deformed.vtu"
+        data = _point_data(deformed)
+        positions = mesh.nodes_mm + data["displacement_mm"]
+        ref = data.get("displacement_from_reference_mm")
+        states[name] = SavedState(
+            positions_mm=positions,
+            dpositions_mm=data.get("dposition_dlnc1_mm"),
+            reference_positions_mm=None if ref is None else positions - ref,
+            tumour_mm=_vec(s.get("model", {}).get("tumour_mm")),
+            dtumour_mm=_vec(s.get("model", {}).get("dtumour_dlnc1_mm")),
+        )
+    return WorkFolder(work, record, measurements, mesh, states)
+
+
+def _point_data(path: Path) -> dict:
+    import meshio
+
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} not found (named by calibration.json)")
+    m = meshio.read(path)
+    return {k: np.asarray(v, float) for k, v in m.point_data.items() if not k.startswith("set:")}
+
+
+def scan_of(work: WorkFolder, name: str) -> ScanMeasurement:
+    """A scan of the work folder, by name (a clear error for an unknown one)."""
+    if name not in work.measurements.scans:
+        raise KeyError(f"{work.path}: no scan {name!r}; it has {sorted(work.measurements.scans)}")
+    return work.measurements.scans[name]
+
+
+def ingest_record(work: WorkFolder, name: str) -> dict:
+    """``WORK/scans/<name>/ingest.json``."""
+    return json.loads((work.path / "scans" / name / "ingest.json").read_text())

@@ -1,0 +1,162 @@
+"""A calibrated work folder as one object for Jupyter: tables, figures, numbers.
+
+>>> work = calib.load_work("demo-out/work")      # doctest: +SKIP
+>>> work                                          # c1, interval, scans   # doctest: +SKIP
+>>> work.validation_table()                       # the 25°/50° table   # doctest: +SKIP
+>>> work.plot_error_map("tilt_25")                # a matplotlib Figure  # doctest: +SKIP
+
+Everything is computed from what ``calibrate`` saved (no FE solve).
+"""
+
+from __future__ import annotations
+
+import html
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .data.work import WorkFolder, read_work
+from .validation import Validation, validate_work
+
+__all__ = ["Work"]
+
+
+@dataclass
+class Work:
+    """A calibrated ``WORK/`` folder (:func:`calib.load_work`).
+
+    Attributes
+    ----------
+    folder : WorkFolder
+        The files read back (record, measurements, model mesh, saved states).
+    """
+
+    folder: WorkFolder
+    _validation: Validation | None = field(default=None, repr=False)
+
+    @classmethod
+    def load(cls, path: str | Path) -> Work:
+        """Read a work folder that ``phantom-calib calibrate`` wrote."""
+        return cls(read_work(path))
+
+    @property
+    def record(self) -> dict:
+        """``calibration.json``."""
+        return self.folder.record
+
+    @property
+    def c1_pa(self) -> float:
+        """The calibrated c1 (Pa)."""
+        return self.folder.c1_pa
+
+    @property
+    def c1_ci95_pa(self) -> tuple[float, float] | None:
+        """Its 95 % interval (Pa), or None."""
+        ci = self.record.get("c1_ci95_pa")
+        return None if ci is None else (float(ci[0]), float(ci[1]))
+
+    @property
+    def scans(self) -> dict[str, str]:
+        """Scan name -> role."""
+        return {n: s.role for n, s in self.folder.measurements.scans.items()}
+
+    @property
+    def validation(self) -> Validation:
+        """Validation figures of every scan (computed once)."""
+        if self._validation is None:
+            self._validation = validate_work(self.folder)
+        return self._validation
+
+    def validation_table(self) -> str:
+        """The validation table as Markdown (Jupyter: ``display(Markdown(...))``)."""
+        from .report.validation import validation_markdown
+
+        return validation_markdown(self.validation)
+
+    def plot_error_map(self, scan: str, *, vmax: float | None = None):
+        """The measured surface of ``scan`` shaded by its error (matplotlib Figure)."""
+        from .report.validation import error_surface_figure
+
+        sv = self._scan(scan)
+        R = np.asarray(self.record["model"]["R_ref_from_phantom"], float)
+        return error_surface_figure(sv, self.folder.measurements.scans[scan], R, vmax=vmax)
+
+    def plot_error_by_displacement(self, scans: list[str] | None = None):
+        """Error histograms by displacement magnitude (matplotlib Figure)."""
+        from .report.validation import error_by_displacement_figure
+
+        names = scans or list(self.validation.scans)
+        return error_by_displacement_figure([self._scan(n) for n in names])
+
+    def plot_profile(self):
+        """The objective over c1 (the likelihood profile's points), matplotlib Figure."""
+        from matplotlib.figure import Figure
+
+        rows = [r for r in self.record.get("profile", []) if not r.get("failed")]
+        hist = [h for h in self.record.get("history", []) if not h.get("failed")]
+        fig = Figure(figsize=(6, 4), layout="constrained")
+        ax = fig.subplots()
+        if hist:
+            ax.plot(
+                [h["c1_pa"] for h in hist],
+                [h["objective"] for h in hist],
+                "o",
+                color="0.6",
+                label="optimiser evaluations",
+            )
+        if rows:
+            rows = sorted(rows, key=lambda r: r["c1_pa"])
+            ax.plot(
+                [r["c1_pa"] for r in rows],
+                [r["objective"] for r in rows],
+                "-o",
+                label="likelihood profile",
+            )
+        ax.axvline(self.c1_pa, color="k", lw=1, label=f"c1 = {self.c1_pa:.1f} Pa")
+        if self.c1_ci95_pa:
+            ax.axvspan(*self.c1_ci95_pa, color="C0", alpha=0.15, label="95 % interval")
+        ax.set_xlabel("c1 (Pa)")
+        ax.set_ylabel("objective J = mean(r²)/2 (mm²)")
+        ax.legend(fontsize=8)
+        return fig
+
+    def _scan(self, name: str):
+        if name not in self.validation.scans:
+            raise KeyError(
+                f"no saved state for scan {name!r}; scans: {sorted(self.validation.scans)}"
+            )
+        return self.validation.scans[name]
+
+    def __repr__(self) -> str:
+        ci = self.c1_ci95_pa
+        interval = f" (95 % {ci[0]:.1f}–{ci[1]:.1f})" if ci else ""
+        scans = ", ".join(f"{n} ({r})" for n, r in self.scans.items())
+        return f"Work({str(self.folder.path)!r}: c1 = {self.c1_pa:.1f} Pa{interval}; {scans})"
+
+    def _repr_html_(self) -> str:
+        rows = []
+        for name, s in self.record["scans"].items():
+            if s.get("failed"):
+                rows.append((name, s["role"], "no FE solution", "", "", ""))
+                continue
+            fid = s["surface_error_mm"]["fiducial"]
+            tum = (s.get("tumour_error_mm") or {}).get("fiducial")
+            rows.append(
+                (
+                    name,
+                    s["role"],
+                    f"{fid['mean']:.2f} ± {fid['sd']:.2f}",
+                    f"{fid['max']:.2f}",
+                    f"{s['nipple_error_mm']['fiducial']:.2f}",
+                    "–" if tum is None else f"{tum:.2f}",
+                )
+            )
+        head = ("scan", "role", "surface mean ± sd", "max", "nipple", "tumour")
+        cells = "".join(
+            "<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows
+        )
+        th = "".join(f"<th>{h}</th>" for h in head)
+        return f"<p>{html.escape(repr(self))}</p><table><tr>{th}</tr>{cells}</table>" + (
+            "<p>errors in mm, fiducial frame</p>"
+        )

@@ -1,0 +1,344 @@
+"""The validation report: tables (Markdown, HTML) and figures of a :class:`Validation`.
+
+Figures (matplotlib, returned to the caller):
+
+- :func:`error_surface_figure`: the measured surface shaded by its distance to the
+  model, seen from the front and from the side of the phantom, on a colour scale shared
+  by every scan (cividis, mm);
+- :func:`error_by_displacement_figure`: the dissertation's kind of histogram (its Figs.
+  3.18-3.21): the share of surface points per error bin, split by how far the surface
+  moved from the reference posture;
+- :func:`outline_figure`: the measured body outline (the segmentation mask's boundary)
+  and the model's outline in three orthogonal slices of the scan through the tumour.
+"""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+
+import numpy as np
+
+from ..validation import ScanValidation, Validation
+from .maps import ERROR_CMAP
+
+__all__ = [
+    "error_by_displacement_figure",
+    "error_surface_figure",
+    "outline_figure",
+    "validation_html",
+    "validation_markdown",
+]
+
+DISPLACEMENT_BINS_MM = (0.0, 5.0, 10.0, 20.0, np.inf)
+
+
+def _phantom_coordinates(points_mm: np.ndarray, R_ref_from_phantom: np.ndarray) -> np.ndarray:
+    return np.asarray(points_mm, float) @ np.asarray(R_ref_from_phantom, float)
+
+
+def error_surface_figure(
+    sv: ScanValidation, scan, R_ref_from_phantom: np.ndarray, *, vmax: float | None = None
+):
+    """The measured surface shaded by |error| (mm), front and side views, phantom frame.
+
+    Parameters
+    ----------
+    sv : ScanValidation
+    scan : ScanMeasurement
+        The measured scan (its surface, reference frame).
+    R_ref_from_phantom : ndarray, shape (3, 3)
+    vmax : float, optional
+        Top of the colour scale (mm); share it between scans to compare them.
+    """
+    from matplotlib import cm, colormaps, colors
+    from matplotlib.figure import Figure
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    v = _phantom_coordinates(scan.vertices_mm, R_ref_from_phantom)
+    keep = ~scan.back_plate[scan.faces].all(axis=1)
+    faces = scan.faces[keep]
+    e = np.abs(sv.metrics.vertex_error_mm)[faces].mean(axis=1)
+    top = vmax or max(float(np.percentile(e, 99)), 1e-3)
+    mapper = cm.ScalarMappable(norm=colors.Normalize(0.0, top), cmap=colormaps[ERROR_CMAP])
+    tri = v[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    light = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    shade = 0.55 + 0.45 * np.abs(n @ light)  # Lambertian, two-sided: shape stays readable
+    fig = Figure(figsize=(10, 4.8), layout="constrained")
+    views = (("front (from the breast's apex)", 90.0, -90.0), ("side (lateral)", 0.0, -90.0))
+    for k, (label, elev, azim) in enumerate(views):
+        ax = fig.add_subplot(1, 2, k + 1, projection="3d")
+        rgba = mapper.to_rgba(e)
+        rgba[:, :3] *= shade[:, None]
+        coll = Poly3DCollection(v[faces], facecolors=rgba, edgecolors="none")
+        ax.add_collection3d(coll)
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        ax.set(
+            xlim=(lo[0], hi[0]),
+            ylim=(lo[1], hi[1]),
+            zlim=(lo[2], hi[2]),
+            xlabel="x (mm)",
+            ylabel="y (mm)",
+            zlabel="z (mm)",
+            title=label,
+        )
+        ax.set_box_aspect(hi - lo)
+        ax.view_init(elev=elev, azim=azim)
+        hidden = ax.zaxis if elev == 90.0 else ax.yaxis  # the axis along the line of sight
+        hidden.set_ticklabels([])
+        hidden.label.set_visible(False)
+    fig.colorbar(mapper, ax=fig.axes, shrink=0.7, label="distance to the model surface (mm)")
+    mean = sv.surface["fiducial"]["mean"].value
+    fig.suptitle(
+        f"{sv.name} ({sv.role}, posture {sv.posture_angle_deg:.0f}°): surface error, "
+        f"mean {mean:.2f} mm (fiducial frame)"
+    )
+    return fig
+
+
+def error_by_displacement_figure(scans: list[ScanValidation]):
+    """Share of surface points per |error| bin, by displacement-magnitude bin, one row a scan."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9, 2.8 * max(len(scans), 1) + 0.6), layout="constrained")
+    axes = fig.subplots(max(len(scans), 1), 1, squeeze=False)[:, 0]
+    edges = DISPLACEMENT_BINS_MM
+    for ax, sv in zip(axes, scans, strict=False):
+        off = sv.metrics.vertex_error_mm != 0.0
+        err = np.abs(sv.metrics.vertex_error_mm[off])
+        disp = sv.displacement_mm[off]
+        top = max(float(np.percentile(err, 99.5)), 0.1)
+        bins = np.linspace(0.0, top, 21)
+        stacks, labels, colours = [], [], []
+        for i, (a, b) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
+            sel = (disp >= a) & (disp < b)
+            if sel.any():
+                stacks.append(err[sel])
+                colours.append(_bin_colour(i, len(edges) - 1))
+                labels.append(
+                    f"moved {a:g}–{b:g} mm ({100 * sel.mean():.0f} %)"
+                    if np.isfinite(b)
+                    else f"moved > {a:g} mm ({100 * sel.mean():.0f} %)"
+                )
+        if not stacks:  # no displacement saved: one histogram
+            stacks, labels, colours = [err], ["all points"], ["0.5"]
+        weights = [np.full(len(s), 100.0 / len(err)) for s in stacks]
+        ax.hist(stacks, bins=bins, weights=weights, stacked=True, label=labels, color=colours)
+        ax.set_xlabel("distance of the measured surface to the model (mm)")
+        ax.set_ylabel("surface points (%)")
+        ax.set_title(
+            f"{sv.name} ({sv.role}, {sv.posture_angle_deg:.0f}°): mean "
+            f"{err.mean():.2f} mm, p95 {np.percentile(err, 95):.2f} mm"
+        )
+        ax.legend(fontsize=8)
+    return fig
+
+
+def _bin_colour(i: int, n: int):
+    from matplotlib import colormaps
+
+    return colormaps["viridis"](0.15 + 0.7 * i / max(n - 1, 1))
+
+
+def _slice_segments(vertices_index: np.ndarray, faces: np.ndarray, axis: int, at: float):
+    """Segments (k, 2, 3) where a triangle surface crosses the index plane ``axis = at``."""
+    d = vertices_index[:, axis] - at
+    tri_d = d[faces]
+    crosses = (tri_d.min(axis=1) < 0) & (tri_d.max(axis=1) > 0)
+    segs = []
+    for f, td in zip(faces[crosses], tri_d[crosses], strict=True):
+        pts = []
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            if (td[i] < 0) != (td[j] < 0):
+                t = td[i] / (td[i] - td[j])
+                pts.append(vertices_index[f[i]] + t * (vertices_index[f[j]] - vertices_index[f[i]]))
+        if len(pts) == 2:
+            segs.append(pts)
+    return np.asarray(segs).reshape(-1, 2, 3)
+
+
+def outline_figure(
+    sv: ScanValidation,
+    mask,
+    model_lps_mm: np.ndarray,
+    model_faces: np.ndarray,
+    centre_lps_mm: np.ndarray,
+):
+    """Measured (mask boundary) and model outlines in three slices of the scan.
+
+    Parameters
+    ----------
+    sv : ScanValidation
+    mask : imaging.Volume
+        The scan's body mask (``WORK/scans/<name>/mask.nii.gz``).
+    model_lps_mm : ndarray, shape (n, 3)
+        The deformed model's vertices in the scan's LPS frame.
+    model_faces : ndarray, shape (f, 3)
+        The model's boundary triangles.
+    centre_lps_mm : ndarray, shape (3,)
+        Where the three slices cross (the measured tumour, else the nipple).
+    """
+    from matplotlib.collections import LineCollection
+    from matplotlib.figure import Figure
+
+    A = np.asarray(mask.affine_lps_from_index, float)
+    inv = np.linalg.inv(A)
+    to_index = lambda p: np.asarray(p, float) @ inv[:3, :3].T + inv[:3, 3]  # noqa: E731
+    vi = to_index(model_lps_mm)
+    c = to_index(np.asarray(centre_lps_mm, float)[None])[0]
+    arr = np.asarray(mask.array) > 0
+    sp = np.asarray(mask.spacing_mm, float)
+    fig = Figure(figsize=(12, 4.4), layout="constrained")
+    axes = fig.subplots(1, 3)
+    for ax, axis in zip(axes, (2, 1, 0), strict=True):
+        k = int(np.clip(round(c[axis]), 0, arr.shape[axis] - 1))
+        sl = np.take(arr, k, axis=axis).astype(float)
+        rest = [a for a in range(3) if a != axis]
+        extent = (
+            -0.5 * sp[rest[0]],
+            (sl.shape[0] - 0.5) * sp[rest[0]],
+            -0.5 * sp[rest[1]],
+            (sl.shape[1] - 0.5) * sp[rest[1]],
+        )
+        ax.imshow(sl.T, origin="lower", cmap="gray", extent=extent, alpha=0.35)
+        ax.contour(
+            np.arange(sl.shape[0]) * sp[rest[0]],
+            np.arange(sl.shape[1]) * sp[rest[1]],
+            sl.T,
+            levels=[0.5],
+            colors=["#1f77b4"],
+            linewidths=1.2,
+        )
+        segs = _slice_segments(vi, model_faces, axis, float(k))
+        if len(segs):
+            xy = segs[:, :, rest] * sp[rest]
+            ax.add_collection(LineCollection(xy, colors="#d62728", linewidths=1.2))
+        ax.set_aspect("equal")
+        ax.set_title(f"slice {'ijk'[axis]} = {k} of the scan")
+        ax.set_xlabel(f"{'ijk'[rest[0]]} (mm)")
+        ax.set_ylabel(f"{'ijk'[rest[1]]} (mm)")
+    axes[0].plot([], [], color="#1f77b4", label="measured (segmentation)")
+    axes[0].plot([], [], color="#d62728", label="model at the calibrated c1")
+    axes[0].legend(loc="lower left", fontsize=8)
+    fig.suptitle(f"{sv.name}: measured and simulated outlines through the tumour (scan frame)")
+    return fig
+
+
+def _row(sv: ScanValidation) -> list[str]:
+    fid, icp = sv.surface["fiducial"], sv.surface["icp"]
+    t = sv.tumour or {}
+    reg = sv.registration
+
+    def num(x):
+        return "–" if x is None else f"{x:.2f}"
+
+    ref = sv.reference or {}
+    dis = []
+    if ref.get("surface_mean_mm") is not None:
+        dis.append(f"surface {ref['surface_mean_mm']} ± {ref['surface_sd_mm']}")
+    if ref.get("nipple_mm") is not None:
+        dis.append(f"nipple {ref['nipple_mm']}")
+    if ref.get("tumour_mm") is not None:
+        dis.append(f"tumour {ref['tumour_mm']}")
+    return [
+        sv.name,
+        sv.role,
+        f"{sv.posture_angle_deg:.0f}",
+        f"{fid['mean'].text()} ± {fid['sd'].value:.2f}",
+        fid["median"].text(),
+        fid["p95"].text(),
+        fid["max"].text(),
+        f"{icp['mean'].text()} ± {icp['sd'].value:.2f}",
+        sv.nipple["fiducial"].text(),
+        sv.nipple["icp"].text(),
+        t["fiducial"].text() if "fiducial" in t else "–",
+        t["icp"].text() if "icp" in t else "–",
+        num(reg.get("fre_mm")),
+        num(reg.get("tre_nipple_mm")),
+        num(reg.get("tre_tumour_mm")),
+        "; ".join(dis) or "–",
+    ]
+
+
+HEADER = [
+    "scan",
+    "role",
+    "posture °",
+    "surface mean ± sd (fiducial)",
+    "median",
+    "p95",
+    "max",
+    "surface mean ± sd (ICP)",
+    "nipple (fiducial)",
+    "nipple (ICP)",
+    "tumour (fiducial)",
+    "tumour (ICP)",
+    "FRE",
+    "TRE nipple",
+    "TRE tumour",
+    "dissertation (c1 = 420 Pa)",
+]
+
+
+def _intro(v: Validation) -> str:
+    ci = v.c1_ci95_pa
+    band = (
+        f"95 % interval {ci[0]:.1f}–{ci[1]:.1f} Pa; each figure's band in brackets is "
+        "its range over that interval (first order in ln c1)"
+        if ci
+        else "no c1 interval: figures without bands"
+    )
+    return (
+        f"c1 = {v.c1_pa:.1f} Pa ({band}). All distances in mm. Fiducial frame: the scan "
+        "mapped by its fiducial registration only; ICP: after a rigid ICP of the measured "
+        "onto the simulated surface (biased low). FRE/TRE: the scan's fiducial registration "
+        "error and expected target registration error (a model error below the TRE cannot "
+        "be told from registration error)."
+    )
+
+
+def validation_markdown(v: Validation, figures: dict[str, list[str]] | None = None) -> str:
+    """The report as Markdown: the table, then each scan's figures (relative paths)."""
+    rows = [_row(s) for s in v.scans.values()]
+    lines = [
+        "# Validation",
+        "",
+        _intro(v),
+        "",
+        "| " + " | ".join(HEADER) + " |",
+        "|" + "---|" * len(HEADER),
+    ]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    for name, files in (figures or {}).items():
+        lines += ["", f"## {name}", ""] + [f"![{Path(f).stem}]({f})" for f in files]
+    return "\n".join(lines) + "\n"
+
+
+def validation_html(v: Validation, figures: dict[str, list[str]] | None = None) -> str:
+    """The report as a self-standing HTML page (figures by relative path)."""
+    esc = html.escape
+    head = "".join(f"<th>{esc(h)}</th>" for h in HEADER)
+    body = "".join(
+        "<tr>" + "".join(f"<td>{esc(c)}</td>" for c in _row(s)) + "</tr>" for s in v.scans.values()
+    )
+    figs = "".join(
+        f"<h2>{esc(name)}</h2>"
+        + "".join(
+            f'<p><img src="{esc(f)}" alt="{esc(Path(f).stem)}" style="max-width:100%"></p>'
+            for f in files
+        )
+        for name, files in (figures or {}).items()
+    )
+    style = (
+        "body{font-family:sans-serif;margin:2em;max-width:80em}"
+        "table{border-collapse:collapse;font-size:90%}"
+        "td,th{border:1px solid #bbb;padding:.3em .5em;text-align:right}"
+        "td:first-child,td:nth-child(2),td:last-child{text-align:left}"
+    )
+    return (
+        f"<!doctype html><html><head><meta charset='utf-8'><title>Validation</title>"
+        f"<style>{style}</style></head><body><h1>Validation</h1><p>{esc(_intro(v))}</p>"
+        f"<table><tr>{head}</tr>{body}</table>{figs}</body></html>\n"
+    )

@@ -1,0 +1,276 @@
+"""Validation of a calibrated model against its validation scans (no FE, no I/O).
+
+The dissertation's headline result (ch. 3.4-3.5, Table 3.6 and Figs. 3.18-3.21) is the
+calibrated model's error on the postures it was not fitted to: the surface error (mean
+± sd of the closest-point distances), the nipple error and the tumour-centre error at
+the 25° and 50° tilts. Here every scan with role ``validation`` is measured from the
+deformed state that ``calibrate`` saved, in the fiducial frame and after ICP, with a
+95 % band for each figure propagated from the c1 interval: the saved derivative of
+every vertex position in ln c1 moves the model to the interval's ends (to first order,
+``x(theta) = x + dx/dtheta (theta - theta_hat)``) and the figure is measured there;
+the band is the range over the two ends and the estimate. The scan's own registration
+quality (FRE, expected TRE) stands beside it: a model error below the TRE cannot be
+told from registration error.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .data.work import WorkFolder, ingest_record
+from .evaluation import ScanMetrics, scan_metrics
+
+__all__ = ["DISSERTATION", "ScanValidation", "Validation", "validate_work"]
+
+#: The dissertation's published figures (c1 = 420 Pa, ch. 4.3.2 and Table 4.1), mm, by
+#: nominal posture angle (deg) of a validation scan: at 25° the FE model against the
+#: MRI surface (mean ± sd, max 7.3 mm) and tumour centre; at 50° the surrogate's
+#: prediction against the MRI surface and tumour. The calibration scan's nipple error
+#: (the fitted objective) was 4.20 mm.
+DISSERTATION = {
+    25.0: {
+        "surface_mean_mm": 3.63,
+        "surface_sd_mm": 1.12,
+        "surface_max_mm": 7.3,
+        "tumour_mm": 3.647,
+        "source": "FE vs MRI (ch. 4.3.2)",
+    },
+    50.0: {
+        "surface_mean_mm": 2.69,
+        "surface_sd_mm": 0.7,
+        "surface_max_mm": None,
+        "tumour_mm": 3.65,
+        "source": "surrogate vs MRI (Table 4.1)",
+    },
+}
+DISSERTATION_CALIBRATION_NIPPLE_MM = 4.20
+DISSERTATION_C1_PA = 420.0
+
+
+@dataclass(frozen=True)
+class Band:
+    """A figure and its 95 % band from the c1 interval (None: no interval)."""
+
+    value: float
+    low: float | None = None
+    high: float | None = None
+
+    def to_json(self) -> dict:
+        """``{"value", "ci95"}``."""
+        ci = None if self.low is None else [self.low, self.high]
+        return {"value": self.value, "ci95": ci}
+
+    def text(self, fmt: str = ".2f") -> str:
+        """``1.23 (1.10-1.40)``."""
+        if self.low is None:
+            return f"{self.value:{fmt}}"
+        return f"{self.value:{fmt}} ({self.low:{fmt}}–{self.high:{fmt}})"
+
+
+@dataclass(frozen=True)
+class ScanValidation:
+    """One scan's validation figures.
+
+    Attributes
+    ----------
+    name, role : str
+    posture_angle_deg : float
+        The scan's gravity in the phantom frame's transverse plane (from the data).
+    surface : dict
+        ``{frame: {stat: Band}}`` with stats mean, sd, median, p95, max (mm).
+    nipple : dict
+        ``{frame: Band}``, the dissertation's nipple error (mm).
+    tumour : dict or None
+        ``{frame: Band}``, the tumour-centre error (mm).
+    registration : dict
+        ``fre_mm``, ``tre_nipple_mm``, ``tre_tumour_mm`` of the scan's fiducial fit.
+    reference : dict or None
+        The dissertation's figures for this posture angle (within 5 deg), if any.
+    metrics : ScanMetrics
+        The full measurement at the calibrated c1 (per-vertex errors for maps).
+    displacement_mm : ndarray, shape (n_vertices,)
+        How far the model surface moved from the reference scan near each measured
+        vertex (for error-by-displacement histograms).
+    """
+
+    name: str
+    role: str
+    posture_angle_deg: float
+    surface: dict
+    nipple: dict
+    tumour: dict | None
+    registration: dict
+    reference: dict | None
+    metrics: ScanMetrics = field(repr=False)
+    displacement_mm: np.ndarray = field(repr=False)
+
+    def to_json(self) -> dict:
+        """The scan's block of ``validation.json``."""
+        return {
+            "role": self.role,
+            "posture_angle_deg": self.posture_angle_deg,
+            "surface_error_mm": {
+                f: {k: b.to_json() for k, b in s.items()} for f, s in self.surface.items()
+            },
+            "nipple_error_mm": {f: b.to_json() for f, b in self.nipple.items()},
+            "tumour_error_mm": None
+            if self.tumour is None
+            else {f: b.to_json() for f, b in self.tumour.items()},
+            "registration": self.registration,
+            "dissertation": self.reference,
+        }
+
+
+@dataclass(frozen=True)
+class Validation:
+    """Validation of a calibrated work folder (:func:`validate_work`).
+
+    Attributes
+    ----------
+    c1_pa : float
+    c1_ci95_pa : tuple of float or None
+    scans : dict of str to ScanValidation
+        Every scan but the reference (``role`` says which were validation scans).
+    """
+
+    c1_pa: float
+    c1_ci95_pa: tuple[float, float] | None
+    scans: dict
+
+    @property
+    def validation_scans(self) -> list[ScanValidation]:
+        """Scans with role ``validation``."""
+        return [s for s in self.scans.values() if s.role == "validation"]
+
+    def to_json(self) -> dict:
+        """``validation.json`` (without provenance)."""
+        return {
+            "c1_pa": self.c1_pa,
+            "c1_ci95_pa": None if self.c1_ci95_pa is None else list(self.c1_ci95_pa),
+            "band": "95 % band of each figure from the c1 interval (first order in ln c1)",
+            "dissertation": {
+                "c1_pa": DISSERTATION_C1_PA,
+                "calibration_nipple_mm": DISSERTATION_CALIBRATION_NIPPLE_MM,
+                "by_posture_angle_deg": {str(k): v for k, v in DISSERTATION.items()},
+            },
+            "scans": {n: s.to_json() for n, s in self.scans.items()},
+        }
+
+
+def _posture_angle_deg(work: WorkFolder, gravity_ref: np.ndarray) -> float:
+    R = np.asarray(work.record["model"]["R_ref_from_phantom"], float)
+    g = R.T @ gravity_ref
+    angle = float(np.degrees(np.arctan2(g[2], g[0])))
+    return angle + 360.0 if angle <= -179.5 else angle  # in (-179.5, 180.5]
+
+
+def _reference_figures(angle_deg: float, role: str) -> dict | None:
+    if role == "calibration":
+        return {
+            "c1_pa": DISSERTATION_C1_PA,
+            "nipple_mm": DISSERTATION_CALIBRATION_NIPPLE_MM,
+            "source": "the fitted nipple error (ch. 4.3.2)",
+        }
+    for nominal, figures in DISSERTATION.items():
+        if abs(angle_deg - nominal) <= 5.0:
+            return {"posture_angle_deg": nominal, "c1_pa": DISSERTATION_C1_PA} | figures
+    return None
+
+
+def _band(values: list[float]) -> Band:
+    v0 = values[0]
+    if len(values) == 1:
+        return Band(v0)
+    return Band(v0, float(min(values)), float(max(values)))
+
+
+def _displacement_near(work: WorkFolder, name: str, scan) -> np.ndarray:
+    """How far the model surface moved from the reference scan, near each measured vertex.
+
+    The displacement (mm) of the model surface vertex nearest each measured vertex; NaN
+    when the reference positions were not saved.
+    """
+    from scipy.spatial import cKDTree
+
+    st = work.states[name]
+    if st.reference_positions_mm is None:
+        return np.full(len(scan.vertices_mm), np.nan)
+    surf = work.mesh.node_set("surface")
+    moved = np.linalg.norm(st.positions_mm[surf] - st.reference_positions_mm[surf], axis=1)
+    _, idx = cKDTree(st.positions_mm[surf]).query(scan.vertices_mm)
+    return moved[idx]
+
+
+def _scan_validation(work: WorkFolder, name: str, faces: np.ndarray) -> ScanValidation:
+    scan = work.measurements.scans[name]
+    st = work.states[name]
+    nipple = work.nipple_node
+    ln = work.ln_c1_interval
+    shifts = [0.0]
+    if ln is not None and st.dpositions_mm is not None:
+        theta = np.log(work.c1_pa)
+        shifts += [ln[0] - theta, ln[1] - theta]
+    runs: list[ScanMetrics] = []
+    for d in shifts:
+        pos = st.positions_mm + d * (st.dpositions_mm if d else 0.0)
+        tumour = None
+        if st.tumour_mm is not None:
+            tumour = st.tumour_mm + d * (st.dtumour_mm if d and st.dtumour_mm is not None else 0)
+        runs.append(scan_metrics(scan, pos, faces, nipple, tumour))
+    m = runs[0]
+    surface = {
+        f: {
+            k: _band([r.surface_error_mm[f][k] for r in runs])
+            for k in ("mean", "sd", "median", "p95", "max")
+        }
+        for f in m.surface_error_mm
+    }
+    nipple_b = {f: _band([r.nipple_error_mm[f] for r in runs]) for f in m.nipple_error_mm}
+    tumour_b = None
+    if m.tumour_error_mm is not None:
+        tumour_b = {f: _band([r.tumour_error_mm[f] for r in runs]) for f in m.tumour_error_mm}
+    ing = ingest_record(work, name)
+    angle = _posture_angle_deg(work, scan.gravity_ref)
+    return ScanValidation(
+        name=name,
+        role=scan.role,
+        posture_angle_deg=angle,
+        surface=surface,
+        nipple=nipple_b,
+        tumour=tumour_b,
+        registration={k: ing.get(k) for k in ("fre_mm", "tre_nipple_mm", "tre_tumour_mm")},
+        reference=_reference_figures(angle, scan.role),
+        metrics=m,
+        displacement_mm=_displacement_near(work, name, scan),
+    )
+
+
+def validate_work(work: WorkFolder, *, scans: list[str] | None = None) -> Validation:
+    """Validation figures of every scan with a saved state (default: all but the reference).
+
+    Parameters
+    ----------
+    work : WorkFolder
+        From :func:`calib.data.read_work`.
+    scans : list of str, optional
+        Scan names to validate.
+
+    Returns
+    -------
+    Validation
+    """
+    from .model.residuals import SimulatedSurface
+
+    faces = SimulatedSurface.of(work.mesh).faces
+    names = scans or list(work.states)
+    missing = sorted(set(names) - set(work.states))
+    if missing:
+        raise KeyError(f"{work.path}: no saved state for scan(s) {missing} (failed or unknown)")
+    ci = work.record.get("c1_ci95_pa")
+    return Validation(
+        c1_pa=work.c1_pa,
+        c1_ci95_pa=None if ci is None else (float(ci[0]), float(ci[1])),
+        scans={n: _scan_validation(work, n, faces) for n in names},
+    )
