@@ -9,7 +9,7 @@ STAMP  := $(VENV)/.installed
 DEMO_OUT ?= demo-out
 PYTEST_ARGS ?=
 
-.PHONY: all venv demo test test-all bench lint clean sysdeps
+.PHONY: all venv demo test test-all validate notebooks lab bench lint clean sysdeps
 
 all: test
 
@@ -37,6 +37,27 @@ test: $(STAMP)
 
 test-all: $(STAMP)
 	$(PY) -m pytest -q -m "slow or not slow" $(PYTEST_ARGS)
+
+# the reproducible validation suite: the whole chain on fixed-seed twins, asserted bars,
+# a JSON artefact of every figure in validation-out/
+validate: $(STAMP)
+	$(PY) -m pytest -q -m "validation" tests/validation $(PYTEST_ARGS)
+
+NOTEBOOKS := $(wildcard examples/0*.py)
+NB_OUT ?= examples/out
+
+# execute every example notebook in order (PHANTOM_CALIB_SIZE=tiny|quick|dissertation)
+# and render each to HTML in $(NB_OUT)/html
+notebooks: $(STAMP)
+	$(PY) -m pip install -q -c constraints.txt -e '.[notebook]'
+	$(VENV)/bin/jupytext --sync $(NOTEBOOKS)
+	cd examples && PHANTOM_CALIB_OUT=$(abspath $(NB_OUT)) ../$(VENV)/bin/jupyter nbconvert \
+		--to html --execute --ExecutePreprocessor.timeout=7200 \
+		--output-dir $(abspath $(NB_OUT))/html $(notdir $(NOTEBOOKS:.py=.ipynb))
+
+lab: $(STAMP)
+	$(PY) -m pip install -q -c constraints.txt -e '.[notebook]'
+	$(VENV)/bin/jupyter lab examples/
 
 bench: $(STAMP)
 	$(PY) -m pip install -q -c constraints.txt -e '.[bench]'

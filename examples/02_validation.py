@@ -1,0 +1,73 @@
+# ---
+# jupyter:
+#   jupytext:
+#     formats: ipynb,py:percent
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
+#   kernelspec:
+#     display_name: Python 3 (ipykernel)
+#     language: python
+#     name: python3
+# ---
+
+# %% [markdown]
+# # Validation against the postures the model was not fitted to
+#
+# The dissertation's headline result is the calibrated model's error on the 25° and 50°
+# scans (surface 3.63 ± 1.12 mm at 25°, 2.69 ± 0.7 mm at 50°, tumour centre 3.65 mm).
+# Here the same figures for the work folder of `01_twin_to_c1`, with a 95 % band from
+# the c1 interval, next to each scan's registration error. No FE solve: `calibrate`
+# saved every posture's deformed state and its derivative in ln c1.
+
+# %%
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path.cwd()))
+import _settings
+from IPython.display import Markdown
+
+import calib
+
+work_folder = _settings.OUT / "work"
+record = calib.validate(work_folder)
+work = calib.load_work(work_folder)
+Markdown(work.validation_table())
+
+# %% [markdown]
+# ## Error maps on a shared colour scale
+
+# %%
+validation_scans = [n for n, r in work.scans.items() if r == "validation"]
+vmax = max(
+    float((abs(work.validation.scans[n].metrics.vertex_error_mm)).max()) for n in validation_scans
+)
+for name in validation_scans:
+    display(work.plot_error_map(name, vmax=vmax))
+
+# %% [markdown]
+# ## Errors by how far the surface moved (the dissertation's Figs. 3.18–3.21)
+
+# %%
+work.plot_error_by_displacement(validation_scans)
+
+# %% [markdown]
+# ## Measured and simulated outlines in the scans' slices
+# The report's figures, written by `calib.validate` into `WORK/validation/`.
+
+# %%
+from IPython.display import Image
+
+for name in validation_scans:
+    display(Image(filename=str(work_folder / "validation" / f"{name}_outlines.png")))
+
+# %%
+means = {
+    n: record["scans"][n]["surface_error_mm"]["fiducial"]["mean"]["value"] for n in validation_scans
+}
+(_settings.OUT / "02_summary.json").write_text(json.dumps({"surface_mean_mm": means}, indent=2))
+means

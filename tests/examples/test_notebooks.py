@@ -1,0 +1,58 @@
+"""The example notebooks execute, at a tiny size, and give the numbers they promise.
+
+Each notebook is the jupytext percent script ``examples/NN_*.py`` (the paired ``.ipynb``
+holds the same cells); it is executed cell by cell in a real Jupyter kernel (nbclient)
+with ``PHANTOM_CALIB_SIZE=tiny`` and writes a small ``NN_summary.json`` that the test
+checks, in the style of scikit-fem's ``test_examples.py``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+
+pytest.importorskip("nbclient")
+pytest.importorskip("jupytext")
+
+
+def _execute(name: str, out: Path, monkeypatch) -> None:
+    import jupytext
+    import nbclient
+
+    monkeypatch.setenv("PHANTOM_CALIB_SIZE", "tiny")
+    monkeypatch.setenv("PHANTOM_CALIB_OUT", str(out))
+    nb = jupytext.read(EXAMPLES / name)
+    client = nbclient.NotebookClient(
+        nb, timeout=1800, kernel_name="python3", resources={"metadata": {"path": str(EXAMPLES)}}
+    )
+    client.execute()
+
+
+@pytest.fixture(scope="module")
+def notebook_out(tmp_path_factory):
+    return tmp_path_factory.mktemp("notebooks")
+
+
+def test_01_twin_to_c1_recovers_the_truth(notebook_out, monkeypatch):
+    _execute("01_twin_to_c1.py", notebook_out, monkeypatch)
+    s = json.loads((notebook_out / "01_summary.json").read_text())
+    # issue 11's bar: c1 within 3 % of the twin's truth (homogeneous truth on a finer
+    # mesh than the model's), and the truth inside the reported 95 % interval
+    assert s["c1_pa"] == pytest.approx(s["c1_true_pa"], rel=0.03)
+    lo, hi = s["c1_ci95_pa"]
+    assert lo <= s["c1_true_pa"] <= hi
+
+
+def test_02_validation_reports_every_validation_scan(notebook_out, monkeypatch):
+    if not (notebook_out / "01_summary.json").is_file():
+        pytest.skip("needs the work folder of 01_twin_to_c1")
+    _execute("02_validation.py", notebook_out, monkeypatch)
+    s = json.loads((notebook_out / "02_summary.json").read_text())
+    # the tiny twin's 50 deg scan; with the right material the surface error is the
+    # imaging and discretisation floor (0.1-0.2 mm on the twin), far below 0.5 mm
+    assert set(s["surface_mean_mm"]) == {"tilt_50"}
+    assert s["surface_mean_mm"]["tilt_50"] < 0.5

@@ -1,0 +1,133 @@
+"""The reproducible validation suite: the whole chain on fixed-seed twins, with bars.
+
+synth (homogeneous truth, no hidden effect, the truth on a finer mesh than the model)
+-> ingest -> calibrate -> validate, then the result against the sealed truth. Every
+figure goes into a JSON artefact (``validation-out/<case>.json``, or
+``$PHANTOM_CALIB_VALIDATION_OUT``) so runs can be compared. ``make validate`` runs
+every case; the default suite (and CI) runs the ``tiny`` case.
+
+Bars (issue 11): c1 within 3 % of the truth and the truth inside its 95 % interval;
+validation surface error <= 0.3 mm (the model is right: what remains is the imaging and
+discretisation floor); the dissertation's shortcut reference state is run beside and its
+bias reported (not asserted: it is a known bias, +2 % on the quick twin).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from calib.fitting import CalibrationOptions
+from calib.model.effects import TruthEffects
+from calib.twin import PRESETS, Posture, TwinPreset, synthesize
+from calib.workflows.calibrate import run_calibration
+from calib.workflows.validate import run_validation
+
+TINY = TwinPreset(
+    phantom_resolution_mm=14,
+    truth_mesh_mm=10,
+    spacing_mm=(2.0, 2.0, 2.0),
+    postures=(
+        Posture("left_lateral", 0, "reference"),
+        Posture("right_lateral", 180, "calibration"),
+        Posture("tilt_50", 50, "validation"),
+    ),
+)
+CASES = {
+    "tiny": (TINY, {"mesh_size_mm": 14.0, "mesh_retry_mm": (), "profile_points": 0}),
+    "quick": (PRESETS["quick"], {}),
+}
+ARTEFACTS = Path(os.environ.get("PHANTOM_CALIB_VALIDATION_OUT", "validation-out"))
+
+
+def _chain(tmp: Path, case: str, seed: int, reference_state: str = "unload") -> dict:
+    preset, opts = CASES[case]
+    truth = synthesize(tmp / "twin", preset=preset, seed=seed, effects=TruthEffects())
+    work = tmp / f"work-{reference_state}"
+    options = CalibrationOptions(reference_state=reference_state, **opts)
+    cal = run_calibration(tmp / "twin" / "scans", work, options)
+    val = run_validation(work)
+    return {"truth": truth, "calibration": cal, "validation": val}
+
+
+def _figures(case: str, seed: int, runs: dict) -> dict:
+    """Every figure of a case, for the artefact."""
+    c1_true = runs["unload"]["truth"]["material"]["c1_pa"]
+    out = {"case": case, "seed": seed, "c1_true_pa": c1_true}
+    for state, run in runs.items():
+        cal, val = run["calibration"], run["validation"]
+        out[state] = {
+            "c1_pa": cal["c1_pa"],
+            "c1_ci95_pa": cal["c1_ci95_pa"],
+            "c1_relative_error": cal["c1_pa"] / c1_true - 1.0,
+            "fe_solves": cal["fe_solves"],
+            "wall_s": cal["wall_s"],
+            "scans": {
+                n: {
+                    "role": s["role"],
+                    "posture_angle_deg": s["posture_angle_deg"],
+                    "surface_error_mm": s["surface_error_mm"],
+                    "nipple_error_mm": s["nipple_error_mm"],
+                    "tumour_error_mm": s["tumour_error_mm"],
+                }
+                for n, s in val["scans"].items()
+            },
+        }
+    return out
+
+
+def _case(case: str, seed: int, tmp_path_factory) -> dict:
+    runs = {
+        state: _chain(tmp_path_factory.mktemp(f"{case}-{state}"), case, seed, state)
+        for state in ("unload", "shortcut")
+    }
+    figures = _figures(case, seed, runs)
+    ARTEFACTS.mkdir(parents=True, exist_ok=True)
+    (ARTEFACTS / f"{case}-seed{seed}.json").write_text(json.dumps(figures, indent=2) + "\n")
+    return figures
+
+
+@pytest.fixture(
+    scope="module",
+    params=[
+        pytest.param(("tiny", 0), marks=pytest.mark.validation),
+        pytest.param(("quick", 0), marks=[pytest.mark.validation, pytest.mark.slow]),
+        pytest.param(("quick", 1), marks=[pytest.mark.validation, pytest.mark.slow]),
+    ],
+    ids=lambda p: f"{p[0]}-seed{p[1]}",
+)
+def figures(request, tmp_path_factory):
+    case, seed = request.param
+    return _case(case, seed, tmp_path_factory)
+
+
+def test_c1_within_3_percent_of_the_truth_and_inside_its_interval(figures):
+    u = figures["unload"]
+    assert abs(u["c1_relative_error"]) <= 0.03, u
+    lo, hi = u["c1_ci95_pa"]
+    assert lo <= figures["c1_true_pa"] <= hi, u
+
+
+def test_validation_surface_error_is_at_the_imaging_floor(figures):
+    for name, s in figures["unload"]["scans"].items():
+        if s["role"] == "validation":
+            assert s["surface_error_mm"]["fiducial"]["mean"]["value"] <= 0.3, name
+
+
+def test_shortcut_is_reported_and_fits_worse_than_unloading(figures):
+    # Its c1 bias is reported in the artefact, not asserted (a known bias). What must
+    # hold: taking the sagging reference scan as stress-free is a model error that the
+    # exact recovery does not make, so the shortcut leaves more residual on the scan it
+    # was fitted to (quick twin: 0.60 vs 0.18 mm, README).
+    def fit_residual(state):
+        scans = figures[state]["scans"].values()
+        return max(
+            s["surface_error_mm"]["fiducial"]["mean"]["value"]
+            for s in scans
+            if s["role"] == "calibration"
+        )
+
+    assert fit_residual("shortcut") > fit_residual("unload")
