@@ -21,6 +21,7 @@ __all__ = [
     "clean_stale",
     "file_sha256",
     "provenance",
+    "source_sha256",
     "write_json_atomic",
 ]
 
@@ -39,6 +40,22 @@ def file_sha256(path: str | os.PathLike) -> str:
     with open(path, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
+    return h.hexdigest()
+
+
+def source_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 of a scan source: a file's bytes, or a folder's files (names and bytes).
+
+    Hidden files are ignored; files are taken in sorted order, so the fingerprint does
+    not depend on the file system's listing order.
+    """
+    path = Path(path)
+    if path.is_file():
+        return file_sha256(path)
+    h = hashlib.sha256()
+    for f in sorted(p for p in path.rglob("*") if p.is_file() and not p.name.startswith(".")):
+        h.update(str(f.relative_to(path)).encode())
+        h.update(bytes.fromhex(file_sha256(f)))
     return h.hexdigest()
 
 

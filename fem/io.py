@@ -169,13 +169,21 @@ def read_mesh(path: str | os.PathLike, *, orient: bool = True) -> TetMesh:
         return read_tetgen(path, orient=orient)
     if not path.is_file():
         raise FileNotFoundError(f"mesh file not found: {path}")
+    if path.stat().st_size == 0:
+        raise MeshError(f"{path}: the file is empty")
+    import contextlib
+    import io
+
     import meshio
 
+    said = io.StringIO()
     try:
-        m = meshio.read(path)
+        with contextlib.redirect_stderr(said), contextlib.redirect_stdout(said):
+            m = meshio.read(path)
     # meshio raises many kinds for bad files, and calls sys.exit when no reader succeeds
     except (Exception, SystemExit) as exc:  # noqa: BLE001
-        raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from exc
+        why = " ".join(said.getvalue().split()) or f"{type(exc).__name__}: {exc}"
+        raise MeshError(f"{path}: cannot read mesh ({why})") from exc
     return _to_tetmesh(m, path, orient=orient)
 
 

@@ -11,6 +11,8 @@ import typer
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
+    rich_markup_mode=None,  # plain click help: flags without a fake <bool> value
+    context_settings={"help_option_names": ["-h", "--help"]},
     help="Calibrate a breast phantom's hyperelastic material from multi-posture MRI.",
 )
 
@@ -215,6 +217,16 @@ def validate(
     _validate(work)
 
 
-def main() -> None:
-    """Console-script entry point."""
-    app()
+def main(argv: list[str] | None = None) -> None:
+    """Console-script entry point.
+
+    ``-v``/``--verbose`` is a global option; given after the command
+    (``phantom-calib calibrate -v ...``) it is moved in front of it.
+    """
+    import sys
+
+    args = list(sys.argv[1:] if argv is None else argv)
+    verbose = [a for a in args if a in ("-v", "--verbose")]
+    if verbose and "--" not in args:
+        args = verbose[:1] + [a for a in args if a not in ("-v", "--verbose")]
+    app(args=args, prog_name="phantom-calib")

@@ -16,7 +16,14 @@ from registration import apply_transform
 
 from .session import Session
 
-__all__ = ["IngestResult", "ingest_scans", "load_ingest"]
+__all__ = [
+    "IngestResult",
+    "StaleIngestError",
+    "ingest_inputs",
+    "ingest_scans",
+    "load_ingest",
+    "stale_reasons",
+]
 
 log = logging.getLogger(__name__)
 
@@ -74,8 +81,11 @@ def _track_tumour(session: Session, scans: dict, fiducial_regs: dict) -> dict:
     ref = session.reference.name
     r = scans[ref]
     ref_pts = r.inclusions.centres_lps_mm
-    idx = {ref: imaging.select_tumour(ref_pts, r.inclusions.diameters_mm,
-                                      hint_lps_mm=session.tumour_hint_lps_mm)}  # fmt: skip
+    idx = {
+        ref: imaging.select_tumour(
+            ref_pts, r.inclusions.diameters_mm, hint_lps_mm=session.tumour_hint_lps_mm
+        )
+    }
     for name, res in scans.items():
         if name == ref:
             continue
@@ -88,8 +98,9 @@ def _track_tumour(session: Session, scans: dict, fiducial_regs: dict) -> dict:
         d = res.inclusions.diameters_mm
         same = np.flatnonzero(np.abs(d - d_ref) <= max(1.0, 0.15 * d_ref))
         cand = same if len(same) else np.arange(len(d))
-        k = imaging.select_tumour(apply_transform(A, pts[cand]), d[cand],
-                                  hint_lps_mm=ref_pts[idx[ref]])  # fmt: skip
+        k = imaging.select_tumour(
+            apply_transform(A, pts[cand]), d[cand], hint_lps_mm=ref_pts[idx[ref]]
+        )
         idx[name] = int(cand[k])
     return idx
 
@@ -107,8 +118,11 @@ def _register(session: Session, scans: dict, landmarks: bool):
     angles = {s.name: s.posture_angle_deg for s in session.scans if s.posture_angle_deg is not None}
     marks = None
     if landmarks:
-        marks = {n: {"nipple": r.nipple_lps_mm} | ({"tumour": r.tumour_lps_mm}
-                 if r.tumour_lps_mm is not None else {}) for n, r in scans.items()}  # fmt: skip
+        marks = {
+            n: {"nipple": r.nipple_lps_mm}
+            | ({"tumour": r.tumour_lps_mm} if r.tumour_lps_mm is not None else {})
+            for n, r in scans.items()
+        }
     return registration.register_scans(
         fids,
         reference=session.reference.name,
@@ -154,3 +168,58 @@ def load_ingest(work: str | Path, name: str) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"{path} not found: run `phantom-calib ingest` first")
     return json.loads(path.read_text())
+
+
+class StaleIngestError(RuntimeError):
+    """The ingest results in a work folder are not those of the current scans."""
+
+
+def ingest_inputs(session: Session) -> dict:
+    """Fingerprints of what ingest reads.
+
+    The session (:meth:`Session.ingest_fingerprint`) and every scan's source
+    (:func:`calib.io.source_sha256`).
+    """
+    from ..io import source_sha256
+
+    return {
+        "session_sha256": session.ingest_fingerprint(),
+        "sources_sha256": {s.name: source_sha256(s.path) for s in session.scans},
+    }
+
+
+def stale_reasons(work: str | Path, session: Session) -> list[str]:
+    """Why the ingest results in ``work`` do not belong to ``session`` (empty: they do).
+
+    Compares the fingerprints recorded in ``WORK/ingest_summary.json`` with the session
+    and the scan sources as they are now.
+    """
+    from ..io import StaleOutputError, check_run
+
+    work = Path(work)
+    try:
+        doc = check_run(work, folder="scans", record="ingest_summary.json")
+    except FileNotFoundError:
+        return ["no ingest results"]
+    except StaleOutputError:
+        return ["the ingest results are from an interrupted run"]
+    recorded = doc.get("inputs")
+    if recorded is None:
+        return ["the ingest results carry no fingerprints (an older phantom-calib)"]
+    now = ingest_inputs(session)
+    reasons = []
+    if recorded["session_sha256"] != now["session_sha256"]:
+        reasons.append(
+            "session.toml changed (its reference scan, postures, landmarks, "
+            "scanner gravity, marker count or list of scans)"
+        )
+    old = recorded.get("sources_sha256", {})
+    changed = [n for n, h in now["sources_sha256"].items() if old.get(n) != h]
+    if changed:
+        reasons.append(f"scan data changed or added: {changed}")
+    missing = [
+        s.name for s in session.scans if not (work / "scans" / s.name / "ingest.json").is_file()
+    ]
+    if missing:
+        reasons.append(f"no ingest results for {missing}")
+    return reasons

@@ -107,12 +107,22 @@ def read_scan(work: Path, entry: ScanEntry) -> ScanMeasurement:
 
 
 def load_measurements(work: str | Path, session: Session) -> Measurements:
-    """Read every scan's ``ingest.json`` and ``surface_ref.ply`` from a work folder."""
+    """Read every scan's ``ingest.json`` and ``surface_ref.ply`` from a work folder.
+
+    Raises
+    ------
+    calib.data.ingest.StaleIngestError
+        The ingest results are missing, or not those of the session's current scans
+        (the recorded fingerprints differ): run ``phantom-calib ingest`` again.
+    """
+    from .ingest import StaleIngestError, stale_reasons
+
     work = Path(work)
-    missing = [
-        s.name for s in session.scans if not (work / "scans" / s.name / "ingest.json").is_file()
-    ]
-    if missing:
-        raise FileNotFoundError(f"{work}: no ingest results for {missing}; run ingest first")
+    reasons = stale_reasons(work, session)
+    if reasons:
+        raise StaleIngestError(
+            f"{work}: the ingest results do not match {session.folder}: "
+            f"{'; '.join(reasons)}. Run `phantom-calib ingest` again"
+        )
     scans = {s.name: read_scan(work, s) for s in session.scans}
     return Measurements(scans[session.reference.name], scans)

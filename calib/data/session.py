@@ -73,6 +73,29 @@ class Session:
         """Scans with the given role."""
         return [s for s in self.scans if s.role == role]
 
+    def ingest_fingerprint(self) -> str:
+        """SHA-256 of everything in ``session.toml`` that ingest's results depend on.
+
+        The scanner gravity, the marker count, the tumour hint, which scan is the
+        reference, and every scan's name, path and nominal posture. The calibration and
+        validation roles are not part of it: they are read from the session every time.
+        """
+        import hashlib
+        import json
+
+        doc = {
+            "gravity": self.gravity_scanner.tolist(),
+            "fiducials": self.expected_fiducials,
+            "tumour_hint": None
+            if self.tumour_hint_lps_mm is None
+            else self.tumour_hint_lps_mm.tolist(),
+            "reference": self.reference.name,
+            "scans": [
+                [s.name, str(s.path), s.posture_plane, s.posture_angle_deg] for s in self.scans
+            ],
+        }
+        return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+
 
 def _is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)

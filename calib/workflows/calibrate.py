@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..data.ingest import stale_reasons
 from ..data.measurements import load_measurements
 from ..data.session import load_session
 from ..evaluation import ScanEvaluation, evaluate
@@ -141,10 +142,11 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     work = Path(work)
     check_work_folder(work)
     session = load_session(scans_dir)
-    if not all((work / "scans" / s.name / "ingest.json").is_file() for s in session.scans):
+    reasons = stale_reasons(work, session)
+    if reasons:
         from .ingest import run_ingest
 
-        say("ingesting scans")
+        say(f"ingesting the scans ({'; '.join(reasons)})")
         run_ingest(scans_dir, work)
     meas = load_measurements(work, session)
     calibration = fit(meas, options, density_kg_m3=session.density_kg_m3, progress=say)

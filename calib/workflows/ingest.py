@@ -11,20 +11,20 @@ import logging
 from dataclasses import replace
 from pathlib import Path
 
-from ..data.ingest import IngestResult, ingest_scans
+from ..data.ingest import IngestResult, ingest_inputs, ingest_scans
 from ..data.session import Session, load_session
-from ..io import provenance, write_json_atomic
+from ..io import RunOutputs, provenance, write_json_atomic
 
 __all__ = ["run_ingest", "write_ingest"]
 
 log = logging.getLogger(__name__)
 
 
-def _write_scan(work: Path, name: str, res, reg, session: Session) -> None:
+def _write_scan(root: Path, name: str, res, reg, session: Session, source_sha256: str) -> None:
     import imaging
     from registration import apply_transform
 
-    folder = work / "scans" / name
+    folder = root / name
     folder.mkdir(parents=True, exist_ok=True)
     imaging.write_ply(folder / "surface.ply", res.surface)
     ref_vertices = apply_transform(reg.T_ref_from_scan, res.surface.vertices_lps_mm)
@@ -33,7 +33,12 @@ def _write_scan(work: Path, name: str, res, reg, session: Session) -> None:
     )
     imaging.write_nifti(res.mask, folder / "mask.nii.gz")
     entry = next(s for s in session.scans if s.name == name)
-    doc = {"name": name, "role": entry.role, "source": str(entry.path)}
+    doc = {
+        "name": name,
+        "role": entry.role,
+        "source": str(entry.path),
+        "source_sha256": source_sha256,
+    }
     doc |= res.to_json_dict() | reg.to_json()
     doc["frames"] = {
         "scan": "this scan's LPS frame (mm): fiducials_lps_mm, nipple_lps_mm, tumour_lps_mm, "
@@ -44,18 +49,39 @@ def _write_scan(work: Path, name: str, res, reg, session: Session) -> None:
     write_json_atomic(folder / "ingest.json", doc)
 
 
-def write_ingest(work: str | Path, result: IngestResult) -> None:
-    """Write an :class:`~calib.data.ingest.IngestResult` into ``work``."""
-    work = Path(work)
-    for name, res in result.scans.items():
-        _write_scan(work, name, res, result.registrations[name], result.session)
-    write_json_atomic(
-        work / "ingest_summary.json",
-        {
-            "scans": {n: r.to_json() for n, r in result.registrations.items()},
-            "provenance": provenance(inputs={"session": result.session.folder / "session.toml"}),
-        },
-    )
+def write_ingest(work: str | Path, result: IngestResult) -> dict:
+    """Write an :class:`~calib.data.ingest.IngestResult` into ``work`` as one run.
+
+    ``WORK/scans/`` is staged and swapped in whole, and ``WORK/ingest_summary.json`` (with
+    the fingerprints of the session and of every scan source, which ``calibrate`` checks)
+    is written last (:class:`calib.io.RunOutputs`): a failed or killed ingest leaves the
+    previous results as they were, never a mix.
+
+    Returns
+    -------
+    dict
+        The ``ingest_summary.json`` record.
+    """
+    inputs = ingest_inputs(result.session)
+    with RunOutputs(work, folder="scans", record="ingest_summary.json") as run:
+        for name, res in result.scans.items():
+            _write_scan(
+                run.stage,
+                name,
+                res,
+                result.registrations[name],
+                result.session,
+                inputs["sources_sha256"][name],
+            )
+        return run.commit(
+            {
+                "scans": {n: r.to_json() for n, r in result.registrations.items()},
+                "inputs": inputs,
+                "provenance": provenance(
+                    inputs={"session": result.session.folder / "session.toml"}
+                ),
+            }
+        )
 
 
 def run_ingest(scans_dir: str | Path, work: str | Path, *, progress=None) -> IngestResult:

@@ -20,9 +20,17 @@ __all__ = ["SimulateOptions", "parse_back_plane", "parse_vector", "run_simulate"
 log = logging.getLogger(__name__)
 
 
+#: Plausible extent of a phantom or breast, mm: a mesh outside it is in other units.
+BODY_EXTENT_MM = (10.0, 2000.0)
+
+
 @dataclass(frozen=True)
 class SimulateOptions:
-    """Options of the ``simulate`` command (see the README for their meaning)."""
+    """Options of the ``simulate`` command (see the README for their meaning).
+
+    Every number is checked at construction (finite, in range), so a bad option fails
+    before any file is read.
+    """
 
     c1_pa: float
     nu: float = 0.499
@@ -32,6 +40,29 @@ class SimulateOptions:
     bc: str = "clamped"
     back_plane: str = "auto"
     formulation: str = "taylor-hood"
+
+    def __post_init__(self) -> None:
+        checks = (
+            ("--c1", self.c1_pa, self.c1_pa > 0, "a positive stress in Pa"),
+            ("--nu", self.nu, 0 < self.nu < 0.5, "in (0, 0.5)"),
+            ("--density", self.density_kg_m3, self.density_kg_m3 > 0, "positive (kg/m^3)"),
+            (
+                "--g",
+                self.g_m_s2,
+                self.g_m_s2 > 0,
+                "a positive magnitude in m/s^2 (the direction is --gravity)",
+            ),
+        )
+        for name, value, ok, expected in checks:
+            if not np.isfinite(value) or not ok:
+                raise ValueError(f"{name} must be {expected}, got {value}")
+        if self.bc not in ("clamped", "sliding"):
+            raise ValueError(f"--bc must be 'clamped' or 'sliding', got {self.bc!r}")
+        if self.formulation not in fem.FORMULATIONS:
+            raise ValueError(
+                f"--formulation must be one of {sorted(fem.FORMULATIONS)}, got {self.formulation!r}"
+            )
+        parse_back_plane(self.back_plane)
 
 
 def parse_vector(text: str) -> tuple[float, float, float]:
@@ -74,11 +105,61 @@ def _back_nodes(mesh: fem.TetMesh, z_mm: float | None):
 def _model(mesh: fem.TetMesh, opts: SimulateOptions) -> fem.Model:
     material = fem.NeoHookean(opts.c1_pa, nu=opts.nu)
     supports = {"clamped": fem.Clamped(), "sliding": fem.Sliding()}
-    if opts.bc not in supports:
-        raise ValueError(f"--bc must be 'clamped' or 'sliding', got {opts.bc!r}")
     return fem.Model.homogeneous(
         mesh, material, density_kg_m3=opts.density_kg_m3, support=supports[opts.bc]
     )
+
+
+def _components(mesh: fem.TetMesh) -> np.ndarray:
+    """Connected-component label of every element (elements sharing a node are joined)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    n = mesh.n_tets
+    rows = np.repeat(np.arange(n), 4)
+    incidence = sp.csr_matrix((np.ones(4 * n), (rows, mesh.tets.ravel())), shape=(n, mesh.n_nodes))
+    _, labels = connected_components(incidence @ incidence.T, directed=False)
+    return labels
+
+
+def check_mesh(mesh: fem.TetMesh, path: Path) -> None:
+    """Refuse a mesh that cannot be a phantom in mm: wrong units, or several bodies."""
+    extent = float(np.ptp(mesh.nodes_mm, axis=0).max()) if mesh.n_nodes else 0.0
+    lo, hi = BODY_EXTENT_MM
+    if not lo <= extent <= hi:
+        unit = "metres (scale it by 1000)" if extent < lo else "micrometres (scale it by 1e-3)"
+        raise fem.MeshError(
+            f"{path}: the mesh spans {extent:.4g} mm; lengths must be in "
+            f"millimetres (a body of {lo:g}-{hi:g} mm). Is it in {unit}?"
+        )
+    labels = _components(mesh)
+    counts = np.bincount(labels)
+    if len(counts) > 1:
+        raise fem.MeshError(
+            f"{path}: the mesh has {len(counts)} disconnected parts "
+            f"({sorted(counts.tolist(), reverse=True)} elements); a floating "
+            "part has no support: remove it"
+        )
+
+
+def check_output(out_path: Path) -> None:
+    """Fail before any work when ``out_path`` cannot be written as a mesh."""
+    import os
+
+    from fem.io import _format_for
+
+    if out_path.suffix.lower() not in (".node", ".ele"):
+        try:
+            _format_for(out_path)
+        except ValueError:
+            raise ValueError(
+                f"--out {out_path}: not a mesh format (use .vtu, .vtk, .xdmf, .inp, .msh, ...)"
+            ) from None
+    if out_path.exists() and out_path.is_dir():
+        raise IsADirectoryError(f"--out {out_path}: is a folder")
+    parent = next((p for p in (out_path.parent, *out_path.parent.parents) if p.exists()), Path("."))
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise PermissionError(f"--out {out_path}: {parent} is not writable")
 
 
 def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict:
@@ -91,16 +172,33 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
     """
     from fem.io import read_mesh, write_mesh
 
-    if opts.density_kg_m3 <= 0:
-        raise ValueError(f"--density must be positive, got {opts.density_kg_m3}")
+    check_output(Path(out_path))
     t0 = time.perf_counter()
-    mesh = read_mesh(mesh_path).oriented()
-    back, normal = _back_nodes(mesh, parse_back_plane(opts.back_plane))
-    mesh = tag_node_sets(mesh, back, normal)
+    try:
+        mesh = read_mesh(mesh_path).oriented()
+        if mesh.n_tets == 0:
+            raise fem.MeshError("the mesh has no tetrahedra")
+        check_mesh(mesh, mesh_path)
+        back, normal = _back_nodes(mesh, parse_back_plane(opts.back_plane))
+        mesh = tag_node_sets(mesh, back, normal)
+    except fem.MeshError as exc:  # every mesh problem names the mesh file
+        if str(mesh_path) in str(exc):
+            raise
+        raise fem.MeshError(f"{mesh_path}: {exc}") from exc
     model = _model(mesh, opts)
-    sol = fem.solve(model, gravity=np.array(opts.gravity), g_m_s2=opts.g_m_s2,
-                    formulation=opts.formulation)  # fmt: skip
+    sol = fem.solve(
+        model, gravity=np.array(opts.gravity), g_m_s2=opts.g_m_s2, formulation=opts.formulation
+    )
     nipple = int(mesh.node_set("nipple")[0])
+    extent = float(np.ptp(mesh.nodes_mm, axis=0).max())
+    if sol.max_displacement_mm > 0.5 * extent:
+        log.warning(
+            "%s: the body moved %.0f mm, more than half its size (%.0f mm): check c1 "
+            "(Pa), the density (kg/m^3) and g (m/s^2)",
+            mesh_path,
+            sol.max_displacement_mm,
+            extent,
+        )
     summary = {
         "max_displacement_mm": sol.max_displacement_mm,
         "nipple_displacement_mm": float(np.linalg.norm(sol.displacement_mm[nipple])),
@@ -115,7 +213,9 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
     }
     json_path = out_path.with_suffix(".json")
     deformed = mesh.with_nodes(mesh.nodes_mm + sol.displacement_mm)
-    atomic_write(out_path, lambda p: write_mesh(
-        deformed, p, point_data={"displacement_mm": sol.displacement_mm}))  # fmt: skip
+    atomic_write(
+        out_path,
+        lambda p: write_mesh(deformed, p, point_data={"displacement_mm": sol.displacement_mm}),
+    )
     write_json_atomic(json_path, summary)
     return summary

@@ -40,8 +40,12 @@ def test_version():
 def test_python_m_calib_help():
     proc = subprocess.run(
         [sys.executable, "-m", "calib", "--help"],
-        cwd=REPO, capture_output=True, text=True, timeout=120, check=False,
-    )  # fmt: skip
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     assert proc.returncode == 0, proc.stderr
     assert all(command in proc.stdout for command in COMMANDS)
 
@@ -72,8 +76,15 @@ def test_simulate_writes_result_and_summary(simulated):
     assert result.exit_code == 0, result.output
     assert "converged=True" in result.output
     summary = json.loads(out.with_suffix(".json").read_text())
-    keys = ("max_displacement_mm", "nipple_displacement_mm", "converged", "newton_iterations",
-            "load_steps", "dofs", "wall_s")  # fmt: skip
+    keys = (
+        "max_displacement_mm",
+        "nipple_displacement_mm",
+        "converged",
+        "newton_iterations",
+        "load_steps",
+        "dofs",
+        "wall_s",
+    )
     assert set(keys) <= set(summary)
     assert summary["converged"] is True
     assert summary["newton_iterations"] >= 1 and summary["load_steps"] >= 1
@@ -102,8 +113,18 @@ def test_simulate_back_plane_option_agrees_with_auto(simulated, tmp_path):
     # The back plate at z = 0 named explicitly gives the same solve as auto-detection.
     mesh_file, out_auto, _ = simulated
     out = tmp_path / "explicit.vtu"
-    args = ["simulate", str(mesh_file), "--c1", "420", "--gravity", "1,0,0", "--out", str(out),
-            "--back-plane", "z=0"]  # fmt: skip
+    args = [
+        "simulate",
+        str(mesh_file),
+        "--c1",
+        "420",
+        "--gravity",
+        "1,0,0",
+        "--out",
+        str(out),
+        "--back-plane",
+        "z=0",
+    ]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     auto = json.loads(out_auto.with_suffix(".json").read_text())
@@ -128,6 +149,13 @@ BAD = [
     (["--back-plane", "z=40"], r"no back face found at z=40"),
     (["--bc", "glued"], r"--bc must be 'clamped' or 'sliding', got 'glued'"),
     (["--density", "-5"], r"--density must be positive"),
+    # issue 15: a negative g silently reversed gravity; nan gave a scipy dtype message
+    (["--g", "-9.81"], r"--g must be a positive magnitude .* \(the direction is --gravity\)"),
+    (["--g", "nan"], r"--g must be a positive magnitude .* got nan"),
+    (["--c1", "inf"], r"--c1 must be a positive stress in Pa, got inf"),
+    (["--formulation", "q3"], r"--formulation must be one of"),
+    # checked before the solve, naming the file the user gave (not a hidden temp file)
+    (["--out", "RESULT.txt"], r"--out RESULT\.txt: not a mesh format"),
 ]
 
 
@@ -149,10 +177,88 @@ def test_simulate_bad_input(mesh_file, tmp_path, extra, pattern):
 
 def test_simulate_missing_mesh(tmp_path):
     out = tmp_path / "RESULT.vtu"
-    args = ["simulate", str(tmp_path / "absent.vtu"), "--c1", "420", "--gravity", "0,1,0",
-            "--out", str(out)]  # fmt: skip
+    args = [
+        "simulate",
+        str(tmp_path / "absent.vtu"),
+        "--c1",
+        "420",
+        "--gravity",
+        "0,1,0",
+        "--out",
+        str(out),
+    ]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "absent.vtu" in lines[0] and "not found" in lines[0]
     assert list(tmp_path.iterdir()) == []
+
+
+def _write(path: Path, nodes, tets) -> Path:
+    import meshio
+
+    meshio.write(path, meshio.Mesh(np.asarray(nodes, float), [("tetra", np.asarray(tets))]))
+    return path
+
+
+def _simulate(mesh_path: Path, out: Path):
+    args = ["simulate", str(mesh_path), "--c1", "420", "--gravity", "1,0,0", "--out", str(out)]
+    return CliRunner().invoke(app, args)
+
+
+def _one_error_line(result) -> str:
+    assert result.exit_code == 2, result.output
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    return lines[0]
+
+
+def test_simulate_refuses_a_mesh_in_metres(mesh_file, tmp_path):
+    # issue 15: a 0.1 m body gave "converged=True, nipple displacement 0.00 mm", exit 0
+    import meshio
+
+    m = meshio.read(mesh_file)
+    metres = _write(tmp_path / "metres.vtu", m.points * 1e-3, m.cells_dict["tetra"])
+    line = _one_error_line(_simulate(metres, tmp_path / "out.vtu"))
+    assert "metres.vtu" in line and "millimetres" in line and "Is it in metres" in line
+    assert not (tmp_path / "out.vtu").exists()
+
+
+def test_simulate_refuses_a_floating_part(mesh_file, tmp_path):
+    # issue 15: 17 s of Newton before a generic message; now found before any solve
+    import meshio
+
+    m = meshio.read(mesh_file)
+    pts, tets = m.points, m.cells_dict["tetra"]
+    far = pts[tets[0]] + [0.0, 0.0, 500.0]  # one tetrahedron floating 0.5 m away
+    nodes = np.vstack([pts, far])
+    cells = np.vstack([tets, np.arange(4) + len(pts)])
+    line = _one_error_line(
+        _simulate(_write(tmp_path / "two.vtu", nodes, cells), tmp_path / "o.vtu")
+    )
+    assert "two.vtu" in line and "2 disconnected parts" in line
+
+
+def test_simulate_names_the_mesh_of_an_empty_or_degenerate_body(tmp_path):
+    empty = tmp_path / "empty.vtu"
+    empty.write_text("")
+    assert "empty.vtu" in _one_error_line(_simulate(empty, tmp_path / "o.vtu"))
+    flat = [[0, 0, 0], [50, 0, 0], [0, 50, 0], [25, 25, 0]]  # four coplanar nodes: no volume
+    line = _one_error_line(
+        _simulate(_write(tmp_path / "flat.vtu", flat, [[0, 1, 2, 3]]), tmp_path / "o2.vtu")
+    )
+    assert "flat.vtu" in line
+
+
+def test_verbose_is_accepted_after_the_command(tmp_path):
+    from calib.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["init", str(tmp_path / "absent"), "-v"])
+    assert exc.value.code == 2  # the command ran (and failed on the folder), -v was accepted
+
+
+def test_short_help_option():
+    result = CliRunner().invoke(app, ["calibrate", "-h"])
+    assert result.exit_code == 0 and "--objective" in result.output
+    assert "<bool>" not in result.output  # flags are shown without a fake value

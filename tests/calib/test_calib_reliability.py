@@ -1,0 +1,242 @@
+"""Never a silent wrong answer (issue 15): stale ingest, run-level atomicity, permissions,
+option checks before any work, and the slow-solver notice.
+
+The stale-ingest cases run end to end on a small three-posture twin with the cheapest
+calibration (shortcut reference state, 16 mm mesh, no profile, no mesh check): what is
+tested is which scans and roles the calibration uses, not its accuracy.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import stat
+
+import numpy as np
+import pytest
+from calib_helpers import SMALL_VALIDATION_PRESET, make_scan_folder
+from typer.testing import CliRunner
+
+from calib.cli import app
+from calib.data.ingest import StaleIngestError, stale_reasons
+from calib.data.measurements import load_measurements
+from calib.data.session import load_session
+from calib.io import RunOutputs, StaleOutputError, check_run, write_json_atomic
+from calib.twin import synthesize
+from calib.workflows.ingest import run_ingest
+
+FAST = ["--reference-state", "shortcut", "--mesh-size", "16", "--profile", "0", "--mesh-check", "0"]
+
+
+@pytest.fixture(scope="module")
+def twin(tmp_path_factory):
+    out = tmp_path_factory.mktemp("twin") / "twin"
+    synthesize(out, preset=SMALL_VALIDATION_PRESET, seed=3)
+    return out / "scans"
+
+
+@pytest.fixture
+def scans(twin, tmp_path):
+    """A private copy of the twin's scans (the tests edit session.toml and the series)."""
+    return shutil.copytree(twin, tmp_path / "scans")
+
+
+def _edit(scans, old: str, new: str) -> None:
+    toml = scans / "session.toml"
+    text = toml.read_text()
+    assert old in text, old
+    toml.write_text(text.replace(old, new))
+
+
+def _calibrate(scans, work, *extra):
+    return CliRunner().invoke(app, ["calibrate", str(scans), "--out", str(work), *FAST, *extra])
+
+
+def test_roles_come_from_the_current_session(scans, tmp_path):
+    work = tmp_path / "work"
+    run_ingest(scans, work)
+    # swap the calibration and validation roles after ingest
+    _edit(scans, 'role = "calibration"', 'role = "TMP"')
+    _edit(scans, 'role = "validation"', 'role = "calibration"')
+    _edit(scans, 'role = "TMP"', 'role = "validation"')
+    session = load_session(scans)
+    assert stale_reasons(work, session) == []  # roles are not an input of ingest
+    meas = load_measurements(work, session)
+    assert [s.name for s in meas.with_role("calibration")] == ["tilt_50"]
+    result = _calibrate(scans, work)
+    assert result.exit_code == 0, result.output
+    doc = json.loads((work / "calibration.json").read_text())
+    assert doc["scans"]["tilt_50"]["role"] == "calibration"
+    assert doc["scans"]["right_lateral"]["role"] == "validation"
+    assert "ingesting" not in result.output  # nothing ingest depends on changed
+
+
+def test_a_swapped_reference_is_re_ingested_and_said(scans, tmp_path):
+    work = tmp_path / "work"
+    run_ingest(scans, work)
+    _edit(scans, 'role = "reference"', 'role = "TMP"')
+    _edit(scans, 'role = "calibration"', 'role = "reference"')
+    _edit(scans, 'role = "TMP"', 'role = "calibration"')
+    session = load_session(scans)
+    assert any("session.toml changed" in r for r in stale_reasons(work, session))
+    with pytest.raises(StaleIngestError, match="session.toml changed"):
+        load_measurements(work, session)
+    result = _calibrate(scans, work)
+    assert result.exit_code == 0, result.output
+    assert "ingesting the scans (session.toml changed" in result.output
+    # right_lateral is the reference now: its registration is the identity, and the
+    # calibration fitted left_lateral (not the new reference against itself)
+    ing = json.loads((work / "scans" / "right_lateral" / "ingest.json").read_text())
+    np.testing.assert_allclose(ing["T_ref_from_scan"], np.eye(4), atol=1e-12)
+    doc = json.loads((work / "calibration.json").read_text())
+    assert doc["model"]["reference_scan"] == "right_lateral"
+    assert doc["scans"]["left_lateral"]["role"] == "calibration"
+
+
+def test_a_corrupted_series_is_never_calibrated_on_old_results(scans, tmp_path):
+    work = tmp_path / "work"
+    run_ingest(scans, work)
+    summary = (work / "ingest_summary.json").read_text()
+    victim = sorted((scans / "tilt_50").iterdir())[3]
+    victim.write_bytes(b"not a DICOM file")
+    assert any("scan data changed" in r for r in stale_reasons(work, load_session(scans)))
+    result = _calibrate(scans, work)
+    assert result.exit_code == 2  # the re-ingest fails on the broken series...
+    assert "tilt_50" in result.stderr and "ingesting the scans" in result.output
+    assert not (work / "calibration.json").exists()  # ...and nothing was calibrated
+    # the failed ingest left the previous (consistent, fingerprinted) results untouched
+    assert (work / "ingest_summary.json").read_text() == summary
+    check_run(work, folder="scans", record="ingest_summary.json")
+
+
+@pytest.mark.parametrize(
+    ("args", "pattern"),
+    [
+        (["--nu", "0.5"], r"Poisson's ratio must lie in \(0, 0\.5\)"),
+        (["--profile", "-3"], r"profile points must be >= 0"),
+        (["--objective", "volume"], r"objective must be one of"),
+    ],
+)
+def test_calibrate_options_are_checked_before_any_work(tmp_path, args, pattern):
+    import re
+
+    scans = make_scan_folder(tmp_path / "scans")  # placeholder series: ingest would fail
+    result = CliRunner().invoke(app, ["calibrate", str(scans), "--out", str(tmp_path / "w"), *args])
+    assert result.exit_code == 2 and re.search(pattern, result.stderr), result.stderr
+    assert not (tmp_path / "w").exists()
+
+
+def test_calibrate_out_that_is_a_file_fails_before_any_work(tmp_path):
+    scans = make_scan_folder(tmp_path / "scans")
+    out = tmp_path / "results.txt"
+    out.write_text("x")
+    result = CliRunner().invoke(app, ["calibrate", str(scans), "--out", str(out)])
+    assert result.exit_code == 2 and "results.txt: exists and is not a folder" in result.stderr
+
+
+# -- run-level atomicity ----------------------------------------------------------------
+
+
+def _run_and_die(work, n_replace: int) -> int:
+    """In a forked child: a second run whose commit is killed (SIGKILL) at its n-th rename."""
+    pid = os.fork()
+    if pid == 0:  # child
+        try:
+            real, calls = os.replace, []
+
+            def dying_replace(a, b):
+                calls.append(a)
+                if len(calls) == n_replace:
+                    os.kill(os.getpid(), signal.SIGKILL)
+                real(a, b)
+
+            os.replace = dying_replace
+            with RunOutputs(work, folder="out", record="out.json") as run:
+                write_json_atomic(run.path("a.json"), {"run": 2})
+                write_json_atomic(run.path("b.json"), {"run": 2})
+                run.commit({"run": 2})
+        finally:
+            os._exit(0)
+    _, status = os.waitpid(pid, 0)
+    return status
+
+
+@pytest.mark.parametrize("n_replace", [1, 2, 3, 4, 5, 6, 99])
+def test_a_run_killed_during_its_final_writes_leaves_one_consistent_result(tmp_path, n_replace):
+    work = tmp_path / "work"
+    with RunOutputs(work, folder="out", record="out.json") as run:
+        write_json_atomic(run.path("a.json"), {"run": 1})
+        write_json_atomic(run.path("b.json"), {"run": 1})
+        run.commit({"run": 1})
+    _run_and_die(work, n_replace)
+    try:
+        doc = check_run(work, folder="out", record="out.json")
+    except FileNotFoundError:
+        doc = None  # killed between removing the old record and writing the new one
+    if doc is not None:  # a record and its folder are always of the same run
+        for name in ("a.json", "b.json"):
+            assert json.loads((work / "out" / name).read_text())["run"] == doc["run"]
+    # the next run starts clean: no staging folder or temporary file of the dead one
+    with RunOutputs(work, folder="out", record="out.json") as run:
+        run.commit({"run": 3})
+    assert sorted(p.name for p in work.iterdir()) == ["out", "out.json"]
+    assert check_run(work, folder="out", record="out.json")["run"] == 3
+
+
+def test_a_record_beside_another_runs_folder_is_refused(tmp_path):
+    work = tmp_path / "work"
+    for k in (1, 2):
+        with RunOutputs(work, folder="out", record="out.json") as run:
+            run.commit({"run": k})
+    (work / "out" / "RUN").write_text(json.dumps({"run_id": "another run"}))
+    with pytest.raises(StaleOutputError, match="not from the run recorded"):
+        check_run(work, folder="out", record="out.json")
+
+
+# -- permissions ---------------------------------------------------------------------------
+
+
+def test_outputs_honour_the_umask(tmp_path):
+    import imaging
+
+    old = os.umask(0o022)
+    try:
+        with RunOutputs(tmp_path / "work", folder="out", record="out.json") as run:
+            write_json_atomic(run.path("a.json"), {})
+            imaging.write_ply(
+                run.path("s.ply"), imaging.SurfaceMesh(np.eye(3), np.array([[0, 1, 2]]))
+            )
+            run.commit({})
+        synthesize(tmp_path / "twin", preset=SMALL_VALIDATION_PRESET, seed=1)
+    finally:
+        os.umask(old)
+    files = [
+        tmp_path / "work" / "out.json",
+        tmp_path / "work" / "out" / "a.json",
+        tmp_path / "work" / "out" / "s.ply",
+        tmp_path / "twin" / "truth" / "truth.json",
+        next((tmp_path / "twin" / "scans" / "tilt_50").iterdir()),
+    ]
+    for f in files:
+        assert stat.S_IMODE(f.stat().st_mode) == 0o644, f
+    for d in (tmp_path / "work" / "out", tmp_path / "twin" / "scans" / "tilt_50"):
+        assert stat.S_IMODE(d.stat().st_mode) == 0o755, d
+
+
+def test_a_missing_fast_solver_is_said_once(monkeypatch, caplog):
+    import sys
+
+    import fem.linalg
+
+    fem.linalg._pardiso.cache_clear()
+    monkeypatch.setitem(sys.modules, "pypardiso", None)  # import fails as if not installed
+    try:
+        with caplog.at_level("WARNING", logger="fem.linalg"):
+            assert fem.linalg.available_solvers() == ["superlu"]
+            fem.linalg.available_solvers()
+        said = [r for r in caplog.records if "PARDISO" in r.getMessage()]
+        assert len(said) == 1 and "pip install pypardiso" in said[0].getMessage()
+    finally:
+        fem.linalg._pardiso.cache_clear()
