@@ -22,7 +22,12 @@ from ..model.reference import reference_mesh
 from ..model.residuals import Residuals, SimulatedSurface, scan_residuals
 from .options import CalibrationOptions
 
-__all__ = ["Calibrator"]
+__all__ = ["Calibrator", "EvaluationFailed"]
+
+
+class EvaluationFailed(fem.ConvergenceError):
+    """The objective could not be evaluated at a c1 (its FE solve failed)."""
+
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +97,14 @@ class Calibrator:
         return p, dp
 
     def objective(self, theta_arr: np.ndarray) -> tuple[float, np.ndarray]:
-        """``J(theta)`` and its gradient for scipy; a failed solve gives a steep penalty."""
+        """``J(theta)`` and its gradient in ``theta = ln c1``.
+
+        Raises
+        ------
+        EvaluationFailed
+            The FE solve (or the stress-free recovery) failed at this theta; the failure
+            is recorded in :attr:`history`. The optimiser backtracks from it.
+        """
         theta = float(theta_arr[0])
         if self._cache is not None and self._cache[0] == theta:
             return self._cache[1]
@@ -100,9 +112,10 @@ class Calibrator:
         try:
             res = self.residuals(theta, self.calibration_scans, gradient=True)
         except fem.ConvergenceError as exc:
-            log.warning("FE failed at c1=%.1f Pa (%s); penalised", np.exp(theta), exc)
-            self.history.append({"c1_pa": float(np.exp(theta)), "objective": None, "failed": True})
-            return 1e6, np.array([-1e6])
+            log.warning("FE failed at c1=%.1f Pa (%s)", np.exp(theta), exc)
+            self.history.append({"c1_pa": float(np.exp(theta)), "objective": None,
+                                 "failed": True, "reason": str(exc)})  # fmt: skip
+            raise EvaluationFailed(f"no FE solution at c1 = {np.exp(theta):.1f} Pa: {exc}") from exc
         r = np.concatenate([v.r for v in res.values()])
         dr = np.concatenate([v.dr for v in res.values()])
         J, g = 0.5 * float(np.mean(r**2)), float(np.mean(r * dr))

@@ -1,4 +1,4 @@
-"""L-BFGS-B over ln c1 from a cheap first estimate, on a mesh with a stress-free reference.
+"""Gauss-Newton over ln c1 from a cheap first estimate, on a mesh with a stress-free reference.
 
 The first estimate is the linear response to 5 % of the load (never the hardest
 full-load solve at a poor guess); the stress-free reference is recovered once there,
@@ -12,12 +12,11 @@ import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import minimize
 
 import fem
 
 from ..data.measurements import Measurements
-from .objective import Calibrator
+from .objective import Calibrator, EvaluationFailed
 from .options import CalibrationOptions
 
 __all__ = ["OptimiserStatus", "optimise", "prepare"]
@@ -32,9 +31,9 @@ class OptimiserStatus:
     Attributes
     ----------
     success : bool
-        scipy's ``success`` flag (a converged minimum within the iteration limit).
+        True when the step fell below its tolerance inside the bounds (a minimum).
     message : str
-        scipy's message.
+        Why the iteration stopped.
     iterations, evaluations : int
         Optimiser iterations and objective evaluations (each solves every calibration scan).
     failed_evaluations : int
@@ -148,50 +147,84 @@ def _evaluate(cal: Calibrator, theta: float, progress) -> tuple[float, np.ndarra
     return J, g
 
 
-def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, OptimiserStatus]:
-    """L-BFGS-B over ln c1, rescaled by the Gauss-Newton curvature at the first estimate.
+#: Armijo's sufficient-decrease constant and the line search's smallest step fraction.
+ARMIJO_C = 1e-4
+MIN_STEP_FRACTION = 1.0 / 64.0
 
-    With ``z = s (theta - theta0)`` and ``s^2`` the curvature, the objective's Hessian in
-    ``z`` is about 1, so the optimiser's first trial step is well sized, and ``gtol`` in
-    ``z`` (1e-3) stops it once the Newton step in ln c1 is below about 1e-3 / s.
+
+def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, OptimiserStatus]:
+    """Minimise ``J(ln c1)`` by Gauss-Newton steps with a backtracking line search.
+
+    The objective is a least-squares mean ``J = mean(r^2)/2`` of one parameter, with the
+    exact gradient ``g = mean(r dr)`` and the Gauss-Newton curvature ``H = mean(dr^2)``
+    from the direct sensitivities, so each step is ``-g/H`` (Nocedal & Wright 2006,
+    ch. 10.3), clipped to the bounds ``theta0 ± ln 4``. A trial point is accepted on
+    Armijo's sufficient decrease ``J(t) <= J + c t g p`` (ch. 3.1, c = 1e-4); a trial
+    whose FE solve fails, like one that does not decrease ``J``, halves the step — the
+    failure is recorded, never replaced by a made-up value. The iteration stops when
+    the Newton step falls below ``1e-3 / sqrt(H)`` (a change of J far below the noise:
+    the criterion of the previous L-BFGS-B, ``gtol = 1e-3`` in the scaled variable), or
+    ``max_iterations`` is reached, or the line search finds no acceptable point.
 
     Returns
     -------
     theta : float
-        The calibrated ln c1.
+        The calibrated ln c1 (the best point evaluated).
     objective : float
         ``J`` there (mm^2).
     status : OptimiserStatus
     """
-    _evaluate(cal, theta0, progress)
-    s = float(np.sqrt(max(cal.gauss_newton_curvature, 1e-12)))
-
-    def f(z):
-        J, g = _evaluate(cal, theta0 + float(z[0]) / s, progress)
-        return J, g / s
-
-    bound = np.log(4.0) * s
-    res = minimize(
-        f,
-        [0.0],
-        jac=True,
-        method="L-BFGS-B",
-        bounds=[(-bound, bound)],
-        options={"maxiter": cal.options.max_iterations, "ftol": 1e-9, "gtol": 1e-3},
-    )
-    theta = theta0 + float(res.x[0]) / s
+    lo, hi = theta0 - np.log(4.0), theta0 + np.log(4.0)
+    theta = theta0
+    J, g = _evaluate(cal, theta, progress)  # the first estimate: its failure is fatal
+    g = float(g[0])
+    message, success, iterations = "iteration limit reached", False, 0
+    while iterations < cal.options.max_iterations:
+        iterations += 1
+        H = max(cal.gauss_newton_curvature, 1e-300)
+        tol = 1e-3 / np.sqrt(H)
+        step = float(np.clip(theta - g / H, lo, hi)) - theta
+        if abs(step) < tol:
+            message, success = "the Gauss-Newton step is below the tolerance", True
+            break
+        accepted, t = None, 1.0
+        while t >= MIN_STEP_FRACTION:
+            trial = theta + t * step
+            try:
+                Jt, gt = _evaluate(cal, trial, progress)
+            except EvaluationFailed:
+                progress(f"  no FE solution at c1 = {np.exp(trial):.1f} Pa: step halved")
+                t /= 2.0
+                continue
+            if Jt <= J + ARMIJO_C * t * step * g:
+                accepted = (trial, Jt, float(gt[0]))
+                break
+            t /= 2.0
+        if accepted is None:
+            message = "the line search found no point that decreases J along the step"
+            break
+        theta, J, g = accepted
+        if abs(t * step) < tol:
+            message, success = "the step taken is below the tolerance", True
+            break
     side = None
-    if abs(float(res.x[0])) >= 0.999 * bound:
-        side = "upper" if res.x[0] > 0 else "lower"
-        log.warning(
-            "c1 ended on the %s bound (%.0f Pa): the estimate may be poor", side, np.exp(theta)
-        )
+    for name, b in (("lower", lo), ("upper", hi)):
+        if abs(theta - b) < 1e-9 and (g > 0 if name == "lower" else g < 0):
+            side = name
+            success = False
+            around = np.exp(theta0)
+            message = (
+                f"c1 reached the {name} bound of its search range (x/÷ 4 around {around:.0f} Pa)"
+            )
+            log.warning(
+                "c1 ended on the %s bound (%.0f Pa): the estimate may be poor", name, np.exp(theta)
+            )
     status = OptimiserStatus(
-        success=bool(res.success),
-        message=str(res.message),
-        iterations=int(res.nit),
+        success=success,
+        message=message,
+        iterations=iterations,
         evaluations=len(cal.history),
         failed_evaluations=sum(1 for h in cal.history if h.get("failed")),
         bound=side,
     )
-    return theta, float(res.fun), status
+    return theta, J, status

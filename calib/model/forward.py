@@ -155,9 +155,12 @@ class ForwardModel:
             rec = recover_stress_free(start, method="fixed-point", x0_nodes_mm=self._X,
                                       tol_mm=1e-5, max_iter=20, **kw)  # fmt: skip
         self.solves += rec.iterations
-        if not rec.converged:
-            log.warning("reference recovery stopped at %.3f mm after %d solves",
-                        rec.max_error_mm, rec.iterations)  # fmt: skip
+        if not rec.converged:  # a geometry off the scan would bias every residual: fail
+            raise fem.ConvergenceError(
+                f"stress-free reference missed its tolerance at c1 = {np.exp(theta):.1f} Pa: "
+                f"the loaded geometry is {rec.max_error_mm:.3g} mm off the scan after "
+                f"{rec.iterations} solves"
+            )
         self._X, self._u0 = rec.nodes_mm, rec.solution.state
         self._X_theta = theta if rec.converged else None
         if rec.converged:
