@@ -5,19 +5,80 @@ A posture angle ``theta`` (degrees) names the gravity direction in the phantom f
 lateral, and 25 or 50 deg tilt the phantom from left lateral towards prone (+z, the
 breast hanging from the back plate). The plane of these angles is the phantom's x-z
 plane, called "transverse" in ``session.toml``.
+
+The sagittal plane is the phantom's y-z plane (``y = z x x``): a sagittal angle ``a``
+names ``(0, cos a, sin a)``, so both planes meet at 90 deg (+z, prone) and 270 deg
+(-z, supine). :func:`fibonacci_sphere` gives quasi-uniform directions over the whole
+sphere for gravity sweeps (Gonzalez 2010, "Measurement of areas on a sphere using
+Fibonacci and latitude-longitude lattices", Math. Geosci. 42:49-64).
 """
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 
-__all__ = ["gravity_for_angle", "random_scanner_pose", "rotation_between"]
+__all__ = [
+    "PLANES",
+    "fibonacci_sphere",
+    "gravity_for_angle",
+    "random_scanner_pose",
+    "rotation_between",
+]
+
+#: Posture planes of :func:`gravity_for_angle`: the phantom-frame axes spanning each.
+PLANES = {"transverse": (0, 2), "sagittal": (1, 2)}
 
 
-def gravity_for_angle(angle_deg: float) -> np.ndarray:
-    """Unit gravity vector in the phantom frame for a posture angle (see module doc)."""
+def gravity_for_angle(
+    angle_deg: float, *, plane: Literal["transverse", "sagittal"] = "transverse"
+) -> np.ndarray:
+    """Unit gravity vector in the phantom frame for a posture angle (see module doc).
+
+    Parameters
+    ----------
+    angle_deg : float
+        Posture angle in degrees.
+    plane : {"transverse", "sagittal"}
+        ``(cos a, 0, sin a)`` in the transverse (x-z) plane, ``(0, cos a, sin a)`` in the
+        sagittal (y-z) plane.
+
+    Returns
+    -------
+    ndarray, shape (3,)
+    """
+    if plane not in PLANES:
+        raise ValueError(f"unknown posture plane {plane!r}; choose {sorted(PLANES)}")
     t = np.radians(angle_deg)
-    return np.array([np.cos(t), 0.0, np.sin(t)])
+    g = np.zeros(3)
+    i, k = PLANES[plane]
+    g[i], g[k] = np.cos(t), np.sin(t)
+    return g
+
+
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """``n`` quasi-uniform unit vectors on the sphere (a Fibonacci lattice), (n, 3).
+
+    Point ``i`` has ``z = 1 - (2 i + 1) / n`` (equal-area bands) and longitude
+    ``i`` times the golden angle ``pi (3 - sqrt 5)``; deterministic, no seed needed.
+
+    Parameters
+    ----------
+    n : int
+        Number of directions, >= 1.
+
+    Returns
+    -------
+    ndarray, shape (n, 3)
+    """
+    if n < 1:
+        raise ValueError(f"a Fibonacci sphere needs at least one point, got {n}")
+    i = np.arange(n, dtype=float)
+    z = 1.0 - (2.0 * i + 1.0) / n
+    r = np.sqrt(np.clip(1.0 - z * z, 0.0, None))
+    phi = i * np.pi * (3.0 - np.sqrt(5.0))
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
 
 
 def _axis_angle(axis: np.ndarray, angle_rad: float) -> np.ndarray:

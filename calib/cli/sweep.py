@@ -1,0 +1,229 @@
+"""``phantom-calib sweep`` and ``phantom-calib surrogate train|predict``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from .app import app, fail
+
+surrogate_app = typer.Typer(
+    no_args_is_help=True, help="Train and query torch surrogates of a sweep (nn)."
+)
+app.add_typer(surrogate_app, name="surrogate")
+
+
+def _progress_bar():
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    return Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TextColumn("ETA"),
+        TimeRemainingColumn(),
+        TextColumn("{task.fields[last]}"),
+        transient=False,
+    )
+
+
+@app.command()
+def sweep(
+    work: Annotated[Path, typer.Argument(help="Calibrated work folder (calibration.json).")],
+    out: Annotated[Path, typer.Option("--out", help="Sweep store to write or resume (Zarr).")],
+    plan: Annotated[
+        str,
+        typer.Option(
+            "--plan",
+            help="dissertation (15 deg transverse + sagittal training, 48 validation "
+            "directions), dissertation:transverse (24 transverse training), or sphere:N.",
+        ),
+    ] = "dissertation",
+    c1: Annotated[
+        str | None,
+        typer.Option("--c1", help="c1 axis LO:HI:N in Pa (geometric); default: calibrated c1."),
+    ] = None,
+    holdout: Annotated[
+        float, typer.Option("--holdout", help="Fraction of sphere directions held out.")
+    ] = 0.0,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the hold-out.")] = 0,
+    workers: Annotated[int, typer.Option("--workers", help="Worker processes.")] = 2,
+    serial: Annotated[bool, typer.Option("--serial", help="Solve in this process.")] = False,
+    dask: Annotated[
+        str | None,
+        typer.Option("--dask", help="'local' (a LocalCluster) or tcp://HOST:PORT (a scheduler)."),
+    ] = None,
+    chunk_size: Annotated[
+        int, typer.Option("--chunk-size", help="Scenarios per continuation chunk.")
+    ] = 12,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Replace a store of another model or plan.")
+    ] = False,
+    retry_failed: Annotated[
+        bool, typer.Option("--retry-failed", help="Solve failed scenarios again.")
+    ] = False,
+) -> None:
+    """Solve the calibrated model over gravity directions; write a resumable Zarr store."""
+    from ..sweep import CalibrationMissingError, PlanError
+    from ..sweep.store import StoreError
+    from ..workflows.sweep import SweepOptions, run_sweep
+
+    if serial and dask:
+        fail(ValueError("--serial and --dask exclude each other"))
+    backend = "serial" if serial else "dask" if dask else "pool"
+    bar = _progress_bar()
+    task = None
+
+    def progress(ev: dict) -> None:
+        nonlocal task
+        if ev.get("start"):
+            task = bar.add_task("sweep", total=ev["total"], last="")
+            return
+        it = ev.get("newton_iterations")
+        last = (
+            f"#{ev['index']}: {int(it)} Newton, {ev['wall_s']:.1f} s"
+            if ev["ok"]
+            else f"#{ev['index']}: FAILED"
+        )
+        bar.update(task, advance=1, last=last)
+
+    try:
+        opts = SweepOptions(
+            plan=plan,
+            c1_axis=c1,
+            holdout=holdout,
+            seed=seed,
+            backend=backend,
+            workers=workers,
+            dask=dask,
+            chunk_size=chunk_size,
+            overwrite=overwrite,
+            retry_failed=retry_failed,
+        )
+        with bar:
+            summary = run_sweep(work, out, opts, progress=progress)
+    except (
+        CalibrationMissingError,
+        PlanError,
+        StoreError,
+        ValueError,
+        OSError,
+        RuntimeError,
+    ) as exc:
+        fail(exc)
+    typer.echo(_format_summary(summary))
+    typer.echo(f"wrote {out}")
+
+
+def _format_summary(s: dict) -> str:
+    lines = [
+        f"{s['solved']} of {s['n_scenarios']} scenarios solved, {s['failed']} failed, "
+        f"{s['pending']} pending; this run: {s['this_run']['solved']} solved in "
+        f"{s['this_run']['wall_s']:.1f} s on {s['this_run']['backend']} "
+        f"({s['this_run']['workers']} workers)"
+    ]
+    for kind in ("warm", "cold"):
+        k = s[kind]
+        if k.get("n"):
+            lines.append(
+                f"  {kind} starts: {k['n']}, Newton iterations per solve mean "
+                f"{k['newton_mean']:.1f} (median {k['newton_median']:.0f}, max "
+                f"{k['newton_max']}), median {k['wall_s_median']:.2f} s per solve"
+            )
+    return "\n".join(lines)
+
+
+@surrogate_app.command("train")
+def surrogate_train(
+    sweep_store: Annotated[Path, typer.Argument(metavar="SWEEP", help="Sweep store.")],
+    out: Annotated[Path, typer.Option("--out", help="Model file to write (TorchScript .pt).")],
+    kind: Annotated[
+        str, typer.Option("--kind", help="ours (reduced basis + kernel) or dissertation (MLPs).")
+    ] = "ours",
+    device: Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")] = "auto",
+    seed: Annotated[int, typer.Option("--seed", help="Seed of every random choice.")] = 0,
+    iterations: Annotated[
+        int | None,
+        typer.Option("--iterations", help="Training iterations of the dissertation MLPs."),
+    ] = None,
+) -> None:
+    """Fit a surrogate on the training scenarios of a sweep; report validation errors."""
+    from ..workflows.sweep import run_surrogate_train
+
+    try:
+        report = run_surrogate_train(
+            sweep_store,
+            out,
+            kind=kind,
+            device=device,
+            seed=seed,
+            iterations=iterations,
+            progress=lambda m: typer.echo(f"  {m}"),
+        )
+    except (ValueError, OSError, RuntimeError) as exc:
+        fail(exc)
+    typer.echo(_format_report(report))
+    typer.echo(f"wrote {out}")
+
+
+def _format_report(r: dict) -> str:
+    lines = [
+        f"{r['kind']} surrogate: trained on {r['n_train']} scenarios in "
+        f"{r['train_wall_s']:.1f} s on {r['device']}"
+    ]
+    for name, m in r.get("errors", {}).items():
+        if m.get("n"):
+            tum = (
+                ""
+                if m.get("tumour_mean_mm") is None
+                else f", tumour mean {m['tumour_mean_mm']:.4f} max {m['tumour_max_mm']:.4f} mm"
+            )
+            lines.append(
+                f"  {name} ({m['n']}): surface mean {m['surface_mean_mm']:.4f} mm, "
+                f"max {m['surface_max_mm']:.4f} mm{tum}"
+            )
+    return "\n".join(lines)
+
+
+@surrogate_app.command("predict")
+def surrogate_predict(
+    model: Annotated[Path, typer.Argument(metavar="MODEL", help="Surrogate (.pt).")],
+    gravity: Annotated[
+        str,
+        typer.Option("--gravity", help="Gravity X,Y,Z in m/s^2 (length = magnitude; 0,0,0: none)."),
+    ],
+    out: Annotated[Path, typer.Option("--out", help="R.vtu (mesh) or R.ply (surface).")],
+    c1: Annotated[
+        float | None, typer.Option("--c1", help="c1 in Pa (default: the calibrated c1).")
+    ] = None,
+    frame: Annotated[
+        str, typer.Option("--frame", help="phantom (posture-angle frame) or ref (model frame).")
+    ] = "phantom",
+) -> None:
+    """Predict the deformed phantom for one gravity vector; write a mesh."""
+    import warnings
+
+    from ..workflows.sweep import run_surrogate_predict
+
+    try:
+        parts = [float(p) for p in gravity.split(",")]
+        if len(parts) != 3:
+            raise ValueError(f"--gravity must be X,Y,Z, got {gravity!r}")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = run_surrogate_predict(model, out, gravity=parts, c1_pa=c1, frame=frame)
+        for w in caught:
+            typer.secho(f"warning: {w.message}", fg=typer.colors.YELLOW, err=True)
+    except (ValueError, OSError, RuntimeError) as exc:
+        fail(exc)
+    typer.echo(f"max displacement {res['max_displacement_mm']:.3f} mm -> {out}")

@@ -1,0 +1,558 @@
+"""The sweep engine: solve scenarios on a backend, warm-started along the continuation.
+
+One scenario is one task: the calibrated model (:class:`~calib.sweep.model.SweepModel`,
+small and picklable), the gravity of the solve and the warm start (the parent's stored
+solver vector, :mod:`calib.sweep.continuation`). Workers build the FE model once per
+process (cached by the model's key), solve with one thread (PARDISO's bitwise
+reproducibility holds for a fixed thread count) and return the result; only the
+driving process writes the store, scenario by scenario (:class:`SweepStore.commit`).
+
+Backends (:func:`make_backend`):
+
+``serial``
+    in this process, one scenario after the other;
+``pool``
+    a local process pool (``concurrent.futures``, spawned processes); a worker that
+    dies breaks the pool, which is rebuilt, and the scenarios in flight are retried;
+``dask``
+    ``dask.distributed``: ``local`` starts a ``LocalCluster`` of ``workers`` processes
+    (one thread each), an address ``tcp://HOST:PORT`` uses a running scheduler (an HPC
+    cluster through dask-jobqueue). The scheduler retries the tasks of a lost worker
+    (``distributed.scheduler.allowed-failures``); a task it gives up on is resubmitted
+    here up to ``max_attempts`` times.
+
+Scenario results do not depend on the backend: each task's inputs are fixed by the
+plan (see :mod:`calib.sweep.continuation`).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import time
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, Future
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .model import SweepModel
+
+__all__ = [
+    "Backend",
+    "ScenarioResult",
+    "ScenarioTask",
+    "make_backend",
+    "run_scenarios",
+    "solve_scenario",
+]
+
+log = logging.getLogger(__name__)
+
+#: Solver options of the retry after a failed solve (small load steps, cold start).
+RETRY_OPTIONS = {"initial_step": 0.125, "min_step": 1e-3, "max_newton": 15, "max_steps": 40}
+
+
+@dataclass(frozen=True)
+class ScenarioTask:
+    """One solve: gravity (reference frame, unit), its magnitude and the warm start.
+
+    Attributes
+    ----------
+    index : int
+    gravity_ref : ndarray, shape (3,)
+    g_m_s2 : float
+        Gravity magnitude solved at the model's c1 (``g c1_model / c1``).
+    x0 : ndarray or None
+        Solver vector of the parent scenario, None for a cold start.
+    attempt : int
+    """
+
+    index: int
+    gravity_ref: np.ndarray
+    g_m_s2: float
+    x0: np.ndarray | None = None
+    attempt: int = 1
+
+
+@dataclass(frozen=True)
+class ScenarioResult:
+    """The outcome of one :class:`ScenarioTask`.
+
+    Attributes
+    ----------
+    index : int
+    ok : bool
+    displacement_mm : ndarray, shape (n_nodes, 3) or None
+    state : ndarray, shape (n_dofs,) or None
+    tumour_mm, nipple_mm : ndarray, shape (3,) or None
+        Displacements of the tumour-centre material point and the nipple vertex.
+    stats : dict
+        ``newton_iterations``, ``load_steps``, ``cutbacks``, ``factorizations``,
+        ``wall_s``, ``warm_start``, ``attempts``, ``final_residual``.
+    message : str
+        Why the scenario failed (empty when ``ok``).
+    worker : str
+        ``host:pid`` of the process that solved it.
+    """
+
+    index: int
+    ok: bool
+    displacement_mm: np.ndarray | None = None
+    state: np.ndarray | None = None
+    tumour_mm: np.ndarray | None = None
+    nipple_mm: np.ndarray | None = None
+    stats: dict = field(default_factory=dict)
+    message: str = ""
+    worker: str = ""
+
+
+# -- worker side ---------------------------------------------------------------------------
+_CACHE: dict = {}  # model key -> (fem.Model, Discretization, MaterialPoint or None)
+
+
+def _prepared(model: SweepModel, key: str):
+    if key not in _CACHE:
+        import fem
+        from fem.probe import MaterialPoint
+
+        _CACHE.clear()  # one model per worker at a time
+        fm = model.fem_model()
+        disc = fem.discretize(fm.mesh, fm.support, formulation=model.formulation)
+        tumour = None
+        if model.tumour_stress_free_mm is not None:
+            tumour = MaterialPoint.locate(disc, model.tumour_stress_free_mm)
+        _CACHE[key] = (fm, disc, tumour)
+    return _CACHE[key]
+
+
+def _thread_limit(threads: int):
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # the environment variables set for the workers still apply
+        import contextlib
+
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=threads)
+
+
+def solve_scenario(model: SweepModel, key: str, task: ScenarioTask, threads: int = 1):
+    """Solve one scenario (runs on a worker; never raises for a failed solve).
+
+    Parameters
+    ----------
+    model : SweepModel
+    key : str
+        ``model.key`` (computed once by the driver).
+    task : ScenarioTask
+    threads : int
+        BLAS / MKL threads of the solve.
+
+    Returns
+    -------
+    ScenarioResult
+    """
+    import fem
+
+    t0 = time.perf_counter()
+    worker = f"{socket.gethostname()}:{os.getpid()}"
+    with _thread_limit(threads):
+        try:
+            fm, disc, tumour = _prepared(model, key)
+            kw = {"gravity": task.gravity_ref, "g_m_s2": task.g_m_s2, "disc": disc}
+            newton = 0
+            try:
+                sol = fem.solve(fm, x0=task.x0, **kw)
+            except fem.ConvergenceError as exc:
+                log.info("scenario %d: %s; retrying with small load steps", task.index, exc)
+                newton = _newton_of(exc)
+                sol = fem.solve(fm, options=fem.SolverOptions(**RETRY_OPTIONS), **kw)
+        except Exception as exc:  # noqa: BLE001 - a failed scenario is recorded, not fatal
+            return ScenarioResult(
+                task.index,
+                False,
+                message=f"{type(exc).__name__}: {exc}",
+                worker=worker,
+                stats={
+                    "wall_s": time.perf_counter() - t0,
+                    "attempts": task.attempt,
+                    "warm_start": float(task.x0 is not None),
+                },
+            )
+    stats = {
+        "newton_iterations": sol.newton_iterations + newton,
+        "load_steps": sol.load_steps,
+        "cutbacks": sol.cutbacks,
+        "factorizations": sol.factorizations,
+        "wall_s": time.perf_counter() - t0,
+        "warm_start": float(task.x0 is not None),
+        "attempts": task.attempt,
+        "final_residual": sol.residual_history[-1] if sol.residual_history else 0.0,
+    }
+    u = sol.displacement_mm
+    return ScenarioResult(
+        index=task.index,
+        ok=True,
+        displacement_mm=u,
+        state=sol.state,
+        tumour_mm=np.full(3, np.nan) if tumour is None else tumour.displacement_mm(sol.state),
+        nipple_mm=u[model.nipple_node].copy(),
+        stats=stats,
+        worker=worker,
+    )
+
+
+def _newton_of(exc: Exception) -> int:
+    import re
+
+    m = re.search(r"after (\d+) iterations", str(exc))
+    return int(m.group(1)) if m else 0
+
+
+def _init_worker(threads: int) -> None:
+    """Pool initializer: thread counts for libraries loaded later (MKL on first solve)."""
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = str(threads)
+
+
+# -- backends ------------------------------------------------------------------------------
+class WorkerLost(RuntimeError):
+    """The process running a task died (the task is retried)."""
+
+
+class Backend:
+    """A place to run tasks: ``submit`` returns a future, ``wait`` the finished ones."""
+
+    name = "serial"
+    slots = 1
+
+    def submit(self, fn: Callable, *args) -> Future:
+        """Run ``fn(*args)`` (here: at once) and return its future."""
+        fut: Future = Future()
+        try:
+            fut.set_result(fn(*args))
+        except Exception as exc:  # noqa: BLE001 - delivered through the future
+            fut.set_exception(exc)
+        return fut
+
+    def wait(self, futures: list) -> list:
+        """The finished futures among ``futures`` (blocks until at least one is)."""
+        return [f for f in futures if f.done()]
+
+    def result(self, fut):
+        """The future's result; :class:`WorkerLost` when its worker died."""
+        return fut.result()
+
+    def recover(self) -> bool:
+        """Make the backend usable after a lost worker; True when every task in flight is lost."""
+        return False
+
+    def describe(self) -> dict:
+        """Backend name and worker count (recorded in the store's summary)."""
+        return {"backend": self.name, "workers": self.slots}
+
+    def close(self) -> None:
+        """Release processes and connections."""
+
+
+class PoolBackend(Backend):
+    """A local process pool (spawned processes, one thread each)."""
+
+    name = "pool"
+
+    def __init__(self, workers: int, threads: int = 1):
+        self.slots, self.threads = int(workers), int(threads)
+        self._pool = None
+        self._start()
+
+    def _start(self) -> None:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        self._pool = ProcessPoolExecutor(
+            max_workers=self.slots,
+            mp_context=mp.get_context("spawn"),
+            initializer=_init_worker,
+            initargs=(self.threads,),
+        )
+
+    def submit(self, fn, *args) -> Future:
+        from concurrent.futures.process import BrokenProcessPool
+
+        try:
+            return self._pool.submit(fn, *args)
+        except BrokenProcessPool as exc:  # a worker died since the last wait
+            fut: Future = Future()
+            fut.set_exception(exc)
+            return fut
+
+    def wait(self, futures: list) -> list:
+        from concurrent.futures import wait
+
+        done, _ = wait(futures, return_when=FIRST_COMPLETED)
+        return list(done)
+
+    def result(self, fut):
+        from concurrent.futures.process import BrokenProcessPool
+
+        try:
+            return fut.result()
+        except BrokenProcessPool as exc:
+            raise WorkerLost(str(exc)) from exc
+
+    def recover(self) -> bool:
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        self._start()
+        return True
+
+    def worker_pids(self) -> list[int]:
+        """Process ids of the pool's workers (for tests and monitoring)."""
+        return [p.pid for p in (self._pool._processes or {}).values()]  # noqa: SLF001
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+class DaskBackend(Backend):
+    """dask.distributed: a LocalCluster started here, or a running scheduler's address."""
+
+    name = "dask"
+
+    def __init__(self, address: str, workers: int, threads: int = 1):
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError as exc:
+            raise RuntimeError(
+                "the dask backend needs dask.distributed: pip install 'phantom-calib[sweep]'"
+            ) from exc
+        self.threads, self.cluster = int(threads), None
+        if address == "local":
+            self.cluster = LocalCluster(
+                n_workers=int(workers),
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                silence_logs=logging.ERROR,
+            )
+            self.client = Client(self.cluster)
+        else:
+            try:
+                self.client = Client(address, timeout="20s")
+            except (OSError, TimeoutError) as exc:
+                raise RuntimeError(f"cannot reach the Dask scheduler at {address}: {exc}") from exc
+        self.address = address
+        n = len(self.client.scheduler_info(n_workers=-1)["workers"])
+        self.slots = max(n, 1)
+
+    def submit(self, fn, *args):
+        return self.client.submit(fn, *args, pure=False)
+
+    def wait(self, futures: list) -> list:
+        from distributed import wait
+
+        done, _ = wait(futures, return_when="FIRST_COMPLETED")
+        return list(done)
+
+    def result(self, fut):
+        from distributed import KilledWorker
+
+        try:
+            return fut.result()
+        except KilledWorker as exc:
+            raise WorkerLost(str(exc)) from exc
+
+    def describe(self) -> dict:
+        n = len(self.client.scheduler_info(n_workers=-1)["workers"])
+        return {"backend": "dask", "workers": n, "scheduler": self.address}
+
+    def worker_pids(self) -> list[int]:
+        """Process ids of the workers (for tests and monitoring)."""
+        return list(self.client.run(os.getpid).values())
+
+    def close(self) -> None:
+        self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+
+def make_backend(kind: str, *, workers: int = 2, dask: str | None = None, threads: int = 1):
+    """A backend: ``serial``, ``pool`` (``workers`` processes) or ``dask`` (``dask`` address).
+
+    Parameters
+    ----------
+    kind : {"serial", "pool", "dask"}
+    workers : int
+        Processes of the pool or of a local Dask cluster.
+    dask : str, optional
+        ``local`` or ``tcp://HOST:PORT`` (for ``kind="dask"``).
+    threads : int
+        Threads per solve.
+
+    Returns
+    -------
+    Backend
+    """
+    if workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {workers}")
+    if kind == "serial":
+        return Backend()
+    if kind == "pool":
+        return PoolBackend(workers, threads)
+    if kind == "dask":
+        return DaskBackend(dask or "local", workers, threads)
+    raise ValueError(f"unknown backend {kind!r}; choose serial, pool or dask")
+
+
+# -- driver --------------------------------------------------------------------------------
+@dataclass
+class _Progress:
+    total: int
+    done: int = 0
+    solved: int = 0
+    failed: int = 0
+    retried: int = 0
+    newton: list = field(default_factory=list)
+
+
+def run_scenarios(
+    model: SweepModel,
+    store,
+    backend: Backend,
+    *,
+    retry_failed: bool = False,
+    max_attempts: int = 3,
+    threads: int = 1,
+    progress: Callable[[dict], None] | None = None,
+) -> dict:
+    """Solve every pending scenario of ``store`` on ``backend``, committing each one.
+
+    A scenario is submitted when its parent (see :mod:`calib.sweep.continuation`) is
+    committed; its warm start is the parent's stored solver vector (a cold start when the
+    parent failed). At most ``2 x backend.slots`` tasks are in flight, in tour order.
+
+    Parameters
+    ----------
+    model : SweepModel
+    store : SweepStore
+    backend : Backend
+    retry_failed : bool
+        Solve scenarios recorded as failed again.
+    max_attempts : int
+        Tries of a scenario whose worker died.
+    threads : int
+        Threads per solve.
+    progress : callable, optional
+        Called after every committed scenario with a dict (``done``, ``total``,
+        ``index``, ``ok``, ``newton_iterations``, ``wall_s``, ``worker``).
+
+    Returns
+    -------
+    dict
+        ``solved``, ``failed``, ``retried`` (tasks resubmitted after a lost worker) and
+        ``newton`` (iterations of each solve of this run).
+    """
+    from .store import FAILED, PENDING, SOLVED
+
+    key = model.key
+    status = store.status()
+    parent = store.scenario_array("parent")
+    order = store.scenario_array("order")
+    g_ref = store.scenario_array("gravity_ref")
+    g_solved = store.scenario_array("g_m_s2_solved")
+    todo = [int(i) for i in order if status[i] == PENDING or (retry_failed and status[i] == FAILED)]
+    for i in todo:
+        status[i] = PENDING
+    prog = _Progress(total=len(todo))
+    attempts = dict.fromkeys(todo, 0)
+    in_flight: dict = {}  # future -> scenario
+    queue = list(todo)
+    rank = {int(i): k for k, i in enumerate(order)}
+    streak, committed_since_loss = 0, False
+
+    def ready(i: int) -> bool:
+        p = parent[i]
+        return p < 0 or status[p] != PENDING
+
+    def submit(i: int) -> None:
+        p = parent[i]
+        x0 = store.state(p) if p >= 0 and status[p] == SOLVED else None
+        attempts[i] += 1
+        task = ScenarioTask(i, g_ref[i], float(g_solved[i]), x0, attempts[i])
+        in_flight[backend.submit(solve_scenario, model, key, task, threads)] = i
+
+    while queue or in_flight:
+        for i in [i for i in queue if ready(i)][: max(0, 2 * backend.slots - len(in_flight))]:
+            queue.remove(i)
+            submit(i)
+        if not in_flight:
+            raise RuntimeError("sweep scheduling stalled: scenarios wait on unsolved parents")
+        lost = []
+        for fut in backend.wait(list(in_flight)):
+            i = in_flight.pop(fut)
+            try:
+                res = backend.result(fut)
+            except WorkerLost as exc:
+                log.warning("scenario %d: worker lost (%s)", i, exc)
+                lost.append(i)
+                continue
+            _commit(store, status, prog, res, progress)
+            committed_since_loss = True
+        if lost:
+            streak = 0 if committed_since_loss else streak + 1
+            committed_since_loss = False
+            if streak >= max_attempts:
+                raise RuntimeError(
+                    f"{backend.name} workers died {streak} times in a row without solving a "
+                    "scenario (out of memory? a script without `if __name__ == '__main__':` "
+                    "starting spawned workers?); the solved scenarios are kept, run again "
+                    "to resume"
+                )
+            if backend.recover():  # every task in flight went down with the pool
+                lost += list(in_flight.values())
+                in_flight.clear()
+            for i in sorted(set(lost), key=lambda j: rank[j]):
+                if attempts[i] >= max_attempts:
+                    res = ScenarioResult(
+                        i,
+                        False,
+                        message=f"worker lost {attempts[i]} times",
+                        stats={"attempts": attempts[i]},
+                    )
+                    _commit(store, status, prog, res, progress)
+                else:
+                    prog.retried += 1
+                    queue.insert(0, i)
+    return {
+        "solved": prog.solved,
+        "failed": prog.failed,
+        "retried": prog.retried,
+        "newton": prog.newton,
+    }
+
+
+def _commit(store, status, prog: _Progress, res: ScenarioResult, progress) -> None:
+    from .store import FAILED, SOLVED
+
+    store.commit(res.index, res)
+    status[res.index] = SOLVED if res.ok else FAILED
+    prog.done += 1
+    if res.ok:
+        prog.solved += 1
+        prog.newton.append(int(res.stats["newton_iterations"]))
+    else:
+        prog.failed += 1
+        log.warning("scenario %d failed: %s", res.index, res.message)
+    if progress is not None:
+        progress(
+            {
+                "done": prog.done,
+                "total": prog.total,
+                "index": res.index,
+                "ok": res.ok,
+                "newton_iterations": res.stats.get("newton_iterations"),
+                "wall_s": res.stats.get("wall_s"),
+                "worker": res.worker,
+                "message": res.message,
+            }
+        )

@@ -1,0 +1,378 @@
+"""``phantom-calib sweep`` and ``surrogate``: the only code that writes a SWEEP folder.
+
+:func:`run_sweep` solves a calibrated work folder's model over a plan of gravity
+directions and c1 values into a Zarr store (format: :mod:`calib.sweep.store`);
+re-running it resumes. :func:`run_surrogate_train` fits an :mod:`nn` surrogate on a
+store and :func:`run_surrogate_predict` writes one prediction as a mesh.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+__all__ = [
+    "SweepOptions",
+    "run_surrogate_predict",
+    "run_surrogate_train",
+    "run_sweep",
+]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SweepOptions:
+    """Options of ``phantom-calib sweep`` (see its ``--help``).
+
+    Attributes
+    ----------
+    plan : str
+        ``dissertation``, ``dissertation:transverse`` or ``sphere:N``
+        (:func:`calib.sweep.make_plan`).
+    c1_axis : str or None
+        ``LO:HI:N`` in Pa, or None for the calibrated c1 alone.
+    holdout : float
+        Fraction of a sphere plan's directions held out for validation.
+    seed : int
+        Seed of the hold-out.
+    backend : {"serial", "pool", "dask"}
+    workers : int
+        Processes of the pool or of a local Dask cluster.
+    dask : str or None
+        ``local`` or ``tcp://HOST:PORT`` (backend ``dask``).
+    chunk_size : int
+        Scenarios per continuation chunk.
+    max_angle_deg : float
+        Farthest warm start (see :func:`calib.sweep.plan_continuation`).
+    threads : int
+        Threads per solve.
+    overwrite : bool
+        Replace an existing store of another model or plan.
+    retry_failed : bool
+        Solve the scenarios recorded as failed again.
+    """
+
+    plan: str = "dissertation"
+    c1_axis: str | None = None
+    holdout: float = 0.0
+    seed: int = 0
+    backend: Literal["serial", "pool", "dask"] = "pool"
+    workers: int = 2
+    dask: str | None = None
+    chunk_size: int = 12
+    max_angle_deg: float = 45.0
+    threads: int = 1
+    overwrite: bool = False
+    retry_failed: bool = False
+
+
+def _versions() -> dict:
+    out = {}
+    for p in ("zarr", "dask", "distributed", "torch", "threadpoolctl"):
+        try:
+            out[p] = metadata.version(p)
+        except metadata.PackageNotFoundError:
+            out[p] = None
+    return out
+
+
+def _is_store(path: Path) -> bool:
+    import json
+
+    meta = path / "zarr.json"
+    try:
+        return json.loads(meta.read_text()).get("attributes", {}).get("format") is not None
+    except (OSError, ValueError):
+        return False
+
+
+def _create_store(out: Path, model, plan, cont, n_dofs: int, opts: SweepOptions, prov: dict):
+    """Build the empty store beside ``out`` and move it into place when complete."""
+    from ..sweep.store import SweepStore
+
+    stage = out.parent / f".{out.name}.staging-{os.getpid()}"
+    shutil.rmtree(stage, ignore_errors=True)
+    SweepStore.create(
+        stage,
+        model,
+        plan,
+        cont,
+        n_dofs=n_dofs,
+        chunk_size=opts.chunk_size,
+        max_angle_deg=opts.max_angle_deg,
+        provenance=prov,
+    )
+    if out.exists():
+        out.rmdir()  # an empty folder (checked by the caller)
+    os.replace(stage, out)
+    return SweepStore.open(out)
+
+
+def _summary(store, backend_info: dict, run: dict, wall_s: float) -> dict:
+    from ..sweep.store import CONVERGENCE_COLUMNS, FAILED, SOLVED
+
+    status = store.status()
+    conv = np.asarray(store.group["results/convergence"][:])
+    col = {c: k for k, c in enumerate(CONVERGENCE_COLUMNS)}
+    ok = status == SOLVED
+    warm = ok & (conv[:, col["warm_start"]] == 1)
+    cold = ok & ~warm
+
+    def stats(mask) -> dict:
+        it = conv[mask, col["newton_iterations"]]
+        wall = conv[mask, col["wall_s"]]
+        if not it.size:
+            return {"n": 0}
+        return {
+            "n": int(it.size),
+            "newton_mean": float(it.mean()),
+            "newton_median": float(np.median(it)),
+            "newton_max": int(it.max()),
+            "wall_s_median": float(np.median(wall)),
+        }
+
+    return {
+        "solved": int(ok.sum()),
+        "failed": int((status == FAILED).sum()),
+        "pending": int((status == 0).sum()),
+        "n_scenarios": int(len(status)),
+        "this_run": {
+            "solved": run["solved"],
+            "failed": run["failed"],
+            "retried_after_lost_worker": run["retried"],
+            "wall_s": wall_s,
+        }
+        | backend_info,
+        "warm": stats(warm),
+        "cold": stats(cold),
+        "solve_wall_s_total": float(np.nansum(conv[ok, col["wall_s"]])),
+    }
+
+
+def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) -> dict:
+    """Solve a calibrated model over a plan; write (or resume) the store ``out``.
+
+    Parameters
+    ----------
+    work : path
+        Calibrated work folder (``calibration.json`` and ``calibration/``).
+    out : path
+        Store folder (created, or resumed when it holds this model's and plan's sweep).
+    options : SweepOptions, optional
+    progress : callable, optional
+        Called with a dict after each committed scenario, and once with
+        ``{"total": S_pending, "done": 0, "start": True}`` before the first.
+
+    Returns
+    -------
+    dict
+        The run's summary (also stored in the store's ``summary`` attribute).
+
+    Raises
+    ------
+    calib.sweep.CalibrationMissingError
+        ``work`` has no calibration.
+    calib.sweep.store.StoreError
+        ``out`` is not a store, a store of another model or plan, or locked.
+    """
+    import fem
+
+    from ..io import provenance
+    from ..sweep import load_sweep_model, make_plan, plan_continuation
+    from ..sweep.engine import make_backend, run_scenarios
+    from ..sweep.store import StoreError, SweepStore
+
+    opts = options or SweepOptions()
+    t0 = time.perf_counter()
+    out = Path(out)
+    model = load_sweep_model(work)
+    if model.reference_state == "shortcut":
+        log.warning(
+            "%s: reference state 'shortcut': the sweep deforms the loaded reference "
+            "scan taken as stress-free",
+            work,
+        )
+    plan = make_plan(
+        opts.plan, c1_cal_pa=model.c1_pa, c1_axis=opts.c1_axis, holdout=opts.holdout, seed=opts.seed
+    )
+    loads = plan.gravity_phantom * (model.c1_pa / plan.c1_pa)[:, None]
+    cont = plan_continuation(loads, chunk_size=opts.chunk_size, max_angle_deg=opts.max_angle_deg)
+    if out.exists() and not out.is_dir():
+        raise StoreError(f"--out {out}: exists and is not a folder")
+    if out.exists() and opts.overwrite and any(out.iterdir()):
+        if not _is_store(out):
+            raise StoreError(f"--out {out}: not a sweep store; --overwrite removes only stores")
+        shutil.rmtree(out)
+    if out.exists() and any(out.iterdir()):
+        store = SweepStore.open(out)
+        store.check_matches(
+            model, plan, chunk_size=opts.chunk_size, max_angle_deg=opts.max_angle_deg
+        )
+    else:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        disc = fem.discretize(model.tet_mesh(), fem.Clamped(), formulation=model.formulation)
+        prov = provenance(inputs=model.source, parameters=asdict(opts))
+        prov["versions"] |= _versions()
+        store = _create_store(out, model, plan, cont, disc.n_dofs, opts, prov)
+    store.lock()
+    backend = None
+    try:
+        removed = store.clean_partial()
+        if removed:
+            log.info("%s: removed %d partial chunk files of an interrupted run", out, removed)
+        pending = int(np.sum(store.status() == 0)) + (
+            int(np.sum(store.status() == 2)) if opts.retry_failed else 0
+        )
+        if progress is not None:
+            progress({"start": True, "done": 0, "total": pending})
+        info = {"backend": opts.backend, "workers": 0}
+        run = {"solved": 0, "failed": 0, "retried": 0}
+        if pending:
+            backend = make_backend(
+                opts.backend, workers=opts.workers, dask=opts.dask, threads=opts.threads
+            )
+            info = backend.describe()
+            run = run_scenarios(
+                model,
+                store,
+                backend,
+                retry_failed=opts.retry_failed,
+                threads=opts.threads,
+                progress=progress,
+            )
+        summary = _summary(store, info, run, time.perf_counter() - t0)
+        store.set_status_attrs("complete" if summary["pending"] == 0 else "running", summary)
+        return summary
+    finally:
+        if backend is not None:
+            backend.close()
+        store.unlock()
+
+
+def run_surrogate_train(
+    sweep,
+    out,
+    *,
+    kind: str = "ours",
+    device: str = "auto",
+    seed: int = 0,
+    iterations: int | None = None,
+    progress=None,
+) -> dict:
+    """Train a surrogate on a sweep store and save it as TorchScript (``nn``).
+
+    Parameters
+    ----------
+    sweep : path
+        Sweep store.
+    out : path
+        Model file to write (``.pt``), atomically.
+    kind : {"ours", "dissertation"}
+        The reduced-basis kernel surrogate, or the dissertation's two MLPs.
+    device : {"auto", "cpu", "cuda"}
+    seed : int
+    iterations : int, optional
+        Training iterations of the dissertation MLPs (default 30 000).
+    progress : callable, optional
+
+    Returns
+    -------
+    dict
+        The training report (also inside the model file).
+    """
+    import nn
+
+    from ..io import atomic_write
+
+    data = nn.load_sweep(sweep)
+    if kind == "ours":
+        fit = nn.fit_reduced_kernel(data, device=device, progress=progress)
+    elif kind == "dissertation":
+        kw = {} if iterations is None else {"iterations": iterations}
+        fit = nn.fit_dissertation_mlps(data, device=device, seed=seed, progress=progress, **kw)
+    else:
+        raise ValueError(f"unknown surrogate kind {kind!r}; choose ours or dissertation")
+    sur = nn.Surrogate.from_fit(fit, data)
+    atomic_write(out, lambda p: nn.save_surrogate(sur, p))
+    return sur.report
+
+
+def run_surrogate_predict(
+    model_path,
+    out,
+    *,
+    gravity,
+    c1_pa: float | None = None,
+    frame: Literal["phantom", "ref"] = "phantom",
+) -> dict:
+    """Predict the deformation for one gravity vector and write ``out`` (.vtu or .ply).
+
+    Parameters
+    ----------
+    model_path : path
+        A surrogate written by :func:`run_surrogate_train`.
+    out : path
+        ``.vtu`` (deformed tetrahedral mesh with ``displacement_mm``) or ``.ply``
+        (deformed boundary surface with a per-vertex ``displacement_mm`` magnitude).
+    gravity : array_like, shape (3,)
+        Gravity acceleration vector in m/s^2 (its length is the magnitude; zero for no
+        load), in the ``frame`` given.
+    c1_pa : float, optional
+        c1 of the prediction (default: the model's calibrated c1).
+    frame : {"phantom", "ref"}
+
+    Returns
+    -------
+    dict
+        ``max_displacement_mm``, ``tumour_mm``, ``nipple_mm``, ``out``.
+    """
+    import nn
+
+    sur = nn.load_surrogate(model_path)
+    pred = sur.predict(np.asarray(gravity, float), c1_pa=c1_pa, frame=frame)
+    out = Path(out)
+    suffix = out.suffix.lower()
+    if suffix not in (".vtu", ".ply"):
+        raise ValueError(f"--out {out}: write .vtu or .ply")
+    mesh = sur.mesh
+    if suffix == ".vtu":
+        if pred.nodes_mm is None:
+            raise ValueError(
+                f"{model_path}: this surrogate predicts surface nodes only; write a .ply"
+            )
+        from fem import TetMesh
+        from fem.io import write_mesh
+
+        u = pred.nodes_mm[0]
+        region = np.ones(len(mesh.tets), dtype=np.int64)
+        deformed = TetMesh(mesh.nodes_mm + u, mesh.tets, region, {"bulk": 1})
+        write_mesh(deformed, out, point_data={"displacement_mm": u})
+    else:
+        from imaging import SurfaceMesh, write_ply
+
+        u_all = sur.boundary_displacement_mm(pred)
+        keep = np.unique(mesh.boundary_faces)
+        new_index = np.full(len(mesh.nodes_mm), -1)
+        new_index[keep] = np.arange(len(keep))
+        u = u_all[keep]
+        surface = SurfaceMesh(
+            mesh.nodes_mm[keep] + u,
+            new_index[mesh.boundary_faces],
+            back_plate=np.isin(keep, mesh.back_nodes),
+        )
+        write_ply(out, surface, vertex_scalars={"displacement_mm": np.linalg.norm(u, axis=1)})
+    return {
+        "max_displacement_mm": float(np.linalg.norm(u, axis=1).max()),
+        "tumour_mm": None if pred.tumour_mm is None else pred.tumour_mm[0].tolist(),
+        "nipple_mm": None if pred.nipple_mm is None else pred.nipple_mm[0].tolist(),
+        "out": str(out),
+    }

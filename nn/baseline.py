@@ -1,0 +1,137 @@
+"""The dissertation's surrogate, reproduced as the baseline (chapters 3.6 and 4.4).
+
+Two fully connected ReLU networks from the unit gravity vector: one to the surface nodal
+displacements (2 hidden layers of 60 units), one to the tumour-centre displacement (1
+hidden layer of 20 units). Trained as described: Adam with learning rate 1e-5 (Keras
+defaults otherwise, ``eps = 1e-7``), mean absolute error loss (Eq. 3.16), 30 000
+iterations, hold-out validation with a random 80 / 20 split of the training scenarios;
+Glorot-uniform weights and zero biases (TensorFlow's ``Dense`` defaults), float32,
+full batch (fewer than 32 scenarios: one Keras batch per epoch). Outputs in mm, not
+normalised (the text mentions no scaling).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .data import SweepData
+
+__all__ = ["DissertationFit", "fit_dissertation_mlps"]
+
+
+class DissertationFit:
+    """The trained baseline: its module (:class:`nn.modules.DissertationMLPModule`) and report."""
+
+    def __init__(self, module, report: dict):
+        self._module, self.report = module, report
+
+    def module(self):
+        """The trained module (on the CPU)."""
+        return self._module
+
+
+def fit_dissertation_mlps(
+    data: SweepData,
+    *,
+    iterations: int = 30_000,
+    learning_rate: float = 1e-5,
+    test_fraction: float = 0.2,
+    device: str = "auto",
+    seed: int = 0,
+    progress=None,
+) -> DissertationFit:
+    """Train the dissertation's two MLPs on the training scenarios of a sweep.
+
+    Parameters
+    ----------
+    data : SweepData
+    iterations : int
+        Adam steps (full batch); the dissertation's 30 000 by default.
+    learning_rate : float
+    test_fraction : float
+        Share of the training scenarios held out as the "testing" set.
+    device : {"auto", "cpu", "cuda"}
+    seed : int
+        Seed of the split and the initial weights.
+    progress : callable, optional
+        Called with a line of text every 5 000 iterations.
+
+    Returns
+    -------
+    DissertationFit
+    """
+    import torch
+
+    from .device import deterministic, select_device
+    from .modules import DissertationMLPModule, _register_mesh
+
+    say = progress or (lambda _m: None)
+    dev = select_device(device)
+    train = data.subset(data.role == "train")
+    n = len(train)
+    if n < 2:
+        raise ValueError(f"{data.path}: {n} training scenario(s); need at least 2")
+    perm = np.random.default_rng(seed).permutation(n)
+    n_test = int(round(test_fraction * n))
+    test_idx, fit_idx = np.sort(perm[:n_test]), np.sort(perm[n_test:])
+    c1s = np.unique(train.c1_pa)
+    g = float(data.model["g_m_s2"])
+    t0 = time.perf_counter()
+    with deterministic(seed):
+        module = DissertationMLPModule(
+            len(data.surface_nodes),
+            with_c1=len(c1s) > 1,
+            c1_ref=float(data.model["c1_pa"]),
+            has_tumour=data.has_tumour,
+        )
+        _register_mesh(module, data)
+        module = module.to(dev)
+        fit = train.subset(fit_idx)
+        X = module.features(
+            torch.as_tensor(fit.gravity_ref * g, device=dev), torch.as_tensor(fit.c1_pa, device=dev)
+        )
+        Ys = torch.as_tensor(
+            fit.displacement_mm[:, data.surface_nodes].reshape(len(fit), -1),
+            dtype=torch.float32,
+            device=dev,
+        )
+        Yt = torch.as_tensor(fit.tumour_mm, dtype=torch.float32, device=dev)
+        nets = [(module.surface_net, Ys)] + ([(module.tumour_net, Yt)] if data.has_tumour else [])
+        opts = [torch.optim.Adam(net.parameters(), lr=learning_rate, eps=1e-7) for net, _ in nets]
+        loss_fn = torch.nn.L1Loss()
+        history = []
+        for it in range(1, iterations + 1):
+            losses = []
+            for (net, Y), opt in zip(nets, opts, strict=True):
+                opt.zero_grad(set_to_none=True)
+                loss = loss_fn(net(X), Y)
+                loss.backward()
+                opt.step()
+                losses.append(loss)
+            if it == 1 or it % 1000 == 0 or it == iterations:
+                row = [it] + [float(v.detach()) for v in losses]
+                history.append(row)
+                if it % 5000 == 0 or it == iterations:
+                    say(
+                        f"iteration {it}: MAE surface {row[1]:.4f} mm"
+                        + (f", tumour {row[2]:.4f} mm" if len(row) > 2 else "")
+                    )
+    module = module.to("cpu").eval()
+    wall = time.perf_counter() - t0
+    report = {
+        "kind": "dissertation",
+        "method": "two ReLU MLPs (60-60 surface, 20 tumour), Adam lr 1e-5, MAE, full batch",
+        "device": str(dev),
+        "n_train": int(len(fit_idx)),
+        "n_test": int(len(test_idx)),
+        "test_scenarios": [int(i) for i in train.index[test_idx]],
+        "iterations": int(iterations),
+        "learning_rate": learning_rate,
+        "seed": int(seed),
+        "loss_history": history,
+        "train_wall_s": wall,
+        "s_per_1000_iterations": wall / max(iterations, 1) * 1000,
+    }
+    return DissertationFit(module, report)

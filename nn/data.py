@@ -1,0 +1,273 @@
+"""Read a sweep store (format ``phantom-calib.sweep`` v1) into arrays, checking it.
+
+The format is documented in the README ("Sweep store") and in ``calib.sweep.store``;
+this module reads it without importing ``calib`` (``nn`` sits below it). Only solved
+scenarios (``results/status == 1``) are returned.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["StoreFormatError", "SweepData", "load_sweep"]
+
+log = logging.getLogger(__name__)
+FORMAT, FORMAT_VERSION = "phantom-calib.sweep", 1
+_ARRAYS = (
+    "mesh/nodes_mm",
+    "mesh/tets",
+    "mesh/surface_nodes",
+    "mesh/back_nodes",
+    "mesh/boundary_faces",
+    "scenarios/gravity_phantom",
+    "scenarios/gravity_ref",
+    "scenarios/c1_pa",
+    "scenarios/load_per_m",
+    "scenarios/role",
+    "scenarios/plane",
+    "scenarios/angle_deg",
+    "results/status",
+    "results/displacement_mm",
+    "results/tumour_mm",
+    "results/nipple_mm",
+)
+
+
+class StoreFormatError(ValueError):
+    """A sweep store that cannot be used: missing, truncated, or inconsistent (the file)."""
+
+
+@dataclass(frozen=True)
+class SweepData:
+    """The solved scenarios of a sweep store.
+
+    Attributes
+    ----------
+    path : Path
+    nodes_mm : ndarray, shape (N, 3)
+        Stress-free reference mesh, reference-scan frame, mm.
+    tets : ndarray, shape (T, 4)
+    surface_nodes, back_nodes : ndarray of int
+    boundary_faces : ndarray, shape (F, 3)
+    index : ndarray of int, shape (S,)
+        Scenario numbers in the store.
+    gravity_ref, gravity_phantom : ndarray, shape (S, 3)
+        Unit gravity directions.
+    c1_pa : ndarray, shape (S,)
+    load_per_m : ndarray, shape (S, 3)
+        ``rho g gravity_ref / c1`` (1/m).
+    role : ndarray of str, shape (S,)
+        ``train`` or ``validation``.
+    plane : ndarray of str, shape (S,)
+    angle_deg : ndarray, shape (S,)
+    displacement_mm : ndarray, shape (S, N, 3)
+    tumour_mm, nipple_mm : ndarray, shape (S, 3)
+    model : dict
+        The store's ``model`` attribute (c1, nu, density, g, R_ref_from_phantom, ...).
+    mesh_sha256 : str
+    attrs : dict
+        All root attributes.
+    """
+
+    path: Path
+    nodes_mm: np.ndarray
+    tets: np.ndarray
+    surface_nodes: np.ndarray
+    back_nodes: np.ndarray
+    boundary_faces: np.ndarray
+    index: np.ndarray
+    gravity_ref: np.ndarray
+    gravity_phantom: np.ndarray
+    c1_pa: np.ndarray
+    load_per_m: np.ndarray
+    role: np.ndarray
+    plane: np.ndarray
+    angle_deg: np.ndarray
+    displacement_mm: np.ndarray
+    tumour_mm: np.ndarray
+    nipple_mm: np.ndarray
+    model: dict
+    mesh_sha256: str
+    attrs: dict = field(repr=False, default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    @property
+    def has_tumour(self) -> bool:
+        """True when the model has a tumour centre (its displacements are finite)."""
+        return bool(np.all(np.isfinite(self.tumour_mm)))
+
+    def subset(self, mask: np.ndarray) -> SweepData:
+        """The scenarios selected by a boolean mask or an index array."""
+        from dataclasses import replace
+
+        sel = np.asarray(mask)
+        per = (
+            "index",
+            "gravity_ref",
+            "gravity_phantom",
+            "c1_pa",
+            "load_per_m",
+            "role",
+            "plane",
+            "angle_deg",
+            "displacement_mm",
+            "tumour_mm",
+            "nipple_mm",
+        )
+        return replace(self, **{k: getattr(self, k)[sel] for k in per})
+
+
+def _mesh_sha256(nodes: np.ndarray, tets: np.ndarray) -> str:
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(nodes, dtype="<f8").tobytes())
+    h.update(np.ascontiguousarray(tets, dtype="<i8").tobytes())
+    return h.hexdigest()
+
+
+def _read_attrs(path: Path) -> dict:
+    meta = path / "zarr.json"
+    if not path.is_dir():
+        raise StoreFormatError(f"{path}: no such sweep store folder")
+    if not meta.is_file():
+        raise StoreFormatError(
+            f"{meta} not found: {path} is not a sweep store (or a truncated one)"
+        )
+    try:
+        attrs = json.loads(meta.read_text()).get("attributes", {})
+    except (OSError, ValueError) as exc:
+        raise StoreFormatError(f"{meta}: not valid JSON ({exc})") from exc
+    if attrs.get("format") != FORMAT:
+        raise StoreFormatError(f"{meta}: not a {FORMAT} store (format {attrs.get('format')!r})")
+    if attrs.get("format_version") != FORMAT_VERSION:
+        raise StoreFormatError(
+            f"{meta}: format version {attrs.get('format_version')}; "
+            f"this reader knows {FORMAT_VERSION}"
+        )
+    return attrs
+
+
+def _open_arrays(path: Path) -> dict:
+    import zarr
+
+    out = {}
+    for name in _ARRAYS:
+        meta = path / name / "zarr.json"
+        if not meta.is_file():
+            raise StoreFormatError(f"{meta} not found (truncated store)")
+        try:
+            out[name] = zarr.open_array(path / name, mode="r")
+        except Exception as exc:  # noqa: BLE001 - zarr raises many kinds on bad metadata
+            raise StoreFormatError(f"{meta}: cannot open ({type(exc).__name__}: {exc})") from exc
+    return out
+
+
+def load_sweep(path: str | Path, *, allow_pending: bool = True) -> SweepData:
+    """Read the solved scenarios of a sweep store.
+
+    Parameters
+    ----------
+    path : path
+        The store folder (``SWEEP``).
+    allow_pending : bool
+        Accept a store with pending scenarios (a running or interrupted sweep), logging
+        how many; else raise.
+
+    Returns
+    -------
+    SweepData
+
+    Raises
+    ------
+    StoreFormatError
+        Not a sweep store, another format version, a missing array or chunk of a solved
+        scenario (truncated), mesh arrays that do not match ``mesh_sha256`` or result
+        shapes of another mesh, or no solved scenario.
+    """
+    path = Path(path)
+    attrs = _read_attrs(path)
+    arr = _open_arrays(path)
+    nodes = np.asarray(arr["mesh/nodes_mm"][:])
+    tets = np.asarray(arr["mesh/tets"][:])
+    if _mesh_sha256(nodes, tets) != attrs.get("mesh_sha256"):
+        raise StoreFormatError(
+            f"{path / 'mesh'}: mesh arrays do not match the store's "
+            "mesh_sha256 (a store mixed from another mesh?)"
+        )
+    S = int(attrs.get("n_scenarios", -1))
+    disp = arr["results/displacement_mm"]
+    if disp.shape != (S, len(nodes), 3):
+        raise StoreFormatError(
+            f"{path / 'results/displacement_mm/zarr.json'}: shape {disp.shape}, expected "
+            f"({S}, {len(nodes)}, 3) for this store's mesh (results of another mesh?)"
+        )
+    for name in _ARRAYS[5:]:
+        if arr[name].shape[0] != S:
+            raise StoreFormatError(
+                f"{path / name / 'zarr.json'}: {arr[name].shape[0]} scenarios, the store has {S}"
+            )
+    status = np.asarray(arr["results/status"][:])
+    solved = np.flatnonzero(status == 1)
+    pending = int(np.sum(status == 0))
+    if pending and not allow_pending:
+        raise StoreFormatError(f"{path}: {pending} of {S} scenarios pending (sweep not complete)")
+    if pending:
+        log.warning(
+            "%s: %d of %d scenarios pending; using the %d solved", path, pending, S, len(solved)
+        )
+    if not solved.size:
+        raise StoreFormatError(f"{path / 'results/status'}: no solved scenario")
+    u = np.stack([np.asarray(disp[i]) for i in solved])
+    bad = [int(i) for i, ui in zip(solved, u, strict=True) if not np.all(np.isfinite(ui))]
+    if bad:
+        raise StoreFormatError(
+            f"{path}/results/displacement_mm/c/{bad[0]}/0/0: missing or not "
+            f"finite for {len(bad)} solved scenario(s) (truncated store)"
+        )
+    nipple = np.asarray(arr["results/nipple_mm"][:])[solved]
+    if not np.all(np.isfinite(nipple)):
+        raise StoreFormatError(f"{path}/results/nipple_mm: missing chunks (truncated store)")
+    codes = attrs.get("codes", {})
+    roles = np.asarray(codes.get("role", ["train", "validation"]))
+    planes = np.asarray(codes.get("plane", ["transverse", "sagittal", "sphere"]))
+    sc = {
+        k: np.asarray(arr[f"scenarios/{k}"][:])[solved]
+        for k in (
+            "gravity_ref",
+            "gravity_phantom",
+            "c1_pa",
+            "load_per_m",
+            "role",
+            "plane",
+            "angle_deg",
+        )
+    }
+    return SweepData(
+        path=path,
+        nodes_mm=nodes,
+        tets=tets,
+        surface_nodes=np.asarray(arr["mesh/surface_nodes"][:]),
+        back_nodes=np.asarray(arr["mesh/back_nodes"][:]),
+        boundary_faces=np.asarray(arr["mesh/boundary_faces"][:]),
+        index=solved,
+        gravity_ref=sc["gravity_ref"],
+        gravity_phantom=sc["gravity_phantom"],
+        c1_pa=sc["c1_pa"],
+        load_per_m=sc["load_per_m"],
+        role=roles[sc["role"].astype(int)],
+        plane=planes[sc["plane"].astype(int)],
+        angle_deg=sc["angle_deg"],
+        displacement_mm=u,
+        tumour_mm=np.asarray(arr["results/tumour_mm"][:])[solved],
+        nipple_mm=nipple,
+        model=dict(attrs.get("model", {})),
+        mesh_sha256=attrs["mesh_sha256"],
+        attrs=attrs,
+    )

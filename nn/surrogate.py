@@ -1,0 +1,379 @@
+"""Surrogate files (TorchScript) and queries with input checks.
+
+A surrogate file is a TorchScript archive (``torch.jit.save``) of a module of
+:mod:`nn.modules` with one extra file, ``surrogate.json``: ``format``
+(``phantom-calib.surrogate``), ``format_version`` 1, ``kind`` (``ours`` or
+``dissertation``), ``model`` (the sweep's calibrated model block), ``mesh_sha256``,
+``trained`` (c1 range in Pa and load ``rho g / c1`` range in 1/m of the training
+scenarios), ``store`` (path and plan of the sweep) and ``report`` (training record and
+errors). It loads anywhere with ``torch.jit.load`` alone; :func:`load_surrogate` adds
+the checks of :meth:`Surrogate.predict`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .data import SweepData
+
+__all__ = [
+    "ExtrapolationWarning",
+    "MeshMismatchError",
+    "Prediction",
+    "Surrogate",
+    "SurrogateFileError",
+    "evaluate",
+    "load_surrogate",
+    "quiet_jit",
+    "save_surrogate",
+]
+
+FORMAT, FORMAT_VERSION = "phantom-calib.surrogate", 1
+_EXTRA = "surrogate.json"
+_REL_TOL = 1e-3  # range checks: 0.1 % slack (rounded user input, e.g. 6.9367,0,6.9367)
+
+
+class ExtrapolationWarning(UserWarning):
+    """A query outside the c1 or load range the surrogate was trained on."""
+
+
+class SurrogateFileError(ValueError):
+    """A file that is not a readable phantom-calib surrogate."""
+
+
+class MeshMismatchError(ValueError):
+    """A surrogate and a sweep store (or another input) of different meshes."""
+
+
+@dataclass(frozen=True)
+class SurrogateMesh:
+    """The mesh a surrogate predicts on (stress-free reference, reference frame, mm)."""
+
+    nodes_mm: np.ndarray
+    tets: np.ndarray
+    boundary_faces: np.ndarray
+    surface_nodes: np.ndarray
+    back_nodes: np.ndarray
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Displacements (mm, reference frame) predicted for a batch of B queries.
+
+    Attributes
+    ----------
+    nodes_mm : ndarray, shape (B, N, 3) or None
+        Every vertex (ours); None for the surface-only baseline.
+    surface_mm : ndarray, shape (B, n_surface, 3)
+    tumour_mm : ndarray, shape (B, 3) or None
+    nipple_mm : ndarray, shape (B, 3) or None
+    """
+
+    nodes_mm: np.ndarray | None
+    surface_mm: np.ndarray
+    tumour_mm: np.ndarray | None
+    nipple_mm: np.ndarray | None
+
+
+def _fit_meta(fit, data: SweepData) -> dict:
+    train = data.subset(data.role == "train")
+    q = np.linalg.norm(train.load_per_m, axis=1)
+    return {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "kind": fit.report["kind"],
+        "model": data.model,
+        "mesh_sha256": data.mesh_sha256,
+        "trained": {
+            "c1_pa": [float(train.c1_pa.min()), float(train.c1_pa.max())],
+            "load_per_m": [float(q.min()), float(q.max())],
+        },
+        "store": {"path": str(data.path), "plan": data.attrs.get("plan", {})},
+        "report": fit.report,
+    }
+
+
+class Surrogate:
+    """A loaded surrogate: a TorchScript module and its metadata.
+
+    Parameters
+    ----------
+    module : torch.jit.ScriptModule or torch.nn.Module
+    meta : dict
+        The ``surrogate.json`` document.
+    path : Path, optional
+    """
+
+    def __init__(self, module, meta: dict, path: Path | None = None):
+        self.module, self.meta, self.path = module, meta, path
+        b = {k: v.detach().cpu().numpy() for k, v in module.named_buffers()}
+        self.mesh = SurrogateMesh(
+            b["mesh_nodes_mm"],
+            b["mesh_tets"],
+            b["mesh_boundary_faces"],
+            b["surface_nodes"],
+            b["back_nodes"],
+        )
+        self.R_ref_from_phantom = np.asarray(meta["model"]["R_ref_from_phantom"], float)
+
+    @classmethod
+    def from_fit(cls, fit, data: SweepData) -> Surrogate:
+        """A surrogate from a fit (:mod:`nn.reduced`, :mod:`nn.baseline`) and its data."""
+        from .modules import ReducedKernelModule
+
+        module = fit.module()
+        if not hasattr(module, "mesh_nodes_mm"):
+            module = ReducedKernelModule(fit, data)
+        meta = _fit_meta(fit, data)
+        sur = cls(module, meta)
+        meta["report"]["errors"] = {
+            role: evaluate(sur, data.subset(data.role == role)) for role in ("train", "validation")
+        }
+        if "test_scenarios" in fit.report:  # the baseline's 80 / 20 hold-out
+            test = np.isin(data.index, fit.report["test_scenarios"])
+            meta["report"]["errors"]["test"] = evaluate(sur, data.subset(test))
+        return sur
+
+    @property
+    def kind(self) -> str:
+        """``ours`` or ``dissertation``."""
+        return self.meta["kind"]
+
+    @property
+    def report(self) -> dict:
+        """The training report (with errors on the training and validation scenarios)."""
+        return self.meta["report"]
+
+    @property
+    def mesh_sha256(self) -> str:
+        """Identity of the mesh the surrogate was trained on."""
+        return self.meta["mesh_sha256"]
+
+    def _checked(self, gravity, c1_pa, frame: str):
+        g = np.asarray(gravity, dtype=float)
+        if g.ndim == 1:
+            g = g[None, :]
+        if g.ndim != 2 or g.shape[1] != 3:
+            raise ValueError(f"gravity must have shape (3,) or (B, 3), got {np.shape(gravity)}")
+        if not np.all(np.isfinite(g)):
+            raise ValueError("gravity holds NaN or infinite values")
+        if frame == "phantom":
+            g = g @ self.R_ref_from_phantom.T
+        elif frame != "ref":
+            raise ValueError(f"frame must be 'phantom' or 'ref', got {frame!r}")
+        c1_model = float(self.meta["model"]["c1_pa"])
+        c1 = (
+            np.full(len(g), c1_model)
+            if c1_pa is None
+            else np.broadcast_to(np.asarray(c1_pa, float), (len(g),)).copy()
+        )
+        if not np.all(np.isfinite(c1)) or np.any(c1 <= 0):
+            raise ValueError(f"c1 must be finite and positive, got {c1_pa!r}")
+        self._warn_range(g, c1)
+        return g, c1
+
+    def _warn_range(self, g: np.ndarray, c1: np.ndarray) -> None:
+        lo, hi = self.meta["trained"]["c1_pa"]
+        loaded = np.linalg.norm(g, axis=1) > 0  # no load: zero displacement at any c1
+        out = loaded & ((c1 < lo * (1 - _REL_TOL)) | (c1 > hi * (1 + _REL_TOL)))
+        if np.any(out):
+            warnings.warn(
+                f"c1 = {c1[out][0]:.6g} Pa lies outside the trained range "
+                f"[{lo:.6g}, {hi:.6g}] Pa: the surrogate extrapolates",
+                ExtrapolationWarning,
+                stacklevel=3,
+            )
+        rho = float(self.meta["model"]["density_kg_m3"])
+        q = rho * np.linalg.norm(g, axis=1) / c1
+        qlo, qhi = self.meta["trained"]["load_per_m"]
+        outq = (q > 0) & ((q < qlo * (1 - _REL_TOL)) | (q > qhi * (1 + _REL_TOL)))
+        if np.any(outq) and not np.any(out):
+            warnings.warn(
+                f"load rho g / c1 = {q[outq][0]:.6g} 1/m lies outside the trained "
+                f"range [{qlo:.6g}, {qhi:.6g}] 1/m (gravity magnitude "
+                f"{np.linalg.norm(g[outq][0]):.4g} m/s^2): the surrogate "
+                "extrapolates",
+                ExtrapolationWarning,
+                stacklevel=3,
+            )
+
+    def predict(self, gravity, *, c1_pa=None, frame: str = "phantom") -> Prediction:
+        """Predict displacements for gravity acceleration vectors.
+
+        Parameters
+        ----------
+        gravity : array_like, shape (3,) or (B, 3)
+            Gravity acceleration in m/s^2 (the length is the magnitude; a zero vector is
+            no load and gives zero displacement), in ``frame``.
+        c1_pa : float or array_like, optional
+            c1 of each query (default: the calibrated c1 of the sweep).
+        frame : {"phantom", "ref"}
+            Posture-angle frame (gravity ``(cos a, 0, sin a) * 9.81`` for a transverse
+            angle a) or the model's reference-scan frame.
+
+        Returns
+        -------
+        Prediction
+            Batch axis first (B = 1 for a single vector).
+
+        Raises
+        ------
+        ValueError
+            NaN or infinite input, a non-positive c1, a bad shape or frame.
+
+        Warns
+        -----
+        ExtrapolationWarning
+            c1, or the load ``rho g / c1``, outside the range of the training scenarios.
+        """
+        import torch
+
+        g, c1 = self._checked(gravity, c1_pa, frame)
+        with torch.inference_mode():
+            out = self.module(torch.as_tensor(g), torch.as_tensor(c1))
+        out = {k: v.numpy().astype(np.float64) for k, v in out.items()}
+        nodes = out.get("nodes_mm")
+        surface = nodes[:, self.mesh.surface_nodes] if nodes is not None else out["surface_mm"]
+        nipple_node = int(self.meta["model"]["nipple_node"])
+        nipple = None
+        if nodes is not None:
+            nipple = nodes[:, nipple_node]
+        else:
+            hit = np.flatnonzero(self.mesh.surface_nodes == nipple_node)
+            nipple = surface[:, hit[0]] if hit.size else None
+        return Prediction(nodes, surface, out.get("tumour_mm"), nipple)
+
+    def boundary_displacement_mm(self, pred: Prediction, k: int = 0) -> np.ndarray:
+        """Displacement of every vertex (N, 3) of query ``k`` of a prediction.
+
+        For the surface-only baseline the interior vertices are NaN and the clamped back
+        plate is at rest.
+        """
+        if pred.nodes_mm is not None:
+            return pred.nodes_mm[k]
+        if self.meta["model"].get("support") != "clamped":
+            raise ValueError(
+                "the dissertation baseline predicts surface nodes only; the back "
+                "plate of a non-clamped model is unknown"
+            )
+        u = np.full_like(self.mesh.nodes_mm, np.nan)
+        u[self.mesh.back_nodes] = 0.0
+        u[self.mesh.surface_nodes] = pred.surface_mm[k]
+        return u
+
+
+@contextlib.contextmanager
+def quiet_jit():
+    """Silence torch's deprecation of TorchScript (torch >= 2.9 points to torch.export).
+
+    TorchScript is the export format asked for (one file, loadable from C++ and Python
+    without this package); it still works through Python 3.13.
+    """
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", r"`torch\.jit\.\w+` is deprecated", DeprecationWarning)
+        yield
+
+
+def save_surrogate(sur: Surrogate, path: str | Path) -> Path:
+    """Script the module and save it with ``surrogate.json`` (TorchScript archive)."""
+    import torch
+
+    text = json.dumps(sur.meta, allow_nan=False)
+    with quiet_jit():
+        scripted = torch.jit.script(sur.module)
+        torch.jit.save(scripted, str(path), _extra_files={_EXTRA: text})
+    return Path(path)
+
+
+def load_surrogate(path: str | Path) -> Surrogate:
+    """Load a surrogate file written by :func:`save_surrogate`.
+
+    Raises
+    ------
+    SurrogateFileError
+        Missing file, not a TorchScript archive, or no phantom-calib metadata.
+    """
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise SurrogateFileError(f"{path}: surrogate file not found")
+    extra = {_EXTRA: ""}
+    try:
+        with quiet_jit():
+            module = torch.jit.load(str(path), map_location="cpu", _extra_files=extra)
+    except Exception as exc:  # noqa: BLE001 - torch raises RuntimeError and others
+        raise SurrogateFileError(f"{path}: not a TorchScript surrogate ({exc})") from exc
+    try:
+        meta = json.loads(extra[_EXTRA])
+    except ValueError:
+        meta = {}
+    if meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
+        raise SurrogateFileError(
+            f"{path}: no {FORMAT} v{FORMAT_VERSION} metadata ({_EXTRA}) in the archive"
+        )
+    return Surrogate(module.eval(), meta, path)
+
+
+def evaluate(sur: Surrogate, data: SweepData) -> dict:
+    """Errors of a surrogate against the FE solutions of a sweep's scenarios.
+
+    Surface: Euclidean error at every surface vertex (node set ``surface``) of every
+    scenario; tumour: Euclidean error of the tumour-centre displacement.
+
+    Parameters
+    ----------
+    sur : Surrogate
+    data : SweepData
+        Scenarios to compare (e.g. ``data.subset(data.role == "validation")``).
+
+    Returns
+    -------
+    dict
+        ``n``, ``surface_mean_mm``, ``surface_p95_mm``, ``surface_max_mm``,
+        ``tumour_mean_mm``, ``tumour_max_mm`` (None without a tumour).
+
+    Raises
+    ------
+    MeshMismatchError
+        The store is of another mesh than the surrogate's.
+    """
+    if data.mesh_sha256 != sur.mesh_sha256:
+        raise MeshMismatchError(
+            f"{data.path / 'zarr.json'}: a sweep of another mesh than the "
+            f"surrogate's (mesh_sha256 differs)"
+        )
+    if not len(data):
+        return {"n": 0}
+    g = data.gravity_ref * float(data.model["g_m_s2"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ExtrapolationWarning)
+        pred = sur.predict(g, c1_pa=data.c1_pa, frame="ref")
+    e = np.linalg.norm(pred.surface_mm - data.displacement_mm[:, data.surface_nodes], axis=2)
+    out = {
+        "n": len(data),
+        "surface_mean_mm": float(e.mean()),
+        "surface_p95_mm": float(np.percentile(e, 95)),
+        "surface_max_mm": float(e.max()),
+        "tumour_mean_mm": None,
+        "tumour_max_mm": None,
+    }
+    if pred.tumour_mm is not None and data.has_tumour:
+        et = np.linalg.norm(pred.tumour_mm - data.tumour_mm, axis=1)
+        out |= {"tumour_mean_mm": float(et.mean()), "tumour_max_mm": float(et.max())}
+    return out
+
+
+def surface_errors(sur: Surrogate, data: SweepData) -> np.ndarray:
+    """Per-scenario, per-surface-vertex Euclidean errors (S, n_surface), mm (for maps)."""
+    g = data.gravity_ref * float(data.model["g_m_s2"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ExtrapolationWarning)
+        pred = sur.predict(g, c1_pa=data.c1_pa, frame="ref")
+    return np.linalg.norm(pred.surface_mm - data.displacement_mm[:, data.surface_nodes], axis=2)

@@ -1,0 +1,186 @@
+"""The sweep engine on a tiny calibrated block: physics, frames, store contents, resume."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "nn"))
+from sweep_helpers import BOX_C1_PA, make_box_work  # noqa: E402
+
+import fem  # noqa: E402
+from calib.sweep import CalibrationMissingError, load_sweep_model  # noqa: E402
+from calib.sweep.store import CONVERGENCE_COLUMNS, StoreMismatchError  # noqa: E402
+from calib.workflows.sweep import SweepOptions, run_sweep  # noqa: E402
+
+PLAN = SweepOptions(plan="sphere:12", c1_axis="400:700:2", backend="serial", chunk_size=4)
+
+
+def _read(store):
+    import zarr
+
+    g = zarr.open_group(store, mode="r")
+    return {
+        k: np.asarray(g[k][:])
+        for k in (
+            "results/displacement_mm",
+            "results/tumour_mm",
+            "results/nipple_mm",
+            "results/status",
+            "results/convergence",
+            "results/state",
+            "scenarios/gravity_phantom",
+            "scenarios/gravity_ref",
+            "scenarios/c1_pa",
+            "scenarios/parent",
+        )
+    }, dict(g.attrs)
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    return make_box_work(tmp_path_factory.mktemp("sweep") / "work")
+
+
+@pytest.fixture(scope="module")
+def reference(work, tmp_path_factory):
+    out = tmp_path_factory.mktemp("sweep") / "ref"
+    summary = run_sweep(work, out, PLAN)
+    return out, summary
+
+
+def test_load_depends_on_rho_g_over_c1_only(work):
+    # W = c1 (I1bar - 3) + kappa/2 (J-1)^2 with kappa ~ c1 at fixed nu: equilibrium
+    # depends on rho g / c1 alone. Doubling both is exact in floating point (every
+    # product scales by 2), so the iterates are the same; a factor 1.37 differs only by
+    # the two Newton solves' convergence (rtol 1e-8 of the load, quadratic: the last
+    # residuals are ~1e-12), far below 1e-7 mm on ~6 mm displacements.
+    m = load_sweep_model(work)
+    fm = m.fem_model()
+    disc = fem.discretize(fm.mesh, fm.support, formulation=m.formulation)
+    g = m.R_ref_from_phantom @ np.array([0.6, 0.0, 0.8])
+
+    def solve(c1, g_m_s2):
+        model = fm.with_material("bulk", fem.NeoHookean(c1, nu=m.nu))
+        return fem.solve(model, gravity=g, g_m_s2=g_m_s2, disc=disc).displacement_mm
+
+    u = solve(m.c1_pa, 9.81)
+    assert np.linalg.norm(u, axis=1).max() > 1.5  # a finite load, not a vanishing one
+    assert np.abs(solve(2 * m.c1_pa, 2 * 9.81) - u).max() <= 1e-12
+    assert np.abs(solve(1.37 * m.c1_pa, 1.37 * 9.81) - u).max() <= 1e-7
+    assert np.abs(solve(1.37 * m.c1_pa, 9.81) - u).max() > 0.5  # c1 alone does matter
+
+
+def test_store_holds_the_fe_solutions(work, reference):
+    out, summary = reference
+    r, attrs = _read(out)
+    assert summary["solved"] == 24 and summary["failed"] == summary["pending"] == 0
+    assert attrs["status"] == "complete" and attrs["format"] == "phantom-calib.sweep"
+    m = load_sweep_model(work)
+    fm = m.fem_model()
+    disc = fem.discretize(fm.mesh, fm.support, formulation=m.formulation)
+    from fem.probe import MaterialPoint
+
+    tumour = MaterialPoint.locate(disc, m.tumour_stress_free_mm)
+    for i in (0, 5, 17):
+        # an independent cold solve at the scenario's own c1 and the true gravity: the
+        # phantom -> reference frame and the c1 -> gravity scaling of the store; a warm
+        # and a cold Newton solve agree to their convergence (see the test above)
+        c1, g_ph = r["scenarios/c1_pa"][i], r["scenarios/gravity_phantom"][i]
+        assert np.allclose(r["scenarios/gravity_ref"][i], m.R_ref_from_phantom @ g_ph)
+        model = fm.with_material("bulk", fem.NeoHookean(c1, nu=m.nu))
+        sol = fem.solve(model, gravity=m.R_ref_from_phantom @ g_ph, g_m_s2=9.81, disc=disc)
+        u = r["results/displacement_mm"][i]
+        assert np.abs(u - sol.displacement_mm).max() <= 1e-7
+        # tumour and nipple: material point of the stored state, two code paths
+        x = r["results/state"][i]
+        assert np.allclose(r["results/tumour_mm"][i], tumour.displacement_mm(x), atol=1e-12)
+        via = fem.displacement_at(disc, x, m.tumour_stress_free_mm[None])[0]
+        assert np.allclose(r["results/tumour_mm"][i], via, atol=1e-9)
+        assert np.array_equal(r["results/nipple_mm"][i], u[m.nipple_node])
+    conv = dict(zip(CONVERGENCE_COLUMNS, r["results/convergence"].T, strict=True))
+    assert np.all(conv["newton_iterations"] >= 1) and np.all(conv["attempts"] == 1)
+    assert np.array_equal(conv["warm_start"] == 1, r["scenarios/parent"] >= 0)
+    assert np.all(conv["final_residual"] <= 1e-8)  # SolverOptions.rtol
+
+
+def test_warm_starts_save_newton_iterations(work, tmp_path):
+    s = run_sweep(
+        work, tmp_path / "d", SweepOptions(plan="dissertation:transverse", backend="serial")
+    )
+    assert s["warm"]["n"] > 5 * s["cold"]["n"]
+    assert s["warm"]["newton_mean"] < s["cold"]["newton_mean"]
+
+
+def test_interrupted_sweep_resumes_to_the_same_numbers(work, reference, tmp_path):
+    out = tmp_path / "s"
+    seen = []
+
+    def stop_after_five(ev):
+        if not ev.get("start"):
+            seen.append(ev["index"])
+            if len(seen) == 5:
+                raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(work, out, PLAN, progress=stop_after_five)
+    status = _read(out)[0]["results/status"]
+    assert np.sum(status == 1) == 5 and not (out / ".lock").exists()
+    summary = run_sweep(work, out, PLAN)
+    assert summary["this_run"]["solved"] == 19 and summary["solved"] == 24
+    # the same warm starts from the same stored states: the same bits (1e-9 mm asked)
+    a, b = _read(out)[0], _read(reference[0])[0]
+    assert np.abs(a["results/displacement_mm"] - b["results/displacement_mm"]).max() <= 1e-9
+    # a third run has nothing to do
+    assert run_sweep(work, out, PLAN)["this_run"]["solved"] == 0
+
+
+def test_store_of_another_model_or_plan_is_refused(work, reference, tmp_path):
+    out = reference[0]
+    with pytest.raises(StoreMismatchError, match="another plan.*spec"):
+        run_sweep(
+            work,
+            out,
+            SweepOptions(plan="sphere:13", c1_axis="400:700:2", backend="serial", chunk_size=4),
+        )
+    other = make_box_work(tmp_path / "other", shift_mm=1.0)
+    with pytest.raises(
+        StoreMismatchError, match=r"zarr\.json: the store holds a sweep of another mesh"
+    ):
+        run_sweep(other, out, PLAN)
+    stiffer = make_box_work(tmp_path / "stiffer", c1_pa=2 * BOX_C1_PA)
+    with pytest.raises(StoreMismatchError, match="another calibrated model"):
+        run_sweep(stiffer, out, PLAN)
+
+
+def test_missing_calibration_is_named(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CalibrationMissingError, match=r"calibration\.json not found"):
+        run_sweep(tmp_path / "empty", tmp_path / "s", PLAN)
+    with pytest.raises(CalibrationMissingError, match="no such work folder"):
+        run_sweep(tmp_path / "nowhere", tmp_path / "s", PLAN)
+    assert not (tmp_path / "s").exists()
+
+
+def test_cli_sweep(work, tmp_path):
+    from typer.testing import CliRunner
+
+    from calib.cli import app
+
+    runner = CliRunner()
+    res = runner.invoke(
+        app, ["sweep", str(work), "--out", str(tmp_path / "s"), "--plan", "sphere:6", "--serial"]
+    )
+    assert res.exit_code == 0, res.output
+    assert "6 of 6 scenarios solved" in res.output and "Newton iterations per solve" in res.output
+    res = runner.invoke(app, ["sweep", str(tmp_path), "--out", str(tmp_path / "t")])
+    assert res.exit_code == 2 and "calibration.json not found" in res.output
+    res = runner.invoke(app, ["sweep", str(work), "--out", str(tmp_path / "t"), "--plan", "ring"])
+    assert res.exit_code == 2 and "unknown --plan" in res.output
+    res = runner.invoke(
+        app, ["sweep", str(work), "--out", str(tmp_path / "s"), "--plan", "sphere:7", "--serial"]
+    )
+    assert res.exit_code == 2 and "another plan" in res.output

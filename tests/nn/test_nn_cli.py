@@ -1,0 +1,187 @@
+"""``phantom-calib surrogate train`` and ``surrogate predict`` on the block's sweep."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import nn
+from calib.cli import app
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def model_file(box_sweep, tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "model.pt"
+    res = runner.invoke(
+        app, ["surrogate", "train", str(box_sweep), "--out", str(out), "--device", "cpu"]
+    )
+    assert res.exit_code == 0, res.output
+    assert "ours surrogate: trained on 46 scenarios" in res.output
+    assert "validation (48): surface mean" in res.output
+    return out
+
+
+def test_predict_vtu_and_ply(model_file, tmp_path):
+    import meshio
+
+    from imaging import read_ply
+
+    sur = nn.load_surrogate(model_file)
+    g = "0,6.9367,6.9367"  # phantom frame, 45 deg in the sagittal plane, |g| = 9.81
+    res = runner.invoke(
+        app,
+        ["surrogate", "predict", str(model_file), "--gravity", g, "--out", str(tmp_path / "r.vtu")],
+    )
+    assert res.exit_code == 0, res.output
+    m = meshio.read(tmp_path / "r.vtu")
+    u = sur.predict([0.0, 6.9367, 6.9367]).nodes_mm[0]
+    assert np.allclose(m.point_data["displacement_mm"], u, atol=1e-12)
+    assert np.allclose(m.points, sur.mesh.nodes_mm + u, atol=1e-9)
+    res = runner.invoke(
+        app,
+        ["surrogate", "predict", str(model_file), "--gravity", g, "--out", str(tmp_path / "r.ply")],
+    )
+    assert res.exit_code == 0, res.output
+    s = read_ply(tmp_path / "r.ply")
+    keep = np.unique(sur.mesh.boundary_faces)
+    assert np.allclose(s.vertices_lps_mm, sur.mesh.nodes_mm[keep] + u[keep], atol=1e-9)
+    assert s.back_plate.sum() == len(sur.mesh.back_nodes)
+
+
+def test_predict_zero_nan_and_extrapolation(model_file, tmp_path):
+    import meshio
+
+    out = tmp_path / "zero.vtu"
+    res = runner.invoke(
+        app, ["surrogate", "predict", str(model_file), "--gravity", "0,0,0", "--out", str(out)]
+    )
+    assert res.exit_code == 0, res.output
+    assert np.all(meshio.read(out).point_data["displacement_mm"] == 0.0)
+    res = runner.invoke(
+        app,
+        [
+            "surrogate",
+            "predict",
+            str(model_file),
+            "--gravity",
+            "nan,0,9.81",
+            "--out",
+            str(tmp_path / "n.vtu"),
+        ],
+    )
+    assert res.exit_code == 2 and "NaN" in res.output and not (tmp_path / "n.vtu").exists()
+    res = runner.invoke(
+        app,
+        [
+            "surrogate",
+            "predict",
+            str(model_file),
+            "--gravity",
+            "0,0,9.81",
+            "--c1",
+            "5000",
+            "--out",
+            str(tmp_path / "c.vtu"),
+        ],
+    )
+    assert res.exit_code == 0 and "extrapolates" in res.output
+    res = runner.invoke(
+        app,
+        [
+            "surrogate",
+            "predict",
+            str(model_file),
+            "--gravity",
+            "1,2",
+            "--out",
+            str(tmp_path / "b.vtu"),
+        ],
+    )
+    assert res.exit_code == 2 and "X,Y,Z" in res.output
+    res = runner.invoke(
+        app,
+        [
+            "surrogate",
+            "predict",
+            str(model_file),
+            "--gravity",
+            "0,0,9.81",
+            "--out",
+            str(tmp_path / "r.stl"),
+        ],
+    )
+    assert res.exit_code == 2 and ".vtu or .ply" in res.output
+
+
+def test_train_errors(box_sweep, tmp_path):
+    res = runner.invoke(app, ["surrogate", "train", str(tmp_path), "--out", str(tmp_path / "m.pt")])
+    assert res.exit_code == 2 and "zarr.json not found" in res.output
+    res = runner.invoke(
+        app, ["surrogate", "train", str(box_sweep), "--out", str(tmp_path / "m.pt"), "--kind", "gp"]
+    )
+    assert res.exit_code == 2 and "unknown surrogate kind" in res.output
+    res = runner.invoke(
+        app,
+        [
+            "surrogate",
+            "predict",
+            str(tmp_path / "none.pt"),
+            "--gravity",
+            "0,0,1",
+            "--out",
+            str(tmp_path / "r.vtu"),
+        ],
+    )
+    assert res.exit_code == 2 and "surrogate file not found" in res.output
+
+
+def test_baseline_cli_writes_surface_only(box_sweep, tmp_path):
+    out = tmp_path / "mlp.pt"
+    res = runner.invoke(
+        app,
+        [
+            "surrogate",
+            "train",
+            str(box_sweep),
+            "--out",
+            str(out),
+            "--kind",
+            "dissertation",
+            "--iterations",
+            "200",
+            "--device",
+            "cpu",
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    assert "dissertation surrogate: trained on 37 scenarios" in res.output
+    assert "test (9)" in res.output
+    res = runner.invoke(
+        app,
+        [
+            "surrogate",
+            "predict",
+            str(out),
+            "--gravity",
+            "9.81,0,0",
+            "--out",
+            str(tmp_path / "r.vtu"),
+        ],
+    )
+    assert res.exit_code == 2 and "surface nodes only" in res.output
+    res = runner.invoke(
+        app,
+        [
+            "surrogate",
+            "predict",
+            str(out),
+            "--gravity",
+            "9.81,0,0",
+            "--out",
+            str(tmp_path / "r.ply"),
+        ],
+    )
+    assert res.exit_code == 0, res.output

@@ -1,0 +1,89 @@
+"""nn reads the sweep store through its documented format, and refuses broken stores."""
+
+from __future__ import annotations
+
+import logging
+import re
+import shutil
+
+import numpy as np
+import pytest
+
+import nn
+from nn.data import StoreFormatError
+
+
+def test_reads_every_solved_scenario(box_sweep, box_data):
+    d = box_data
+    assert len(d) == 94 and np.sum(d.role == "train") == 46 and np.sum(d.role == "validation") == 48
+    assert d.displacement_mm.shape == (94, len(d.nodes_mm), 3)
+    assert set(np.unique(d.plane)) == {"transverse", "sagittal"}
+    # the load the solution depends on: rho g gravity_ref / c1 (1/m)
+    rho, g = d.model["density_kg_m3"], d.model["g_m_s2"]
+    assert np.allclose(d.load_per_m, rho * g * d.gravity_ref / d.c1_pa[:, None], rtol=1e-14)
+    # gravity_ref = R_ref_from_phantom @ gravity_phantom
+    R = np.asarray(d.model["R_ref_from_phantom"])
+    assert np.allclose(d.gravity_ref, d.gravity_phantom @ R.T, atol=1e-15)
+    # the clamped back does not move; the surface set excludes it
+    assert np.all(d.displacement_mm[:, d.back_nodes] == 0.0)
+    assert not set(d.back_nodes) & set(d.surface_nodes)
+    assert d.has_tumour
+
+
+def test_store_matches_its_documentation(box_sweep):
+    """Every array of the format table in calib.sweep.store exists with the stated rank."""
+    import zarr
+
+    import calib.sweep.store as store
+
+    rows = re.findall(r"^``([a-z_]+/[a-z_]+)``\s+\(([^)]*)\)", store.__doc__, flags=re.M)
+    assert len(rows) >= 20
+    g = zarr.open_group(box_sweep, mode="r")
+    for path, shape in rows:
+        rank = len([s for s in shape.split(",") if s.strip()])
+        assert g[path].ndim == rank, path
+    assert g.attrs["convergence_columns"] == list(store.CONVERGENCE_COLUMNS)
+
+
+def _copy(src, tmp_path):
+    dst = tmp_path / "copy"
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_truncated_store_names_the_file(box_sweep, tmp_path):
+    s = _copy(box_sweep, tmp_path)
+    chunk = s / "results" / "displacement_mm" / "c" / "5" / "0" / "0"
+    chunk.unlink()
+    with pytest.raises(StoreFormatError, match=r"results/displacement_mm/c/5/0/0.*truncated"):
+        nn.load_sweep(s)
+    (s / "results" / "tumour_mm" / "zarr.json").unlink()
+    with pytest.raises(StoreFormatError, match=r"results/tumour_mm/zarr\.json not found"):
+        nn.load_sweep(s)
+    (s / "zarr.json").unlink()
+    with pytest.raises(StoreFormatError, match=r"zarr\.json not found"):
+        nn.load_sweep(s)
+    with pytest.raises(StoreFormatError, match="no such sweep store"):
+        nn.load_sweep(tmp_path / "nowhere")
+
+
+def test_store_of_another_mesh_is_refused(box_sweep, tmp_path):
+    import zarr
+
+    s = _copy(box_sweep, tmp_path)
+    g = zarr.open_group(s, mode="r+")
+    g["mesh/nodes_mm"][0] = g["mesh/nodes_mm"][0] + 1.0  # results from another geometry
+    with pytest.raises(StoreFormatError, match=r"mesh_sha256 \(a store mixed from another mesh"):
+        nn.load_sweep(s)
+
+
+def test_pending_scenarios(box_sweep, tmp_path, caplog):
+    import zarr
+
+    s = _copy(box_sweep, tmp_path)
+    zarr.open_group(s, mode="r+")["results/status"][3] = 0  # as if never solved
+    with pytest.raises(StoreFormatError, match="1 of 94 scenarios pending"):
+        nn.load_sweep(s, allow_pending=False)
+    with caplog.at_level(logging.WARNING):
+        d = nn.load_sweep(s)
+    assert len(d) == 93 and 3 not in d.index and "pending" in caplog.text

@@ -1,0 +1,239 @@
+"""Our reduced-basis kernel surrogate, the dissertation's MLPs, TorchScript files, checks."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+import nn
+from nn.reduced import _kernel, _loo_errors
+from nn.surrogate import quiet_jit
+
+
+@pytest.fixture(scope="module")
+def ours(box_data):
+    return nn.Surrogate.from_fit(nn.fit_reduced_kernel(box_data, device="cpu"), box_data)
+
+
+@pytest.fixture(scope="module")
+def baseline(box_data):
+    # 2000 of the dissertation's 30 000 iterations (tests are short; the benchmark runs all)
+    fit = nn.fit_dissertation_mlps(box_data, device="cpu", iterations=2000, seed=0)
+    return nn.Surrogate.from_fit(fit, box_data)
+
+
+def test_ours_matches_fe_on_validation_directions(ours, baseline):
+    v = ours.report["errors"]["validation"]
+    assert v["n"] == 48
+    # the block's response is smooth in the load: 46 directions 15 deg apart pin it down.
+    # The POD basis alone is held to 1e-4 mm per vertex (pod_tol_mm) and the float32
+    # expansion adds ~1e-6 mm, so the error stays near that floor, far below the
+    # issue's 0.02 mm mean / 0.2 mm max on the phantom
+    assert v["surface_mean_mm"] < 1e-3 and v["surface_max_mm"] < 1e-2
+    assert v["tumour_max_mm"] < 1e-3
+    b = baseline.report["errors"]["validation"]
+    assert b["surface_mean_mm"] > 10 * v["surface_mean_mm"]
+
+
+def test_zero_gravity_gives_zero_displacement(ours, baseline):
+    for sur in (ours, baseline):
+        p = sur.predict([0.0, 0.0, 0.0])
+        assert np.all(p.surface_mm == 0.0) and np.all(p.tumour_mm == 0.0)
+    # ours exactly, by its kernel (every function of its span vanishes at zero load),
+    # also at any c1 and with no warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.all(ours.predict([0.0, 0.0, 0.0], c1_pa=1e4).nodes_mm == 0.0)
+
+
+def test_no_seam_on_the_transverse_circle(ours):
+    # predictions are a function of the gravity vector, so 0 and 360 deg meet smoothly:
+    # the step across 0 deg is like every other 0.5 deg step of the circle
+    a = np.radians(np.arange(-10.0, 10.0, 0.5))
+    g = 9.81 * np.column_stack([np.cos(a), np.zeros_like(a), np.sin(a)])
+    u = ours.predict(g).nodes_mm
+    steps = np.linalg.norm(np.diff(u, axis=0), axis=2).max(axis=1)
+    second = np.linalg.norm(np.diff(u, 2, axis=0), axis=2).max(axis=1)
+    assert steps.max() < 1.2 * np.median(steps)
+    # no kink either: a seam would spike the second differences (O(h^2), h = 0.5 deg)
+    assert second.max() < 1.2 * np.median(second) and second.max() < 0.05 * steps.max()
+    full = ours.predict(9.81 * np.array([[1.0, 0, 0], [np.cos(2 * np.pi), 0, np.sin(2 * np.pi)]]))
+    assert np.abs(full.nodes_mm[0] - full.nodes_mm[1]).max() < 1e-9
+
+
+def test_closed_form_leave_one_out_matches_refitting(box_data):
+    d = box_data.subset(box_data.role == "train")
+    X = d.load_per_m / np.linalg.norm(d.load_per_m, axis=1).max()
+    Y = d.displacement_mm.reshape(len(d), -1)
+    gamma, lam = 3.0, 1e-9
+    K = _kernel(X, X, gamma)
+    w, V = np.linalg.eigh(K)
+    fast = _loo_errors(w, V, Y, [lam], len(d.nodes_mm))[0]
+    errs = []
+    for i in range(len(X)):
+        keep = np.arange(len(X)) != i
+        alpha = np.linalg.solve(K[np.ix_(keep, keep)] + lam * np.eye(keep.sum()), Y[keep])
+        e = (_kernel(X[[i]], X[keep], gamma) @ alpha - Y[i]).reshape(-1, 3)
+        errs.append(np.linalg.norm(e, axis=1).mean())
+    # two code paths for the same number; they differ by the conditioning of K (~1e7
+    # here) times round-off
+    assert fast == pytest.approx(np.mean(errs), rel=1e-6)
+
+
+def test_kernel_recovers_a_smooth_field_with_a_c1_axis():
+    # synthetic data: u(b) = A b + B (b . n)^2 m (u(0) = 0), over directions and loads
+    from nn.data import SweepData
+    from nn.reduced import fit_reduced_kernel
+
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=(300, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    c1 = rng.uniform(400, 800, 300)
+    b = 1000 * 9.81 * dirs / c1[:, None]
+    A, n, m = rng.normal(size=(5, 3, 3)), rng.normal(size=3), rng.normal(size=(5, 3))
+
+    def field(bb):
+        return np.einsum("nij,bj->bni", A, bb) * 1e-3 + ((bb @ n) ** 2)[:, None, None] * m * 1e-6
+
+    u = field(b)
+    data = SweepData(
+        path=None,
+        nodes_mm=np.zeros((5, 3)),
+        tets=np.zeros((0, 4), int),
+        surface_nodes=np.arange(5),
+        back_nodes=np.zeros(0, int),
+        boundary_faces=np.zeros((0, 3), int),
+        index=np.arange(300),
+        gravity_ref=dirs,
+        gravity_phantom=dirs,
+        c1_pa=c1,
+        load_per_m=b,
+        role=np.where(np.arange(300) < 250, "train", "validation"),
+        plane=np.full(300, "sphere"),
+        angle_deg=np.full(300, np.nan),
+        displacement_mm=u,
+        tumour_mm=u[:, 0],
+        nipple_mm=u[:, 1],
+        model={"density_kg_m3": 1000.0},
+        mesh_sha256="",
+    )
+    fit = fit_reduced_kernel(data, device="cpu", pod_tol_mm=1e-9)
+    pred, tumour = fit.predict_numpy(b[250:])
+    scale = np.abs(u).max()
+    # a quadratic in b lies in the kernel's span (its degree-1 and 2 terms): recovered
+    # to ~1e-5 of the field with 250 samples (LOO picks a flat kernel)
+    assert np.abs(pred - u[250:]).max() < 1e-5 * scale
+    assert np.abs(tumour - u[250:, 0]).max() < 1e-5 * scale
+    assert np.all(fit.predict_numpy(np.zeros((1, 3)))[0] == 0.0)
+
+
+def test_torchscript_file_round_trip(ours, baseline, tmp_path):
+    import torch
+
+    for sur in (ours, baseline):
+        path = tmp_path / f"{sur.kind}.pt"
+        nn.save_surrogate(sur, path)
+        loaded = nn.load_surrogate(path)
+        assert loaded.kind == sur.kind and loaded.mesh_sha256 == sur.mesh_sha256
+        g = 9.81 * np.array([[3.0, -5.0, 7.0], [0.0, 1.0, 0.0]]) / [[np.sqrt(83.0)], [1.0]]
+        a, b = sur.predict(g), loaded.predict(g)
+        assert np.array_equal(a.surface_mm, b.surface_mm)
+        assert np.array_equal(a.tumour_mm, b.tumour_mm)
+        # bare torch loads it too: forward(gravity_ref_m_s2 (B, 3), c1_pa (B,)) -> dict
+        with quiet_jit():  # torch 2.13 deprecates TorchScript; it works
+            m = torch.jit.load(str(path))
+        out = m(
+            torch.tensor([[0.0, 9.81, 0.0]], dtype=torch.float64),
+            torch.tensor([float(sur.meta["model"]["c1_pa"])], dtype=torch.float64),
+        )
+        assert "tumour_mm" in out and ("nodes_mm" in out or "surface_mm" in out)
+    with pytest.raises(nn.SurrogateFileError, match="not found"):
+        nn.load_surrogate(tmp_path / "none.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a model")
+    with pytest.raises(nn.SurrogateFileError, match="junk.pt: not a TorchScript"):
+        nn.load_surrogate(tmp_path / "junk.pt")
+
+
+def test_bad_queries(ours, box_data):
+    with pytest.raises(ValueError, match="NaN"):
+        ours.predict([np.nan, 0.0, 9.81])
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        ours.predict([np.inf, 0.0, 0.0])
+    with pytest.raises(ValueError, match="c1 must be finite and positive"):
+        ours.predict([0.0, 0.0, 9.81], c1_pa=-1.0)
+    with pytest.raises(ValueError, match="c1 must be finite"):
+        ours.predict([0.0, 0.0, 9.81], c1_pa=np.nan)
+    with pytest.raises(ValueError, match="shape"):
+        ours.predict([1.0, 2.0])
+    with pytest.raises(ValueError, match="frame"):
+        ours.predict([0.0, 0.0, 9.81], frame="scanner")
+    c1 = float(box_data.model["c1_pa"])
+    with pytest.warns(nn.ExtrapolationWarning, match="c1 = 1000 Pa lies outside the trained"):
+        ours.predict([0.0, 0.0, 9.81], c1_pa=1000.0)
+    with pytest.warns(nn.ExtrapolationWarning, match="load rho g / c1"):
+        ours.predict([0.0, 0.0, 2 * 9.81], c1_pa=c1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # in range: silent
+        ours.predict([0.0, 0.0, 9.81], c1_pa=c1)
+
+
+def test_frames(ours, box_data):
+    R = np.asarray(box_data.model["R_ref_from_phantom"])
+    g_ph = 9.81 * np.array([np.cos(0.3), 0.0, np.sin(0.3)])
+    a = ours.predict(g_ph, frame="phantom").nodes_mm
+    b = ours.predict(R @ g_ph, frame="ref").nodes_mm
+    assert np.array_equal(a, b)
+
+
+def test_evaluate_refuses_another_mesh(ours, box_data):
+    from dataclasses import replace
+
+    other = replace(box_data, mesh_sha256="0" * 64)
+    with pytest.raises(nn.MeshMismatchError, match="another mesh"):
+        nn.evaluate(ours, other)
+
+
+def test_baseline_training_is_seeded_and_learns(box_data):
+    import torch
+
+    def weights(seed, iterations=300):
+        fit = nn.fit_dissertation_mlps(box_data, device="cpu", iterations=iterations, seed=seed)
+        return fit, torch.cat([p.detach().flatten() for p in fit.module().parameters()])
+
+    f0, w0 = weights(0)
+    _, w0b = weights(0)
+    _, w1 = weights(1)
+    assert torch.equal(w0, w0b) and not torch.equal(w0, w1)
+    # the 80 / 20 hold-out of the 46 training scenarios
+    assert (f0.report["n_train"], f0.report["n_test"]) == (37, 9)
+    f, _ = weights(0, iterations=3000)
+    hist = np.array(f.report["loss_history"])  # iteration, surface MAE, tumour MAE
+    assert list(hist[:, 0]) == [1, 1000, 2000, 3000]
+    # both MAEs fall at every record (slowly: Adam's steps are ~lr = 1e-5 per weight)
+    assert np.all(np.diff(hist[:, 1:], axis=0) < 0) and np.all(hist[-1, 1:] < 0.95 * hist[0, 1:])
+
+
+def test_device_choice():
+    import torch
+
+    assert nn.select_device("cpu").type == "cpu"
+    assert nn.select_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(ValueError, match="--device must be"):
+        nn.select_device("tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="no CUDA device"):
+            nn.select_device("cuda")
+
+
+@pytest.mark.skipif("not __import__('torch').cuda.is_available()", reason="no CUDA device")
+def test_gpu_training_agrees_with_cpu(box_data):
+    cpu = nn.fit_reduced_kernel(box_data, device="cpu")
+    gpu = nn.fit_reduced_kernel(box_data, device="cuda")
+    assert gpu.report["device"].startswith("cuda")
+    # the same float64 algebra on another device: equal to round-off of the solve
+    x = box_data.load_per_m[:5]
+    assert np.abs(cpu.predict_numpy(x)[0] - gpu.predict_numpy(x)[0]).max() < 1e-8
+    fit = nn.fit_dissertation_mlps(box_data, device="cuda", iterations=200)
+    assert fit.report["device"].startswith("cuda")
