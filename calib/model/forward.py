@@ -77,6 +77,7 @@ class ForwardModel:
     current_dX: np.ndarray | None = None  # d stress-free nodes / d theta of the last evaluate
     _states: dict = field(default_factory=dict)
     _recovered: dict = field(default_factory=dict)  # theta -> (X, u0, inverted elements)
+    _du0: tuple | None = None  # (theta, d u0 / d theta) of the last gradient
 
     def __post_init__(self) -> None:
         if self.reference_state not in ("unload", "shortcut"):
@@ -199,8 +200,10 @@ class ForwardModel:
         model_at = self._model_at(disc)
         dX, dX_state = np.zeros_like(X), None
         if gradient and self.reference_state == "unload":
-            g0 = gravity_vector(self.gravity_ref, self.g_m_s2)
-            du0 = stress_free_sensitivity(disc, model_at, theta, self._u0, g0)
+            if self._du0 is None or self._du0[0] != theta:  # one factorisation per theta
+                g0 = gravity_vector(self.gravity_ref, self.g_m_s2)
+                self._du0 = (theta, stress_free_sensitivity(disc, model_at, theta, self._u0, g0))
+            du0 = self._du0[1]
             dX = -vertex_displacement_mm(disc, du0)  # X = x_ref - u0
             dX_state = np.zeros(disc.n_dofs)
             v = vertex_dofs(disc)
