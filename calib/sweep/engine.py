@@ -3,9 +3,13 @@
 One scenario is one task: the calibrated model (:class:`~calib.sweep.model.SweepModel`,
 small and picklable), the gravity of the solve and the warm start (the parent's stored
 solver vector, :mod:`calib.sweep.continuation`). Workers build the FE model once per
-process (cached by the model's key), solve with one thread (PARDISO's bitwise
-reproducibility holds for a fixed thread count) and return the result; only the
-driving process writes the store, scenario by scenario (:class:`SweepStore.commit`).
+process (cached by the model's key) and return the result; only the driving process
+writes the store, scenario by scenario (:class:`SweepStore.commit`). Pool workers run
+one thread each (set when they start); Dask's nanny starts its workers with one thread
+each by default (``distributed.nanny.pre-spawn-environ``); the serial backend keeps the
+thread count of its process. PARDISO's results are bitwise reproducible for a fixed
+thread count (:mod:`fem.linalg`); across thread counts they differ in the last bits
+(1e-16 mm on the quick twin).
 
 Backends (:func:`make_backend`):
 
@@ -127,17 +131,7 @@ def _prepared(model: SweepModel, key: str):
     return _CACHE[key]
 
 
-def _thread_limit(threads: int):
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # the environment variables set for the workers still apply
-        import contextlib
-
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=threads)
-
-
-def solve_scenario(model: SweepModel, key: str, task: ScenarioTask, threads: int = 1):
+def solve_scenario(model: SweepModel, key: str, task: ScenarioTask):
     """Solve one scenario (runs on a worker; never raises for a failed solve).
 
     Parameters
@@ -146,8 +140,6 @@ def solve_scenario(model: SweepModel, key: str, task: ScenarioTask, threads: int
     key : str
         ``model.key`` (computed once by the driver).
     task : ScenarioTask
-    threads : int
-        BLAS / MKL threads of the solve.
 
     Returns
     -------
@@ -157,29 +149,28 @@ def solve_scenario(model: SweepModel, key: str, task: ScenarioTask, threads: int
 
     t0 = time.perf_counter()
     worker = f"{socket.gethostname()}:{os.getpid()}"
-    with _thread_limit(threads):
+    try:
+        fm, disc, tumour = _prepared(model, key)
+        kw = {"gravity": task.gravity_ref, "g_m_s2": task.g_m_s2, "disc": disc}
+        newton = 0
         try:
-            fm, disc, tumour = _prepared(model, key)
-            kw = {"gravity": task.gravity_ref, "g_m_s2": task.g_m_s2, "disc": disc}
-            newton = 0
-            try:
-                sol = fem.solve(fm, x0=task.x0, **kw)
-            except fem.ConvergenceError as exc:
-                log.info("scenario %d: %s; retrying with small load steps", task.index, exc)
-                newton = _newton_of(exc)
-                sol = fem.solve(fm, options=fem.SolverOptions(**RETRY_OPTIONS), **kw)
-        except Exception as exc:  # noqa: BLE001 - a failed scenario is recorded, not fatal
-            return ScenarioResult(
-                task.index,
-                False,
-                message=f"{type(exc).__name__}: {exc}",
-                worker=worker,
-                stats={
-                    "wall_s": time.perf_counter() - t0,
-                    "attempts": task.attempt,
-                    "warm_start": float(task.x0 is not None),
-                },
-            )
+            sol = fem.solve(fm, x0=task.x0, **kw)
+        except fem.ConvergenceError as exc:
+            log.info("scenario %d: %s; retrying with small load steps", task.index, exc)
+            newton = _newton_of(exc)
+            sol = fem.solve(fm, options=fem.SolverOptions(**RETRY_OPTIONS), **kw)
+    except Exception as exc:  # noqa: BLE001 - a failed scenario is recorded, not fatal
+        return ScenarioResult(
+            task.index,
+            False,
+            message=f"{type(exc).__name__}: {exc}",
+            worker=worker,
+            stats={
+                "wall_s": time.perf_counter() - t0,
+                "attempts": task.attempt,
+                "warm_start": float(task.x0 is not None),
+            },
+        )
     stats = {
         "newton_iterations": sol.newton_iterations + newton,
         "load_steps": sol.load_steps,
@@ -211,9 +202,20 @@ def _newton_of(exc: Exception) -> int:
 
 
 def _init_worker(threads: int) -> None:
-    """Pool initializer: thread counts for libraries loaded later (MKL on first solve)."""
+    """Pool initializer: the worker's thread count, once, before its first solve.
+
+    Environment variables for libraries loaded later (MKL, with the first PARDISO
+    solve) and threadpoolctl for those already loaded (OpenBLAS). Never changed again:
+    a cached PARDISO solver set up for reproducibility at one thread count can crash
+    when MKL's thread count changes between its factorizations (seen with MKL 2026.2).
+    """
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[var] = str(threads)
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        return
+    threadpool_limits(limits=threads)  # for the life of the worker process
 
 
 # -- backends ------------------------------------------------------------------------------
@@ -422,7 +424,6 @@ def run_scenarios(
     *,
     retry_failed: bool = False,
     max_attempts: int = 3,
-    threads: int = 1,
     progress: Callable[[dict], None] | None = None,
 ) -> dict:
     """Solve every pending scenario of ``store`` on ``backend``, committing each one.
@@ -440,8 +441,6 @@ def run_scenarios(
         Solve scenarios recorded as failed again.
     max_attempts : int
         Tries of a scenario whose worker died.
-    threads : int
-        Threads per solve.
     progress : callable, optional
         Called after every committed scenario with a dict (``done``, ``total``,
         ``index``, ``ok``, ``newton_iterations``, ``wall_s``, ``worker``).
@@ -479,7 +478,7 @@ def run_scenarios(
         x0 = store.state(p) if p >= 0 and status[p] == SOLVED else None
         attempts[i] += 1
         task = ScenarioTask(i, g_ref[i], float(g_solved[i]), x0, attempts[i])
-        in_flight[backend.submit(solve_scenario, model, key, task, threads)] = i
+        in_flight[backend.submit(solve_scenario, model, key, task)] = i
 
     while queue or in_flight:
         for i in [i for i in queue if ready(i)][: max(0, 2 * backend.slots - len(in_flight))]:
@@ -499,7 +498,7 @@ def run_scenarios(
             _commit(store, status, prog, res, progress)
             committed_since_loss = True
         if lost:
-            streak = 0 if committed_since_loss else streak + 1
+            streak = 1 if committed_since_loss else streak + 1  # rounds lost in a row
             committed_since_loss = False
             if streak >= max_attempts:
                 raise RuntimeError(

