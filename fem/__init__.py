@@ -4,6 +4,7 @@ from .discretize import FORMULATIONS, Discretization, discretize
 from .materials import FebioNeoHookean, MooneyRivlin, NeoHookean, Volumetric
 from .mesh import MeshError, MeshQuality, TetMesh, boundary_faces, mesh_quality
 from .model import Clamped, Constrained, ElasticSupport, Model, Sliding
+from .prestress import Prestress, compute_prestress, solve_prestressed
 from .solver import ConvergenceError, Solution, SolverOptions, displacement_at, solve
 
 __all__ = [
@@ -19,14 +20,17 @@ __all__ = [
     "Model",
     "MooneyRivlin",
     "NeoHookean",
+    "Prestress",
     "Sliding",
     "Solution",
     "SolverOptions",
     "TetMesh",
     "Volumetric",
     "boundary_faces",
+    "compute_prestress",
     "discretize",
     "displacement_at",
     "mesh_quality",
     "solve",
+    "solve_prestressed",
 ]

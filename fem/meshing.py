@@ -116,6 +116,7 @@ def tetrahedralize(
     regions: list | tuple = (),
     repair: bool = True,
     size_mm: float = 5.0,
+    keep_planes: list | tuple = (),
 ) -> TetMesh:
     """Quality tetrahedral mesh of a closed surface (TetGen).
 
@@ -137,16 +138,26 @@ def tetrahedralize(
         that fails, remesh it, then try again; logs what was done.
     size_mm : float
         Edge length used if the surface must be remeshed.
+    keep_planes : sequence of (point_mm, normal, tol_mm)
+        Planar parts of the surface (a support's back plane) to keep exactly flat: after
+        a repair or a remesh (marching cubes and smoothing move them off the plane, so
+        a support's node set found on the plane would come out empty), the vertices
+        within ``tol_mm`` of each plane are projected back onto it.
 
     Returns
     -------
     TetMesh
         Positively oriented, with region tags (``bulk`` = 1 when no regions are given).
     """
+    planes = [_plane(p) for p in keep_planes]
+
+    def flat(v, f):
+        return _onto_planes(v, planes), f
+
     attempts = [("as given", lambda v, f: (v, f))]
     if repair:
-        attempts += [("repaired", _repair_surface)]
-        attempts += [("remeshed", lambda v, f: remesh_surface(v, f, size_mm=size_mm))]
+        attempts += [("repaired", lambda v, f: flat(*_repair_surface(v, f)))]
+        attempts += [("remeshed", lambda v, f: flat(*remesh_surface(v, f, size_mm=size_mm)))]
     errors = []
     for label, fix in attempts:
         try:
@@ -168,6 +179,24 @@ def tetrahedralize(
         names = names or {"bulk": int(region[0])}
         return TetMesh(nodes, tets, region, names).oriented()
     raise MeshError("TetGen could not mesh the surface: " + "; ".join(errors))
+
+
+def _plane(spec) -> tuple[np.ndarray, np.ndarray, float]:
+    point, normal, tol = spec
+    n = np.asarray(normal, float)
+    if n.shape != (3,) or not np.linalg.norm(n) > 0 or not tol > 0:
+        raise ValueError(f"keep_planes entries are (point_mm, normal, tol_mm > 0), got {spec!r}")
+    return np.asarray(point, float).reshape(3), n / np.linalg.norm(n), float(tol)
+
+
+def _onto_planes(vertices: np.ndarray, planes) -> np.ndarray:
+    """Project the vertices within each plane's tolerance onto it."""
+    v = np.array(vertices, float)
+    for p0, n, tol in planes:
+        d = (v - p0) @ n
+        near = np.abs(d) < tol
+        v[near] -= np.outer(d[near], n)
+    return v
 
 
 def find_back_plane(mesh: TetMesh, *, angle_tol_deg: float = 2.0, dist_tol_mm: float = 0.05):
@@ -215,8 +244,26 @@ def find_back_plane(mesh: TetMesh, *, angle_tol_deg: float = 2.0, dist_tol_mm: f
 
 
 def tag_node_sets(mesh: TetMesh, back_nodes: np.ndarray, back_normal: np.ndarray) -> TetMesh:
-    """Add node sets ``back``, ``surface`` (boundary without the back) and ``nipple``."""
+    """Add node sets ``back``, ``surface`` (boundary without the back) and ``nipple``.
+
+    Raises
+    ------
+    MeshError
+        When ``back_nodes`` has fewer than 3 nodes or no boundary face (a support there
+        would hold nothing).
+    """
     bnodes = np.unique(boundary_faces(mesh.tets))
+    back_nodes = np.asarray(back_nodes, dtype=np.int64)
+    faces = boundary_faces(mesh.tets)
+    inset = np.zeros(mesh.n_nodes, dtype=bool)
+    inset[back_nodes] = True
+    if len(back_nodes) < 3 or not inset[faces].all(axis=1).any():
+        raise MeshError(
+            f"the back node set has {len(back_nodes)} nodes and "
+            f"{int(inset[faces].all(axis=1).sum())} boundary faces: the back plane is not on "
+            "the mesh boundary (a repaired or remeshed surface moves it; pass keep_planes to "
+            "tetrahedralize)"
+        )
     surface = np.setdiff1d(bnodes, back_nodes)
     height = -(mesh.nodes_mm[surface] - mesh.nodes_mm[back_nodes].mean(0)) @ back_normal
     nipple = surface[[int(np.argmax(height))]]

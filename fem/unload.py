@@ -23,13 +23,20 @@ too coarse there for the shear the clamp imposes. The result counts them
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Literal
 
 import numpy as np
 
 from .assemble import assemble, external_force, scatter
 from .discretize import Formulation, discretize
 from .model import Model
+from .prestress import (
+    Prestress,
+    compute_prestress,
+    isoparametric_discretization,
+    stress_free_node_positions_mm,
+)
 from .shape_derivative import geometry_matrices
 from .solver import (
     ConvergenceError,
@@ -69,7 +76,16 @@ class ReferenceRecovery:
         The forward solve from the recovered geometry under ``g0``.
     inverted_elements : int
         Elements whose recovered vertex tetrahedron has non-positive volume (see the
-        module docstring).
+        module docstring). With ``spatial`` the stress-free elements are curved and these
+        straight vertex tetrahedra are for information only.
+    method : str
+        The method that produced it.
+    prestress : Prestress or None
+        ``spatial``: the compatible prestress of the loaded mesh
+        (:func:`fem.prestress.compute_prestress` with ``method="inverse"``). Its
+        stress-free mesh is curved: solve postures with
+        :func:`fem.prestress.solve_prestressed` on the loaded mesh, not with
+        :func:`fem.solve` on ``nodes_mm``.
     """
 
     nodes_mm: np.ndarray
@@ -79,6 +95,8 @@ class ReferenceRecovery:
     history_mm: tuple[float, ...]
     solution: Solution
     inverted_elements: int = 0
+    method: str = "newton"
+    prestress: Prestress | None = None
 
 
 def _aitken(alpha: float, r_old: np.ndarray | None, r_new: np.ndarray) -> float:
@@ -102,7 +120,7 @@ def recover_stress_free(
     options: SolverOptions | None = None,
     x0_nodes_mm: np.ndarray | None = None,
     x0_state: np.ndarray | None = None,
-    method: str = "newton",
+    method: Literal["newton", "fixed-point", "spatial"] = "newton",
 ) -> ReferenceRecovery:
     """Find the stress-free geometry whose deformation under ``gravity`` is the mesh.
 
@@ -125,17 +143,29 @@ def recover_stress_free(
         Initial guess of the stress-free geometry (e.g. from a nearby material).
     x0_state : ndarray, optional
         Warm start of the first forward solve (``Solution.state``).
-    method : {"newton", "fixed-point"}
-        See the module docstring. With ``newton`` a warm start is ``x0_state`` alone.
+    method : {"newton", "fixed-point", "spatial"}
+        See the module docstring. With ``newton`` and ``spatial`` a warm start is
+        ``x0_state`` alone (``ReferenceRecovery.solution.state`` of the same method).
 
     Returns
     -------
     ReferenceRecovery
+
+    Raises
+    ------
+    ConvergenceError
+        ``newton`` or ``spatial`` could not apply the full load within
+        ``options.max_steps`` load steps; the message and the exception's
+        ``load_factor`` attribute say how far it got.
     """
+    if method == "spatial":
+        return _spatial(model, gravity, g_m_s2, formulation, options, x0_state)
     if method == "newton":
         return _inverse_newton(model, gravity, g_m_s2, formulation, options, x0_state, tol_mm)
     if method != "fixed-point":
-        raise ValueError(f"unknown recovery method {method!r}; choose newton or fixed-point")
+        raise ValueError(
+            f"unknown recovery method {method!r}; choose newton, fixed-point or spatial"
+        )
     x_m = model.mesh.nodes_mm
     disc0 = discretize(model.mesh, model.support, formulation=formulation)
     X = x_m.copy() if x0_nodes_mm is None else np.asarray(x0_nodes_mm, float).copy()
@@ -258,11 +288,14 @@ def _inverse_newton(model, gravity, g_m_s2, formulation, options, x0_state, tol_
         dlam = min(2.0 * dlam, 1.0 - lam) if lam < 1.0 else dlam
     converged = lam >= 1.0
     if not converged:
-        raise ConvergenceError(
+        err = ConvergenceError(
             f"stress-free reference not recovered: inverse Newton stopped at load factor "
             f"{lam:.3g} after {prob.stats.newton} iterations in {attempts} load steps "
-            f"(limit {opts.max_steps})"
+            f"(limit {opts.max_steps}); method='spatial' does not need straight stress-free "
+            "elements"
         )
+        err.load_factor, err.iterations = lam, prob.stats.newton
+        raise err
     X = prob.x_m - vertex_displacement_mm(disc0, u)
     sol = solve(model.with_mesh(model.mesh.with_nodes(X)), gravity=gravity, g_m_s2=g_m_s2,
                 disc=disc0.with_nodes(X), options=opts, x0=u)  # fmt: skip
@@ -270,3 +303,20 @@ def _inverse_newton(model, gravity, g_m_s2, formulation, options, x0_state, tol_
     if err > tol_mm:
         log.warning("reference recovery: loaded geometry off by %.3g mm (tol %.3g)", err, tol_mm)
     return _recovery(model, X, err <= tol_mm, prob.stats.newton, err, (err,), sol)
+
+
+def _spatial(model, gravity, g_m_s2, formulation, options, x0_state) -> ReferenceRecovery:
+    """The spatial (isoparametric) inverse of :mod:`fem.prestress`, as a recovery."""
+    opts = options or SolverOptions()
+    disc0 = discretize(model.mesh, model.support, formulation=formulation)
+    ps = compute_prestress(model, gravity=gravity, g_m_s2=g_m_s2, method="inverse",
+                           disc=disc0, options=opts, x0_state=x0_state)  # fmt: skip
+    X_dofs = stress_free_node_positions_mm(disc0, ps)
+    iso = isoparametric_discretization(disc0, X_dofs)
+    # the curved stress-free mesh under g0, warm-started at the recovered state: a
+    # converged check of the recovered state in the forward solver's own assembly
+    sol = solve(model.with_mesh(iso.mesh), gravity=gravity, g_m_s2=g_m_s2, disc=iso,
+                options=opts, x0=ps.inverse_state)  # fmt: skip
+    rec = _recovery(model, ps.stress_free_nodes_mm, True, ps.newton_iterations,
+                    ps.residual_displacement_mm, (ps.residual_displacement_mm,), sol)  # fmt: skip
+    return replace(rec, method="spatial", prestress=ps)

@@ -1,0 +1,197 @@
+"""Reference-state benchmark: stress-free recovery and prestress on the twin's scan meshes.
+
+For each digital-twin scan set, mesh size and method, the reference scan's surface is
+meshed as the calibration does (``calib``'s ``reference_mesh``) and the reference state
+at ``c1 = 420 Pa x factor`` (nu = 0.499, 1000 kg/m^3, clamped back) is computed by:
+
+- ``newton``: ``fem.unload.recover_stress_free(method="newton")``, the inverse Newton on
+  straight-sided stress-free elements, with the calibration's bound of 10 load steps;
+- ``spatial``: ``recover_stress_free(method="spatial")`` (``fem.prestress`` ``inverse``),
+  inverse elastostatics on the loaded mesh with a curved stress-free mesh;
+- ``mulf``: ``fem.prestress.compute_prestress(method="mulf")`` (Gee, Foerster & Wall 2010,
+  4 load steps, Aitken-relaxed passes to 1e-6 mm);
+- ``fixed-point`` (only with ``--fixed-point``): the backward-displacement iteration.
+
+Columns: success, load factor reached (1 when it succeeded), Newton iterations (forward
+solves for the fixed point), wall time (median over ``--repeat`` runs, with min-max),
+its ratio to ``newton`` on the same mesh in the same run, and the round trip: the largest
+distance between the recovered state loaded by ``g0`` and the scan mesh, solved again
+from zero displacement (``newton``/``fixed-point``: vertices of the forward solve on the
+recovered mesh; ``spatial``: every P2 node of the forward solve on the curved stress-free mesh from
+zero displacement; ``mulf``: the displacement when ``g0`` is applied to the prestressed
+scan). Timings on a shared machine: read the ratios and the spread.
+
+The twins (``--twin NAME=SCANS,WORK``) come from::
+
+    phantom-calib synth OUT/none --preset quick --seed 0 --effect none
+    phantom-calib ingest OUT/none/scans --out OUT/none-work
+    phantom-calib synth OUT/skin --preset quick --seed 0
+    phantom-calib ingest OUT/skin/scans --out OUT/skin-work
+
+and then::
+
+    python benchmarks/bench_reference.py --twin none=OUT/none/scans,OUT/none-work \\
+        --twin skin=OUT/skin/scans,OUT/skin-work [--sizes 8,10,12,14,16] \\
+        [--methods newton,spatial,mulf] [--c1-factors 1] [--repeat 3] [--fixed-point]
+        [--jsonl rows.jsonl]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shlex
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+import fem
+from fem.prestress import (
+    compute_prestress,
+    dof_positions_mm,
+    isoparametric_discretization,
+    node_displacement_mm,
+    solve_prestressed,
+    stress_free_node_positions_mm,
+)
+from fem.unload import recover_stress_free
+
+C1_PA, NU, DENSITY_KG_M3 = 420.0, 0.499, 1000.0
+UNLOAD_OPTIONS = fem.SolverOptions(max_steps=10)  # the calibration's bound
+
+
+def reference_mesh(scans: Path, work: Path, size_mm: float):
+    """The calibration's model mesh of the reference scan and its gravity."""
+    try:
+        from calib.data.measurements import load_measurements
+        from calib.data.session import load_session
+        from calib.model.reference import reference_mesh as build
+    except ImportError:  # the layout before calib's subpackages
+        from calib.measurements import load_measurements
+        from calib.refmodel import reference_mesh as build
+        from calib.session import load_session
+    meas = load_measurements(work, load_session(scans))
+    return build(meas.reference, size_mm=size_mm), np.asarray(meas.reference.gravity_ref, float)
+
+
+def _model(mesh, c1_pa):
+    return fem.Model.homogeneous(mesh, fem.NeoHookean(c1_pa, nu=NU), density_kg_m3=DENSITY_KG_M3)
+
+
+def run_method(method: str, model, gravity):
+    """One run: (row without timing, payload for the round trip)."""
+    if method in ("newton", "spatial", "fixed-point"):
+        kw = {"options": UNLOAD_OPTIONS} if method != "fixed-point" else {"max_iter": 60}
+        rec = recover_stress_free(model, gravity=gravity, method=method, **kw)
+        return {"ok": bool(rec.converged), "load_factor": 1.0, "iterations": rec.iterations,
+                "inverted_vertex_tets": rec.inverted_elements}, rec  # fmt: skip
+    ps = compute_prestress(model, gravity=gravity, method="mulf", options=UNLOAD_OPTIONS)
+    return {"ok": True, "load_factor": 1.0, "iterations": ps.newton_iterations,
+            "passes": ps.load_steps}, ps  # fmt: skip
+
+
+def round_trip_mm(method: str, model, gravity, result) -> float:
+    """Largest distance (mm) of the reloaded reference from the scan mesh, from scratch."""
+    if method in ("newton", "fixed-point"):
+        X = result.nodes_mm
+        disc = fem.discretize(model.mesh, model.support).with_nodes(X)
+        sol = fem.solve(model.with_mesh(disc.mesh), gravity=gravity, disc=disc)
+        return float(np.linalg.norm(X + sol.displacement_mm - model.mesh.nodes_mm, axis=1).max())
+    if method == "spatial":
+        disc0 = fem.discretize(model.mesh, model.support)
+        ps = result.prestress
+        X = stress_free_node_positions_mm(disc0, ps)
+        iso = isoparametric_discretization(disc0, X)
+        sol = fem.solve(model.with_mesh(iso.mesh), gravity=gravity, disc=iso)
+        loaded = X + node_displacement_mm(iso, sol.state)
+        return float(np.linalg.norm(loaded - dof_positions_mm(disc0), axis=1).max())
+    sol = solve_prestressed(model, result, gravity=gravity)
+    return float(np.linalg.norm(sol.displacement_mm, axis=1).max())
+
+
+def bench_case(name, mesh, gravity, size, factor, methods, repeat) -> list[dict]:
+    rows = []
+    model = _model(mesh, C1_PA * factor)
+    for method in methods:
+        times, row, payload = [], None, None
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            try:
+                row, payload = run_method(method, model, gravity)
+            except fem.ConvergenceError as exc:
+                row = {
+                    "ok": False,
+                    "load_factor": getattr(exc, "load_factor", float("nan")),
+                    "iterations": getattr(exc, "iterations", None),
+                    "failure": str(exc),
+                }
+                payload = None
+            times.append(time.perf_counter() - t0)
+            if not row["ok"]:
+                break  # a failure is deterministic: not repeated
+        row.update(twin=name, size_mm=size, tets=mesh.n_tets, c1_pa=C1_PA * factor,
+                   method=method, wall_s=float(np.median(times)), wall_min_s=min(times),
+                   wall_max_s=max(times), runs=len(times))  # fmt: skip
+        row["round_trip_mm"] = round_trip_mm(method, model, gravity, payload) if payload else None
+        rows.append(row)
+        print(json.dumps(row), file=sys.stderr, flush=True)
+    ref = next((r for r in rows if r["method"] == "newton"), None)
+    for r in rows:
+        r["ratio_to_newton"] = r["wall_s"] / ref["wall_s"] if ref else None
+    return rows
+
+
+def _fmt(v, spec):
+    return "-" if v is None or (isinstance(v, float) and not np.isfinite(v)) else format(v, spec)
+
+
+def print_table(rows: list[dict]) -> None:
+    head = ("twin", "size", "tets", "c1 Pa", "method", "ok", "load f.", "Newton",
+            "wall s (min-max)", "x newton", "round trip mm")  # fmt: skip
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---|" * len(head))
+    for r in rows:
+        wall = f"{r['wall_s']:.1f} ({r['wall_min_s']:.1f}-{r['wall_max_s']:.1f}, n={r['runs']})"
+        print("| " + " | ".join([
+            r["twin"], f"{r['size_mm']:g}", str(r["tets"]), f"{r['c1_pa']:.0f}", r["method"],
+            "yes" if r["ok"] else "**no**", _fmt(r["load_factor"], ".3g"),
+            _fmt(r["iterations"], "d"), wall, _fmt(r["ratio_to_newton"], ".2f"),
+            _fmt(r["round_trip_mm"], ".2g")]) + " |")  # fmt: skip
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--twin", action="append", required=True, help="NAME=SCANS,WORK")
+    p.add_argument("--sizes", default="8,10,12,14,16")
+    p.add_argument("--methods", default="newton,spatial,mulf")
+    p.add_argument("--c1-factors", default="1")
+    p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--fixed-point", action="store_true")
+    p.add_argument("--jsonl", type=Path, help="also append every row to this file")
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    warnings.simplefilter("ignore")  # TetGen/open3d chatter; the table says what failed
+    methods = a.methods.split(",") + (["fixed-point"] if a.fixed_point else [])
+    rows = []
+    for spec in a.twin:
+        name, paths = spec.split("=", 1)
+        scans, work = (Path(x) for x in paths.split(","))
+        for size in (float(s) for s in a.sizes.split(",")):
+            mesh, gravity = reference_mesh(scans, work, size)
+            for factor in (float(f) for f in a.c1_factors.split(",")):
+                new = bench_case(name, mesh, gravity, size, factor, methods, a.repeat)
+                rows += new
+                if a.jsonl:
+                    with a.jsonl.open("a") as fh:
+                        fh.writelines(json.dumps(r) + "\n" for r in new)
+    print("command: python benchmarks/bench_reference.py " + shlex.join(sys.argv[1:] if argv
+          is None else argv))  # fmt: skip
+    print_table(rows)
+
+
+if __name__ == "__main__":
+    main()
