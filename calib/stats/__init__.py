@@ -1,0 +1,32 @@
+"""Statistics of surface residuals: noise model, intervals, misfit and effect tests.
+
+Pure numpy/scipy (no FE, no files). ``noise``: variogram and kernel fit
+(:class:`NoiseModel`), covariances, whitening; ``intervals``: parameter intervals with
+measured coverage; ``scores``: the misfit test and effect screening; ``coverage``: cheap
+linear models on phantom-like geometry for the studies in
+``benchmarks/bench_coverage.py``.
+"""
+
+from .intervals import ParameterInterval, parameter_intervals, sandwich_covariance
+from .kernels import KERNELS, correlation
+from .noise import NoiseFit, NoiseModel, Variogram, estimate_noise, whitener
+from .sample import SurfaceSample
+from .scores import EffectScreening, ModelFit, misfit_test, screen_effects
+
+__all__ = [
+    "KERNELS",
+    "EffectScreening",
+    "ModelFit",
+    "NoiseFit",
+    "NoiseModel",
+    "ParameterInterval",
+    "SurfaceSample",
+    "Variogram",
+    "correlation",
+    "estimate_noise",
+    "misfit_test",
+    "parameter_intervals",
+    "sandwich_covariance",
+    "screen_effects",
+    "whitener",
+]
