@@ -63,6 +63,15 @@ class IntervalError(ValueError):
     """A Jacobian, contrast or residual that admits no interval."""
 
 
+def _json_number(v):
+    """Floats as float, non-finite as None; ints and strings unchanged."""
+    if isinstance(v, (bool, str, int, np.integer)):
+        return int(v) if isinstance(v, np.integer) else v
+    if isinstance(v, (float, np.floating)):
+        return float(v) if np.isfinite(v) else None
+    return v
+
+
 @dataclass(frozen=True)
 class ParameterInterval:
     """Interval of one linear combination ``c' theta`` of the fitted parameters.
@@ -106,9 +115,8 @@ class ParameterInterval:
     plugin_standard_error: float
 
     def as_json(self) -> dict:
-        """Plain JSON types, the noise model nested."""
-        out = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "noise"}
-        out = {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in out.items()}
+        """Plain JSON types (non-finite numbers as None), the noise model nested."""
+        out = {k: _json_number(getattr(self, k)) for k in self.__dataclass_fields__}
         return out | {"noise": self.noise.as_json()}
 
 

@@ -194,18 +194,22 @@ class NoiseModel:
         return self.sigma_mm**2 * (1.0 - (1.0 - self.nugget_fraction) * rho)
 
     def as_json(self) -> dict:
-        """The model as plain JSON types (for ``calibration.json``)."""
+        """The model as plain JSON types (for ``calibration.json``; nan as None)."""
         return {
             "kernel": self.kernel,
             "sigma_mm": float(self.sigma_mm),
             "nugget_fraction": float(self.nugget_fraction),
             "length_mm": float(self.length_mm),
-            "criterion": float(self.criterion),
+            "criterion": _finite_or_none(self.criterion),
             "n_pairs": int(self.n_pairs),
-            "max_lag_mm": float(self.max_lag_mm),
+            "max_lag_mm": _finite_or_none(self.max_lag_mm),
             "detrend": self.detrend,
             "length_at_bound": bool(self.length_at_bound),
         }
+
+
+def _finite_or_none(v: float) -> float | None:
+    return float(v) if np.isfinite(v) else None
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,15 @@ from typing import Literal
 
 import numpy as np
 
-from .intervals import IntervalError, _jacobian, _models, _shown, series_design, series_statistic
+from .intervals import (
+    IntervalError,
+    _jacobian,
+    _json_number,
+    _models,
+    _shown,
+    series_design,
+    series_statistic,
+)
 from .modes import orthonormalise, scan_polynomials
 from .noise import NoiseArg, NoiseModel, _model_for, apply_covariance, local_counts, whitener
 from .quadform import Quantile, ratio_tail
@@ -317,10 +325,7 @@ class EffectScreening:
 
     def as_json(self) -> dict:
         """Plain JSON types (for ``diagnosis.json``)."""
-        rows = [
-            {k: (v if isinstance(v, (str, bool)) else float(v)) for k, v in vars(e).items()}
-            for e in self.effects
-        ]
+        rows = [{k: _json_number(v) for k, v in vars(e).items()} for e in self.effects]
         return {
             "effects": rows,
             "cosine": np.where(np.isfinite(self.cosine), self.cosine, None).tolist(),

@@ -10,6 +10,8 @@ study on one cell of the cheap linear model (the full table:
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from scipy import stats
@@ -245,3 +247,5 @@ def test_intervals_for_two_parameters_and_per_scan_noise():
         assert series[k].estimate == pytest.approx(coef[k])
         assert plug[k].standard_error == pytest.approx(series[k].plugin_standard_error, rel=1e-9)
         assert plug[k].critical_value == pytest.approx(1.959963984540054)
+    doc = json.loads(json.dumps(plug[0].as_json(), allow_nan=False))  # dof inf -> null
+    assert doc["dof"] is None and doc["method"] == "sandwich" and doc["noise"]["kernel"]

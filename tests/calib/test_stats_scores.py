@@ -172,6 +172,8 @@ def test_identifiability_and_confounding(setup):
     assert res.confounded == (("a", "a-again", pytest.approx(1.0, abs=1e-9)),)
     # Holm is over the identifiable effects only
     assert np.isnan(res.effects[2].p_holm) and np.isfinite(res.effects[3].p_holm)
+    doc = json.loads(json.dumps(res.as_json(), allow_nan=False))  # strict JSON: nan -> null
+    assert doc["effects"][2]["p_value"] is None and doc["not_identifiable"] == ["like-c1"]
 
 
 def test_local_count_metric_agrees_with_whitening_at_short_range(setup, monkeypatch):
