@@ -58,12 +58,13 @@ path                           shape              dtype     content
 ``results/tumour_mm``          (S, 3)             float64   tumour-centre material point
                                                             displacement (NaN: none)
 ``results/nipple_mm``          (S, 3)             float64   nipple vertex displacement
-``results/convergence``        (S, 8)             float64   ``convergence_columns``:
+``results/convergence``        (S, 9)             float64   ``convergence_columns``:
                                                             newton_iterations,
                                                             load_steps, cutbacks,
                                                             factorizations, wall_s,
                                                             warm_start (0/1), attempts,
-                                                            final_residual
+                                                            final_residual, cpu_s
+                                                            (the worker's CPU time)
 ``results/state``              (S, D)             float64   full solver vector (solver
                                                             frame, SI; internal, for
                                                             exact warm starts)
@@ -111,6 +112,7 @@ CONVERGENCE_COLUMNS = (
     "warm_start",
     "attempts",
     "final_residual",
+    "cpu_s",
 )
 STATUS = ("pending", "solved", "failed")
 PENDING, SOLVED, FAILED = 0, 1, 2
@@ -411,9 +413,8 @@ class SweepStore:
             r["state"][i] = result.state
             r["tumour_mm"][i] = result.tumour_mm
             r["nipple_mm"][i] = result.nipple_mm
-        r["convergence"][i] = np.array(
-            [result.stats.get(c, np.nan) for c in CONVERGENCE_COLUMNS], dtype=float
-        )
+        cols = self.group.attrs.get("convergence_columns", CONVERGENCE_COLUMNS)
+        r["convergence"][i] = np.array([result.stats.get(c, np.nan) for c in cols], dtype=float)
         if not result.ok:
             failures = dict(self.group.attrs.get("failures", {}))
             failures[str(i)] = result.message

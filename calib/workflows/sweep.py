@@ -118,11 +118,11 @@ def _create_store(out: Path, model, plan, cont, n_dofs: int, opts: SweepOptions,
 
 
 def _summary(store, backend_info: dict, run: dict, wall_s: float) -> dict:
-    from ..sweep.store import CONVERGENCE_COLUMNS, FAILED, SOLVED
+    from ..sweep.store import FAILED, SOLVED
 
     status = store.status()
     conv = np.asarray(store.group["results/convergence"][:])
-    col = {c: k for k, c in enumerate(CONVERGENCE_COLUMNS)}
+    col = {c: k for k, c in enumerate(store.attrs["convergence_columns"])}
     ok = status == SOLVED
     warm = ok & (conv[:, col["warm_start"]] == 1)
     cold = ok & ~warm
@@ -155,6 +155,7 @@ def _summary(store, backend_info: dict, run: dict, wall_s: float) -> dict:
         "warm": stats(warm),
         "cold": stats(cold),
         "solve_wall_s_total": float(np.nansum(conv[ok, col["wall_s"]])),
+        "solve_cpu_s_total": float(np.nansum(conv[ok, col["cpu_s"]])) if "cpu_s" in col else None,
     }
 
 
