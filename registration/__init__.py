@@ -3,6 +3,13 @@
 Heavy dependencies (open3d) are imported inside the functions that need them.
 """
 
+from registration.correspondence import (
+    CONFIDENCE_DEFINITION,
+    AmbiguousMatchWarning,
+    ConstellationError,
+    ConstellationMatch,
+    match_constellation,
+)
 from registration.distances import (
     DistanceSummary,
     PointError,
@@ -34,7 +41,11 @@ from registration.rigid import RigidFit, apply_transform, fit_rigid
 from registration.session import ScanRegistration, format_registration_table, register_scans
 
 __all__ = [
+    "CONFIDENCE_DEFINITION",
     "AmbiguousCorrespondenceError",
+    "AmbiguousMatchWarning",
+    "ConstellationError",
+    "ConstellationMatch",
     "DegenerateMarkersError",
     "DistanceSummary",
     "IcpLevel",
@@ -58,6 +69,7 @@ __all__ = [
     "hausdorff_mm",
     "icp_refine",
     "landmark_errors",
+    "match_constellation",
     "nipple_error",
     "point_to_surface_distances",
     "register_scans",

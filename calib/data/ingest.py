@@ -1,13 +1,14 @@
 """Every scan of a session to surfaces, landmarks and frames (no files written).
 
-:func:`ingest_scans` segments, surfaces and registers the scans;
+:func:`ingest_scans` segments, surfaces and registers the scans and tracks every
+inclusion across them (:func:`registration.match_constellation`);
 :mod:`calib.workflows.ingest` writes the results into ``WORK/scans/<name>/``.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +18,12 @@ from registration import apply_transform
 from .session import Session
 
 __all__ = [
+    "TUMOUR_MIN_CONFIDENCE",
+    "InclusionTracking",
     "IngestResult",
     "StaleIngestError",
+    "TumourChoice",
+    "TumourNotFoundWarning",
     "ingest_inputs",
     "ingest_scans",
     "load_ingest",
@@ -35,8 +40,10 @@ class IngestResult:
     session: Session
     scans: dict  # name -> imaging.ScanResult (scan LPS frame)
     registrations: dict  # name -> registration.ScanRegistration
-    tumour_index: dict  # name -> index of the tracked inclusion
+    tumour_index: dict  # name -> index of the tracked inclusion (None: not found there)
     summary_table: str
+    tracking: dict = field(default_factory=dict)  # name -> InclusionTracking
+    tumour_choice: TumourChoice | None = None  # the reference's tracked inclusion and why
 
 
 def _process(entry, session: Session, progress):
@@ -48,66 +55,229 @@ def _process(entry, session: Session, progress):
     return result
 
 
-def _match_constellation(ref_pts: np.ndarray, pts: np.ndarray, iterations: int = 15):
-    """Affine map taking ``pts`` onto ``ref_pts`` from iterated mutual nearest neighbours.
+class TumourNotFoundWarning(UserWarning):
+    """The tracked tumour has no matching inclusion in a scan (its tumour is left unset)."""
 
-    Gravity moves the inclusions by 10-20 mm between postures but keeps their
-    constellation: an affine fit of mutual matches absorbs most of the motion.
+
+#: Below this match confidence the tracked tumour's identity in a scan is ambiguous (warned).
+TUMOUR_MIN_CONFIDENCE = 0.95
+#: Standard deviation of one inclusion diameter measurement, mm: the same inclusion measured
+#: in two postures of the digital twin differs by 0.3-0.4 mm rms at 1.5-2 mm voxels.
+SIZE_SD_MM = 0.3
+
+
+@dataclass(frozen=True)
+class InclusionTracking:
+    """Identity of every inclusion of one scan among the reference scan's inclusions.
+
+    Attributes
+    ----------
+    reference_index : tuple of (int or None)
+        Per inclusion of this scan (in its ``inclusions`` order), the index of the
+        reference scan's inclusion it is, or None (no match: a missed or extra detection).
+    confidence : tuple of float
+        Per inclusion, the confidence of that identity
+        (:data:`registration.CONFIDENCE_DEFINITION`); 1 in the reference scan.
+    tumour_index : int or None
+        This scan's inclusion that is the tracked tumour, or None (not found here).
+    tumour_confidence : float or None
+        Confidence of the tracked tumour's identity in this scan.
+    runner_up_index : int or None
+        The inclusion the tumour would be in the best competing assignment (None: none).
+    hypothesis : str
+        The initial map the matching started from (``reference`` for the reference scan).
     """
-    A = np.eye(4)
-    for _ in range(iterations):
-        moved = apply_transform(A, pts)
-        d = np.linalg.norm(moved[:, None] - ref_pts[None], axis=2)
-        fwd, back = d.argmin(axis=1), d.argmin(axis=0)
-        mutual = np.flatnonzero(back[fwd] == np.arange(len(pts)))
-        if len(mutual) < 4:
-            break
-        src = np.column_stack([pts[mutual], np.ones(len(mutual))])
-        sol, *_ = np.linalg.lstsq(src, ref_pts[fwd[mutual]], rcond=None)
-        A = np.eye(4)
-        A[:3, :] = sol.T
-    return A
+
+    reference_index: tuple
+    confidence: tuple
+    tumour_index: int | None
+    tumour_confidence: float | None
+    runner_up_index: int | None
+    hypothesis: str
+
+    def to_json(self) -> dict:
+        """JSON-ready summary (``tracking`` of ``ingest.json``, without the per-inclusion lists)."""
+        return {
+            "tumour_index": self.tumour_index,
+            "tumour_confidence": self.tumour_confidence,
+            "tumour_runner_up_index": self.runner_up_index,
+            "hypothesis": self.hypothesis,
+        }
 
 
-def _track_tumour(session: Session, scans: dict, fiducial_regs: dict) -> dict:
-    """Choose the tracked inclusion in every scan consistently with the reference.
+@dataclass(frozen=True)
+class TumourChoice:
+    """The tracked tumour in the reference scan: its inclusion index and why it was chosen."""
 
-    The reference scan's tumour is the inclusion nearest to the session's hint (else the
-    largest); in every other scan it is the inclusion of similar diameter that the
-    constellation match (:func:`_match_constellation`, in the reference frame) puts nearest.
-    """
+    reference_index: int | None
+    reason: str
+
+
+def _choose_tumour(session: Session, res) -> TumourChoice:
+    """The reference scan's tracked inclusion: nearest to the hint, else the largest."""
     import imaging
+
+    c, d = res.inclusions.centres_lps_mm, res.inclusions.diameters_mm
+    if len(c) == 0:
+        return TumourChoice(None, "no inclusion found in the reference scan")
+    k = imaging.select_tumour(c, d, hint_lps_mm=session.tumour_hint_lps_mm)
+    if session.tumour_hint_lps_mm is not None:
+        dist = np.sort(np.linalg.norm(c - session.tumour_hint_lps_mm, axis=1))
+        other = f"; the next nearest is {dist[1]:.1f} mm away" if len(dist) > 1 else ""
+        return TumourChoice(
+            k, f"nearest to the [landmarks] tumour hint ({dist[0]:.1f} mm away{other})"
+        )
+    why = f"the largest inclusion ({d[k]:.1f} mm; no [landmarks] tumour hint in session.toml"
+    if len(d) > 1:
+        second = float(np.sort(d)[-2])
+        why += f"; the next largest is {second:.1f} mm"
+        if d[k] - second < 2.0 * np.sqrt(2.0) * SIZE_SD_MM:
+            why += ", within the measurement noise: set [landmarks] tumour to choose"
+    return TumourChoice(k, why + ")")
+
+
+def _describe(res, j: int | None, T) -> str:
+    if j is None or j < 0:
+        return "no inclusion (unmatched)"
+    p = apply_transform(T, res.inclusions.centres_lps_mm[j])
+    return (
+        f"inclusion {j} (diameter {res.inclusions.diameters_mm[j]:.1f} mm, at "
+        f"[{p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}] mm in the reference frame)"
+    )
+
+
+def _track_inclusions(session: Session, scans: dict, fiducial_regs: dict, choice: TumourChoice):
+    """Every scan's inclusions matched to the reference scan's, as one constellation.
+
+    :func:`registration.match_constellation` with the inclusion diameters as sizes, the
+    nipple as an anchor and the reference back plane (the inclusions mapped into the
+    reference frame by the fiducial registration). A tracked tumour matched with a
+    confidence below :data:`TUMOUR_MIN_CONFIDENCE` is an
+    :class:`registration.AmbiguousMatchWarning` naming the scan and the candidates; one
+    with no match a :class:`TumourNotFoundWarning`.
+    """
+    import warnings
+
+    from registration import AmbiguousMatchWarning, match_constellation
 
     ref = session.reference.name
     r = scans[ref]
-    ref_pts = r.inclusions.centres_lps_mm
-    idx = {
-        ref: imaging.select_tumour(
-            ref_pts, r.inclusions.diameters_mm, hint_lps_mm=session.tumour_hint_lps_mm
+    X, dX = r.inclusions.centres_lps_mm, r.inclusions.diameters_mm
+    t = choice.reference_index
+    out = {
+        ref: InclusionTracking(
+            tuple(range(len(X))), (1.0,) * len(X), t, None if t is None else 1.0, None, "reference"
         )
     }
+    plane = (r.back_plane.point_lps_mm, r.back_plane.normal)
     for name, res in scans.items():
         if name == ref:
             continue
-        pts = apply_transform(fiducial_regs[name].T_ref_from_scan, res.inclusions.centres_lps_mm)
-        if len(pts) == 0:
-            continue
-        A = _match_constellation(ref_pts, pts) if len(pts) >= 4 else np.eye(4)
-        # only inclusions of the tracked one's size (diameters are measured to ~0.2 mm)
-        d_ref = r.inclusions.diameters_mm[idx[ref]]
-        d = res.inclusions.diameters_mm
-        same = np.flatnonzero(np.abs(d - d_ref) <= max(1.0, 0.15 * d_ref))
-        cand = same if len(same) else np.arange(len(d))
-        k = imaging.select_tumour(
-            apply_transform(A, pts[cand]), d[cand], hint_lps_mm=ref_pts[idx[ref]]
+        T = fiducial_regs[name].T_ref_from_scan
+        Y = apply_transform(T, res.inclusions.centres_lps_mm)
+        nipple = apply_transform(T, res.nipple_lps_mm)[None]
+        m = match_constellation(
+            X,
+            dX,
+            Y,
+            res.inclusions.diameters_mm,
+            anchors_reference_mm=r.nipple_lps_mm[None],
+            anchors_mm=nipple,
+            base_plane=plane,
+            size_sd_mm=SIZE_SD_MM,
         )
-        idx[name] = int(cand[k])
-    return idx
+        ident = tuple(None if i < 0 else int(i) for i in m.reference_index)
+        conf = tuple(float(c) for c in m.confidence)
+        j = tc = alt = None
+        if t is not None:
+            j = None if m.scan_index[t] < 0 else int(m.scan_index[t])
+            tc = float(m.reference_confidence[t])
+            alt = None if m.reference_runner_up[t] < 0 else int(m.reference_runner_up[t])
+            tumour = f"the tracked tumour (reference inclusion {t}, {dX[t]:.1f} mm)"
+            if j is None and len(Y) == 0:
+                warnings.warn(
+                    f"scan {name!r}: no inclusion found, so not {tumour}; its "
+                    "tumour_lps_mm is left unset",
+                    TumourNotFoundWarning,
+                    stacklevel=3,
+                )
+            elif j is None:
+                near = np.argsort(np.linalg.norm(Y - m.predicted_mm[t], axis=1))[:2]
+                warnings.warn(
+                    f"scan {name!r}: {tumour} matches no inclusion (confidence {tc:.2f}); "
+                    f"expected near [{', '.join(f'{v:.1f}' for v in m.predicted_mm[t])}] mm "
+                    f"(reference frame); nearest candidates: "
+                    + "; ".join(_describe(res, int(k), T) for k in near)
+                    + "; its tumour_lps_mm is left unset",
+                    TumourNotFoundWarning,
+                    stacklevel=3,
+                )
+            elif tc < TUMOUR_MIN_CONFIDENCE:
+                rivals = [(k, p) for k, p in m.reference_alternatives[t] if p >= 0.01] or [
+                    (-1 if alt is None else alt, 1.0 - tc)
+                ]
+                listing = "; ".join(f"{_describe(res, k, T)}: {p:.2f}" for k, p in rivals)
+                warnings.warn(
+                    f"scan {name!r}: ambiguous match of {tumour}: tracked as "
+                    f"{_describe(res, j, T)} with confidence {tc:.2f}; competing "
+                    f"candidates (probability against the tracked one): {listing}. Check "
+                    "this scan's tumour (every inclusion's match_confidence is in its "
+                    "ingest.json)",
+                    AmbiguousMatchWarning,
+                    stacklevel=3,
+                )
+        low = [k for k, c in enumerate(conf) if c < TUMOUR_MIN_CONFIDENCE]
+        if low:
+            log.info(
+                "scan %s: inclusions %s matched with confidence < %.2f",
+                name,
+                low,
+                TUMOUR_MIN_CONFIDENCE,
+            )
+        out[name] = InclusionTracking(ident, conf, j, tc, alt, m.hypothesis)
+    return out
 
 
-def _with_tumour(res, i: int):
-    if len(res.inclusions.centres_lps_mm) == 0:
-        return res
+def _tracking_table(choice: TumourChoice, tracking: dict) -> str:
+    """Plain-text lines on the tracked tumour and every scan's inclusion identities."""
+    head = (
+        "tracked tumour: none"
+        if choice.reference_index is None
+        else f"tracked tumour: reference inclusion {choice.reference_index}, {choice.reason}"
+    )
+    rows = [
+        (
+            "scan",
+            "inclusions",
+            "matched",
+            "tumour inclusion",
+            "tumour confidence",
+            "lowest confidence",
+        )
+    ]
+    for name, tr in tracking.items():
+        matched = sum(i is not None for i in tr.reference_index)
+        rows.append(
+            (
+                name,
+                str(len(tr.reference_index)),
+                str(matched),
+                "-" if tr.tumour_index is None else str(tr.tumour_index),
+                "-" if tr.tumour_confidence is None else f"{tr.tumour_confidence:.3f}",
+                f"{min(tr.confidence):.3f}" if tr.confidence else "-",
+            )
+        )
+    widths = [max(len(row[k]) for row in rows) for k in range(len(rows[0]))]
+    lines = [
+        "  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() for row in rows
+    ]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join([head, *lines])
+
+
+def _with_tumour(res, i: int | None):
+    if i is None:
+        return replace(res, tumour_lps_mm=None)
     return replace(res, tumour_lps_mm=res.inclusions.centres_lps_mm[i])
 
 
@@ -153,11 +323,14 @@ def ingest_scans(session: Session, *, progress=None) -> IngestResult:
     tick = progress or (lambda name: log.info("processed scan %s", name))
     scans = {s.name: _process(s, session, tick) for s in session.scans}
     regs = _register(session, scans, landmarks=False)
-    tumour = _track_tumour(session, scans, regs)
+    choice = _choose_tumour(session, scans[session.reference.name])
+    tracking = _track_inclusions(session, scans, regs, choice)
+    tumour = {n: tr.tumour_index for n, tr in tracking.items()}
     scans = {n: _with_tumour(r, tumour[n]) for n, r in scans.items()}
     regs = _register(session, scans, landmarks=True)
     table = registration.format_registration_table(regs)
-    return IngestResult(session, scans, regs, tumour, table)
+    table += "\n\n" + _tracking_table(choice, tracking)
+    return IngestResult(session, scans, regs, tumour, table, tracking, choice)
 
 
 def load_ingest(work: str | Path, name: str) -> dict:

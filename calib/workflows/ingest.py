@@ -20,7 +20,17 @@ __all__ = ["run_ingest", "write_ingest"]
 log = logging.getLogger(__name__)
 
 
-def _write_scan(root: Path, name: str, res, reg, session: Session, source_sha256: str) -> None:
+def _write_scan(
+    root: Path,
+    name: str,
+    res,
+    reg,
+    session: Session,
+    source_sha256: str,
+    *,
+    tracking=None,
+    choice=None,
+) -> None:
     import imaging
     from registration import apply_transform
 
@@ -40,6 +50,8 @@ def _write_scan(root: Path, name: str, res, reg, session: Session, source_sha256
         "source_sha256": source_sha256,
     }
     doc |= res.to_json_dict() | reg.to_json()
+    if tracking is not None:  # per inclusion its identity in the reference scan
+        _add_tracking(doc, tracking, choice)
     doc["frames"] = {
         "scan": "this scan's LPS frame (mm): fiducials_lps_mm, nipple_lps_mm, tumour_lps_mm, "
         "inclusions, surface.ply",
@@ -47,6 +59,24 @@ def _write_scan(root: Path, name: str, res, reg, session: Session, source_sha256
         "T_ref_from_scan maps scan points to it",
     }
     write_json_atomic(folder / "ingest.json", doc)
+
+
+def _add_tracking(doc: dict, tracking, choice) -> None:
+    """Per-inclusion ``reference_index`` / ``match_confidence`` and the ``tracking`` block."""
+    from registration import CONFIDENCE_DEFINITION
+
+    for inc, i, c in zip(
+        doc["inclusions"], tracking.reference_index, tracking.confidence, strict=True
+    ):
+        inc["reference_index"] = i
+        inc["match_confidence"] = c
+    doc["tracking"] = tracking.to_json() | {
+        "tumour_reference_index": None if choice is None else choice.reference_index,
+        "selection": None if choice is None else choice.reason,
+        "method": "constellation match to the reference scan's inclusions (sizes, relative "
+        "positions, nipple anchor, smooth deformation): registration.match_constellation",
+        "match_confidence": CONFIDENCE_DEFINITION,
+    }
 
 
 def write_ingest(work: str | Path, result: IngestResult) -> dict:
@@ -72,6 +102,8 @@ def write_ingest(work: str | Path, result: IngestResult) -> dict:
                 result.registrations[name],
                 result.session,
                 inputs["sources_sha256"][name],
+                tracking=result.tracking.get(name),
+                choice=result.tumour_choice,
             )
         return run.commit(
             {
