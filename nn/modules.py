@@ -40,7 +40,7 @@ def _register_mesh(module: torch.nn.Module, data: "SweepData") -> None:
 
 
 class ReducedKernelModule(torch.nn.Module):
-    """Ours at query time: ``u = ((k(x) A) V^T)`` with ``x = rho g / (c1 q_ref)``.
+    """Ours at query time: ``u = (x L_r + k(x) A) V^T`` with ``x = rho g / (c1 q_ref)``.
 
     See :mod:`nn.reduced` for the kernel and the fit.
     """
@@ -66,13 +66,16 @@ class ReducedKernelModule(torch.nn.Module):
         self.load_scale = float(fit.density_kg_m3 / fit.q_ref_per_m)
         self.n_nodes = int(fit.basis.shape[0] // 3)
         self.register_buffer("centers", _f64(fit.centers))
+        self.register_buffer("lin_pod", _f64(fit.lin_pod))
         self.register_buffer("coef_pod", _f64(fit.coef_pod))
         # the POD expansion, the bulk of the work, in float32 by default (6x the batched
         # throughput; 1e-7 relative, ~1e-6 mm): the kernel and coefficients stay float64
         self.register_buffer("basis_t", _f64(fit.basis.T).to(basis_dtype).contiguous())
         self.has_tumour = fit.coef_tumour is not None
         tumour = fit.coef_tumour if self.has_tumour else torch.zeros(len(fit.centers), 3)
+        lin_t = fit.lin_tumour if self.has_tumour else torch.zeros(3, 3)
         self.register_buffer("coef_tumour", _f64(tumour))
+        self.register_buffer("lin_tumour", _f64(lin_t))
         if data is not None:
             _register_mesh(self, data)
 
@@ -84,11 +87,11 @@ class ReducedKernelModule(torch.nn.Module):
         c1 = c1_pa.to(torch.float64).reshape(-1, 1)
         x = g * (self.load_scale / c1)  # Eq. (1) of nn.reduced: x = rho g / (c1 q_ref)
         k = torch.exp(self.gamma * (x @ self.centers.t() - 1.0)) - self.exp_neg_gamma
-        coef = (k @ self.coef_pod).to(self.basis_t.dtype)
+        coef = (x @ self.lin_pod + k @ self.coef_pod).to(self.basis_t.dtype)  # Eq. (1)
         nodes = (coef @ self.basis_t).reshape(-1, self.n_nodes, 3)
         out = {"nodes_mm": nodes}
         if self.has_tumour:
-            out["tumour_mm"] = k @ self.coef_tumour
+            out["tumour_mm"] = x @ self.lin_tumour + k @ self.coef_tumour
         return out
 
 

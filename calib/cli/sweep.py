@@ -213,6 +213,8 @@ def surrogate_predict(
     """Predict the deformed phantom for one gravity vector; write a mesh."""
     import warnings
 
+    import numpy as np
+
     from ..workflows.sweep import run_surrogate_predict
 
     try:
@@ -226,4 +228,9 @@ def surrogate_predict(
             typer.secho(f"warning: {w.message}", fg=typer.colors.YELLOW, err=True)
     except (ValueError, OSError, RuntimeError) as exc:
         fail(exc)
-    typer.echo(f"max displacement {res['max_displacement_mm']:.3f} mm -> {out}")
+    extra = "".join(
+        f", {name} {np.linalg.norm(res[key]):.3f} mm"
+        for name, key in (("nipple", "nipple_mm"), ("tumour centre", "tumour_mm"))
+        if res[key] is not None
+    )
+    typer.echo(f"max displacement {res['max_displacement_mm']:.3f} mm{extra} -> {out}")
