@@ -51,6 +51,7 @@ Crouse DF (2016) On implementing 2D rectangular assignment algorithms. IEEE TAES
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -86,6 +87,10 @@ CONFIDENCE_DEFINITION = (
 _T_DOF = 10.0
 #: A rival assignment within this many log-likelihood units gets its own refitted field.
 _REFIT_BELOW = 15.0
+#: Noise of an anchor's displacement in the field, in units of the field's amplitude
+#: variance: an anchor (the nipple: a surface landmark, not a material point) guides the
+#: field without pinning it.
+_ANCHOR_NOISE = 1.0
 _CHI2_3_MEDIAN = 2.3660  # median of the chi-square distribution with 3 degrees of freedom
 _BIG = 1.0e9  # cost of a forbidden cell of the assignment matrix (finite: always feasible)
 _LOG2PI = math.log(2.0 * math.pi)
@@ -410,17 +415,19 @@ def _design(X, pairs, Y, anchors, spread):
     j_idx = np.array([j for _, j in pairs], int)
     Xd = np.vstack([X[i_idx], A_ref])
     U = np.vstack([Y[j_idx] - X[i_idx], A - A_ref])
+    extra = np.concatenate([np.zeros(len(i_idx)), np.full(len(A_ref), _ANCHOR_NOISE)])
     q = 4 if len(X) + len(A_ref) >= 10 else 1
 
     def basis(p):
         return np.column_stack([(p - X.mean(0)) / spread, np.ones(len(p))])[:, 4 - q :]
 
-    return i_idx, j_idx, Xd, U, basis
+    return i_idx, j_idx, Xd, U, extra, basis
 
 
-def _gp_select(Xd, U, H, spread):
+def _gp_select(Xd, U, H, extra, spread):
     """Best (kernel width, noise ratio) on the grid by the restricted likelihood.
 
+    ``extra`` (N,) is noise added per site in units of the amplitude (the anchors').
     Returns ``(log-likelihood, width, ratio)`` (amplitude profiled, constants included:
     the density of the 3 (N - q) error contrasts, R&W Eq. (2.45) with a flat prior on the
     mean's coefficients), or None when the data cannot determine a field (N - q < 2).
@@ -429,29 +436,31 @@ def _gp_select(Xd, U, H, spread):
     if N - q < 2:
         return None
     d2 = ((Xd[:, None] - Xd[None]) ** 2).sum(-1)
-    best = None
+    widths = spread * np.asarray(_WIDTHS)
     ratios = np.asarray(_RATIOS)
-    for beta in spread * np.asarray(_WIDTHS):
-        lam, V = np.linalg.eigh(np.exp(-d2 / (2 * beta**2)))
-        lam = np.maximum(lam, 0.0)
-        VH, VU = V.T @ H, V.T @ U
-        inv = 1.0 / (lam[None, :] + ratios[:, None])  # (K + r I)^-1 = V diag(inv) V^T
-        S = np.einsum("ia,ri,ib->rab", VH, inv, VH)  # H^T A^-1 H, per ratio
-        sgn, logdet_s = np.linalg.slogdet(S)
-        if np.any(sgn <= 0):
-            continue
-        b = np.einsum("ia,ri,id->rad", VH, inv, VU)  # H^T A^-1 U
-        quad = np.einsum("id,ri->r", VU**2, inv) - np.einsum("rad,rad->r", b, np.linalg.solve(S, b))
-        tau2 = np.maximum(quad / (3 * (N - q)), 1e-12)
-        ll = -1.5 * (
-            (N - q) * (np.log(2 * np.pi * tau2) + 1.0)
-            + np.log(lam[None, :] + ratios[:, None]).sum(1)
-            + logdet_s
-        )
-        k = int(np.argmax(ll))
-        if np.isfinite(ll[k]) and (best is None or ll[k] > best[0]):
-            best = (float(ll[k]), beta, float(ratios[k]))
-    return best
+    W, R = len(widths), len(ratios)
+    # every (width, ratio) of the grid at once: A = K + r I + diag(extra), (W R, N, N)
+    A = np.repeat(np.exp(-d2[None] / (2 * widths[:, None, None] ** 2)), R, axis=0)
+    idx = np.arange(N)
+    A[:, idx, idx] += np.tile(ratios, W)[:, None] + extra[None, :]
+    try:
+        L = np.linalg.cholesky(A)
+    except np.linalg.LinAlgError:
+        return None
+    logdet = 2.0 * np.log(np.diagonal(L, axis1=1, axis2=2)).sum(1)
+    AiHU = np.linalg.solve(A, np.broadcast_to(np.hstack([H, U]), (W * R, N, q + 3)))
+    AiH, AiU = AiHU[..., :q], AiHU[..., q:]
+    S = np.einsum("na,gnb->gab", H, AiH)  # H^T A^-1 H
+    sgn, logdet_s = np.linalg.slogdet(S)
+    b = np.einsum("na,gnd->gad", H, AiU)  # H^T A^-1 U
+    quad = np.einsum("nd,gnd->g", U, AiU) - np.einsum("gad,gad->g", b, np.linalg.solve(S, b))
+    tau2 = np.maximum(quad / (3 * (N - q)), 1e-12)
+    ll = -1.5 * ((N - q) * (np.log(2 * np.pi * tau2) + 1.0) + logdet + logdet_s)
+    ll[sgn <= 0] = -np.inf
+    k = int(np.argmax(ll))
+    if not np.isfinite(ll[k]):
+        return None
+    return float(ll[k]), float(widths[k // R]), float(ratios[k % R])
 
 
 def _field(X, pairs, Y, anchors, spread, min_sd, fallback: _Field) -> _Field:
@@ -464,15 +473,15 @@ def _field(X, pairs, Y, anchors, spread, min_sd, fallback: _Field) -> _Field:
     robustly from the leave-one-out residuals (a wrong match must not widen its own
     prediction).
     """
-    i_idx, j_idx, Xd, U, basis = _design(X, pairs, Y, anchors, spread)
+    i_idx, j_idx, Xd, U, extra, basis = _design(X, pairs, Y, anchors, spread)
     H = basis(Xd)
     N, q = H.shape
-    best = _gp_select(Xd, U, H, spread)
+    best = _gp_select(Xd, U, H, extra, spread)
     if best is None:
         return fallback
     _, beta, r = best
     K = np.exp(-((Xd[:, None] - Xd[None]) ** 2).sum(-1) / (2 * beta**2))
-    M = np.block([[K + r * np.eye(N), H], [H.T, np.zeros((q, q))]])
+    M = np.block([[K + np.diag(r + extra), H], [H.T, np.zeros((q, q))]])
     try:
         Minv = np.linalg.inv(M)
     except np.linalg.LinAlgError:
@@ -507,6 +516,7 @@ class _Model:
     anchors: tuple
     spread: float
     min_sd: float
+    scores: dict = dataclasses.field(default_factory=dict)  # assignment -> _score (cache)
 
 
 def _cost_matrix(md: _Model, field: _Field) -> np.ndarray:
@@ -588,19 +598,23 @@ def _score(md: _Model, ref_of: np.ndarray, lsa_cost: float) -> float:
     field fall back to ``lsa_cost``.
     """
     n, m = md.log_size.shape
+    key = ref_of.tobytes()
+    if key in md.scores:
+        return md.scores[key]
     pairs = _pairs(ref_of)
-    _, _, Xd, U, basis = _design(md.X, pairs, md.Y, md.anchors, md.spread)
-    best = _gp_select(Xd, U, basis(Xd), md.spread)
+    _, _, Xd, U, extra, basis = _design(md.X, pairs, md.Y, md.anchors, md.spread)
+    best = _gp_select(Xd, U, basis(Xd), extra, md.spread)
     if best is None:
         return lsa_cost
     i_idx = np.array([i for i, _ in pairs], int)
     j_idx = np.array([j for _, j in pairs], int)
     size = float(md.log_size[i_idx, j_idx].sum()) if len(pairs) else 0.0
     n_hit = len(pairs)
-    return (
+    md.scores[key] = (
         -best[0] - size - n_hit * md.log_hit
         - (n - n_hit) * md.log_miss - (m - n_hit) * md.log_extra
     )  # fmt: skip
+    return md.scores[key]
 
 
 # --------------------------------------------------------------------------------------
