@@ -127,10 +127,10 @@ def at_scans(sur, work: Path) -> list:
 
 
 def row(label: str, e: dict, train: str = "", q1: str = "", qs: str = "") -> str:
-    tm = "–" if e.get("tumour_mean_mm") is None else f"{e['tumour_mean_mm']:.4f}"
-    tx = "–" if e.get("tumour_max_mm") is None else f"{e['tumour_max_mm']:.4f}"
+    tm = "–" if e.get("tumour_mean_mm") is None else f"{e['tumour_mean_mm']:.2g}"
+    tx = "–" if e.get("tumour_max_mm") is None else f"{e['tumour_max_mm']:.2g}"
     return (
-        f"| {label} | {e['n']} | {e['surface_mean_mm']:.4f} | {e['surface_max_mm']:.4f} | "
+        f"| {label} | {e['n']} | {e['surface_mean_mm']:.2g} | {e['surface_max_mm']:.2g} | "
         f"{tm} | {tx} | {train} | {q1} | {qs} |"
     )
 
@@ -228,14 +228,18 @@ def main() -> None:
         test = np.isin(diss.index, base.report["test_scenarios"])
         print(row("dissertation MLPs, their 20 % test split", nn.evaluate(base, diss.subset(test))))
         print()
-        print("ours against the calibration's FE states at the scans (surface vertices):")
+        print(
+            "ours against the calibration's FE states at the scans' own gravities (surface "
+            "vertices; a registered gravity lies up to ~1 deg off the plan's planes):"
+        )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", nn.ExtrapolationWarning)
-            for name, mean, mx, umax in at_scans(ours, work):
-                print(
-                    f"  {name:14s} mean {mean:.4f} mm, max {mx:.4f} mm "
-                    f"(largest FE displacement {umax:.2f} mm)"
-                )
+            for label, sur in (("dissertation plan", ours), (f"sphere:{args.sphere}", ours_s)):
+                for name, mean, mx, umax in at_scans(sur, work):
+                    print(
+                        f"  trained on the {label}: {name:14s} mean {mean:.2g} mm, max "
+                        f"{mx:.2g} mm (largest FE displacement {umax:.2f} mm)"
+                    )
         e = eo["all"]
         lat = statistics.median(q["ours"][0])
         thr = statistics.median(q["ours"][1])

@@ -98,9 +98,9 @@ rows = []
 for name, sur in (("ours", ours), ("dissertation MLPs", mlps)):
     for role, e in sur.report["errors"].items():
         rows.append(
-            f"| {name} | {role} | {e['n']} | {e['surface_mean_mm']:.4f} | "
-            f"{e['surface_max_mm']:.4f} | {e['tumour_mean_mm']:.4f} | "
-            f"{e['tumour_max_mm']:.4f} |"
+            f"| {name} | {role} | {e['n']} | {e['surface_mean_mm']:.3g} | "
+            f"{e['surface_max_mm']:.3g} | {e['tumour_mean_mm']:.3g} | "
+            f"{e['tumour_max_mm']:.3g} |"
         )
 from IPython.display import Markdown
 
@@ -199,8 +199,8 @@ for name, s in doc["scans"].items():
         for k, sur in (("ours", ours), ("dissertation MLPs", mlps))
     }
     print(
-        f"{name:14s} surface mean error: ours {at_scans[name]['ours']:.4f} mm, "
-        f"MLPs {at_scans[name]['dissertation MLPs']:.4f} mm"
+        f"{name:14s} surface mean error: ours {at_scans[name]['ours']:.3g} mm, "
+        f"MLPs {at_scans[name]['dissertation MLPs']:.3g} mm"
     )
 
 # %% [markdown]

@@ -13,6 +13,7 @@ normalised (the text mentions no scaling).
 from __future__ import annotations
 
 import time
+from typing import Literal
 
 import numpy as np
 
@@ -38,7 +39,7 @@ def fit_dissertation_mlps(
     iterations: int = 30_000,
     learning_rate: float = 1e-5,
     test_fraction: float = 0.2,
-    device: str = "auto",
+    device: Literal["auto", "cpu", "cuda"] = "auto",
     seed: int = 0,
     progress=None,
 ) -> DissertationFit:

@@ -38,6 +38,7 @@ closed form for each pair from one eigen-decomposition of ``K`` (Rifkin & Lipper
 from __future__ import annotations
 
 import time
+from typing import Literal
 
 import numpy as np
 
@@ -124,7 +125,7 @@ def _pod(Y: np.ndarray, tol_mm: float) -> np.ndarray:
 def fit_reduced_kernel(
     data: SweepData,
     *,
-    device: str = "auto",
+    device: Literal["auto", "cpu", "cuda"] = "auto",
     pod_tol_mm: float = 1e-4,
     progress=None,
 ) -> ReducedKernelFit:
