@@ -1,5 +1,6 @@
 """The ``phantom-calib`` command line (typer commands only; the work is in workflows)."""
 
+from . import diagnose as _diagnose  # noqa: F401 - registers the diagnose command
 from . import sweep as _sweep  # noqa: F401 - registers the sweep and surrogate commands
 from .app import app, fail, main
 

@@ -1,22 +1,535 @@
-"""Physical effects that the digital twin can hide in its truth model.
+"""The effect library: physical effects the model may miss, shared by the twin and the diagnosis.
 
-Each effect has a neutral value that switches it off. The truth model is built
-from the model description of :mod:`fem.model` alone: an effect is a region
-material, a law, a density or a support — never a change to the solver.
+Each effect is a parameter with a neutral value (the effect switched off), a physical
+range and an FE implementation in the model description of :mod:`fem.model` — a
+region material, a law, a density, a support or the load — never a change to the
+solver. Two users:
+
+- the digital twin hides effects in its truth (``phantom-calib synth --effect``,
+  :class:`TruthEffects`, :func:`parse_effects`, :func:`truth_model`);
+- the missing-effect diagnosis (``phantom-calib diagnose``, :mod:`calib.discrepancy`)
+  adds them to the calibration model (:class:`EffectValues`, :func:`tag_effect_regions`,
+  :func:`effect_model`) and fits their parameters (:data:`LIBRARY`).
+
+Both build their materials with the same function (:func:`region_law`): an element
+carries the volume fractions of skin band and inclusion inside it (64 sub-tetrahedra
+sampled) and a volume (Voigt) mix of the laws, so a layer's stiffness times volume does
+not depend on the mesh (the twin's ``skin:f`` regions; the model mesh's ``skin:f``,
+``inclusion:f`` and ``mix:fs:fi`` regions).
+
+The library's effects (parameters of the diagnosis; neutral value; physical range):
+
+============ ===================================== ============ =======================
+effect       parameter                             neutral      range
+============ ===================================== ============ =======================
+skin         skin/bulk stiffness ratio - 1 (band   0            [-0.9, 99]
+             of ``SKIN_THICKNESS_MM`` at the outer
+             surface, not the back plate)
+sliding      back-plate support: clamped, tangential springs (``fem.Sliding`` with
+             ``tangent_stiffness_pa_per_mm``, rim held) or frictionless; the
+             diagnosis screens the frictionless end (one FE solve per scan) and refits
+             the two end states
+inclusions   inclusion/bulk stiffness ratio - 1    0            [-0.9, 99]
+mooney       c2 / c1 (Mooney-Rivlin, strain        0            [0, 4]
+             stiffening of the I2 term)
+poisson      nu                                    model's nu   [0.3, 0.4999]
+density      ln of density / declared density      0            [ln 0.5, ln 2]
+             (not identifiable: at fixed nu the solution depends on rho g / c1 only)
+gravity      2 angles of the gravity direction     0            +-5 degrees, per scan
+             error per scan (rad)
+registration rigid offset per scan: 3              0            +-3 mm, +-2 degrees
+             translations (mm), 3 rotations (rad)
+============ ===================================== ============ =======================
+
+The skin and inclusion parameters are the stiffness ratio less one, not its logarithm:
+an element's stiffness is linear in it, so the residual is nearly linear too and a
+Gauss-Newton step from neutral lands near the answer (in ln ratio a step from 1 to 8
+overshoots by the exponential's curvature).
+
+References
+----------
+Voigt, W. (1889). Ueber die Beziehung zwischen den beiden Elasticitätsconstanten
+isotroper Körper. *Ann. Phys.* 274, 573-587 (the volume mix of an element's laws).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from typing import Literal
+
+import numpy as np
 
 import fem
+from fem.mesh import REGION_IDS
 from fem.meshing import skin_fraction
 
-__all__ = ["EFFECTS", "EffectError", "TruthEffects", "parse_effects", "truth_model"]
+__all__ = [
+    "EFFECTS",
+    "LIBRARY",
+    "SKIN_THICKNESS_MM",
+    "Effect",
+    "EffectError",
+    "EffectValues",
+    "TruthEffects",
+    "effect_model",
+    "effect_support",
+    "parse_effects",
+    "region_fractions",
+    "region_law",
+    "tag_effect_regions",
+    "truth_model",
+]
+
+#: Thickness of the skin band of the diagnosis' model (mm): the dissertation's suspected
+#: 1.5 mm layer. For a layer thin against the body, ``(ratio - 1) * thickness`` is what
+#: the surface shape sees (the layer's added membrane stiffness), so the fitted ratio
+#: at this thickness stands for that product.
+SKIN_THICKNESS_MM = 1.5
 
 
 class EffectError(ValueError):
     """An unknown effect or an out-of-range effect value."""
+
+
+# ------------------------------------------------------------------------ values
+
+
+@dataclass(frozen=True)
+class EffectValues:
+    """Values of every FE-implemented effect of a model (the defaults are neutral).
+
+    Attributes
+    ----------
+    skin_ratio : float
+        Stiffness of the skin band relative to the bulk (regions ``skin``, ``skin:f``).
+    inclusion_ratio : float
+        Stiffness of the inclusions relative to the bulk (``inclusion``, ``inclusion:f``).
+    c2_ratio : float
+        Mooney-Rivlin ``c2 / c1`` of every region (0: neo-Hookean).
+    nu : float
+        Poisson's ratio of every region.
+    density_kg_m3 : float
+    support_stiffness_pa_per_mm : float
+        Tangential springs of the back plate per area: ``inf`` clamped, ``0``
+        frictionless (the plate's rim held in its plane), in between springs.
+    """
+
+    skin_ratio: float = 1.0
+    inclusion_ratio: float = 1.0
+    c2_ratio: float = 0.0
+    nu: float = 0.499
+    density_kg_m3: float = 1000.0
+    support_stiffness_pa_per_mm: float = math.inf
+
+    def __post_init__(self) -> None:
+        for name in ("skin_ratio", "inclusion_ratio"):
+            v = getattr(self, name)
+            if not (v > 0 and np.isfinite(v)):
+                raise EffectError(f"{name} must be positive and finite, got {v}")
+        if not (self.c2_ratio >= 0 and np.isfinite(self.c2_ratio)):
+            raise EffectError(f"c2_ratio must be >= 0 and finite, got {self.c2_ratio}")
+        if not 0.0 < self.nu < 0.5:
+            raise EffectError(f"nu must lie in (0, 0.5), got {self.nu}")
+        if not (self.density_kg_m3 > 0 and np.isfinite(self.density_kg_m3)):
+            raise EffectError(f"density must be positive and finite, got {self.density_kg_m3}")
+        if not self.support_stiffness_pa_per_mm >= 0:
+            raise EffectError(
+                f"support stiffness must be >= 0 (inf: clamped), got "
+                f"{self.support_stiffness_pa_per_mm}"
+            )
+
+    @property
+    def support(self) -> str:
+        """``"clamped"``, ``"sliding"`` (frictionless) or ``"springs"``."""
+        k = self.support_stiffness_pa_per_mm
+        return "clamped" if math.isinf(k) else ("sliding" if k == 0 else "springs")
+
+    def as_json(self) -> dict:
+        """Plain JSON (``inf`` as the string ``"inf"``)."""
+        k = self.support_stiffness_pa_per_mm
+        return {
+            "skin_ratio": self.skin_ratio,
+            "inclusion_ratio": self.inclusion_ratio,
+            "c2_ratio": self.c2_ratio,
+            "nu": self.nu,
+            "density_kg_m3": self.density_kg_m3,
+            "support_stiffness_pa_per_mm": "inf" if math.isinf(k) else k,
+            "support": self.support,
+        }
+
+    @classmethod
+    def from_json(cls, doc: dict) -> EffectValues:
+        """Inverse of :meth:`as_json`."""
+        k = doc.get("support_stiffness_pa_per_mm", "inf")
+        return cls(
+            skin_ratio=float(doc.get("skin_ratio", 1.0)),
+            inclusion_ratio=float(doc.get("inclusion_ratio", 1.0)),
+            c2_ratio=float(doc.get("c2_ratio", 0.0)),
+            nu=float(doc.get("nu", 0.499)),
+            density_kg_m3=float(doc.get("density_kg_m3", 1000.0)),
+            support_stiffness_pa_per_mm=math.inf if k == "inf" else float(k),
+        )
+
+
+def effect_support(values: EffectValues, node_set: str = "back"):
+    """The fem support of the back plate for these values."""
+    k = values.support_stiffness_pa_per_mm
+    if math.isinf(k):
+        return fem.Clamped(node_set)
+    return fem.Sliding(node_set, hold="rim", tangent_stiffness_pa_per_mm=float(k))
+
+
+# ---------------------------------------------------------------------- regions
+
+_PARTIAL_INCLUSION_TAG = 400
+_MIX_TAG = 1000
+_SUBTETS = 64  # sub-tetrahedra of two red refinements: fractions in steps of 1/64
+
+
+def region_fractions(name: str) -> tuple[float, float]:
+    """Volume fractions ``(skin, inclusion)`` of a region from its name.
+
+    ``bulk`` (0, 0); ``skin`` (1, 0); ``skin:f`` (f, 0); ``inclusion`` (0, 1);
+    ``inclusion:f`` (0, f); ``mix:fs:fi`` (fs, fi).
+
+    Raises
+    ------
+    EffectError
+        A name of none of these forms.
+    """
+    if name == "bulk":
+        return 0.0, 0.0
+    if name == "inclusion":
+        return 0.0, 1.0
+    if name.startswith("inclusion:"):
+        return 0.0, float(name.split(":", 1)[1])
+    if name.startswith("mix:"):
+        _, fs, fi = name.split(":")
+        return float(fs), float(fi)
+    fs = skin_fraction(name)
+    if fs is None:
+        raise EffectError(f"region {name!r} has no effect fractions (expected bulk, skin[:f], "
+                          "inclusion[:f] or mix:fs:fi)")  # fmt: skip
+    return fs, 0.0
+
+
+def _subtet_points(mesh: fem.TetMesh) -> np.ndarray:
+    """Centroids of the 64 equal sub-tetrahedra of every element, shape (m, 64, 3)."""
+    from fem.meshing import _subtet_centroids  # the twin's sampling of a skin band
+
+    bary = _subtet_centroids()
+    return np.einsum("pk,ekj->epj", bary, mesh.nodes_mm[mesh.tets])
+
+
+def _outer_distance_mm(mesh: fem.TetMesh, points: np.ndarray) -> np.ndarray:
+    """Distance (mm) of points to the outer surface (the boundary without the back face)."""
+    import open3d as o3d
+
+    faces = fem.boundary_faces(mesh.tets)
+    back = np.zeros(mesh.n_nodes, bool)
+    back[mesh.node_set("back")] = True
+    outer = faces[~back[faces].all(axis=1)]
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(mesh.nodes_mm.astype(np.float32)), o3d.core.Tensor(outer.astype(np.uint32))
+    )
+    d = scene.compute_distance(o3d.core.Tensor(points.reshape(-1, 3).astype(np.float32)))
+    return d.numpy().astype(float).reshape(points.shape[:-1])
+
+
+def tag_effect_regions(
+    mesh: fem.TetMesh,
+    *,
+    skin_thickness_mm: float = SKIN_THICKNESS_MM,
+    inclusions: Sequence[tuple[Sequence[float], float]] = (),
+) -> fem.TetMesh:
+    """Tag a model mesh by the volume fractions of skin band and inclusions in its elements.
+
+    Each element's 64 sub-tetrahedron centroids are classified: inside an inclusion
+    sphere (it takes precedence), else within ``skin_thickness_mm`` of the outer surface
+    (the boundary without the ``back`` node set's face), else bulk. Regions: ``bulk``,
+    ``skin``, ``skin:f``, ``inclusion``, ``inclusion:f``, ``mix:fs:fi`` (fractions in
+    steps of 1/64). Usable on any mesh with a ``back`` node set (no region of the mesh
+    is read).
+
+    Parameters
+    ----------
+    mesh : TetMesh
+        Nodes in mm; node set ``back``.
+    skin_thickness_mm : float
+        Band thickness (0: no skin regions).
+    inclusions : sequence of (centre_mm, diameter_mm)
+        Spheres in the mesh's frame (e.g. the inclusions ingest detected in the
+        reference scan).
+
+    Returns
+    -------
+    TetMesh
+        The same mesh with the region tags above.
+    """
+    if skin_thickness_mm < 0:
+        raise EffectError(f"skin thickness must be >= 0, got {skin_thickness_mm}")
+    pts = _subtet_points(mesh)
+    inside = np.zeros(pts.shape[:2], bool)
+    for centre, diameter in inclusions:
+        if not diameter > 0:
+            raise EffectError(f"inclusion diameter must be positive, got {diameter}")
+        c = np.asarray(centre, float).reshape(3)
+        inside |= np.linalg.norm(pts - c, axis=2) < 0.5 * float(diameter)
+    band = np.zeros_like(inside)
+    if skin_thickness_mm > 0:
+        band = (_outer_distance_mm(mesh, pts) < skin_thickness_mm) & ~inside
+    ks, ki = band.sum(axis=1), inside.sum(axis=1)
+    region = np.full(mesh.n_tets, REGION_IDS["bulk"], dtype=np.int64)
+    names = {"bulk": REGION_IDS["bulk"]}
+    for a, b in {(int(x), int(y)) for x, y in zip(ks, ki, strict=True)} - {(0, 0)}:
+        sel = (ks == a) & (ki == b)
+        fs, fi = a / _SUBTETS, b / _SUBTETS
+        if b == 0:
+            name = "skin" if a == _SUBTETS else f"skin:{fs:.6g}"
+            tag = REGION_IDS["skin"] if a == _SUBTETS else 300 + a
+        elif a == 0:
+            name = "inclusion" if b == _SUBTETS else f"inclusion:{fi:.6g}"
+            tag = REGION_IDS["inclusion"] if b == _SUBTETS else _PARTIAL_INCLUSION_TAG + b
+        else:
+            name, tag = f"mix:{fs:.6g}:{fi:.6g}", _MIX_TAG + (_SUBTETS + 1) * a + b
+        region[sel] = tag
+        names[name] = tag
+    if not np.any(region == REGION_IDS["bulk"]):
+        names.pop("bulk")
+    return mesh.with_regions(region, names)
+
+
+def region_law(name: str, c1_pa: float, values: EffectValues) -> fem.MooneyRivlin:
+    """The law of a region: a volume (Voigt) mix of bulk, skin and inclusion.
+
+    ``ratio = 1 + (skin_ratio - 1) f_skin + (inclusion_ratio - 1) f_inclusion``;
+    ``c1 = ratio c1_pa``, ``c2 = ratio c2_ratio c1_pa``, Poisson's ratio ``values.nu``.
+    """
+    fs, fi = region_fractions(name)
+    ratio = 1.0 + (values.skin_ratio - 1.0) * fs + (values.inclusion_ratio - 1.0) * fi
+    c1 = c1_pa * ratio
+    return fem.MooneyRivlin.from_poisson(c1, c1_pa * values.c2_ratio * ratio, values.nu)
+
+
+def effect_model(mesh: fem.TetMesh, c1_pa: float, values: EffectValues) -> fem.Model:
+    """The FE model of a region-tagged mesh with effects (materials, density, support).
+
+    Parameters
+    ----------
+    mesh : TetMesh
+        Regions named as :func:`region_fractions` reads them; node set ``back``.
+    c1_pa : float
+        The bulk's c1.
+    values : EffectValues
+
+    Raises
+    ------
+    EffectError
+        A region whose name carries no effect fractions.
+    """
+    materials = {name: region_law(name, c1_pa, values) for name in mesh.region_names}
+    density = {name: values.density_kg_m3 for name in materials}
+    return fem.Model(mesh, materials, density, effect_support(values))
+
+
+# ---------------------------------------------------------------------- library
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One effect of the library: a parameter with a neutral value and a physical range.
+
+    Attributes
+    ----------
+    name : str
+    description : str
+    kind : {"material", "support", "scaling", "nuisance"}
+        ``material``: a region law (direct sensitivity); ``support``: the back plate
+        (finite-difference FE solves); ``scaling``: a parameter the solution depends on
+        only through ``rho g / c1`` (density: not identifiable); ``nuisance``: per-scan
+        load or registration errors (no material change).
+    parameter : str
+        Name of the parameter.
+    unit : str
+    neutral : float
+        The value that switches the effect off (for ``poisson``: the model's nu).
+    bounds : tuple of float
+        Physical range of the parameter.
+    preset : float
+        The twin's default amplitude (``--effect NAME``) in parameter units.
+    per_scan : int
+        Parameters per scan (nuisance effects); 0 for one global parameter.
+    identifiable : bool
+        False where the surface data cannot separate it from c1 in principle.
+    implementation : str
+        Where the effect lives in the FE model.
+    """
+
+    name: str
+    description: str
+    kind: Literal["material", "support", "scaling", "nuisance"]
+    parameter: str
+    unit: str
+    neutral: float
+    bounds: tuple[float, float]
+    preset: float
+    per_scan: int = 0
+    identifiable: bool = True
+    implementation: str = ""
+
+    def set(self, values: EffectValues, p: float) -> EffectValues:
+        """``values`` with this effect's parameter at ``p`` (global effects only)."""
+        setter = _SETTERS.get(self.name)
+        if setter is None:
+            raise EffectError(f"effect {self.name!r} is not a model value (it is {self.kind})")
+        return setter(values, float(p))
+
+    def get(self, values: EffectValues) -> float:
+        """The effect's parameter in ``values`` (global effects only)."""
+        getter = _GETTERS.get(self.name)
+        if getter is None:
+            raise EffectError(f"effect {self.name!r} is not a model value (it is {self.kind})")
+        return float(getter(values))
+
+    def as_json(self) -> dict:
+        """The library entry as plain JSON (for ``diagnosis.json``)."""
+        return {
+            "name": self.name,
+            "description": self.description,
+            "kind": self.kind,
+            "parameter": self.parameter,
+            "unit": self.unit,
+            "neutral": self.neutral,
+            "bounds": list(self.bounds),
+            "preset": self.preset,
+            "per_scan": self.per_scan,
+            "identifiable": self.identifiable,
+            "implementation": self.implementation,
+        }
+
+
+_SETTERS: dict[str, Callable[[EffectValues, float], EffectValues]] = {
+    "skin": lambda v, p: replace(v, skin_ratio=1.0 + p),
+    "inclusions": lambda v, p: replace(v, inclusion_ratio=1.0 + p),
+    "mooney": lambda v, p: replace(v, c2_ratio=max(p, 0.0)),
+    "poisson": lambda v, p: replace(v, nu=p),
+    "density": lambda v, p: replace(v, density_kg_m3=1000.0 * math.exp(p)),
+    "sliding": lambda v, p: replace(v, support_stiffness_pa_per_mm=math.exp(p)),
+}
+_GETTERS: dict[str, Callable[[EffectValues], float]] = {
+    "skin": lambda v: v.skin_ratio - 1.0,
+    "inclusions": lambda v: v.inclusion_ratio - 1.0,
+    "mooney": lambda v: v.c2_ratio,
+    "poisson": lambda v: v.nu,
+    "density": lambda v: math.log(v.density_kg_m3 / 1000.0),
+    "sliding": lambda v: (
+        math.log(v.support_stiffness_pa_per_mm) if v.support_stiffness_pa_per_mm > 0 else -math.inf
+    ),
+}
+
+LIBRARY: dict[str, Effect] = {
+    e.name: e
+    for e in (
+        Effect(
+            "skin",
+            f"stiffer outer layer ({SKIN_THICKNESS_MM} mm band at the outer surface)",
+            "material",
+            "excess_ratio",
+            "skin c1 / bulk c1 - 1",
+            0.0,
+            (-0.9, 99.0),
+            7.0,
+            implementation="regions skin, skin:f, mix: volume mix of the laws",
+        ),
+        Effect(
+            "sliding",
+            "back plate sliding (clamped -> tangential springs -> frictionless)",
+            "support",
+            "ln_k",
+            "ln(Pa/mm)",
+            math.inf,
+            (-math.inf, math.inf),
+            -math.inf,
+            implementation="fem.Sliding(hold='rim', tangent_stiffness_pa_per_mm=k)",
+        ),
+        Effect(
+            "inclusions",
+            "inclusion stiffness (the inclusions ingest detected)",
+            "material",
+            "excess_ratio",
+            "inclusion c1 / bulk c1 - 1",
+            0.0,
+            (-0.9, 99.0),
+            4.0,
+            implementation="regions inclusion, inclusion:f, mix: volume mix",
+        ),
+        Effect(
+            "mooney",
+            "strain stiffening (Mooney-Rivlin c2)",
+            "material",
+            "c2_ratio",
+            "c2 / c1",
+            0.0,
+            (0.0, 4.0),
+            0.5,
+            implementation="fem.MooneyRivlin(c1, c2) in every region",
+        ),
+        Effect(
+            "poisson",
+            "compressibility (Poisson's ratio)",
+            "material",
+            "nu",
+            "1",
+            0.499,
+            (0.3, 0.4999),
+            0.45,
+            implementation="bulk modulus of every region from nu",
+        ),
+        Effect(
+            "density",
+            "density (declared in session.toml)",
+            "scaling",
+            "ln_density_ratio",
+            "ln(rho / rho_declared)",
+            0.0,
+            (math.log(0.5), math.log(2.0)),
+            math.log(1.1),
+            identifiable=False,
+            implementation="density of every region; at fixed nu the solution depends on "
+            "rho g / c1 only, so it is c1's own signature",
+        ),
+        Effect(
+            "gravity",
+            "gravity-direction error per scan",
+            "nuisance",
+            "angle",
+            "rad",
+            0.0,
+            (-math.radians(5.0), math.radians(5.0)),
+            0.0,
+            per_scan=2,
+            implementation="the load's direction, two rotations normal to it",
+        ),
+        Effect(
+            "registration",
+            "rigid registration offset per scan",
+            "nuisance",
+            "offset",
+            "mm, rad",
+            0.0,
+            (-3.0, 3.0),
+            0.0,
+            per_scan=6,
+            implementation="the measured points moved by dt + dw x (p - centre)",
+        ),
+    )  # fmt: skip
+}
+
+
+# ---------------------------------------------------------------------- the twin
 
 
 @dataclass(frozen=True)
@@ -59,16 +572,36 @@ class TruthEffects:
                   ("density", self.density_kg_m3 != n.density_kg_m3))  # fmt: skip
         return out + [name for name, on in checks if on]
 
+    def values(self, c1_pa: float) -> EffectValues:
+        """The library's :class:`EffectValues` of this truth at a bulk ``c1_pa``."""
+        return EffectValues(
+            skin_ratio=self.skin_ratio,
+            inclusion_ratio=self.inclusion_ratio,
+            c2_ratio=self.c2_pa / c1_pa,
+            nu=self.nu,
+            density_kg_m3=self.density_kg_m3,
+            support_stiffness_pa_per_mm=0.0 if self.sliding else math.inf,
+        )
 
-# name -> (default value when given without one, parser, valid range text)
+
+# name -> default value when given without one (None: takes no value)
 EFFECTS = {
     "none": None,
-    "skin": "1.5:8",
+    "skin": f"{SKIN_THICKNESS_MM}:8",
     "sliding": None,
     "inclusions": "5",
     "mooney": "210",
     "poisson": "0.45",
     "density": "1100",
+}
+
+# the twin's values in their own units: name -> (lo, hi) of each number it takes
+_TWIN_RANGES = {
+    "skin": ((0.0, 10.0), (0.1, 100.0)),  # thickness mm, stiffness ratio
+    "inclusions": ((0.1, 100.0),),
+    "mooney": ((0.0, 1e4),),  # c2 in Pa
+    "poisson": ((LIBRARY["poisson"].bounds[0], LIBRARY["poisson"].bounds[1]),),
+    "density": ((500.0, 2000.0),),  # kg/m^3
 }
 
 
@@ -89,18 +622,15 @@ def _apply(eff: dict, name: str, value: str | None) -> None:
         eff["sliding"] = True
         return
     value = value or EFFECTS[name]
+    ranges = _TWIN_RANGES[name]
     if name == "skin":
         t, _, r = value.partition(":")
-        eff["skin_thickness_mm"] = _number(t, name, 0.0, 10.0)
-        eff["skin_ratio"] = _number(r or "8", name, 0.1, 100.0)
-    elif name == "inclusions":
-        eff["inclusion_ratio"] = _number(value, name, 0.1, 100.0)
-    elif name == "mooney":
-        eff["c2_pa"] = _number(value, name, 0.0, 1e4)
-    elif name == "poisson":
-        eff["nu"] = _number(value, name, 0.3, 0.4999)
-    elif name == "density":
-        eff["density_kg_m3"] = _number(value, name, 500.0, 2000.0)
+        eff["skin_thickness_mm"] = _number(t, name, *ranges[0])
+        eff["skin_ratio"] = _number(r or "8", name, *ranges[1])
+        return
+    field = {"inclusions": "inclusion_ratio", "mooney": "c2_pa", "poisson": "nu",
+             "density": "density_kg_m3"}[name]  # fmt: skip
+    eff[field] = _number(value, name, *ranges[0])
 
 
 def parse_effects(specs: list[str], *, default: TruthEffects) -> TruthEffects:
@@ -132,24 +662,14 @@ def parse_effects(specs: list[str], *, default: TruthEffects) -> TruthEffects:
     return TruthEffects(**eff)
 
 
-def _law(c1: float, c2: float, nu: float) -> fem.MooneyRivlin:
-    return fem.MooneyRivlin.from_poisson(c1, c2, nu)
-
-
 def truth_model(mesh: fem.TetMesh, c1_pa: float, effects: TruthEffects) -> fem.Model:
     """The truth model of a phantom mesh (regions bulk, inclusion, skin) with effects."""
-    e = effects
-    materials = {"bulk": _law(c1_pa, e.c2_pa, e.nu)}
-    if "inclusion" in mesh.region_names:
-        materials["inclusion"] = _law(c1_pa * e.inclusion_ratio, e.c2_pa * e.inclusion_ratio, e.nu)
+    unknown = []
     for name in mesh.region_names:
-        frac = skin_fraction(name)
-        if frac is not None:  # volume mix of skin and bulk (Voigt): exact as h -> 0
-            ratio = 1.0 + (e.skin_ratio - 1.0) * frac
-            materials[name] = _law(c1_pa * ratio, e.c2_pa * ratio, e.nu)
-    density = {name: e.density_kg_m3 for name in materials}
-    support = fem.Sliding() if e.sliding else fem.Clamped()
-    unknown = set(mesh.region_names) - set(materials)
+        try:
+            region_fractions(name)
+        except EffectError:
+            unknown.append(name)
     if unknown:
         raise ValueError(f"truth model has no material for region(s) {sorted(unknown)}")
-    return fem.Model(mesh, materials, density, support)
+    return effect_model(mesh, c1_pa, effects.values(c1_pa))

@@ -22,6 +22,8 @@ from fem.sensitivity import state_sensitivity, stress_free_sensitivity, vertex_d
 from fem.units import STANDARD_GRAVITY_M_S2
 from fem.unload import recover_stress_free
 
+from .effects import EffectValues, effect_model, effect_support
+
 __all__ = ["ForwardModel", "ScanState"]
 
 # Inverse Newton inside the loop: 10 load steps at most (a sagging scan on a coarse mesh
@@ -57,6 +59,10 @@ class ForwardModel:
     fixed_point_fallback : bool
         When the inverse Newton fails, recover the reference by the (slow) fixed point
         instead of raising :class:`fem.ConvergenceError`.
+    effects : EffectValues, optional
+        Effects of the library (:mod:`calib.model.effects`) on a region-tagged mesh; they
+        replace ``nu`` and ``density_kg_m3`` and set the support. None: homogeneous,
+        clamped (the calibration's model). Change them with :meth:`set_effects`.
     """
 
     mesh: fem.TetMesh
@@ -68,6 +74,7 @@ class ForwardModel:
     g_m_s2: float = STANDARD_GRAVITY_M_S2
     unload_method: str = "newton"
     fixed_point_fallback: bool = True
+    effects: EffectValues | None = None
     solves: int = 0
     inverted_reference_elements: int = 0
     _disc: fem.Discretization | None = None
@@ -84,7 +91,23 @@ class ForwardModel:
             raise ValueError(
                 f"reference state must be unload or shortcut, not {self.reference_state!r}"
             )
-        self._disc = fem.discretize(self.mesh, fem.Clamped(), formulation=self.formulation)
+        self._disc = fem.discretize(self.mesh, self._support(), formulation=self.formulation)
+
+    def _support(self):
+        return fem.Clamped() if self.effects is None else effect_support(self.effects)
+
+    def set_effects(self, effects: EffectValues | None) -> None:
+        """Use other effect values (or None: homogeneous, clamped).
+
+        Recovered references are forgotten (they depend on the material); warm starts are
+        kept unless the support changes.
+        """
+        old = self._support()
+        self.effects = effects
+        self._X_theta, self._recovered, self._du0 = None, {}, None
+        if self._support() != old:
+            self._disc = fem.discretize(self.mesh, self._support(), formulation=self.formulation)
+            self._states = {}
 
     @property
     def discretization(self) -> fem.Discretization:
@@ -96,9 +119,16 @@ class ForwardModel:
         """Stress-free vertex positions of the last recovery (mm), None before any."""
         return self._X
 
+    @property
+    def stress_free_state(self) -> np.ndarray | None:
+        """Solver state of the reference posture on :attr:`stress_free_nodes_mm` (unload)."""
+        return self._u0
+
     def model(self, theta: float, nodes_mm: np.ndarray | None = None) -> fem.Model:
-        """The homogeneous model at ``c1 = exp(theta)`` on the given nodes."""
+        """The model at ``c1 = exp(theta)`` on the given nodes (homogeneous without effects)."""
         mesh = self.mesh if nodes_mm is None else self.mesh.with_nodes(nodes_mm)
+        if self.effects is not None:
+            return effect_model(mesh, float(np.exp(theta)), self.effects)
         mat = fem.NeoHookean(float(np.exp(theta)), nu=self.nu)
         return fem.Model.homogeneous(mesh, mat, density_kg_m3=self.density_kg_m3)
 

@@ -1,0 +1,208 @@
+"""Missing-effect benchmark: a seeded matrix of quick twins through synth -> calibrate -> diagnose.
+
+Issue 13's bars: the right name in >= 90 % of effect sets; 0 false namings on null sets;
+after adding the named effect c1 within 5 % of the truth (the skin twin: from ~555 back
+to ~420 Pa) and the held-out posture's surface error above the noise floor cut by
+>= 50 %; a detection curve over the skin ratio (1 -> 8) showing where naming starts;
+<= 15 min per quick scan set on 2 cores (the diagnosis alone).
+
+Cases (``--cases``): each library effect the twin can hide at its preset amplitude
+(``skin``, ``inclusions``, ``mooney``, ``poisson``, ``density``, ``sliding``) x
+``--seeds`` (default 0,1,2), ``none`` x ``--null-seeds`` (default 0-4), and the
+detection curve ``skin=1.5:R`` for R in ``--ratios`` (default 2,4,8; R = 1 is the null
+set) at seed 0. Every case writes ``OUT/cases/<case>.json`` when done and is skipped when
+that file exists, so the matrix can be run in pieces and resumed (``--only`` runs a
+subset by name). The twins' truth (``OUT/<case>/twin/truth``) is read here only to score.
+
+What counts as the right name: the hidden effect named (alone or in a confounded
+pair). For ``density`` (never identifiable under gravity alone: the calibration absorbs
+it into c1) and ``mooney``/``sliding`` when the diagnosis reports them not identifiable
+or unavailable, the right answer is that no effect is named; these cases are scored
+apart and shown in the table.
+
+    python benchmarks/bench_diagnose.py --out DIR [--cases skin,none,curve] [--seeds 0,1,2]
+        [--null-seeds 0,1,2,3,4] [--ratios 2,4,8] [--only NAME,...] [--table]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+TWIN_EFFECTS = ("skin", "inclusions", "mooney", "poisson", "density", "sliding")
+
+
+def _cases(args) -> list[tuple[str, list[str], int, str]]:
+    """``(name, --effect specs, seed, hidden effect)`` of the matrix."""
+    out = []
+    wanted = set(args.cases.split(","))
+    seeds = [int(s) for s in args.seeds.split(",") if s]
+    for eff in TWIN_EFFECTS:
+        if eff in wanted or "effects" in wanted:
+            out += [(f"{eff}-s{s}", [eff], s, eff) for s in seeds]
+    if "none" in wanted:
+        out += [(f"none-s{s}", ["none"], s, "none") for s in map(int, args.null_seeds.split(","))]
+    if "curve" in wanted:
+        for r in args.ratios.split(","):
+            out.append((f"skin-r{r}-s0", [f"skin=1.5:{r}"], 0, "skin"))
+    if args.only:
+        keep = set(args.only.split(","))
+        out = [c for c in out if c[0] in keep]
+    return out
+
+
+def _noise_check(twin: Path, work: Path) -> dict:
+    """The measured surfaces against the twin's true ones: the imaging's own error (mm)."""
+    import imaging
+    from calib.model.residuals import closest_on_surface
+
+    out = {}
+    for f in sorted((twin / "truth").glob("*_surface.ply")):
+        name = f.name.removesuffix("_surface.ply")
+        ing = work / "scans" / name / "surface.ply"
+        if not ing.is_file():
+            continue
+        true, meas = imaging.read_ply(f), imaging.read_ply(ing)
+        pts = meas.vertices_lps_mm[~np.asarray(meas.back_plate, bool)]
+        c, _, _, n = closest_on_surface(true.vertices_lps_mm, true.faces, pts)
+        d = np.einsum("kj,kj->k", pts - c, n)
+        out[name] = {"mean_mm": float(d.mean()), "sd_mm": float(d.std()),
+                     "rms_mm": float(np.sqrt(np.mean(d**2)))}  # fmt: skip
+    return out
+
+
+def run_case(root: Path, name: str, specs: list[str], seed: int, hidden: str) -> dict:
+    from calib.discrepancy import DiagnosisOptions
+    from calib.fitting import CalibrationOptions
+    from calib.model.effects import parse_effects
+    from calib.twin import PRESETS, synthesize
+    from calib.workflows.calibrate import run_calibration
+    from calib.workflows.diagnose import run_diagnosis
+
+    case = root / name
+    twin, work = case / "twin", case / "work"
+    t0 = time.perf_counter()
+    if not (twin / "truth" / "truth.json").is_file():
+        eff = parse_effects(specs, default=PRESETS["quick"].effects)
+        synthesize(twin, preset="quick", seed=seed, effects=eff, overwrite=True)
+    t1 = time.perf_counter()
+    cal = run_calibration(twin / "scans", work, CalibrationOptions(
+        mesh_size_mm=14.0, mesh_retry_mm=(16.0,), profile_points=0))  # fmt: skip
+    t2 = time.perf_counter()
+    doc = run_diagnosis(work, DiagnosisOptions())
+    t3 = time.perf_counter()
+    truth = json.loads((twin / "truth" / "truth.json").read_text())
+    c1_true = truth["material"]["c1_pa"]
+    named = doc["named"] + doc["confounded_with"]
+    gap = doc["gap"]
+    hold = doc["scans"]["holdout"]
+    return {
+        "case": name,
+        "specs": specs,
+        "seed": seed,
+        "hidden": hidden,
+        "truth_effects": truth["effects"],
+        "verdict": doc["verdict"],
+        "named": doc["named"],
+        "confounded_with": doc["confounded_with"],
+        "right_name": (hidden in named) if hidden != "none" else not named,
+        "false_naming": bool(named) and hidden not in named,
+        "c1_true_pa": c1_true,
+        "c1_calibrated_pa": cal["c1_pa"],
+        "c1_refit_pa": doc["c1_pa"],
+        "c1_refit_ci95_pa": doc["c1_ci95_pa"],
+        "c1_error": doc["c1_pa"] / c1_true - 1.0,
+        "holdout": hold,
+        "holdout_cut_above_floor": gap[hold].get("cut_above_floor") if hold else None,
+        "holdout_before_mm": gap[hold]["surface_error_mm"]["before"]["mean"] if hold else None,
+        "holdout_after_mm": gap[hold]["surface_error_mm"].get("after", {}).get("mean")
+        if hold
+        else None,  # fmt: skip
+        "floor_mm": doc["noise"]["floor_mean_abs_mm"],
+        "noise_model": doc["noise"]["model"],
+        "imaging_error": _noise_check(twin, work),
+        "effects": {
+            k: {kk: v.get(kk) for kk in ("status", "p_holm", "significant")}
+            for k, v in doc["effects"].items()
+        },  # fmt: skip
+        "candidates": doc["candidates"],
+        "synth_s": t1 - t0,
+        "calibrate_s": t2 - t1,
+        "diagnose_s": t3 - t2,
+        "diagnose_fe_solves": doc["fe_solves"],
+    }
+
+
+def _table(rows: list[dict]) -> None:
+    print(f"{'case':16s} {'verdict':34s} {'right':>5s} {'c1 cal':>7s} {'c1 refit':>8s} "
+          f"{'err %':>6s} {'hold cut':>8s} {'diag s':>7s}")  # fmt: skip
+    for r in rows:
+        cut = r["holdout_cut_above_floor"]
+        print(f"{r['case']:16s} {r['verdict'][:34]:34s} {'yes' if r['right_name'] else 'NO':>5s} "
+              f"{r['c1_calibrated_pa']:7.1f} {r['c1_refit_pa']:8.1f} "
+              f"{100 * r['c1_error']:+6.1f} {'' if cut is None else f'{100 * cut:.0f} %':>8s} "
+              f"{r['diagnose_s']:7.0f}")  # fmt: skip
+    eff = [r for r in rows if r["hidden"] not in ("none", "density")]
+    null = [r for r in rows if r["hidden"] == "none"]
+    named_ok = [r for r in eff if r["right_name"]]
+    print()
+    if eff:
+        print(f"right name: {len(named_ok)}/{len(eff)} effect sets (bar >= 90 %)")
+    if null:
+        print(f"false namings on null sets: {sum(bool(r['named']) for r in null)}/{len(null)} "
+              "(bar 0)")  # fmt: skip
+    if named_ok:
+        within = sum(abs(r["c1_error"]) <= 0.05 for r in named_ok)
+        print(f"c1 within 5 % of the truth after naming: {within}/{len(named_ok)}")
+        cuts = [r["holdout_cut_above_floor"] for r in named_ok
+                if r["holdout_cut_above_floor"] is not None]  # fmt: skip
+        print(f"held-out error above the floor cut >= 50 %: {sum(c >= 0.5 for c in cuts)}/"
+              f"{len(cuts)}")  # fmt: skip
+    if rows:
+        t = [r["diagnose_s"] for r in rows]
+        print(f"diagnose wall time: median {np.median(t):.0f} s, max {max(t):.0f} s "
+              "(bar <= 900 s)")  # fmt: skip
+    curve = sorted((r for r in rows if "-r" in r["case"]), key=lambda r: float(r["specs"][0][9:]))
+    if curve:
+        print("detection curve (skin 1.5 mm, seed 0): "
+              + ", ".join(f"ratio {r['specs'][0][9:]}: {r['verdict']}" for r in curve))  # fmt: skip
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, required=True, help="folder of the twins and results")
+    ap.add_argument(
+        "--cases",
+        default="effects,none,curve",
+        help="comma list: effects (all), skin, inclusions, ..., none, curve",
+    )
+    ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--null-seeds", default="0,1,2,3,4")
+    ap.add_argument("--ratios", default="2,4,8")
+    ap.add_argument("--only", default="", help="run only these case names")
+    ap.add_argument("--table", action="store_true", help="print the table of the finished cases")
+    args = ap.parse_args()
+    print("command:", " ".join([sys.executable, *sys.argv]))
+    store = args.out / "cases"
+    store.mkdir(parents=True, exist_ok=True)
+    if not args.table:
+        for name, specs, seed, hidden in _cases(args):
+            path = store / f"{name}.json"
+            if path.is_file():
+                continue
+            print(f"case {name}: synth -> calibrate -> diagnose", flush=True)
+            row = run_case(args.out, name, specs, seed, hidden)
+            path.write_text(json.dumps(row, indent=1))
+            print(f"  {row['verdict']}; c1 {row['c1_refit_pa']:.1f} Pa; "
+                  f"{row['diagnose_s']:.0f} s", flush=True)  # fmt: skip
+    rows = [json.loads(p.read_text()) for p in sorted(store.glob("*.json"))]
+    _table(rows)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,50 @@
+"""``phantom-calib diagnose WORK [--effects NAMES] [--holdout SCAN]``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from .app import app, fail
+
+
+@app.command()
+def diagnose(
+    work: Annotated[Path, typer.Argument(help="A work folder that `calibrate` wrote.")],
+    effects: Annotated[
+        str | None,
+        typer.Option(
+            "--effects",
+            help="Comma-separated library effects to screen (skin, sliding, inclusions, "
+            "mooney, poisson, density, gravity, registration). Default: all but sliding.",
+        ),
+    ] = None,
+    holdout: Annotated[
+        str | None,
+        typer.Option(
+            "--holdout",
+            help="Scan never fitted, to show the gap on (default: the first validation "
+            "scan; 'none' for none).",
+        ),
+    ] = None,
+    alpha: Annotated[
+        float, typer.Option("--alpha", help="Family-wise error rate of the screening.")
+    ] = 0.05,
+) -> None:
+    """Find where model and scans disagree, name the missing effect, refit, show the gap."""
+    from ..discrepancy import DiagnosisError, DiagnosisOptions
+    from ..report.diagnosis import format_diagnosis
+    from ..workflows.diagnose import run_diagnosis
+
+    try:
+        names = None if effects is None else tuple(e.strip() for e in effects.split(",") if e)
+        opts = DiagnosisOptions(
+            **({} if names is None else {"effects": names}), holdout=holdout, alpha=alpha
+        )
+        doc = run_diagnosis(work, opts, progress=lambda msg: typer.echo(f"  {msg}"))
+    except (DiagnosisError, ValueError, OSError, RuntimeError, KeyError) as exc:
+        fail(exc)
+    typer.echo(format_diagnosis(doc))
+    typer.echo(f"wrote {work / 'diagnosis.json'} and {work / 'diagnosis'}/report.html")

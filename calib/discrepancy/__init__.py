@@ -1,0 +1,21 @@
+"""The missing-effect diagnosis (``phantom-calib diagnose``): pure logic, no files.
+
+Where the calibrated model and the scans disagree (:mod:`.localise`), which effect of the
+library could explain it (:mod:`.fields`, :mod:`.screen`), its confirmation by a full FE
+refit (:mod:`.refit`) and the verdict (:mod:`.diagnose`). Writing is
+:mod:`calib.workflows.diagnose`'s.
+"""
+
+from .diagnose import DEFAULT_EFFECTS, Candidate, Diagnosis, DiagnosisOptions, diagnose
+from .problem import DiagnosisError, Problem, build_problem
+
+__all__ = [
+    "DEFAULT_EFFECTS",
+    "Candidate",
+    "Diagnosis",
+    "DiagnosisError",
+    "DiagnosisOptions",
+    "Problem",
+    "build_problem",
+    "diagnose",
+]

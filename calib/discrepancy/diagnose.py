@@ -1,0 +1,725 @@
+"""``diagnose``: find where model and scans disagree, name the missing effect, refit, verdict.
+
+Steps (the issue's; no files are written here, see :mod:`calib.workflows.diagnose`):
+
+1. *Null fit.* ``ln c1`` refitted alone to the diagnosis scans (every scan but the
+   reference and the held-out one), from the calibration's c1: the score tests need the
+   residual at the fit of what they condition on.
+2. *Noise model* (:func:`calib.stats.estimate_noise`, short range, from the residual's
+   own variogram; the session's: the least-disturbed scan's fit,
+   :func:`calib.discrepancy.screen.session_noise`) and the *misfit test*
+   (:func:`calib.stats.misfit_test`).
+3. *Localise:* a significance map and a region summary per scan
+   (:mod:`calib.discrepancy.localise`).
+4. *Screen:* each requested effect's sensitivity field (:mod:`calib.discrepancy.fields`)
+   with what ``ln c1`` and the per-scan offsets absorb projected out, a score test, Holm
+   across effects; identifiability and confounding (:mod:`calib.discrepancy.screen`).
+5. *Confirm and name* by forward selection with backward pruning: the significant
+   effects, strongest first (``max_candidates`` per round), are refitted jointly with
+   ``ln c1`` by the full nonlinear FE model (:mod:`calib.discrepancy.refit`). An effect
+   is named only if (a) its score test is significant after Holm at the current model,
+   (b) the leave-one-posture-out prediction improves, (c) its fitted parameters are
+   inside their physical range and not on a bound, and (d) it explains at least
+   ``min_explained`` of the residual above the noise floor: ``(MS_before - MS_after) /
+   (MS_before - floor) >= 0.5``, mean squares over the diagnosis scans less each scan's
+   offset, ``floor`` the lowest short-range noise variance any model tried leaves (the
+   session's noise, 20 mm variogram: the residual of a correct model is noise; a wrong
+   one keeps the misfit in its variogram). Candidates passing with near-equal evidence
+   (explained fractions within ``near_equal``) and similar projected signatures (``|cos|
+   >= confounded_above``) are named together as confounded. After a second effect is
+   added, each named one must stay significant at the model without it (backward
+   pruning).
+6. *Verdict* (exact strings): ``no missing effect``; ``named: X``;
+   ``named: X | Y (confounded)``; ``named: X (+ unexplained remainder)``;
+   ``unexplained``; ``not identifiable from these data: Z`` (two effects named apart:
+   ``named: X + Y``).
+7. *The gap:* the final model on every scan, the held-out one included (it was never
+   fitted), against the calibration's saved states.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import fem
+
+from ..data.work import WorkFolder
+from ..evaluation import ScanMetrics, scan_metrics
+from ..model.effects import LIBRARY, SKIN_THICKNESS_MM
+from ..stats import NoiseFit, parameter_intervals
+from .fields import FieldSet
+from .localise import region_labels, significance_map
+from .problem import DiagnosisError, Problem, build_problem
+from .refit import Refit, lopo, refit
+from .screen import Screen, offset_columns, sample_of, screen, session_noise
+
+__all__ = ["DEFAULT_EFFECTS", "Candidate", "Diagnosis", "DiagnosisOptions", "diagnose"]
+
+log = logging.getLogger(__name__)
+
+#: Screened by default: the library without the sliding plate, whose FE model does not
+#: converge on calibration meshes today (see :class:`DiagnosisOptions`).
+DEFAULT_EFFECTS = ("skin", "inclusions", "mooney", "poisson", "density", "gravity", "registration")
+FLOOR_LAG_MM = 20.0
+MAP_KERNEL_MM = 10.0  # the significance map's smoothing (a pad's print, a rim band)
+
+
+@dataclass(frozen=True)
+class DiagnosisOptions:
+    """Options of ``phantom-calib diagnose``.
+
+    Attributes
+    ----------
+    effects : tuple of str
+        Library effects to screen (:data:`calib.model.effects.LIBRARY`). ``sliding`` can
+        be asked for; its FE solves with a free plate fail on the calibration meshes
+        tried so far, and it is then reported as unavailable.
+    holdout : str or None
+        Scan never fitted (default: the first validation scan; ``"none"``: none).
+    alpha : float
+        Family-wise error rate of the screening (Holm) and the misfit test's level.
+    skin_thickness_mm : float
+    max_points : int or None
+        Measured points per scan (default: the calibration's).
+    max_candidates : int
+        Significant effects refitted by FE per forward-selection round.
+    max_named : int
+    min_explained : float
+        Share of the residual above the noise floor a named effect must explain.
+    confounded_above : float
+        ``|cos|`` of projected signatures from which two effects are confounded.
+    near_equal : float
+        Explained fractions within this ratio count as near-equal evidence.
+    refit_iterations : int
+    """
+
+    effects: tuple[str, ...] = DEFAULT_EFFECTS
+    holdout: str | None = None
+    alpha: float = 0.05
+    skin_thickness_mm: float = SKIN_THICKNESS_MM
+    max_points: int | None = None
+    max_candidates: int = 2
+    max_named: int = 2
+    min_explained: float = 0.5
+    confounded_above: float = 0.9
+    near_equal: float = 0.8
+    refit_iterations: int = 10
+
+    def __post_init__(self) -> None:
+        unknown = sorted(set(self.effects) - set(LIBRARY))
+        if unknown:
+            raise DiagnosisError(f"unknown effect(s) {unknown}; the library has {sorted(LIBRARY)}")
+        if not self.effects:
+            raise DiagnosisError("no effect to screen")
+        if len(set(self.effects)) != len(self.effects):
+            raise DiagnosisError(f"effects given twice: {list(self.effects)}")
+        if not 0.0 < self.alpha < 0.5:
+            raise DiagnosisError(f"alpha must lie in (0, 0.5), got {self.alpha}")
+        if not 0.0 < self.min_explained <= 1.0:
+            raise DiagnosisError(f"min_explained must lie in (0, 1], got {self.min_explained}")
+        if self.max_candidates < 1 or self.max_named < 1:
+            raise DiagnosisError("max_candidates and max_named must be >= 1")
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """An effect refitted in a forward-selection round and the naming criteria.
+
+    Attributes
+    ----------
+    effect : str
+    round : int
+    significant : bool
+    p_holm : float
+    statistic : float
+    lopo_before_mm2, lopo_after_mm2 : float or None
+    lopo_improves : bool
+    parameters : dict of str to float
+    at_bound : tuple of str
+    plausible : bool
+    explained : float
+    passes : bool
+    c1_pa : float
+    rms_mm : float
+    reason : str
+        Why it was not named ("" when it passes).
+    """
+
+    effect: str
+    round: int
+    significant: bool
+    p_holm: float
+    statistic: float
+    lopo_before_mm2: float | None
+    lopo_after_mm2: float | None
+    lopo_improves: bool
+    parameters: dict
+    at_bound: tuple
+    plausible: bool
+    explained: float
+    passes: bool
+    c1_pa: float
+    rms_mm: float
+    reason: str
+
+    def as_json(self) -> dict:
+        """Plain JSON."""
+        out = dict(vars(self))
+        out["at_bound"] = list(self.at_bound)
+        for k in ("p_holm", "statistic", "explained"):
+            out[k] = _num(out[k])
+        return out
+
+
+def _num(v):
+    return float(v) if v is not None and np.isfinite(v) else None
+
+
+@dataclass(frozen=True)
+class ScanGap:
+    """A scan's errors before (the calibration) and after (the final model).
+
+    Attributes
+    ----------
+    name, role : str
+        Role in the diagnosis: ``diagnosis`` (fitted) or ``holdout``.
+    before, after : ScanMetrics
+    residual_before_mm, residual_after_mm : ndarray
+        Signed residuals of the diagnosis' points (offset included).
+    """
+
+    name: str
+    role: str
+    before: ScanMetrics
+    after: ScanMetrics | None
+    residual_before_mm: np.ndarray
+    residual_after_mm: np.ndarray | None
+
+    def as_json(self, floor_mm: float) -> dict:
+        """Surface errors (fiducial frame) before/after and the cut above the noise floor."""
+        b = self.before.surface_error_mm["fiducial"]
+        out = {"role": self.role, "surface_error_mm": {"before": b}, "floor_mm": floor_mm}
+        out["nipple_error_mm"] = {"before": self.before.nipple_error_mm.get("fiducial")}
+        if self.after is not None:
+            a = self.after.surface_error_mm["fiducial"]
+            out["surface_error_mm"]["after"] = a
+            out["nipple_error_mm"]["after"] = self.after.nipple_error_mm.get("fiducial")
+            above = b["mean"] - floor_mm
+            out["cut_above_floor"] = (
+                float((b["mean"] - a["mean"]) / above) if above > 1e-9 else None
+            )
+        return out
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """Everything ``diagnose`` found (see the module docstring).
+
+    Attributes
+    ----------
+    verdict : str
+    named : tuple of str
+    confounded_with : tuple of str
+    problem : Problem
+    null : Refit
+        ``ln c1`` alone on the diagnosis scans.
+    final : Refit
+        The model with the named effects (``null`` when none).
+    screen : Screen
+        At the null fit.
+    final_screen : Screen or None
+        Of the remaining effects at the final fit.
+    candidates : tuple of Candidate
+    maps : dict of str to ScanMap
+    gaps : dict of str to ScanGap
+    intervals : dict of str to dict
+        95 % intervals of the final model's parameters.
+    floor_mm2 : float
+        Noise floor of the residual's mean square.
+    unavailable : dict of str to str
+    wall_s : float
+    fe_solves : int
+    final_states : dict
+        ScanState of every scan at the final model (for the refitted calibration).
+    """
+
+    verdict: str
+    named: tuple
+    confounded_with: tuple
+    problem: Problem
+    null: Refit
+    final: Refit
+    screen: Screen
+    final_screen: Screen | None
+    candidates: tuple
+    maps: dict
+    gaps: dict
+    intervals: dict
+    floor_mm2: float
+    unavailable: dict
+    options: DiagnosisOptions
+    wall_s: float
+    fe_solves: int
+    final_states: dict = field(repr=False, default_factory=dict)
+
+    @property
+    def c1_pa(self) -> float:
+        """The final model's c1 (Pa)."""
+        return self.final.c1_pa
+
+    def screening_rows(self) -> list[dict]:
+        """One row per screened column: effect, statistic, p, Holm p, significant, ..."""
+        scr = self.screen.screening
+        if scr is None:
+            return []
+        return [{k: _num(v) if isinstance(v, float) else v for k, v in vars(e).items()}
+                for e in scr.effects]  # fmt: skip
+
+    def effect_summary(self) -> dict:
+        """Per library effect: the strongest of its columns and the identifiability."""
+        scr = self.screen.screening
+        out = {}
+        for name in self.options.effects:
+            lib = LIBRARY[name]
+            rows = [e for e in (scr.effects if scr else ()) if e.name == name
+                    or e.name.startswith(f"{name}[")]  # fmt: skip
+            entry = {"kind": lib.kind, "parameter": lib.parameter, "unit": lib.unit,
+                     "columns": len(rows)}  # fmt: skip
+            if name in self.unavailable:
+                entry["status"] = "unavailable"
+                entry["reason"] = self.unavailable[name]
+            elif not rows:
+                entry["status"] = "not screened"
+            else:
+                tested = [e for e in rows if e.identifiable]
+                best = min(tested, key=lambda e: e.p_value) if tested else rows[0]
+                entry |= {
+                    "status": "identifiable" if tested else "not identifiable",
+                    "statistic": _num(best.statistic),
+                    "p_value": _num(best.p_value),
+                    "p_holm": _num(min((e.p_holm for e in tested), default=np.nan)),
+                    "significant": any(e.significant for e in tested),
+                    "estimate": _num(best.estimate) if rows and len(rows) == 1 else None,
+                    "retained_fraction": _num(max(e.retained_fraction for e in rows)),
+                }
+                if name == "density":
+                    entry["note"] = (
+                        "at fixed nu the solution depends on rho g / c1 only: its field is "
+                        "c1's own, never separable under gravity"
+                    )
+            out[name] = entry
+        return out
+
+    def to_json(self) -> dict:
+        """``diagnosis.json`` (without ``run_id``, files and provenance)."""
+        prob = self.problem
+        floor = float(np.sqrt(max(self.floor_mm2, 0.0)) * np.sqrt(2.0 / np.pi))
+        scr = self.screen.screening
+        return {
+            "verdict": self.verdict,
+            "named": list(self.named),
+            "confounded_with": list(self.confounded_with),
+            "calibration": {
+                "c1_pa": float(np.exp(prob.theta_calibrated)),
+                "run_id": prob.work.record.get("run_id"),
+            },
+            "scans": {"diagnosis": list(prob.scans), "holdout": prob.holdout},
+            "null_fit": _fit_json(self.null),
+            "refit": _fit_json(self.final) | {"intervals": self.intervals},
+            "c1_pa": self.final.c1_pa,
+            "c1_ci95_pa": self.intervals.get("theta", {}).get("c1_ci95_pa"),
+            "noise": {
+                "model": self.screen.noise.best.as_json(),
+                "plausible": [m.as_json() for m in self.screen.noise.plausible],
+                "floor_rms_mm": float(np.sqrt(max(self.floor_mm2, 0.0))),
+                "floor_mean_abs_mm": floor,
+                "floor_max_lag_mm": FLOOR_LAG_MM,
+            },
+            "misfit_test": self.screen.misfit.as_json(),
+            "effects": self.effect_summary(),
+            "screening": {
+                "columns": self.screening_rows(),
+                "confounded": [list(c) for c in scr.confounded] if scr else [],
+                "not_identifiable": list(scr.not_identifiable) if scr else [],
+                "alpha": self.options.alpha,
+                "metric": scr.metric if scr else None,
+            },
+            "final_screening": None
+            if self.final_screen is None or not self.final_screen.screening
+            else {
+                "misfit_test": self.final_screen.misfit.as_json(),
+                "columns": [
+                    {k: _num(v) if isinstance(v, float) else v for k, v in vars(e).items()}
+                    for e in self.final_screen.screening.effects
+                ],
+            },  # fmt: skip
+            "candidates": [c.as_json() for c in self.candidates],
+            "localisation": {n: m.as_json() for n, m in self.maps.items()},
+            "gap": {n: g.as_json(floor) for n, g in self.gaps.items()},
+            "unavailable": self.unavailable,
+            "library": {n: LIBRARY[n].as_json() for n in self.options.effects},
+            "options": {
+                k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(self.options).items()
+            },  # fmt: skip
+            "fe_solves": self.fe_solves,
+            "wall_s": self.wall_s,
+        }
+
+
+def _fit_json(fit: Refit) -> dict:
+    return {
+        "effects": list(fit.effects),
+        "c1_pa": fit.c1_pa,
+        "parameters": {n: float(v) for n, v in zip(fit.names[1:], fit.x[1:], strict=True)},
+        "values": fit.values.as_json(),
+        "rms_mm": float(np.sqrt(fit.mean_sq_mm2)),
+        "iterations": fit.iterations,
+        "evaluations": fit.evaluations,
+        "failed_evaluations": fit.failed_evaluations,
+        "success": fit.success,
+        "message": fit.message,
+        "at_bound": list(fit.at_bound()),
+    }
+
+
+# ------------------------------------------------------------------------ helpers
+
+
+def _centred_ms(fields: FieldSet) -> float:
+    """Mean square of the residuals less each scan's mean (mm^2)."""
+    tot = sum(float(np.sum((r - r.mean()) ** 2)) for r in fields.residual.values())
+    return tot / sum(len(r) for r in fields.residual.values())
+
+
+def _noise_var(fields: FieldSet, points: dict) -> float:
+    """The session's short-range noise variance (FLOOR_LAG_MM variogram), centred residual."""
+    sample = sample_of(fields, points)
+    r = np.concatenate([fields.residual[n] - fields.residual[n].mean() for n in fields.scans])
+    return float(session_noise(sample, r, max_lag_mm=FLOOR_LAG_MM).best.sigma_mm ** 2)
+
+
+def _effect_of(column: str) -> str:
+    return column.split("[", 1)[0]
+
+
+def _significant_effects(scr: Screen) -> list[tuple[str, float, float]]:
+    """``(effect, |t|, p_holm)`` of effects with a significant column, strongest first."""
+    if scr.screening is None:
+        return []
+    best: dict = {}
+    for e in scr.screening.effects:
+        if e.identifiable and e.significant:
+            eff = _effect_of(e.name)
+            if eff not in best or abs(e.statistic) > best[eff][0]:
+                best[eff] = (abs(e.statistic), e.p_holm)
+    return sorted(((k, v[0], v[1]) for k, v in best.items()), key=lambda t: -t[1])
+
+
+def _cosine(scr: Screen, a: str, b: str) -> float:
+    """Largest |cos| between the projected signatures of two effects' columns."""
+    s = scr.screening
+    if s is None:
+        return 0.0
+    names = [e.name for e in s.effects]
+    ia = [i for i, n in enumerate(names) if _effect_of(n) == a]
+    ib = [i for i, n in enumerate(names) if _effect_of(n) == b]
+    vals = [abs(s.cosine[i, j]) for i in ia for j in ib if np.isfinite(s.cosine[i, j])]
+    return float(max(vals, default=0.0))
+
+
+def _columns_of(fields: FieldSet, effects: Sequence[str]) -> tuple[str, ...]:
+    return tuple(c.name for c in fields.columns if _effect_of(c.name) in effects)
+
+
+# ------------------------------------------------------------------------- diagnose
+
+
+def diagnose(
+    work: WorkFolder,
+    options: DiagnosisOptions | None = None,
+    *,
+    progress: Callable[[str], None] | None = None,
+) -> Diagnosis:
+    """Diagnose a calibrated work folder (see the module docstring).
+
+    Parameters
+    ----------
+    work : WorkFolder
+        :func:`calib.data.read_work`.
+    options : DiagnosisOptions, optional
+    progress : callable, optional
+        Called with a line of text at every step.
+
+    Returns
+    -------
+    Diagnosis
+
+    Raises
+    ------
+    DiagnosisError
+        Bad options or a work folder the diagnosis cannot use.
+    fem.ConvergenceError
+        No FE solution at the calibration's own c1 (the null fit cannot start).
+    """
+    o = options or DiagnosisOptions()
+    say = progress or log.info
+    t0 = time.perf_counter()
+    prob = build_problem(work, holdout=o.holdout, skin_thickness_mm=o.skin_thickness_mm,
+                         max_points=o.max_points)  # fmt: skip
+    say(f"diagnosis scans {prob.scans}, held out: {prob.holdout or 'none'}; model mesh "
+        f"{prob.mesh.n_tets} tets, {len(prob.inclusions)} inclusions tagged")  # fmt: skip
+    screened = tuple(e for e in o.effects)
+    say("null fit: ln c1 alone on the diagnosis scans (full FE)")
+    null = refit(prob, (), screened=screened, max_iterations=o.refit_iterations, say=say)
+    unavailable = dict(null.fields.unavailable)
+    say(f"  c1 = {null.c1_pa:.1f} Pa (calibration {np.exp(prob.theta_calibrated):.1f} Pa), "
+        f"rms {np.sqrt(null.mean_sq_mm2):.3f} mm")  # fmt: skip
+    scr0 = screen(null.fields, prob.points, alpha=o.alpha, confounded_above=o.confounded_above)
+    nb = scr0.noise.best
+    say(f"noise: {nb.kernel}, sd {nb.sigma_mm:.3f} mm, length {nb.length_mm:.1f} mm; misfit "
+        f"test p = {scr0.misfit.p_value:.3g} ({scr0.misfit.verdict})")  # fmt: skip
+    maps = _localise(prob, null, scr0.noise)
+    floor = _noise_var(null.fields, prob.points)
+    named, confounded, candidates, current, cur_scr = [], [], [], null, scr0
+    fits: dict = {(): null}
+    rnd = 0
+    while len(named) < o.max_named:
+        rnd += 1
+        sig = [s for s in _significant_effects(cur_scr) if s[0] not in named]
+        if not sig:
+            break
+        chosen = [s[0] for s in sig[: o.max_candidates]]
+        for s in sig[o.max_candidates :]:  # a confounded partner of a candidate joins it
+            if any(_cosine(cur_scr, s[0], c) >= o.confounded_above for c in chosen):
+                chosen.append(s[0])
+        say(f"round {rnd}: refitting {chosen} jointly with c1 (full FE)")
+        trials = {}
+        for eff in chosen:
+            key = tuple(sorted([*named, eff]))
+            try:
+                trials[eff] = fits.get(key) or refit(
+                    prob, key, screened=screened, theta0=current.theta,
+                    x0=dict(zip(current.names, current.x, strict=True)),
+                    max_iterations=o.refit_iterations, say=say,
+                )  # fmt: skip
+            except fem.ConvergenceError as exc:
+                say(f"  {eff}: no FE solution at the start ({exc})")
+                continue
+            fits[key] = trials[eff]
+            floor = min(floor, _noise_var(trials[eff].fields, prob.points))
+        row = {s[0]: s for s in sig}
+        judged = [_judge(prob, eff, rnd, row[eff], current, trials[eff], floor, o)
+                  for eff in chosen if eff in trials]  # fmt: skip
+        candidates.extend(judged)
+        passing = sorted((c for c in judged if c.passes), key=lambda c: -c.explained)
+        for c in judged:
+            say(f"  {c.effect}: c1 = {c.c1_pa:.1f} Pa, explains {c.explained:.0%} above the "
+                f"floor, LOPO {'better' if c.lopo_improves else 'not better'}"
+                + ("" if c.passes else f"; not named ({c.reason})"))  # fmt: skip
+        if not passing:
+            break
+        best = passing[0]
+        if not named:
+            confounded = [
+                c.effect
+                for c in passing[1:]
+                if c.explained >= o.near_equal * best.explained
+                and _cosine(cur_scr, c.effect, best.effect) >= o.confounded_above
+            ]
+        named.append(best.effect)
+        current = trials[best.effect]
+        absorbed = _columns_of(current.fields, named)
+        cur_scr = screen(current.fields, prob.points, absorbed=absorbed, alpha=o.alpha,
+                         confounded_above=o.confounded_above, noise=None)  # fmt: skip
+        if len(named) >= 2:
+            named, current, cur_scr = _prune(prob, named, fits, current, cur_scr, o, screened, say)
+    final_screen = cur_scr if named else None
+    verdict = _verdict(named, confounded, scr0, final_screen, o)
+    say(f"verdict: {verdict}")
+    gaps, states = _gaps(prob, current, say)
+    intervals = _intervals(current, prob)
+    return Diagnosis(
+        verdict=verdict, named=tuple(named), confounded_with=tuple(confounded), problem=prob,
+        null=null, final=current, screen=scr0, final_screen=final_screen,
+        candidates=tuple(candidates), maps=maps, gaps=gaps, intervals=intervals,
+        floor_mm2=floor, unavailable=unavailable, options=o,
+        wall_s=time.perf_counter() - t0, fe_solves=int(prob.fm.solves), final_states=states,
+    )  # fmt: skip
+
+
+def _registration_excess(prob: Problem, fit: Refit) -> list[str]:
+    """Scans whose fitted rigid offset moves a point farther than its registration allows."""
+    out = []
+    for n in prob.scans:
+        off = fit.nuisance[n].offset
+        arm = prob.points[n] - prob.centres[n]
+        move = float(np.linalg.norm(off[:3] + np.cross(off[3:], arm), axis=1).max())
+        if move > prob.registration_tolerance_mm[n]:
+            out.append(f"{n}: offset moves points {move:.2f} mm, its registration allows "
+                       f"{prob.registration_tolerance_mm[n]:.2f} mm")  # fmt: skip
+    return out
+
+
+def _judge(prob, eff, rnd, sig_row, before: Refit, after: Refit, floor: float, o) -> Candidate:
+    """The naming criteria of one refitted candidate.
+
+    Per-scan nuisances (gravity, registration) cannot be learnt from the other postures,
+    so for them criterion (b) is that the leave-one-posture-out prediction does not get
+    worse; a rigid offset is plausible only within its scan's registration tolerance
+    (:attr:`Problem.registration_tolerance_mm`).
+    """
+    _, stat, p_holm = sig_row
+    lb, la = lopo(before)["mean_sq_mm2"], lopo(after)["mean_sq_mm2"]
+    nuisance = LIBRARY[eff].kind == "nuisance"
+    lopo_ok = la is not None and lb is not None and (la <= lb if nuisance else la < lb)
+    own = [n for n in after.names if _effect_of(n) == eff]
+    params = {n: after.parameter(n) for n in own}
+    bound = tuple(n for n in after.at_bound() if n in own)
+    implausible = _registration_excess(prob, after) if eff == "registration" else []
+    ms_b, ms_a = _centred_ms(before.fields), _centred_ms(after.fields)
+    excess = ms_b - floor
+    explained = (ms_b - ms_a) / excess if excess > 0 else 0.0
+    reasons = []
+    if not lopo_ok:
+        what = "gets worse" if nuisance else "does not improve"
+        reasons.append(f"leave-one-posture-out prediction {what}"
+                       if la is not None else "leave-one-posture-out needs >= 2 scans")  # fmt: skip
+    if bound:
+        reasons.append(f"parameter at a bound of its physical range ({', '.join(bound)})")
+    if implausible:
+        reasons.append("implausible (" + "; ".join(implausible) + ")")
+    if explained < o.min_explained:
+        reasons.append(f"explains {explained:.0%} < {o.min_explained:.0%} of the residual "
+                       "above the noise floor")  # fmt: skip
+    if not after.success:
+        reasons.append(f"refit did not converge ({after.message})")
+    return Candidate(eff, rnd, True, float(p_holm), float(stat), lb, la, lopo_ok, params, bound,
+                     not bound and not implausible, float(explained), not reasons, after.c1_pa,
+                     float(np.sqrt(after.mean_sq_mm2)), "; ".join(reasons))  # fmt: skip
+
+
+def _prune(prob, named, fits, current, cur_scr, o, screened, say):
+    """Backward pruning: drop a named effect that is not significant without it."""
+    for eff in list(named):
+        rest = tuple(sorted(e for e in named if e != eff))
+        fit = fits.get(rest)
+        if fit is None:
+            fit = refit(prob, rest, screened=screened, theta0=current.theta,
+                        max_iterations=o.refit_iterations, say=say)  # fmt: skip
+            fits[rest] = fit
+        scr = screen(fit.fields, prob.points, absorbed=_columns_of(fit.fields, rest),
+                     alpha=o.alpha, confounded_above=o.confounded_above)  # fmt: skip
+        if eff not in [s[0] for s in _significant_effects(scr)]:
+            say(f"pruned {eff}: not significant once {', '.join(rest)} is in the model")
+            named = [e for e in named if e != eff]
+            current = fit
+            cur_scr = screen(fit.fields, prob.points, absorbed=_columns_of(fit.fields, rest),
+                             alpha=o.alpha, confounded_above=o.confounded_above)  # fmt: skip
+            break
+    return named, current, cur_scr
+
+
+def _verdict(named, confounded, scr0: Screen, final: Screen | None, o) -> str:
+    if named:
+        head = named[0] + (" | " + " | ".join(confounded) + " (confounded)" if confounded else "")
+        if len(named) > 1:
+            head = " + ".join(named)
+        left = final is not None and (
+            final.misfit.verdict == "misfit" or _significant_effects(final)
+        )
+        return f"named: {head}" + (" (+ unexplained remainder)" if left else "")
+    lost = scr0.screening.not_identifiable if scr0.screening else ()
+    identifiable = [e for e in o.effects if not any(_effect_of(n) == e for n in lost)]
+    if scr0.misfit.verdict == "fits" and not _significant_effects(scr0):
+        return "no missing effect"
+    if not identifiable and lost:
+        return "not identifiable from these data: " + ", ".join(
+            dict.fromkeys(_effect_of(n) for n in lost)
+        )
+    return "unexplained"
+
+
+def _localise(prob: Problem, null: Refit, noise: NoiseFit) -> dict:
+    """Significance maps of the diagnosis scans at the null fit."""
+    import json
+    from pathlib import Path
+
+    out = {}
+    for n in null.fields.scans:
+        s = prob.measurement(n)
+        doc = json.loads((Path(prob.work.path) / "scans" / n / "ingest.json").read_text())
+        T = s.T_ref_from_scan
+        spheres = [(T[:3, :3] @ np.asarray(i["centre_lps_mm"], float) + T[:3, 3],
+                    float(i["diameter_mm"])) for i in doc.get("inclusions") or []]  # fmt: skip
+        if s.tumour_mm is not None:
+            spheres.append((s.tumour_mm, 10.0))
+        pts = prob.points[n]
+        labels = region_labels(pts, nipple_mm=s.nipple_mm, back_point_mm=s.back_point_mm,
+                               back_normal=s.back_normal, spheres=spheres)  # fmt: skip
+        r = null.fields.residual[n]
+        out[n] = significance_map(n, pts, r - r.mean(), labels, noise.best,
+                                  bandwidth_mm=MAP_KERNEL_MM)  # fmt: skip
+    return out
+
+
+def _gaps(prob: Problem, final: Refit, say) -> tuple[dict, dict]:
+    """Every scan at the final model (holdout included) against the calibration's states."""
+    from ..model.residuals import SimulatedSurface
+
+    names = [*prob.scans, *([prob.holdout] if prob.holdout else [])]
+    say(f"final model on {len(names)} scans (held out: {prob.holdout or 'none'})")
+    nz = {n: final.nuisance.get(n) for n in names}
+    states = prob.solve(final.theta, final.values, names, gradient=True,
+                        nuisance={k: v for k, v in nz.items() if v is not None})  # fmt: skip
+    work = prob.work
+    faces = SimulatedSurface.of(work.mesh).faces
+    nipple = work.nipple_node
+    out = {}
+    for n in names:
+        scan = prob.measurement(n)
+        saved = work.states[n]
+        before = scan_metrics(scan, saved.positions_mm, faces, nipple, saved.tumour_mm)
+        pos = states[n].positions_mm
+        after = scan_metrics(scan, pos, faces, nipple, None)
+        rb = prob.residuals(n, saved.positions_mm).r
+        ra = prob.residuals(n, pos).r
+        out[n] = ScanGap(n, "holdout" if n == prob.holdout else "diagnosis", before, after, rb, ra)
+    return out, states
+
+
+def _intervals(fit: Refit, prob: Problem) -> dict:
+    """95 % intervals of the final model's parameters (series estimator, calib.stats)."""
+    f = fit.fields
+    sample = sample_of(f, prob.points)
+    r = f.stack(f.residual)
+    A = np.column_stack([fit.jacobian(), offset_columns(sample)])
+    r_c = r - offset_columns(sample) @ np.linalg.lstsq(offset_columns(sample), r, rcond=None)[0]
+    noise = session_noise(sample, r_c)
+    x = np.concatenate([fit.x, np.zeros(A.shape[1] - len(fit.x))])
+    try:
+        ivs = parameter_intervals(x, A, r_c, sample, noise.best, alternatives=noise.plausible[1:])
+    except ValueError as exc:
+        return {"failed": str(exc)}
+    out = {}
+    for name, iv, v in zip(fit.names, ivs, fit.x, strict=False):
+        entry = {"value": float(v), "ci95": [float(iv.lower), float(iv.upper)],
+                 "standard_error": float(iv.standard_error)}  # fmt: skip
+        if name == "theta":
+            # the model mesh's own error: the calibration's mesh check (GCI of ln c1 on
+            # this mesh) in quadrature with the noise, as ``calibrate`` does
+            check = (prob.work.record.get("uncertainty") or {}).get("mesh_check") or {}
+            gci = check.get("gci_ln_c1") or 0.0
+            lo, hi = (float(np.hypot(v - b, gci)) for b in (iv.lower, iv.upper))
+            entry["c1_ci95_pa"] = [float(np.exp(v - lo)), float(np.exp(v + hi))]
+            entry["noise_only_c1_ci95_pa"] = [float(np.exp(iv.lower)), float(np.exp(iv.upper))]
+            entry["gci_ln_c1"] = gci
+        if name in ("skin", "inclusions"):  # the parameter is the ratio - 1
+            entry["ratio"] = float(1.0 + v)
+            entry["ratio_ci95"] = [float(1.0 + iv.lower), float(1.0 + iv.upper)]
+        out[name] = entry
+    return out

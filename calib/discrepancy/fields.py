@@ -1,0 +1,325 @@
+"""Sensitivity fields of the surface residual to every effect of the library.
+
+At converged states of the diagnosis scans (a given ``theta = ln c1`` and effect
+values), the derivative of each residual ``r_i`` (a measured point's signed distance
+to the simulated surface) to each effect parameter ``p``:
+
+- material effects (skin, inclusions, mooney, poisson) and ``theta``: direct
+  sensitivities with the converged tangents (Kleiber et al. 1997, ch. 3). With a
+  recovered stress-free reference ``X = x_ref - u0`` (``unload``), first
+  ``(K0 - D0) du0/dp = -dR0/dp`` (one factorisation for every parameter), then per scan
+  ``K du/dp = -dR/dp - D dX/dp`` (one factorisation per scan for every parameter);
+  ``dR/dp`` by central differences of the model at the fixed state
+  (:func:`fem.sensitivity.parameter_derivative`; exact for the laws' linear parameters);
+- density: at fixed nu the solution depends on ``rho g / c1`` only, so its field is
+  ``-dr/dtheta`` exactly (it is reported, not computed: a direct computation agrees to
+  solver precision in the tests);
+- gravity angles of a scan: ``K du/da = f_ext(dg/da)`` (the load is linear in g), the
+  reference posture untouched;
+- a rigid offset of a scan: analytic, ``dr = u . (dt + dw x (p - centre))`` with ``u`` the
+  unit direction from the simulated surface to the measured point;
+- sliding: one FE solve per scan (and one stress-free recovery) with the frictionless
+  support at the same c1; the field is the secant ``r_frictionless - r_clamped`` per unit
+  of the amplitude ``a`` (a = 1 at the frictionless end).
+
+A vertex-position derivative becomes a residual derivative by the envelope theorem
+(the closest point's barycentric weights held fixed, :mod:`calib.model.residuals`).
+
+References
+----------
+Kleiber, M., Antunez, H., Hien, T. D. & Kowalczyk, P. (1997). *Parameter Sensitivity in
+Nonlinear Mechanics*. Wiley.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+import fem
+from fem.assemble import external_force
+from fem.fields import gravity_vector, vertex_displacement_mm
+from fem.linalg import factorize
+from fem.sensitivity import geometry_matrix, parameter_derivative, tangent_matrix, vertex_dofs
+
+from ..model.effects import LIBRARY, EffectValues, effect_model
+from .problem import Problem, gravity_axes
+
+__all__ = ["MATERIAL_EFFECTS", "Column", "FieldSet", "effect_fields", "material_dpositions"]
+
+log = logging.getLogger(__name__)
+
+MATERIAL_EFFECTS = ("skin", "inclusions", "mooney", "poisson")
+_EPS = 1e-6  # central-difference step of dR/dp in the parameter's units
+
+
+@dataclass(frozen=True)
+class Column:
+    """One sensitivity column: an effect's parameter (or one of its per-scan parameters).
+
+    Attributes
+    ----------
+    name : str
+        ``effect`` or ``effect[scan].component``.
+    effect : str
+    scan : str or None
+        The scan a per-scan (nuisance) parameter belongs to.
+    component : str
+    values : dict of str to ndarray
+        ``dr/dp`` per scan (mm per parameter unit); zeros where it does not act.
+    """
+
+    name: str
+    effect: str
+    scan: str | None
+    component: str
+    values: dict
+
+
+@dataclass(frozen=True)
+class FieldSet:
+    """Residuals, their derivative in ln c1 and every effect's sensitivity column.
+
+    Attributes
+    ----------
+    scans : tuple of str
+    residual : dict of str to ndarray
+    jacobian : dict of str to ndarray
+        ``dr/dtheta`` per scan.
+    columns : tuple of Column
+    unavailable : dict of str to str
+        Effects with no field here, and why.
+    """
+
+    scans: tuple
+    residual: dict
+    jacobian: dict
+    columns: tuple
+    unavailable: dict
+
+    def stack(self, what) -> np.ndarray:
+        """Concatenate a per-scan dict over :attr:`scans`."""
+        return np.concatenate([what[n] for n in self.scans])
+
+    def matrix(self, names: Sequence[str] | None = None) -> np.ndarray:
+        """Columns (by name, default all) stacked over the scans, shape (n, q)."""
+        by = {c.name: c for c in self.columns}
+        cols = self.columns if names is None else [by[n] for n in names]
+        return np.column_stack([self.stack(c.values) for c in cols])
+
+
+def _param_point(name: str, values: EffectValues) -> float:
+    """Where to difference an effect's ``dR/dp``: its value, moved off a lower bound."""
+    p = LIBRARY[name].get(values)
+    lo = LIBRARY[name].bounds[0]
+    return max(p, lo + _EPS) if np.isfinite(lo) else p
+
+
+def material_dpositions(
+    fm,
+    theta: float,
+    values: EffectValues,
+    states: dict,
+    names: Sequence[str],
+    gravities: dict,
+    *,
+    gravity_names: Sequence[str] = (),
+) -> dict:
+    """Vertex-position derivatives of ``theta``, material parameters and gravity angles.
+
+    Parameters
+    ----------
+    fm : ForwardModel
+        After :meth:`~calib.model.forward.ForwardModel.evaluate` at ``(theta, values)``
+        (its stress-free geometry and reference state are used).
+    theta : float
+    values : EffectValues
+    states : dict of str to ScanState
+        The converged states of ``fm.evaluate``.
+    names : sequence of str
+        Library effects with a model value (``skin``, ``inclusions``, ``mooney``,
+        ``poisson``, ``density``).
+    gravities : dict of str to ndarray (3,)
+        Each scan's gravity direction, as solved.
+    gravity_names : sequence of str
+        Scans whose two gravity angles are differentiated too.
+
+    Returns
+    -------
+    dict
+        ``{param: {scan: dpositions (n_nodes, 3)}}``, params ``"theta"``, ``names`` and
+        ``("gravity", scan, k)``; mm per parameter unit.
+    """
+    X = fm.stress_free_nodes_mm
+    disc = fm.discretization.with_nodes(X)
+    c1 = float(np.exp(theta))
+
+    def model_at(name):
+        if name == "theta":
+            return lambda t: effect_model(disc.mesh, float(np.exp(t)), values)
+        eff = LIBRARY[name]
+        return lambda p: effect_model(disc.mesh, c1, eff.set(values, p))
+
+    params = ["theta", *names]
+    at = {"theta": theta} | {n: _param_point(n, values) for n in names}
+    model = effect_model(disc.mesh, c1, values)
+    free = disc.free
+    v = vertex_dofs(disc)
+    dX = {p: np.zeros_like(X) for p in params}
+    dX_state = {p: None for p in params}
+    unload = fm.reference_state == "unload"
+    if unload:
+        u0 = fm.stress_free_state
+        if u0 is None:
+            raise RuntimeError("no recovered reference state: solve the postures first")
+        g0 = gravity_vector(fm.gravity_ref, fm.g_m_s2)
+        solve0 = factorize(tangent_matrix(disc, model, u0, shape_load_m_s2=g0))
+        for p in params:
+            rhs = -parameter_derivative(disc, model_at(p), at[p], u0, g0)
+            du0 = np.zeros(disc.n_dofs)
+            du0[free] = solve0(rhs[free])
+            dX[p] = -vertex_displacement_mm(disc, du0)
+            dX_state[p] = np.zeros(disc.n_dofs)
+            dX_state[p][v] = -du0[v]
+    out: dict = {p: {} for p in params}
+    for name, st in states.items():
+        g_dir, mag = _load(fm, gravities[name])
+        g_vec = gravity_vector(g_dir, mag)
+        solve = factorize(tangent_matrix(disc, model, st.state))
+        D = geometry_matrix(disc, model, st.state, g_vec) if unload else None
+        for p in params:
+            rhs = -parameter_derivative(disc, model_at(p), at[p], st.state, g_vec)[free]
+            if dX_state[p] is not None:
+                rhs = rhs - D @ dX_state[p][free]
+            du = np.zeros(disc.n_dofs)
+            du[free] = solve(rhs)
+            out[p][name] = dX[p] + vertex_displacement_mm(disc, du)
+        if name in gravity_names:
+            g_scan = gravity_vector(gravities[name], fm.g_m_s2)
+            for k, axis in enumerate(gravity_axes(g_scan)):
+                dg = np.cross(axis, g_scan)  # d(R(a) g)/da at a = 0 (the load is linear in g)
+                f = external_force(disc, model, dg)
+                du = np.zeros(disc.n_dofs)
+                du[free] = solve(f[free])
+                out.setdefault(("gravity", name, k), {})[name] = vertex_displacement_mm(disc, du)
+    return out
+
+
+def _load(fm, g: np.ndarray) -> tuple[np.ndarray, float]:
+    """The load direction and magnitude of a scan's solve (shortcut: ``g - g0``)."""
+    if fm.reference_state == "shortcut":
+        from fem.unload import shortcut_gravity
+
+        return shortcut_gravity(g, fm.gravity_ref, g_m_s2=fm.g_m_s2)
+    return np.asarray(g, float), fm.g_m_s2
+
+
+def _sliding_secant(prob: Problem, theta: float, values: EffectValues, names: Sequence[str],
+                    base: dict, nuisance: dict) -> dict:  # fmt: skip
+    """``r_frictionless - r(values)`` per scan at the same theta (one FE solve per scan)."""
+    free = replace(values, support_stiffness_pa_per_mm=0.0)
+    states = prob.solve(theta, free, list(names), gradient=False, nuisance=nuisance)
+    out = {n: prob.residuals(n, states[n].positions_mm, None, nuisance.get(n)).r - base[n]
+           for n in names}  # fmt: skip
+    prob.fm.set_effects(values)  # back to the support of the base state
+    return out
+
+
+def effect_fields(
+    prob: Problem,
+    theta: float,
+    values: EffectValues,
+    effects: Sequence[str],
+    *,
+    names: Sequence[str] | None = None,
+    nuisance: dict | None = None,
+    say=None,
+) -> FieldSet:
+    """Residuals and sensitivity columns of the given effects at ``(theta, values)``.
+
+    Parameters
+    ----------
+    prob : Problem
+    theta : float
+        ``ln c1``.
+    values : EffectValues
+    effects : sequence of str
+        Library names.
+    names : sequence of str, optional
+        Scans (default: the diagnosis scans).
+    nuisance : dict of str to Nuisance, optional
+        Nuisance values per scan (gravity angles, rigid offsets).
+    say : callable, optional
+        Progress lines.
+
+    Returns
+    -------
+    FieldSet
+    """
+    say = say or log.info
+    names = list(names or prob.scans)
+    unknown = sorted(set(effects) - set(LIBRARY))
+    if unknown:
+        raise ValueError(f"unknown effect(s) {unknown}; the library has {sorted(LIBRARY)}")
+    nz = nuisance or {}
+    states = prob.solve(theta, values, names, gradient=True, nuisance=nz)
+    res = {n: prob.residuals(n, states[n].positions_mm, states[n].dpositions_mm, nz.get(n))
+           for n in names}  # fmt: skip
+    r = {n: res[n].r for n in names}
+    J = {n: res[n].dr for n in names}
+    unavailable: dict = {}
+    mats = [e for e in effects if e in MATERIAL_EFFECTS]
+    if "inclusions" in mats and not prob.inclusions:
+        mats.remove("inclusions")
+        unavailable["inclusions"] = "no inclusion was detected in the reference scan"
+    grav = names if "gravity" in effects else []
+    say(f"sensitivities: direct, {len(mats) + 1} parameters x {len(names)} scans")
+    gravities = {n: prob.gravity(n, nz.get(n)) for n in names}
+    dpos = material_dpositions(prob.fm, theta, values, states, mats, gravities,
+                               gravity_names=grav)  # fmt: skip
+    cols: list[Column] = []
+    zeros = {n: np.zeros_like(r[n]) for n in names}
+
+    def field(dp: dict) -> dict:
+        return {n: prob.residuals(n, states[n].positions_mm, dp[n], nz.get(n)).dr
+                if n in dp else zeros[n] for n in names}  # fmt: skip
+
+    for e in effects:
+        if e in mats:
+            cols.append(Column(e, e, None, LIBRARY[e].parameter, field(dpos[e])))
+        elif e == "density":
+            cols.append(Column(e, e, None, LIBRARY[e].parameter, {n: -J[n] for n in names}))
+        elif e == "sliding":
+            if values.support != "clamped":
+                unavailable["sliding"] = f"the model's support is already {values.support}"
+                continue
+            say(f"sensitivity of sliding: the frictionless plate, {len(names)} FE solves")
+            try:
+                sec = _sliding_secant(prob, theta, values, names, r, nz)
+            except fem.ConvergenceError as exc:
+                unavailable["sliding"] = f"no FE solution with a frictionless plate ({exc})"
+                prob.fm.set_effects(values)
+                continue
+            cols.append(Column(e, e, None, "amplitude", sec))
+        elif e == "gravity":
+            for n in names:
+                for k in range(2):
+                    vals = zeros | field({n: dpos[("gravity", n, k)][n]})
+                    cols.append(Column(f"gravity[{n}].a{k}", e, n, f"a{k}", vals))
+        elif e == "registration":
+            for n in names:
+                pos = states[n].positions_mm
+                u = np.column_stack([
+                    -prob.residuals(n, pos, np.broadcast_to(np.eye(3)[j], pos.shape), nz.get(n)).dr
+                    for j in range(3)
+                ])  # fmt: skip
+                arm = prob.measured_points(n, nz.get(n)) - prob.centres[n]
+                comp = {"tx": u[:, 0], "ty": u[:, 1], "tz": u[:, 2]}
+                rot = np.cross(arm, u)  # d r / d w = (p - c) x u
+                comp |= {"wx": rot[:, 0], "wy": rot[:, 1], "wz": rot[:, 2]}
+                for k, v in comp.items():
+                    cols.append(Column(f"registration[{n}].{k}", e, n, k, zeros | {n: v}))
+    return FieldSet(tuple(names), r, J, tuple(cols), unavailable)

@@ -1,0 +1,300 @@
+"""The diagnosis problem: a calibrated work folder's model with the effect library added.
+
+The model mesh is the calibration's own (``WORK/calibration/reference_mesh.vtu``'s
+topology on the loaded reference geometry that ``calibrate`` saved with every state),
+tagged by the volume fractions of a skin band and of the inclusions that ingest found
+in the reference scan (:func:`calib.model.effects.tag_effect_regions`). At neutral
+effect values it is exactly the calibration's model. Every solve goes through
+:class:`calib.model.forward.ForwardModel` (stress-free recovery, warm starts).
+
+Residuals are those of the calibration's ``surface`` objective: signed distances of the
+measured surface points (off the back plate, the calibration's seeded subsample) to the
+simulated surface, in the fiducial (reference) frame. Nuisance parameters act here:
+a rigid offset per scan moves the measured points, a gravity error per scan turns the
+load.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+import fem
+
+from ..data.work import WorkFolder
+from ..model.effects import SKIN_THICKNESS_MM, EffectValues, tag_effect_regions
+from ..model.forward import ForwardModel, ScanState
+from ..model.residuals import Residuals, SimulatedSurface, scan_residuals
+
+__all__ = ["DiagnosisError", "Nuisance", "Problem", "build_problem", "rotate_gravity"]
+
+log = logging.getLogger(__name__)
+
+
+class DiagnosisError(ValueError):
+    """A work folder, scan choice or option the diagnosis cannot work with."""
+
+
+@dataclass(frozen=True)
+class Nuisance:
+    """Nuisance values of one scan: gravity angles (rad) and a rigid offset (mm, rad).
+
+    Attributes
+    ----------
+    gravity_rad : ndarray, shape (2,)
+        Rotations of the scan's gravity direction about two axes normal to it.
+    offset : ndarray, shape (6,)
+        ``(t_x, t_y, t_z)`` in mm and ``(w_x, w_y, w_z)`` in rad, reference frame: the
+        measured points move by ``t + w x (p - centre)``.
+    """
+
+    gravity_rad: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(6))
+
+
+def gravity_axes(g: np.ndarray) -> np.ndarray:
+    """Two unit axes normal to ``g`` (rows), a fixed choice for the gravity angles."""
+    g = np.asarray(g, float) / np.linalg.norm(g)
+    helper = np.eye(3)[int(np.argmin(np.abs(g)))]
+    a = np.cross(g, helper)
+    a /= np.linalg.norm(a)
+    return np.array([a, np.cross(g, a)])
+
+
+def rotate_gravity(g: np.ndarray, angles_rad: np.ndarray) -> np.ndarray:
+    """``g`` turned by the rotation vector ``angles[0] a0 + angles[1] a1`` (Rodrigues)."""
+    from scipy.spatial.transform import Rotation
+
+    axes = gravity_axes(g)
+    rot = Rotation.from_rotvec(np.asarray(angles_rad, float) @ axes)
+    return rot.apply(np.asarray(g, float))
+
+
+def _rigid(points: np.ndarray, offset: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    if not np.any(offset):
+        return points
+    R = Rotation.from_rotvec(offset[3:]).as_matrix()
+    return (points - centre) @ R.T + centre + offset[:3]
+
+
+@dataclass
+class Problem:
+    """The calibrated model of a work folder with the effect library, and its data.
+
+    Attributes
+    ----------
+    work : WorkFolder
+    fm : ForwardModel
+        On the region-tagged loaded reference mesh, effects at their neutral values.
+    base : EffectValues
+        Neutral values (the calibration's nu and density).
+    sim : SimulatedSurface
+    points : dict of str to ndarray (k, 3)
+        Measured surface points of each scan (reference frame, mm).
+    centres : dict of str to ndarray (3,)
+        Centroid of each scan's points (the rotation centre of its rigid offset).
+    scans : list of str
+        The diagnosis scans (fitted).
+    holdout : str or None
+        The held-out scan (never fitted).
+    theta_calibrated : float
+        ``ln c1`` of the calibration.
+    inclusions : list of (ndarray, float)
+        Inclusion centres (reference frame, mm) and diameters (mm).
+    skin_thickness_mm : float
+    registration_tolerance_mm : dict of str to float
+        How far a plausible rigid registration error moves a scan's points: three times
+        its expected target registration error (ingest's ``tre_nipple_mm``,
+        ``tre_tumour_mm``, Fitzpatrick's formula) plus half a voxel.
+    """
+
+    work: WorkFolder
+    fm: ForwardModel
+    base: EffectValues
+    sim: SimulatedSurface
+    points: dict
+    centres: dict
+    scans: list
+    holdout: str | None
+    theta_calibrated: float
+    inclusions: list
+    skin_thickness_mm: float
+    registration_tolerance_mm: dict = field(default_factory=dict)
+
+    @property
+    def mesh(self) -> fem.TetMesh:
+        """The loaded reference mesh with effect regions."""
+        return self.fm.mesh
+
+    def measurement(self, name: str):
+        """The :class:`ScanMeasurement` of a scan."""
+        return self.work.measurements.scans[name]
+
+    def gravity(self, name: str, nuisance: Nuisance | None = None) -> np.ndarray:
+        """The scan's gravity direction (reference frame), turned by its nuisance angles."""
+        g = self.measurement(name).gravity_ref
+        if nuisance is None or not np.any(nuisance.gravity_rad):
+            return g
+        return rotate_gravity(g, nuisance.gravity_rad)
+
+    def solve(
+        self,
+        theta: float,
+        values: EffectValues,
+        names: list[str],
+        *,
+        gradient: bool,
+        nuisance: dict | None = None,
+    ) -> dict[str, ScanState]:
+        """Solve the postures of ``names`` at ``theta = ln c1`` with effect ``values``."""
+        if self.fm.effects != values:
+            self.fm.set_effects(values)
+        nz = nuisance or {}
+        gravities = {n: self.gravity(n, nz.get(n)) for n in names}
+        return self.fm.evaluate(theta, gravities, gradient=gradient)
+
+    def measured_points(self, name: str, nuisance: Nuisance | None = None) -> np.ndarray:
+        """The scan's points moved by its rigid offset."""
+        p = self.points[name]
+        return p if nuisance is None else _rigid(p, nuisance.offset, self.centres[name])
+
+    def residuals(
+        self,
+        name: str,
+        positions_mm: np.ndarray,
+        dpositions_mm: np.ndarray | None = None,
+        nuisance: Nuisance | None = None,
+    ) -> Residuals:
+        """Surface residuals of one scan for simulated positions (and their derivative)."""
+        return scan_residuals(
+            "surface", self.measurement(name), self.mesh, self.sim, positions_mm,
+            dpositions_mm, surface_points_mm=self.measured_points(name, nuisance),
+        )  # fmt: skip
+
+
+def _parameters(record: dict) -> dict:
+    return (record.get("provenance") or {}).get("parameters") or {}
+
+
+def _loaded_nodes(work: WorkFolder) -> np.ndarray:
+    """The loaded reference geometry of the model mesh, from the saved states."""
+    refs = [s.reference_positions_mm for s in work.states.values()]
+    refs = [r for r in refs if r is not None]
+    if not refs:
+        raise DiagnosisError(
+            f"{work.path}: no saved state with displacement_from_reference_mm (run "
+            "`phantom-calib calibrate` again)"
+        )
+    spread = max(float(np.abs(r - refs[0]).max()) for r in refs)
+    if spread > 1e-6:
+        raise DiagnosisError(f"{work.path}: the saved states disagree on the reference geometry "
+                             f"by {spread:.3g} mm")  # fmt: skip
+    return refs[0]
+
+
+def reference_inclusions(work: WorkFolder) -> list[tuple[np.ndarray, float]]:
+    """Inclusions ingest detected in the reference scan: (centre mm, diameter mm), ref frame."""
+    ref = work.measurements.reference
+    path = Path(work.path) / "scans" / ref.name / "ingest.json"
+    doc = json.loads(path.read_text())
+    T = ref.T_ref_from_scan
+    out = []
+    for inc in doc.get("inclusions") or []:
+        c = np.asarray(inc["centre_lps_mm"], float)
+        out.append((T[:3, :3] @ c + T[:3, 3], float(inc["diameter_mm"])))
+    return out
+
+
+def _registration_tolerance(work: WorkFolder, name: str) -> float:
+    """3 x the scan's expected TRE (ingest.json) + half its smallest voxel, mm."""
+    doc = json.loads((Path(work.path) / "scans" / name / "ingest.json").read_text())
+    tre = max(float(doc.get("tre_nipple_mm") or 0.0), float(doc.get("tre_tumour_mm") or 0.0))
+    voxel = min(doc.get("voxel_size_mm") or [1.0])
+    return 3.0 * tre + 0.5 * float(voxel)
+
+
+def choose_scans(work: WorkFolder, holdout: str | None) -> tuple[list[str], str | None]:
+    """The diagnosis scans and the held-out one.
+
+    ``holdout=None`` holds out the first validation scan of the calibration (session
+    order), if any; ``"none"`` holds out nothing. Every other scan but the reference is
+    fitted.
+    """
+    names = [n for n, s in work.record["scans"].items() if not s.get("failed")]
+    roles = {n: work.record["scans"][n]["role"] for n in names}
+    if holdout is None:
+        holdout = next((n for n in names if roles[n] == "validation"), None)
+    elif holdout.lower() == "none":
+        holdout = None
+    elif holdout not in names:
+        raise DiagnosisError(
+            f"--holdout {holdout!r}: not a scan with a calibrated state; choose from {names}"
+        )
+    scans = [n for n in names if n != holdout]
+    if not scans:
+        raise DiagnosisError(f"{work.path}: no scan left to diagnose besides the held-out one")
+    return scans, holdout
+
+
+def build_problem(
+    work: WorkFolder,
+    *,
+    holdout: str | None = None,
+    skin_thickness_mm: float = SKIN_THICKNESS_MM,
+    max_points: int | None = None,
+) -> Problem:
+    """The diagnosis problem of a calibrated work folder (no FE solve yet).
+
+    Parameters
+    ----------
+    work : WorkFolder
+        :func:`calib.data.read_work`.
+    holdout : str, optional
+        See :func:`choose_scans`.
+    skin_thickness_mm : float
+        Band of the skin effect.
+    max_points : int, optional
+        Points per scan; default the calibration's.
+
+    Raises
+    ------
+    DiagnosisError
+    """
+    record = work.record
+    model = record["model"]
+    params = _parameters(record)
+    if record.get("reference_state", "unload") not in ("unload", "shortcut"):
+        raise DiagnosisError(f"{work.path}: unknown reference_state {record['reference_state']!r}")
+    scans, held = choose_scans(work, holdout)
+    loaded = work.mesh.with_nodes(_loaded_nodes(work))
+    inclusions = reference_inclusions(work)
+    mesh = tag_effect_regions(loaded, skin_thickness_mm=skin_thickness_mm, inclusions=inclusions)
+    nu = float(model.get("nu", 0.499))
+    density = float(model.get("density_kg_m3", 1000.0))
+    base = EffectValues(nu=nu, density_kg_m3=density)
+    fm = ForwardModel(
+        mesh, work.measurements.reference.gravity_ref, nu=nu, density_kg_m3=density,
+        reference_state=record.get("reference_state", "unload"),
+        formulation=model.get("formulation", "taylor-hood"),
+        g_m_s2=float(model.get("g_m_s2") or 9.81), fixed_point_fallback=False, effects=base,
+    )  # fmt: skip
+    n_pts = int(max_points or params.get("max_points", 3000))
+    seed = int(params.get("seed", 0))
+    points = {
+        n: work.measurements.scans[n].surface_points(max_points=n_pts, seed=seed)
+        for n in [*scans, *([held] if held else [])]
+    }
+    centres = {n: p.mean(axis=0) for n, p in points.items()}
+    tolerance = {n: _registration_tolerance(work, n) for n in points}
+    return Problem(
+        work=work, fm=fm, base=base, sim=SimulatedSurface.of(mesh), points=points,
+        centres=centres, scans=scans, holdout=held,
+        theta_calibrated=float(np.log(record["c1_pa"])), inclusions=inclusions,
+        skin_thickness_mm=float(skin_thickness_mm), registration_tolerance_mm=tolerance,
+    )  # fmt: skip

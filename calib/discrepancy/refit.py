@@ -1,0 +1,320 @@
+"""Refit ln c1 jointly with candidate effects by the full nonlinear FE model.
+
+Least squares over the diagnosis scans' surface residuals (the calibration's
+``surface`` objective, all points weighted alike), parameters
+``x = [ln c1, effect parameters, nuisance parameters]``, each within its physical range.
+Levenberg-Marquardt steps (Marquardt 1963: ``(A'A + lambda diag(A'A)) dx = -A'r`` with
+``A = dr/dx`` from :mod:`calib.discrepancy.fields`), projected onto the bounds, with a
+backtracking line search on the sum of squares; a trial whose FE solve (or stress-free
+recovery) fails halves the step and is recorded, never replaced by a made-up value.
+``sliding`` is not a continuous parameter here: in a set it switches the support to the
+frictionless end state (see :mod:`calib.model.effects`).
+
+Leave-one-posture-out prediction (:func:`lopo`) is the first-order one at the fit: for
+each scan ``k``, the parameters refitted on the other scans by one Gauss-Newton step
+from the joint fit, ``dx_k = argmin sum_{s != k} |r_s + A_s dx|^2`` (the nuisance of
+``k`` reset to neutral: it cannot be learnt from the other scans), predict
+``r_k + A_k dx_k`` (less its mean: a scan's constant offset is its own nuisance, see
+:mod:`calib.discrepancy.screen`); its mean square over the scans is compared between
+models.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+import fem
+
+from ..model.effects import LIBRARY, EffectValues
+from .fields import MATERIAL_EFFECTS, FieldSet, effect_fields
+from .problem import Nuisance, Problem
+
+__all__ = ["Refit", "lopo", "refit"]
+
+log = logging.getLogger(__name__)
+
+GLOBAL = MATERIAL_EFFECTS  # continuous global effect parameters
+_OFFSET_BOUNDS = (3.0, 3.0, 3.0, math.radians(2.0), math.radians(2.0), math.radians(2.0))
+_COMPONENTS = ("tx", "ty", "tz", "wx", "wy", "wz")
+
+
+@dataclass(frozen=True)
+class Refit:
+    """A joint fit of ln c1 and a set of effects.
+
+    Attributes
+    ----------
+    effects : tuple of str
+        The library effects added (besides c1).
+    theta : float
+        ``ln c1``.
+    values : EffectValues
+    nuisance : dict of str to Nuisance
+    names : tuple of str
+        Parameter names in ``x`` order (``theta`` first, then the field columns).
+    x : ndarray
+    lower, upper : ndarray
+        Bounds of ``x``.
+    fields : FieldSet
+        Residuals and sensitivity columns at the fit (every requested effect).
+    sum_sq_mm2 : float
+    mean_sq_mm2 : float
+    iterations, evaluations, failed_evaluations : int
+    success : bool
+    message : str
+    history : tuple of dict
+    """
+
+    effects: tuple
+    theta: float
+    values: EffectValues
+    nuisance: dict
+    names: tuple
+    x: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    fields: FieldSet
+    sum_sq_mm2: float
+    mean_sq_mm2: float
+    iterations: int
+    evaluations: int
+    failed_evaluations: int
+    success: bool
+    message: str
+    history: tuple = field(default=(), repr=False)
+
+    @property
+    def c1_pa(self) -> float:
+        """The refitted c1 (Pa)."""
+        return float(np.exp(self.theta))
+
+    def jacobian(self) -> np.ndarray:
+        """``dr/dx`` at the fit, (n, len(x))."""
+        f = self.fields
+        cols = [f.stack(f.jacobian)] + [f.stack(_column(f, n).values) for n in self.names[1:]]
+        return np.column_stack(cols)
+
+    def at_bound(self, tol: float = 1e-6) -> tuple[str, ...]:
+        """Parameters that ended on a bound of their physical range."""
+        span = np.where(np.isfinite(self.upper - self.lower), self.upper - self.lower, 1.0)
+        on = (self.x - self.lower < tol * span) | (self.upper - self.x < tol * span)
+        return tuple(n for n, b in zip(self.names, on, strict=True) if b)
+
+    def parameter(self, name: str) -> float:
+        """Value of a parameter by name."""
+        return float(self.x[self.names.index(name)])
+
+
+def _column(fields: FieldSet, name: str):
+    return next(c for c in fields.columns if c.name == name)
+
+
+def _layout(prob: Problem, effects: Sequence[str], theta0: float):
+    """Parameter names, bounds and the column names the fit needs."""
+    names, lo, hi = ["theta"], [theta0 - math.log(4.0)], [theta0 + math.log(4.0)]
+    for e in effects:
+        if e in GLOBAL:
+            names.append(e)
+            lo.append(LIBRARY[e].bounds[0])
+            hi.append(LIBRARY[e].bounds[1])
+    if "gravity" in effects:
+        b = LIBRARY["gravity"].bounds
+        for n in prob.scans:
+            for k in range(2):
+                names.append(f"gravity[{n}].a{k}")
+                lo.append(b[0])
+                hi.append(b[1])
+    if "registration" in effects:
+        for n in prob.scans:
+            for c, b in zip(_COMPONENTS, _OFFSET_BOUNDS, strict=True):
+                names.append(f"registration[{n}].{c}")
+                lo.append(-b)
+                hi.append(b)
+    return tuple(names), np.array(lo), np.array(hi)
+
+
+def _unpack(prob: Problem, names, x, base: EffectValues, effects):
+    """``(theta, values, nuisance)`` of a parameter vector."""
+    values = base
+    if "sliding" in effects:
+        values = replace(values, support_stiffness_pa_per_mm=0.0)
+    nz = {n: Nuisance() for n in prob.scans}
+    grav = {n: np.zeros(2) for n in prob.scans}
+    off = {n: np.zeros(6) for n in prob.scans}
+    for name, v in zip(names[1:], x[1:], strict=True):
+        if name in GLOBAL:
+            values = LIBRARY[name].set(values, v)
+        elif name.startswith("gravity["):
+            scan, k = name[8:].split("].a")
+            grav[scan][int(k)] = v
+        elif name.startswith("registration["):
+            scan, c = name[13:].split("].")
+            off[scan][_COMPONENTS.index(c)] = v
+    nz = {n: Nuisance(grav[n], off[n]) for n in prob.scans}
+    return float(x[0]), values, nz
+
+
+def refit(
+    prob: Problem,
+    effects: Sequence[str],
+    *,
+    screened: Sequence[str] = (),
+    theta0: float | None = None,
+    x0: dict | None = None,
+    max_iterations: int = 10,
+    rtol: float = 1e-3,
+    say=None,
+) -> Refit:
+    """Fit ln c1 and the parameters of ``effects`` to the diagnosis scans.
+
+    Parameters
+    ----------
+    prob : Problem
+    effects : sequence of str
+        Library effects to add (``density`` is not allowed: it is c1's own signature).
+    screened : sequence of str
+        Further effects whose sensitivity columns are computed at the fit (for the next
+        screening); the fitted ones always are.
+    theta0 : float, optional
+        Start (default the calibration's ln c1); the bounds are ``theta0 +- ln 4``.
+    x0 : dict, optional
+        Starting values by parameter name (clipped to the bounds).
+    max_iterations : int
+    rtol : float
+        Stop when the sum of squares decreases by less than this fraction.
+    say : callable, optional
+
+    Returns
+    -------
+    Refit
+    """
+    say = say or log.info
+    effects = tuple(effects)
+    if "density" in effects:
+        raise ValueError("density cannot be refitted: at fixed nu it is c1's own signature")
+    theta0 = prob.theta_calibrated if theta0 is None else theta0
+    names, lo, hi = _layout(prob, effects, theta0)
+    neutral = {"poisson": prob.base.nu}  # the model's own nu is the neutral value
+    x = np.array([theta0] + [neutral.get(n, LIBRARY[n].neutral) if n in GLOBAL else 0.0
+                             for n in names[1:]])  # fmt: skip
+    for k, v in (x0 or {}).items():
+        if k in names:
+            x[names.index(k)] = v
+    x = np.clip(x, lo, hi)
+    fitted = tuple(e for e in effects if e != "sliding")
+    wanted = tuple(dict.fromkeys([*fitted, *screened]))
+    history: list[dict] = []
+    failed = 0
+
+    def evaluate(xv, gradient: bool, columns=fitted):
+        theta, values, nz = _unpack(prob, names, xv, prob.base, effects)
+        if gradient:
+            return effect_fields(prob, theta, values, columns, nuisance=nz, say=lambda m: None)
+        states = prob.solve(theta, values, prob.scans, gradient=False, nuisance=nz)
+        return {n: prob.residuals(n, states[n].positions_mm, None, nz[n]).r for n in prob.scans}
+
+    def sumsq(res: dict) -> float:
+        return float(sum(np.sum(v**2) for v in res.values()))
+
+    fs = evaluate(x, True)
+    S = sumsq(fs.residual)
+    n_res = sum(len(v) for v in fs.residual.values())
+    history.append({"x": x.tolist(), "sum_sq_mm2": S})
+    lam, it, message, success = 1e-3, 0, "iteration limit reached", False
+    t_last = 1.0  # the line search starts at the last accepted fraction (doubled, <= 1)
+    while it < max_iterations:
+        it += 1
+        r = fs.stack(fs.residual)
+        A = np.column_stack([fs.stack(fs.jacobian)]
+                            + [fs.stack(_column(fs, n).values) for n in names[1:]])  # fmt: skip
+        H = A.T @ A
+        g = A.T @ r
+        d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+        accepted = None
+        t = min(1.0, 2.0 * t_last)
+        step = None
+        while t >= 1.0 / 32.0:
+            if step is None:
+                Hs = H / np.outer(d, d) + lam * np.eye(len(x))
+                step = -np.linalg.solve(Hs, g / d) / d
+            trial = np.clip(x + t * step, lo, hi)
+            try:
+                res = evaluate(trial, False)
+            except fem.ConvergenceError as exc:
+                failed += 1
+                history.append({"x": trial.tolist(), "failed": str(exc)})
+                say(f"  refit {'+'.join(effects) or 'c1'}: no FE solution at a trial point; "
+                    "step halved")  # fmt: skip
+                t /= 2.0
+                continue
+            St = sumsq(res)
+            history.append({"x": trial.tolist(), "sum_sq_mm2": St})
+            if St < S:
+                accepted = (trial, St)
+                break
+            t /= 2.0
+        if accepted is None:
+            message, success = "no decrease along the step (a minimum within the tolerance)", True
+            break
+        x_new, S_new = accepted
+        gain = (S - S_new) / S
+        x, S = x_new, S_new
+        fs = evaluate(x, True)
+        lam = max(lam / 3.0, 1e-6) if t == 1.0 else lam
+        t_last = t
+        shown = [f"c1 = {np.exp(x[0]):.1f} Pa"] + [
+            f"{n} = {v:.4g}" for n, v in zip(names[1:4], x[1:4], strict=False)
+        ]
+        say(f"  refit {'+'.join(effects) or 'c1'}: {', '.join(shown)}, "
+            f"rms {np.sqrt(S / n_res):.4f} mm")  # fmt: skip
+        if gain < rtol:
+            message, success = "the sum of squares changed by less than the tolerance", True
+            break
+    if set(wanted) - set(fitted):
+        fs = evaluate(x, True, wanted)  # every column to screen next, at the fit
+    theta, values, nz = _unpack(prob, names, x, prob.base, effects)
+    return Refit(effects, theta, values, nz, names, x, lo, hi, fs, S, S / n_res, it,
+                 len(history), failed, success, message, tuple(history))  # fmt: skip
+
+
+def lopo(fit: Refit) -> dict:
+    """First-order leave-one-posture-out prediction at a fit (module docstring).
+
+    Returns
+    -------
+    dict
+        ``mean_sq_mm2`` (over every point of every left-out scan) and ``per_scan``
+        mean squares; ``None`` when there is a single scan.
+    """
+    f = fit.fields
+    scans = list(f.scans)
+    if len(scans) < 2:
+        return {"mean_sq_mm2": None, "per_scan": {}}
+    sizes = [len(f.residual[n]) for n in scans]
+    edges = np.cumsum([0, *sizes])
+    label = np.repeat(np.arange(len(scans)), sizes)
+    offsets = np.column_stack([(label == i).astype(float) for i in range(len(scans))])
+    A = np.column_stack([fit.jacobian(), offsets])
+    r = f.stack(f.residual)
+    out, total, count = {}, 0.0, 0
+    for k, n in enumerate(scans):
+        rows = label != k
+        own = np.array([p.startswith(("gravity[", "registration[")) and f"[{n}]" in p
+                        for p in fit.names] + [i == k for i in range(len(scans))])  # fmt: skip
+        sol, *_ = np.linalg.lstsq(A[rows][:, ~own], -r[rows], rcond=1e-10)
+        dx = np.zeros(A.shape[1])
+        dx[~own] = sol
+        dx[: len(fit.x)][own[: len(fit.x)]] = -fit.x[own[: len(fit.x)]]  # its nuisance: neutral
+        pred = (
+            r[edges[k] : edges[k + 1]] + A[edges[k] : edges[k + 1], : len(fit.x)] @ dx[: len(fit.x)]
+        )
+        pred = pred - pred.mean()  # its own offset is a nuisance of the left-out scan
+        out[n] = float(np.mean(pred**2))
+        total += float(np.sum(pred**2))
+        count += len(pred)
+    return {"mean_sq_mm2": total / count, "per_scan": out}

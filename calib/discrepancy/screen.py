@@ -1,0 +1,152 @@
+"""Noise model, misfit test and score screening of the library's effects on the residuals.
+
+Thin glue over :mod:`calib.stats` (which owns the statistics): the residual field of the
+diagnosis scans at the fitted ``ln c1`` is a :class:`calib.stats.SurfaceSample` with one
+label per scan; the noise model is a short-range variogram fit of those residuals
+(:func:`calib.stats.estimate_noise`, one per scan, with the other plausible kernels as
+alternatives) — the session's noise, see below; :func:`calib.stats.misfit_test` asks
+whether any large-scale structure is left; :func:`calib.stats.screen_effects` gives each
+effect's score test with what ``ln c1`` absorbs projected out, Holm across effects,
+identifiability and confounding.
+
+Per-scan offsets: a constant normal offset of a scan's whole measured surface (a
+segmentation threshold, the model mesh's faceting: about +0.1 mm on the twins) is no
+mechanical effect; one indicator column per scan joins what is projected out, so every
+test asks for structure beyond ``ln c1``, the fitted effects and these offsets.
+
+The session's noise. Imaging and the model mesh are the same for every scan of a
+session, so the noise process is too; a missing effect only adds to a scan's residual,
+and in a short-range variogram it shows as a larger sill and a longer range (a pad
+pressing one posture's flank made the pooled fit 0.69 mm over 43 mm, and then nothing
+was significant against it). The noise model is therefore the variogram fit of the
+least-disturbed scan, the one with the smallest standard deviation, applied to every
+scan. With one scan it is that scan's fit. The tests stay ratio statistics (band F,
+series variances): the model supplies shapes, the data the scale.
+
+Sign: the sensitivity columns of :mod:`calib.discrepancy.fields` are ``dr/dp`` of the
+residual ``r`` (measured point minus simulated surface). ``screen_effects``' one-step
+estimate ``s~' r / |s~|^2`` is a step in the parameter when ``s`` is the derivative of
+the model's prediction, ``-dr/dp``; the columns are passed negated, so every
+``estimate`` is the parameter change from neutral that the residual asks for.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..stats import EffectScreening, ModelFit, NoiseFit, SurfaceSample, estimate_noise
+from ..stats import misfit_test as _misfit_test
+from ..stats import screen_effects as _screen_effects
+from .fields import FieldSet
+
+__all__ = ["Screen", "offset_columns", "sample_of", "screen", "session_noise"]
+
+
+@dataclass(frozen=True)
+class Screen:
+    """Noise model, misfit test and effect screening at one fit.
+
+    Attributes
+    ----------
+    sample : SurfaceSample
+    noise : NoiseFit
+        The short-range variogram fit (``best`` and ``plausible``).
+    misfit : ModelFit
+        Band-F misfit test of the residual.
+    screening : EffectScreening or None
+        None when no column was screened.
+    columns : tuple of str
+        Names of the screened columns, in order.
+    """
+
+    sample: SurfaceSample
+    noise: NoiseFit
+    misfit: ModelFit
+    screening: EffectScreening | None
+    columns: tuple
+
+
+def offset_columns(sample: SurfaceSample) -> np.ndarray:
+    """One indicator column per scan (its constant normal offset), shape (n, scans)."""
+    return np.column_stack([(sample.scan == lab).astype(float) for lab in sample.labels])
+
+
+def _scan_means(sample: SurfaceSample, r: np.ndarray) -> np.ndarray:
+    return np.array([r[idx].mean() for idx in sample.blocks])
+
+
+def session_noise(sample: SurfaceSample, residual_mm: np.ndarray, **kw) -> NoiseFit:
+    """The least-disturbed scan's short-range noise fit (see the module docstring).
+
+    Parameters
+    ----------
+    sample : SurfaceSample
+    residual_mm : ndarray, shape (n,)
+    **kw
+        Passed to :func:`calib.stats.estimate_noise` (``max_lag_mm``, ...).
+
+    Returns
+    -------
+    NoiseFit
+    """
+    fits = estimate_noise(sample, residual_mm, scope="per-scan", **kw)
+    return min(fits.values(), key=lambda f: f.best.sigma_mm)
+
+
+def sample_of(fields: FieldSet, points: dict) -> SurfaceSample:
+    """The residuals' points with one integer label per scan (the order of ``fields.scans``)."""
+    pts = np.concatenate([points[n] for n in fields.scans])
+    lab = np.concatenate([np.full(len(points[n]), i) for i, n in enumerate(fields.scans)])
+    return SurfaceSample(pts, lab)
+
+
+def screen(
+    fields: FieldSet,
+    points: dict,
+    *,
+    columns: tuple[str, ...] | None = None,
+    absorbed: tuple[str, ...] = (),
+    alpha: float = 0.05,
+    confounded_above: float = 0.9,
+    noise: NoiseFit | None = None,
+) -> Screen:
+    """Screen the columns of ``fields`` (default all) at its fit.
+
+    Parameters
+    ----------
+    fields : FieldSet
+        Residuals and columns at the fitted parameters.
+    points : dict of str to ndarray (k, 3)
+        Where each scan's residuals live.
+    columns : tuple of str, optional
+        Columns to screen; default every column not in ``absorbed``.
+    absorbed : tuple of str
+        Columns already fitted (they join ``dr/d ln c1`` in what is projected out).
+    alpha : float
+        Family-wise error rate (Holm) and the misfit test's level.
+    confounded_above : float
+    noise : NoiseFit, optional
+        Reuse a noise model (else estimated from this residual).
+
+    Returns
+    -------
+    Screen
+    """
+    sample = sample_of(fields, points)
+    r = fields.stack(fields.residual)
+    J = np.column_stack([fields.stack(fields.jacobian), offset_columns(sample)])
+    if absorbed:
+        J = np.column_stack([J, fields.matrix(absorbed)])
+    fit = noise or session_noise(sample, r - offset_columns(sample) @ _scan_means(sample, r))
+    alt = tuple(fit.plausible[1:])
+    misfit = _misfit_test(r, J, sample, fit.best, alpha=alpha, alternatives=alt)
+    names = tuple(c.name for c in fields.columns if c.name not in absorbed) if columns is None \
+        else tuple(columns)  # fmt: skip
+    if not names:
+        return Screen(sample, fit, misfit, None, ())
+    S = -fields.matrix(names)  # the prediction's derivative: estimates are parameter steps
+    res = _screen_effects(r, J, S, names, sample, fit.best, alpha=alpha,
+                          confounded_above=confounded_above, alternatives=alt)  # fmt: skip
+    return Screen(sample, fit, misfit, res, names)

@@ -1,0 +1,288 @@
+"""The missing-effect report: figures (matplotlib) and a self-standing HTML page.
+
+Figures, returned to the caller (:mod:`calib.workflows.diagnose` saves them):
+
+- :func:`residual_maps_figure`: a scan's measured surface shaded by its distance to the
+  model before (the calibration) and after (the diagnosis' final model), front and side
+  views in the phantom frame, one colour scale (cividis, mm) shared by every scan;
+- :func:`localisation_figure`: the significance map (local z-score of the smoothed
+  residual under the noise model) of a scan, diverging colours, fixed scale -4..4;
+- :func:`gap_figure`: the mean surface error of every scan before and after, the
+  held-out scan marked, with the noise floor.
+"""
+
+from __future__ import annotations
+
+import html
+import math
+
+import numpy as np
+
+from .maps import ERROR_CMAP
+
+__all__ = [
+    "diagnosis_html",
+    "format_diagnosis",
+    "gap_figure",
+    "localisation_figure",
+    "residual_maps_figure",
+]
+
+Z_CMAP = "RdBu_r"
+Z_LIMIT = 4.0
+
+
+def _surface(scan, R):
+    v = np.asarray(scan.vertices_mm, float) @ np.asarray(R, float)
+    keep = ~scan.back_plate[scan.faces].all(axis=1)
+    faces = scan.faces[keep]
+    tri = v[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    light = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    return v, faces, 0.55 + 0.45 * np.abs(n @ light)
+
+
+_VIEWS = (("front (from the apex)", 90.0, -90.0), ("side", 0.0, -90.0))
+
+
+def _draw(fig, pos, v, faces, shade, face_values, mapper, title):
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    axes = []
+    for k, (label, elev, azim) in enumerate(_VIEWS):
+        ax = fig.add_subplot(pos[0], pos[1], pos[2] + k, projection="3d")
+        rgba = mapper.to_rgba(face_values)
+        rgba[:, :3] *= shade[:, None]
+        ax.add_collection3d(Poly3DCollection(v[faces], facecolors=rgba, edgecolors="none"))
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), zlim=(lo[2], hi[2]),
+               xlabel="x (mm)", ylabel="y (mm)", zlabel="z (mm)")  # fmt: skip
+        ax.set_title(f"{title}\n{label}", fontsize=10)
+        ax.set_box_aspect(hi - lo)
+        ax.view_init(elev=elev, azim=azim)
+        hidden = ax.zaxis if elev == 90.0 else ax.yaxis
+        hidden.set_ticklabels([])
+        hidden.label.set_visible(False)
+        axes.append(ax)
+    return axes
+
+
+def residual_maps_figure(name: str, role: str, scan, before_mm, after_mm, R, *, vmax: float):
+    """|error| on the measured surface before and after, one colour scale (mm).
+
+    Parameters
+    ----------
+    name, role : str
+    scan : ScanMeasurement
+    before_mm, after_mm : ndarray, shape (n_vertices,)
+        Signed distance of every measured vertex to the model (``ScanMetrics.
+        vertex_error_mm``); ``after_mm`` may be None.
+    R : ndarray, shape (3, 3)
+        ``R_ref_from_phantom``.
+    vmax : float
+        Top of the colour scale (mm), shared by every scan's figure.
+    """
+    from matplotlib import cm, colormaps, colors
+    from matplotlib.figure import Figure
+
+    v, faces, shade = _surface(scan, R)
+    mapper = cm.ScalarMappable(norm=colors.Normalize(0.0, vmax), cmap=colormaps[ERROR_CMAP])
+    rows = [("before (calibration)", before_mm)]
+    if after_mm is not None:
+        rows.append(("after (final model)", after_mm))
+    fig = Figure(figsize=(10, 4.4 * len(rows)), layout="constrained")
+    for i, (label, err) in enumerate(rows):
+        e = np.abs(np.asarray(err, float))[faces].mean(axis=1)
+        mean = float(np.abs(err)[~scan.back_plate].mean())
+        _draw(fig, (len(rows), 2, 2 * i + 1), v, faces, shade, e, mapper,
+              f"{label}, mean {mean:.2f} mm")  # fmt: skip
+    fig.colorbar(mapper, ax=fig.axes, shrink=0.6, label="distance to the model surface (mm)")
+    fig.suptitle(f"{name} ({role}): surface error before and after, one colour scale")
+    return fig
+
+
+def localisation_figure(scan_map, R):
+    """The significance map of a scan: local z of the smoothed residual, two views.
+
+    Parameters
+    ----------
+    scan_map : calib.discrepancy.localise.ScanMap
+    R : ndarray, shape (3, 3)
+    """
+    from matplotlib.figure import Figure
+
+    p = np.asarray(scan_map.points_mm, float) @ np.asarray(R, float)
+    fig = Figure(figsize=(10, 4.6), layout="constrained")
+    axes = fig.subplots(1, 2)
+    for ax, (i, j), lab in zip(axes, ((0, 1), (0, 2)), (("x", "y"), ("x", "z")), strict=True):
+        order = np.argsort(p[:, 3 - i - j])
+        sc = ax.scatter(p[order, i], p[order, j], c=scan_map.z[order], s=5, cmap=Z_CMAP,
+                        vmin=-Z_LIMIT, vmax=Z_LIMIT)  # fmt: skip
+        ax.set_aspect("equal")
+        ax.set_xlabel(f"{lab[0]} (mm, phantom frame)")
+        ax.set_ylabel(f"{lab[1]} (mm)")
+    fig.colorbar(sc, ax=axes, label="local z of the smoothed residual (noise model)")
+    worst = max(scan_map.regions, key=lambda r: abs(r.z) if math.isfinite(r.z) else -1)
+    fig.suptitle(f"{scan_map.name}: where model and scan disagree (kernel "
+                 f"{scan_map.bandwidth_mm:.0f} mm); strongest region: {worst.region} "
+                 f"(mean {worst.mean_mm:+.2f} mm, z {worst.z:+.1f})")  # fmt: skip
+    return fig
+
+
+def gap_figure(gap_json: dict, floor_mm: float):
+    """Mean surface error of every scan before and after; the held-out scan hatched."""
+    from matplotlib.figure import Figure
+
+    names = list(gap_json)
+    before = [gap_json[n]["surface_error_mm"]["before"]["mean"] for n in names]
+    after = [gap_json[n]["surface_error_mm"].get("after", {}).get("mean", np.nan) for n in names]
+    fig = Figure(figsize=(7, 3.8), layout="constrained")
+    ax = fig.subplots()
+    x = np.arange(len(names))
+    ax.bar(x - 0.2, before, 0.4, label="calibration (before)", color="0.6")
+    bars = ax.bar(x + 0.2, after, 0.4, label="final model (after)", color="#3b6ea8")
+    for k, n in enumerate(names):
+        if gap_json[n]["role"] == "holdout":
+            bars[k].set_hatch("//")
+            bars[k].set_edgecolor("white")
+    ax.axhline(floor_mm, color="k", ls="--", lw=1, label="noise floor (mean |e|)")
+    ax.set_xticks(x, [f"{n}\n({gap_json[n]['role']})" for n in names])
+    ax.set_ylabel("mean surface error (mm, fiducial frame)")
+    ax.legend(fontsize=8)
+    ax.set_title("the gap before and after adding the named effect")
+    return fig
+
+
+def _fmt(v, spec=".3g") -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, (int, float)):
+        return format(v, spec)
+    return str(v)
+
+
+def _table(header: list[str], rows: list[list]) -> str:
+    esc = html.escape
+    head = "".join(f"<th>{esc(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{esc(_fmt(c))}</td>" for c in r) + "</tr>" for r in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _summary(doc: dict) -> str:
+    c0, c1 = doc["calibration"]["c1_pa"], doc["c1_pa"]
+    ci = doc.get("c1_ci95_pa")
+    ci_text = f" (95 % {ci[0]:.1f}–{ci[1]:.1f} Pa)" if ci else ""
+    lines = [f"<p class='verdict'>Verdict: <b>{html.escape(doc['verdict'])}</b></p>",
+             f"<p>c1: calibration {c0:.1f} Pa; "
+             f"{'with the named effect' if doc['named'] else 'refitted alone'} {c1:.1f} Pa"
+             f"{ci_text}. Diagnosis scans: {', '.join(doc['scans']['diagnosis'])}; held out "
+             f"(never fitted): {doc['scans']['holdout'] or 'none'}.</p>"]  # fmt: skip
+    ivs = doc["refit"].get("intervals", {})
+    for name in doc["named"]:
+        for pname, iv in ivs.items():
+            if pname == name or pname.startswith(f"{name}["):
+                lines.append(f"<p>{html.escape(pname)} = {iv['value']:.4g} "
+                             f"(95 % {iv['ci95'][0]:.4g}–{iv['ci95'][1]:.4g})"
+                             + (f", stiffness ratio {iv['ratio']:.2f}" if "ratio" in iv else "")
+                             + "</p>")  # fmt: skip
+    n = doc["noise"]
+    m = n["model"]
+    lines.append(
+        f"<p>Noise model (short-range variogram of the residual): {m['kernel']}, sd "
+        f"{m['sigma_mm']:.3f} mm, nugget {m['nugget_fraction']:.2f}, length "
+        f"{m['length_mm']:.1f} mm. Noise floor of the residual: rms {n['floor_rms_mm']:.3f} "
+        f"mm (mean |e| {n['floor_mean_abs_mm']:.3f} mm). Misfit test (band F): p = "
+        f"{doc['misfit_test']['p_value']:.3g}, {doc['misfit_test']['verdict']}.</p>"
+    )
+    scr = doc["screening"]
+    cannot = [f"{html.escape(e)} (not identifiable: what c1 absorbs leaves too little of it)"
+              for e in dict.fromkeys(x.split("[")[0] for x in scr["not_identifiable"])]  # fmt: skip
+    cannot += [f"{html.escape(a)} and {html.escape(b)} (confounded, |cos| {abs(c):.2f})"
+               for a, b, c in scr["confounded"]]  # fmt: skip
+    cannot += [f"{html.escape(k)}: {html.escape(v)}" for k, v in doc["unavailable"].items()]
+    if cannot:
+        lines.append("<p>What these data cannot tell apart or test: " + "; ".join(cannot) + ".</p>")
+    return "".join(lines)
+
+
+def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
+    """The report page from ``diagnosis.json``'s document and the figures (relative paths)."""
+    esc = html.escape
+    gap_rows = []
+    for name, g in doc["gap"].items():
+        b, a = g["surface_error_mm"]["before"], g["surface_error_mm"].get("after", {})
+        gap_rows.append([name, g["role"], b["mean"], a.get("mean"), b["p95"], a.get("p95"),
+                         g.get("cut_above_floor")])  # fmt: skip
+    gap = _table(["scan", "role", "mean before", "mean after", "p95 before", "p95 after",
+                  "cut above floor"], gap_rows)  # fmt: skip
+    eff_rows = [[k, v.get("status"), v.get("statistic"), v.get("p_value"), v.get("p_holm"),
+                 v.get("significant"), v.get("retained_fraction"), v.get("reason") or
+                 v.get("note") or ""] for k, v in doc["effects"].items()]  # fmt: skip
+    effects = _table(["effect", "status", "score t", "p", "p (Holm)", "significant",
+                      "retained", "note"], eff_rows)  # fmt: skip
+    col_rows = [[c["name"], c["statistic"], c["p_value"], c["p_holm"], c["significant"],
+                 c["estimate"], c["standard_error"], c["retained_fraction"]]
+                for c in doc["screening"]["columns"]]  # fmt: skip
+    columns = _table(["column", "score t", "p", "p (Holm)", "significant", "one-step estimate",
+                      "se", "retained"], col_rows)  # fmt: skip
+    cand_rows = [[c["effect"], c["round"], c["c1_pa"], c["explained"], c["lopo_improves"],
+                  c["plausible"], c["passes"], c["reason"]] for c in doc["candidates"]]  # fmt: skip
+    cands = _table(["candidate", "round", "c1 Pa", "explained", "LOPO better", "plausible",
+                    "named", "why not"], cand_rows) if cand_rows else "<p>none</p>"  # fmt: skip
+    loc_rows = []
+    for scan, m in doc["localisation"].items():
+        for reg, r in m["regions"].items():
+            loc_rows.append([scan, reg, r["n"], r["mean_mm"], r["rms_mm"], r["z"], r["p_value"],
+                             r["share_significant"]])  # fmt: skip
+    loc = _table(["scan", "region", "points", "mean mm", "rms mm", "z", "p", "share |z|>1.96"],
+                 loc_rows)  # fmt: skip
+    figs = "".join(
+        f"<h3>{esc(name)}</h3>"
+        + "".join(
+            f'<p><img src="{esc(f)}" alt="{esc(f)}" style="max-width:100%"></p>' for f in files
+        )  # fmt: skip
+        for name, files in figures.items()
+    )
+    style = (
+        "body{font-family:sans-serif;margin:2em;max-width:80em}"
+        "table{border-collapse:collapse;font-size:90%;margin:.5em 0}"
+        "td,th{border:1px solid #bbb;padding:.3em .5em;text-align:right}"
+        "td:first-child{text-align:left}.verdict{font-size:130%}"
+    )
+    return (
+        "<!doctype html><html><head><meta charset='utf-8'><title>Missing-effect diagnosis"
+        f"</title><style>{style}</style></head><body><h1>Missing-effect diagnosis</h1>"
+        f"{_summary(doc)}<h2>The gap, per scan (surface error, fiducial frame, mm)</h2>{gap}"
+        f"<h2>Screening (score tests, what c1 absorbs projected out, Holm)</h2>{effects}"
+        f"<details><summary>every column</summary>{columns}</details>"
+        f"<h2>Confirmation (full FE refits)</h2>{cands}"
+        f"<h2>Localisation (at the c1-only refit)</h2>{loc}<h2>Figures</h2>{figs}"
+        "</body></html>\n"
+    )
+
+
+def format_diagnosis(doc: dict) -> str:
+    """The command's summary: verdict, c1 before/after and the gap per scan (plain text)."""
+    lines = [f"verdict: {doc['verdict']}"]
+    c0, c1 = doc["calibration"]["c1_pa"], doc["c1_pa"]
+    ci = doc.get("c1_ci95_pa")
+    lines.append(f"c1 = {c1:.1f} Pa" + (f" (95 % {ci[0]:.1f} - {ci[1]:.1f} Pa)" if ci else "")
+                 + f"; calibration {c0:.1f} Pa")  # fmt: skip
+    for name, iv in doc["refit"].get("intervals", {}).items():
+        if name != "theta" and any(name == e or name.startswith(f"{e}[") for e in doc["named"]):
+            lines.append(f"{name} = {iv['value']:.4g} (95 % {iv['ci95'][0]:.4g} - "
+                         f"{iv['ci95'][1]:.4g})")  # fmt: skip
+    lines.append(f"{'scan':15s} {'role':10s} {'mean before':>12s} {'mean after':>11s} "
+                 f"{'cut above floor':>16s}")  # fmt: skip
+    for name, g in doc["gap"].items():
+        b = g["surface_error_mm"]["before"]["mean"]
+        a = g["surface_error_mm"].get("after", {}).get("mean")
+        cut = g.get("cut_above_floor")
+        lines.append(f"{name:15s} {g['role']:10s} {b:12.3f} "
+                     f"{'' if a is None else f'{a:.3f}':>11s} "
+                     f"{'' if cut is None else f'{100 * cut:.0f} %':>16s}")  # fmt: skip
+    lines.append(f"noise floor (mean |e|) {doc['noise']['floor_mean_abs_mm']:.3f} mm")
+    return "\n".join(lines)

@@ -1,0 +1,149 @@
+"""The missing-effect diagnosis on digital twins: recovery of a hidden truth (slow).
+
+Tiny four-posture twins (14 mm phantom, 10 mm truth mesh, 2 mm voxels: the dissertation's
+postures) calibrated on a 14 mm model mesh, then diagnosed with the defaults (fitted:
+right lateral and 50 deg; held out: 25 deg):
+
+- the preset's hidden skin (1.5 mm, 8x) is named ``skin`` and the refit brings c1 back
+  towards the truth; the refitted model is a work folder ``validate`` accepts;
+- a homogeneous truth (``--effect none``) gives ``no missing effect``;
+- an effect outside the library, built here for the test only (a local pad pressing on
+  the flank in the 50 deg posture: point loads added to that posture's truth solve), is
+  ``unexplained``;
+- the noise model, measured from the residuals, against the twin's known imaging error.
+
+Each twin costs about 1 min to build and calibrate and 2-4 min to diagnose on 2 cores.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from calib.model.effects import TruthEffects
+from calib.twin import DISSERTATION_POSTURES, TwinPreset
+
+pytestmark = pytest.mark.slow
+
+TINY4 = TwinPreset(phantom_resolution_mm=14, truth_mesh_mm=10, spacing_mm=(2.0, 2.0, 2.0),
+                   postures=DISSERTATION_POSTURES)  # fmt: skip
+PAD_N = 0.2  # total force of the pad, N (the phantom weighs about 3.5 N)
+
+
+def _pad_forces(mesh) -> dict:
+    """Point loads of a 15 mm pad pushing the flank along -y (phantom frame), N."""
+    x = mesh.nodes_mm
+    surf = mesh.node_set("surface")
+    band = surf[(x[surf, 2] > 15.0) & (x[surf, 2] < 35.0)]
+    centre = x[band[np.argmax(x[band, 1])]]
+    near = surf[np.linalg.norm(x[surf] - centre, axis=1) < 15.0]
+    return {int(n): np.array([0.0, -PAD_N / len(near), 0.0]) for n in near}
+
+
+def _build(root, name: str, effects: TruthEffects, *, pad_posture: int | None = None):
+    import fem
+    from calib.twin import synthesize
+    from calib.workflows.calibrate import run_calibration
+    from calib.workflows.diagnose import run_diagnosis
+
+    out = root / name
+    solve = fem.solve
+    calls = []
+
+    def padded(model, **kw):  # the truth solve of one posture gets the pad's loads
+        calls.append(1)
+        if len(calls) - 1 == pad_posture:
+            kw["point_forces_n"] = _pad_forces(model.mesh)
+        return solve(model, **kw)
+
+    with pytest.MonkeyPatch.context() as mp:
+        if pad_posture is not None:
+            mp.setattr(fem, "solve", padded)
+        synthesize(out / "twin", preset=TINY4, seed=0, effects=effects)
+    from calib.fitting import CalibrationOptions
+
+    options = CalibrationOptions(mesh_size_mm=14.0, mesh_retry_mm=(16.0,), profile_points=0)
+    run_calibration(out / "twin" / "scans", out / "work", options)
+    return out, run_diagnosis(out / "work")
+
+
+@pytest.fixture(scope="module")
+def skin(tmp_path_factory):
+    return _build(tmp_path_factory.mktemp("twins"), "skin", TINY4.effects)
+
+
+@pytest.fixture(scope="module")
+def none(tmp_path_factory):
+    return _build(tmp_path_factory.mktemp("twins"), "none", TruthEffects())
+
+
+def test_the_hidden_skin_is_named(skin):
+    out, doc = skin
+    assert doc["verdict"].startswith("named: skin"), doc["verdict"]
+    c1_true = json.loads((out / "twin" / "truth" / "truth.json").read_text())["material"]["c1_pa"]
+    # the homogeneous calibration absorbs the skin into c1 ~ 1.3x the truth (555 Pa on
+    # the quick twin); with the skin refitted c1 comes back within 5 % (issue 13's bar)
+    assert doc["calibration"]["c1_pa"] > 1.2 * c1_true
+    assert doc["c1_pa"] == pytest.approx(c1_true, rel=0.05)
+    ratio = doc["refit"]["intervals"]["skin"]["ratio"]
+    assert 4.0 < ratio < 16.0  # the 8x skin at the library's 1.5 mm, on a 14 mm mesh
+    # the fitted scans' surface error falls
+    for name in doc["scans"]["diagnosis"]:
+        e = doc["gap"][name]["surface_error_mm"]
+        assert e["after"]["mean"] < e["before"]["mean"]
+    assert (out / "work" / "diagnosis" / "report.html").is_file()
+    assert json.loads(json.dumps(doc, allow_nan=False))["effects"]["density"]["status"] == (
+        "not identifiable"
+    )
+
+
+def test_the_refitted_model_is_a_calibration_validate_accepts(skin):
+    from calib.data import read_work
+    from calib.workflows.validate import run_validation
+
+    out, doc = skin
+    refit = out / "work" / "diagnosis" / "refit"
+    wf = read_work(refit)
+    assert wf.c1_pa == pytest.approx(doc["c1_pa"])
+    assert wf.record["model"]["effects"]["named"] == ["skin"]
+    assert "skin" in {n.split(":")[0] for n in wf.mesh.region_names}
+    val = run_validation(refit)
+    assert set(val["scans"]) == set(doc["gap"])
+    roles = {n: s["role"] for n, s in val["scans"].items()}
+    assert roles[doc["scans"]["holdout"]] == "validation"
+
+
+def test_a_homogeneous_truth_has_no_missing_effect(none):
+    _, doc = none
+    assert doc["verdict"] == "no missing effect"
+    assert doc["named"] == []
+
+
+def test_the_noise_model_against_the_twin_imaging_error(none):
+    # the residual of the right model is the noise: the imaging's own error (measured
+    # surface against the twin's true one, known here) plus the model mesh's faceting.
+    # The variogram's sd must cover the first and not exceed the residual's own rms.
+    import imaging
+    from calib.model.residuals import closest_on_surface
+
+    out, doc = none
+    sd = doc["noise"]["model"]["sigma_mm"]
+    err = []
+    for name in doc["scans"]["diagnosis"]:
+        true = imaging.read_ply(out / "twin" / "truth" / f"{name}_surface.ply")
+        meas = imaging.read_ply(out / "work" / "scans" / name / "surface.ply")
+        pts = meas.vertices_lps_mm[~np.asarray(meas.back_plate, bool)]
+        c, _, _, n = closest_on_surface(true.vertices_lps_mm, true.faces, pts)
+        d = np.einsum("kj,kj->k", pts - c, n)
+        err.append(d - d.mean())
+    imaging_sd = float(np.std(np.concatenate(err)))
+    assert imaging_sd < sd <= 1.1 * doc["null_fit"]["rms_mm"]
+
+
+def test_an_effect_outside_the_library_is_unexplained(tmp_path_factory):
+    out, doc = _build(tmp_path_factory.mktemp("twins"), "pad", TruthEffects(), pad_posture=3)
+    assert doc["verdict"] == "unexplained", (doc["verdict"], doc["candidates"])
+    loc = doc["localisation"]["tilt_50"]
+    assert loc["max_abs_z"] > 4.0  # the pad's print is where the map lights up

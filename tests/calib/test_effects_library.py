@@ -1,0 +1,209 @@
+"""The effect library (calib.model.effects): parameters, regions, models, sensitivities.
+
+Closed forms (band and sphere volumes of the volume-fraction tagging, the Voigt mix of
+the laws), two code paths agreeing (the effect model at neutral values against the
+calibration's homogeneous model; the twin's truth_model against effect_model), and
+direct sensitivities of the diagnosis against central finite differences of full
+nonlinear solves with the stress-free recovery, on a small phantom mesh.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from calib_helpers import small_phantom_mesh
+
+import fem
+from calib.model.effects import (
+    LIBRARY,
+    EffectError,
+    EffectValues,
+    TruthEffects,
+    effect_model,
+    effect_support,
+    region_fractions,
+    region_law,
+    tag_effect_regions,
+    truth_model,
+)
+from calib.model.forward import ForwardModel
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fem"))
+from femtest_meshes import box_mesh  # noqa: E402
+
+
+def test_every_library_effect_has_a_neutral_value_inside_its_range():
+    for name, e in LIBRARY.items():
+        lo, hi = e.bounds
+        assert lo <= e.neutral <= hi, name
+        assert e.as_json()["name"] == name
+    # the values' round trip through the library's parameters
+    base = EffectValues()
+    for name in ("skin", "inclusions", "mooney", "poisson", "density"):
+        e = LIBRARY[name]
+        v = e.set(base, e.preset)
+        assert e.get(v) == pytest.approx(e.preset, rel=1e-12), name
+        assert e.get(base) == pytest.approx(e.neutral, abs=1e-12), name
+    assert LIBRARY["density"].identifiable is False
+    with pytest.raises(EffectError, match="not a model value"):
+        LIBRARY["registration"].set(base, 1.0)
+
+
+def test_effect_values_are_checked_and_round_trip_through_json():
+    v = EffectValues(skin_ratio=8.0, c2_ratio=0.5, nu=0.45, support_stiffness_pa_per_mm=0.0)
+    assert EffectValues.from_json(v.as_json()) == v
+    assert EffectValues.from_json(EffectValues().as_json()) == EffectValues()
+    assert EffectValues().support == "clamped" and v.support == "sliding"
+    for bad, match in ((dict(skin_ratio=0.0), "skin_ratio"), (dict(nu=0.5), "nu"),
+                       (dict(c2_ratio=-1.0), "c2_ratio"), (dict(density_kg_m3=-1.0), "density"),
+                       (dict(support_stiffness_pa_per_mm=-1.0), "support")):  # fmt: skip
+        with pytest.raises(EffectError, match=match):
+            EffectValues(**bad)
+
+
+def test_supports():
+    assert effect_support(EffectValues()) == fem.Clamped()
+    assert effect_support(EffectValues(support_stiffness_pa_per_mm=0.0)) == fem.Sliding()
+    springs = effect_support(EffectValues(support_stiffness_pa_per_mm=30.0))
+    assert springs == fem.Sliding(hold="rim", tangent_stiffness_pa_per_mm=30.0)
+
+
+def test_region_names():
+    assert region_fractions("bulk") == (0.0, 0.0)
+    assert region_fractions("skin") == (1.0, 0.0)
+    assert region_fractions("skin:0.25") == (0.25, 0.0)
+    assert region_fractions("inclusion") == (0.0, 1.0)
+    assert region_fractions("inclusion:0.5") == (0.0, 0.5)
+    assert region_fractions("mix:0.25:0.125") == (0.25, 0.125)
+    with pytest.raises(EffectError, match="wrinkle"):
+        region_fractions("wrinkle")
+
+
+@pytest.fixture(scope="module")
+def box():
+    # 60 x 60 x 30 mm box, 5 mm grid, the back face z = 0 (node set "back")
+    mesh = box_mesh((60.0, 60.0, 30.0), (13, 13, 7), jitter=0.2, seed=1)
+    return mesh.with_node_sets(back=mesh.node_set("z0"))
+
+
+def _fractions(mesh):
+    fs = np.zeros(mesh.n_tets)
+    fi = np.zeros(mesh.n_tets)
+    for name, tag in mesh.region_names.items():
+        a, b = region_fractions(name)
+        fs[mesh.region == tag] = a
+        fi[mesh.region == tag] = b
+    return fs, fi
+
+
+def test_skin_band_volume_matches_the_closed_form(box):
+    # the band within t of every face but the back: V - (60 - 2t)^2 (30 - t). 64 samples
+    # per element: an element cut by the band's inner face is off by <= 1/64 of its
+    # volume, randomly signed; over ~700 cut elements of ~21 mm^3 the sum is within 2 %.
+    t = 3.0
+    mesh = tag_effect_regions(box, skin_thickness_mm=t)
+    fs, fi = _fractions(mesh)
+    exact = 60 * 60 * 30 - (60 - 2 * t) ** 2 * (30 - t)
+    assert np.sum(fs * mesh.volumes_mm3()) == pytest.approx(exact, rel=0.02)
+    assert not fi.any() and 0.0 <= fs.min() and fs.max() <= 1.0
+
+
+def test_inclusion_volume_matches_the_sphere(box):
+    # a 16 mm sphere inside (2145 mm^3): sampled fractions within 3 % (about 40 elements
+    # cut by the sphere, each off by <= 1/64 of ~21 mm^3); the skin band never inside it
+    d = 16.0
+    mesh = tag_effect_regions(box, skin_thickness_mm=3.0, inclusions=[((30.0, 30.0, 15.0), d)])
+    fs, fi = _fractions(mesh)
+    assert np.sum(fi * mesh.volumes_mm3()) == pytest.approx(math.pi * d**3 / 6, rel=0.03)
+    assert np.all(fs + fi <= 1.0 + 1e-12)
+
+
+def test_laws_are_the_voigt_mix_and_neutral_values_give_one_material(box):
+    mesh = tag_effect_regions(box, skin_thickness_mm=3.0, inclusions=[((30.0, 30.0, 15.0), 16.0)])
+    v = EffectValues(skin_ratio=8.0, inclusion_ratio=5.0, c2_ratio=0.5, nu=0.45)
+    for name in mesh.region_names:
+        fs, fi = region_fractions(name)
+        law = region_law(name, 420.0, v)
+        ratio = 1 + 7 * fs + 4 * fi  # Voigt: the stiffness mixes by volume
+        assert law.c1_pa == pytest.approx(420.0 * ratio, rel=1e-12)
+        assert law.c2_pa == pytest.approx(210.0 * ratio, rel=1e-12)
+    neutral = effect_model(mesh, 420.0, EffectValues())
+    assert len(list(neutral.element_material_groups())) == 1  # one vectorised pass
+
+
+def test_truth_model_is_the_library_model():
+    _, mesh = small_phantom_mesh()
+    t = TruthEffects(skin_thickness_mm=3.0, skin_ratio=8.0, inclusion_ratio=5.0, c2_pa=100.0,
+                     nu=0.45, density_kg_m3=1100.0, sliding=True)  # fmt: skip
+    a, b = truth_model(mesh, 420.0, t), effect_model(mesh, 420.0, t.values(420.0))
+    assert dict(a.materials) == dict(b.materials) and a.support == b.support == fem.Sliding()
+
+
+_G0, _G = np.array([1.0, 0.0, 0.0]), np.array([-1.0, 0.0, 0.3])  # gravity: reference, scan
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    _, mesh = small_phantom_mesh(skin_thickness_mm=0.0)
+    return tag_effect_regions(mesh, skin_thickness_mm=3.0)
+
+
+def test_forward_model_at_neutral_effects_is_the_calibration_model(phantom):
+    # the same equations, assembled by region groups: agreement to the Newton tolerance
+    g0, g = _G0, _G
+    kw = dict(reference_state="shortcut")
+    plain = ForwardModel(phantom, g0, **kw).evaluate(np.log(420.0), {"s": g}, gradient=False)
+    eff = ForwardModel(phantom, g0, effects=EffectValues(), **kw)
+    with_effects = eff.evaluate(np.log(420.0), {"s": g}, gradient=False)
+    np.testing.assert_allclose(with_effects["s"].positions_mm, plain["s"].positions_mm, atol=1e-6)
+    eff.set_effects(EffectValues(skin_ratio=8.0))
+    stiff = eff.evaluate(np.log(420.0), {"s": g}, gradient=False)
+    # a stiffer skin sags less
+    sag = lambda st: np.abs(st.positions_mm - phantom.nodes_mm).max()  # noqa: E731
+    assert sag(stiff["s"]) < sag(plain["s"]) - 0.1
+
+
+def test_density_field_is_minus_the_c1_field(phantom):
+    # at fixed nu the equations depend on rho g / c1 only, so the direct sensitivity to
+    # ln rho is exactly minus that to ln c1 (both through the stress-free recovery);
+    # they differ by the central differences of dR/dp only (~1e-10 relative)
+    from calib.discrepancy.fields import material_dpositions
+
+    theta, base = np.log(420.0), EffectValues(skin_ratio=2.0)
+    fm = ForwardModel(phantom, _G0, effects=base)
+    states = fm.evaluate(theta, {"s": _G}, gradient=False)
+    d = material_dpositions(fm, theta, base, states, ["density"], {"s": _G})
+    dt = d["theta"]["s"]
+    np.testing.assert_allclose(d["density"]["s"], -dt, atol=1e-6 * np.abs(dt).max())
+    # and the c1 field is the forward model's own gradient
+    st = fm.evaluate(theta, {"s": _G}, gradient=True)["s"]
+    np.testing.assert_allclose(dt, st.dpositions_mm, atol=1e-6 * np.abs(dt).max())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("which", ["skin", "inclusions", "mooney", "poisson"])
+def test_direct_sensitivities_match_central_differences(phantom, which):
+    # full nonlinear solves with the stress-free recovery (unload) at p +- h; the
+    # differences' truncation error is O(h^2) ~ 1e-4 relative, the recovery's tolerance
+    # (1e-5 mm) over 2h adds < 1e-3 mm: agreement to 2 % of the largest derivative.
+    from calib.discrepancy.fields import material_dpositions
+
+    theta = np.log(420.0)
+    base = EffectValues(skin_ratio=2.0, inclusion_ratio=2.0, c2_ratio=0.2, nu=0.49)
+    mesh = tag_effect_regions(phantom, skin_thickness_mm=3.0, inclusions=[((0, 0, 20.0), 20.0)])
+    fm = ForwardModel(mesh, _G0, effects=base)
+    states = fm.evaluate(theta, {"s": _G}, gradient=False)
+    d = material_dpositions(fm, theta, base, states, [which], {"s": _G})[which]["s"]
+    e = LIBRARY[which]
+    p0, h = e.get(base), {"skin": 0.05, "inclusions": 0.05, "mooney": 0.02, "poisson": 0.002}[which]
+    pos = []
+    for p in (p0 + h, p0 - h):
+        fm.set_effects(e.set(base, p))
+        pos.append(fm.evaluate(theta, {"s": _G}, gradient=False)["s"].positions_mm)
+    fd = (pos[0] - pos[1]) / (2 * h)
+    assert np.abs(fd).max() > 1e-3  # the effect moves the surface at all
+    assert np.abs(d - fd).max() < 0.02 * np.abs(fd).max()
