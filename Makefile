@@ -24,7 +24,7 @@ $(STAMP): pyproject.toml constraints.txt
 	@$(MAKE) --no-print-directory sysdeps
 	@[ -x $(PY) ] || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -c constraints.txt -e '.[fast,nn,dev]'
+	$(PY) -m pip install -q -c constraints.txt -e '.[nn,sweep,dev]'
 	@touch $(STAMP)
 
 venv: $(STAMP)
