@@ -12,7 +12,9 @@ Cases (``--cases``): each library effect the twin can hide at its preset amplitu
 detection curve ``skin=1.5:R`` for R in ``--ratios`` (default 2,4,8; R = 1 is the null
 set) at seed 0. Every case writes ``OUT/cases/<case>.json`` when done and is skipped when
 that file exists, so the matrix can be run in pieces and resumed (``--only`` runs a
-subset by name). The twins' truth (``OUT/<case>/twin/truth``) is read here only to score.
+subset by name); a case's twin and calibration are reused when present (delete
+``OUT/<case>/work`` to calibrate again). The twins' truth (``OUT/<case>/twin/truth``)
+is read here only to score.
 
 What counts as the right name: the hidden effect named (alone or in a confounded
 pair). For ``density`` (never identifiable under gravity alone: the calibration absorbs
@@ -91,8 +93,11 @@ def run_case(root: Path, name: str, specs: list[str], seed: int, hidden: str) ->
         eff = parse_effects(specs, default=PRESETS["quick"].effects)
         synthesize(twin, preset="quick", seed=seed, effects=eff, overwrite=True)
     t1 = time.perf_counter()
-    cal = run_calibration(twin / "scans", work, CalibrationOptions(
-        mesh_size_mm=14.0, mesh_retry_mm=(16.0,), profile_points=0))  # fmt: skip
+    if (work / "calibration.json").is_file():  # a calibration of this case: reused
+        cal = json.loads((work / "calibration.json").read_text())
+    else:
+        opts = CalibrationOptions(mesh_size_mm=14.0, mesh_retry_mm=(16.0,), profile_points=0)
+        cal = run_calibration(twin / "scans", work, opts)
     t2 = time.perf_counter()
     doc = run_diagnosis(work, DiagnosisOptions())
     t3 = time.perf_counter()

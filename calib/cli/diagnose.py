@@ -18,7 +18,7 @@ def diagnose(
         typer.Option(
             "--effects",
             help="Comma-separated library effects to screen (skin, sliding, inclusions, "
-            "mooney, poisson, density, gravity, registration). Default: all but sliding.",
+            "mooney, poisson, density, gravity, registration). Default: all.",
         ),
     ] = None,
     holdout: Annotated[

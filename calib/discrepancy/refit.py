@@ -7,8 +7,7 @@ Levenberg-Marquardt steps (Marquardt 1963: ``(A'A + lambda diag(A'A)) dx = -A'r`
 ``A = dr/dx`` from :mod:`calib.discrepancy.fields`), projected onto the bounds, with a
 backtracking line search on the sum of squares; a trial whose FE solve (or stress-free
 recovery) fails halves the step and is recorded, never replaced by a made-up value.
-``sliding`` is not a continuous parameter here: in a set it switches the support to the
-frictionless end state (see :mod:`calib.model.effects`).
+``sliding`` is not refitted (:data:`calib.discrepancy.diagnose.NO_SLIDING_REFIT`).
 
 Leave-one-posture-out prediction (:func:`lopo`) is the first-order one at the fit: for
 each scan ``k``, the parameters refitted on the other scans by one Gauss-Newton step
@@ -197,6 +196,8 @@ def refit(
     effects = tuple(effects)
     if "density" in effects:
         raise ValueError("density cannot be refitted: at fixed nu it is c1's own signature")
+    if "sliding" in effects:
+        raise ValueError("sliding cannot be refitted (see calib.discrepancy.NO_SLIDING_REFIT)")
     theta0 = prob.theta_calibrated if theta0 is None else theta0
     names, lo, hi = _layout(prob, effects, theta0)
     neutral = {"poisson": prob.base.nu}  # the model's own nu is the neutral value

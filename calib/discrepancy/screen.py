@@ -109,6 +109,7 @@ def screen(
     columns: tuple[str, ...] | None = None,
     absorbed: tuple[str, ...] = (),
     alpha: float = 0.05,
+    misfit_alpha: float = 0.01,
     confounded_above: float = 0.9,
     noise: NoiseFit | None = None,
 ) -> Screen:
@@ -125,7 +126,11 @@ def screen(
     absorbed : tuple of str
         Columns already fitted (they join ``dr/d ln c1`` in what is projected out).
     alpha : float
-        Family-wise error rate (Holm) and the misfit test's level.
+        Family-wise error rate of the screening (Holm).
+    misfit_alpha : float
+        Level of the misfit test (``calib.stats.misfit_test``'s default, 0.01: a model
+        mesh's own discretisation leaves some large-scale structure, which a 5 % test
+        flags on coarse meshes of a homogeneous twin).
     confounded_above : float
     noise : NoiseFit, optional
         Reuse a noise model (else estimated from this residual).
@@ -141,7 +146,7 @@ def screen(
         J = np.column_stack([J, fields.matrix(absorbed)])
     fit = noise or session_noise(sample, r - offset_columns(sample) @ _scan_means(sample, r))
     alt = tuple(fit.plausible[1:])
-    misfit = _misfit_test(r, J, sample, fit.best, alpha=alpha, alternatives=alt)
+    misfit = _misfit_test(r, J, sample, fit.best, alpha=misfit_alpha, alternatives=alt)
     names = tuple(c.name for c in fields.columns if c.name not in absorbed) if columns is None \
         else tuple(columns)  # fmt: skip
     if not names:

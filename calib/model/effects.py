@@ -395,16 +395,20 @@ class Effect:
         return float(getter(values))
 
     def as_json(self) -> dict:
-        """The library entry as plain JSON (for ``diagnosis.json``)."""
+        """The library entry as plain JSON (for ``diagnosis.json``; infinities as strings)."""
+
+        def num(v: float):
+            return v if math.isfinite(v) else ("inf" if v > 0 else "-inf")
+
         return {
             "name": self.name,
             "description": self.description,
             "kind": self.kind,
             "parameter": self.parameter,
             "unit": self.unit,
-            "neutral": self.neutral,
-            "bounds": list(self.bounds),
-            "preset": self.preset,
+            "neutral": num(self.neutral),
+            "bounds": [num(b) for b in self.bounds],
+            "preset": num(self.preset),
             "per_scan": self.per_scan,
             "identifiable": self.identifiable,
             "implementation": self.implementation,

@@ -96,7 +96,7 @@ def residual_maps_figure(name: str, role: str, scan, before_mm, after_mm, R, *, 
         e = np.abs(np.asarray(err, float))[faces].mean(axis=1)
         mean = float(np.abs(err)[~scan.back_plate].mean())
         _draw(fig, (len(rows), 2, 2 * i + 1), v, faces, shade, e, mapper,
-              f"{label}, mean {mean:.2f} mm")  # fmt: skip
+              f"{label}, mean {mean:.3f} mm")  # fmt: skip
     fig.colorbar(mapper, ax=fig.axes, shrink=0.6, label="distance to the model surface (mm)")
     fig.suptitle(f"{name} ({role}): surface error before and after, one colour scale")
     return fig

@@ -153,9 +153,9 @@ def test_verdict_strings(linear):
     rng = np.random.default_rng(9)
     null = screen(_fields(sample, _at_fit(J, sampler.draw(rng)[:, 0]), J, cols), _points(sample))
     assert _verdict([], [], null, None, o) == "no missing effect"
-    # a pattern none of the screened fields carries ('bump', 30 mm at the apex, 0.5 mm RMS:
-    # the misfit test flags it in 6 of 6 seeded trials at p <= 0.011)
-    r = _at_fit(J, sampler.draw(rng)[:, 0] + 0.5 * misfit_pattern(sample, kind="bump"))
+    # a pattern none of the screened fields carries ('bump', 30 mm at the apex, 0.8 mm RMS:
+    # 4 noise sd; the misfit test at its 1 % level flags it)
+    r = _at_fit(J, sampler.draw(rng)[:, 0] + 0.8 * misfit_pattern(sample, kind="bump"))
     outside = screen(_fields(sample, r, J, {"tilt": cols["tilt"]}), _points(sample))
     assert outside.misfit.verdict == "misfit"
     assert _verdict([], [], outside, None, o) == "unexplained"
