@@ -24,12 +24,14 @@ LinearSolver = Literal["auto", "pardiso", "superlu"]
 class _PardisoCache:
     """One PARDISO instance per matrix type, reusing its symbolic analysis per pattern.
 
-    Each entry is ``[solver, pattern key, owner]``: ``owner`` is the token of the
+    Each entry is ``[solver, pattern key, owner, threads]``: ``owner`` is the token of the
     factorization the instance holds now, so a factor handed out earlier can tell
-    whether it was overwritten (and then factorises its matrix again).
+    whether it was overwritten (and then factorises its matrix again); ``threads`` is
+    MKL's thread count the instance was set up for.
     """
 
-    solvers: dict = {}  # mtype -> [solver, pattern key, owner token]
+    solvers: dict = {}  # mtype -> [solver, pattern key, owner token, MKL threads]
+    libmkl = None
 
     @classmethod
     def clear(cls) -> None:
@@ -41,9 +43,12 @@ def _pardiso_factor(A: sp.csr_matrix, symmetric: bool) -> Callable[[np.ndarray],
     A = sp.triu(A, format="csr") if symmetric else A.tocsr()
     A.sort_indices()
     key = (A.shape[0], A.nnz, hash(A.indptr.tobytes()), hash(A.indices.tobytes()))
-    if mtype not in _PardisoCache.solvers:
-        _PardisoCache.solvers[mtype] = [_reproducible_pardiso(mtype), None, None]
-    entry = _PardisoCache.solvers[mtype]
+    threads = _mkl_threads()
+    entry = _PardisoCache.solvers.get(mtype)
+    if entry is None or entry[3] != threads:
+        # A solver set up for another MKL thread count (its reproducibility setting,
+        # iparm[33], is tied to it) crashes in its next factorisation: make a new one.
+        entry = _PardisoCache.solvers[mtype] = [_reproducible_pardiso(mtype), None, None, threads]
     solver, token = entry[0], object()
 
     def factor() -> None:
@@ -65,6 +70,13 @@ def _pardiso_factor(A: sp.csr_matrix, symmetric: bool) -> Callable[[np.ndarray],
 
     factor()
     return solve
+
+
+def _mkl_threads() -> int:
+    """MKL's current maximum thread count (threadpoolctl and MKL_NUM_THREADS change it)."""
+    if _PardisoCache.libmkl is None:  # the library pypardiso loads (a CDLL is shared)
+        _PardisoCache.libmkl = _pardiso().PyPardisoSolver().libmkl
+    return max(int(_PardisoCache.libmkl.MKL_Get_Max_Threads()), 1)
 
 
 def _reproducible_pardiso(mtype: int = 11):

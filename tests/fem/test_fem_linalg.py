@@ -80,3 +80,39 @@ def test_factor_survives_a_later_factorization_and_preconditions_gmres(method):
         linalg.solve_preconditioned(B, B @ x_true, fa, scale=scale, rtol=1e-9, max_iterations=1)
         is None
     )
+
+
+def test_pardiso_survives_a_change_of_mkl_thread_count():
+    # A cached PARDISO solver set up for one MKL thread count segfaulted in its next
+    # factorisation after threadpoolctl changed the count (found by the sweep's pool
+    # workers). Run in a subprocess: a crash must fail the test, not kill the suite.
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent(
+        """
+        import numpy as np
+        from threadpoolctl import threadpool_limits
+        import fem
+        from fem.geometry import PhantomSpec, build_phantom
+        from fem.linalg import available_solvers
+        from fem.meshing import mesh_phantom
+        assert "pardiso" in available_solvers()
+        mesh = mesh_phantom(build_phantom(PhantomSpec(resolution_mm=16.0, n_inclusions=0)),
+                            size_mm=16.0)
+        model = fem.Model.homogeneous(mesh, fem.NeoHookean(420.0, nu=0.49))
+        disc = fem.discretize(mesh, model.support)
+        u = []
+        for k in range(3):  # the thread count alternates between solves
+            limit = 1 if k % 2 else None
+            with threadpool_limits(limits=limit):
+                u.append(fem.solve(model, gravity=[0, 1, 0], disc=disc).displacement_mm)
+        assert np.allclose(u[0], u[1], atol=1e-9) and np.allclose(u[0], u[2], atol=1e-9)
+        print("ok")
+        """
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False
+    )
+    assert proc.returncode == 0 and "ok" in proc.stdout, proc.stderr
