@@ -1,80 +1,172 @@
-"""Calibration benchmark: wall time and FE solves of a full calibration on the twin.
+"""Calibration benchmark: accuracy against the twin's truth, over seeds, and timings.
 
-Issue 6 asks for a full calibration of the ``quick`` preset in 2 min or less and of the
-``dissertation`` preset in 10 min or less on the 2-core machine, with the number of FE
-solves. For each preset this script synthesises the twin (seed 0, the preset's default
-hidden effects; or reuses ``--twins DIR/<preset>`` when present), ingests it (timed
-apart: imaging, not FE) and runs ``calibrate`` with the default options unless told
-otherwise, then prints a table: c1 and its 95 % interval, iterations, FE solves, the
-calibration's wall time and the fiducial-frame surface error per scan.
+For each preset and seed this script synthesises the twin (the preset's hidden effects, or
+``--effect`` as ``phantom-calib synth`` takes it), ingests it (timed apart: imaging, not
+FE), calibrates it with the given options and validates it, and keeps one JSON per case in
+``--twins DIR`` (a re-run reuses the finished cases: the matrix can be filled in several
+sittings). It prints per case c1, its 95 % interval and whether the truth lies inside,
+the model-fit verdict, the optimiser's status, FE solves, wall time and the fiducial-frame
+surface error per scan, then per preset and effect the mean and spread over seeds of the
+relative c1 error, the interval's coverage of the truth (with its count) and timings.
 
-    python benchmarks/bench_calib.py [--presets quick,dissertation] [--twins DIR]
-                                     [--objective surface] [--mesh-size 12] [--mesh-check 1.4]
+    python benchmarks/bench_calib.py [--presets quick,dissertation] [--seeds 0,1,2]
+        [--effect none] [--twins DIR] [--objective surface] [--reference-state unload]
+        [--mesh-size 12] [--mesh-check 1.4] [--profile 5]
+
+The README's calibration tables are printed by it (the command is printed with them).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import shlex
+import sys
 import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from calib.fitting import CalibrationOptions
-from calib.twin import synthesize
+from calib.model.effects import parse_effects
+from calib.twin import PRESETS, synthesize
 from calib.workflows.calibrate import run_calibration
 from calib.workflows.ingest import run_ingest
+from calib.workflows.validate import run_validation
 
 
-def _twin(root: Path, preset: str) -> tuple[Path, float]:
-    out = root / preset
-    if (out / "scans" / "session.toml").is_file():
-        return out / "scans", 0.0
+def _case_name(preset: str, effect: str, seed: int, o: CalibrationOptions) -> str:
+    tag = effect.replace("=", "").replace(":", "x").replace(",", "+") or "default"
+    return f"{preset}-{tag}-seed{seed}-{o.objective}-{o.reference_state}-{o.mesh_size_mm:g}mm"
+
+
+def run_case(root: Path, preset: str, effect: str, seed: int, o: CalibrationOptions) -> dict:
+    """One synth -> ingest -> calibrate -> validate, with the truth beside (cached JSON)."""
+    name = _case_name(preset, effect, seed, o)
+    record = root / f"{name}.json"
+    if record.is_file():
+        return json.loads(record.read_text())
+    effects = parse_effects(effect.split(",") if effect else [], default=PRESETS[preset].effects)
+    twin = root / f"{preset}-{effect or 'default'}-seed{seed}"
     t0 = time.perf_counter()
-    synthesize(out, preset=preset, seed=0)
-    return out / "scans", time.perf_counter() - t0
-
-
-def run(preset: str, root: Path, options: CalibrationOptions) -> dict:
-    scans, t_synth = _twin(root, preset)
-    work = root / f"{preset}-work-{options.objective}-{options.reference_state}"
+    if not (twin / "truth" / "truth.json").is_file():
+        synthesize(twin, preset=preset, seed=seed, effects=effects, overwrite=True)
+    t_synth = time.perf_counter() - t0
+    truth = json.loads((twin / "truth" / "truth.json").read_text())
+    work = root / f"{name}-work"
     t0 = time.perf_counter()
-    run_ingest(scans, work)
+    run_ingest(twin / "scans", work)
     t_ingest = time.perf_counter() - t0
-    doc = run_calibration(scans, work, options)
-    return {"synth_s": t_synth, "ingest_s": t_ingest, **doc}
+    cal = run_calibration(twin / "scans", work, o)
+    val = run_validation(work)
+    c1_true = truth["material"]["c1_pa"]
+    ci = cal["c1_ci95_pa"]
+    out = {
+        "case": name,
+        "preset": preset,
+        "effect": effect or "default",
+        "seed": seed,
+        "active_effects": truth["effects"]["active"],
+        "c1_true_pa": c1_true,
+        "c1_pa": cal["c1_pa"],
+        "c1_ci95_pa": ci,
+        "covered": None if ci is None else bool(ci[0] <= c1_true <= ci[1]),
+        "relative_error": cal["c1_pa"] / c1_true - 1.0,
+        "model_fit": cal.get("model_fit"),
+        "optimiser": cal["optimiser"],
+        "uncertainty_method": cal["uncertainty"]["method"],
+        "mesh": cal["mesh"],
+        "fe_solves": cal["fe_solves"],
+        "synth_s": t_synth,
+        "ingest_s": t_ingest,
+        "calibration_s": cal["wall_s"],
+        "surface_mean_mm": {
+            n: s["surface_error_mm"]["fiducial"]["mean"]["value"] for n, s in val["scans"].items()
+        },
+        "roles": {n: s["role"] for n, s in val["scans"].items()},
+    }
+    record.write_text(json.dumps(out, indent=2) + "\n")
+    return out
 
 
-def _print(preset: str, r: dict) -> None:
+def _print_case(r: dict) -> None:
     ci = r["c1_ci95_pa"]
     ci_txt = f"{ci[0]:.1f}-{ci[1]:.1f}" if ci else "none"
-    print(f"{preset}: mesh {r['mesh']['n_tets']} tets, synth {r['synth_s']:.0f} s, "
-          f"ingest {r['ingest_s']:.0f} s")  # fmt: skip
-    print(f"  c1 {r['c1_pa']:.1f} Pa (95 % {ci_txt}), {r['iterations']} iterations, "
-          f"{r['fe_solves']} FE solves, calibration {r['wall_s']:.0f} s")  # fmt: skip
-    for name, s in r["scans"].items():
-        err = s["surface_error_mm"]["fiducial"]
-        print(f"  {name:14s} surface {err['mean']:.2f} +- {err['sd']:.2f} mm (fiducial frame)")
+    fit = (r.get("model_fit") or {}).get("verdict", "-")
+    opt = (
+        "converged" if r["optimiser"]["success"] else f"NOT converged ({r['optimiser']['message']})"
+    )
+    surf = " / ".join(f"{v:.2f}" for v in r["surface_mean_mm"].values())
+    print(
+        f"| {r['case']} | {r['c1_pa']:.1f} ({ci_txt}) | {100 * r['relative_error']:+.1f} % | "
+        f"{'yes' if r['covered'] else 'no'} | {fit} | {opt} | {r['fe_solves']} | "
+        f"{r['calibration_s']:.0f} | {surf} |"
+    )
+
+
+def _summary(rows: list[dict]) -> None:
+    print(
+        "\n| preset | effect | seeds | c1 error mean (sd) | truth covered | model fit: misfit "
+        "| calibration s median (range) |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault((r["preset"], r["effect"]), []).append(r)
+    for (preset, effect), rs in groups.items():
+        e = 100 * np.array([r["relative_error"] for r in rs])
+        cov = [r["covered"] for r in rs if r["covered"] is not None]
+        mis = [r for r in rs if (r.get("model_fit") or {}).get("verdict") == "misfit"]
+        t = np.array([r["calibration_s"] for r in rs])
+        sd = f"{e.std(ddof=1):.1f}" if len(e) > 1 else "-"
+        print(
+            f"| {preset} | {effect} | {len(rs)} | {e.mean():+.1f} % ({sd}) | "
+            f"{sum(cov)}/{len(cov)} | {len(mis)}/{len(rs)} | {np.median(t):.0f} "
+            f"({t.min():.0f}-{t.max():.0f}) |"
+        )
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--presets", default="quick", help="comma-separated preset names")
-    ap.add_argument("--twins", type=Path, default=None, help="folder of (or for) the twins")
+    ap.add_argument("--seeds", default="0", help="comma-separated twin seeds")
+    ap.add_argument(
+        "--effect",
+        default="",
+        help="the twin's hidden effects as synth's --effect, comma-separated "
+        "(e.g. none, skin=1.5:8, sliding); default: the preset's",
+    )
+    ap.add_argument("--twins", type=Path, default=None, help="folder of the twins and results")
     ap.add_argument("--objective", default="surface")
     ap.add_argument("--reference-state", default="unload")
     ap.add_argument("--mesh-size", type=float, default=CalibrationOptions.mesh_size_mm)
     ap.add_argument("--mesh-check", type=float, default=CalibrationOptions.mesh_check_ratio)
+    ap.add_argument("--profile", type=int, default=CalibrationOptions.profile_points)
     args = ap.parse_args()
     options = CalibrationOptions(
         objective=args.objective,
         reference_state=args.reference_state,
         mesh_size_mm=args.mesh_size,
         mesh_check_ratio=args.mesh_check,
+        profile_points=args.profile,
     )
+    print("command: python " + " ".join(shlex.quote(a) for a in sys.argv))
+    print(
+        "| case | c1 Pa (95 %) | error | truth inside | model fit | optimiser | FE solves "
+        "| calibration s | surface mean mm per scan |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    rows = []
     with tempfile.TemporaryDirectory() as tmp:
         root = args.twins or Path(tmp)
+        root.mkdir(parents=True, exist_ok=True)
         for preset in args.presets.split(","):
-            _print(preset, run(preset, root, options))
+            for seed in (int(s) for s in args.seeds.split(",")):
+                r = run_case(root, preset, args.effect, seed, options)
+                _print_case(r)
+                rows.append(r)
+    _summary(rows)
 
 
 if __name__ == "__main__":
