@@ -33,7 +33,13 @@ and then::
     python benchmarks/bench_reference.py --twin none=OUT/none/scans,OUT/none-work \\
         --twin skin=OUT/skin/scans,OUT/skin-work [--sizes 8,10,12,14,16] \\
         [--methods newton,spatial,mulf] [--c1-factors 1] [--repeat 3] [--fixed-point]
-        [--jsonl rows.jsonl]
+        [--postures] [--jsonl rows.jsonl]
+    python benchmarks/bench_reference.py --table-from rows.jsonl   # tables of saved rows
+
+With ``--postures``, where ``newton`` succeeds, each other scan's posture is solved from
+every method's reference state and its surface vertices compared with ``newton``'s (the
+methods solve different discrete problems: the difference is their discretisation
+difference, plus MULF's path-dependent prestress).
 """
 
 from __future__ import annotations
@@ -65,7 +71,7 @@ UNLOAD_OPTIONS = fem.SolverOptions(max_steps=10)  # the calibration's bound
 
 
 def reference_mesh(scans: Path, work: Path, size_mm: float):
-    """The calibration's model mesh of the reference scan and its gravity."""
+    """The calibration's model mesh of the reference scan, its gravity, the other postures'."""
     try:
         from calib.data.measurements import load_measurements
         from calib.data.session import load_session
@@ -75,7 +81,9 @@ def reference_mesh(scans: Path, work: Path, size_mm: float):
         from calib.refmodel import reference_mesh as build
         from calib.session import load_session
     meas = load_measurements(work, load_session(scans))
-    return build(meas.reference, size_mm=size_mm), np.asarray(meas.reference.gravity_ref, float)
+    ref = meas.reference
+    others = {n: np.asarray(s.gravity_ref, float) for n, s in meas.scans.items() if n != ref.name}
+    return build(ref, size_mm=size_mm), np.asarray(ref.gravity_ref, float), others
 
 
 def _model(mesh, c1_pa):
@@ -113,8 +121,50 @@ def round_trip_mm(method: str, model, gravity, result) -> float:
     return float(np.linalg.norm(sol.displacement_mm, axis=1).max())
 
 
-def bench_case(name, mesh, gravity, size, factor, methods, repeat) -> list[dict]:
+def posture_positions(method: str, model, result, gravity) -> np.ndarray:
+    """Vertex positions (mm) of a posture from a method's reference state."""
+    if method in ("newton", "fixed-point"):
+        X = result.nodes_mm
+        disc = fem.discretize(model.mesh, model.support).with_nodes(X)
+        return X + fem.solve(model.with_mesh(disc.mesh), gravity=gravity, disc=disc).displacement_mm
+    ps = result.prestress if method == "spatial" else result
+    return model.mesh.nodes_mm + solve_prestressed(model, ps, gravity=gravity).displacement_mm
+
+
+def compare_postures(name, size, model, payloads: dict, postures: dict) -> list[dict]:
+    """Surface positions of each posture by each method against ``newton``'s, mm."""
+    if payloads.get("newton") is None:
+        return []
+    surface = model.mesh.node_set("surface")
     rows = []
+    for posture, g in postures.items():
+        pos = {m: posture_positions(m, model, r, g) for m, r in payloads.items() if r is not None}
+        change = np.linalg.norm(pos["newton"] - model.mesh.nodes_mm, axis=1)[surface]
+        for m, p in pos.items():
+            if m == "newton":
+                continue
+            d = np.linalg.norm(p - pos["newton"], axis=1)[surface]
+            rows.append({"twin": name, "size_mm": size, "posture": posture, "method": m,
+                         "posture_change_rms_mm": float(np.sqrt(np.mean(change**2))),
+                         "vs_newton_rms_mm": float(np.sqrt(np.mean(d**2))),
+                         "vs_newton_max_mm": float(d.max())})  # fmt: skip
+    return rows
+
+
+def print_postures(rows: list[dict]) -> None:
+    head = ("twin", "size", "posture", "method", "posture change RMS mm",
+            "vs newton RMS mm", "vs newton max mm")  # fmt: skip
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---|" * len(head))
+    for r in rows:
+        print(f"| {r['twin']} | {r['size_mm']:g} | {r['posture']} | {r['method']} | "
+              f"{r['posture_change_rms_mm']:.2f} | {r['vs_newton_rms_mm']:.3f} | "
+              f"{r['vs_newton_max_mm']:.3f} |")  # fmt: skip
+
+
+def bench_case(name, mesh, gravity, size, factor, methods, repeat, postures=None):
+    """Rows of one mesh and c1; with ``postures``, also the posture comparison rows."""
+    rows, payloads = [], {}
     model = _model(mesh, C1_PA * factor)
     for method in methods:
         times, row, payload = [], None, None
@@ -137,12 +187,14 @@ def bench_case(name, mesh, gravity, size, factor, methods, repeat) -> list[dict]
                    method=method, wall_s=float(np.median(times)), wall_min_s=min(times),
                    wall_max_s=max(times), runs=len(times))  # fmt: skip
         row["round_trip_mm"] = round_trip_mm(method, model, gravity, payload) if payload else None
+        payloads[method] = payload
         rows.append(row)
         print(json.dumps(row), file=sys.stderr, flush=True)
     ref = next((r for r in rows if r["method"] == "newton"), None)
     for r in rows:
         r["ratio_to_newton"] = r["wall_s"] / ref["wall_s"] if ref else None
-    return rows
+    compared = compare_postures(name, size, model, payloads, postures) if postures else []
+    return rows, compared
 
 
 def _fmt(v, spec):
@@ -165,32 +217,48 @@ def print_table(rows: list[dict]) -> None:
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--twin", action="append", required=True, help="NAME=SCANS,WORK")
+    p.add_argument("--twin", action="append", default=[], help="NAME=SCANS,WORK")
+    p.add_argument("--table-from", type=Path, help="print the saved rows' tables (--jsonl)")
     p.add_argument("--sizes", default="8,10,12,14,16")
     p.add_argument("--methods", default="newton,spatial,mulf")
     p.add_argument("--c1-factors", default="1")
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--fixed-point", action="store_true")
+    p.add_argument("--postures", action="store_true",
+                   help="also compare every other posture's surface with newton's")  # fmt: skip
     p.add_argument("--jsonl", type=Path, help="also append every row to this file")
     a = p.parse_args(argv)
+    if a.table_from:
+        saved = [json.loads(line) for line in a.table_from.read_text().splitlines() if line]
+        print_table([r for r in saved if "method" in r and "ok" in r])
+        print()
+        print_postures([r for r in saved if "posture" in r])
+        return
+    if not a.twin:
+        p.error("give at least one --twin NAME=SCANS,WORK (or --table-from)")
     logging.basicConfig(level=logging.WARNING)
     warnings.simplefilter("ignore")  # TetGen/open3d chatter; the table says what failed
     methods = a.methods.split(",") + (["fixed-point"] if a.fixed_point else [])
-    rows = []
+    rows, compared = [], []
     for spec in a.twin:
         name, paths = spec.split("=", 1)
         scans, work = (Path(x) for x in paths.split(","))
         for size in (float(s) for s in a.sizes.split(",")):
-            mesh, gravity = reference_mesh(scans, work, size)
+            mesh, gravity, others = reference_mesh(scans, work, size)
             for factor in (float(f) for f in a.c1_factors.split(",")):
-                new = bench_case(name, mesh, gravity, size, factor, methods, a.repeat)
+                new, cmp = bench_case(name, mesh, gravity, size, factor, methods, a.repeat,
+                                      others if a.postures else None)  # fmt: skip
                 rows += new
+                compared += cmp
                 if a.jsonl:
                     with a.jsonl.open("a") as fh:
-                        fh.writelines(json.dumps(r) + "\n" for r in new)
+                        fh.writelines(json.dumps(r) + "\n" for r in new + cmp)
     print("command: python benchmarks/bench_reference.py " + shlex.join(sys.argv[1:] if argv
           is None else argv))  # fmt: skip
     print_table(rows)
+    if compared:
+        print()
+        print_postures(compared)
 
 
 if __name__ == "__main__":

@@ -36,7 +36,12 @@ Two ways to compute ``F0`` (``compute_prestress(method=...)``):
   equilibrium with ``g0`` on ``x_m`` but in general not compatible, and it depends on the
   load path: it is not the stress of any stress-free body, and it does not converge to
   the inverse's under mesh refinement (a clamped 40 mm box at 1 g: inverse and MULF
-  postures differ by 0.05, 0.09, 0.13 mm RMS at h = 20, 10, 5 mm).
+  postures differ by 0.05, 0.09, 0.13 mm RMS at h = 20, 10, 5 mm). MULF is the less
+  robust of the two on scan meshes: its steps are forward solves on the loaded mesh,
+  whose thin elements at the clamped rim accumulate extreme ``F0`` (on the 12 mm quick
+  ``--effect none`` twin mesh with 10 load steps ``det F0`` spans 0.06-8e3 over the
+  quadrature points), and there the passes at full load cannot be solved (with 4 or 10
+  load steps): a :class:`ConvergenceError`. Use ``inverse`` where MULF fails.
 
 Both solve different discrete problems from :mod:`fem.unload`'s ``newton`` (straight
 stress-free elements, curved loaded ones): the answers agree to the discretisation
@@ -131,9 +136,12 @@ class Prestress:
         Successful load increments (``mulf``: including the passes at full load).
     newton_iterations : int
     residual_displacement_mm : float
-        ``inverse``: largest vertex distance between the curved stress-free mesh loaded
-        by ``g0`` and the scan (the round trip, solved independently). ``mulf``: largest
-        vertex displacement of the last pass (the equilibrium defect of ``F0`` on ``x_m``).
+        ``inverse``: largest node distance from the scan of the curved stress-free mesh
+        loaded by ``g0`` in the forward solver's own assembly
+        (:func:`isoparametric_discretization`, no ``F0``), warm-started at the recovered
+        state: ~0 when the two assemblies agree to Newton's tolerance (a round trip from
+        zero displacement is in the tests and the benchmark). ``mulf``: largest vertex
+        displacement of the last pass (the equilibrium defect of ``F0`` on ``x_m``).
     stress_free_nodes_mm : ndarray, shape (n_nodes, 3) or None
         ``inverse``: stress-free vertex positions, model frame, mm (the curved mesh's
         vertices). None for ``mulf`` (no stress-free mesh exists).
@@ -234,6 +242,7 @@ class _Prestressed(_Problem):
     """
 
     def __init__(self, disc0, model, F0, g_ref, g_new, opts, stats):
+        _no_springs(disc0)
         J0 = np.linalg.det(F0)
         if J0.min() <= 0:
             raise ValueError("prestress F0 has det <= 0 at some quadrature point")
@@ -357,6 +366,15 @@ def _solution(disc, x, ok, stats, steps, cuts, t_start) -> Solution:
         formulation=disc.formulation,
         factorizations=stats.factorizations,
     )
+
+
+def _no_springs(disc: Discretization) -> None:
+    if disc.spring is not None:
+        raise ValueError(
+            "the prestressed reference supports clamped, sliding (rim held) and constrained "
+            "supports; springs (ElasticSupport, Sliding with tangent stiffness) would carry "
+            "a force in the reference state that is not modelled"
+        )
 
 
 def _failure(message: str, load_factor: float, iterations: int) -> ConvergenceError:
@@ -717,6 +735,7 @@ def compute_prestress(
         raise ValueError(f"unknown prestress method {method!r}; choose inverse or mulf")
     opts = options or SolverOptions()
     disc0 = disc or discretize(model.mesh, model.support, formulation=formulation)
+    _no_springs(disc0)
     g_vec = gravity_vector(gravity, g_m_s2)
     nu = 3 * disc0.n_scalar_u
     if method == "mulf":

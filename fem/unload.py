@@ -2,22 +2,73 @@
 
 A scan shows the phantom deformed by gravity ``g0``. The stress-free geometry ``X``
 is the one that deforms into the measured geometry ``x_m`` under ``g0``. Reversing
-gravity is not the inverse in nonlinear elasticity. Two methods find ``X``:
+gravity is not the inverse in nonlinear elasticity. Three methods find ``X``:
 
-- ``"newton"`` (default): inverse elastostatics in displacement form. The unknown is the
-  displacement ``u`` with ``X = x_m - u`` at the vertices; Newton's method on
-  ``R(u; x_m - u) = 0`` uses the consistent Jacobian ``K - D`` (``D`` the residual's
-  derivative in the reference geometry, :mod:`fem.shape_derivative`), with line search
-  and load stepping; the loaded geometry matches ``x_m`` by construction.
+- ``"newton"`` (default): inverse elastostatics in displacement form on straight-sided
+  stress-free elements. The unknown is the displacement ``u`` with ``X = x_m - u`` at the
+  vertices; Newton's method on ``R(u; x_m - u) = 0`` uses the consistent Jacobian
+  ``K - D`` (``D`` the residual's derivative in the reference geometry,
+  :mod:`fem.shape_derivative`), with line search and load stepping; the loaded geometry
+  matches ``x_m`` at the vertices by construction (its P2 edge nodes are free).
 - ``"fixed-point"``: the backward-displacement iteration ``X <- X - a (X + u(X) - x_m)``
   with Aitken's adaptive relaxation ``a``, each forward solve warm-started from the last.
+  The same discrete equations as ``newton``; they agree to their tolerance.
+- ``"spatial"``: inverse elastostatics in spatial form (Govindjee & Mihalic 1996, 1998;
+  :mod:`fem.prestress`, ``method="inverse"``): the loaded mesh is the computational
+  domain and the stress-free elements are curved (isoparametric P2), so only
+  ``det(I - grad_x U) > 0`` at quadrature points is required. Another discrete problem:
+  its answers differ from ``newton``'s by the discretisation error (0.7 % of a 31 mm
+  posture change on the 16 mm twin mesh, below), and its postures are solved with
+  :func:`fem.prestress.solve_prestressed` (``ReferenceRecovery.prestress``), not on
+  ``nodes_mm``.
 
-Both solve the same discrete equations and agree to their tolerance. On a coarse mesh
-of a strongly sagging scan, a few elements at the clamped rim can come out inverted in
-the recovered geometry (their straight-sided vertex tetrahedron has negative volume,
-while the quadratic loaded state stays positive at every quadrature point): the mesh is
-too coarse there for the shear the clamp imposes. The result counts them
-(``inverted_elements``); refine the mesh if it is not zero.
+Diagnosis of ``newton``'s failures (issue 17; the calibration's model meshes of the
+quick twin's reference scan, ``calib.model.reference.reference_mesh``, c1 = 420 Pa,
+nu = 0.499, clamped back; ``benchmarks/bench_reference.py`` for the table):
+
+- *Which elements.* Thin elements of the loaded mesh on the clamped back at the rim.
+  TetGen's radius-edge bound does not remove slivers: every twin mesh of 8-16 mm has
+  17-122 elements with a dihedral angle below 5 degrees, 3-19 of them touching the
+  back. The stress-free vertex tetrahedra that invert are such slivers (loaded min.
+  dihedral 1.1 degrees on the 12 mm mesh, median 2.9-3.5 degrees on 14 and 16 mm), all
+  touching the back. The rim itself is not degenerate: the wedge between back and
+  surface is >= 63 degrees everywhere (median 97-136).
+- *At which load factor.* On the 12 mm ``--effect none`` mesh (4729 tets, 23.7 mm sag)
+  the worst sliver's stress-free/loaded volume ratio is 0.60, 0.19 and -0.28 at load
+  factors 0.2, 0.4 and 0.6: its straight tetrahedron passes through zero volume, where
+  the affine reference map is singular (shape gradients ~ 1/volume) and beyond which the
+  P2 loaded element must fold to keep ``det F > 0``. Newton's steps then shrink (0.25 to
+  0.006) and it stops at load factor 0.66 after 82 iterations (the calibration's 10
+  load steps; 310 s on a loaded 2-core machine), 0.79 after 177 (60 steps), a second,
+  non-sliver element inverting at 0.77. Where the first load step is large enough to
+  jump the singular configuration, it converges with inverted vertex tetrahedra (14 and
+  16 mm: 2 and 4).
+- *Not the tangent.* The Jacobi-scaled 1-norm condition of ``K - D`` stays
+  8.2e5, 8.1e5, 8.0e5, 7.9e5 at load factors 0, 0.2, 0.4, 0.6: no limit point, so
+  arc-length continuation would not help; the obstacle is the singular reference map.
+- *Why not monotone in the mesh size.* Whether a sliver sits on the clamped rim and how
+  the load steps meet it is the mesher's draw, not resolution.
+- *Why there.* The inverse displacement is steep at the clamped rim: on the 12 mm mesh
+  a node 0.6 mm above the back moves 1.4 mm while its element's other nodes are clamped
+  (the loaded surface leaves the back at 130-136 degrees on the sagging side, an
+  overhang the unloading must rotate back). A straight element that thin cannot follow.
+  (Also seen: the ingested back set reaches 0.4-1.1 mm beyond the truth's clamped
+  footprint, and the back plane lies 0.16-0.20 mm below the truth's: segmentation, not
+  the cause, but it clamps the first sub-millimetre of that overhang.)
+- *The remedy.* Keep the loaded mesh (valid by construction) as the domain and let the
+  stress-free elements curve: ``"spatial"`` converges on the same 12 mm mesh in 30
+  iterations and 3 load steps (118 s), round trip 4e-7 mm (the curved stress-free mesh
+  loaded by ``g0`` from zero). The same rim shear shows there as extreme local volume
+  ratios: ``det F0`` lies in [0.73, 1.48] at 98 % of the quadrature points but reaches
+  0.2 and 489 in 46 small elements at the back (centroids 0.5 mm above it, median): a
+  curved element may nearly collapse at a quadrature point, a straight one may not.
+
+References
+----------
+Govindjee, S. & Mihalic, P. A. (1996). Computational methods for inverse finite
+elastostatics. *CMAME* 136, 47-57.
+Govindjee, S. & Mihalic, P. A. (1998). Computational methods for inverse deformations in
+quasi-incompressible finite elasticity. *IJNME* 43, 821-838.
 """
 
 from __future__ import annotations
