@@ -75,7 +75,7 @@ def _add_tracking(doc: dict, tracking, choice) -> None:
         "selection": None if choice is None else choice.reason,
         "method": "constellation match to the reference scan's inclusions (sizes, relative "
         "positions, nipple anchor, smooth deformation): registration.match_constellation",
-        "match_confidence": CONFIDENCE_DEFINITION,
+        "match_confidence_definition": CONFIDENCE_DEFINITION,
     }
 
 

@@ -71,11 +71,12 @@ def tracking_errors(truth: dict, work: Path) -> dict:
     docs = {n: json.loads((work / "scans" / n / "ingest.json").read_text()) for n in truth["scans"]}
     (ref,) = [n for n, s in truth["scans"].items() if s["role"] == "reference"]
 
-    def true_index(name):  # each detected inclusion's true identity: the nearest true centre
+    def true_index(name):  # each detection's true inclusion: the nearest true centre
         found = np.array([inc["centre_lps_mm"] for inc in docs[name]["inclusions"]])
         d = np.linalg.norm(found[:, None] - truth["scans"][name]["inclusions_lps_mm"][None], axis=2)
-        assert d.min(1).max() < 1.0, f"{name}: a detection 1 mm from every true inclusion"
-        return d.argmin(1)
+        # detections are within 0.5 mm of their inclusion (issue 3); one 2 mm or more from
+        # every true inclusion is spurious (-1; e.g. a 2 mm blob in one quick twin)
+        return np.where(d.min(1) < 2.0, d.argmin(1), -1)
 
     ref_true = true_index(ref)
     T_ref = np.asarray(truth["scans"][ref]["T_scanner_from_phantom"])
@@ -86,8 +87,7 @@ def tracking_errors(truth: dict, work: Path) -> dict:
         tumour = doc["tumour_lps_mm"]
         err = np.inf if tumour is None else np.linalg.norm(np.subtract(tumour, t["tumour_lps_mm"]))
         ids = [inc["reference_index"] for inc in doc["inclusions"]]
-        wrong = [k for k, (i, tk) in enumerate(zip(ids, true_index(name), strict=True))
-                 if i is None or ref_true[i] != tk]  # fmt: skip
+        wrong = [] if name == ref else _wrong_identities(ids, true_index(name), ref_true)
         T = np.asarray(t["T_scanner_from_phantom"])
         moved = _apply(np.linalg.inv(T), t["inclusions_lps_mm"]) - ref_phantom
         out[name] = {
@@ -100,6 +100,20 @@ def tracking_errors(truth: dict, work: Path) -> dict:
                 np.subtract(t["tumour_phantom_mm"], truth["scans"][ref]["tumour_phantom_mm"]))),
         }  # fmt: skip
     return out
+
+
+def _wrong_identities(ids, true_k, ref_true) -> list[int]:
+    """Detections whose identity contradicts the truth.
+
+    Matched: right when the reference detection is the same true inclusion. Unmatched:
+    right for a spurious detection or an inclusion the reference scan did not detect.
+    """
+    seen = set(ref_true[ref_true >= 0].tolist())
+    return [
+        k
+        for k, (i, tk) in enumerate(zip(ids, true_k, strict=True))
+        if (i is None and tk in seen) or (i is not None and (tk < 0 or ref_true[i] != tk))
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -135,7 +149,7 @@ def test_ingest_json_reports_identity_and_confidence(twin):
         assert keys <= set(doc), keys - set(doc)  # the former contract is unchanged
         tr = doc["tracking"]
         assert set(tr) >= {"tumour_index", "tumour_reference_index", "tumour_confidence",
-                           "selection", "method", "match_confidence"}  # fmt: skip
+                           "selection", "method", "match_confidence_definition"}  # fmt: skip
         incs = doc["inclusions"]
         assert all({"centre_lps_mm", "diameter_mm", "reference_index", "match_confidence"}
                    <= set(inc) for inc in incs)  # fmt: skip
@@ -320,6 +334,26 @@ def test_quick_soft_twin_every_posture(tmp_path, seed):
     # Quick preset (4 postures, 10 mm, 1.5 mm voxels), c1 = 300 Pa: inclusion motion up
     # to 61 mm between the laterals. Bars as in the default test.
     truth = build_twin(tmp_path / "twin", SOFT_QUICK, seed)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        run_ingest(tmp_path / "twin" / "scans", tmp_path / "work")
+    errors = tracking_errors(truth, tmp_path / "work")
+    assert max(e["max_motion_mm"] for e in errors.values()) >= 40.0, errors
+    for name, e in errors.items():
+        assert e["tumour_error_mm"] <= 0.5 and e["wrong"] == [], (name, e)
+        assert e["min_confidence"] >= TUMOUR_MIN_CONFIDENCE, (name, e)
+
+
+SLIDING_SMALL = replace(SMALL_PRESET, c1_pa=950.0, effects=TruthEffects(sliding=True))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [1, 2])
+def test_sliding_twin(tmp_path, seed):
+    # The back plate slides (the issue's independent generator did). c1 = 950 Pa is about
+    # the softest the FE solves on this small twin (900 Pa fails for seed 1): inclusion
+    # motion 40.8 and 41.7 mm; the former tracker was 30.6 and 52.6 mm off on these seeds.
+    truth = build_twin(tmp_path / "twin", SLIDING_SMALL, seed)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         run_ingest(tmp_path / "twin" / "scans", tmp_path / "work")
