@@ -30,7 +30,12 @@ Errors in the fitted length now move the quantile a little instead of the varian
 lot. Where several kernels fit the variogram about equally well (``alternatives``), the
 widest interval is reported.
 
-Measured coverage (cells x methods, with the command): ``benchmarks/bench_coverage.py``.
+Measured coverage of nominal 95 % (``python benchmarks/bench_coverage.py --table coverage
+--draws 1000``; 20 cells: exponential and Gaussian kernels, l = 2-20 mm, nugget 0-0.3,
+1 scan of 2000 or 3 scans of 1000 points, 1000 draws each, binomial se 0.6-0.8 %): series
+with plausible alternatives 93.5-96.0 % in every cell, at a median width 1.03-1.18 times
+the oracle's; plug-in sandwich with z 88.8-96.3 %; the formula of
+``calib/fitting/uncertainty.py`` 29-98 % (its pairs join scans).
 """
 
 from __future__ import annotations
