@@ -316,6 +316,8 @@ class Diagnosis:
                     "estimate": _num(best.estimate) if rows and len(rows) == 1 else None,
                     "retained_fraction": _num(max(e.retained_fraction for e in rows)),
                 }
+                if name == "sliding":
+                    entry["note"] = NO_SLIDING_REFIT
                 if name == "density":
                     entry["note"] = (
                         "at fixed nu the solution depends on rho g / c1 only: its field is "
@@ -354,6 +356,9 @@ class Diagnosis:
             "screening": {
                 "columns": self.screening_rows(),
                 "confounded": [list(c) for c in scr.confounded] if scr else [],
+                "cosine": None
+                if scr is None
+                else np.where(np.isfinite(scr.cosine), np.round(scr.cosine, 4), None).tolist(),
                 "not_identifiable": list(scr.not_identifiable) if scr else [],
                 "alpha": self.options.alpha,
                 "metric": scr.metric if scr else None,
