@@ -155,7 +155,7 @@ def calibrate(
         str, typer.Option("--objective", help="surface, nipple or landmarks.")
     ] = "surface",
     reference_state: Annotated[
-        str, typer.Option("--reference-state", help="unload or shortcut.")
+        str, typer.Option("--reference-state", help="unload, prestress or shortcut.")
     ] = "unload",
     mesh_size: Annotated[
         float | None,

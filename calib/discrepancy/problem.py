@@ -270,7 +270,16 @@ def build_problem(
     model = record["model"]
     params = _parameters(record)
     if record.get("reference_state", "unload") not in ("unload", "shortcut"):
-        raise DiagnosisError(f"{work.path}: unknown reference_state {record['reference_state']!r}")
+        raise DiagnosisError(
+            f"{work.path}: reference_state {record['reference_state']!r} is not supported by "
+            "diagnose (unload or shortcut)"
+        )
+    if (record.get("reference_recovery") or {}).get("method") == "spatial":
+        raise DiagnosisError(
+            f"{work.path}: the calibration's reference is the prestressed loaded mesh "
+            "(reference_recovery.method 'spatial'); diagnose needs a straight stress-free mesh: "
+            "recalibrate on a --mesh-size where it is found, or with --reference-state shortcut"
+        )
     scans, held = choose_scans(work, holdout)
     loaded = work.mesh.with_nodes(_loaded_nodes(work))
     inclusions = reference_inclusions(work)

@@ -101,7 +101,13 @@ def mesh_check(cal, theta: float, *, ratio: float = 1.4) -> MeshCheck:
                      SAFETY_FACTOR * error)  # fmt: skip
 
 
-def combined_ci95(c1_pa: float, se_ln_c1: float, gci_ln_c1: float) -> tuple[float, float]:
-    """95 % interval of c1 from the noise (``1.96 se``) and the GCI, added in quadrature."""
-    half = float(np.hypot(1.96 * se_ln_c1, gci_ln_c1))
+def combined_ci95(
+    c1_pa: float, se_ln_c1: float, gci_ln_c1: float, *, critical_value: float = 1.96
+) -> tuple[float, float]:
+    """95 % interval of c1 from the noise (``critical_value * se``) and the GCI, in quadrature.
+
+    ``critical_value``: the noise interval's own (the series interval's Imhof quantile;
+    1.96 for a normal one).
+    """
+    half = float(np.hypot(critical_value * se_ln_c1, gci_ln_c1))
     return c1_pa * float(np.exp(-half)), c1_pa * float(np.exp(half))

@@ -51,7 +51,9 @@ class Calibrator:
         self.fm = ForwardModel(
             self.mesh, ref.gravity_ref, nu=o.nu, density_kg_m3=self.density_kg_m3,
             reference_state=o.reference_state, formulation=o.formulation,
-            fixed_point_fallback=False,  # a failed recovery is a failed evaluation
+            # a failed recovery is a failed evaluation, except that a mesh admitting no
+            # straight stress-free elements is solved with curved ones (and says so)
+            fixed_point_fallback=False, spatial_fallback=o.reference_state == "unload",
         )  # fmt: skip
         self.sim = SimulatedSurface.of(self.mesh)
         self.points = {s.name: s.surface_points(max_points=o.max_points, seed=o.seed)
@@ -92,7 +94,7 @@ class Calibrator:
         """``(p, dp)`` of the simulated tumour centre (mm; dp per unit ln c1), or None."""
         if self.tumour is None:
             return None
-        p = self.tumour.position_mm(self.fm.stress_free_nodes_mm, st.state)
+        p = self.tumour.position_mm(self.fm.state_nodes_mm, st.state)
         dp = self.tumour.position_mm(self.fm.current_dX, st.dstate) if gradient else None
         return p, dp
 

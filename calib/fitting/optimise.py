@@ -120,11 +120,16 @@ def _check_reference(cal: Calibrator, theta0: float, progress) -> None:
     sagging reference whose clamped-rim elements degenerate), no c1 nearby will do
     better: stop now, with what to change, instead of failing every evaluation.
     """
-    if cal.options.reference_state != "unload":
+    if cal.options.reference_state == "shortcut":
         return
     progress("stress-free reference at the first estimate (inverse elastostatics)")
     try:
         cal.fm.stress_free(theta0)
+        if cal.fm.unload_method == "spatial" and cal.options.reference_state == "unload":
+            progress(
+                "  no stress-free mesh with straight elements (slivers at the clamped rim); "
+                "solved with curved ones: the reference is the prestressed loaded mesh"
+            )
     except fem.ConvergenceError as exc:
         size = cal.options.mesh_size_mm
         raise fem.ConvergenceError(
@@ -132,7 +137,8 @@ def _check_reference(cal: Calibrator, theta0: float, progress) -> None:
             f"found on the {size:g} mm model mesh at the first estimate c1 = "
             f"{np.exp(theta0):.0f} Pa ({exc}). The scan sags so far that elements at the "
             "clamped rim degenerate on this mesh; try another --mesh-size (the mesh at the "
-            f"rim changes with it, e.g. {size + 2:g}) or --reference-state shortcut"
+            f"rim changes with it, e.g. {size + 2:g}), --reference-state prestress (curved "
+            "stress-free elements) or --reference-state shortcut"
         ) from exc
 
 

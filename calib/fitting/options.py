@@ -10,7 +10,7 @@ from ..model.residuals import OBJECTIVES
 __all__ = ["CalibrationOptions", "check_mesh_check_ratio"]
 
 Objective = Literal["surface", "nipple", "landmarks"]
-ReferenceState = Literal["unload", "shortcut"]
+ReferenceState = Literal["unload", "prestress", "shortcut"]
 
 
 def check_mesh_check_ratio(ratio: float) -> None:
@@ -27,9 +27,12 @@ class CalibrationOptions:
     ----------
     objective : {"surface", "nipple", "landmarks"}
         The residuals fitted (:mod:`calib.model.residuals`).
-    reference_state : {"unload", "shortcut"}
-        Stress-free reference recovered by inverse elastostatics, or the dissertation's
-        shortcut (the loaded reference scan taken as stress-free, load ``g - g0``).
+    reference_state : {"unload", "prestress", "shortcut"}
+        ``unload``: the stress-free reference recovered by inverse elastostatics (straight
+        elements; where the mesh admits none, curved ones, as ``prestress``).
+        ``prestress``: the loaded reference mesh carrying the prestress of a stress-free
+        state with curved elements (:mod:`fem.prestress`). ``shortcut``: the
+        dissertation's (the loaded reference scan taken as stress-free, load ``g - g0``).
     mesh_size_mm : float
         Element edge length of the model mesh.
     mesh_retry_mm : tuple of float
@@ -68,9 +71,10 @@ class CalibrationOptions:
     def __post_init__(self) -> None:
         if self.objective not in OBJECTIVES:
             raise ValueError(f"objective must be one of {OBJECTIVES}, got {self.objective!r}")
-        if self.reference_state not in ("unload", "shortcut"):
+        if self.reference_state not in ("unload", "prestress", "shortcut"):
             raise ValueError(
-                f"reference state must be unload or shortcut, not {self.reference_state!r}"
+                "reference state must be unload, prestress or shortcut, not "
+                f"{self.reference_state!r}"
             )
         for size in (self.mesh_size_mm, *self.mesh_retry_mm):
             if not 1.0 <= size <= 50.0:

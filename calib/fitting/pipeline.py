@@ -3,9 +3,10 @@
 No files are written and nothing is printed: progress goes to the ``progress``
 callback (or the ``calib.fitting`` logger at INFO). The steps are those of the README's
 "calib: the calibration": first estimate and stress-free reference
-(:mod:`calib.fitting.optimise`), L-BFGS-B, the 95 % interval (Gauss-Newton with the
-mesh check, or the likelihood profile for the ``nipple`` objective) and the likelihood
-profile over c1.
+(:mod:`calib.fitting.optimise`), Gauss-Newton, the 95 % interval (surface: the
+series interval under the residuals' variogram noise model with the mesh check's GCI,
+and the misfit test, :func:`calib.fitting.uncertainty.series_uncertainty`; landmarks:
+Gauss-Newton; nipple: the likelihood profile) and the likelihood profile over c1.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from .optimise import optimise, prepare
 from .options import CalibrationOptions
 from .profile import likelihood_profile, nipple_interval, profile_rows
 from .result import Calibration
-from .uncertainty import Uncertainty, gauss_newton_uncertainty
+from .uncertainty import Uncertainty, gauss_newton_uncertainty, series_uncertainty
 
 __all__ = ["fit"]
 
@@ -46,7 +47,7 @@ def _nipple_uncertainty(cal: Calibrator, theta: float, r: np.ndarray, say):
         "mesh check: not run for the nipple objective (its residual is flat in c1 at the "
         "optimum, so a Gauss-Newton step on another mesh is meaningless)"
     )
-    return unc, None, unc.c1_ci95_pa, profile_rows(prof, len(r))
+    return unc, None, unc.c1_ci95_pa, profile_rows(prof, len(r)), None
 
 
 def _mesh_check(cal: Calibrator, theta: float, unc: Uncertainty, say):
@@ -66,7 +67,9 @@ def _mesh_check(cal: Calibrator, theta: float, unc: Uncertainty, say):
     if check.gci_ln_c1 is None:
         say(f"mesh check failed ({check.failure}): the interval reflects noise only")
         return check, unc.c1_ci95_pa
-    return check, combined_ci95(float(np.exp(theta)), unc.se_ln_c1, check.gci_ln_c1)
+    crit = unc.interval["critical_value"] if unc.interval else 1.96
+    ci = combined_ci95(float(np.exp(theta)), unc.se_ln_c1, check.gci_ln_c1, critical_value=crit)
+    return check, ci
 
 
 def _measured_area_mm2(cal: Calibrator) -> float:
@@ -88,13 +91,38 @@ def _uncertainty(cal: Calibrator, theta: float, say):
         return _nipple_uncertainty(cal, theta, r, say)
     dr = np.concatenate([v.dr for v in final.values()])
     pts = np.concatenate([v.points_mm for v in final.values()])
-    area = _measured_area_mm2(cal) if cal.options.objective == "surface" else None
-    unc = gauss_newton_uncertainty(float(np.exp(theta)), r, dr, pts, area_mm2=area)
+    c1, model_fit = float(np.exp(theta)), None
+    if cal.options.objective == "surface" and len(r) >= MIN_SERIES_POINTS:
+        labels = np.concatenate([np.full(len(v.r), i) for i, v in enumerate(final.values())])
+        unc, fit_test = series_uncertainty(c1, r, dr, pts, labels, seed=cal.options.seed)
+        model_fit = fit_test.as_json()
+        say(_model_fit_line(fit_test))
+    else:
+        area = _measured_area_mm2(cal) if cal.options.objective == "surface" else None
+        unc = gauss_newton_uncertainty(c1, r, dr, pts, area_mm2=area)
     check, ci95 = _mesh_check(cal, theta, unc, say)
     if cal.options.profile_points >= 2:
         say(f"likelihood profile over c1: {cal.options.profile_points} points")
     profile = likelihood_profile(cal, theta, unc.se_ln_c1, unc.n_effective)
-    return unc, check, ci95, profile
+    return unc, check, ci95, profile, model_fit
+
+
+#: Fewest surface residuals for the variogram noise model and the series interval.
+MIN_SERIES_POINTS = 200
+
+
+def _model_fit_line(fit) -> str:
+    """The misfit test's verdict in one progress line."""
+    if fit.verdict == "fits":
+        return (
+            f"model fit: no large-scale structure beyond the noise (band-F p = {fit.p_value:.2g}"
+            f" >= {fit.alpha:g})"
+        )
+    return (
+        f"MODEL MISFIT: the residual holds large-scale structure the noise cannot explain "
+        f"(band-F p = {fit.p_value:.2g} < {fit.alpha:g}); the interval covers noise and mesh, "
+        "not this model error (phantom-calib diagnose looks for the missing effect)"
+    )
 
 
 def fit(
@@ -135,7 +163,7 @@ def fit(
     theta, value, status = optimise(cal, say, theta0)
     c1 = float(np.exp(theta))
     say(f"c1 = {c1:.1f} Pa after {status.iterations} iterations ({cal.fm.solves} FE solves)")
-    unc, check, ci95, profile = _uncertainty(cal, theta, say)
+    unc, check, ci95, profile, model_fit = _uncertainty(cal, theta, say)
     cal.fm.stress_free(theta)  # the calibrated c1's geometry again (the profile moved it)
     o = cal.options
     return Calibration(
@@ -145,6 +173,7 @@ def fit(
         objective_value_mm2=value,
         reference_state=o.reference_state,
         uncertainty=unc,
+        model_fit=model_fit,
         mesh_check=check if isinstance(check, MeshCheck) else None,
         optimiser=status,
         history=tuple(cal.history),
@@ -157,7 +186,9 @@ def fit(
             "formulation": o.formulation,
         },
         reference_recovery={
-            "method": cal.fm.unload_method if o.reference_state == "unload" else "none (shortcut)",
+            "method": "none (shortcut)"
+            if o.reference_state == "shortcut"
+            else cal.fm.unload_method,
             "inverted_elements": cal.fm.inverted_reference_elements,
         },
         fe_solves=int(cal.fm.solves),

@@ -67,6 +67,10 @@ class Calibration:
         ``J = mean(r^2) / 2`` at ``c1_pa``.
     reference_state : str
     uncertainty : Uncertainty
+    model_fit : dict or None
+        The misfit test of the surface residual at the fit
+        (:meth:`calib.stats.ModelFit.as_json`: ``verdict`` ``fits`` or ``misfit``,
+        ``p_value``, the noise model); None for the nipple and landmarks objectives.
     mesh_check : MeshCheck or None
     optimiser : OptimiserStatus
     history : tuple of dict
@@ -93,6 +97,7 @@ class Calibration:
     objective_value_mm2: float
     reference_state: str
     uncertainty: Uncertainty
+    model_fit: dict | None
     mesh_check: MeshCheck | None
     optimiser: OptimiserStatus
     history: tuple[dict, ...]
@@ -156,6 +161,7 @@ class Calibration:
             "reference_state": self.reference_state,
             "uncertainty": asdict(self.uncertainty)
             | {"mesh_check": asdict(self.mesh_check) if self.mesh_check else None},
+            "model_fit": self.model_fit,
             "frames": FRAMES,
             "scans": scans or {},
             "iterations": self.optimiser.iterations,

@@ -7,6 +7,17 @@ With ``reference_state="unload"`` the stress-free geometry ``X = x_ref - u0`` de
 theta too; its sensitivity solves the linearised unloading equation
 ``(K0 - D0) du0 = -R0_theta`` (``D0`` the residual's shape derivative), one more
 factorisation.
+
+Where a strongly sagging reference scan admits no stress-free mesh with straight
+elements (slivers at the clamped rim pass through zero volume while gravity is removed:
+the diagnosis in :mod:`fem.unload`), the same inverse problem is solved with curved
+stress-free elements on the loaded mesh (``unload_method="spatial"``, Govindjee &
+Mihalic 1998): the reference is then the loaded mesh carrying the compatible prestress
+``F0`` (:mod:`fem.prestress`), postures are solved by :func:`fem.prestress.solve_prestressed`
+and their derivatives by :func:`fem.prestress.solve_prestressed_sensitivity` with
+``dF0/dtheta`` from :func:`fem.prestress.prestress_sensitivity`. ``reference_state=
+"prestress"`` uses that formulation from the start; ``"unload"`` switches to it when the
+straight-element Newton fails (``spatial_fallback``) and says so.
 """
 
 from __future__ import annotations
@@ -18,6 +29,11 @@ import numpy as np
 
 import fem
 from fem.fields import gravity_vector, vertex_displacement_mm
+from fem.prestress import (
+    prestress_sensitivity,
+    solve_prestressed,
+    solve_prestressed_sensitivity,
+)
 from fem.sensitivity import state_sensitivity, stress_free_sensitivity, vertex_dofs
 from fem.units import STANDARD_GRAVITY_M_S2
 from fem.unload import recover_stress_free
@@ -29,6 +45,7 @@ __all__ = ["ForwardModel", "ScanState"]
 # Inverse Newton inside the loop: 10 load steps at most (a sagging scan on a coarse mesh
 # can leave no valid stress-free state, where cut-backs would go on for many minutes).
 _UNLOAD_NEWTON = fem.SolverOptions(max_steps=10)
+_SMALL_STEPS = fem.SolverOptions(initial_step=0.125, min_step=1e-3, max_newton=15, max_steps=40)
 _RECOVERIES_KEPT = 16  # converged recoveries kept by theta (a few MB each at most)
 log = logging.getLogger(__name__)
 
@@ -54,11 +71,20 @@ class ForwardModel:
     gravity_ref : ndarray, shape (3,)
         Gravity of the reference scan (unit, reference frame).
     nu, density_kg_m3 : float
-    reference_state : {"unload", "shortcut"}
+    reference_state : {"unload", "prestress", "shortcut"}
+        ``unload``: stress-free mesh with straight elements (inverse Newton);
+        ``prestress``: the loaded mesh with the compatible prestress of a stress-free
+        state with curved elements (:mod:`fem.prestress`, ``inverse``); ``shortcut``:
+        the loaded scan taken as stress-free.
     formulation : str
+    spatial_fallback : bool
+        ``unload``: when the inverse Newton fails, switch to the ``prestress``
+        formulation for this and every later theta (logged; ``unload_method`` becomes
+        ``"spatial"``). Not with springs in the support (effects).
     fixed_point_fallback : bool
-        When the inverse Newton fails, recover the reference by the (slow) fixed point
-        instead of raising :class:`fem.ConvergenceError`.
+        When the inverse Newton fails (and ``spatial_fallback`` does not apply), recover
+        the reference by the (slow) fixed point instead of raising
+        :class:`fem.ConvergenceError`.
     effects : EffectValues, optional
         Effects of the library (:mod:`calib.model.effects`) on a region-tagged mesh; they
         replace ``nu`` and ``density_kg_m3`` and set the support. None: homogeneous,
@@ -73,6 +99,7 @@ class ForwardModel:
     formulation: str = "taylor-hood"
     g_m_s2: float = STANDARD_GRAVITY_M_S2
     unload_method: str = "newton"
+    spatial_fallback: bool = False
     fixed_point_fallback: bool = True
     effects: EffectValues | None = None
     solves: int = 0
@@ -85,12 +112,17 @@ class ForwardModel:
     _states: dict = field(default_factory=dict)
     _recovered: dict = field(default_factory=dict)  # theta -> (X, u0, inverted elements)
     _du0: tuple | None = None  # (theta, d u0 / d theta) of the last gradient
+    _ps: object = None  # fem.prestress.Prestress of the last spatial recovery
+    _dF0: tuple | None = None  # (theta, d F0 / d theta) of the last spatial gradient
 
     def __post_init__(self) -> None:
-        if self.reference_state not in ("unload", "shortcut"):
+        if self.reference_state not in ("unload", "prestress", "shortcut"):
             raise ValueError(
-                f"reference state must be unload or shortcut, not {self.reference_state!r}"
+                "reference state must be unload, prestress or shortcut, not "
+                f"{self.reference_state!r}"
             )
+        if self.reference_state == "prestress":
+            self.unload_method = "spatial"
         self._disc = fem.discretize(self.mesh, self._support(), formulation=self.formulation)
 
     def _support(self):
@@ -104,7 +136,7 @@ class ForwardModel:
         """
         old = self._support()
         self.effects = effects
-        self._X_theta, self._recovered, self._du0 = None, {}, None
+        self._X_theta, self._recovered, self._du0, self._dF0 = None, {}, None, None
         if self._support() != old:
             self._disc = fem.discretize(self.mesh, self._support(), formulation=self.formulation)
             self._states = {}
@@ -123,6 +155,19 @@ class ForwardModel:
     def stress_free_state(self) -> np.ndarray | None:
         """Solver state of the reference posture on :attr:`stress_free_nodes_mm` (unload)."""
         return self._u0
+
+    @property
+    def prestressed(self) -> bool:
+        """Whether postures are solved on the prestressed loaded mesh (``spatial``)."""
+        return self.reference_state != "shortcut" and self.unload_method == "spatial"
+
+    @property
+    def state_nodes_mm(self) -> np.ndarray | None:
+        """The nodes a posture's state displaces (positions are these plus displacement).
+
+        The stress-free nodes, or the loaded mesh's when :attr:`prestressed`.
+        """
+        return self.mesh.nodes_mm if self.prestressed else self._X
 
     def model(self, theta: float, nodes_mm: np.ndarray | None = None) -> fem.Model:
         """The model at ``c1 = exp(theta)`` on the given nodes (homogeneous without effects)."""
@@ -151,9 +196,7 @@ class ForwardModel:
                 raise
             log.warning("solve failed for %s at c1=%.1f Pa; retrying with small load steps",
                         key, np.exp(theta))  # fmt: skip
-            opts = fem.SolverOptions(initial_step=0.125, min_step=1e-3, max_newton=15,
-                                     max_steps=40)  # fmt: skip
-            sol = fem.solve(model, gravity=direction, g_m_s2=mag, disc=disc, options=opts)
+            sol = fem.solve(model, gravity=direction, g_m_s2=mag, disc=disc, options=_SMALL_STEPS)
         self.solves += 1
         return model, sol, direction, mag
 
@@ -165,7 +208,7 @@ class ForwardModel:
         if theta == self._X_theta:  # recovered already (first estimate, final states)
             return self._X
         if theta in self._recovered:  # e.g. the calibrated c1 again after the profile
-            self._X, self._u0, self.inverted_reference_elements = self._recovered[theta]
+            self._X, self._u0, self.inverted_reference_elements, self._ps = self._recovered[theta]
             self._X_theta = theta
             return self._X
         start = self.model(theta)
@@ -173,18 +216,34 @@ class ForwardModel:
         rec = None
         if self.unload_method == "newton":
             try:
-                # a bounded effort: past it the fixed point takes over (and says so)
+                # a bounded effort: past it another method takes over (and says so)
                 rec = recover_stress_free(start, x0_state=self._u0, options=_UNLOAD_NEWTON, **kw)
             except fem.ConvergenceError as exc:
-                if not self.fixed_point_fallback:
+                if self.spatial_fallback and self._disc.spring is None:
+                    log.warning(
+                        "inverse Newton failed at c1=%.1f Pa (%s); solving the reference with "
+                        "curved stress-free elements (prestressed loaded mesh) from now on",
+                        np.exp(theta),
+                        exc,
+                    )
+                    self._use_spatial()
+                elif self.fixed_point_fallback:
+                    log.warning(
+                        "inverse Newton failed at c1=%.1f Pa (%s); using the fixed point "
+                        "from now on",
+                        np.exp(theta),
+                        exc,
+                    )
+                    self.unload_method = "fixed-point"
+                else:
                     raise
-                log.warning("inverse Newton failed at c1=%.1f Pa (%s); using the fixed point "
-                            "from now on", np.exp(theta), exc)  # fmt: skip
-                self.unload_method = "fixed-point"
+        if rec is None and self.unload_method == "spatial":
+            rec = recover_stress_free(start, method="spatial", x0_state=self._u0, **kw)
         if rec is None:
             # tight: the gradient assumes X + u0 = x_ref; 1e-3 mm already costs ~1 % of it
-            rec = recover_stress_free(start, method="fixed-point", x0_nodes_mm=self._X,
-                                      tol_mm=1e-5, max_iter=20, **kw)  # fmt: skip
+            rec = recover_stress_free(
+                start, method="fixed-point", x0_nodes_mm=self._X, tol_mm=1e-5, max_iter=20, **kw
+            )
         self.solves += rec.iterations
         if not rec.converged:  # a geometry off the scan would bias every residual: fail
             raise fem.ConvergenceError(
@@ -192,18 +251,28 @@ class ForwardModel:
                 f"the loaded geometry is {rec.max_error_mm:.3g} mm off the scan after "
                 f"{rec.iterations} solves"
             )
-        self._X, self._u0 = rec.nodes_mm, rec.solution.state
-        self._X_theta = theta if rec.converged else None
-        if rec.converged:
-            self._recovered[theta] = (self._X, self._u0, rec.inverted_elements)
-            while len(self._recovered) > _RECOVERIES_KEPT:
-                self._recovered.pop(next(iter(self._recovered)))
-        if rec.inverted_elements != self.inverted_reference_elements:
-            log.warning("recovered reference at c1=%.1f Pa: %d vertex tetrahedra inverted "
-                        "(clamped rim; the loaded quadratic elements stay valid)",
-                        np.exp(theta), rec.inverted_elements)  # fmt: skip
+        self._X, self._ps = rec.nodes_mm, rec.prestress
+        # the warm start of the next recovery: the inverse's own unknown
+        self._u0 = rec.prestress.inverse_state if rec.prestress is not None else rec.solution.state
+        self._X_theta = theta
+        self._recovered[theta] = (self._X, self._u0, rec.inverted_elements, self._ps)
+        while len(self._recovered) > _RECOVERIES_KEPT:
+            self._recovered.pop(next(iter(self._recovered)))
+        if rec.inverted_elements != self.inverted_reference_elements and not self.prestressed:
+            log.warning(
+                "recovered reference at c1=%.1f Pa: %d vertex tetrahedra inverted "
+                "(clamped rim; the loaded quadratic elements stay valid)",
+                np.exp(theta),
+                rec.inverted_elements,
+            )
         self.inverted_reference_elements = rec.inverted_elements
         return self._X
+
+    def _use_spatial(self) -> None:
+        """Switch to the prestressed formulation: recoveries and warm starts start over."""
+        self.unload_method = "spatial"
+        self._u0, self._X_theta, self._recovered, self._du0 = None, None, {}, None
+        self._states = {}
 
     def evaluate(
         self, theta: float, gravities: dict, *, gradient: bool = True, retry: bool = True
@@ -226,6 +295,8 @@ class ForwardModel:
         dict of str to ScanState
         """
         X = self.stress_free(theta)
+        if self.prestressed:
+            return self._evaluate_prestressed(theta, gravities, gradient, retry)
         disc = self._disc.with_nodes(X)
         model_at = self._model_at(disc)
         dX, dX_state = np.zeros_like(X), None
@@ -252,6 +323,40 @@ class ForwardModel:
         self.current_dX = dX
         return out
 
+    def _evaluate_prestressed(self, theta, gravities, gradient: bool, retry: bool) -> dict:
+        """:meth:`evaluate` on the loaded mesh with the prestress of the last recovery."""
+        disc, ps = self._disc, self._ps
+        model_at = self._model_at(disc)
+        model = model_at(theta)
+        if gradient and (self._dF0 is None or self._dF0[0] != theta):  # once per theta
+            self._dF0 = (theta, prestress_sensitivity(model_at, theta, ps, disc=disc))
+        out = {}
+        for name, g in gravities.items():
+            direction, mag = self._load(g)
+            prev = self._states.get(name)
+            kw = {"gravity": direction, "g_m_s2": mag, "disc": disc}
+            try:
+                sol = solve_prestressed(model, ps, x0=None if prev is None else prev.state, **kw)
+            except fem.ConvergenceError:
+                if not retry:
+                    raise
+                log.warning(
+                    "prestressed solve failed for %s at c1=%.1f Pa; retrying with small load steps",
+                    name,
+                    np.exp(theta),
+                )
+                sol = solve_prestressed(model, ps, options=_SMALL_STEPS, **kw)
+            self.solves += 1
+            st = ScanState(sol.state, self.mesh.nodes_mm + sol.displacement_mm)
+            if gradient:
+                du = solve_prestressed_sensitivity(model_at, theta, ps, self._dF0[1], sol, **kw)
+                st.dpositions_mm = vertex_displacement_mm(disc, du)
+                st.dstate = du
+            out[name] = st
+            self._states[name] = st
+        self.current_dX = np.zeros_like(self.mesh.nodes_mm)  # the loaded mesh does not move
+        return out
+
     def _model_at(self, disc: fem.Discretization):
         """``theta -> Model`` on the nodes of ``disc`` (for :mod:`fem.sensitivity`)."""
         return lambda t: self.model(t, disc.mesh.nodes_mm)
@@ -260,6 +365,9 @@ class ForwardModel:
         """Use known stress-free nodes at ``theta`` (a saved calibration) instead of recovering.
 
         Gradients of the unload reference need the recovery's state and are then not
-        available: evaluate with ``gradient=False``.
+        available: evaluate with ``gradient=False``. Not for the prestressed formulation
+        (its stress-free elements are curved: vertex positions do not define them).
         """
+        if self.prestressed:
+            raise ValueError("a prestressed reference cannot be set from stress-free vertices")
         self._X, self._X_theta, self._u0 = np.asarray(nodes_mm, float), theta, None

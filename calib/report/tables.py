@@ -35,6 +35,26 @@ def _optimiser_lines(opt: dict | None) -> list[str]:
     return lines
 
 
+def _model_fit_lines(fit: dict | None, recovery: dict | None) -> list[str]:
+    lines = []
+    if fit and fit.get("verdict") == "misfit":
+        lines.append(
+            f"  WARNING: model misfit (band-F p = {fit['p_value']:.2g} < {fit['alpha']:g}): "
+            "the residual holds large-scale structure beyond the noise; the interval does not "
+            "cover this model error (phantom-calib diagnose WORK)"
+        )
+    elif fit:
+        lines.append(
+            f"  model fit: no structure beyond the noise (band-F p = {fit['p_value']:.2g})"
+        )
+    if recovery and recovery.get("method") == "spatial":
+        lines.append(
+            "  reference: the prestressed loaded mesh (curved stress-free elements; no straight "
+            "stress-free mesh exists on this model mesh)"
+        )
+    return lines
+
+
 def format_calibration(doc: dict) -> str:
     """A readable summary of calibration.json."""
     ci = doc["c1_ci95_pa"]
@@ -49,6 +69,7 @@ def format_calibration(doc: dict) -> str:
         f"{doc['iterations']} iterations, {doc['fe_solves']} FE solves, {doc['wall_s']:.0f} s",
         *_uncertainty_lines(doc.get("uncertainty", {})),
         *_optimiser_lines(doc.get("optimiser")),
+        *_model_fit_lines(doc.get("model_fit"), doc.get("reference_recovery")),
         f"{'scan':<16}{'role':<13}{'surface mean+-sd (fiducial)':>29}{'(icp)':>16}"
         f"{'nipple mm':>11}{'tumour mm':>11}",
     ]

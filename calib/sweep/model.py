@@ -16,7 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["CalibrationMissingError", "SweepModel", "load_sweep_model", "mesh_sha256"]
+__all__ = [
+    "CalibrationMissingError",
+    "SweepModel",
+    "UnsupportedReferenceError",
+    "load_sweep_model",
+    "mesh_sha256",
+]
 
 _REQUIRED = (
     "nu",
@@ -33,6 +39,10 @@ _SUPPORTS = ("clamped", "sliding")
 
 class CalibrationMissingError(FileNotFoundError):
     """The work folder holds no (complete) calibration to sweep."""
+
+
+class UnsupportedReferenceError(ValueError):
+    """The calibration's reference state cannot be swept (a prestressed loaded mesh)."""
 
 
 def mesh_sha256(nodes_mm: np.ndarray, tets: np.ndarray) -> str:
@@ -186,6 +196,15 @@ def load_sweep_model(work: str | Path) -> SweepModel:
     model = doc.get("model")
     if not isinstance(model, dict):
         _fail(record, "no 'model' block (written by phantom-calib calibrate >= 0.1 with schema 1)")
+    method = (doc.get("reference_recovery") or {}).get("method")
+    if doc.get("reference_state") == "prestress" or method == "spatial":
+        raise UnsupportedReferenceError(
+            f"{record}: the calibration's reference is the prestressed loaded mesh (curved "
+            "stress-free elements, reference_recovery.method 'spatial'); sweeps solve on a "
+            "straight stress-free mesh and do not support it yet. Calibrate with "
+            "--reference-state unload on a --mesh-size where the stress-free mesh is found, "
+            "or --reference-state shortcut"
+        )
     missing = [k for k in _REQUIRED if model.get(k) is None]
     if missing or doc.get("c1_pa") is None:
         _fail(record, f"model block lacks {', '.join(missing or ['c1_pa'])}")

@@ -37,7 +37,7 @@ def test_a_failed_coarse_check_falls_back_to_a_finer_mesh(monkeypatch):
 
     monkeypatch.setattr(run, "mesh_check", fake_check)
     cal = SimpleNamespace(options=SimpleNamespace(mesh_size_mm=14.0, mesh_check_ratio=1.4))
-    unc = SimpleNamespace(c1_ci95_pa=(395.0, 405.0), se_ln_c1=0.03 / 1.96)
+    unc = SimpleNamespace(c1_ci95_pa=(395.0, 405.0), se_ln_c1=0.03 / 1.96, interval=None)
     said = []
     check, ci = run._mesh_check(cal, np.log(400.0), unc, said.append)
     assert calls == [1.4, pytest.approx(1 / 1.4)]

@@ -62,11 +62,12 @@ def test_failed_mesh_size_is_reported_and_retried(nipple_run):
 
 
 # calibration.json of phantom-calib 0.1 (before the library issue): its keys stay, new
-# ones are only added (schema_version 1 adds schema_version, run_id, optimiser, model).
+# ones are only added (schema_version 1 adds schema_version, run_id, optimiser, model,
+# model_fit; uncertainty adds interval).
 KEYS_0_1 = {"c1_pa", "c1_ci95_pa", "objective", "objective_value_mm2", "reference_state",
             "uncertainty", "frames", "scans", "iterations", "fe_solves", "reference_recovery",
             "history", "profile", "mesh", "wall_s", "provenance"}  # fmt: skip
-KEYS_ADDED = {"schema_version", "run_id", "optimiser", "model"}
+KEYS_ADDED = {"schema_version", "run_id", "optimiser", "model", "model_fit"}
 SCAN_KEYS_0_1 = {"role", "gravity_ref", "nipple_error_mm", "nipple_landmark_error_mm",
                  "surface_error_mm", "icp", "tumour_error_mm", "files"}  # fmt: skip
 UNCERTAINTY_KEYS_0_1 = {"se_ln_c1", "c1_ci95_pa", "residual_sd_mm", "n_residuals",
@@ -80,7 +81,8 @@ def test_calibration_json_keys_are_those_of_0_1_plus_the_documented_additions(ni
     assert doc["schema_version"] == 1
     for name, scan in doc["scans"].items():
         assert set(scan) == SCAN_KEYS_0_1 | {"model"}, name
-    assert set(doc["uncertainty"]) == UNCERTAINTY_KEYS_0_1
+    assert set(doc["uncertainty"]) == UNCERTAINTY_KEYS_0_1 | {"interval"}
+    assert doc["model_fit"] is None  # the misfit test is the surface objective's
     assert set(doc["mesh"]) == MESH_KEYS_0_1
     assert {"success", "message", "iterations", "bound"} <= set(doc["optimiser"])
 
