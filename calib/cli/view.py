@@ -1,0 +1,71 @@
+"""``phantom-calib view WORK [--model MODEL.pt] [--port 8050]``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from .app import app, fail
+
+
+@app.command()
+def view(
+    work: Annotated[Path, typer.Argument(help="A work folder (`calibrate` output).")],
+    model: Annotated[
+        Path | None,
+        typer.Option("--model", help="Surrogate (.pt, `surrogate train`): turn gravity freely."),
+    ] = None,
+    port: Annotated[int, typer.Option("--port", help="TCP port on 127.0.0.1.")] = 8050,
+    scan: Annotated[
+        str | None,
+        typer.Option("--scan", help="Open at this scan's posture, its error map overlaid."),
+    ] = None,
+    screenshot: Annotated[
+        Path | None,
+        typer.Option(
+            "--screenshot",
+            help="Save a PNG of the page with headless chromium and exit (no server left).",
+        ),
+    ] = None,
+) -> None:
+    """Serve a real-time 3-D view of the phantom on http://127.0.0.1:PORT/ (offline)."""
+    import threading
+    from urllib.parse import quote
+
+    import nn
+
+    from ..viewer import PortInUseError, SurfaceModelMismatchError, load_scene, make_server
+
+    try:
+        scene = load_scene(work, model)
+        server = make_server(scene, port=port)
+    except (PortInUseError, SurfaceModelMismatchError, nn.SurrogateFileError, OSError) as exc:
+        fail(exc)
+    url = server.url if scan is None else f"{server.url}?scan={quote(scan)}"
+    for line in scene.missing:
+        typer.secho(f"note: {line}", fg=typer.colors.YELLOW, err=True)
+    if screenshot is not None:
+        from ..viewer.headless import BrowserError, HeadlessBrowser
+
+        thread = threading.Thread(target=server.serve_forever, daemon=True)
+        thread.start()
+        try:
+            with HeadlessBrowser() as browser:
+                browser.goto(url)
+                browser.screenshot(screenshot)
+        except (BrowserError, OSError) as exc:
+            fail(exc)
+        finally:
+            server.shutdown()
+            server.server_close()
+        typer.echo(f"wrote {screenshot}")
+        return
+    typer.echo(f"phantom-calib view: open {url}  (Ctrl-C to stop)")
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.server_close()

@@ -1,0 +1,169 @@
+"""A headless Chromium driven over the DevTools protocol (tests, benchmark, screenshots).
+
+Starts the system ``chromium`` (Debian's package) with ``--headless`` and a
+``--remote-debugging-port=0`` whose port it reads from ``DevToolsActivePort`` in its own
+profile folder, opens one page and talks to it over the page's websocket with
+``websocket-client`` (``Runtime.evaluate``, ``Page.captureScreenshot``; protocol:
+https://chromedevtools.github.io/devtools-protocol/). WebGL runs on SwiftShader (CPU).
+"""
+
+from __future__ import annotations
+
+import base64
+import itertools
+import json
+import os
+import shutil
+import subprocess
+import tempfile
+import time
+import urllib.request
+from pathlib import Path
+
+__all__ = ["BrowserError", "HeadlessBrowser", "find_chromium"]
+
+
+class BrowserError(RuntimeError):
+    """Chromium is missing, did not start, or a page script failed."""
+
+
+def find_chromium() -> str | None:
+    """Path of a Chromium executable (``$CHROMIUM``, then ``chromium`` on PATH), or None."""
+    env = os.environ.get("CHROMIUM")
+    if env:
+        return env
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        path = shutil.which(name)
+        if path:
+            return path
+    return None
+
+
+class HeadlessBrowser:
+    """One headless Chromium page (a context manager).
+
+    Parameters
+    ----------
+    width, height : int
+        Window size in CSS pixels.
+    executable : str, optional
+        Chromium to run (default :func:`find_chromium`).
+    timeout_s : float
+        Start-up and per-call timeout.
+    """
+
+    def __init__(self, *, width=1100, height=700, executable=None, timeout_s=30.0):
+        self.executable = executable or find_chromium()
+        if self.executable is None:
+            raise BrowserError("no chromium found (apt-get install chromium, or set $CHROMIUM)")
+        self.size, self.timeout_s = (width, height), timeout_s
+        self._ids = itertools.count(1)
+        self.proc = self.ws = None
+
+    def __enter__(self) -> HeadlessBrowser:
+        try:
+            import websocket
+        except ImportError as exc:
+            raise BrowserError(
+                "websocket-client is not installed (pip install websocket-client; the "
+                "dev extra has it)"
+            ) from exc
+
+        self._profile = tempfile.mkdtemp(prefix="phantom-calib-chromium-")
+        args = [
+            self.executable,
+            "--headless=new",
+            "--remote-debugging-port=0",
+            f"--user-data-dir={self._profile}",
+            f"--window-size={self.size[0]},{self.size[1]}",
+            "--no-first-run",
+            "--no-default-browser-check",
+            "--disable-extensions",
+            "--disable-background-networking",
+            "--use-angle=swiftshader",
+            "--enable-unsafe-swiftshader",
+            "--ignore-gpu-blocklist",
+            "--no-sandbox",  # containers run as root, where the sandbox refuses to start
+            "--disable-dev-shm-usage",  # small /dev/shm in containers
+            "about:blank",
+        ]
+        self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        port_file = Path(self._profile) / "DevToolsActivePort"
+        t0 = time.monotonic()
+        while not port_file.is_file() or not port_file.read_text().strip():
+            if self.proc.poll() is not None:
+                err = self.proc.stderr.read().decode(errors="replace")[-2000:]
+                raise BrowserError(f"{self.executable} exited at start:\n{err}")
+            if time.monotonic() - t0 > self.timeout_s:
+                self.close()
+                raise BrowserError(f"{self.executable}: no DevTools port after {self.timeout_s} s")
+            time.sleep(0.05)
+        port = int(port_file.read_text().split()[0])
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as r:
+            pages = [t for t in json.load(r) if t["type"] == "page"]
+        self.ws = websocket.create_connection(
+            pages[0]["webSocketDebuggerUrl"], timeout=self.timeout_s, suppress_origin=True
+        )
+        self.call("Page.enable")
+        self.call("Runtime.enable")
+        return self
+
+    def call(self, method: str, **params) -> dict:
+        """Send one DevTools command and return its ``result``."""
+        msg_id = next(self._ids)
+        self.ws.send(json.dumps({"id": msg_id, "method": method, "params": params}))
+        while True:
+            msg = json.loads(self.ws.recv())
+            if msg.get("id") == msg_id:
+                if "error" in msg:
+                    raise BrowserError(f"{method}: {msg['error']}")
+                return msg["result"]
+
+    def goto(self, url: str, *, ready: str = "window.viewer && window.viewer.ready") -> None:
+        """Load ``url`` and wait for the promise ``ready`` to settle."""
+        self.call("Page.navigate", url=url)
+        t0 = time.monotonic()
+        while self.evaluate("document.readyState") != "complete" or not self.evaluate(
+            "!!(window.viewer)"
+        ):
+            if time.monotonic() - t0 > self.timeout_s:
+                raise BrowserError(f"{url}: page did not load in {self.timeout_s} s")
+            time.sleep(0.05)
+        self.evaluate(ready)
+
+    def evaluate(self, expression: str):
+        """Evaluate JavaScript in the page (awaiting a promise); its JSON value."""
+        res = self.call(
+            "Runtime.evaluate", expression=expression, awaitPromise=True, returnByValue=True
+        )
+        if "exceptionDetails" in res:
+            d = res["exceptionDetails"]
+            text = d.get("exception", {}).get("description") or d.get("text")
+            raise BrowserError(f"page script failed: {text}")
+        return res["result"].get("value")
+
+    def screenshot(self, path: str | Path) -> Path:
+        """Save a PNG of the page."""
+        data = self.call("Page.captureScreenshot", format="png")["data"]
+        path = Path(path)
+        path.write_bytes(base64.b64decode(data))
+        return path
+
+    def close(self) -> None:
+        """Close the page's socket and end the browser process it started."""
+        if self.ws is not None:
+            self.ws.close()
+            self.ws = None
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        if self.proc is not None and self.proc.stderr:
+            self.proc.stderr.close()
+        shutil.rmtree(getattr(self, "_profile", ""), ignore_errors=True)
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,352 @@
+"""``phantom-calib view``: the page in a real headless Chromium against the surrogate.
+
+The browser tests need Debian's ``chromium``; without it they skip, except under CI (the
+``CI`` environment variable set), where they fail: CI installs it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import sys
+import threading
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "nn"))
+from sweep_helpers import make_box_work  # noqa: E402
+
+from calib.cli import app  # noqa: E402
+from calib.viewer import PortInUseError, load_scene, make_server  # noqa: E402
+from calib.viewer.headless import HeadlessBrowser, find_chromium  # noqa: E402
+
+C1_AXIS = (400.0, 640.0)
+
+
+def _need_chromium():
+    if find_chromium() is None:
+        if os.environ.get("CI"):
+            pytest.fail("chromium is missing under CI (apt-get install chromium)")
+        pytest.skip("chromium is not installed (apt-get install chromium)")
+
+
+@pytest.fixture(scope="module")
+def box(tmp_path_factory):
+    """A clamped block's work folder, a 24-scenario sweep (c1 axis) and our surrogate, ~3 s."""
+    import nn
+    from calib.workflows.sweep import SweepOptions, run_sweep
+
+    root = tmp_path_factory.mktemp("viewer")
+    work = make_box_work(root / "work")
+    opts = SweepOptions(
+        plan="sphere:12", c1_axis=f"{C1_AXIS[0]}:{C1_AXIS[1]}:2", holdout=0.25, backend="serial"
+    )
+    run_sweep(work, root / "sweep", opts)
+    data = nn.load_sweep(root / "sweep")
+    sur = nn.Surrogate.from_fit(nn.fit_reduced_kernel(data, device="cpu"), data)
+    model = nn.save_surrogate(sur, root / "model.pt")
+    return work, model
+
+
+class _Serving:
+    def __init__(self, scene):
+        self.server = make_server(scene, port=0)
+        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
+
+    def __enter__(self):
+        self.thread.start()
+        return self.server
+
+    def __exit__(self, *exc):
+        self.server.shutdown()
+        self.server.server_close()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    _need_chromium()
+    with HeadlessBrowser(width=1000, height=640) as b:
+        yield b
+
+
+def _expected_phantom_mm(model: Path, gravity, c1_pa: float) -> np.ndarray:
+    """Boundary vertex positions from nn alone (not the viewer's code), phantom frame."""
+    import nn
+    from fem.mesh import boundary_faces
+
+    sur = nn.load_surrogate(model)
+    pred = sur.predict(np.asarray(gravity, float), c1_pa=c1_pa, frame="phantom")
+    nodes = np.unique(boundary_faces(sur.mesh.tets))
+    x_ref = sur.mesh.nodes_mm + pred.nodes_mm[0]
+    return x_ref[nodes] @ sur.R_ref_from_phantom  # x_phantom = R^T x_ref, row vectors
+
+
+def test_page_follows_the_gravity_and_c1_controls(box, browser, tmp_path):
+    work, model = box
+    with _Serving(load_scene(work, model)) as server:
+        browser.goto(server.url)
+        assert browser.evaluate("window.viewer.error") is None
+        n = browser.evaluate("window.viewer.nVertices()")
+        checked = []
+        # (transverse angle, tilt, c1 slider position 0..1000) moved as a user would:
+        # set the input's value and fire its "input" event
+        for a, s, c1pos in [(90.0, 0.0, None), (20.0, 35.0, None), (200.0, -50.0, 800)]:
+            js = f"document.getElementById('angle_a').value = {a};"
+            js += f"document.getElementById('angle_s').value = {s};"
+            if c1pos is not None:
+                js += f"document.getElementById('c1').value = {c1pos};"
+                js += "document.getElementById('c1').dispatchEvent(new Event('input'));"
+            js += "document.getElementById('angle_a').dispatchEvent(new Event('input'));"
+            browser.evaluate(js + "window.viewer.settled()")
+            last = browser.evaluate("window.viewer.lastFrame")
+            g, c1 = np.array(last["gravity"]), last["c1"]
+            # the page's gravity is the posture-angle convention of the README's sweeps
+            rad_a, rad_s = np.radians(a), np.radians(s)
+            g_ref = 9.81 * np.array(
+                [np.cos(rad_a) * np.cos(rad_s), np.sin(rad_s), np.sin(rad_a) * np.cos(rad_s)]
+            )
+            np.testing.assert_allclose(g, g_ref, atol=1e-9)
+            if c1pos is None:
+                assert c1 == pytest.approx(500.0, rel=1e-12)  # the calibrated c1, exactly
+            else:  # log scale over the trained range
+                assert c1 == pytest.approx(C1_AXIS[0] * (C1_AXIS[1] / C1_AXIS[0]) ** 0.8)
+            expect = _expected_phantom_mm(model, g, c1)
+            assert len(expect) == n
+            idx = [
+                0,
+                n // 2,
+                n - 1,
+                int(np.argmax(np.linalg.norm(expect - expect.mean(0), axis=1))),
+            ]
+            got = np.array([browser.evaluate(f"window.viewer.readVertex({i})") for i in idx])
+            # 1e-3 mm is the issue's bound; what we expect is the float32 rounding of the
+            # GPU buffer, 2^-24 |x| <= 6e-6 mm at |x| <= 100 mm, plus the surrogate's float32
+            # POD expansion (~1e-6 mm, nn.modules)
+            np.testing.assert_allclose(got, expect[idx], atol=1e-3, rtol=0)
+            checked.append(got)
+        # the controls moved the surface (not a frozen picture): mm-scale differences
+        assert np.abs(checked[1] - checked[0]).max() > 0.1
+        assert np.abs(checked[2] - checked[1]).max() > 0.1
+        shot = browser.screenshot(tmp_path / "view.png")
+        assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and shot.stat().st_size > 5000
+
+
+def test_page_without_calibration_says_what_is_missing(tmp_path, browser):
+    empty = tmp_path / "work"
+    empty.mkdir()
+    scene = load_scene(empty)
+    assert scene.rest_mm is None and scene.predictor is None
+    with _Serving(scene) as server:
+        browser.goto(server.url)
+        assert browser.evaluate("window.viewer.error") is None
+        text = browser.evaluate("document.body.innerText")
+        assert "calibration.json is missing" in text
+        assert "phantom-calib calibrate" in text
+        assert "phantom-calib surrogate train" in text
+        with pytest.raises(urllib.error.HTTPError) as err:
+            urllib.request.urlopen(server.url + "api/predict?g=0,0,9.81&c1=500")
+        assert err.value.code == 404
+        err.value.close()
+
+
+def test_surrogate_without_work_scans_still_views(box):
+    work, model = box
+    scene = load_scene(work, model)
+    assert any("no 'scans' entry" in m for m in scene.missing)
+    with _Serving(scene) as server:
+        with urllib.request.urlopen(server.url + "api/predict?g=0,0,9.81&c1=500") as r:
+            body = np.frombuffer(r.read(), "<f4")
+            assert r.headers["X-Extrapolating"] == "0"
+        n = len(scene.rest_mm)
+        expect = _expected_phantom_mm(model, [0, 0, 9.81], 500.0)
+        # float32 transport: 2^-24 relative of <= 100 mm coordinates
+        np.testing.assert_allclose(body[: 3 * n].reshape(n, 3), expect, atol=1e-4, rtol=0)
+        # the nipple is a displayed vertex; the tumour follows the surrogate's tumour
+        nv = scene.info["landmarks"]["nipple_vertex"]
+        np.testing.assert_allclose(body[3 * n : 3 * n + 3], expect[nv], atol=1e-4, rtol=0)
+        assert np.all(np.isfinite(body[3 * n + 3 :]))
+        # outside the trained c1 range: drawn, and flagged
+        with urllib.request.urlopen(server.url + "api/predict?g=0,0,9.81&c1=2000") as r:
+            assert r.headers["X-Extrapolating"] == "1"
+        with pytest.raises(urllib.error.HTTPError) as err:
+            urllib.request.urlopen(server.url + "api/predict?g=0,9.81&c1=500")
+        assert err.value.code == 400 and "X,Y,Z" in json.loads(err.value.read())["error"]
+        err.value.close()
+
+
+def test_port_in_use_names_the_port_and_a_free_one(tmp_path):
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(PortInUseError, match=rf"port {port} on 127\.0\.0\.1 is in use") as e:
+            make_server(load_scene(tmp_path), port=port)
+        free = int(str(e.value).rsplit("--port ", 1)[1])
+        assert free != port
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.bind(("127.0.0.1", free))  # the suggestion binds
+        res = CliRunner().invoke(app, ["view", str(tmp_path), "--port", str(port)])
+        assert res.exit_code == 2
+        assert f"port {port}" in res.output and "try --port" in res.output
+
+
+def test_bad_model_file_is_a_one_line_error(tmp_path):
+    bad = tmp_path / "model.pt"
+    bad.write_text("not a model")
+    res = CliRunner().invoke(app, ["view", str(tmp_path), "--model", str(bad), "--port", "0"])
+    assert res.exit_code == 2 and "not a TorchScript surrogate" in res.output
+
+
+TILT_DEG = 50.0
+
+
+def _work_with_scans(root: Path, model: Path) -> tuple[Path, dict]:
+    """The block's work folder with two scans written as ``calibrate`` and ``ingest`` do.
+
+    ``tilt_50`` (calibration role) has a measured surface (the surrogate's boundary at its
+    posture, shifted 0.4 mm in z), a saved FE state, a known signed error map and a
+    ``diagnose`` refit (``diagnosis/refit/``, a work folder) whose saved state *is* the
+    measured surface; ``left_lateral`` is the reference scan. Returns the folder and the
+    planted values.
+    """
+    import imaging
+    import nn
+    from calib.io import RunOutputs
+    from calib.report.maps import write_error_ply
+    from fem.io import read_mesh, write_mesh
+    from fem.mesh import boundary_faces
+
+    work = make_box_work(root / "work")  # the sweep's mesh (deterministic)
+    doc = json.loads((work / "calibration.json").read_text())
+    doc.pop("run_id")  # the new run's
+    mesh = read_mesh(work / "calibration" / "reference_mesh.vtu", orient=False)
+    sur = nn.load_surrogate(model)
+    R = sur.R_ref_from_phantom
+    a = np.radians(TILT_DEG)
+    g_ph = {"left_lateral": np.array([1.0, 0, 0]), "tilt_50": np.array([np.cos(a), 0, np.sin(a)])}
+    faces = boundary_faces(mesh.tets)
+    nodes, inv = np.unique(faces, return_inverse=True)
+    faces = inv.reshape(faces.shape)
+    u = sur.predict(g_ph["tilt_50"] * 9.81, c1_pa=500.0).nodes_mm[0]
+    measured = mesh.nodes_mm[nodes] + u[nodes] + [0.0, 0.0, 0.4]
+    error = np.linspace(-2.0, 1.5, len(nodes))  # known signed values
+    back = np.isclose(mesh.nodes_mm[nodes][:, 2], 0.0)
+    fid = np.array([[0.0, 0.0, 0.0], [40.0, 0.0, 0.0], [0.0, 40.0, 0.0]])
+    for name, g in g_ph.items():
+        folder = work / "scans" / name
+        folder.mkdir(parents=True)
+        ingest = {
+            "T_ref_from_scan": np.eye(4).tolist(),
+            "back_plane": {"point_lps_mm": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, -1.0]},
+            "gravity_ref": (R @ g).tolist(),
+            "nipple_lps_mm": measured[
+                np.flatnonzero(nodes == doc["model"]["nipple_node"])[0]
+            ].tolist(),
+            "tumour_lps_mm": [20.0, 20.0, 14.0],
+            "fiducials_lps_mm": fid.tolist(),
+        }
+        (folder / "ingest.json").write_text(json.dumps(ingest))
+        surf = imaging.SurfaceMesh(measured, faces, back, {})
+        imaging.write_ply(folder / "surface_ref.ply", surf)
+    doc["scans"] = {"tilt_50": {"role": "calibration", "model": {"tumour_mm": [20, 20, 14.5]}}}
+    with RunOutputs(work, folder="calibration", record="calibration.json") as run:
+        write_mesh(mesh, run.path("reference_mesh.vtu"))
+        write_mesh(
+            mesh.with_nodes(mesh.nodes_mm + u),
+            run.path("tilt_50_deformed.vtu"),
+            point_data={"displacement_mm": u},
+        )
+        write_error_ply(run.path("tilt_50_error.ply"), measured, faces, error)
+        run.commit(doc)
+    refit = work / "diagnosis" / "refit"  # as calib.workflows.diagnose.write_refit writes it
+    shutil.copytree(work / "scans", refit / "scans")
+    with RunOutputs(refit, folder="calibration", record="calibration.json") as run:
+        write_mesh(mesh, run.path("reference_mesh.vtu"))
+        u_after = u + [0.0, 0.0, 0.4]  # the refit's state is the measured surface
+        write_mesh(
+            mesh.with_nodes(mesh.nodes_mm + u_after),
+            run.path("tilt_50_deformed.vtu"),
+            point_data={"displacement_mm": u_after},
+        )
+        run.commit(doc)
+    planted = {
+        "R": R, "g_ph": g_ph, "measured": measured, "error": error, "back": back,
+        "state": (mesh.nodes_mm + u)[nodes], "fiducials": fid,
+    }  # fmt: skip
+    return work, planted
+
+
+@pytest.fixture(scope="module")
+def scans_work(box, tmp_path_factory):
+    return _work_with_scans(tmp_path_factory.mktemp("viewer-scans"), box[1])
+
+
+def test_scene_reads_scans_states_and_maps_into_the_phantom_frame(scans_work, box):
+    work, p = scans_work
+    scene = load_scene(work, box[1])
+    R = p["R"]
+    # the frame: x_phantom = R^T x_ref (row vectors: x @ R); float32 storage, 2^-24 |x|
+    ov = scene.overlays["tilt_50"]
+    np.testing.assert_allclose(ov["vertices_mm"], p["measured"] @ R, atol=1e-5, rtol=0)
+    np.testing.assert_array_equal(ov["error_mm"], p["error"].astype(np.float32))  # <f4 on disk
+    # after diagnose: its refitted state is the measured surface, so the error measured
+    # as calibrate measures it is 0 (float32 storage of <= 100 mm coordinates: 1e-5 mm)
+    np.testing.assert_allclose(ov["error_after_mm"], 0.0, atol=1e-5)
+    pos, nipple, tumour = scene.states["tilt_50"]
+    np.testing.assert_allclose(pos, p["state"] @ R, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(tumour, np.array([20, 20, 14.5]) @ R, atol=1e-12)
+    scans = {s["name"]: s for s in scene.info["scans"]}
+    assert scans["left_lateral"]["role"] == "reference"
+    np.testing.assert_allclose(
+        scans["tilt_50"]["gravity_phantom_m_s2"], 9.81 * p["g_ph"]["tilt_50"], atol=1e-12
+    )
+    assert scans["tilt_50"]["maps"] == ["error_mm", "error_after_mm"]
+    np.testing.assert_allclose(scene.info["landmarks"]["fiducials_mm"], p["fiducials"] @ R)
+    assert not any("diagnos" in m for m in scene.missing)
+
+
+def test_page_at_a_scan_posture_shows_its_error_map(scans_work, box, browser, tmp_path):
+    work, p = scans_work
+    with _Serving(load_scene(work, box[1])) as server:
+        browser.goto(server.url + "?scan=tilt_50")
+        assert browser.evaluate("window.viewer.error") is None
+        last = browser.evaluate("window.viewer.lastFrame")
+        # the scan's own gravity, not the slider's rounding of it
+        np.testing.assert_allclose(last["gravity"], 9.81 * p["g_ph"]["tilt_50"], atol=1e-12)
+        expect = _expected_phantom_mm(box[1], last["gravity"], 500.0)
+        got = np.array(browser.evaluate("window.viewer.readVertex(5)"))
+        np.testing.assert_allclose(got, expect[5], atol=1e-3, rtol=0)  # as in the first test
+        assert browser.evaluate("document.getElementById('overlay').value") == "error_mm"
+        label = browser.evaluate("document.getElementById('barlabel').innerText")
+        # the colour scale: 99th percentile of |error| over the nonzero (compared) vertices
+        e = np.sort(np.abs(p["error"].astype(np.float32)))
+        e = e[e > 0]
+        p99 = e[int(0.99 * (len(e) - 1))]
+        assert f"|error| {p99:.2f} mm" in label
+        browser.evaluate(
+            "document.getElementById('overlay').value = 'error_after_mm';"
+            "document.getElementById('overlay').dispatchEvent(new Event('change'))"
+        )
+        label = browser.evaluate("document.getElementById('barlabel').innerText")
+        assert f"{p99:.2f} mm" in label and "after diagnose's refit" in label  # one scale
+        browser.screenshot(tmp_path / "scan.png")
+
+
+def test_page_without_surrogate_shows_the_saved_fe_states(scans_work, browser):
+    work, p = scans_work
+    scene = load_scene(work)
+    assert any("no surrogate" in m and "surrogate train" in m for m in scene.missing)
+    with _Serving(scene) as server:
+        browser.goto(server.url + "?scan=tilt_50")
+        assert browser.evaluate("document.getElementById('angle_a').disabled")
+        n = browser.evaluate("window.viewer.nVertices()")
+        got = np.array([browser.evaluate(f"window.viewer.readVertex({i})") for i in range(n)])
+        # the FE state calibrate saved (float32 of <= 100 mm coordinates)
+        np.testing.assert_allclose(got, p["state"] @ p["R"], atol=1e-4, rtol=0)
