@@ -157,6 +157,11 @@ class ForwardModel:
         return self._u0
 
     @property
+    def prestress(self):
+        """The :class:`fem.prestress.Prestress` of the last spatial recovery, or None."""
+        return self._ps
+
+    @property
     def prestressed(self) -> bool:
         """Whether postures are solved on the prestressed loaded mesh (``spatial``)."""
         return self.reference_state != "shortcut" and self.unload_method == "spatial"

@@ -113,7 +113,7 @@ class ScenarioResult:
 
 
 # -- worker side ---------------------------------------------------------------------------
-_CACHE: dict = {}  # model key -> (fem.Model, Discretization, MaterialPoint or None)
+_CACHE: dict = {}  # model key -> (fem.Model, Discretization, MaterialPoint or None, Prestress)
 
 
 def _prepared(model: SweepModel, key: str):
@@ -127,7 +127,7 @@ def _prepared(model: SweepModel, key: str):
         tumour = None
         if model.tumour_stress_free_mm is not None:
             tumour = MaterialPoint.locate(disc, model.tumour_stress_free_mm)
-        _CACHE[key] = (fm, disc, tumour)
+        _CACHE[key] = (fm, disc, tumour, model.prestress(fm, disc))
     return _CACHE[key]
 
 
@@ -150,15 +150,25 @@ def solve_scenario(model: SweepModel, key: str, task: ScenarioTask):
     t0, c0 = time.perf_counter(), time.process_time()
     worker = f"{socket.gethostname()}:{os.getpid()}"
     try:
-        fm, disc, tumour = _prepared(model, key)
+        fm, disc, tumour, ps = _prepared(model, key)
         kw = {"gravity": task.gravity_ref, "g_m_s2": task.g_m_s2, "disc": disc}
+        if ps is not None:  # the prestressed loaded mesh (see calib.sweep.model)
+            from fem.prestress import solve_prestressed
+
+            def solve(**extra):
+                return solve_prestressed(fm, ps, **kw, **extra)
+        else:
+
+            def solve(**extra):
+                return fem.solve(fm, **kw, **extra)
+
         newton = 0
         try:
-            sol = fem.solve(fm, x0=task.x0, **kw)
+            sol = solve(x0=task.x0)
         except fem.ConvergenceError as exc:
             log.info("scenario %d: %s; retrying with small load steps", task.index, exc)
             newton = _newton_of(exc)
-            sol = fem.solve(fm, options=fem.SolverOptions(**RETRY_OPTIONS), **kw)
+            sol = solve(options=fem.SolverOptions(**RETRY_OPTIONS))
     except Exception as exc:  # noqa: BLE001 - a failed scenario is recorded, not fatal
         return ScenarioResult(
             task.index,

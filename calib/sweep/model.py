@@ -5,6 +5,13 @@ reference mesh ``WORK/calibration/reference_mesh.vtu`` (node sets ``set:back``,
 ``set:surface``, ``set:nipple`` as point data), checking that both are from the same run
 (:func:`calib.io.check_run`). The result, :class:`SweepModel`, is a small picklable value
 (arrays and numbers) that every worker turns into the same FE model.
+
+A calibration whose reference is the prestressed loaded mesh (``reference_recovery.method``
+``spatial``: curved stress-free elements, :mod:`fem.prestress`) is swept on that loaded
+mesh (``model.prestress``: ``calibration/loaded_reference_mesh.vtu``) with its prestress,
+rebuilt on each worker from the saved inverse state
+(``calibration/reference_prestress.npz``); stored displacements are then relative to the
+loaded mesh, whose nodes are the store's ``mesh/nodes_mm``.
 """
 
 from __future__ import annotations
@@ -42,7 +49,7 @@ class CalibrationMissingError(FileNotFoundError):
 
 
 class UnsupportedReferenceError(ValueError):
-    """The calibration's reference state cannot be swept (a prestressed loaded mesh)."""
+    """The calibration's reference state cannot be swept (its prestress is missing)."""
 
 
 def mesh_sha256(nodes_mm: np.ndarray, tets: np.ndarray) -> str:
@@ -74,6 +81,13 @@ class SweepModel:
     R_ref_from_phantom : ndarray, shape (3, 3)
         Phantom frame of posture angles in the reference-scan frame.
     tumour_stress_free_mm : ndarray, shape (3,) or None
+        Where the tumour is in ``nodes_mm`` (the stress-free mesh; the loaded mesh for a
+        prestressed reference).
+    prestress_state : ndarray, shape (n_dofs,) or None
+        A prestressed reference: the inverse state of the spatial recovery on
+        ``nodes_mm`` (the loaded mesh); None for a straight stress-free mesh.
+    prestress_gravity_m_s2 : ndarray, shape (3,) or None
+        The reference scan's gravity (model frame, m/s^2) the prestress balances.
     source : dict
         Paths of the calibration files (for provenance).
     """
@@ -92,6 +106,8 @@ class SweepModel:
     reference_state: str
     R_ref_from_phantom: np.ndarray
     tumour_stress_free_mm: np.ndarray | None = None
+    prestress_state: np.ndarray | None = field(default=None, compare=False)
+    prestress_gravity_m_s2: np.ndarray | None = field(default=None, compare=False)
     source: dict = field(default_factory=dict, compare=False)
 
     @property
@@ -121,6 +137,15 @@ class SweepModel:
             "R_ref_from_phantom": np.asarray(self.R_ref_from_phantom).tolist(),
             "nipple_node": int(self.nipple_node),
             "tumour_stress_free_mm": None if t is None else np.asarray(t).tolist(),
+            "prestress": None
+            if self.prestress_state is None
+            else {
+                "mesh": "loaded reference mesh (mesh/nodes_mm)",
+                "state_sha256": hashlib.sha256(
+                    np.ascontiguousarray(self.prestress_state, dtype="<f8").tobytes()
+                ).hexdigest(),
+                "gravity_m_s2": np.asarray(self.prestress_gravity_m_s2).tolist(),
+            },
         }
 
     def tet_mesh(self):
@@ -139,6 +164,27 @@ class SweepModel:
             },
         )
         return mesh.oriented()
+
+    def prestress(self, fm, disc):
+        """The :class:`fem.prestress.Prestress` of a prestressed reference (None otherwise).
+
+        Rebuilt by the spatial inverse from the saved state: at the calibrated c1 that
+        state is already the solution (no Newton step beyond the residual check).
+        """
+        if self.prestress_state is None:
+            return None
+        from fem.prestress import compute_prestress
+
+        g = np.asarray(self.prestress_gravity_m_s2, float)
+        mag = float(np.linalg.norm(g))
+        return compute_prestress(
+            fm,
+            gravity=g / mag,
+            g_m_s2=mag,
+            method="inverse",
+            disc=disc,
+            x0_state=self.prestress_state,
+        )
 
     def fem_model(self):
         """The homogeneous :class:`fem.Model` at the calibrated c1."""
@@ -197,13 +243,12 @@ def load_sweep_model(work: str | Path) -> SweepModel:
     if not isinstance(model, dict):
         _fail(record, "no 'model' block (written by phantom-calib calibrate >= 0.1 with schema 1)")
     method = (doc.get("reference_recovery") or {}).get("method")
-    if doc.get("reference_state") == "prestress" or method == "spatial":
+    pre = model.get("prestress")
+    if (doc.get("reference_state") == "prestress" or method == "spatial") and not pre:
         raise UnsupportedReferenceError(
-            f"{record}: the calibration's reference is the prestressed loaded mesh (curved "
-            "stress-free elements, reference_recovery.method 'spatial'); sweeps solve on a "
-            "straight stress-free mesh and do not support it yet. Calibrate with "
-            "--reference-state unload on a --mesh-size where the stress-free mesh is found, "
-            "or --reference-state shortcut"
+            f"{record}: the calibration's reference is the prestressed loaded mesh "
+            "(reference_recovery.method 'spatial') but its model block names no prestress "
+            "files (model.prestress): recalibrate with this version"
         )
     missing = [k for k in _REQUIRED if model.get(k) is None]
     if missing or doc.get("c1_pa") is None:
@@ -221,6 +266,19 @@ def load_sweep_model(work: str | Path) -> SweepModel:
     if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-9):
         _fail(record, "model.R_ref_from_phantom is not a 3x3 rotation")
     tumour = model.get("tumour_stress_free_mm")
+    state = g_pre = None
+    if pre:
+        loaded_path, state_path = work / pre["mesh"], work / pre["state"]
+        for path in (loaded_path, state_path):
+            if not path.is_file():
+                _fail(path, "prestress file named in calibration.json (model.prestress) not found")
+        mesh = read_mesh(loaded_path, orient=False)
+        for name in ("back", "surface"):
+            if name not in mesh.node_sets or not len(mesh.node_sets[name]):
+                _fail(loaded_path, f"no node set 'set:{name}' in the point data")
+        with np.load(state_path) as z:
+            state, g_pre = np.asarray(z["inverse_state"], float), np.asarray(z["gravity_m_s2"])
+        tumour = pre.get("tumour_reference_mm")
     return SweepModel(
         nodes_mm=mesh.nodes_mm,
         tets=mesh.tets,
@@ -236,5 +294,7 @@ def load_sweep_model(work: str | Path) -> SweepModel:
         reference_state=str(doc.get("reference_state", "unload")),
         R_ref_from_phantom=R,
         tumour_stress_free_mm=None if tumour is None else np.asarray(tumour, float),
+        prestress_state=state,
+        prestress_gravity_m_s2=g_pre,
         source={"calibration.json": record, "reference_mesh.vtu": mesh_path},
     )

@@ -33,7 +33,7 @@ in the reference-scan frame unless the name says ``phantom``):
 =============================  =================  ========  ============================
 path                           shape              dtype     content
 =============================  =================  ========  ============================
-``mesh/nodes_mm``              (N, 3)             float64   stress-free reference mesh
+``mesh/nodes_mm``              (N, 3)             float64   reference mesh (loaded if prestress)
 ``mesh/tets``                  (T, 4)             int64     its tetrahedra
 ``mesh/surface_nodes``         (n_s,)             int64     node set ``surface`` (boundary
                                                             without the back plate)

@@ -88,6 +88,31 @@ def _scan_json(ev: ScanEvaluation, files: list[str]) -> dict:
     return out
 
 
+def _write_prestress(run, c) -> dict:
+    """The prestressed reference's files (loaded mesh, inverse state) and its model block.
+
+    The prestress is rebuilt from them by :func:`fem.prestress.compute_prestress` with the
+    saved inverse state as its start (no Newton step at the calibrated c1).
+    """
+    from fem.io import write_mesh
+
+    ps = c.fm.prestress
+    write_mesh(c.mesh, run.path("loaded_reference_mesh.vtu"))
+    np.savez(
+        run.path("reference_prestress.npz"),
+        inverse_state=ps.inverse_state,
+        gravity_m_s2=np.asarray(ps.gravity_m_s2, float),
+    )
+    tumour = None if c.tumour is None else c.tumour.place_mm(c.mesh.nodes_mm).tolist()
+    return {
+        "method": "inverse (spatial; curved stress-free elements)",
+        "mesh": f"{FOLDER}/loaded_reference_mesh.vtu",
+        "state": f"{FOLDER}/reference_prestress.npz",
+        "formulation": ps.formulation,
+        "tumour_reference_mm": tumour,
+    }
+
+
 def write_calibration(
     work: str | Path,
     calibration: Calibration,
@@ -114,6 +139,11 @@ def write_calibration(
             provenance=provenance(inputs=inputs, parameters=asdict(calibration.options)),
         )
         doc["model"]["reference_mesh"] = f"{FOLDER}/reference_mesh.vtu"
+        prestress = None
+        if c.fm.prestressed:
+            c.fm.stress_free(calibration.theta)  # the prestress at the calibrated c1 (cached)
+            prestress = _write_prestress(run, c)
+        doc["model"]["prestress"] = prestress
         doc["fe_solves"] = int(c.fm.solves)  # with the final states of every scan
         doc["wall_s"] = wall_s
         return run.commit(doc)
