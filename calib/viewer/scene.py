@@ -262,8 +262,15 @@ def load_scene(work: str | Path, model: str | Path | None = None) -> Scene:
     if sur is not None:
         nodes_ref = sur.mesh.nodes_mm
         vnodes, faces = _boundary(sur.mesh.tets, sur.mesh.boundary_faces)
+        mesh_path = work / "calibration" / "reference_mesh.vtu"
+        wn = None
         if folder is not None:
             wn = folder.mesh.nodes_mm
+        elif mesh_path.is_file():
+            from fem.io import read_mesh
+
+            wn = read_mesh(mesh_path, orient=False).nodes_mm
+        if wn is not None:
             if wn.shape != nodes_ref.shape or not np.allclose(wn, nodes_ref, atol=1e-6):
                 raise SurfaceModelMismatchError(
                     f"{model}: the surrogate's mesh ({len(nodes_ref)} nodes) is not "

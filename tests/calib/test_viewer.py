@@ -24,7 +24,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "nn"))
 from sweep_helpers import make_box_work  # noqa: E402
 
 from calib.cli import app  # noqa: E402
-from calib.viewer import PortInUseError, load_scene, make_server  # noqa: E402
+from calib.viewer import (  # noqa: E402
+    PortInUseError,
+    SurfaceModelMismatchError,
+    load_scene,
+    make_server,
+)
 from calib.viewer.headless import HeadlessBrowser, find_chromium  # noqa: E402
 
 C1_AXIS = (400.0, 640.0)
@@ -350,3 +355,26 @@ def test_page_without_surrogate_shows_the_saved_fe_states(scans_work, browser):
         got = np.array([browser.evaluate(f"window.viewer.readVertex({i})") for i in range(n)])
         # the FE state calibrate saved (float32 of <= 100 mm coordinates)
         np.testing.assert_allclose(got, p["state"] @ p["R"], atol=1e-4, rtol=0)
+
+
+def test_surrogate_of_another_mesh_is_refused(box, tmp_path):
+    other = make_box_work(tmp_path / "other", shift_mm=1.0)  # same block, moved 1 mm
+    with pytest.raises(SurfaceModelMismatchError, match="reference_mesh.vtu"):
+        load_scene(other, box[1])
+    res = CliRunner().invoke(app, ["view", str(other), "--model", str(box[1]), "--port", "0"])
+    assert res.exit_code == 2 and "train it from a sweep of this work folder" in res.output
+
+
+def test_the_view_never_writes_into_work(scans_work, box):
+    work, _ = scans_work
+
+    def snapshot():
+        return {(str(f), f.stat().st_mtime_ns, f.stat().st_size) for f in work.rglob("*")}
+
+    before = snapshot()
+    scene = load_scene(work, box[1])
+    with _Serving(scene) as server:
+        for path in ("", "api/scene", "api/surface", "api/overlay/tilt_50", "api/state/tilt_50"):
+            with urllib.request.urlopen(server.url + path) as r:
+                assert r.status == 200
+    assert snapshot() == before
