@@ -17,7 +17,7 @@ Python, one surrogate query and the toolkit's file path (``surrogate predict`` t
 300-500 ms per update over a socket (quoted, not re-measured).
 
     python benchmarks/bench_view.py [--work WORK --model MODEL.pt] [--changes 60] [--rounds 3]
-        [--seed 0]
+        [--seed 0] [--aa 0|1]
 
 Without ``--work`` it builds the tests' block (36 nodes) and its surrogate in a temporary
 folder; pass a calibrated work folder and its surrogate for a realistic mesh (e.g. the
@@ -87,6 +87,9 @@ def main(argv=None) -> None:
     ap.add_argument("--changes", type=int, default=60, help="control changes per round")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0, help="seed of the input phases")
+    ap.add_argument(
+        "--aa", choices=["0", "1"], help="force multisampling off/on (default: the page's choice)"
+    )
     args = ap.parse_args(argv)
     from calib.viewer import load_scene, make_server
     from calib.viewer.headless import HeadlessBrowser
@@ -100,8 +103,14 @@ def main(argv=None) -> None:
         rounds = []
         try:
             with HeadlessBrowser(width=1100, height=700) as b:
-                b.goto(server.url)
+                b.goto(server.url + ("" if args.aa is None else f"?aa={args.aa}"))
                 rng = np.random.default_rng(args.seed)
+                renderer = b.evaluate(
+                    "(() => { const gl = document.getElementById('gl').getContext('webgl2');"
+                    " const e = gl.getExtension('WEBGL_debug_renderer_info');"
+                    " return gl.getParameter(e ? e.UNMASKED_RENDERER_WEBGL : gl.RENDERER); })()"
+                )
+                aa = b.evaluate("window.viewer.antialias")
                 for r in range(args.rounds):
                     lat, fet, drw = [], [], []
                     for k in range(args.changes + 5):  # 5 warm-up changes per round
@@ -126,6 +135,7 @@ def main(argv=None) -> None:
     n_nodes = len(scene.predictor.surrogate.mesh.nodes_mm)
     print(f"mesh: {n_nodes} nodes, {n_vert} surface vertices drawn, {len(scene.faces)} triangles;"
           f" surrogate {scene.predictor.surrogate.kind}")  # fmt: skip
+    print(f"renderer: {renderer}; antialias {aa}; {args.changes} changes x {args.rounds} rounds")
     print()
     print("| path | median ms | p10–p90 ms | n |")
     print("|---|---:|---:|---:|")

@@ -44,6 +44,7 @@ def view(
     except (PortInUseError, SurfaceModelMismatchError, nn.SurrogateFileError, OSError) as exc:
         fail(exc)
     url = server.url if scan is None else f"{server.url}?scan={quote(scan)}"
+    shot_url = url + ("&" if "?" in url else "?") + "aa=1"  # antialiased, also in software
     for line in scene.missing:
         typer.secho(f"note: {line}", fg=typer.colors.YELLOW, err=True)
     if screenshot is not None:
@@ -53,7 +54,7 @@ def view(
         thread.start()
         try:
             with HeadlessBrowser() as browser:
-                browser.goto(url)
+                browser.goto(shot_url)
                 browser.screenshot(screenshot)
         except (BrowserError, OSError) as exc:
             fail(exc)

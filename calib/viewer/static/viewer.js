@@ -4,9 +4,22 @@
 (function () {
   const $ = (id) => document.getElementById(id);
   const canvas = $("gl");
-  const gl = canvas.getContext("webgl2", { antialias: true });
+  // Multisampling on a real GPU; off on the software rasteriser (SwiftShader: headless
+  // Chromium, machines without a GPU), where MSAA in software added 5-15 ms to the median
+  // control-to-frame latency (benchmarks/bench_view.py --aa 0|1). ?aa=1 or ?aa=0 overrides.
+  function softwareGL() {
+    const probe = document.createElement("canvas").getContext("webgl2");
+    if (!probe) return false;
+    const ext = probe.getExtension("WEBGL_debug_renderer_info");
+    const name = String(probe.getParameter(ext ? ext.UNMASKED_RENDERER_WEBGL : probe.RENDERER));
+    probe.getExtension("WEBGL_lose_context")?.loseContext();
+    return /swiftshader|llvmpipe|software/i.test(name);
+  }
+  const aaParam = new URLSearchParams(location.search).get("aa");
+  const antialias = aaParam === null ? !softwareGL() : aaParam === "1";
+  const gl = canvas.getContext("webgl2", { antialias });
   const V = (window.viewer = {
-    ready: null, state: { gravity: [0, 0, 0], c1: null, scan: "", overlay: "none" },
+    ready: null, state: { gravity: [0, 0, 0], c1: null, scan: "", overlay: "none" }, antialias,
     latencies: [], frames: 0, scene: null, error: null,
   });
   const DEG = Math.PI / 180;
