@@ -262,9 +262,12 @@ def load_scene(work: str | Path, model: str | Path | None = None) -> Scene:
     if sur is not None:
         nodes_ref = sur.mesh.nodes_mm
         vnodes, faces = _boundary(sur.mesh.tets, sur.mesh.boundary_faces)
-        mesh_path = work / "calibration" / "reference_mesh.vtu"
+        # a sweep solves on the stress-free mesh, or on the loaded one of a prestressed
+        # reference (calib.sweep.model): the surrogate's mesh is that one
+        prestress = (folder.record.get("model") or {}).get("prestress") if folder else None
+        mesh_path = work / (prestress["mesh"] if prestress else "calibration/reference_mesh.vtu")
         wn = None
-        if folder is not None:
+        if folder is not None and not prestress:
             wn = folder.mesh.nodes_mm
         elif mesh_path.is_file():
             from fem.io import read_mesh
@@ -274,8 +277,7 @@ def load_scene(work: str | Path, model: str | Path | None = None) -> Scene:
             if wn.shape != nodes_ref.shape or not np.allclose(wn, nodes_ref, atol=1e-6):
                 raise SurfaceModelMismatchError(
                     f"{model}: the surrogate's mesh ({len(nodes_ref)} nodes) is not "
-                    f"{work / 'calibration' / 'reference_mesh.vtu'} ({len(wn)} nodes); "
-                    "train it from a sweep of this work folder"
+                    f"{mesh_path} ({len(wn)} nodes); train it from a sweep of this work folder"
                 )
     else:
         nodes_ref = folder.mesh.nodes_mm
