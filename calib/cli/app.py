@@ -8,6 +8,8 @@ from typing import Annotated
 
 import typer
 
+from fem.units import STANDARD_GRAVITY_M_S2
+
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
@@ -54,7 +56,9 @@ def simulate(
     out: Annotated[Path, typer.Option("--out", help="Deformed mesh to write, e.g. RESULT.vtu.")],
     nu: Annotated[float, typer.Option("--nu", help="Poisson's ratio (< 0.5).")] = 0.499,
     density: Annotated[float, typer.Option("--density", help="Density in kg/m^3.")] = 1000.0,
-    g: Annotated[float, typer.Option("--g", help="Gravitational acceleration, m/s^2.")] = 9.81,
+    g: Annotated[
+        float, typer.Option("--g", help="Gravitational acceleration, m/s^2.")
+    ] = STANDARD_GRAVITY_M_S2,
     bc: Annotated[str, typer.Option("--bc", help="Back plane: clamped or sliding.")] = "clamped",
     back_plane: Annotated[
         str, typer.Option("--back-plane", help="auto, or z=VALUE (mm).")

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 import fem
+from fem.units import STANDARD_GRAVITY_M_S2
 
 from ..data.work import WorkFolder
 from ..model.effects import SKIN_THICKNESS_MM, EffectValues, tag_effect_regions
@@ -291,7 +292,8 @@ def build_problem(
         mesh, work.measurements.reference.gravity_ref, nu=nu, density_kg_m3=density,
         reference_state=record.get("reference_state", "unload"),
         formulation=model.get("formulation", "taylor-hood"),
-        g_m_s2=float(model.get("g_m_s2") or 9.81), fixed_point_fallback=False, effects=base,
+        g_m_s2=float(model.get("g_m_s2") or STANDARD_GRAVITY_M_S2),
+        fixed_point_fallback=False, effects=base,
     )  # fmt: skip
     n_pts = int(max_points or params.get("max_points", 3000))
     seed = int(params.get("seed", 0))

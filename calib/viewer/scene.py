@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fem.units import STANDARD_GRAVITY_M_S2
+
 __all__ = ["Frame", "Predictor", "Scene", "SurfaceModelMismatchError", "load_scene"]
 
 
@@ -222,7 +224,7 @@ def load_scene(work: str | Path, model: str | Path | None = None) -> Scene:
         "scans": [],
         "states": [],
         "landmarks": {},
-        "g_m_s2": 9.81,
+        "g_m_s2": STANDARD_GRAVITY_M_S2,
         "c1_pa": None,
     }
     sur = None
@@ -292,7 +294,7 @@ def load_scene(work: str | Path, model: str | Path | None = None) -> Scene:
         "tumour_rest_mm": None if t is None else (np.asarray(t, float) @ R).tolist(),
         "fiducials_mm": [],
     }
-    g = float(record_model.get("g_m_s2", 9.81))
+    g = float(record_model.get("g_m_s2", STANDARD_GRAVITY_M_S2))
     if sur is not None:
         lo, hi = sur.meta["trained"]["c1_pa"]
         info["model"] = {
