@@ -192,10 +192,15 @@ for name, s in doc["scans"].items():
     path = work / "calibration" / f"{name}_deformed.vtu"
     if "gravity_ref" not in s or not path.is_file():
         continue
-    fe = np.asarray(meshio.read(path).point_data["displacement_mm"])[data.surface_nodes]
+    # positions, not displacements: a prestressed reference is swept on its loaded mesh
+    # (the store's nodes), while displacement_mm is measured from the stress-free mesh
+    fe = np.asarray(meshio.read(path).points)[data.surface_nodes]
+    rest = data.nodes_mm[data.surface_nodes]
     g = np.asarray(s["gravity_ref"]) * g0
     at_scans[name] = {
-        k: float(np.linalg.norm(sur.predict(g, frame="ref").surface_mm[0] - fe, axis=1).mean())
+        k: float(
+            np.linalg.norm(rest + sur.predict(g, frame="ref").surface_mm[0] - fe, axis=1).mean()
+        )
         for k, sur in (("ours", ours), ("dissertation MLPs", mlps))
     }
     print(

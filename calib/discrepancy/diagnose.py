@@ -338,6 +338,7 @@ class Diagnosis:
             "calibration": {
                 "c1_pa": float(np.exp(prob.theta_calibrated)),
                 "run_id": prob.work.record.get("run_id"),
+                "mesh_note": prob.mesh_note or None,
             },
             "scans": {"diagnosis": list(prob.scans), "holdout": prob.holdout},
             "null_fit": _fit_json(self.null),
@@ -487,6 +488,8 @@ def diagnose(
                          max_points=o.max_points)  # fmt: skip
     say(f"diagnosis scans {prob.scans}, held out: {prob.holdout or 'none'}; model mesh "
         f"{prob.mesh.n_tets} tets, {len(prob.inclusions)} inclusions tagged")  # fmt: skip
+    if prob.mesh_note:
+        say(f"  {prob.mesh_note}")
     screened = tuple(e for e in o.effects)
     say("null fit: ln c1 alone on the diagnosis scans (full FE)")
     null = refit(prob, (), screened=screened, max_iterations=o.refit_iterations, say=say)
@@ -695,7 +698,7 @@ def _localise(prob: Problem, null: Refit, noise: NoiseFit) -> dict:
 
 def _gaps(prob: Problem, final: Refit, say) -> tuple[dict, dict]:
     """Every scan at the final model (holdout included) against the calibration's states."""
-    from ..model.residuals import SimulatedSurface
+    from ..model.residuals import SimulatedSurface, scan_residuals
 
     names = [*prob.scans, *([prob.holdout] if prob.holdout else [])]
     say(f"final model on {len(names)} scans (held out: {prob.holdout or 'none'})")
@@ -703,16 +706,19 @@ def _gaps(prob: Problem, final: Refit, say) -> tuple[dict, dict]:
     states = prob.solve(final.theta, final.values, names, gradient=True,
                         nuisance={k: v for k, v in nz.items() if v is not None})  # fmt: skip
     work = prob.work
-    faces = SimulatedSurface.of(work.mesh).faces
-    nipple = work.nipple_node
+    # before: the calibration's saved states on its own mesh; after: the diagnosis mesh
+    # (the same one unless the calibration's reference is prestressed, Problem.mesh_note)
+    cal_sim = prob.sim if prob.same_mesh else SimulatedSurface.of(work.mesh)
     out = {}
     for n in names:
         scan = prob.measurement(n)
         saved = work.states[n]
-        before = scan_metrics(scan, saved.positions_mm, faces, nipple, saved.tumour_mm)
+        before = scan_metrics(scan, saved.positions_mm, cal_sim.faces, work.nipple_node,
+                              saved.tumour_mm)  # fmt: skip
         pos = states[n].positions_mm
-        after = scan_metrics(scan, pos, faces, nipple, None)
-        rb = prob.residuals(n, saved.positions_mm).r
+        after = scan_metrics(scan, pos, prob.sim.faces, prob.nipple_node, None)
+        rb = scan_residuals("surface", scan, work.mesh, cal_sim, saved.positions_mm, None,
+                            surface_points_mm=prob.measured_points(n, None)).r  # fmt: skip
         ra = prob.residuals(n, pos).r
         out[n] = ScanGap(n, "holdout" if n == prob.holdout else "diagnosis", before, after, rb, ra)
     return out, states

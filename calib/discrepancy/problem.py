@@ -109,6 +109,10 @@ class Problem:
     inclusions : list of (ndarray, float)
         Inclusion centres (reference frame, mm) and diameters (mm).
     skin_thickness_mm : float
+    mesh_note : str
+        Empty on the calibration's model mesh; otherwise why the diagnosis runs on another
+        one (a calibration with a prestressed reference: the effect fields need a
+        straight stress-free mesh, found at the calibration's next mesh size).
     registration_tolerance_mm : dict of str to float
         How far a plausible rigid registration error moves a scan's points: three times
         its expected target registration error (ingest's ``tre_nipple_mm``,
@@ -127,6 +131,17 @@ class Problem:
     inclusions: list
     skin_thickness_mm: float
     registration_tolerance_mm: dict = field(default_factory=dict)
+    mesh_note: str = ""
+
+    @property
+    def same_mesh(self) -> bool:
+        """Whether the diagnosis runs on the calibration's model mesh (see ``mesh_note``)."""
+        return self.mesh.n_nodes == self.work.mesh.n_nodes
+
+    @property
+    def nipple_node(self) -> int:
+        """The nipple vertex of the diagnosis mesh."""
+        return int(self.mesh.node_set("nipple")[0])
 
     @property
     def mesh(self) -> fem.TetMesh:
@@ -181,6 +196,46 @@ class Problem:
 
 def _parameters(record: dict) -> dict:
     return (record.get("provenance") or {}).get("parameters") or {}
+
+
+def _straight_mesh(work: WorkFolder, params: dict, nu: float, density: float, *, own_size: bool):
+    """A model mesh of the reference scan with a straight-element stress-free reference.
+
+    The calibration's reference is the prestressed loaded mesh (its mesh admits no
+    straight stress-free elements, :mod:`calib.model.forward`); the effect fields
+    differentiate through a straight stress-free recovery, so the diagnosis takes the
+    calibration's next mesh sizes (``mesh_retry_mm``, else +2 and +4 mm; its own size
+    first with ``own_size``) and the first whose recovery at the calibrated c1 succeeds.
+    Returns the loaded mesh and a note.
+    """
+    from ..model.reference import reference_mesh
+
+    size = float(params.get("mesh_size_mm", 12.0))
+    sizes = [float(s) for s in params.get("mesh_retry_mm") or () if float(s) != size]
+    sizes = ([size] if own_size else []) + (sizes or [size + 2.0, size + 4.0])
+    ref = work.measurements.reference
+    theta = float(np.log(work.record["c1_pa"]))
+    tried = []
+    for s in sizes:
+        mesh = reference_mesh(ref, size_mm=s)
+        fm = ForwardModel(mesh, ref.gravity_ref, nu=nu, density_kg_m3=density,
+                          fixed_point_fallback=False)  # fmt: skip
+        try:
+            fm.stress_free(theta)
+        except fem.ConvergenceError as exc:
+            tried.append(f"{s:g} mm: {exc}")
+            continue
+        if s == size:
+            return mesh, ""  # the calibration's mesh size, rebuilt from the same scan
+        return mesh, (
+            f"the calibration's {size:g} mm mesh admits no straight stress-free reference "
+            f"(its reference is prestressed); diagnosed on the {s:g} mm mesh"
+        )
+    raise DiagnosisError(
+        f"{work.path}: the calibration's reference is the prestressed loaded mesh and no "
+        f"straight stress-free reference was found on other meshes ({'; '.join(tried)}); "
+        "recalibrate with another --mesh-size"
+    )
 
 
 def _loaded_nodes(work: WorkFolder) -> np.ndarray:
@@ -270,27 +325,27 @@ def build_problem(
     record = work.record
     model = record["model"]
     params = _parameters(record)
-    if record.get("reference_state", "unload") not in ("unload", "shortcut"):
+    state = record.get("reference_state", "unload")
+    if state not in ("unload", "prestress", "shortcut"):
         raise DiagnosisError(
-            f"{work.path}: reference_state {record['reference_state']!r} is not supported by "
-            "diagnose (unload or shortcut)"
-        )
-    if (record.get("reference_recovery") or {}).get("method") == "spatial":
-        raise DiagnosisError(
-            f"{work.path}: the calibration's reference is the prestressed loaded mesh "
-            "(reference_recovery.method 'spatial'); diagnose needs a straight stress-free mesh: "
-            "recalibrate on a --mesh-size where it is found, or with --reference-state shortcut"
+            f"{work.path}: reference_state {state!r} is not one of unload, prestress, shortcut"
         )
     scans, held = choose_scans(work, holdout)
-    loaded = work.mesh.with_nodes(_loaded_nodes(work))
-    inclusions = reference_inclusions(work)
-    mesh = tag_effect_regions(loaded, skin_thickness_mm=skin_thickness_mm, inclusions=inclusions)
     nu = float(model.get("nu", 0.499))
     density = float(model.get("density_kg_m3", 1000.0))
+    note = ""
+    if state == "prestress" or (record.get("reference_recovery") or {}).get("method") == "spatial":
+        # --reference-state prestress: its own mesh may admit one; a switched unload: not
+        loaded, note = _straight_mesh(work, params, nu, density, own_size=state == "prestress")
+        state = "unload"
+    else:
+        loaded = work.mesh.with_nodes(_loaded_nodes(work))
+    inclusions = reference_inclusions(work)
+    mesh = tag_effect_regions(loaded, skin_thickness_mm=skin_thickness_mm, inclusions=inclusions)
     base = EffectValues(nu=nu, density_kg_m3=density)
     fm = ForwardModel(
         mesh, work.measurements.reference.gravity_ref, nu=nu, density_kg_m3=density,
-        reference_state=record.get("reference_state", "unload"),
+        reference_state=state,
         formulation=model.get("formulation", "taylor-hood"),
         g_m_s2=float(model.get("g_m_s2") or STANDARD_GRAVITY_M_S2),
         fixed_point_fallback=False, effects=base,
@@ -308,4 +363,5 @@ def build_problem(
         centres=centres, scans=scans, holdout=held,
         theta_calibrated=float(np.log(record["c1_pa"])), inclusions=inclusions,
         skin_thickness_mm=float(skin_thickness_mm), registration_tolerance_mm=tolerance,
+        mesh_note=note,
     )  # fmt: skip

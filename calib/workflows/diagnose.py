@@ -94,7 +94,7 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
                      "gravity_ref": prob.measurement(name).gravity_ref.tolist()}  # fmt: skip
             entry |= gap.after.to_json()
             entry["model"] = {
-                "nipple_mm": st.positions_mm[work.nipple_node].tolist(),
+                "nipple_mm": st.positions_mm[prob.nipple_node].tolist(),
                 "tumour_mm": None if t is None else t.tolist(),
                 "dtumour_dlnc1_mm": None if dt is None else dt.tolist(),
             }
@@ -124,6 +124,12 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
                 "bound": "theta" if "theta" in final.at_bound() else None,
             },  # fmt: skip
             "wall_s": d.wall_s,
+            "reference_recovery": {
+                "method": fm.unload_method if fm.reference_state == "unload" else "none (shortcut)",
+                "inverted_elements": fm.inverted_reference_elements,
+            },
+            "mesh": dict(record.get("mesh") or {})
+            | {"n_tets": prob.mesh.n_tets, "n_nodes": prob.mesh.n_nodes},
             "diagnosis": {
                 "verdict": d.verdict,
                 "named": list(d.named),
@@ -138,6 +144,8 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
             "density_kg_m3": final.values.density_kg_m3,
             "support": "clamped" if final.values.support == "clamped" else "sliding",
             "reference_mesh": "calibration/reference_mesh.vtu",
+            "nipple_node": prob.nipple_node,
+            "prestress": None,  # the refit's reference is a straight stress-free mesh
             "tumour_stress_free_mm": None if tumour is None else tumour.place_mm(X).tolist(),
             "effects": {
                 "named": list(d.named),
