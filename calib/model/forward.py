@@ -190,18 +190,33 @@ class ForwardModel:
         return np.asarray(g_dir, float), self.g_m_s2
 
     def _solve(self, theta, disc, g_dir, key, retry: bool = True):
+        """One posture, warm-started from its last state; retried with small load steps.
+
+        On ``disc`` (the stress-free mesh), or with the prestress of the last recovery
+        on the loaded mesh when :attr:`prestressed`.
+        """
         direction, mag = self._load(g_dir)
         model = self.model(theta, disc.mesh.nodes_mm)
         prev = self._states.get(key)
-        x0 = prev.state if prev is not None else None
+        kw = {"gravity": direction, "g_m_s2": mag, "disc": disc}
+        ps = self._ps if self.prestressed else None
+
+        def run(**extra):
+            if ps is not None:
+                return solve_prestressed(model, ps, **kw, **extra)
+            return fem.solve(model, **kw, **extra)
+
         try:
-            sol = fem.solve(model, gravity=direction, g_m_s2=mag, disc=disc, x0=x0)
+            sol = run(x0=None if prev is None else prev.state)
         except fem.ConvergenceError:
             if not retry:
                 raise
-            log.warning("solve failed for %s at c1=%.1f Pa; retrying with small load steps",
-                        key, np.exp(theta))  # fmt: skip
-            sol = fem.solve(model, gravity=direction, g_m_s2=mag, disc=disc, options=_SMALL_STEPS)
+            log.warning(
+                "solve failed for %s at c1=%.1f Pa; retrying with small load steps",
+                key,
+                np.exp(theta),
+            )
+            sol = run(options=_SMALL_STEPS)
         self.solves += 1
         return model, sol, direction, mag
 
@@ -332,28 +347,14 @@ class ForwardModel:
         """:meth:`evaluate` on the loaded mesh with the prestress of the last recovery."""
         disc, ps = self._disc, self._ps
         model_at = self._model_at(disc)
-        model = model_at(theta)
         if gradient and (self._dF0 is None or self._dF0[0] != theta):  # once per theta
             self._dF0 = (theta, prestress_sensitivity(model_at, theta, ps, disc=disc))
         out = {}
         for name, g in gravities.items():
-            direction, mag = self._load(g)
-            prev = self._states.get(name)
-            kw = {"gravity": direction, "g_m_s2": mag, "disc": disc}
-            try:
-                sol = solve_prestressed(model, ps, x0=None if prev is None else prev.state, **kw)
-            except fem.ConvergenceError:
-                if not retry:
-                    raise
-                log.warning(
-                    "prestressed solve failed for %s at c1=%.1f Pa; retrying with small load steps",
-                    name,
-                    np.exp(theta),
-                )
-                sol = solve_prestressed(model, ps, options=_SMALL_STEPS, **kw)
-            self.solves += 1
+            _, sol, direction, mag = self._solve(theta, disc, g, name, retry)
             st = ScanState(sol.state, self.mesh.nodes_mm + sol.displacement_mm)
             if gradient:
+                kw = {"gravity": direction, "g_m_s2": mag, "disc": disc}
                 du = solve_prestressed_sensitivity(model_at, theta, ps, self._dF0[1], sol, **kw)
                 st.dpositions_mm = vertex_displacement_mm(disc, du)
                 st.dstate = du
