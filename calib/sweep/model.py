@@ -204,6 +204,17 @@ def _fail(path: Path, what: str) -> None:
     raise CalibrationMissingError(f"{path}: {what}")
 
 
+def _read_model_mesh(path: Path):
+    """A model mesh written by ``calibrate``, with its ``back`` and ``surface`` node sets."""
+    from fem.io import read_mesh
+
+    mesh = read_mesh(path, orient=False)
+    for name in ("back", "surface"):
+        if name not in mesh.node_sets or not len(mesh.node_sets[name]):
+            _fail(path, f"no node set 'set:{name}' in the point data")
+    return mesh
+
+
 def load_sweep_model(work: str | Path) -> SweepModel:
     """The calibrated model of ``work`` (see the module docstring).
 
@@ -224,8 +235,6 @@ def load_sweep_model(work: str | Path) -> SweepModel:
     calib.io.StaleOutputError
         ``calibration/`` is not from the run recorded in ``calibration.json``.
     """
-    from fem.io import read_mesh
-
     from ..io import check_run
 
     work = Path(work)
@@ -258,10 +267,7 @@ def load_sweep_model(work: str | Path) -> SweepModel:
     mesh_path = work / model["reference_mesh"]
     if not mesh_path.is_file():
         _fail(mesh_path, "reference mesh named in calibration.json not found")
-    mesh = read_mesh(mesh_path, orient=False)
-    for name in ("back", "surface"):
-        if name not in mesh.node_sets or not len(mesh.node_sets[name]):
-            _fail(mesh_path, f"no node set 'set:{name}' in the point data")
+    mesh = _read_model_mesh(mesh_path)
     R = np.asarray(model["R_ref_from_phantom"], float)
     if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-9):
         _fail(record, "model.R_ref_from_phantom is not a 3x3 rotation")
@@ -272,10 +278,7 @@ def load_sweep_model(work: str | Path) -> SweepModel:
         for path in (loaded_path, state_path):
             if not path.is_file():
                 _fail(path, "prestress file named in calibration.json (model.prestress) not found")
-        mesh = read_mesh(loaded_path, orient=False)
-        for name in ("back", "surface"):
-            if name not in mesh.node_sets or not len(mesh.node_sets[name]):
-                _fail(loaded_path, f"no node set 'set:{name}' in the point data")
+        mesh = _read_model_mesh(loaded_path)
         with np.load(state_path) as z:
             state, g_pre = np.asarray(z["inverse_state"], float), np.asarray(z["gravity_m_s2"])
         tumour = pre.get("tumour_reference_mm")
