@@ -198,15 +198,16 @@ def _parameters(record: dict) -> dict:
     return (record.get("provenance") or {}).get("parameters") or {}
 
 
-def _straight_mesh(work: WorkFolder, params: dict, nu: float, density: float, *, own_size: bool):
-    """A model mesh of the reference scan with a straight-element stress-free reference.
+def _straight_model(work: WorkFolder, params: dict, model_on, *, own_size: bool):
+    """A model of the reference scan whose stress-free reference has straight elements.
 
     The calibration's reference is the prestressed loaded mesh (its mesh admits no
     straight stress-free elements, :mod:`calib.model.forward`); the effect fields
     differentiate through a straight stress-free recovery, so the diagnosis takes the
     calibration's next mesh sizes (``mesh_retry_mm``, else +2 and +4 mm; its own size
-    first with ``own_size``) and the first whose recovery at the calibrated c1 succeeds.
-    Returns the loaded mesh and a note.
+    first with ``own_size``) and the first whose recovery at the calibrated c1 succeeds
+    (``model_on(loaded_mesh)`` builds the model; its recovery stays cached for the null
+    fit). Returns the model and a note.
     """
     from ..model.reference import reference_mesh
 
@@ -217,17 +218,15 @@ def _straight_mesh(work: WorkFolder, params: dict, nu: float, density: float, *,
     theta = float(np.log(work.record["c1_pa"]))
     tried = []
     for s in sizes:
-        mesh = reference_mesh(ref, size_mm=s)
-        fm = ForwardModel(mesh, ref.gravity_ref, nu=nu, density_kg_m3=density,
-                          fixed_point_fallback=False)  # fmt: skip
+        fm = model_on(reference_mesh(ref, size_mm=s))
         try:
             fm.stress_free(theta)
         except fem.ConvergenceError as exc:
             tried.append(f"{s:g} mm: {exc}")
             continue
         if s == size:
-            return mesh, ""  # the calibration's mesh size, rebuilt from the same scan
-        return mesh, (
+            return fm, ""  # the calibration's mesh size, rebuilt from the same scan
+        return fm, (
             f"the calibration's {size:g} mm mesh admits no straight stress-free reference "
             f"(its reference is prestressed); diagnosed on the {s:g} mm mesh"
         )
@@ -333,23 +332,33 @@ def build_problem(
     scans, held = choose_scans(work, holdout)
     nu = float(model.get("nu", 0.499))
     density = float(model.get("density_kg_m3", 1000.0))
-    note = ""
-    if state == "prestress" or (record.get("reference_recovery") or {}).get("method") == "spatial":
-        # --reference-state prestress: its own mesh may admit one; a switched unload: not
-        loaded, note = _straight_mesh(work, params, nu, density, own_size=state == "prestress")
-        state = "unload"
-    else:
-        loaded = work.mesh.with_nodes(_loaded_nodes(work))
     inclusions = reference_inclusions(work)
-    mesh = tag_effect_regions(loaded, skin_thickness_mm=skin_thickness_mm, inclusions=inclusions)
     base = EffectValues(nu=nu, density_kg_m3=density)
-    fm = ForwardModel(
-        mesh, work.measurements.reference.gravity_ref, nu=nu, density_kg_m3=density,
-        reference_state=state,
-        formulation=model.get("formulation", "taylor-hood"),
-        g_m_s2=float(model.get("g_m_s2") or STANDARD_GRAVITY_M_S2),
-        fixed_point_fallback=False, effects=base,
-    )  # fmt: skip
+    prestressed = (
+        state == "prestress" or (record.get("reference_recovery") or {}).get("method") == "spatial"
+    )
+    state = "unload" if prestressed else state  # the effect fields need straight elements
+
+    def model_on(loaded: fem.TetMesh) -> ForwardModel:
+        """The region-tagged model of a loaded reference mesh, effects neutral."""
+        mesh = tag_effect_regions(
+            loaded, skin_thickness_mm=skin_thickness_mm, inclusions=inclusions
+        )
+        return ForwardModel(
+            mesh, work.measurements.reference.gravity_ref, nu=nu, density_kg_m3=density,
+            reference_state=state,
+            formulation=model.get("formulation", "taylor-hood"),
+            g_m_s2=float(model.get("g_m_s2") or STANDARD_GRAVITY_M_S2),
+            fixed_point_fallback=False, effects=base,
+        )  # fmt: skip
+
+    if prestressed:
+        # --reference-state prestress: its own mesh may admit one; a switched unload: not
+        own = record.get("reference_state") == "prestress"
+        fm, note = _straight_model(work, params, model_on, own_size=own)
+    else:
+        fm, note = model_on(work.mesh.with_nodes(_loaded_nodes(work))), ""
+    mesh = fm.mesh
     n_pts = int(max_points or params.get("max_points", 3000))
     seed = int(params.get("seed", 0))
     points = {
