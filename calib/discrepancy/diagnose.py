@@ -7,7 +7,7 @@ Steps (the issue's; no files are written here, see :mod:`calib.workflows.diagnos
    residual at the fit of what they condition on.
 2. *Noise model* (:func:`calib.stats.estimate_noise`, short range, from the residual's
    own variogram; the session's: the least-disturbed scan's fit,
-   :func:`calib.discrepancy.screen.session_noise`) and the *misfit test*
+   :func:`calib.stats.noise.session_noise`) and the *misfit test*
    (:func:`calib.stats.misfit_test`).
 3. *Localise:* a significance map and a region summary per scan
    (:mod:`calib.discrepancy.localise`).

@@ -20,8 +20,9 @@ and in a short-range variogram it shows as a larger sill and a longer range (a p
 pressing one posture's flank made the pooled fit 0.69 mm over 43 mm, and then nothing
 was significant against it). The noise model is therefore the variogram fit of the
 least-disturbed scan, the one with the smallest standard deviation, applied to every
-scan. With one scan it is that scan's fit. The tests stay ratio statistics (band F,
-series variances): the model supplies shapes, the data the scale.
+scan (:func:`calib.stats.noise.session_noise`). With one scan it is that scan's fit.
+The tests stay ratio statistics (band F, series variances): the model supplies shapes,
+the data the scale.
 
 Sign: the sensitivity columns of :mod:`calib.discrepancy.fields` are ``dr/dp`` of the
 residual ``r`` (measured point minus simulated surface). ``screen_effects``' one-step
@@ -36,9 +37,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..stats import EffectScreening, ModelFit, NoiseFit, SurfaceSample, estimate_noise
+from ..stats import EffectScreening, ModelFit, NoiseFit, SurfaceSample
 from ..stats import misfit_test as _misfit_test
 from ..stats import screen_effects as _screen_effects
+from ..stats.noise import session_noise
 from .fields import FieldSet
 
 __all__ = ["Screen", "offset_columns", "sample_of", "screen", "session_noise"]
@@ -75,24 +77,6 @@ def offset_columns(sample: SurfaceSample) -> np.ndarray:
 
 def _scan_means(sample: SurfaceSample, r: np.ndarray) -> np.ndarray:
     return np.array([r[idx].mean() for idx in sample.blocks])
-
-
-def session_noise(sample: SurfaceSample, residual_mm: np.ndarray, **kw) -> NoiseFit:
-    """The least-disturbed scan's short-range noise fit (see the module docstring).
-
-    Parameters
-    ----------
-    sample : SurfaceSample
-    residual_mm : ndarray, shape (n,)
-    **kw
-        Passed to :func:`calib.stats.estimate_noise` (``max_lag_mm``, ...).
-
-    Returns
-    -------
-    NoiseFit
-    """
-    fits = estimate_noise(sample, residual_mm, scope="per-scan", **kw)
-    return min(fits.values(), key=lambda f: f.best.sigma_mm)
 
 
 def sample_of(fields: FieldSet, points: dict) -> SurfaceSample:

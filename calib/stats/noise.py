@@ -53,6 +53,7 @@ __all__ = [
     "fit_variogram",
     "local_counts",
     "model_variogram",
+    "session_noise",
     "whitener",
     "with_sigma",
 ]
@@ -478,6 +479,30 @@ def estimate_noise(
         sub = SurfaceSample(sample.points_mm[idx])
         out[label] = fit_variogram(empirical_variogram(sub, r[idx], **kw), kernels=kernels)
     return out
+
+
+def session_noise(sample: SurfaceSample, residual_mm: np.ndarray, **kw) -> NoiseFit:
+    """The least-disturbed scan's short-range noise fit, for every scan of a session.
+
+    Imaging and the model mesh are the same for every scan of a session, so the noise
+    process is too; a missing effect only adds to a scan's residual, and in a short-range
+    variogram it shows as a larger sill and a longer range. The session's noise model is
+    therefore the per-scan fit (:func:`estimate_noise`, ``scope="per-scan"``) with the
+    smallest standard deviation. With one scan it is that scan's fit.
+
+    Parameters
+    ----------
+    sample : SurfaceSample
+    residual_mm : ndarray, shape (n,)
+    **kw
+        Passed to :func:`estimate_noise` (``max_lag_mm``, ...).
+
+    Returns
+    -------
+    NoiseFit
+    """
+    fits = estimate_noise(sample, residual_mm, scope="per-scan", **kw)
+    return min(fits.values(), key=lambda f: f.best.sigma_mm)
 
 
 def model_variogram(model: NoiseModel, lag_mm: np.ndarray) -> np.ndarray:
