@@ -93,7 +93,11 @@ def run_case(root: Path, preset: str, effect: str, seed: int, o: CalibrationOpti
 def _print_case(r: dict) -> None:
     ci = r["c1_ci95_pa"]
     ci_txt = f"{ci[0]:.1f}-{ci[1]:.1f}" if ci else "none"
-    fit = (r.get("model_fit") or {}).get("verdict", "-")
+    mf = r.get("model_fit") or {}
+    fit = mf.get("verdict", "-")
+    if mf.get("p_value") is not None:
+        fit += f" (F p {mf['p_value']:.2g}"
+        fit += f", Q p {mf['postures']['p_value']:.2g})" if mf.get("postures") else ")"
     opt = (
         "converged" if r["optimiser"]["success"] else f"NOT converged ({r['optimiser']['message']})"
     )

@@ -27,6 +27,10 @@ Tables (``--table``):
   chi2) on null residuals, and power against an added smooth ``p2`` pattern.
 - ``screen``: per-effect and family-wise (Holm) false-positive rates of
   :func:`calib.stats.scores.screen_effects` on null residuals, and power for one effect.
+- ``postures``: false-alarm rate of :func:`calib.stats.consistency.posture_consistency`
+  (Cochran's Q of each scan's own estimate, the session's noise model) on null
+  residuals of three scans, ``ln c1`` fitted on the first alone as ``calibrate`` does,
+  and its power when the other two scans ask for a ``ln c1`` lower by ``shift``.
 - ``variogram``: the fitted noise model (median length, sigma, kernel chosen) with the
   short-range cutoff, all lags, and a quadratic detrend, without and with a misfit.
 - ``effective``: the local effective-sample approximation against exact whitening.
@@ -54,6 +58,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
+from calib.stats.consistency import posture_consistency  # noqa: E402
 from calib.stats.coverage import (  # noqa: E402
     NoiseSampler,
     misfit_pattern,
@@ -67,6 +72,7 @@ from calib.stats.noise import (  # noqa: E402
     empirical_variogram,
     fit_variogram,
     local_counts,
+    session_noise,
     whitener,
 )
 from calib.stats.quadform import ratio_critical_value  # noqa: E402
@@ -455,6 +461,66 @@ def run_effective(seed: int) -> None:
                 )
 
 
+# ------------------------------------------------------------------ posture consistency
+
+
+def posture_cells(quick: bool) -> list[Cell]:
+    if quick:
+        return [Cell("exponential", 5.0, 0.15, 0.2, 600, 3)]
+    return [
+        Cell(kernel, length, 0.15, 0.2, 600, 3)
+        for kernel in ("exponential", "gaussian")
+        for length in (2.0, 5.0, 10.0)
+    ]
+
+
+SHIFTS = (0.0, 0.02, 0.04, 0.08)  # the tilted scans' ln c1 below the lateral one's
+POSTURE_GAIN = (4.0, 1.0, 2.0)  # |dr/d ln c1| of a lateral and two tilted scans, relative
+
+
+def run_postures(cell: Cell, draws: int, seed: int) -> dict:
+    sample = phantom_sample(cell.n_per_scan, cell.n_scans, seed=seed)
+    J = sag_sensitivity(sample, posture_deg=(0.0, 60.0, 150.0))
+    J = J * np.repeat(POSTURE_GAIN, cell.n_per_scan)
+    sampler = NoiseSampler.of(sample, cell.model())
+    b0 = sample.blocks[0]
+    rng = np.random.default_rng(seed + 3)
+    p = {shift: [] for shift in SHIFTS}
+    t0 = time.perf_counter()
+    for k in range(draws):
+        eps = sampler.draw(rng)[:, 0]
+        for shift in SHIFTS if k < POWER_DRAWS else (0.0,):
+            x = eps.copy()
+            for idx in sample.blocks[1:]:
+                x[idx] += J[idx] * shift  # the scan alone asks for ln c1 lower by shift
+            r = x - J * float(J[b0] @ x[b0]) / float(J[b0] @ J[b0])  # fitted on scan 0
+            off = np.concatenate([np.full(len(i), r[i].mean()) for i in sample.blocks])
+            noise = session_noise(sample, r - off)
+            p[shift].append(posture_consistency(0.0, r, J, sample, noise).p_value)
+    _progress("postures", cell, t0)
+    return {"cell": cell, "p": {k: np.array(v) for k, v in p.items()}, "draws": draws}
+
+
+def print_postures(results: list[dict]) -> None:
+    print(
+        "\nPosture consistency: rejection rate % (binomial se) on null residuals of 3 scans "
+        "(ln c1 fitted on the first)"
+    )
+    print(f"| {'cell':36s} | draws | a=0.01 | a=0.04 | a=0.05 |")
+    for res in results:
+        row = " | ".join(binom(res["p"][0.0] < a) for a in (0.01, 0.04, 0.05))
+        print(f"| {res['cell'].label:36s} | {res['draws']:5d} | {row} |")
+    n = len(results[0]["p"][SHIFTS[1]])
+    print(
+        f"\nPosture consistency: power % at alpha = 0.04 when two scans ask for ln c1 lower "
+        f"by shift, {n} draws per shift"
+    )
+    print(f"| {'cell':36s} | " + " | ".join(f"{s:>10.2f}" for s in SHIFTS[1:]) + " |")
+    for res in results:
+        row = " | ".join(f"{binom(res['p'][s] < 0.04):>10s}" for s in SHIFTS[1:])
+        print(f"| {res['cell'].label:36s} | {row} |")
+
+
 # ----------------------------------------------------------------------------- main
 
 
@@ -472,7 +538,7 @@ def main() -> None:
     ap.add_argument(
         "--table",
         default="coverage",
-        choices=["coverage", "misfit", "screen", "variogram", "effective", "all"],
+        choices=["coverage", "misfit", "screen", "postures", "variogram", "effective", "all"],
     )
     ap.add_argument("--draws", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
@@ -480,7 +546,8 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="2 cells, 200 draws")  # fmt: skip
     args = ap.parse_args()
     draws = 200 if args.quick else args.draws
-    tables = ["coverage", "misfit", "screen", "variogram", "effective"] if args.table == "all" \
+    tables = ["coverage", "misfit", "screen", "postures", "variogram", "effective"] \
+        if args.table == "all" \
         else [args.table]  # fmt: skip
     t0 = time.perf_counter()
     print(f"bench_coverage: tables {tables}, {draws} draws per cell, seed {args.seed}, "
@@ -496,6 +563,9 @@ def main() -> None:
     if "screen" in tables:
         cells = screen_cells(args.quick)
         print_screen(_map(run_screen, [(c, draws, args.seed) for c in cells], args.workers))
+    if "postures" in tables:
+        cells = posture_cells(args.quick)
+        print_postures(_map(run_postures, [(c, draws, args.seed) for c in cells], args.workers))
     if "variogram" in tables:
         run_variogram(min(draws, 200), args.seed)
     if "effective" in tables:

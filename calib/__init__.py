@@ -10,7 +10,9 @@ same functions)::
     work = calib.load_work("work")                        # everything in WORK/, with plots
 
 and, without files: ``calib.fit(measurements, options) -> Calibration`` and
-``calib.evaluate(calibration) -> {scan: ScanEvaluation}``. Subpackages: ``data``,
+``calib.evaluate(calibration) -> {scan: ScanEvaluation}`` and
+``calib.check_postures(calibration, evaluations)`` (does every scan alone ask for the
+same c1?). Subpackages: ``data``,
 ``model``, ``fitting``, ``report``, ``workflows``, ``twin``, ``cli``. Heavy
 dependencies load on first use, so ``import calib`` stays fast.
 """
@@ -23,6 +25,7 @@ __all__ = [
     "Calibration",
     "CalibrationOptions",
     "calibrate",
+    "check_postures",
     "evaluate",
     "fit",
     "ingest",
@@ -39,6 +42,7 @@ _LAZY = {
     "CalibrationOptions": ("calib.fitting", "CalibrationOptions"),
     "fit": ("calib.fitting", "fit"),
     "evaluate": ("calib.evaluation", "evaluate"),
+    "check_postures": ("calib.evaluation", "check_postures"),
     "load_measurements": ("calib.data", "load_measurements"),
     "load_session": ("calib.data", "load_session"),
     "synthesize": ("calib.twin", "synthesize"),

@@ -2,7 +2,9 @@
 
 :func:`scan_metrics` measures one simulated posture against its scan from positions
 alone (so saved deformed states can be re-measured without FE, :mod:`calib.validation`);
-:func:`evaluate` solves the postures at the calibrated c1 and measures them.
+:func:`evaluate` solves the postures at the calibrated c1 and measures them;
+:func:`check_postures` asks whether every scan, fitted alone, would give the same c1
+(:mod:`calib.stats.consistency`), the second half of ``calibration.json``'s ``model_fit``.
 
 Frames (as in the dissertation, ch. 3.4): ``fiducial`` maps the scan by the fiducial
 registration only; ``icp`` adds a rigid ICP of the measured surface onto the simulated
@@ -20,7 +22,15 @@ import fem
 
 from .data.measurements import Measurements, ScanMeasurement
 
-__all__ = ["ScanEvaluation", "ScanMetrics", "evaluate", "scan_metrics"]
+__all__ = [
+    "POSTURE_ALPHA",
+    "ScanEvaluation",
+    "ScanMetrics",
+    "check_postures",
+    "evaluate",
+    "model_fit_with_postures",
+    "scan_metrics",
+]
 
 log = logging.getLogger(__name__)
 
@@ -227,4 +237,92 @@ def evaluate(
         out[name] = ScanEvaluation(
             name, scan.role, scan.gravity_ref, st.positions_mm, st.dpositions_mm, t, dt, metrics
         )
+    return out
+
+
+#: False-alarm rate of the posture-consistency test. With the band-F test's 0.01
+#: (:func:`calib.fitting.uncertainty.series_uncertainty`) the ``model_fit`` verdict's
+#: false-alarm rate is at most 0.05 (Bonferroni), ``phantom-calib diagnose``'s default.
+POSTURE_ALPHA = 0.04
+
+#: Fewest surface residuals of a scan for its own estimate (as the series interval).
+MIN_SCAN_POINTS = 200
+
+
+def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALPHA):
+    """Posture consistency of a surface calibration: every solved scan's own c1.
+
+    The residual of every scan with an FE solution (calibration and validation) at the
+    calibrated c1, on the calibration's seeded surface points, is tested by
+    :func:`calib.stats.consistency.posture_consistency` under the session's noise model
+    (:func:`calib.stats.noise.session_noise`, fitted on the residuals less each scan's
+    mean). No FE solve: the states and their ln c1 derivatives are :func:`evaluate`'s.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        The result of :func:`calib.fit` (with its calibrator).
+    evaluations : dict of str to ScanEvaluation
+        From :func:`evaluate` with ``gradient=True``.
+    alpha : float
+
+    Returns
+    -------
+    tuple of (PostureConsistency, dict of int to str) or None
+        The test and the scan name of each label; None for an objective other than
+        ``surface``, or when fewer than two scans have a solution and at least
+        ``MIN_SCAN_POINTS`` surface points.
+    """
+    from .model.residuals import scan_residuals
+    from .stats import SurfaceSample
+    from .stats.consistency import posture_consistency
+    from .stats.noise import session_noise
+
+    cal = calibration.calibrator
+    if cal is None or calibration.objective != "surface":
+        return None
+    rs, js, pts, labels, names = [], [], [], [], {}
+    for name, ev in evaluations.items():
+        if ev.failed is not None or ev.dpositions_mm is None:
+            continue
+        res = scan_residuals(
+            "surface",
+            cal.measurements.scans[name],
+            cal.mesh,
+            cal.sim,
+            ev.positions_mm,
+            ev.dpositions_mm,
+            surface_points_mm=cal.points[name],
+        )
+        if len(res.r) < MIN_SCAN_POINTS:
+            continue
+        names[len(names)] = name
+        rs.append(res.r)
+        js.append(res.dr)
+        pts.append(res.points_mm)
+        labels.append(np.full(len(res.r), len(names) - 1))
+    if len(rs) < 2:
+        return None
+    sample = SurfaceSample(np.concatenate(pts), np.concatenate(labels))
+    r = np.concatenate(rs)
+    offsets = np.concatenate([np.full(len(x), x.mean()) for x in rs])
+    noise = session_noise(sample, r - offsets, seed=cal.options.seed)
+    test = posture_consistency(calibration.theta, r, np.concatenate(js), sample, noise, alpha=alpha)
+    return test, names
+
+
+def model_fit_with_postures(model_fit: dict | None, postures, names: dict) -> dict | None:
+    """``calibration.json``'s ``model_fit`` with the posture test added.
+
+    The band-F fields stay as they were (``statistic``, ``p_value``, ``alpha``: the
+    band-F test's; its own verdict is ``band_f_verdict``); ``postures`` holds the
+    posture test; ``verdict`` is ``misfit`` when either test fires.
+    """
+    if postures is None:
+        return model_fit
+    out = dict(model_fit or {})
+    band = out.get("verdict")
+    out["band_f_verdict"] = band
+    out["postures"] = postures.as_json(names)
+    out["verdict"] = "misfit" if band == "misfit" or postures.verdict == "inconsistent" else "fits"
     return out

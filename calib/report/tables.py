@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 __all__ = ["format_calibration", "format_validation"]
 
 
@@ -37,15 +39,23 @@ def _optimiser_lines(opt: dict | None) -> list[str]:
 
 def _model_fit_lines(fit: dict | None, recovery: dict | None) -> list[str]:
     lines = []
+    if fit and fit.get("p_value") is not None:
+        band = fit.get("band_f_verdict", fit.get("verdict"))
+        what = "large-scale structure" if band == "misfit" else "no structure"
+        lines.append(f"  band-F misfit test: p = {fit['p_value']:.2g} ({what} beyond the noise)")
+    postures = (fit or {}).get("postures")
+    if postures:
+        own = ", ".join(
+            f"{name} {math.exp(s['theta']):.0f} Pa" for name, s in postures["scans"].items()
+        )
+        lines.append(
+            f"  posture consistency: Cochran Q p = {postures['p_value']:.2g} "
+            f"({postures['verdict']}; each scan alone: {own})"
+        )
     if fit and fit.get("verdict") == "misfit":
         lines.append(
-            f"  WARNING: model misfit (band-F p = {fit['p_value']:.2g} < {fit['alpha']:g}): "
-            "the residual holds large-scale structure beyond the noise; the interval does not "
-            "cover this model error (phantom-calib diagnose WORK)"
-        )
-    elif fit:
-        lines.append(
-            f"  model fit: no structure beyond the noise (band-F p = {fit['p_value']:.2g})"
+            "  WARNING: model misfit: the interval covers noise and mesh, not this model "
+            "error; it is the interval of an effective c1 (phantom-calib diagnose WORK)"
         )
     if recovery and recovery.get("method") == "spatial":
         lines.append(

@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +20,7 @@ import numpy as np
 from ..data.ingest import stale_reasons
 from ..data.measurements import load_measurements
 from ..data.session import load_session
-from ..evaluation import ScanEvaluation, evaluate
+from ..evaluation import ScanEvaluation, check_postures, evaluate, model_fit_with_postures
 from ..fitting import Calibration, CalibrationOptions, fit
 from ..io import RunOutputs, provenance
 from ..report.maps import error_map_figure, save_figure, write_error_ply
@@ -149,6 +149,37 @@ def write_calibration(
         return run.commit(doc)
 
 
+def _with_posture_check(calibration: Calibration, evaluations, say) -> Calibration:
+    """The calibration with the posture-consistency test in its ``model_fit``."""
+    checked = check_postures(calibration, evaluations)
+    if checked is None:
+        return calibration
+    test, names = checked
+    say(_posture_line(test, names))
+    merged = model_fit_with_postures(calibration.model_fit, test, names)
+    if merged["verdict"] == "misfit":
+        say(
+            "MODEL MISFIT: the interval covers noise and mesh, not this model error; it is the "
+            "interval of an effective c1 (phantom-calib diagnose looks for the missing effect)"
+        )
+    return replace(calibration, model_fit=merged)
+
+
+def _posture_line(test, names: dict) -> str:
+    """The posture-consistency test in one progress line."""
+    own = ", ".join(f"{names[e.label]} {np.exp(e.theta):.0f} Pa" for e in test.estimates)
+    if test.verdict == "consistent":
+        return (
+            f"posture consistency: every scan alone asks for the same c1 ({own}; Cochran Q "
+            f"p = {test.p_value:.2g} >= {test.alpha:g})"
+        )
+    return (
+        f"POSTURE INCONSISTENCY: the scans alone ask for different c1 ({own}; Cochran Q "
+        f"p = {test.p_value:.2g} < {test.alpha:g}): the model misses an effect that "
+        "changes with posture"
+    )
+
+
 def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=None) -> dict:
     """Calibrate c1 on a scan session and write ``WORK/calibration.json`` and maps.
 
@@ -183,6 +214,7 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     targets = [n for n, s in meas.scans.items() if s.role != "reference"]
     say(f"final state of {len(targets)} scans, error maps")
     evaluations = evaluate(calibration, meas, scans=targets)
+    calibration = _with_posture_check(calibration, evaluations, say)
     inputs = {"session": session.folder / "session.toml"} | {
         f"{s.name}/ingest.json": work / "scans" / s.name / "ingest.json" for s in session.scans
     }

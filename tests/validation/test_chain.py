@@ -63,6 +63,7 @@ def _figures(case: str, seed: int, runs: dict) -> dict:
             "c1_pa": cal["c1_pa"],
             "c1_ci95_pa": cal["c1_ci95_pa"],
             "c1_relative_error": cal["c1_pa"] / c1_true - 1.0,
+            "model_fit": cal["model_fit"],
             "fe_solves": cal["fe_solves"],
             "wall_s": cal["wall_s"],
             "scans": {
@@ -120,6 +121,19 @@ def test_c1_within_its_bar_of_the_truth_and_inside_its_interval(figures):
     assert lo < u["c1_pa"] < hi, u
     if interval_holds_truth:
         assert lo <= figures["c1_true_pa"] <= hi, u
+
+
+def test_model_fit_stays_quiet_on_the_homogeneous_twin(figures):
+    # issue 16: the misfit flag (band-F and posture consistency, false-alarm rate at most
+    # 0.01 + 0.04) says `fits` when the truth has no hidden effect; every solved scan has
+    # its own c1 in the posture test
+    fit = figures["unload"]["model_fit"]
+    assert fit["verdict"] == "fits", fit
+    postures = fit["postures"]
+    assert set(postures["scans"]) == {
+        n for n, s in figures["unload"]["scans"].items() if s["role"] != "reference"
+    }
+    assert postures["verdict"] == "consistent" and postures["p_value"] >= postures["alpha"]
 
 
 def test_validation_surface_error_is_at_the_imaging_floor(figures):
