@@ -4,7 +4,14 @@ from .discretize import FORMULATIONS, Discretization, discretize
 from .materials import FebioNeoHookean, MooneyRivlin, NeoHookean, Volumetric
 from .mesh import MeshError, MeshQuality, TetMesh, boundary_faces, mesh_quality
 from .model import Clamped, Constrained, ElasticSupport, Model, Sliding
-from .prestress import Prestress, compute_prestress, solve_prestressed
+from .prestress import (
+    RETRY_OPTIONS,
+    PostureSolve,
+    Prestress,
+    compute_prestress,
+    solve_posture,
+    solve_prestressed,
+)
 from .solver import ConvergenceError, Solution, SolverOptions, displacement_at, solve
 
 __all__ = [
@@ -20,7 +27,9 @@ __all__ = [
     "Model",
     "MooneyRivlin",
     "NeoHookean",
+    "PostureSolve",
     "Prestress",
+    "RETRY_OPTIONS",
     "Sliding",
     "Solution",
     "SolverOptions",
@@ -32,5 +41,6 @@ __all__ = [
     "displacement_at",
     "mesh_quality",
     "solve",
+    "solve_posture",
     "solve_prestressed",
 ]

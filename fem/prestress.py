@@ -88,6 +88,7 @@ from .solver import (
     merit,
     merit_weights,
     newton_step,
+    solve,
 )
 from .units import MM_PER_M
 
@@ -100,6 +101,9 @@ __all__ = [
     "node_displacement_mm",
     "prestress_sensitivity",
     "prestressed_residual",
+    "PostureSolve",
+    "RETRY_OPTIONS",
+    "solve_posture",
     "solve_prestressed",
     "solve_prestressed_sensitivity",
     "stress_free_discretization",
@@ -853,6 +857,92 @@ def prestress_sensitivity(
         dF0 = omega * (deformation_gradient(disc0, du) - _EYE) @ F0 + Fd @ dF0
         F0 = Fd @ F0
     return dF0
+
+
+#: Solver options of the retry after a failed posture solve: small load steps from a
+#: cold start (the calibration's postures and the sweeps' scenarios alike).
+RETRY_OPTIONS = SolverOptions(initial_step=0.125, min_step=1e-3, max_newton=15, max_steps=40)
+
+
+@dataclass(frozen=True)
+class PostureSolve:
+    """Result of :func:`solve_posture`.
+
+    Attributes
+    ----------
+    solution : Solution
+    retried : str or None
+        Why the first attempt failed (None when it converged).
+    failed_newton : int
+        Newton iterations of the failed first attempt (0 when none failed).
+    """
+
+    solution: Solution
+    retried: str | None = None
+    failed_newton: int = 0
+
+
+def _newton_of(exc: Exception) -> int:
+    """Newton iterations a :class:`ConvergenceError`'s message reports (0 if none)."""
+    import re
+
+    m = re.search(r"after (\d+) iterations", str(exc))
+    return int(m.group(1)) if m else 0
+
+
+def solve_posture(
+    model: Model,
+    *,
+    gravity: np.ndarray | None,
+    g_m_s2: float,
+    disc: Discretization,
+    prestress: Prestress | None = None,
+    x0: np.ndarray | None = None,
+    retry: bool = True,
+    retry_options: SolverOptions = RETRY_OPTIONS,
+) -> PostureSolve:
+    """One posture: the full load from a warm start, then small load steps if that fails.
+
+    On ``disc`` with :func:`fem.solve` (a stress-free reference), or with
+    :func:`solve_prestressed` when ``prestress`` is given (the loaded mesh carrying it).
+
+    Parameters
+    ----------
+    model : Model
+        On ``disc.mesh``, mm.
+    gravity : array_like, shape (3,), or None
+        Gravity direction, model frame.
+    g_m_s2 : float
+    disc : Discretization
+    prestress : Prestress, optional
+    x0 : ndarray, optional
+        Warm start (a previous ``Solution.state`` of this posture).
+    retry : bool
+        Retry a failed first attempt with ``retry_options`` from a cold start.
+    retry_options : SolverOptions
+
+    Returns
+    -------
+    PostureSolve
+
+    Raises
+    ------
+    ConvergenceError
+        The first attempt failed and ``retry`` is False, or the retry failed too.
+    """
+    kw = {"gravity": gravity, "g_m_s2": g_m_s2, "disc": disc}
+
+    def run(**extra) -> Solution:
+        if prestress is not None:
+            return solve_prestressed(model, prestress, **kw, **extra)
+        return solve(model, **kw, **extra)
+
+    try:
+        return PostureSolve(run(x0=x0))
+    except ConvergenceError as exc:
+        if not retry:
+            raise
+        return PostureSolve(run(options=retry_options), str(exc), _newton_of(exc))
 
 
 def solve_prestressed_sensitivity(

@@ -31,7 +31,6 @@ import fem
 from fem.fields import gravity_vector, vertex_displacement_mm
 from fem.prestress import (
     prestress_sensitivity,
-    solve_prestressed,
     solve_prestressed_sensitivity,
 )
 from fem.sensitivity import state_sensitivity, stress_free_sensitivity, vertex_dofs
@@ -45,7 +44,6 @@ __all__ = ["ForwardModel", "ScanState"]
 # Inverse Newton inside the loop: 10 load steps at most (a sagging scan on a coarse mesh
 # can leave no valid stress-free state, where cut-backs would go on for many minutes).
 _UNLOAD_NEWTON = fem.SolverOptions(max_steps=10)
-_SMALL_STEPS = fem.SolverOptions(initial_step=0.125, min_step=1e-3, max_newton=15, max_steps=40)
 _RECOVERIES_KEPT = 16  # converged recoveries kept by theta (a few MB each at most)
 log = logging.getLogger(__name__)
 
@@ -198,25 +196,23 @@ class ForwardModel:
         direction, mag = self._load(g_dir)
         model = self.model(theta, disc.mesh.nodes_mm)
         prev = self._states.get(key)
-        kw = {"gravity": direction, "g_m_s2": mag, "disc": disc}
-        ps = self._ps if self.prestressed else None
-
-        def run(**extra):
-            if ps is not None:
-                return solve_prestressed(model, ps, **kw, **extra)
-            return fem.solve(model, **kw, **extra)
-
-        try:
-            sol = run(x0=None if prev is None else prev.state)
-        except fem.ConvergenceError:
-            if not retry:
-                raise
+        out = fem.solve_posture(
+            model,
+            gravity=direction,
+            g_m_s2=mag,
+            disc=disc,
+            prestress=self._ps if self.prestressed else None,
+            x0=None if prev is None else prev.state,
+            retry=retry,
+        )
+        if out.retried is not None:
             log.warning(
-                "solve failed for %s at c1=%.1f Pa; retrying with small load steps",
+                "solve failed for %s at c1=%.1f Pa (%s); retried with small load steps",
                 key,
                 np.exp(theta),
+                out.retried,
             )
-            sol = run(options=_SMALL_STEPS)
+        sol = out.solution
         self.solves += 1
         return model, sol, direction, mag
 

@@ -54,9 +54,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Solver options of the retry after a failed solve (small load steps, cold start).
-RETRY_OPTIONS = {"initial_step": 0.125, "min_step": 1e-3, "max_newton": 15, "max_steps": 40}
-
 
 @dataclass(frozen=True)
 class ScenarioTask:
@@ -151,24 +148,13 @@ def solve_scenario(model: SweepModel, key: str, task: ScenarioTask):
     worker = f"{socket.gethostname()}:{os.getpid()}"
     try:
         fm, disc, tumour, ps = _prepared(model, key)
-        kw = {"gravity": task.gravity_ref, "g_m_s2": task.g_m_s2, "disc": disc}
-        if ps is not None:  # the prestressed loaded mesh (see calib.sweep.model)
-            from fem.prestress import solve_prestressed
-
-            def solve(**extra):
-                return solve_prestressed(fm, ps, **kw, **extra)
-        else:
-
-            def solve(**extra):
-                return fem.solve(fm, **kw, **extra)
-
-        newton = 0
-        try:
-            sol = solve(x0=task.x0)
-        except fem.ConvergenceError as exc:
-            log.info("scenario %d: %s; retrying with small load steps", task.index, exc)
-            newton = _newton_of(exc)
-            sol = solve(options=fem.SolverOptions(**RETRY_OPTIONS))
+        # ps: the prestressed loaded mesh (see calib.sweep.model), else None
+        out = fem.solve_posture(
+            fm, gravity=task.gravity_ref, g_m_s2=task.g_m_s2, disc=disc, prestress=ps, x0=task.x0
+        )
+        if out.retried is not None:
+            log.info("scenario %d: %s; retried with small load steps", task.index, out.retried)
+        sol, newton = out.solution, out.failed_newton
     except Exception as exc:  # noqa: BLE001 - a failed scenario is recorded, not fatal
         return ScenarioResult(
             task.index,
@@ -203,13 +189,6 @@ def solve_scenario(model: SweepModel, key: str, task: ScenarioTask):
         stats=stats,
         worker=worker,
     )
-
-
-def _newton_of(exc: Exception) -> int:
-    import re
-
-    m = re.search(r"after (\d+) iterations", str(exc))
-    return int(m.group(1)) if m else 0
 
 
 def _init_worker(threads: int) -> None:

@@ -301,3 +301,39 @@ def test_springs_are_refused():
                                   support=fem.ElasticSupport("z0"))  # fmt: skip
     with pytest.raises(ValueError, match="springs"):
         compute_prestress(model, gravity=G0)
+
+
+@pytest.mark.parametrize("prestressed", [False, True])
+def test_solve_posture_retries_a_failed_first_attempt_with_small_steps(
+    box, monkeypatch, prestressed
+):
+    # the first attempt is made to fail (as a warm start from a far posture can); the
+    # retry runs from a cold start with RETRY_OPTIONS and gives the plain solve's answer
+    import fem.prestress as pre
+
+    truth, scan, inverse, _ = box
+    model, ps = (scan, inverse) if prestressed else (truth, None)
+    disc = fem.discretize(model.mesh, model.support)
+    plain = pre.solve_posture(model, gravity=G1, g_m_s2=9.81, disc=disc, prestress=ps)
+    assert plain.retried is None and plain.failed_newton == 0
+    target = "solve_prestressed" if prestressed else "solve"
+    real, calls = getattr(pre, target), []
+
+    def flaky(*args, **kw):
+        calls.append(kw.get("options"))
+        if len(calls) == 1:
+            raise fem.ConvergenceError("Newton stopped after 7 iterations (test)")
+        return real(*args, **kw)
+
+    monkeypatch.setattr(pre, target, flaky)
+    out = pre.solve_posture(model, gravity=G1, g_m_s2=9.81, disc=disc, prestress=ps, x0=None)
+    assert "after 7 iterations" in out.retried and out.failed_newton == 7
+    assert calls[1] is pre.RETRY_OPTIONS
+    # one equilibrium reached by two load paths, each to the solver's rtol 1e-8 of the
+    # load: about 1e-8 of the 20 mm displacement apart, well inside 1e-6 mm
+    np.testing.assert_allclose(
+        out.solution.displacement_mm, plain.solution.displacement_mm, atol=1e-6
+    )
+    calls.clear()
+    with pytest.raises(fem.ConvergenceError, match="after 7 iterations"):
+        pre.solve_posture(model, gravity=G1, g_m_s2=9.81, disc=disc, prestress=ps, retry=False)
