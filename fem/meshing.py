@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import numpy as np
 
@@ -22,20 +23,31 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
+#: Debug files TetGen writes into the working directory when it skips input faces.
+_TETGEN_LITTER = ("_skipped.face", "_skipped.node")
+
+
 def _tetgen(vertices, faces, max_volume, min_ratio, min_dihedral, regions):
     import tetgen
 
+    litter = [Path(name) for name in _TETGEN_LITTER if not Path(name).exists()]
     tg = tetgen.TetGen(np.asarray(vertices, float), np.asarray(faces, np.int32))
     for tag, point in regions:
         tg.add_region(int(tag), np.asarray(point, float), -1.0)
-    nodes, tets, attrib, _ = tg.tetrahedralize(
-        quality=True,
-        minratio=min_ratio,
-        mindihedral=min_dihedral,
-        maxvolume=max_volume if max_volume else -1.0,
-        fixedvolume=bool(max_volume),
-        regionattrib=bool(regions),
-    )
+    try:
+        nodes, tets, attrib, _ = tg.tetrahedralize(
+            quality=True,
+            minratio=min_ratio,
+            mindihedral=min_dihedral,
+            maxvolume=max_volume if max_volume else -1.0,
+            fixedvolume=bool(max_volume),
+            regionattrib=bool(regions),
+        )
+    finally:  # never leave TetGen's debug files in the user's folder
+        for path in litter:
+            if path.exists():
+                log.info("TetGen skipped input faces (its %s is removed)", path)
+                path.unlink(missing_ok=True)
     region = attrib[:, 0].astype(int) if regions else np.full(len(tets), REGION_IDS["bulk"])
     return nodes, tets, region
 

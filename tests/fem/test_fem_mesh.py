@@ -169,3 +169,34 @@ def test_skin_band_volume_by_element_fractions(n):
     exact = 40.0 * 40.0 * 20.0 - (40.0 - 2 * t) ** 2 * (20.0 - t)
     assert band == pytest.approx(exact, rel=0.01)
     assert {n for n in tagged.region_names if n.startswith("skin:")}  # partial elements exist
+
+
+def test_tetgen_debug_files_are_not_left_in_the_working_directory(tmp_path, monkeypatch):
+    # TetGen writes _skipped.face/_skipped.node into the cwd when it skips input faces;
+    # a fake TetGen that does so must leave the folder as it found it: a file of that
+    # name that was there before is not deleted (TetGen itself overwrites it)
+    import sys
+    import types
+
+    from fem import meshing
+
+    class FakeTetGen:
+        def __init__(self, v, f):
+            self.v = v
+
+        def add_region(self, *a):
+            pass
+
+        def tetrahedralize(self, **kw):
+            for name in ("_skipped.face", "_skipped.node"):
+                (tmp_path / name).write_text("0\n")
+            tets = np.array([[0, 1, 2, 3]])
+            return self.v[:4], tets, np.zeros((1, 1)), None
+
+    monkeypatch.setitem(sys.modules, "tetgen", types.SimpleNamespace(TetGen=FakeTetGen))
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "_skipped.node").write_text("mine\n")
+    v = np.eye(4, 3)
+    meshing._tetgen(v, np.array([[0, 1, 2]]), None, 1.5, 10.0, ())
+    assert not (tmp_path / "_skipped.face").exists()
+    assert (tmp_path / "_skipped.node").exists()
