@@ -61,7 +61,12 @@ def reference_mesh(ref: ScanMeasurement, *, size_mm: float = 8.0, back_tol_mm: f
     v = v.copy()
     v[near] -= np.outer((v[near] - p0) @ n, n)
     vol = size_mm**3 / (6.0 * np.sqrt(2.0))
-    mesh = tetrahedralize(v, f, max_volume_mm3=vol, size_mm=size_mm)
+    # a surface TetGen rejects is repaired or remeshed (fem.meshing.tetrahedralize); the
+    # remeshed one comes from marching cubes on a size/3 grid, which leaves the back up to
+    # half a grid step (size/6) off its plane: vertices that near it go back onto it, so
+    # the support keeps its faces
+    plane = (p0, n, max(back_tol_mm, size_mm / 5.0))
+    mesh = tetrahedralize(v, f, max_volume_mm3=vol, size_mm=size_mm, keep_planes=[plane])
     bnodes = np.unique(fem.boundary_faces(mesh.tets))
     back = bnodes[np.abs((mesh.nodes_mm[bnodes] - p0) @ n) < 1e-6 * size_mm]
     log.info("reference mesh: %d tets, %d nodes, %d on the back plane", mesh.n_tets,
