@@ -255,8 +255,7 @@ def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALP
     The residual of every scan with an FE solution (calibration and validation) at the
     calibrated c1, on the calibration's seeded surface points, is tested by
     :func:`calib.stats.consistency.posture_consistency` under the session's noise model
-    (:func:`calib.stats.noise.session_noise`, fitted on the residuals less each scan's
-    mean). No FE solve: the states and their ln c1 derivatives are :func:`evaluate`'s.
+    (its default). No FE solve: the states and their ln c1 derivatives are :func:`evaluate`'s.
 
     Parameters
     ----------
@@ -276,7 +275,6 @@ def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALP
     from .model.residuals import scan_residuals
     from .stats import SurfaceSample
     from .stats.consistency import posture_consistency
-    from .stats.noise import session_noise
 
     cal = calibration.calibrator
     if cal is None or calibration.objective != "surface":
@@ -296,18 +294,22 @@ def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALP
         )
         if len(res.r) < MIN_SCAN_POINTS:
             continue
-        names[len(names)] = name
+        names[len(rs)] = name
+        labels.append(np.full(len(res.r), len(rs)))
         rs.append(res.r)
         js.append(res.dr)
         pts.append(res.points_mm)
-        labels.append(np.full(len(res.r), len(names) - 1))
     if len(rs) < 2:
         return None
     sample = SurfaceSample(np.concatenate(pts), np.concatenate(labels))
-    r = np.concatenate(rs)
-    offsets = np.concatenate([np.full(len(x), x.mean()) for x in rs])
-    noise = session_noise(sample, r - offsets, seed=cal.options.seed)
-    test = posture_consistency(calibration.theta, r, np.concatenate(js), sample, noise, alpha=alpha)
+    test = posture_consistency(
+        calibration.theta,
+        np.concatenate(rs),
+        np.concatenate(js),
+        sample,
+        alpha=alpha,
+        seed=cal.options.seed,
+    )
     return test, names
 
 

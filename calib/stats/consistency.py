@@ -49,7 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .intervals import IntervalError, _json_number, parameter_intervals
-from .noise import NoiseFit
+from .noise import NoiseFit, session_noise
 from .sample import SurfaceSample
 
 __all__ = ["ConsistencyError", "PostureConsistency", "ScanEstimate", "posture_consistency"]
@@ -167,9 +167,10 @@ def posture_consistency(
     residual_mm: np.ndarray,
     jacobian: np.ndarray,
     sample: SurfaceSample,
-    noise: NoiseFit,
+    noise: NoiseFit | None = None,
     *,
     alpha: float = 0.04,
+    seed: int = 0,
 ) -> PostureConsistency:
     """Test whether every scan, fitted alone, asks for the same ``theta``.
 
@@ -183,11 +184,14 @@ def posture_consistency(
         ``dr / dtheta`` (mm per unit of theta).
     sample : SurfaceSample
         The residuals' points, one label per scan (at least two scans).
-    noise : NoiseFit
-        The noise model applied to every scan (the session's,
-        :func:`calib.stats.noise.session_noise`).
+    noise : NoiseFit, optional
+        The noise model applied to every scan. Default: the session's
+        (:func:`calib.stats.noise.session_noise`), fitted on the residuals less each
+        scan's mean (the offset every scan's own fit takes out).
     alpha : float
         False-alarm rate of the verdict.
+    seed : int
+        Seed of the variogram's pair sample (default noise model only).
 
     Returns
     -------
@@ -209,6 +213,11 @@ def posture_consistency(
         )
     r = sample.check_values(residual_mm, "residual_mm")
     J = sample.check_values(jacobian, "jacobian")
+    if noise is None:
+        offsets = np.zeros_like(r)
+        for idx in sample.blocks:
+            offsets[idx] = r[idx].mean()
+        noise = session_noise(sample, r - offsets, seed=seed)
     est = tuple(
         _scan_estimate(float(theta), lab, r[idx], J[idx], sample.points_mm[idx], noise)
         for lab, idx in zip(sample.labels, sample.blocks, strict=True)

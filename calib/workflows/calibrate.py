@@ -157,7 +157,8 @@ def _with_posture_check(calibration: Calibration, evaluations, say) -> Calibrati
     test, names = checked
     say(_posture_line(test, names))
     merged = model_fit_with_postures(calibration.model_fit, test, names)
-    if merged["verdict"] == "misfit":
+    if merged["verdict"] == "misfit" and merged.get("band_f_verdict") != "misfit":
+        # (a band-F misfit was said by the fit already, with the same advice)
         say(
             "MODEL MISFIT: the interval covers noise and mesh, not this model error; it is the "
             "interval of an effective c1 (phantom-calib diagnose looks for the missing effect)"
