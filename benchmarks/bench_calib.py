@@ -11,7 +11,7 @@ relative c1 error, the interval's coverage of the truth (with its count) and tim
 
     python benchmarks/bench_calib.py [--presets quick,dissertation] [--seeds 0,1,2]
         [--effect none] [--twins DIR] [--objective surface] [--reference-state unload]
-        [--mesh-size 12] [--mesh-check 1.4] [--profile 5]
+        [--mesh-size 12] [--mesh-check 1.4|1.4,0.714] [--profile 5]
 
 The README's calibration tables are printed by it (the command is printed with them).
 """
@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.fitting import CalibrationOptions
+from calib.fitting.options import mesh_check_ratios, parse_mesh_check
 from calib.model.effects import parse_effects
 from calib.twin import PRESETS, synthesize
 from calib.workflows.calibrate import run_calibration
@@ -38,7 +39,11 @@ from calib.workflows.validate import run_validation
 
 def _case_name(preset: str, effect: str, seed: int, o: CalibrationOptions) -> str:
     tag = effect.replace("=", "").replace(":", "x").replace(",", "+") or "default"
-    return f"{preset}-{tag}-seed{seed}-{o.objective}-{o.reference_state}-{o.mesh_size_mm:g}mm"
+    name = f"{preset}-{tag}-seed{seed}-{o.objective}-{o.reference_state}-{o.mesh_size_mm:g}mm"
+    if o.mesh_check_ratio != CalibrationOptions.mesh_check_ratio:  # older names stay valid
+        ratios = mesh_check_ratios(o.mesh_check_ratio) or (0.0,)
+        name += "-check" + "+".join(f"{q:g}" for q in ratios)
+    return name
 
 
 def run_case(root: Path, preset: str, effect: str, seed: int, o: CalibrationOptions) -> dict:
@@ -78,6 +83,7 @@ def run_case(root: Path, preset: str, effect: str, seed: int, o: CalibrationOpti
         "uncertainty_method": cal["uncertainty"]["method"],
         "mesh": cal["mesh"],
         "fe_solves": cal["fe_solves"],
+        "mesh_check": cal["uncertainty"].get("mesh_check"),
         "synth_s": t_synth,
         "ingest_s": t_ingest,
         "calibration_s": cal["wall_s"],
@@ -104,9 +110,27 @@ def _print_case(r: dict) -> None:
     surf = " / ".join(f"{v:.2f}" for v in r["surface_mean_mm"].values())
     print(
         f"| {r['case']} | {r['c1_pa']:.1f} ({ci_txt}) | {100 * r['relative_error']:+.1f} % | "
-        f"{'yes' if r['covered'] else 'no'} | {fit} | {opt} | {r['fe_solves']} | "
-        f"{r['calibration_s']:.0f} | {surf} |"
+        f"{'yes' if r['covered'] else 'no'} | {_mesh_check_cell(r.get('mesh_check'))} | {fit} "
+        f"| {opt} | {r['fe_solves']} | {r['calibration_s']:.0f} | {surf} |"
     )
+
+
+def _mesh_check_cell(check: dict | None) -> str:
+    """The check meshes' c1 and the GCI (older records: the GCI alone, or "-")."""
+    if not check:
+        return "-"
+    if check.get("gci_ln_c1") is None:
+        return "failed"
+    c1s = ", ".join(
+        f"{m['mesh_size_mm']:.1f} mm {m['c1_pa']:.1f}"
+        if m["c1_pa"]
+        else f"{m['mesh_size_mm']:.1f} mm failed"
+        for m in check.get("meshes", [])
+    )
+    how = check.get("convergence", "assumed order")
+    if how == "observed order":
+        how += f" {check['order']:.2f}"
+    return f"{c1s}: GCI {100 * check['gci_ln_c1']:.2g} % ({how})"
 
 
 def _summary(rows: list[dict]) -> None:
@@ -145,7 +169,9 @@ def main() -> None:
     ap.add_argument("--objective", default="surface")
     ap.add_argument("--reference-state", default="unload")
     ap.add_argument("--mesh-size", type=float, default=CalibrationOptions.mesh_size_mm)
-    ap.add_argument("--mesh-check", type=float, default=CalibrationOptions.mesh_check_ratio)
+    ap.add_argument(
+        "--mesh-check", type=parse_mesh_check, default=CalibrationOptions.mesh_check_ratio
+    )
     ap.add_argument("--profile", type=int, default=CalibrationOptions.profile_points)
     args = ap.parse_args()
     options = CalibrationOptions(
@@ -157,10 +183,10 @@ def main() -> None:
     )
     print("command: python " + " ".join(shlex.quote(a) for a in sys.argv))
     print(
-        "| case | c1 Pa (95 %) | error | truth inside | model fit | optimiser | FE solves "
-        "| calibration s | surface mean mm per scan |"
+        "| case | c1 Pa (95 %) | error | truth inside | mesh check Pa | model fit | optimiser "
+        "| FE solves | calibration s | surface mean mm per scan |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         root = args.twins or Path(tmp)

@@ -174,20 +174,23 @@ def calibrate(
         int, typer.Option("--profile", help="Points of the likelihood profile (0: none).")
     ] = 5,
     mesh_check: Annotated[
-        float,
+        str,
         typer.Option(
             "--mesh-check",
             help="Element-size ratio of the check mesh whose c1 bounds the discretisation "
-            "error in the 95 % interval: >1 coarser (cheap), <1 finer (0: off, noise only).",
+            "error in the 95 % interval: >1 coarser (cheap), <1 finer; two reciprocal "
+            "ratios (1.4,0.714): coarser and finer, the observed order (0: off, noise only).",
         ),
-    ] = 1.4,
+    ] = "1.4",
 ) -> None:
     """Fit c1 to the calibration scans; write calibration.json and error maps."""
     from ..fitting import CalibrationOptions
+    from ..fitting.options import parse_mesh_check
     from ..report.tables import format_calibration
     from ..workflows.calibrate import run_calibration
 
     try:
+        mesh_check = parse_mesh_check(mesh_check)
         opts = CalibrationOptions(
             objective=objective, reference_state=reference_state,
             **({} if mesh_size is None else {"mesh_size_mm": mesh_size, "mesh_retry_mm": ()}),

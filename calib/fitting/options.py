@@ -7,7 +7,12 @@ from typing import Literal
 
 from ..model.residuals import OBJECTIVES
 
-__all__ = ["CalibrationOptions", "check_mesh_check_ratio"]
+__all__ = [
+    "CalibrationOptions",
+    "check_mesh_check_ratio",
+    "mesh_check_ratios",
+    "parse_mesh_check",
+]
 
 Objective = Literal["surface", "nipple", "landmarks"]
 ReferenceState = Literal["unload", "prestress", "shortcut"]
@@ -17,6 +22,42 @@ def check_mesh_check_ratio(ratio: float) -> None:
     """Raise ``ValueError`` unless ``ratio`` lies in [0.5, 0.9] (finer) or [1.1, 3] (coarser)."""
     if not (0.5 <= ratio <= 0.9 or 1.1 <= ratio <= 3.0):
         raise ValueError(f"mesh check ratio must lie in [0.5, 0.9] or [1.1, 3], got {ratio}")
+
+
+def mesh_check_ratios(ratio: float | tuple[float, ...]) -> tuple[float, ...]:
+    """The check meshes' size ratios as a tuple, checked (``()`` for no mesh check).
+
+    One ratio (a two-mesh check with the assumed order) or two reciprocal ones, ``r > 1``
+    and ``1/r`` (a three-mesh check with the observed order,
+    :func:`calib.fitting.meshcheck.grid_convergence`).
+    """
+    ratios = tuple(float(q) for q in (ratio if isinstance(ratio, tuple | list) else (ratio,)))
+    if ratios in ((), (0.0,)):
+        return ()
+    if len(ratios) > 2:
+        raise ValueError(f"a mesh check takes one or two ratios, got {len(ratios)}: {ratios}")
+    for q in ratios:
+        check_mesh_check_ratio(q)
+    if len(ratios) == 2:
+        hi, lo = max(ratios), min(ratios)
+        if not (hi > 1.0 > lo and abs(hi * lo - 1.0) < 0.02):
+            raise ValueError(
+                "two mesh check ratios must be a coarser r and a finer 1/r (e.g. 1.4,0.714), "
+                f"got {ratios}"
+            )
+    return ratios
+
+
+def parse_mesh_check(text: str) -> float | tuple[float, ...]:
+    """``"1.4"`` -> 1.4, ``"1.4,0.714"`` -> (1.4, 0.714), ``"0"`` -> 0.0 (the CLI's form)."""
+    try:
+        values = tuple(float(t) for t in text.split(","))
+    except ValueError:
+        raise ValueError(
+            f"--mesh-check takes a ratio or two (e.g. 1.4 or 1.4,0.714), got {text!r}"
+        ) from None
+    mesh_check_ratios(values)
+    return values[0] if len(values) == 1 else values
 
 
 @dataclass(frozen=True)
@@ -49,8 +90,9 @@ class CalibrationOptions:
         L-BFGS-B iterations.
     profile_points : int
         Points of the likelihood profile over c1 (0 or 1: none).
-    mesh_check_ratio : float
-        Element-size ratio of the check mesh (0: no mesh check).
+    mesh_check_ratio : float or tuple of float
+        Element-size ratio of the check mesh (0: no mesh check); two reciprocal ratios
+        (``(1.4, 1/1.4)``): a coarser and a finer check mesh, the observed order.
     seed : int
         Seed of the surface subsample.
     """
@@ -65,7 +107,7 @@ class CalibrationOptions:
     c1_guess_pa: float = 500.0
     max_iterations: int = 30
     profile_points: int = 5
-    mesh_check_ratio: float = 1.4
+    mesh_check_ratio: float | tuple[float, ...] = 1.4
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -87,5 +129,6 @@ class CalibrationOptions:
             raise ValueError(f"max points must be >= 10, got {self.max_points}")
         if not self.c1_guess_pa > 0:
             raise ValueError(f"c1 guess must be positive, got {self.c1_guess_pa}")
-        if self.mesh_check_ratio:
-            check_mesh_check_ratio(self.mesh_check_ratio)
+        if isinstance(self.mesh_check_ratio, list):
+            object.__setattr__(self, "mesh_check_ratio", tuple(self.mesh_check_ratio))
+        mesh_check_ratios(self.mesh_check_ratio)

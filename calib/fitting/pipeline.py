@@ -21,7 +21,7 @@ from ..data.measurements import Measurements
 from .meshcheck import MeshCheck, combined_ci95, mesh_check
 from .objective import Calibrator
 from .optimise import optimise, prepare
-from .options import CalibrationOptions
+from .options import CalibrationOptions, mesh_check_ratios
 from .profile import likelihood_profile, nipple_interval, profile_rows
 from .result import Calibration
 from .uncertainty import Uncertainty, gauss_newton_uncertainty, series_uncertainty
@@ -51,25 +51,44 @@ def _nipple_uncertainty(cal: Calibrator, theta: float, r: np.ndarray, say):
 
 
 def _mesh_check(cal: Calibrator, theta: float, unc: Uncertainty, say):
-    """The mesh check (coarser, then finer if that fails) and the combined 95 % interval."""
+    """The mesh check (a coarser one falls back to a finer mesh) and the combined interval."""
     o = cal.options
-    if not o.mesh_check_ratio or unc.se_ln_c1 is None:
+    ratios = mesh_check_ratios(o.mesh_check_ratio)
+    if not ratios or unc.se_ln_c1 is None:
         return None, unc.c1_ci95_pa
-    say(f"mesh check: the objective on a {o.mesh_size_mm * o.mesh_check_ratio:.1f} mm mesh")
-    check = mesh_check(cal, theta, ratio=o.mesh_check_ratio)
-    if check.gci_ln_c1 is None and o.mesh_check_ratio > 1.0:
-        finer = 1.0 / o.mesh_check_ratio
+    ratio = ratios[0] if len(ratios) == 1 else ratios
+    check = mesh_check(cal, theta, ratio=ratio, progress=say)
+    if check.gci_ln_c1 is None and len(ratios) == 1 and ratios[0] > 1.0:
+        finer = 1.0 / ratios[0]
         say(
             f"mesh check on the coarser mesh failed ({check.failure}); checking on a "
             f"{o.mesh_size_mm * finer:.1f} mm mesh instead"
         )
-        check = mesh_check(cal, theta, ratio=finer)
+        check = mesh_check(cal, theta, ratio=finer, progress=say)
     if check.gci_ln_c1 is None:
         say(f"mesh check failed ({check.failure}): the interval reflects noise only")
         return check, unc.c1_ci95_pa
+    say(_mesh_check_line(check))
     crit = unc.interval["critical_value"] if unc.interval else 1.96
     ci = combined_ci95(float(np.exp(theta)), unc.se_ln_c1, check.gci_ln_c1, critical_value=crit)
     return check, ci
+
+
+def _mesh_check_line(check: MeshCheck) -> str:
+    """What the mesh check found, in one progress line."""
+    found = ", ".join(
+        f"{m.mesh_size_mm:.1f} mm {m.c1_pa:.1f} Pa"
+        if m.c1_pa is not None
+        else f"{m.mesh_size_mm:.1f} mm failed"
+        for m in check.meshes
+    )
+    if check.convergence == "observed order":
+        how = f"observed order {check.order:.2f}"
+    elif check.convergence == "not asymptotic":
+        how = "not in the asymptotic range (3 x the spread of c1 over the meshes)"
+    else:
+        how = f"assumed order {check.order:g}"
+    return f"mesh check: {found}; {how}; GCI {100 * check.gci_ln_c1:.2g} % of c1"
 
 
 def _measured_area_mm2(cal: Calibrator) -> float:

@@ -242,7 +242,7 @@ class ForwardModel:
                         np.exp(theta),
                         exc,
                     )
-                    self._use_spatial()
+                    self.use_spatial()
                 elif self.fixed_point_fallback:
                     log.warning(
                         "inverse Newton failed at c1=%.1f Pa (%s); using the fixed point "
@@ -284,7 +284,7 @@ class ForwardModel:
         self.inverted_reference_elements = rec.inverted_elements
         return self._X
 
-    def _use_spatial(self) -> None:
+    def use_spatial(self) -> None:
         """Switch to the prestressed formulation: recoveries and warm starts start over."""
         self.unload_method = "spatial"
         self._u0, self._X_theta, self._recovered, self._du0 = None, None, {}, None
