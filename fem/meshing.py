@@ -90,15 +90,29 @@ def remesh_surface(vertices, faces, *, size_mm: float):
     m = max(m.split(only_watertight=True), key=lambda s: s.volume)
     trimesh.smoothing.filter_taubin(m, iterations=10)
     target = int(4 * m.area / (np.sqrt(3) * size_mm**2))
-    om = o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector(np.asarray(m.vertices)),
-        o3d.utility.Vector3iVector(np.asarray(m.faces, dtype=np.int32)),
-    )
-    if len(m.faces) > target:
-        om = om.simplify_quadric_decimation(target_number_of_triangles=target)
-    m = trimesh.Trimesh(np.asarray(om.vertices), np.asarray(om.triangles), process=True)
+    # Quadric decimation can fold the surface onto itself (a pushed-through sphere at
+    # 4 mm: self-intersecting and open at the target, clean at 1.5x it); coarsen less
+    # until it is clean, else keep the smoothed marching-cubes surface (clean by design).
+    for factor in _DECIMATION_FACTORS:
+        if len(m.faces) <= factor * target:
+            break
+        om = o3d.geometry.TriangleMesh(
+            o3d.utility.Vector3dVector(np.asarray(m.vertices)),
+            o3d.utility.Vector3iVector(np.asarray(m.faces, dtype=np.int32)),
+        )
+        om = om.simplify_quadric_decimation(target_number_of_triangles=int(factor * target))
+        d = trimesh.Trimesh(np.asarray(om.vertices), np.asarray(om.triangles), process=True)
+        defects = surface_defects(d.vertices, d.faces)
+        if not defects:
+            m = d
+            break
+        log.info("decimation to %d faces left the surface %s", len(d.faces), ", ".join(defects))
     trimesh.repair.fix_normals(m)
     return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+#: Decimation targets tried in turn, as multiples of the size's face count.
+_DECIMATION_FACTORS = (1.0, 1.5, 2.0, 4.0)
 
 
 def surface_defects(vertices: np.ndarray, faces: np.ndarray) -> list[str]:
