@@ -198,7 +198,14 @@ def _parameters(record: dict) -> dict:
     return (record.get("provenance") or {}).get("parameters") or {}
 
 
-def _straight_model(work: WorkFolder, params: dict, model_on, *, own_size: bool):
+def _straight_model(
+    work: WorkFolder,
+    params: dict,
+    model_on,
+    *,
+    own_size: bool,
+    why: str = "its reference is prestressed",
+):
     """A model of the reference scan whose stress-free reference has straight elements.
 
     The calibration's reference is the prestressed loaded mesh (its mesh admits no
@@ -207,7 +214,8 @@ def _straight_model(work: WorkFolder, params: dict, model_on, *, own_size: bool)
     calibration's next mesh sizes (``mesh_retry_mm``, else +2 and +4 mm; its own size
     first with ``own_size``) and the first whose recovery at the calibrated c1 succeeds
     (``model_on(loaded_mesh)`` builds the model; its recovery stays cached for the null
-    fit). Returns the model and a note.
+    fit). The calibration's own mesh is skipped also when a straight recovery at the
+    calibrated c1 fails there (``why`` says which). Returns the model and a note.
     """
     from ..model.reference import reference_mesh
 
@@ -228,12 +236,11 @@ def _straight_model(work: WorkFolder, params: dict, model_on, *, own_size: bool)
             return fm, ""  # the calibration's mesh size, rebuilt from the same scan
         return fm, (
             f"the calibration's {size:g} mm mesh admits no straight stress-free reference "
-            f"(its reference is prestressed); diagnosed on the {s:g} mm mesh"
+            f"({why}); diagnosed on the {s:g} mm mesh"
         )
     raise DiagnosisError(
-        f"{work.path}: the calibration's reference is the prestressed loaded mesh and no "
-        f"straight stress-free reference was found on other meshes ({'; '.join(tried)}); "
-        "recalibrate with another --mesh-size"
+        f"{work.path}: no straight stress-free reference on the calibration's mesh ({why}) "
+        f"nor on other meshes ({'; '.join(tried)}); recalibrate with another --mesh-size"
     )
 
 
@@ -304,7 +311,7 @@ def build_problem(
     skin_thickness_mm: float = SKIN_THICKNESS_MM,
     max_points: int | None = None,
 ) -> Problem:
-    """The diagnosis problem of a calibrated work folder (no FE solve yet).
+    """The diagnosis problem of a calibrated work folder, its stress-free reference recovered.
 
     Parameters
     ----------
@@ -358,6 +365,12 @@ def build_problem(
         fm, note = _straight_model(work, params, model_on, own_size=own)
     else:
         fm, note = model_on(work.mesh.with_nodes(_loaded_nodes(work))), ""
+        try:
+            fm.stress_free(float(np.log(record["c1_pa"])))
+        except fem.ConvergenceError as exc:
+            # a cold recovery can fail where the calibration's own did not (see the README)
+            why = f"its recovery fails at the calibrated c1: {exc}"
+            fm, note = _straight_model(work, params, model_on, own_size=False, why=why)
     mesh = fm.mesh
     n_pts = int(max_points or params.get("max_points", 3000))
     seed = int(params.get("seed", 0))

@@ -29,10 +29,12 @@ SCANS = ("a", "b")
 
 def _fields(sample, r, J, columns: dict) -> FieldSet:
     blocks = {n: idx for n, idx in zip(SCANS, sample.blocks, strict=True)}
-    cols = tuple(Column(k, k, None, "p", {n: v[blocks[n]] for n in SCANS})
-                 for k, v in columns.items())  # fmt: skip
-    return FieldSet(SCANS, {n: r[blocks[n]] for n in SCANS}, {n: J[blocks[n]] for n in SCANS},
-                    cols, {})  # fmt: skip
+    cols = tuple(
+        Column(k, k, None, "p", {n: v[blocks[n]] for n in SCANS}) for k, v in columns.items()
+    )
+    return FieldSet(
+        SCANS, {n: r[blocks[n]] for n in SCANS}, {n: J[blocks[n]] for n in SCANS}, cols, {}
+    )
 
 
 def _points(sample):
@@ -44,8 +46,11 @@ def linear():
     sample = phantom_sample(250, 2, seed=11)
     J = sag_sensitivity(sample, posture_deg=(180.0, 50.0))
     # candidate fields: a -dr/dp convention like the FE fields (screen negates them)
-    cols = {"p2": -misfit_pattern(sample), "tilt": -misfit_pattern(sample, kind="tilt"),
-            "bump": -misfit_pattern(sample, kind="bump")}  # fmt: skip
+    cols = {
+        "p2": -misfit_pattern(sample),
+        "tilt": -misfit_pattern(sample, kind="tilt"),
+        "bump": -misfit_pattern(sample, kind="bump"),
+    }
     truth = NoiseModel("exponential", 0.2, 0.1, 8.0)
     return sample, J, cols, NoiseSampler.of(sample, truth)
 
@@ -98,9 +103,13 @@ def test_local_z_map_is_calibrated_and_finds_a_bump_at_the_rim():
     p = sample.points_mm
     noise = NoiseModel("exponential", 0.1, 0.2, 5.0)
     sampler = NoiseSampler.of(sample, noise)
-    labels = region_labels(p, nipple_mm=np.array([0.0, 0.0, 60.0]),
-                           back_point_mm=np.zeros(3), back_normal=np.array([0.0, 0.0, -1.0]),
-                           spheres=[])  # fmt: skip
+    labels = region_labels(
+        p,
+        nipple_mm=np.array([0.0, 0.0, 60.0]),
+        back_point_mm=np.zeros(3),
+        back_normal=np.array([0.0, 0.0, -1.0]),
+        spheres=[],
+    )
     rng = np.random.default_rng(4)
     shares = []
     for _ in range(10):
@@ -127,9 +136,24 @@ def _refit(sample, r, J, cols: dict, x) -> Refit:
     fs = _fields(sample, r, J, cols)
     names = ("theta", *cols)
     n = len(x)
-    return Refit(tuple(cols), float(x[0]), EffectValues(), {}, names, np.asarray(x, float),
-                 np.full(n, -np.inf), np.full(n, np.inf), fs, float(r @ r), float(r @ r) / len(r),
-                 1, 1, 0, True, "")  # fmt: skip
+    return Refit(
+        tuple(cols),
+        float(x[0]),
+        EffectValues(),
+        {},
+        names,
+        np.asarray(x, float),
+        np.full(n, -np.inf),
+        np.full(n, np.inf),
+        fs,
+        float(r @ r),
+        float(r @ r) / len(r),
+        1,
+        1,
+        0,
+        True,
+        "",
+    )
 
 
 def test_lopo_is_exact_for_a_linear_model_and_prefers_the_right_one(linear):
@@ -188,3 +212,40 @@ def test_command_help_and_errors(tmp_path):
     assert res.exit_code == 2 and "calibration.json" in res.output
     res = runner.invoke(app, ["diagnose", str(tmp_path), "--effects", "skin,wrinkles"])
     assert res.exit_code == 2 and "unknown effect" in res.output
+
+
+def test_a_mesh_without_a_straight_reference_is_replaced_and_the_note_says_why(monkeypatch):
+    # quick homogeneous twin, seed 2, 14 mm: the calibration recovered a straight
+    # stress-free reference, a cold recovery at its c1 in the diagnosis does not; the
+    # diagnosis moves to the next size and says why (it raised a traceback before)
+    from types import SimpleNamespace
+
+    import calib.model.reference as reference
+    import fem
+    from calib.discrepancy.problem import _straight_model
+
+    monkeypatch.setattr(reference, "reference_mesh", lambda ref, size_mm: size_mm)
+
+    class Model:
+        def __init__(self, size):
+            self.size = size
+
+        def stress_free(self, theta):
+            if self.size < 15.0:
+                raise fem.ConvergenceError("inverse Newton stopped at load factor 0.93")
+
+    work = SimpleNamespace(
+        path="WORK", measurements=SimpleNamespace(reference=None), record={"c1_pa": 423.4}
+    )
+    why = "its recovery fails at the calibrated c1: load factor 0.93"
+    params = {"mesh_size_mm": 14.0, "mesh_retry_mm": [16.0]}
+    fm, note = _straight_model(work, params, Model, own_size=False, why=why)
+    assert fm.size == 16.0
+    assert note == (
+        f"the calibration's 14 mm mesh admits no straight stress-free reference ({why}); "
+        "diagnosed on the 16 mm mesh"
+    )
+    with pytest.raises(DiagnosisError, match=r"calibration's mesh \(its recovery fails.*13 mm"):
+        _straight_model(
+            work, {"mesh_size_mm": 11.0, "mesh_retry_mm": [13.0]}, Model, own_size=False, why=why
+        )
