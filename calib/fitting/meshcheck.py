@@ -34,14 +34,22 @@ CFD calculations based on grid refinement studies. J. Comput. Phys. 262:104-130.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
 
-from .options import check_mesh_check_ratio, mesh_check_ratios
+from .options import mesh_check_ratios
 
-__all__ = ["CheckMesh", "MeshCheck", "combined_ci95", "grid_convergence", "mesh_check"]
+__all__ = [
+    "CheckMesh",
+    "MeshCheck",
+    "combined_ci95",
+    "describe_mesh_check",
+    "grid_convergence",
+    "mesh_check",
+]
 
 log = logging.getLogger(__name__)
 OBSERVED_ORDER = 1.6
@@ -135,11 +143,8 @@ def grid_convergence(
         return SAFETY_FACTOR * error, OBSERVED_ORDER, SAFETY_FACTOR, "assumed order"
     if len(checks) != 2:
         raise ValueError(f"a mesh check takes one or two check meshes, got {len(checks)}")
+    mesh_check_ratios(tuple(q for q, _ in checks))  # reciprocal, each in range
     (r_a, ln_a), (r_b, ln_b) = sorted(checks, reverse=True)  # coarser first
-    if not (r_a > 1.0 > r_b and abs(r_a * r_b - 1.0) < 0.02):
-        raise ValueError(
-            f"two check meshes need reciprocal ratios (r and 1/r), got {r_a:g} and {r_b:g}"
-        )
     r = float(np.sqrt(r_a / r_b))
     e_coarse, e_fine = ln_c1 - ln_a, ln_b - ln_c1
     spread = max(ln_a, ln_b, ln_c1) - min(ln_a, ln_b, ln_c1)
@@ -162,8 +167,7 @@ def _check_at(cal, theta: float, ratio: float) -> CheckMesh:
 
     from .objective import Calibrator
 
-    check_mesh_check_ratio(ratio)
-    size = cal.options.mesh_size_mm * ratio
+    size = cal.options.mesh_size_mm * ratio  # ratio checked by mesh_check_ratios
     opts = replace(cal.options, mesh_size_mm=size)
     tets, failure = 0, ""
     try:
@@ -234,6 +238,45 @@ def mesh_check(
     return MeshCheck(
         gci_ln_c1=gci, failure=failure, order=order, safety_factor=fs, convergence=how, **common
     )
+
+
+def describe_mesh_check(check: Mapping) -> tuple[str, str]:
+    """What a mesh check found, in words: ``(meshes, convergence)``.
+
+    Parameters
+    ----------
+    check : mapping
+        A :class:`MeshCheck` in its JSON form (``dataclasses.asdict``, or
+        ``calibration.json``'s ``uncertainty.mesh_check``; one written before ``meshes``
+        was recorded describes its single check mesh).
+
+    Returns
+    -------
+    meshes : str
+        Each check mesh and the c1 it calibrates to, or why it failed.
+    convergence : str
+        ``"observed order 1.15"``, ``"assumed order 1.60"`` or ``"not asymptotic"``.
+    """
+    meshes = check.get("meshes") or [
+        {
+            "mesh_size_mm": check["check_mesh_size_mm"],
+            "c1_pa": check["c1_check_pa"],
+            "failure": check["failure"],
+        }
+    ]
+    found = "; ".join(
+        f"the {m['mesh_size_mm']:.1f} mm mesh "
+        + (
+            f"calibrates to {m['c1_pa']:.1f} Pa"
+            if m["c1_pa"] is not None
+            else f"failed: {m['failure']}"
+        )
+        for m in meshes
+    )
+    how = check.get("convergence", "assumed order")
+    if how != "not asymptotic":
+        how = f"{how} {check.get('order', OBSERVED_ORDER):.2f}"
+    return found, how
 
 
 def combined_ci95(

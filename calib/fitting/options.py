@@ -42,8 +42,8 @@ def mesh_check_ratios(ratio: float | tuple[float, ...]) -> tuple[float, ...]:
         hi, lo = max(ratios), min(ratios)
         if not (hi > 1.0 > lo and abs(hi * lo - 1.0) < 0.02):
             raise ValueError(
-                "two mesh check ratios must be a coarser r and a finer 1/r (e.g. 1.4,0.714), "
-                f"got {ratios}"
+                "two mesh check ratios must be reciprocal, a coarser r and a finer 1/r "
+                f"(e.g. 1.4,0.714), got {ratios}"
             )
     return ratios
 

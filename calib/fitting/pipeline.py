@@ -14,11 +14,12 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from dataclasses import asdict
 
 import numpy as np
 
 from ..data.measurements import Measurements
-from .meshcheck import MeshCheck, combined_ci95, mesh_check
+from .meshcheck import MeshCheck, combined_ci95, describe_mesh_check, mesh_check
 from .objective import Calibrator
 from .optimise import optimise, prepare
 from .options import CalibrationOptions, mesh_check_ratios
@@ -56,8 +57,7 @@ def _mesh_check(cal: Calibrator, theta: float, unc: Uncertainty, say):
     ratios = mesh_check_ratios(o.mesh_check_ratio)
     if not ratios or unc.se_ln_c1 is None:
         return None, unc.c1_ci95_pa
-    ratio = ratios[0] if len(ratios) == 1 else ratios
-    check = mesh_check(cal, theta, ratio=ratio, progress=say)
+    check = mesh_check(cal, theta, ratio=ratios, progress=say)
     if check.gci_ln_c1 is None and len(ratios) == 1 and ratios[0] > 1.0:
         finer = 1.0 / ratios[0]
         say(
@@ -76,18 +76,9 @@ def _mesh_check(cal: Calibrator, theta: float, unc: Uncertainty, say):
 
 def _mesh_check_line(check: MeshCheck) -> str:
     """What the mesh check found, in one progress line."""
-    found = ", ".join(
-        f"{m.mesh_size_mm:.1f} mm {m.c1_pa:.1f} Pa"
-        if m.c1_pa is not None
-        else f"{m.mesh_size_mm:.1f} mm failed"
-        for m in check.meshes
-    )
-    if check.convergence == "observed order":
-        how = f"observed order {check.order:.2f}"
-    elif check.convergence == "not asymptotic":
+    found, how = describe_mesh_check(asdict(check))
+    if how == "not asymptotic":
         how = "not in the asymptotic range (3 x the spread of c1 over the meshes)"
-    else:
-        how = f"assumed order {check.order:g}"
     return f"mesh check: {found}; {how}; GCI {100 * check.gci_ln_c1:.2g} % of c1"
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+from ..fitting.meshcheck import describe_mesh_check
+
 __all__ = ["format_calibration", "format_validation"]
 
 
@@ -14,29 +16,10 @@ def _uncertainty_lines(unc: dict) -> list[str]:
     if unc.get("c1_ci95_pa") is None:
         return []
     lo, hi = unc["c1_ci95_pa"]
-    meshes = check.get("meshes") or [
-        {
-            "mesh_size_mm": check["check_mesh_size_mm"],
-            "c1_pa": check["c1_check_pa"],
-            "failure": check["failure"],
-        }
-    ]
-    found = "; ".join(
-        f"the {m['mesh_size_mm']:.1f} mm mesh "
-        + (
-            f"calibrates to {m['c1_pa']:.1f} Pa"
-            if m["c1_pa"] is not None
-            else f"failed: {m['failure']}"
-        )
-        for m in meshes
-    )
+    found, how = describe_mesh_check(check)
     lines = [f"  noise alone: {lo:.1f} - {hi:.1f} Pa; mesh check: {found}"]
     if check.get("gci_ln_c1") is not None:
-        how = check.get("convergence", "assumed order")
-        order = "" if how == "not asymptotic" else f" {check['order']:.2f}"
-        lines.append(
-            f"  discretisation bound (GCI) {100 * check['gci_ln_c1']:.2g} % ({how}{order})"
-        )
+        lines.append(f"  discretisation bound (GCI) {100 * check['gci_ln_c1']:.2g} % ({how})")
     if check.get("convergence", "assumed order") == "assumed order" and check.get("gci_ln_c1"):
         lines.append(
             "  note: the bound assumes the FE's order (1.6); --mesh-check 1.4,0.714 observes "

@@ -11,7 +11,7 @@ import pytest
 from calib.fitting import meshcheck
 from calib.fitting import pipeline as run
 from calib.fitting.meshcheck import CheckMesh, MeshCheck, combined_ci95, grid_convergence
-from calib.fitting.options import check_mesh_check_ratio, parse_mesh_check
+from calib.fitting.options import check_mesh_check_ratio, mesh_check_ratios, parse_mesh_check
 
 
 def test_combined_interval_adds_in_quadrature():
@@ -31,6 +31,7 @@ def test_a_failed_coarse_check_falls_back_to_a_finer_mesh(monkeypatch):
     calls = []
 
     def fake_check(cal, theta, *, ratio, progress=None):
+        (ratio,) = mesh_check_ratios(ratio)  # one check mesh at a time
         calls.append(ratio)
         size = cal.options.mesh_size_mm
         if ratio > 1:
@@ -50,6 +51,7 @@ def test_a_failed_coarse_check_falls_back_to_a_finer_mesh(monkeypatch):
 
 def test_a_check_that_fails_both_ways_keeps_the_noise_interval(monkeypatch):
     def failing(cal, theta, *, ratio, progress=None):
+        (ratio,) = mesh_check_ratios(ratio)
         return MeshCheck(14.0, 14.0 * ratio, 0, None, None, "MeshError: test")
 
     monkeypatch.setattr(run, "mesh_check", failing)
@@ -158,7 +160,7 @@ def test_a_three_mesh_check_keeps_the_mesh_that_solved(monkeypatch):
     expected, *_ = grid_convergence(np.log(400.0), [(1.4, np.log(410.0))])
     assert check.gci_ln_c1 == pytest.approx(expected)
     assert ci == pytest.approx(combined_ci95(400.0, 0.01, expected))
-    assert any("8.6 mm failed" in s for s in said)
+    assert any("8.6 mm mesh failed" in s for s in said)
 
 
 def _doc(check: dict | None) -> dict:
