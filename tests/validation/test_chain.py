@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -36,15 +37,31 @@ TINY = TwinPreset(
         Posture("tilt_50", 50, "validation"),
     ),
 )
+#: The shortcut's load between the lateral postures is 2 g reversed; on the tiny twin's
+#: 14 mm model the flip has no FE solution below about 464 Pa, above the optimum, so a
+#: shortcut calibration on right lateral spends 20 minutes of failed solves in its line
+#: search and stops on that limit. The tiny shortcut is fitted to the 50 deg tilt (load
+#: 0.85 g) instead, and compared on that scan with the unloaded model's prediction.
+TINY_SHORTCUT = replace(
+    TINY,
+    postures=(
+        Posture("left_lateral", 0, "reference"),
+        Posture("tilt_50", 50, "calibration"),
+        Posture("tilt_25", 25, "validation"),
+    ),
+)
 CASES = {
     "tiny": (TINY, {"mesh_size_mm": 14.0, "mesh_retry_mm": (), "profile_points": 0}),
     "quick": (PRESETS["quick"], {}),
 }
+SHORTCUT_PRESETS = {"tiny": TINY_SHORTCUT}
 ARTEFACTS = Path(os.environ.get("PHANTOM_CALIB_VALIDATION_OUT", "validation-out"))
 
 
 def _chain(tmp: Path, case: str, seed: int, reference_state: str = "unload") -> dict:
     preset, opts = CASES[case]
+    if reference_state == "shortcut":
+        preset = SHORTCUT_PRESETS.get(case, preset)
     truth = synthesize(tmp / "twin", preset=preset, seed=seed, effects=TruthEffects())
     work = tmp / f"work-{reference_state}"
     options = CalibrationOptions(reference_state=reference_state, **opts)
@@ -145,14 +162,16 @@ def test_validation_surface_error_is_at_the_imaging_floor(figures):
 def test_shortcut_is_reported_and_fits_worse_than_unloading(figures):
     # Its c1 bias is reported in the artefact, not asserted (a known bias). What must
     # hold: taking the sagging reference scan as stress-free is a model error that the
-    # exact recovery does not make, so the shortcut leaves more residual on the scan it
-    # was fitted to (quick twin: 0.60 vs 0.18 mm, README).
-    def fit_residual(state):
-        scans = figures[state]["scans"].values()
-        return max(
-            s["surface_error_mm"]["fiducial"]["mean"]["value"]
-            for s in scans
-            if s["role"] == "calibration"
-        )
+    # exact recovery does not make, so the shortcut leaves more residual on a scan it
+    # was fitted to than the unloaded model leaves there (quick twin, both fitted to
+    # right lateral: 0.60 vs 0.18 mm, README; tiny twin: the shortcut fitted to the 50 deg
+    # tilt, 0.21 mm, the unloaded model predicting it unfitted, 0.17 mm)
+    unload, shortcut = figures["unload"]["scans"], figures["shortcut"]["scans"]
+    fitted = [n for n, s in shortcut.items() if s["role"] == "calibration"]
+    assert fitted and all(n in unload for n in fitted), (fitted, list(unload))
 
-    assert fit_residual("shortcut") > fit_residual("unload")
+    def error(scan):
+        return scan["surface_error_mm"]["fiducial"]["mean"]["value"]
+
+    for name in fitted:
+        assert error(shortcut[name]) > error(unload[name]), name
