@@ -91,8 +91,8 @@ for name, e in doc["effects"].items():
 
 # %% [markdown]
 # ## 3. The gap shrinks
-# c1 with the named effect, its interval, and every scan's surface error before (the
-# calibration) and after — the held-out 25° scan included.
+# c1 with the named effect, its interval, and every scan's surface error before (c1
+# alone) and after — the held-out 25° scan included.
 
 # %%
 ci = doc["c1_ci95_pa"]

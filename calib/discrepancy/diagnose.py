@@ -34,7 +34,9 @@ Steps (the issue's; no files are written here, see :mod:`calib.workflows.diagnos
    ``unexplained``; ``not identifiable from these data: Z`` (two effects named apart:
    ``named: X + Y``).
 7. *The gap:* the final model on every scan, the held-out one included (it was never
-   fitted), against the calibration's saved states.
+   fitted), against c1 alone on the same mesh: the calibration's saved states, or the
+   null fit where the diagnosis runs on another mesh (the calibration's own errors are
+   then kept beside).
 """
 
 from __future__ import annotations
@@ -191,15 +193,19 @@ def _num(v):
 
 @dataclass(frozen=True)
 class ScanGap:
-    """A scan's errors before (the calibration) and after (the final model).
+    """A scan's errors before (c1 alone) and after (the final model), on one mesh.
 
     Attributes
     ----------
     name, role : str
         Role in the diagnosis: ``diagnosis`` (fitted) or ``holdout``.
     before, after : ScanMetrics
+        c1 alone (the calibration, or the null fit when the diagnosis runs on another
+        mesh) and the final model, both on the diagnosis mesh.
     residual_before_mm, residual_after_mm : ndarray
         Signed residuals of the diagnosis' points (offset included).
+    calibration : ScanMetrics or None
+        The calibration's own errors on its mesh, when that is not the diagnosis mesh.
     """
 
     name: str
@@ -208,12 +214,16 @@ class ScanGap:
     after: ScanMetrics | None
     residual_before_mm: np.ndarray
     residual_after_mm: np.ndarray | None
+    calibration: ScanMetrics | None = None
 
     def as_json(self, floor_mm: float) -> dict:
         """Surface errors (fiducial frame) before/after and the cut above the noise floor."""
         b = self.before.surface_error_mm["fiducial"]
         out = {"role": self.role, "surface_error_mm": {"before": b}, "floor_mm": floor_mm}
         out["nipple_error_mm"] = {"before": self.before.nipple_error_mm.get("fiducial")}
+        if self.calibration is not None:
+            out["surface_error_mm"]["calibration"] = self.calibration.surface_error_mm["fiducial"]
+            out["nipple_error_mm"]["calibration"] = self.calibration.nipple_error_mm.get("fiducial")
         if self.after is not None:
             a = self.after.surface_error_mm["fiducial"]
             out["surface_error_mm"]["after"] = a
@@ -562,7 +572,7 @@ def diagnose(
     final_screen = cur_scr if named else None
     verdict = _verdict(named, confounded, scr0, final_screen, o)
     say(f"verdict: {verdict}")
-    gaps, states = _gaps(prob, current, say)
+    gaps, states = _gaps(prob, null, current, say)
     intervals = _intervals(current, prob)
     return Diagnosis(
         verdict=verdict, named=tuple(named), confounded_with=tuple(confounded), problem=prob,
@@ -696,31 +706,52 @@ def _localise(prob: Problem, null: Refit, noise: NoiseFit) -> dict:
     return out
 
 
-def _gaps(prob: Problem, final: Refit, say) -> tuple[dict, dict]:
-    """Every scan at the final model (holdout included) against the calibration's states."""
+def _gaps(prob: Problem, null: Refit, final: Refit, say) -> tuple[dict, dict]:
+    """Every scan (holdout included) before and after the named effects, on one mesh.
+
+    Before is c1 alone, after the final model. On the calibration's own mesh c1 alone is
+    the calibration's saved states; where the diagnosis runs on another mesh
+    (:attr:`Problem.mesh_note`) it is the null fit solved there, so the change from
+    before to after is the named effects' and not the mesh's. The calibration's own
+    errors on its mesh are then kept beside (``ScanGap.calibration``).
+    """
     from ..model.residuals import SimulatedSurface, scan_residuals
 
     names = [*prob.scans, *([prob.holdout] if prob.holdout else [])]
     say(f"final model on {len(names)} scans (held out: {prob.holdout or 'none'})")
-    nz = {n: final.nuisance.get(n) for n in names}
-    states = prob.solve(final.theta, final.values, names, gradient=True,
-                        nuisance={k: v for k, v in nz.items() if v is not None})  # fmt: skip
+
+    def solve(fit: Refit) -> dict:
+        nz = {n: fit.nuisance.get(n) for n in names}
+        return prob.solve(fit.theta, fit.values, names, gradient=True,
+                          nuisance={k: v for k, v in nz.items() if v is not None})  # fmt: skip
+
+    states = solve(final)
     work = prob.work
-    # before: the calibration's saved states on its own mesh; after: the diagnosis mesh
-    # (the same one unless the calibration's reference is prestressed, Problem.mesh_note)
     cal_sim = prob.sim if prob.same_mesh else SimulatedSurface.of(work.mesh)
+    if prob.same_mesh:
+        null_states = None
+    else:
+        say("c1 alone on the diagnosis mesh (the gap's before)")
+        null_states = states if null is final else solve(null)
     out = {}
     for n in names:
         scan = prob.measurement(n)
         saved = work.states[n]
-        before = scan_metrics(scan, saved.positions_mm, cal_sim.faces, work.nipple_node,
-                              saved.tumour_mm)  # fmt: skip
-        pos = states[n].positions_mm
-        after = scan_metrics(scan, pos, prob.sim.faces, prob.nipple_node, None)
-        rb = scan_residuals("surface", scan, work.mesh, cal_sim, saved.positions_mm, None,
-                            surface_points_mm=prob.measured_points(n, None)).r  # fmt: skip
-        ra = prob.residuals(n, pos).r
-        out[n] = ScanGap(n, "holdout" if n == prob.holdout else "diagnosis", before, after, rb, ra)
+        calibration = scan_metrics(scan, saved.positions_mm, cal_sim.faces, work.nipple_node,
+                                   saved.tumour_mm)  # fmt: skip
+        after = scan_metrics(scan, states[n].positions_mm, prob.sim.faces, prob.nipple_node, None)
+        ra = prob.residuals(n, states[n].positions_mm).r
+        if null_states is None:
+            before = calibration
+            rb = scan_residuals("surface", scan, work.mesh, cal_sim, saved.positions_mm, None,
+                                surface_points_mm=prob.measured_points(n, None)).r  # fmt: skip
+        else:
+            pos = null_states[n].positions_mm
+            before = scan_metrics(scan, pos, prob.sim.faces, prob.nipple_node, None)
+            rb = prob.residuals(n, pos).r
+        role = "holdout" if n == prob.holdout else "diagnosis"
+        own = None if null_states is None else calibration
+        out[n] = ScanGap(n, role, before, after, rb, ra, calibration=own)
     return out, states
 
 

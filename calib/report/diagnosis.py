@@ -3,7 +3,7 @@
 Figures, returned to the caller (:mod:`calib.workflows.diagnose` saves them):
 
 - :func:`residual_maps_figure`: a scan's measured surface shaded by its distance to the
-  model before (the calibration) and after (the diagnosis' final model), front and side
+  model before (c1 alone) and after (the diagnosis' final model), front and side
   views in the phantom frame, one colour scale (cividis, mm) shared by every scan;
 - :func:`localisation_figure`: the significance map (local z-score of the smoothed
   residual under the noise model) of a scan, diverging colours, fixed scale -4..4;
@@ -88,7 +88,7 @@ def residual_maps_figure(name: str, role: str, scan, before_mm, after_mm, R, *, 
 
     v, faces, shade = _surface(scan, R)
     mapper = cm.ScalarMappable(norm=colors.Normalize(0.0, vmax), cmap=colormaps[ERROR_CMAP])
-    rows = [("before (calibration)", before_mm)]
+    rows = [("before (c1 alone)", before_mm)]
     if after_mm is not None:
         rows.append(("after (final model)", after_mm))
     fig = Figure(figsize=(10, 4.4 * len(rows)), layout="constrained")
@@ -140,7 +140,7 @@ def gap_figure(gap_json: dict, floor_mm: float):
     fig = Figure(figsize=(7, 3.8), layout="constrained")
     ax = fig.subplots()
     x = np.arange(len(names))
-    ax.bar(x - 0.2, before, 0.4, label="calibration (before)", color="0.6")
+    ax.bar(x - 0.2, before, 0.4, label="c1 alone (before)", color="0.6")
     bars = ax.bar(x + 0.2, after, 0.4, label="final model (after)", color="#3b6ea8")
     for k, n in enumerate(names):
         if gap_json[n]["role"] == "holdout":
@@ -208,6 +208,19 @@ def _summary(doc: dict) -> str:
     return "".join(lines)
 
 
+def _mesh_paragraph(doc: dict) -> str:
+    """Where the diagnosis ran on another mesh than the calibration: what "before" is."""
+    note = doc["calibration"].get("mesh_note")
+    own = [(n, g["surface_error_mm"]["calibration"]["mean"]) for n, g in doc["gap"].items()
+           if "calibration" in g["surface_error_mm"]]  # fmt: skip
+    if not (note and own):
+        return ""
+    errs = ", ".join(f"{html.escape(n)} {v:.3f} mm" for n, v in own)
+    return (f"<p>{html.escape(note)}: before is c1 alone on that mesh, so before and after "
+            f"differ by the named effects only. The calibration's own mean errors, on its "
+            f"mesh: {errs}.</p>")  # fmt: skip
+
+
 def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
     """The report page from ``diagnosis.json``'s document and the figures (relative paths)."""
     esc = html.escape
@@ -256,6 +269,7 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
         "<!doctype html><html><head><meta charset='utf-8'><title>Missing-effect diagnosis"
         f"</title><style>{style}</style></head><body><h1>Missing-effect diagnosis</h1>"
         f"{_summary(doc)}<h2>The gap, per scan (surface error, fiducial frame, mm)</h2>{gap}"
+        f"{_mesh_paragraph(doc)}"
         f"<h2>Screening (score tests, what c1 absorbs projected out, Holm)</h2>{effects}"
         f"<details><summary>every column</summary>{columns}</details>"
         f"<h2>Confirmation (full FE refits)</h2>{cands}"
@@ -285,4 +299,10 @@ def format_diagnosis(doc: dict) -> str:
                      f"{'' if a is None else f'{a:.3f}':>11s} "
                      f"{'' if cut is None else f'{100 * cut:.0f} %':>16s}")  # fmt: skip
     lines.append(f"noise floor (mean |e|) {doc['noise']['floor_mean_abs_mm']:.3f} mm")
+    own = {n: g["surface_error_mm"]["calibration"]["mean"] for n, g in doc["gap"].items()
+           if "calibration" in g["surface_error_mm"]}  # fmt: skip
+    note = doc["calibration"].get("mesh_note")
+    if own and note:
+        lines.append(f"{note}: before is c1 alone on that mesh; the calibration's own mean "
+                     "errors: " + ", ".join(f"{n} {v:.3f} mm" for n, v in own.items()))  # fmt: skip
     return "\n".join(lines)

@@ -9,6 +9,8 @@ errors. The whole workflow on digital twins: ``test_diagnose_twins.py`` (slow).
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from typer.testing import CliRunner
@@ -218,7 +220,6 @@ def test_a_mesh_without_a_straight_reference_is_replaced_and_the_note_says_why(m
     # quick homogeneous twin, seed 2, 14 mm: the calibration recovered a straight
     # stress-free reference, a cold recovery at its c1 in the diagnosis does not; the
     # diagnosis moves to the next size and says why (it raised a traceback before)
-    from types import SimpleNamespace
 
     import calib.model.reference as reference
     import fem
@@ -249,3 +250,76 @@ def test_a_mesh_without_a_straight_reference_is_replaced_and_the_note_says_why(m
         _straight_model(
             work, {"mesh_size_mm": 11.0, "mesh_retry_mm": [13.0]}, Model, own_size=False, why=why
         )
+
+
+def _gap_problem(same_mesh: bool):
+    """A stand-in Problem whose posture solve puts every node at (c1, c1, c1) mm."""
+    solved = []
+
+    def solve(theta, values, names, gradient, nuisance):
+        solved.append(round(float(np.exp(theta)), 6))
+        return {n: SimpleNamespace(positions_mm=np.full((2, 3), np.exp(theta))) for n in names}
+
+    work = SimpleNamespace(
+        states={n: SimpleNamespace(positions_mm=np.zeros((2, 3)), tumour_mm=None)
+                for n in ("a", "b", "h")},
+        mesh=SimpleNamespace(faces=None), nipple_node=0,
+    )  # fmt: skip
+    prob = SimpleNamespace(
+        scans=("a", "b"), holdout="h", solve=solve, work=work, same_mesh=same_mesh,
+        sim=SimpleNamespace(faces=None), nipple_node=0, measurement=lambda n: n,
+        residuals=lambda n, pos: SimpleNamespace(r=pos[:, 0]),
+        measured_points=lambda n, _: None,
+    )  # fmt: skip
+    return prob, solved
+
+
+def _fit(c1_pa: float):
+    return SimpleNamespace(theta=np.log(c1_pa), values=None, nuisance={})
+
+
+def test_the_gap_compares_the_named_effect_on_one_mesh(monkeypatch):
+    # The quick inclusions twin (seed 0) was diagnosed on 16 mm (its 14 mm calibration
+    # has a prestressed reference) and nothing was named, yet the gap grew from 0.186 to
+    # 0.224 mm on right lateral: before was the calibration on its own mesh. Before is
+    # c1 alone on the diagnosis mesh now; the calibration's own errors are kept beside.
+    import importlib
+
+    import calib.model.residuals as residuals
+
+    dg = importlib.import_module("calib.discrepancy.diagnose")
+
+    def metrics(scan, positions_mm, faces, nipple, tumour):
+        mean = float(positions_mm.mean())  # the stand-in's error: the solved c1 (exp ln c1)
+        return SimpleNamespace(surface_error_mm={"fiducial": {"mean": mean}},
+                               nipple_error_mm={"fiducial": mean})  # fmt: skip
+
+    monkeypatch.setattr(dg, "scan_metrics", metrics)
+    monkeypatch.setattr(residuals.SimulatedSurface, "of", staticmethod(lambda mesh: mesh))
+    monkeypatch.setattr(
+        residuals, "scan_residuals", lambda *a, **k: type("R", (), {"r": np.zeros(2)})
+    )
+    say = []
+    null, final = _fit(430.0), _fit(415.0)
+
+    prob, solved = _gap_problem(same_mesh=False)
+    gaps, _ = dg._gaps(prob, null, final, say.append)
+    assert solved == [415.0, 430.0]  # the final model, then c1 alone on this mesh
+    doc = gaps["h"].as_json(floor_mm=0.0)
+    assert gaps["h"].role == "holdout"
+    errors = {k: v["mean"] for k, v in doc["surface_error_mm"].items()}
+    assert errors == pytest.approx({"before": 430.0, "after": 415.0, "calibration": 0.0})
+    assert doc["cut_above_floor"] == pytest.approx(15.0 / 430.0)
+    assert any("c1 alone on the diagnosis mesh" in s for s in say)
+
+    prob, solved = _gap_problem(same_mesh=False)
+    gaps, _ = dg._gaps(prob, null, null, say.append)  # nothing named: before is after
+    assert solved == [430.0]
+    assert gaps["a"].as_json(0.0)["cut_above_floor"] == 0.0
+
+    prob, solved = _gap_problem(same_mesh=True)  # on its own mesh: before is the calibration
+    gaps, _ = dg._gaps(prob, null, final, say.append)
+    assert solved == [415.0]
+    doc = gaps["a"].as_json(floor_mm=0.0)
+    assert doc["surface_error_mm"]["before"] == {"mean": 0.0}
+    assert "calibration" not in doc["surface_error_mm"]
