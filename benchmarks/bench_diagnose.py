@@ -79,6 +79,7 @@ def _noise_check(twin: Path, work: Path) -> dict:
 
 
 def run_case(root: Path, name: str, specs: list[str], seed: int, hidden: str) -> dict:
+    import fem
     from calib.discrepancy import DiagnosisOptions
     from calib.fitting import CalibrationOptions
     from calib.model.effects import parse_effects
@@ -91,7 +92,11 @@ def run_case(root: Path, name: str, specs: list[str], seed: int, hidden: str) ->
     t0 = time.perf_counter()
     if not (twin / "truth" / "truth.json").is_file():
         eff = parse_effects(specs, default=PRESETS["quick"].effects)
-        synthesize(twin, preset="quick", seed=seed, effects=eff, overwrite=True)
+        try:
+            synthesize(twin, preset="quick", seed=seed, effects=eff, overwrite=True)
+        except fem.ConvergenceError as exc:  # the twin itself has no FE solution
+            return {"case": name, "specs": specs, "seed": seed, "hidden": hidden,
+                    "failed": f"synth: {exc}", "synth_s": time.perf_counter() - t0}  # fmt: skip
     t1 = time.perf_counter()
     if (work / "calibration.json").is_file():  # a calibration of this case: reused
         cal = json.loads((work / "calibration.json").read_text())
@@ -115,7 +120,6 @@ def run_case(root: Path, name: str, specs: list[str], seed: int, hidden: str) ->
         "verdict": doc["verdict"],
         "named": doc["named"],
         "confounded_with": doc["confounded_with"],
-        "right_name": (hidden in named) if hidden != "none" else not named,
         "false_naming": bool(named) and hidden not in named,
         "c1_true_pa": c1_true,
         "c1_calibrated_pa": cal["c1_pa"],
@@ -143,21 +147,55 @@ def run_case(root: Path, name: str, specs: list[str], seed: int, hidden: str) ->
     }
 
 
+def _expected(row: dict) -> str | None:
+    """The name a right diagnosis gives: the hidden effect where the diagnosis can name it.
+
+    None for a null set, for ``density`` (never identifiable under gravity alone) and for
+    a hidden effect the diagnosis reported not identifiable or unavailable (then the
+    right answer is that nothing is named).
+    """
+    hidden = row["hidden"]
+    if hidden in ("none", "density"):
+        return None
+    status = (row.get("effects") or {}).get(hidden, {}).get("status")
+    return hidden if status == "identifiable" else None
+
+
+def _right(row: dict) -> bool:
+    named = row["named"] + row["confounded_with"]
+    want = _expected(row)
+    return want in named if want is not None else not named
+
+
 def _table(rows: list[dict]) -> None:
-    print(f"{'case':16s} {'verdict':34s} {'right':>5s} {'c1 cal':>7s} {'c1 refit':>8s} "
-          f"{'err %':>6s} {'hold cut':>8s} {'diag s':>7s}")  # fmt: skip
+    failed = [r for r in rows if r.get("failed")]
+    rows = [r for r in rows if not r.get("failed")]
+    print(f"{'case':16s} {'verdict':34s} {'expect':>10s} {'right':>5s} {'c1 cal':>7s} "
+          f"{'c1 refit':>8s} {'err %':>6s} {'hold cut':>8s} {'diag s':>7s}")  # fmt: skip
     for r in rows:
         cut = r["holdout_cut_above_floor"]
-        print(f"{r['case']:16s} {r['verdict'][:34]:34s} {'yes' if r['right_name'] else 'NO':>5s} "
+        want = _expected(r) or "no name"
+        print(f"{r['case']:16s} {r['verdict'][:34]:34s} {want:>10s} "
+              f"{'yes' if _right(r) else 'NO':>5s} "
               f"{r['c1_calibrated_pa']:7.1f} {r['c1_refit_pa']:8.1f} "
               f"{100 * r['c1_error']:+6.1f} {'' if cut is None else f'{100 * cut:.0f} %':>8s} "
               f"{r['diagnose_s']:7.0f}")  # fmt: skip
-    eff = [r for r in rows if r["hidden"] not in ("none", "density")]
+    for r in failed:
+        print(f"{r['case']:16s} FAILED {r['failed'][:100]}")
+    eff = [r for r in rows if _expected(r) is not None]
+    apart = [r for r in rows if r["hidden"] != "none" and _expected(r) is None]
     null = [r for r in rows if r["hidden"] == "none"]
-    named_ok = [r for r in eff if r["right_name"]]
+    named_ok = [r for r in eff if _right(r)]
     print()
     if eff:
         print(f"right name: {len(named_ok)}/{len(eff)} effect sets (bar >= 90 %)")
+    if apart:
+        print(
+            f"hidden effects the diagnosis cannot name (density, not identifiable, "
+            f"unavailable): nothing named in {sum(_right(r) for r in apart)}/{len(apart)}"
+        )
+    if failed:
+        print(f"cases without a result (the twin or a step failed): {len(failed)}")
     if null:
         print(f"false namings on null sets: {sum(bool(r['named']) for r in null)}/{len(null)} "
               "(bar 0)")  # fmt: skip
@@ -203,6 +241,9 @@ def main() -> None:
             print(f"case {name}: synth -> calibrate -> diagnose", flush=True)
             row = run_case(args.out, name, specs, seed, hidden)
             path.write_text(json.dumps(row, indent=1))
+            if row.get("failed"):
+                print(f"  FAILED {row['failed']}", flush=True)
+                continue
             print(f"  {row['verdict']}; c1 {row['c1_refit_pa']:.1f} Pa; "
                   f"{row['diagnose_s']:.0f} s", flush=True)  # fmt: skip
     rows = [json.loads(p.read_text()) for p in sorted(store.glob("*.json"))]

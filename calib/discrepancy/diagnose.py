@@ -45,6 +45,7 @@ import logging
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
@@ -74,6 +75,8 @@ NO_SLIDING_REFIT = (
     "fem.unload's inverse Newton does not do with springs (it leaves them out of the "
     "residual), and the free plate's forward solve does not converge on calibration meshes"
 )
+#: Effects that are screened but cannot be refitted (so never named).
+SCREENED_ONLY = ("sliding",)
 FLOOR_LAG_MM = 20.0
 MAP_KERNEL_MM = 10.0  # the significance map's smoothing (a pad's print, a rim band)
 
@@ -326,7 +329,7 @@ class Diagnosis:
                     "estimate": _num(best.estimate) if rows and len(rows) == 1 else None,
                     "retained_fraction": _num(max(e.retained_fraction for e in rows)),
                 }
-                if name == "sliding":
+                if name in SCREENED_ONLY:
                     entry["note"] = NO_SLIDING_REFIT
                 if name == "density":
                     entry["note"] = (
@@ -521,17 +524,18 @@ def diagnose(
         sig = [s for s in _significant_effects(cur_scr) if s[0] not in named]
         if not sig:
             break
-        chosen = [s[0] for s in sig[: o.max_candidates]]
-        for s in sig[o.max_candidates :]:  # a confounded partner of a candidate joins it
-            if any(_cosine(cur_scr, s[0], c) >= o.confounded_above for c in chosen):
-                chosen.append(s[0])
+        chosen, screened_only = _candidates(sig, partial(_cosine, cur_scr), o)
+        row = {s[0]: s for s in sig}
+        for eff in screened_only:  # significant but only screened: recorded once
+            if not any(c.effect == eff for c in candidates):
+                say(f"  {eff} is significant but not refitted: {NO_SLIDING_REFIT}")
+                candidates.append(_not_refitted(eff, rnd, row[eff]))
+        if not chosen:
+            break
         say(f"round {rnd}: refitting {chosen} jointly with c1 (full FE)")
         trials = {}
         for eff in chosen:
             key = tuple(sorted([*named, eff]))
-            if eff == "sliding":
-                say(f"  sliding: {NO_SLIDING_REFIT}")
-                continue
             try:
                 trials[eff] = fits.get(key) or refit(
                     prob, key, screened=screened, theta0=current.theta,
@@ -543,13 +547,15 @@ def diagnose(
                 continue
             fits[key] = trials[eff]
             floor = min(floor, _noise_var(trials[eff].fields, prob.points))
-        row = {s[0]: s for s in sig}
         judged = [_judge(prob, eff, rnd, row[eff], current, trials[eff], floor, o)
                   for eff in chosen if eff in trials]  # fmt: skip
         judged += [_not_refitted(eff, rnd, row[eff]) for eff in chosen if eff not in trials]
         candidates.extend(judged)
         passing = sorted((c for c in judged if c.passes), key=lambda c: -c.explained)
         for c in judged:
+            if not np.isfinite(c.c1_pa):
+                say(f"  {c.effect}: not refitted ({c.reason})")
+                continue
             say(f"  {c.effect}: c1 = {c.c1_pa:.1f} Pa, explains {c.explained:.0%} above the "
                 f"floor, LOPO {'better' if c.lopo_improves else 'not better'}"
                 + ("" if c.passes else f"; not named ({c.reason})"))  # fmt: skip
@@ -583,10 +589,39 @@ def diagnose(
     )  # fmt: skip
 
 
+def _candidates(sig, cosine, o) -> tuple[list[str], list[str]]:
+    """The effects a round refits, and the significant ones it cannot refit.
+
+    The ``o.max_candidates`` strongest significant effects that can be refitted, plus any
+    significant effect whose signature is confounded with one of them; an effect that is
+    only screened (:data:`SCREENED_ONLY`) takes no candidate's place, so a significant
+    sliding plate does not keep the next effect from its refit.
+
+    Parameters
+    ----------
+    sig : list of (effect, abs score, Holm p)
+        Significant effects, strongest first (:func:`_significant_effects`).
+    cosine : callable
+        ``cosine(a, b)``: the largest |cos| between two effects' projected signatures.
+    o : DiagnosisOptions
+
+    Returns
+    -------
+    chosen, screened_only : list of str
+    """
+    screened_only = [s[0] for s in sig if s[0] in SCREENED_ONLY]
+    refittable = [s[0] for s in sig if s[0] not in SCREENED_ONLY]
+    chosen = refittable[: o.max_candidates]
+    for eff in refittable[o.max_candidates :]:  # a confounded partner of a candidate joins it
+        if any(cosine(eff, c) >= o.confounded_above for c in chosen):
+            chosen.append(eff)
+    return chosen, screened_only
+
+
 def _not_refitted(eff: str, rnd: int, sig_row) -> Candidate:
     """A significant effect that could not be refitted (so not named)."""
     _, stat, p_holm = sig_row
-    why = NO_SLIDING_REFIT if eff == "sliding" else "no FE solution at the refit's start"
+    why = NO_SLIDING_REFIT if eff in SCREENED_ONLY else "no FE solution at the refit's start"
     return Candidate(eff, rnd, True, float(p_holm), float(stat), None, None, False, {}, (),
                      False, float("nan"), False, float("nan"), float("nan"), why)  # fmt: skip
 

@@ -323,3 +323,23 @@ def test_the_gap_compares_the_named_effect_on_one_mesh(monkeypatch):
     doc = gaps["a"].as_json(floor_mm=0.0)
     assert doc["surface_error_mm"]["before"] == {"mean": 0.0}
     assert "calibration" not in doc["surface_error_mm"]
+
+
+def test_a_screened_only_effect_takes_no_candidate_place():
+    # Quick poisson twin, seed 0 (nu 0.45): registration, sliding and poisson screened
+    # significant in that order; sliding (never refitted) took the second of two places
+    # and poisson, the hidden effect (Holm p = 3e-4), was never refitted.
+    from calib.discrepancy.diagnose import _candidates
+
+    sig = [("registration", 6.1, 1e-4), ("sliding", 5.9, 2e-4), ("poisson", 5.6, 3e-4),
+           ("skin", 4.0, 0.01)]  # fmt: skip
+    o = DiagnosisOptions()
+
+    def cosine(a, b):
+        return 0.95 if {a, b} == {"poisson", "skin"} else 0.1
+
+    chosen, screened_only = _candidates(sig, cosine, o)
+    assert chosen == ["registration", "poisson", "skin"]  # skin: confounded with poisson
+    assert screened_only == ["sliding"]
+    chosen, _ = _candidates(sig, lambda a, b: 0.0, o)
+    assert chosen == ["registration", "poisson"]
