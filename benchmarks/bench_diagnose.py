@@ -161,6 +161,11 @@ def _expected(row: dict) -> str | None:
     return hidden if status == "identifiable" else None
 
 
+def _is_curve(row: dict) -> bool:
+    """A detection-curve case (``skin-rR-s0``), not an effect at its preset amplitude."""
+    return "-r" in row["case"]
+
+
 def _right(row: dict) -> bool:
     named = row["named"] + row["confounded_with"]
     want = _expected(row)
@@ -182,8 +187,9 @@ def _table(rows: list[dict]) -> None:
               f"{r['diagnose_s']:7.0f}")  # fmt: skip
     for r in failed:
         print(f"{r['case']:16s} FAILED {r['failed'][:100]}")
-    eff = [r for r in rows if _expected(r) is not None]
-    apart = [r for r in rows if r["hidden"] != "none" and _expected(r) is None]
+    preset = [r for r in rows if not _is_curve(r)]  # the bars: effects at preset amplitude
+    eff = [r for r in preset if _expected(r) is not None]
+    apart = [r for r in preset if r["hidden"] != "none" and _expected(r) is None]
     null = [r for r in rows if r["hidden"] == "none"]
     named_ok = [r for r in eff if _right(r)]
     print()
@@ -210,7 +216,7 @@ def _table(rows: list[dict]) -> None:
         t = [r["diagnose_s"] for r in rows]
         print(f"diagnose wall time: median {np.median(t):.0f} s, max {max(t):.0f} s "
               "(bar <= 900 s)")  # fmt: skip
-    curve = sorted((r for r in rows if "-r" in r["case"]), key=lambda r: float(r["specs"][0][9:]))
+    curve = sorted((r for r in rows if _is_curve(r)), key=lambda r: float(r["specs"][0][9:]))
     if curve:
         print("detection curve (skin 1.5 mm, seed 0): "
               + ", ".join(f"ratio {r['specs'][0][9:]}: {r['verdict']}" for r in curve))  # fmt: skip
