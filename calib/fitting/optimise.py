@@ -156,6 +156,22 @@ def _evaluate(cal: Calibrator, theta: float, progress) -> tuple[float, np.ndarra
 #: Armijo's sufficient-decrease constant and the line search's smallest step fraction.
 ARMIJO_C = 1e-4
 MIN_STEP_FRACTION = 1.0 / 64.0
+#: Safeguards of the interpolated backtracking step, as fractions of the rejected one.
+BACKTRACK_RANGE = (0.1, 0.5)
+
+
+def _backtrack(t: float, slope: float, rise: float) -> float:
+    """The next step fraction after a trial ``t`` that failed Armijo's condition.
+
+    The minimiser of the quadratic through ``J(0)``, the slope ``J'(0) = slope`` (per unit
+    step fraction, negative) and ``J(t) = J(0) + rise`` (Nocedal & Wright 2006, eq. 3.58),
+    kept within ``BACKTRACK_RANGE`` of ``t``: never longer than halving, and much shorter
+    when the trial overshot far (a Gauss-Newton curvature far below the true one, as for
+    the nipple objective, whose residual does not vanish at the optimum).
+    """
+    curvature = rise - slope * t  # > 0: the trial lies above the tangent line
+    t_q = -slope * t * t / (2.0 * curvature) if curvature > 0.0 else BACKTRACK_RANGE[1] * t
+    return float(np.clip(t_q, BACKTRACK_RANGE[0] * t, BACKTRACK_RANGE[1] * t))
 
 
 def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, OptimiserStatus]:
@@ -164,10 +180,15 @@ def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, Op
     The objective is a least-squares mean ``J = mean(r^2)/2`` of one parameter, with the
     exact gradient ``g = mean(r dr)`` and the Gauss-Newton curvature ``H = mean(dr^2)``
     from the direct sensitivities, so each step is ``-g/H`` (Nocedal & Wright 2006,
-    ch. 10.3), clipped to the bounds ``theta0 ± ln 4``. A trial point is accepted on
+    ch. 10.3), clipped to the bounds ``theta0 ± ln 4``; after the first step ``H`` is the
+    larger of that and the secant curvature of the last step, ``dg / d theta`` (ch. 6.1:
+    Gauss-Newton leaves out ``mean(r d2r)``, which is not small where the residual does
+    not vanish at the optimum, as for the nipple objective). A trial point is accepted on
     Armijo's sufficient decrease ``J(t) <= J + c t g p`` (ch. 3.1, c = 1e-4); a trial
-    whose FE solve fails, like one that does not decrease ``J``, halves the step — the
-    failure is recorded, never replaced by a made-up value. The iteration stops when
+    that does not decrease ``J`` enough shortens the step to the minimiser of the
+    interpolating quadratic (eq. 3.58, within 0.1-0.5 of it, :func:`_backtrack`), and a
+    trial whose FE solve fails halves it — the failure is recorded, never replaced by a
+    made-up value. The iteration stops when
     the Newton step falls below ``1e-3 / sqrt(H)`` (a change of J far below the noise:
     the criterion of the previous L-BFGS-B, ``gtol = 1e-3`` in the scaled variable), or
     ``max_iterations`` is reached, or the line search finds no acceptable point.
@@ -184,10 +205,12 @@ def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, Op
     theta = theta0
     J, g = _evaluate(cal, theta, progress)  # the first estimate: its failure is fatal
     g = float(g[0])
-    message, success, iterations = "iteration limit reached", False, 0
+    message, success, iterations, secant = "iteration limit reached", False, 0, 0.0
     while iterations < cal.options.max_iterations:
         iterations += 1
-        H = max(cal.gauss_newton_curvature, 1e-300)
+        # the Gauss-Newton curvature, or the secant one of the last step where larger (a
+        # residual that does not vanish at the optimum leaves Gauss-Newton too flat)
+        H = max(cal.gauss_newton_curvature, secant, 1e-300)
         tol = 1e-3 / np.sqrt(H)
         step = float(np.clip(theta - g / H, lo, hi)) - theta
         if abs(step) < tol:
@@ -205,10 +228,11 @@ def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, Op
             if Jt <= J + ARMIJO_C * t * step * g:
                 accepted = (trial, Jt, float(gt[0]))
                 break
-            t /= 2.0
+            t = _backtrack(t, step * g, Jt - J)
         if accepted is None:
             message = "the line search found no point that decreases J along the step"
             break
+        secant = (accepted[2] - g) / (accepted[0] - theta)  # dg/dtheta along the step
         theta, J, g = accepted
         if abs(t * step) < tol:
             message, success = "the step taken is below the tolerance", True

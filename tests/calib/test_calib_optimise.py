@@ -85,3 +85,26 @@ def test_no_solution_along_the_whole_step_stops_with_a_message():
     theta, _, status = optimise(cal, lambda msg: None, np.log(500.0))
     assert theta == pytest.approx(np.log(500.0)) and not status.success
     assert "line search" in status.message and status.failed_evaluations >= 6
+
+
+def test_an_overshooting_step_is_shortened_by_interpolation():
+    # A Gauss-Newton curvature 10x too small (the nipple objective's: its residual does
+    # not vanish at the optimum) overshoots the minimum 10-fold. Halving needs four
+    # trials per iteration and lands off the minimum every time (the tiny twin's nipple
+    # calibration: 35 evaluations); the quadratic through J(0), J'(0) and the rejected
+    # trial is exact on this least-squares objective, so one backtrack lands on it.
+    cal = Quadratic(np.log(460.0), curvature_scale=0.1)
+    theta, _, status = optimise(cal, lambda msg: None, np.log(600.0))
+    assert theta == pytest.approx(cal.minimiser(), abs=1e-9)
+    assert status.success and status.evaluations == 3
+
+
+def test_the_backtracking_step_is_safeguarded():
+    from calib.fitting.optimise import _backtrack
+
+    # the quadratic's minimiser, where it lies within [0.1, 0.5] of the rejected trial
+    assert _backtrack(1.0, -1.0, 0.0) == pytest.approx(0.5)  # rise 0: curvature 1
+    assert _backtrack(1.0, -1.0, 1.5) == pytest.approx(0.2)  # curvature 2.5
+    assert _backtrack(1.0, -1.0, 100.0) == pytest.approx(0.1)  # far overshoot: 0.1
+    assert _backtrack(0.5, -1.0, 0.1) == pytest.approx(0.25 / 1.2)  # curvature 0.6
+    assert _backtrack(1.0, -1.0, -0.9) == pytest.approx(0.5)  # never longer than halving
