@@ -208,12 +208,21 @@ def _summary(doc: dict) -> str:
     return "".join(lines)
 
 
-def _mesh_paragraph(doc: dict) -> str:
-    """Where the diagnosis ran on another mesh than the calibration: what "before" is."""
+def _calibration_errors(doc: dict) -> tuple[str | None, list[tuple[str, float]]]:
+    """The mesh note and the calibration's own mean error per scan, or ``(None, [])``.
+
+    Both exist only where the diagnosis ran on another mesh than the calibration.
+    """
     note = doc["calibration"].get("mesh_note")
     own = [(n, g["surface_error_mm"]["calibration"]["mean"]) for n, g in doc["gap"].items()
            if "calibration" in g["surface_error_mm"]]  # fmt: skip
-    if not (note and own):
+    return (note, own) if note and own else (None, [])
+
+
+def _mesh_paragraph(doc: dict) -> str:
+    """Where the diagnosis ran on another mesh than the calibration: what "before" is."""
+    note, own = _calibration_errors(doc)
+    if note is None:
         return ""
     errs = ", ".join(f"{html.escape(n)} {v:.3f} mm" for n, v in own)
     return (f"<p>{html.escape(note)}: before is c1 alone on that mesh, so before and after "
@@ -299,10 +308,8 @@ def format_diagnosis(doc: dict) -> str:
                      f"{'' if a is None else f'{a:.3f}':>11s} "
                      f"{'' if cut is None else f'{100 * cut:.0f} %':>16s}")  # fmt: skip
     lines.append(f"noise floor (mean |e|) {doc['noise']['floor_mean_abs_mm']:.3f} mm")
-    own = {n: g["surface_error_mm"]["calibration"]["mean"] for n, g in doc["gap"].items()
-           if "calibration" in g["surface_error_mm"]}  # fmt: skip
-    note = doc["calibration"].get("mesh_note")
-    if own and note:
+    note, own = _calibration_errors(doc)
+    if note is not None:
         lines.append(f"{note}: before is c1 alone on that mesh; the calibration's own mean "
-                     "errors: " + ", ".join(f"{n} {v:.3f} mm" for n, v in own.items()))  # fmt: skip
+                     "errors: " + ", ".join(f"{n} {v:.3f} mm" for n, v in own))  # fmt: skip
     return "\n".join(lines)
