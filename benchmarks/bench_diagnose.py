@@ -14,7 +14,9 @@ set) at seed 0. Every case writes ``OUT/cases/<case>.json`` when done and is ski
 that file exists, so the matrix can be run in pieces and resumed (``--only`` runs a
 subset by name); a case's twin and calibration are reused when present (delete
 ``OUT/<case>/work`` to calibrate again). The twins' truth (``OUT/<case>/twin/truth``)
-is read here only to score.
+is read here only to score. The table's held-out cut is that of the mean |residual| to
+the curved model surface (``diagnosis.json``'s ``gap.<scan>.cut_above_floor``), its
+``noise sd`` the measured noise model's (mm).
 
 What counts as the right name: the hidden effect named (alone or in a confounded
 pair). For ``density`` (never identifiable under gravity alone: the calibration absorbs
@@ -132,6 +134,7 @@ def run_case(root: Path, name: str, specs: list[str], seed: int, hidden: str) ->
         "holdout_after_mm": gap[hold]["surface_error_mm"].get("after", {}).get("mean")
         if hold
         else None,  # fmt: skip
+        "holdout_residual_mm": gap[hold].get("residual_mm") if hold else None,
         "floor_mm": doc["noise"]["floor_mean_abs_mm"],
         "noise_model": doc["noise"]["model"],
         "imaging_error": _noise_check(twin, work),
@@ -176,7 +179,8 @@ def _table(rows: list[dict]) -> None:
     failed = [r for r in rows if r.get("failed")]
     rows = [r for r in rows if not r.get("failed")]
     print(f"{'case':16s} {'verdict':34s} {'expect':>10s} {'right':>5s} {'c1 cal':>7s} "
-          f"{'c1 refit':>8s} {'err %':>6s} {'hold cut':>8s} {'diag s':>7s}")  # fmt: skip
+          f"{'c1 refit':>8s} {'err %':>6s} {'hold cut':>8s} {'noise sd':>8s} "
+          f"{'diag s':>7s}")  # fmt: skip
     for r in rows:
         cut = r["holdout_cut_above_floor"]
         want = _expected(r) or "no name"
@@ -184,7 +188,7 @@ def _table(rows: list[dict]) -> None:
               f"{'yes' if _right(r) else 'NO':>5s} "
               f"{r['c1_calibrated_pa']:7.1f} {r['c1_refit_pa']:8.1f} "
               f"{100 * r['c1_error']:+6.1f} {'' if cut is None else f'{100 * cut:.0f} %':>8s} "
-              f"{r['diagnose_s']:7.0f}")  # fmt: skip
+              f"{r['noise_model']['sigma_mm']:8.3f} {r['diagnose_s']:7.0f}")  # fmt: skip
     for r in failed:
         print(f"{r['case']:16s} FAILED {r['failed'][:100]}")
     preset = [r for r in rows if not _is_curve(r)]  # the bars: effects at preset amplitude
@@ -205,6 +209,8 @@ def _table(rows: list[dict]) -> None:
     if null:
         print(f"false namings on null sets: {sum(bool(r['named']) for r in null)}/{len(null)} "
               "(bar 0)")  # fmt: skip
+        quiet = sum(r["verdict"] == "no missing effect" for r in null)
+        print(f"null sets answering 'no missing effect': {quiet}/{len(null)}")
     if named_ok:
         within = sum(abs(r["c1_error"]) <= 0.05 for r in named_ok)
         print(f"c1 within 5 % of the truth after naming: {within}/{len(named_ok)}")

@@ -32,6 +32,14 @@ def diagnose(
     alpha: Annotated[
         float, typer.Option("--alpha", help="Family-wise error rate of the screening.")
     ] = 0.05,
+    rim_margin: Annotated[
+        float | None,
+        typer.Option(
+            "--rim-margin",
+            help="Measured points nearer than this to the back plate (mm) are not diagnosed "
+            "(the clamped junction; default 5; 0 keeps them).",
+        ),
+    ] = None,
 ) -> None:
     """Find where model and scans disagree, name the missing effect, refit, show the gap."""
     from ..discrepancy import DiagnosisError, DiagnosisOptions
@@ -41,7 +49,10 @@ def diagnose(
     try:
         names = None if effects is None else tuple(e.strip() for e in effects.split(",") if e)
         opts = DiagnosisOptions(
-            **({} if names is None else {"effects": names}), holdout=holdout, alpha=alpha
+            **({} if names is None else {"effects": names}),
+            holdout=holdout,
+            alpha=alpha,
+            **({} if rim_margin is None else {"rim_margin_mm": rim_margin}),
         )
         doc = run_diagnosis(work, opts, progress=lambda msg: typer.echo(f"  {msg}"))
     except (DiagnosisError, ValueError, OSError, RuntimeError, KeyError) as exc:

@@ -57,7 +57,7 @@ from ..model.effects import LIBRARY, SKIN_THICKNESS_MM
 from ..stats import NoiseFit, parameter_intervals
 from .fields import FieldSet
 from .localise import region_labels, significance_map
-from .problem import DiagnosisError, Problem, build_problem
+from .problem import RIM_MARGIN_MM, DiagnosisError, Problem, build_problem
 from .refit import Refit, lopo, refit
 from .screen import Screen, offset_columns, sample_of, screen, session_noise
 
@@ -99,6 +99,9 @@ class DiagnosisOptions:
     skin_thickness_mm : float
     max_points : int or None
         Measured points per scan (default: the calibration's).
+    rim_margin_mm : float
+        Points nearer the back plate are not diagnosed
+        (:data:`calib.discrepancy.problem.RIM_MARGIN_MM`); 0 keeps them.
     max_candidates : int
         Significant effects refitted by FE per forward-selection round.
     max_named : int
@@ -117,6 +120,7 @@ class DiagnosisOptions:
     misfit_alpha: float = 0.01
     skin_thickness_mm: float = SKIN_THICKNESS_MM
     max_points: int | None = None
+    rim_margin_mm: float = RIM_MARGIN_MM
     max_candidates: int = 2
     max_named: int = 2
     min_explained: float = 0.5
@@ -136,6 +140,8 @@ class DiagnosisOptions:
             raise DiagnosisError(f"alpha must lie in (0, 0.5), got {self.alpha}")
         if not 0.0 < self.min_explained <= 1.0:
             raise DiagnosisError(f"min_explained must lie in (0, 1], got {self.min_explained}")
+        if not 0.0 <= self.rim_margin_mm < 50.0:
+            raise DiagnosisError(f"rim_margin_mm must lie in [0, 50) mm, got {self.rim_margin_mm}")
         if self.max_candidates < 1 or self.max_named < 1:
             raise DiagnosisError("max_candidates and max_named must be >= 1")
 
@@ -206,7 +212,9 @@ class ScanGap:
         c1 alone (the calibration, or the null fit when the diagnosis runs on another
         mesh) and the final model, both on the diagnosis mesh.
     residual_before_mm, residual_after_mm : ndarray
-        Signed residuals of the diagnosis' points (offset included).
+        Signed residuals of the diagnosis' points (offset included) to the curved model
+        surface (:meth:`calib.model.residuals.SimulatedSurface.curved`), the quantity the
+        noise floor describes: the cut above the floor is measured on them.
     calibration : ScanMetrics or None
         The calibration's own errors on its mesh, when that is not the diagnosis mesh.
     """
@@ -220,22 +228,35 @@ class ScanGap:
     calibration: ScanMetrics | None = None
 
     def as_json(self, floor_mm: float) -> dict:
-        """Surface errors (fiducial frame) before/after and the cut above the noise floor."""
+        """Surface errors (fiducial frame) and residuals before/after, the cut above the floor.
+
+        ``surface_error_mm`` is the error of every scan vertex to the model's straight
+        facets (as ``validate`` reports it); ``residual_mm`` that of the diagnosis' points
+        to the curved surface, which the noise floor describes and the cut is measured on.
+        """
         b = self.before.surface_error_mm["fiducial"]
         out = {"role": self.role, "surface_error_mm": {"before": b}, "floor_mm": floor_mm}
         out["nipple_error_mm"] = {"before": self.before.nipple_error_mm.get("fiducial")}
         if self.calibration is not None:
             out["surface_error_mm"]["calibration"] = self.calibration.surface_error_mm["fiducial"]
             out["nipple_error_mm"]["calibration"] = self.calibration.nipple_error_mm.get("fiducial")
+        out["residual_mm"] = {"before": _abs_summary(self.residual_before_mm)}
         if self.after is not None:
             a = self.after.surface_error_mm["fiducial"]
             out["surface_error_mm"]["after"] = a
             out["nipple_error_mm"]["after"] = self.after.nipple_error_mm.get("fiducial")
-            above = b["mean"] - floor_mm
-            out["cut_above_floor"] = (
-                float((b["mean"] - a["mean"]) / above) if above > 1e-9 else None
-            )
+            out["residual_mm"]["after"] = _abs_summary(self.residual_after_mm)
+            rb, ra = out["residual_mm"]["before"]["mean"], out["residual_mm"]["after"]["mean"]
+            above = rb - floor_mm
+            out["cut_above_floor"] = float((rb - ra) / above) if above > 1e-9 else None
         return out
+
+
+def _abs_summary(r: np.ndarray) -> dict:
+    """Mean, rms and 95th percentile of ``|r|`` (mm) and the number of points."""
+    a = np.abs(np.asarray(r, float))
+    return {"mean": float(a.mean()), "rms": float(np.sqrt(np.mean(a**2))),
+            "p95": float(np.percentile(a, 95)), "n": int(a.size)}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -498,7 +519,7 @@ def diagnose(
     say = progress or log.info
     t0 = time.perf_counter()
     prob = build_problem(work, holdout=o.holdout, skin_thickness_mm=o.skin_thickness_mm,
-                         max_points=o.max_points)  # fmt: skip
+                         max_points=o.max_points, rim_margin_mm=o.rim_margin_mm)  # fmt: skip
     say(f"diagnosis scans {prob.scans}, held out: {prob.holdout or 'none'}; model mesh "
         f"{prob.mesh.n_tets} tets, {len(prob.inclusions)} inclusions tagged")  # fmt: skip
     if prob.mesh_note:

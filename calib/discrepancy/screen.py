@@ -10,7 +10,8 @@ effect's score test with what ``ln c1`` absorbs projected out, Holm across effec
 identifiability and confounding.
 
 Per-scan offsets: a constant normal offset of a scan's whole measured surface (a
-segmentation threshold, the model mesh's faceting: about +0.1 mm on the twins) is no
+segmentation threshold; the model mesh's faceting, +0.1 mm on the twins' straight facets,
+is removed by the curved surface of :mod:`calib.discrepancy.problem`) is no
 mechanical effect; one indicator column per scan joins what is projected out, so every
 test asks for structure beyond ``ln c1``, the fitted effects and these offsets.
 

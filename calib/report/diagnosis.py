@@ -130,13 +130,22 @@ def localisation_figure(scan_map, R):
     return fig
 
 
+def _gap_means(g: dict) -> tuple[float, float]:
+    """Mean |residual| before and after (curved surface; the floor's quantity), mm.
+
+    A ``diagnosis.json`` of an earlier version has no ``residual_mm``: its surface errors.
+    """
+    m = g.get("residual_mm") or g["surface_error_mm"]
+    return m["before"]["mean"], (m.get("after") or {}).get("mean", np.nan)
+
+
 def gap_figure(gap_json: dict, floor_mm: float):
     """Mean surface error of every scan before and after; the held-out scan hatched."""
     from matplotlib.figure import Figure
 
     names = list(gap_json)
-    before = [gap_json[n]["surface_error_mm"]["before"]["mean"] for n in names]
-    after = [gap_json[n]["surface_error_mm"].get("after", {}).get("mean", np.nan) for n in names]
+    before = [_gap_means(gap_json[n])[0] for n in names]
+    after = [_gap_means(gap_json[n])[1] for n in names]
     fig = Figure(figsize=(7, 3.8), layout="constrained")
     ax = fig.subplots()
     x = np.arange(len(names))
@@ -148,7 +157,7 @@ def gap_figure(gap_json: dict, floor_mm: float):
             bars[k].set_edgecolor("white")
     ax.axhline(floor_mm, color="k", ls="--", lw=1, label="noise floor (mean |e|)")
     ax.set_xticks(x, [f"{n}\n({gap_json[n]['role']})" for n in names])
-    ax.set_ylabel("mean surface error (mm, fiducial frame)")
+    ax.set_ylabel("mean |residual| (mm, curved model surface)")
     ax.legend(fontsize=8)
     ax.set_title("the gap before and after adding the named effect")
     return fig
@@ -236,10 +245,11 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
     gap_rows = []
     for name, g in doc["gap"].items():
         b, a = g["surface_error_mm"]["before"], g["surface_error_mm"].get("after", {})
+        rb, ra = _gap_means(g)
         gap_rows.append([name, g["role"], b["mean"], a.get("mean"), b["p95"], a.get("p95"),
-                         g.get("cut_above_floor")])  # fmt: skip
+                         rb, ra, g.get("cut_above_floor")])  # fmt: skip
     gap = _table(["scan", "role", "mean before", "mean after", "p95 before", "p95 after",
-                  "cut above floor"], gap_rows)  # fmt: skip
+                  "mean |residual| before", "after", "cut above floor"], gap_rows)  # fmt: skip
     eff_rows = [[k, v.get("status"), v.get("statistic"), v.get("p_value"), v.get("p_holm"),
                  v.get("significant"), v.get("retained_fraction"), v.get("reason") or
                  v.get("note") or ""] for k, v in doc["effects"].items()]  # fmt: skip
@@ -277,7 +287,11 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
     return (
         "<!doctype html><html><head><meta charset='utf-8'><title>Missing-effect diagnosis"
         f"</title><style>{style}</style></head><body><h1>Missing-effect diagnosis</h1>"
-        f"{_summary(doc)}<h2>The gap, per scan (surface error, fiducial frame, mm)</h2>{gap}"
+        f"{_summary(doc)}<h2>The gap, per scan (mm)</h2>{gap}"
+        "<p>Mean and p95: the surface error of every scan vertex to the model's straight "
+        "facets (fiducial frame, as <code>validate</code> reports it). Mean |residual|: the "
+        "diagnosis' points to the curved model surface (each facet carries its gap to the "
+        "reference scan's surface), the quantity of the noise floor and of the cut.</p>"
         f"{_mesh_paragraph(doc)}"
         f"<h2>Screening (score tests, what c1 absorbs projected out, Holm)</h2>{effects}"
         f"<details><summary>every column</summary>{columns}</details>"
@@ -299,13 +313,15 @@ def format_diagnosis(doc: dict) -> str:
             lines.append(f"{name} = {iv['value']:.4g} (95 % {iv['ci95'][0]:.4g} - "
                          f"{iv['ci95'][1]:.4g})")  # fmt: skip
     lines.append(f"{'scan':15s} {'role':10s} {'mean before':>12s} {'mean after':>11s} "
-                 f"{'cut above floor':>16s}")  # fmt: skip
+                 f"{'|residual| before':>18s} {'after':>6s} {'cut above floor':>16s}")  # fmt: skip
     for name, g in doc["gap"].items():
         b = g["surface_error_mm"]["before"]["mean"]
         a = g["surface_error_mm"].get("after", {}).get("mean")
+        rb, ra = _gap_means(g)
         cut = g.get("cut_above_floor")
         lines.append(f"{name:15s} {g['role']:10s} {b:12.3f} "
-                     f"{'' if a is None else f'{a:.3f}':>11s} "
+                     f"{'' if a is None else f'{a:.3f}':>11s} {rb:18.3f} "
+                     f"{'' if not np.isfinite(ra) else f'{ra:.3f}':>6s} "
                      f"{'' if cut is None else f'{100 * cut:.0f} %':>16s}")  # fmt: skip
     lines.append(f"noise floor (mean |e|) {doc['noise']['floor_mean_abs_mm']:.3f} mm")
     note, own = _calibration_errors(doc)

@@ -309,7 +309,11 @@ def test_the_gap_compares_the_named_effect_on_one_mesh(monkeypatch):
     assert gaps["h"].role == "holdout"
     errors = {k: v["mean"] for k, v in doc["surface_error_mm"].items()}
     assert errors == pytest.approx({"before": 430.0, "after": 415.0, "calibration": 0.0})
+    # the cut is measured on the residuals to the curved surface (the floor's quantity)
+    assert doc["residual_mm"]["before"]["mean"] == pytest.approx(430.0)
+    assert doc["residual_mm"]["after"]["rms"] == pytest.approx(415.0)
     assert doc["cut_above_floor"] == pytest.approx(15.0 / 430.0)
+    assert gaps["h"].as_json(floor_mm=400.0)["cut_above_floor"] == pytest.approx(15.0 / 30.0)
     assert any("c1 alone on the diagnosis mesh" in s for s in say)
 
     prob, solved = _gap_problem(same_mesh=False)
@@ -343,3 +347,64 @@ def test_a_screened_only_effect_takes_no_candidate_place():
     assert screened_only == ["sliding"]
     chosen, _ = _candidates(sig, lambda a, b: 0.0, o)
     assert chosen == ["registration", "poisson"]
+
+
+def _sphere(radius_mm: float, resolution: int):
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh.create_sphere(radius=radius_mm, resolution=resolution)
+    return np.asarray(m.vertices, float), np.asarray(m.triangles, np.int64)
+
+
+def test_the_curved_surface_carries_the_chord_gap_with_the_material():
+    # Closed form: a coarse sphere's facets lie inside the sphere by up to the sagitta;
+    # points of the true sphere moved rigidly with the coarse one are at zero distance
+    # from the curved surface (the gap is carried with the material), not from the facets.
+    from scipy.spatial.transform import Rotation
+
+    from calib.model.residuals import SimulatedSurface, _surface
+
+    R = 50.0
+    coarse, faces = _sphere(R, 20)  # edges up to ~ 16 mm, as a quick model mesh
+    fine, fine_faces = _sphere(R, 200)  # edges up to ~ 1.6 mm
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(500, 3))
+    on_sphere = R * d / np.linalg.norm(d, axis=1, keepdims=True)
+    rot = Rotation.from_rotvec([0.3, -0.2, 0.5])
+    move = np.array([10.0, -4.0, 7.0])
+    pos, points = rot.apply(coarse) + move, rot.apply(on_sphere) + move
+
+    straight = SimulatedSurface(faces)
+    curved = straight.curved(coarse, fine, fine_faces)
+    raw = _surface(None, straight, pos, None, points).r
+    r = _surface(None, curved, pos, None, points).r
+    assert raw.mean() > 0.1  # the facets lie inside: positive distances of the true points
+    # Tolerance: the fine sphere's own sagitta h^2 / (8 R), plus the first-order
+    # correction's neglect: the gap is measured along the reference facet's normal, the
+    # sphere's normal is tilted from it by up to theta ~ h / R, so gap * theta^2 / 2.
+    h, h_fine = 2 * np.pi * R / 20, 2 * np.pi * R / 200
+    tol = h_fine**2 / (8 * R) + raw.max() * (h / R) ** 2 / 2
+    assert np.abs(r).max() < tol < 0.2 * raw.mean()
+    # the derivative is that of the straight facet (the gap is fixed to the material)
+    dpos = np.tile([0.0, 0.0, 1.0], (len(pos), 1))
+    assert np.allclose(_surface(None, curved, pos, dpos, points).dr,
+                       _surface(None, straight, pos, dpos, points).dr)  # fmt: skip
+
+
+def test_points_at_the_clamped_rim_are_left_out():
+    from calib.discrepancy.problem import _off_the_rim
+
+    z = np.linspace(0.0, 40.0, 81)  # heights above the back plate, mm
+    pts = np.column_stack([np.zeros_like(z), np.ones_like(z), z])
+    scan = SimpleNamespace(
+        name="tilt_50", back_point_mm=np.array([3.0, -2.0, 0.0]),
+        back_normal=np.array([0.0, 0.0, -1.0]),  # the side the normal points to is no matter
+        surface_points=lambda max_points, seed: pts,
+    )  # fmt: skip
+    kept = _off_the_rim(scan, 100, 0, 5.0)
+    assert np.array_equal(kept, pts[z >= 5.0])
+    assert np.array_equal(_off_the_rim(scan, 100, 0, 0.0), pts)
+    with pytest.raises(DiagnosisError, match=r"tilt_50: only 21 of 81 .* rim margin \(30 mm\)"):
+        _off_the_rim(scan, 100, 0, 30.0)
+    with pytest.raises(DiagnosisError, match="rim_margin_mm"):
+        DiagnosisOptions(rim_margin_mm=-1.0)
