@@ -366,6 +366,13 @@ class Effect:
         False where the surface data cannot separate it from c1 in principle.
     implementation : str
         Where the effect lives in the FE model.
+    direction : {-1, 0, 1}
+        The sign a physical departure from neutral can take in the screened column: +1
+        where neutral is the lower end of the range (mooney's c2 >= 0; the sliding
+        probe's amplitude: a plate is never held tighter than clamped), -1 where it is
+        the upper end (poisson: the model is nearly incompressible, 0.499 against
+        0.4999), 0 both. The screening tests one-sided effects one-sided
+        (:func:`calib.stats.screen_effects`).
     """
 
     name: str
@@ -379,6 +386,7 @@ class Effect:
     per_scan: int = 0
     identifiable: bool = True
     implementation: str = ""
+    direction: Literal[-1, 0, 1] = 0
 
     def set(self, values: EffectValues, p: float) -> EffectValues:
         """``values`` with this effect's parameter at ``p`` (global effects only)."""
@@ -412,6 +420,7 @@ class Effect:
             "per_scan": self.per_scan,
             "identifiable": self.identifiable,
             "implementation": self.implementation,
+            "alternative": {0: "two-sided", 1: "greater", -1: "less"}[self.direction],
         }
 
 
@@ -458,6 +467,7 @@ LIBRARY: dict[str, Effect] = {
             (-math.inf, math.inf),
             -math.inf,
             implementation="fem.Sliding(hold='rim', tangent_stiffness_pa_per_mm=k)",
+            direction=1,
         ),
         Effect(
             "inclusions",
@@ -480,6 +490,7 @@ LIBRARY: dict[str, Effect] = {
             (0.0, 4.0),
             0.5,
             implementation="fem.MooneyRivlin(c1, c2) in every region",
+            direction=1,
         ),
         Effect(
             "poisson",
@@ -491,6 +502,7 @@ LIBRARY: dict[str, Effect] = {
             (0.3, 0.4999),
             0.45,
             implementation="bulk modulus of every region from nu",
+            direction=-1,
         ),
         Effect(
             "density",

@@ -25,7 +25,12 @@ sensitivity field ``s_k = dr / d beta_k`` the score at the fitted parameters is
 normalised by the series variance of :mod:`calib.stats.intervals` computed on the
 augmented design ``[J, s_k]``, so a smooth effect is not judged against a noise level
 that the noise model extrapolates; the p-value is the exact tail of the ratio under the
-model (Imhof). Holm (1979) controls the family-wise error across effects. The
+model (Imhof). An effect whose neutral value is an end of its physical range (a
+Mooney c2 cannot be negative, a plate cannot be held tighter than clamped) is tested
+against its one-sided alternative (Silvapulle & Silvapulle 1995, a score test against
+one-sided alternatives): the ratio's null distribution is symmetric, so the one-sided
+p-value is half the two-sided one when the estimate points the physical way and one
+minus that half when it does not. Holm (1979) controls the family-wise error across effects. The
 projection also tells up front what the data cannot separate: in the metric of the noise
 model (whitened), the fraction of ``s_k`` that survives projection off ``J``
 (``retained_fraction``; below ``min_retained`` the effect is "not identifiable from
@@ -260,7 +265,8 @@ class EffectScore:
     statistic : float
         ``beta_k / se_k``: the score, normalised by its series standard error.
     p_value : float
-        Two-sided, under the noise model (Imhof), largest over plausible models.
+        Under the noise model (Imhof), largest over plausible models; two-sided or
+        against the one-sided alternative (``alternative``).
     p_holm : float
         Holm-adjusted across the identifiable effects (nan if not identifiable).
     significant : bool
@@ -278,6 +284,8 @@ class EffectScore:
     identifiable : bool
     dof : float
     n_modes : int
+    alternative : {"two-sided", "greater", "less"}
+        The alternative tested (``greater``: only estimates above neutral are physical).
     """
 
     name: str
@@ -293,6 +301,28 @@ class EffectScore:
     identifiable: bool
     dof: float
     n_modes: int
+    alternative: Literal["two-sided", "greater", "less"] = "two-sided"
+
+
+#: The alternative of each direction of :func:`screen_effects`.
+ALTERNATIVES = {0: "two-sided", 1: "greater", -1: "less"}
+
+
+def one_sided(p_two_sided: float, t: float, direction: int) -> float:
+    """The p-value against a one-sided alternative from a symmetric statistic's two-sided one.
+
+    Parameters
+    ----------
+    p_two_sided : float
+    t : float
+        The statistic (its sign is the estimate's).
+    direction : {-1, 0, 1}
+        The physical sign of a departure; 0 returns ``p_two_sided``.
+    """
+    if direction == 0:
+        return p_two_sided
+    half = 0.5 * p_two_sided
+    return half if np.sign(t) == direction else 1.0 - half
 
 
 @dataclass(frozen=True)
@@ -436,6 +466,7 @@ def screen_effects(
     min_retained: float = 0.05,
     confounded_above: float = 0.9,
     alternatives: tuple[NoiseArg, ...] = (),
+    directions: Sequence[int] | None = None,
 ) -> EffectScreening:
     """Score test of each candidate effect, Holm-corrected, with identifiability.
 
@@ -465,6 +496,10 @@ def screen_effects(
         ``|cosine|`` from which two identifiable effects are reported as confounded.
     alternatives : tuple
         Other plausible noise models (the largest p-value is kept).
+    directions : sequence of {-1, 0, 1}, optional
+        Per effect, the sign a physical departure from neutral can take: +1 (neutral is
+        the lower end of the range), -1 (the upper end), 0 (both; the default for all).
+        A one-sided effect is tested against that alternative (module docstring).
 
     Returns
     -------
@@ -480,9 +515,11 @@ def screen_effects(
         raise ScreeningError(f"need {S.shape[1]} distinct effect names, got {names}")
     if not 0.0 < alpha < 1.0:
         raise ScreeningError(f"alpha must lie in (0, 1), got {alpha}")
+    dirs = [0] * len(names) if directions is None else [int(d) for d in directions]
+    if len(dirs) != len(names) or not set(dirs) <= {-1, 0, 1}:
+        raise ScreeningError(f"need one direction in (-1, 0, 1) per effect, got {directions}")
     retained, cosine, metric = signature_geometry(sample, J, S, noise)
     ident = retained >= min_retained
-    z = float(stats.norm.ppf(1.0 - 0.5 * alpha) + stats.norm.ppf(0.8))
     designs = {}
     last = np.eye(J.shape[1] + 1)[-1]
     for k in np.flatnonzero(ident):
@@ -509,6 +546,7 @@ def screen_effects(
             else:
                 scale = float(np.sqrt(st.omega[0, 0] / np.sum(st.weights * np.diag(st.omega)[1:])))
                 p = float(2.0 * stats.t.sf(abs(t) / scale, st.dof))
+            p = one_sided(p, t, dirs[k])
             if best is None or p > best[0]:
                 best = (p, t, st)
         rows.append((est, *best))
@@ -524,10 +562,12 @@ def screen_effects(
                                        float(retained[k]), False, float("nan"), 0))  # fmt: skip
             continue
         est, p, t, st = rows[k]
+        tail = alpha if dirs[k] else 0.5 * alpha
+        z = float(stats.norm.ppf(1.0 - tail) + stats.norm.ppf(0.8))
         effects.append(EffectScore(name, float(t), float(p), float(adj[k]), bool(adj[k] < alpha),
                                    est, st.standard_error, st.plugin_standard_error,
                                    z * st.plugin_standard_error, float(retained[k]), True,
-                                   st.dof, st.n_modes))  # fmt: skip
+                                   st.dof, st.n_modes, ALTERNATIVES[dirs[k]]))  # fmt: skip
     cos = np.where(np.outer(ident, ident), cosine, np.nan)
     pairs = tuple(
         (names[i], names[j], float(cos[i, j]))

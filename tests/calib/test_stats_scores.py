@@ -131,18 +131,46 @@ def test_screening_false_positive_rate_on_correlated_null_residuals(setup):
     J = sag_sensitivity(sample)
     sampler = NoiseSampler.of(sample, NoiseModel("exponential", 0.2, 0.0, 8.0))
     S = _effects(sample, J)
+    # 'p2' and 'tilt' are tested one-sided (up, down), 'bump' two-sided; the two-sided p of
+    # a one-sided column is 2 min(p, 1 - p): both are held to the same bound.
     rng = np.random.default_rng(3)
     p, fw = [], []
     for _ in range(150):
         r = _residual(J, sampler.draw(rng)[:, 0])
         fit = estimate_noise(sample, r)
         res = screen_effects(r, J, S, ["p2", "tilt", "bump"], sample, fit.best,
-                             alternatives=fit.plausible[1:], quantile="satterthwaite")  # fmt: skip
+                             alternatives=fit.plausible[1:], quantile="satterthwaite",
+                             directions=[1, -1, 0])  # fmt: skip
         p.append([e.p_value for e in res.effects])
         fw.append(any(e.significant for e in res.effects))
-    rates = np.mean(np.array(p) < 0.05, axis=0)
-    assert np.all(rates <= 0.05 + 3 * 0.0178), rates
+    p = np.array(p)
+    two = np.column_stack([2 * np.minimum(p[:, :2], 1 - p[:, :2]), p[:, 2]])
+    for q in (p, two):
+        rates = np.mean(q < 0.05, axis=0)
+        assert np.all(rates <= 0.05 + 3 * 0.0178), rates
     assert np.mean(fw) <= 0.05 + 3 * 0.0178
+    assert [e.alternative for e in res.effects] == ["greater", "less", "two-sided"]
+
+
+def test_a_one_sided_effect_is_tested_against_its_physical_direction(setup):
+    # 'tilt' planted upwards: significant when up is physical, p near 1 when only down is,
+    # and the one-sided p is half the two-sided one (the ratio's null law is symmetric).
+    from calib.stats.scores import one_sided
+
+    sample, J, truth, sampler = setup
+    S = _effects(sample, J)
+    r = _residual(J, sampler.draw(np.random.default_rng(4))[:, 0] + 0.15 * S[:, 1])
+    kw = {"sample": sample, "noise": truth}
+    both = screen_effects(r, J, S, ["p2", "tilt", "bump"], **kw).effects[1]
+    up = screen_effects(r, J, S, ["p2", "tilt", "bump"], directions=[0, 1, 0], **kw).effects[1]
+    down = screen_effects(r, J, S, ["p2", "tilt", "bump"], directions=[0, -1, 0], **kw).effects[1]
+    assert up.significant and not down.significant
+    assert up.p_value == pytest.approx(both.p_value / 2)
+    assert down.p_value == pytest.approx(1 - both.p_value / 2)
+    assert up.detectable < both.detectable  # one tail: the 80 % power size is smaller
+    assert one_sided(0.2, -1.0, 0) == 0.2 and one_sided(0.2, -1.0, -1) == pytest.approx(0.1)
+    with pytest.raises(ScreeningError, match="direction"):
+        screen_effects(r, J, S, ["p2", "tilt", "bump"], directions=[0, 2, 0], **kw)
 
 
 def test_screening_names_a_planted_effect(setup):
