@@ -91,16 +91,23 @@ for name, e in doc["effects"].items():
 
 # %% [markdown]
 # ## 3. The gap shrinks
-# c1 with the named effect, its interval, and every scan's surface error before (c1
-# alone) and after — the held-out 25° scan included.
+# c1 with the named effect, its interval, and every scan's error before (c1 alone) and
+# after — the held-out 25° scan included: the surface error to the model's straight
+# facets (what `validate` reports) and the mean |residual| to the curved model surface
+# (each facet carries its gap to the reference scan), which the noise floor describes.
 
 # %%
 ci = doc["c1_ci95_pa"]
 print(f"c1: {doc['calibration']['c1_pa']:.1f} Pa -> {doc['c1_pa']:.1f} Pa "
       f"(95 % {ci[0]:.1f}-{ci[1]:.1f}), truth {truth['material']['c1_pa']} Pa")  # fmt: skip
 for name, g in doc["gap"].items():
-    e = g["surface_error_mm"]
-    print(f"{name:14s} {g['role']:9s} {e['before']['mean']:.3f} -> {e['after']['mean']:.3f} mm")
+    e, r = g["surface_error_mm"], g["residual_mm"]
+    print(
+        f"{name:14s} {g['role']:9s} surface {e['before']['mean']:.3f} -> "
+        f"{e['after']['mean']:.3f} mm, |residual| {r['before']['mean']:.3f} -> "
+        f"{r['after']['mean']:.3f} mm"
+    )
+print(f"noise floor (mean |e|) {doc['noise']['floor_mean_abs_mm']:.3f} mm")
 display(Image(out / "skin-work" / "diagnosis" / "gap.png"))
 display(Image(out / "skin-work" / "diagnosis" / "right_lateral_residual_maps.png"))
 
