@@ -255,8 +255,8 @@ class ScanGap:
 def _abs_summary(r: np.ndarray) -> dict:
     """Mean, rms and 95th percentile of ``|r|`` (mm) and the number of points."""
     a = np.abs(np.asarray(r, float))
-    return {"mean": float(a.mean()), "rms": float(np.sqrt(np.mean(a**2))),
-            "p95": float(np.percentile(a, 95)), "n": int(a.size)}  # fmt: skip
+    rms = float(np.sqrt(np.mean(a**2)))
+    return {"mean": float(a.mean()), "rms": rms, "p95": float(np.percentile(a, 95)), "n": a.size}
 
 
 @dataclass(frozen=True)

@@ -36,8 +36,13 @@ from ..model.forward import ForwardModel, ScanState
 from ..model.residuals import Residuals, SimulatedSurface, scan_residuals
 
 __all__ = [
-    "RIM_MARGIN_MM", "DiagnosisError", "Nuisance", "Problem", "build_problem", "rotate_gravity",
-]  # fmt: skip
+    "RIM_MARGIN_MM",
+    "DiagnosisError",
+    "Nuisance",
+    "Problem",
+    "build_problem",
+    "rotate_gravity",
+]
 
 #: Measured points this near the back plate are not diagnosed (mm). There the surface
 #: meets the clamped plate: the scan's surface extraction blurs the junction over a few
