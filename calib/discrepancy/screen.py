@@ -26,7 +26,8 @@ The tests stay ratio statistics (band F, series variances): the model supplies s
 the data the scale.
 
 One-sided effects (:attr:`calib.model.effects.Effect.direction`: mooney, poisson, the
-sliding probe) are tested against their physical alternative only: on the quick null
+sliding probe) are tested against their physical alternative only (a column of an effect
+outside the library has no physical range here and is tested two-sided): on the quick null
 twin the sliding probe screened significant (t = -4.0) for a plate held *tighter* than
 clamped, the model mesh's error at the clamped edge.
 
@@ -143,7 +144,8 @@ def screen(
     if not names:
         return Screen(sample, fit, misfit, None, ())
     S = -fields.matrix(names)  # the prediction's derivative: estimates are parameter steps
-    directions = [LIBRARY[n.split("[", 1)[0]].direction for n in names]
+    effect = {c.name: c.effect for c in fields.columns}
+    directions = [LIBRARY[effect[n]].direction if effect[n] in LIBRARY else 0 for n in names]
     res = _screen_effects(r, J, S, names, sample, fit.best, alpha=alpha,
                           confounded_above=confounded_above, alternatives=alt,
                           directions=directions)  # fmt: skip
