@@ -9,37 +9,18 @@ checks, in the style of scikit-fem's ``test_examples.py``.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
-
-EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 
 pytest.importorskip("nbclient")
 pytest.importorskip("jupytext")
 
 
-def _execute(name: str, out: Path, monkeypatch) -> None:
-    import jupytext
-    import nbclient
-
-    monkeypatch.setenv("PHANTOM_CALIB_SIZE", "tiny")
-    monkeypatch.setenv("PHANTOM_CALIB_OUT", str(out))
-    nb = jupytext.read(EXAMPLES / name)
-    client = nbclient.NotebookClient(
-        nb, timeout=1800, kernel_name="python3", resources={"metadata": {"path": str(EXAMPLES)}}
-    )
-    client.execute()
-
-
-@pytest.fixture(scope="module")
-def notebook_out(tmp_path_factory):
-    return tmp_path_factory.mktemp("notebooks")
-
-
-def test_01_twin_to_c1_recovers_the_truth(notebook_out, monkeypatch):
-    _execute("01_twin_to_c1.py", notebook_out, monkeypatch)
-    s = json.loads((notebook_out / "01_summary.json").read_text())
+def test_01_twin_to_c1_recovers_the_truth(tiny_chain_notebooks):
+    # executed once per session (tests/conftest.py): the validation suite's tiny case
+    # reads the same run
+    tiny_chain_notebooks.require("01_twin_to_c1.py")
+    s = json.loads((tiny_chain_notebooks.out / "01_summary.json").read_text())
     # the tiny twin's bar (tests/validation/test_chain.py, C1_BAR): c1 within 5 % of the
     # truth (seed 0: +3.2 %, a bias of its 2 mm voxels that the interval does not hold;
     # the 3 % bar and the truth inside the interval are checked on the quick twin)
@@ -48,11 +29,9 @@ def test_01_twin_to_c1_recovers_the_truth(notebook_out, monkeypatch):
     assert lo < s["c1_pa"] < hi
 
 
-def test_02_validation_reports_every_validation_scan(notebook_out, monkeypatch):
-    if not (notebook_out / "01_summary.json").is_file():
-        pytest.skip("needs the work folder of 01_twin_to_c1")
-    _execute("02_validation.py", notebook_out, monkeypatch)
-    s = json.loads((notebook_out / "02_summary.json").read_text())
+def test_02_validation_reports_every_validation_scan(tiny_chain_notebooks):
+    tiny_chain_notebooks.require("02_validation.py")
+    s = json.loads((tiny_chain_notebooks.out / "02_summary.json").read_text())
     # the tiny twin's 50 deg scan; with the right material the surface error is the
     # imaging and discretisation floor (0.1-0.2 mm on the twin), far below 0.5 mm
     assert set(s["surface_mean_mm"]) == {"tilt_50"}
@@ -60,11 +39,10 @@ def test_02_validation_reports_every_validation_scan(notebook_out, monkeypatch):
 
 
 @pytest.mark.slow  # a 94-scenario sweep and 2,000 MLP iterations: minutes on 2 cores
-def test_03_sweep_surrogate_beats_the_dissertation(notebook_out, monkeypatch):
-    if not (notebook_out / "01_summary.json").is_file():
-        pytest.skip("needs the work folder of 01_twin_to_c1")
-    _execute("03_sweep_surrogate.py", notebook_out, monkeypatch)
-    s = json.loads((notebook_out / "03_summary.json").read_text())
+def test_03_sweep_surrogate_beats_the_dissertation(tiny_chain_notebooks, run_notebook):
+    tiny_chain_notebooks.require("01_twin_to_c1.py")
+    run_notebook("03_sweep_surrogate.py", tiny_chain_notebooks.out)
+    s = json.loads((tiny_chain_notebooks.out / "03_summary.json").read_text())
     # issue 12's bars against FE on the dissertation plan's 48 validation directions
     assert s["n_validation"] == 48
     assert s["ours_surface_mean_mm"] <= 0.02 and s["ours_surface_max_mm"] <= 0.2

@@ -1,0 +1,78 @@
+"""Fixtures shared by more than one test folder.
+
+``tiny_chain_notebooks``: the example notebooks ``01_twin_to_c1`` and ``02_validation``
+executed once per session at the tiny size. They run the whole chain (synth -> ingest ->
+calibrate -> validate) on the tiny fixed-seed twin, which is also the tiny case of the
+validation suite (``tests/validation/test_chain.py``): both read this one run instead of
+calibrating the same twin twice (about 3.5 minutes of the default suite on 2 cores).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+#: The notebooks of the tiny chain, in the order they share their output folder.
+CHAIN_NOTEBOOKS = ("01_twin_to_c1.py", "02_validation.py")
+
+
+def notebooks_available() -> bool:
+    """Whether the notebook runner (the ``notebook`` extra: nbclient, jupytext) is here."""
+    return all(importlib.util.find_spec(m) is not None for m in ("nbclient", "jupytext"))
+
+
+def execute_notebook(name: str, out: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Execute ``examples/<name>`` cell by cell in a real kernel at the tiny size.
+
+    Outputs go to ``out`` (``PHANTOM_CALIB_OUT``); a failing cell raises
+    ``nbclient.exceptions.CellExecutionError`` with the cell and its traceback.
+    """
+    import jupytext
+    import nbclient
+
+    monkeypatch.setenv("PHANTOM_CALIB_SIZE", "tiny")
+    monkeypatch.setenv("PHANTOM_CALIB_OUT", str(out))
+    nb = jupytext.read(EXAMPLES / name)
+    client = nbclient.NotebookClient(
+        nb, timeout=1800, kernel_name="python3", resources={"metadata": {"path": str(EXAMPLES)}}
+    )
+    client.execute()
+
+
+@dataclass
+class NotebookChain:
+    """The output folder of the chain notebooks and the error of each that failed."""
+
+    out: Path
+    errors: dict[str, BaseException] = field(default_factory=dict)
+
+    def require(self, name: str) -> None:
+        """Fail the calling test with the notebook's own error if it (or one before) failed."""
+        for nb in CHAIN_NOTEBOOKS[: CHAIN_NOTEBOOKS.index(name) + 1]:
+            if nb in self.errors:
+                raise AssertionError(f"notebook {nb} failed") from self.errors[nb]
+
+
+@pytest.fixture
+def run_notebook(monkeypatch):
+    """``run_notebook(name, out)``: :func:`execute_notebook` with this test's monkeypatch."""
+    return lambda name, out: execute_notebook(name, out, monkeypatch)
+
+
+@pytest.fixture(scope="session")
+def tiny_chain_notebooks(tmp_path_factory) -> NotebookChain:
+    if not notebooks_available():
+        pytest.skip("the notebook extra (nbclient, jupytext) is not installed")
+    chain = NotebookChain(tmp_path_factory.mktemp("notebooks"))
+    with pytest.MonkeyPatch.context() as mp:
+        for name in CHAIN_NOTEBOOKS:
+            try:
+                execute_notebook(name, chain.out, mp)
+            except Exception as exc:  # each test that needs it fails with this error
+                chain.errors[name] = exc
+                break
+    return chain
