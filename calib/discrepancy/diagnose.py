@@ -227,12 +227,14 @@ class ScanGap:
     residual_after_mm: np.ndarray | None
     calibration: ScanMetrics | None = None
 
-    def as_json(self, floor_mm: float) -> dict:
+    def as_json(self, floor_mm: float, *, named: bool = True) -> dict:
         """Surface errors (fiducial frame) and residuals before/after, the cut above the floor.
 
         ``surface_error_mm`` is the error of every scan vertex to the model's straight
         facets (as ``validate`` reports it); ``residual_mm`` that of the diagnosis' points
         to the curved surface, which the noise floor describes and the cut is measured on.
+        With nothing ``named`` the cut is None: "after" is then c1 alone refitted, and the
+        ratio of two differences near the floor says nothing about an effect.
         """
         b = self.before.surface_error_mm["fiducial"]
         out = {"role": self.role, "surface_error_mm": {"before": b}, "floor_mm": floor_mm}
@@ -248,7 +250,8 @@ class ScanGap:
             out["residual_mm"]["after"] = _abs_summary(self.residual_after_mm)
             rb, ra = out["residual_mm"]["before"]["mean"], out["residual_mm"]["after"]["mean"]
             above = rb - floor_mm
-            out["cut_above_floor"] = float((rb - ra) / above) if above > 1e-9 else None
+            cut = named and above > 1e-9
+            out["cut_above_floor"] = float((rb - ra) / above) if cut else None
         return out
 
 
@@ -409,7 +412,7 @@ class Diagnosis:
             },  # fmt: skip
             "candidates": [c.as_json() for c in self.candidates],
             "localisation": {n: m.as_json() for n, m in self.maps.items()},
-            "gap": {n: g.as_json(floor) for n, g in self.gaps.items()},
+            "gap": {n: g.as_json(floor, named=bool(self.named)) for n, g in self.gaps.items()},
             "unavailable": self.unavailable,
             "library": {n: LIBRARY[n].as_json() for n in self.options.effects},
             "options": {

@@ -65,6 +65,8 @@ import fem
 from fem.mesh import REGION_IDS
 from fem.meshing import skin_fraction
 
+from ..stats.scores import ALTERNATIVES
+
 __all__ = [
     "EFFECTS",
     "LIBRARY",
@@ -420,7 +422,7 @@ class Effect:
             "per_scan": self.per_scan,
             "identifiable": self.identifiable,
             "implementation": self.implementation,
-            "alternative": {0: "two-sided", 1: "greater", -1: "less"}[self.direction],
+            "alternative": ALTERNATIVES[self.direction],
         }
 
 

@@ -14,6 +14,7 @@ All geometry is in the reference frame (mm), i.e. the fiducial frame: no ICP.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -37,13 +38,16 @@ def _scene(vertices: np.ndarray, faces: np.ndarray):
     return scene
 
 
-def closest_on_surface(vertices, faces, points):
-    """Closest points, triangle ids, barycentric weights (k, 3) and unit face normals."""
+def closest_on_surface(vertices, faces, points, *, scene=None):
+    """Closest points, triangle ids, barycentric weights (k, 3) and unit face normals.
+
+    ``scene``: an open3d raycasting scene of ``(vertices, faces)`` built before, when the
+    same surface is queried many times; None builds one.
+    """
     import open3d as o3d
 
-    ans = _scene(vertices, faces).compute_closest_points(
-        o3d.core.Tensor(np.asarray(points, np.float32))
-    )
+    scene = _scene(vertices, faces) if scene is None else scene
+    ans = scene.compute_closest_points(o3d.core.Tensor(np.asarray(points, np.float32)))
     tri = ans["primitive_ids"].numpy().astype(np.int64)
     uv = ans["primitive_uvs"].numpy().astype(float)
     w = np.column_stack([1.0 - uv.sum(1), uv[:, 0], uv[:, 1]])
@@ -117,8 +121,17 @@ class SimulatedSurface:
             return np.zeros(len(tri))
         nodes, vertices, faces = self.reference
         x = np.einsum("kc,kcj->kj", w, nodes[self.faces[tri]])
-        c, _, _, n = closest_on_surface(vertices, faces, x)
+        c, _, _, n = closest_on_surface(vertices, faces, x, scene=self._reference_scene)
         return _signed(x - c, n)[0]
+
+    @cached_property
+    def _reference_scene(self):
+        """The reference scan surface's raycasting scene, built once per curved surface."""
+        _, vertices, faces = self.reference
+        return _scene(vertices, faces)
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "_reference_scene"}
 
 
 @dataclass(frozen=True)

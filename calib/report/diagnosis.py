@@ -140,12 +140,11 @@ def _gap_means(g: dict) -> tuple[float, float]:
 
 
 def gap_figure(gap_json: dict, floor_mm: float):
-    """Mean surface error of every scan before and after; the held-out scan hatched."""
+    """Mean |residual| of every scan before and after (curved model surface); holdout hatched."""
     from matplotlib.figure import Figure
 
     names = list(gap_json)
-    before = [_gap_means(gap_json[n])[0] for n in names]
-    after = [_gap_means(gap_json[n])[1] for n in names]
+    before, after = np.array([_gap_means(gap_json[n]) for n in names], float).reshape(-1, 2).T
     fig = Figure(figsize=(7, 3.8), layout="constrained")
     ax = fig.subplots()
     x = np.arange(len(names))

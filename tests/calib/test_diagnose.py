@@ -320,6 +320,8 @@ def test_the_gap_compares_the_named_effect_on_one_mesh(monkeypatch):
     gaps, _ = dg._gaps(prob, null, null, say.append)  # nothing named: before is after
     assert solved == [430.0]
     assert gaps["a"].as_json(0.0)["cut_above_floor"] == 0.0
+    # and the diagnosis reports no cut then: "after" is c1 alone refitted, not an effect
+    assert gaps["a"].as_json(0.0, named=False)["cut_above_floor"] is None
 
     prob, solved = _gap_problem(same_mesh=True)  # on its own mesh: before is the calibration
     gaps, _ = dg._gaps(prob, null, final, say.append)
