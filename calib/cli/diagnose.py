@@ -40,6 +40,14 @@ def diagnose(
             "(the clamped junction; default 5; 0 keeps them).",
         ),
     ] = None,
+    mesh_size: Annotated[
+        float | None,
+        typer.Option(
+            "--mesh-size",
+            help="Diagnose on a model mesh of this size (mm) instead of the calibration's: "
+            "a finer one tells discretisation error from a missing effect (slower).",
+        ),
+    ] = None,
 ) -> None:
     """Find where model and scans disagree, name the missing effect, refit, show the gap."""
     from ..discrepancy import DiagnosisError, DiagnosisOptions
@@ -53,6 +61,7 @@ def diagnose(
             holdout=holdout,
             alpha=alpha,
             **({} if rim_margin is None else {"rim_margin_mm": rim_margin}),
+            mesh_size_mm=mesh_size,
         )
         doc = run_diagnosis(work, opts, progress=lambda msg: typer.echo(f"  {msg}"))
     except (DiagnosisError, ValueError, OSError, RuntimeError, KeyError) as exc:

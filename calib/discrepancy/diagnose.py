@@ -102,6 +102,10 @@ class DiagnosisOptions:
     rim_margin_mm : float
         Points nearer the back plate are not diagnosed
         (:data:`calib.discrepancy.problem.RIM_MARGIN_MM`); 0 keeps them.
+    mesh_size_mm : float or None
+        Diagnose on a model mesh of this size, built from the reference scan, instead of
+        the calibration's (None). A finer mesh tells discretisation error from a missing
+        effect (every FE solve costs more: about (h / size)^3).
     max_candidates : int
         Significant effects refitted by FE per forward-selection round.
     max_named : int
@@ -121,6 +125,7 @@ class DiagnosisOptions:
     skin_thickness_mm: float = SKIN_THICKNESS_MM
     max_points: int | None = None
     rim_margin_mm: float = RIM_MARGIN_MM
+    mesh_size_mm: float | None = None
     max_candidates: int = 2
     max_named: int = 2
     min_explained: float = 0.5
@@ -142,6 +147,8 @@ class DiagnosisOptions:
             raise DiagnosisError(f"min_explained must lie in (0, 1], got {self.min_explained}")
         if not 0.0 <= self.rim_margin_mm < 50.0:
             raise DiagnosisError(f"rim_margin_mm must lie in [0, 50) mm, got {self.rim_margin_mm}")
+        if self.mesh_size_mm is not None and not 2.0 <= self.mesh_size_mm <= 40.0:
+            raise DiagnosisError(f"mesh_size_mm must lie in [2, 40] mm, got {self.mesh_size_mm}")
         if self.max_candidates < 1 or self.max_named < 1:
             raise DiagnosisError("max_candidates and max_named must be >= 1")
 
@@ -522,7 +529,8 @@ def diagnose(
     say = progress or log.info
     t0 = time.perf_counter()
     prob = build_problem(work, holdout=o.holdout, skin_thickness_mm=o.skin_thickness_mm,
-                         max_points=o.max_points, rim_margin_mm=o.rim_margin_mm)  # fmt: skip
+                         max_points=o.max_points, rim_margin_mm=o.rim_margin_mm,
+                         mesh_size_mm=o.mesh_size_mm)  # fmt: skip
     say(f"diagnosis scans {prob.scans}, held out: {prob.holdout or 'none'}; model mesh "
         f"{prob.mesh.n_tets} tets, {len(prob.inclusions)} inclusions tagged")  # fmt: skip
     if prob.mesh_note:
@@ -799,7 +807,8 @@ def _gaps(prob: Problem, null: Refit, final: Refit, say) -> tuple[dict, dict]:
         calibration = scan_metrics(scan, saved.positions_mm, cal_sim.faces, work.nipple_node,
                                    saved.tumour_mm)  # fmt: skip
         after = scan_metrics(scan, states[n].positions_mm, prob.sim.faces, prob.nipple_node, None)
-        ra = prob.residuals(n, states[n].positions_mm).r
+        # a named rigid offset moves the scan's points (as in the fit); gravity is in states
+        ra = prob.residuals(n, states[n].positions_mm, nuisance=final.nuisance.get(n)).r
         if null_states is None:
             before = calibration
             rb = scan_residuals("surface", scan, work.mesh, cal_sim, saved.positions_mm, None,

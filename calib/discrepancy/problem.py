@@ -219,6 +219,28 @@ def _parameters(record: dict) -> dict:
     return (record.get("provenance") or {}).get("parameters") or {}
 
 
+def _sized_model(work: WorkFolder, params: dict, model_on, size_mm: float):
+    """The model on a mesh of ``size_mm`` (asked for), its stress-free reference recovered.
+
+    Built from the reference scan as the calibration builds its own (``model_on(loaded)``
+    tags the effect regions); the recovery at the calibrated c1 stays cached for the null
+    fit. Returns the model and the note that says the diagnosis mesh is not the
+    calibration's.
+    """
+    from ..model.reference import reference_mesh
+
+    fm = model_on(reference_mesh(work.measurements.reference, size_mm=size_mm))
+    try:
+        fm.stress_free(float(np.log(work.record["c1_pa"])))
+    except fem.ConvergenceError as exc:
+        raise DiagnosisError(
+            f"{work.path}: no straight stress-free reference on a {size_mm:g} mm model mesh "
+            f"at the calibrated c1 ({exc}); choose another --mesh-size"
+        ) from exc
+    own = float(params.get("mesh_size_mm", 12.0))
+    return fm, f"diagnosed on a {size_mm:g} mm mesh, as asked (the calibration's: {own:g} mm)"
+
+
 def _straight_model(
     work: WorkFolder,
     params: dict,
@@ -346,6 +368,7 @@ def build_problem(
     skin_thickness_mm: float = SKIN_THICKNESS_MM,
     max_points: int | None = None,
     rim_margin_mm: float = RIM_MARGIN_MM,
+    mesh_size_mm: float | None = None,
 ) -> Problem:
     """The diagnosis problem of a calibrated work folder, its stress-free reference recovered.
 
@@ -362,6 +385,9 @@ def build_problem(
     rim_margin_mm : float
         Measured points nearer than this to the scan's back plate are left out (see
         :data:`RIM_MARGIN_MM`); 0 keeps them all.
+    mesh_size_mm : float, optional
+        A model mesh of this size (mm), built from the reference scan, instead of the
+        calibration's; its stress-free reference is recovered at the calibrated c1.
 
     Raises
     ------
@@ -398,7 +424,9 @@ def build_problem(
             fixed_point_fallback=False, effects=base,
         )  # fmt: skip
 
-    if prestressed:
+    if mesh_size_mm is not None:
+        fm, note = _sized_model(work, params, model_on, mesh_size_mm)
+    elif prestressed:
         # --reference-state prestress: its own mesh may admit one; a switched unload: not
         own = record.get("reference_state") == "prestress"
         fm, note = _straight_model(work, params, model_on, own_size=own)

@@ -210,6 +210,7 @@ def test_command_help_and_errors(tmp_path):
     runner = CliRunner()
     res = runner.invoke(app, ["diagnose", "--help"])
     assert res.exit_code == 0 and "--holdout" in res.output and "--effects" in res.output
+    assert "--mesh-size" in res.output
     res = runner.invoke(app, ["diagnose", str(tmp_path / "nowhere")])
     assert res.exit_code == 2 and "calibration.json" in res.output
     res = runner.invoke(app, ["diagnose", str(tmp_path), "--effects", "skin,wrinkles"])
@@ -252,6 +253,35 @@ def test_a_mesh_without_a_straight_reference_is_replaced_and_the_note_says_why(m
         )
 
 
+def test_a_mesh_size_asked_for_is_built_from_the_reference_scan_and_said(monkeypatch):
+    import calib.model.reference as reference
+    import fem
+    from calib.discrepancy.problem import _sized_model
+
+    monkeypatch.setattr(reference, "reference_mesh", lambda ref, size_mm: (ref, size_mm))
+
+    class Model:
+        def __init__(self, mesh):
+            self.mesh, self.theta = mesh, None
+
+        def stress_free(self, theta):
+            if self.mesh[1] > 30.0:
+                raise fem.ConvergenceError("inverse Newton stopped at load factor 0.5")
+            self.theta = theta
+
+    work = SimpleNamespace(
+        path="WORK", measurements=SimpleNamespace(reference="ref"), record={"c1_pa": 423.4}
+    )
+    fm, note = _sized_model(work, {"mesh_size_mm": 14.0}, Model, 10.0)
+    # the reference scan's mesh of that size, recovered at the calibrated c1
+    assert fm.mesh == ("ref", 10.0) and fm.theta == pytest.approx(np.log(423.4))
+    assert note == "diagnosed on a 10 mm mesh, as asked (the calibration's: 14 mm)"
+    with pytest.raises(DiagnosisError, match=r"32 mm model mesh.*load factor 0.5.*--mesh-size"):
+        _sized_model(work, {"mesh_size_mm": 14.0}, Model, 32.0)
+    with pytest.raises(DiagnosisError, match="mesh_size_mm"):
+        DiagnosisOptions(mesh_size_mm=0.5)
+
+
 def _gap_problem(same_mesh: bool):
     """A stand-in Problem whose posture solve puts every node at (c1, c1, c1) mm."""
     solved = []
@@ -268,7 +298,7 @@ def _gap_problem(same_mesh: bool):
     prob = SimpleNamespace(
         scans=("a", "b"), holdout="h", solve=solve, work=work, same_mesh=same_mesh,
         sim=SimpleNamespace(faces=None), nipple_node=0, measurement=lambda n: n,
-        residuals=lambda n, pos: SimpleNamespace(r=pos[:, 0]),
+        residuals=lambda n, pos, nuisance=None: SimpleNamespace(r=pos[:, 0] + (nuisance or 0.0)),
         measured_points=lambda n, _: None,
     )  # fmt: skip
     return prob, solved
@@ -315,6 +345,13 @@ def test_the_gap_compares_the_named_effect_on_one_mesh(monkeypatch):
     assert doc["cut_above_floor"] == pytest.approx(15.0 / 430.0)
     assert gaps["h"].as_json(floor_mm=400.0)["cut_above_floor"] == pytest.approx(15.0 / 30.0)
     assert any("c1 alone on the diagnosis mesh" in s for s in say)
+
+    # a named rigid offset moves its scan's points in the gap's residuals, as in the fit
+    # (the stand-in's offset adds to the residual)
+    moved = SimpleNamespace(theta=np.log(415.0), values=None, nuisance={"a": 2.0})
+    gaps, _ = dg._gaps(_gap_problem(same_mesh=False)[0], null, moved, say.append)
+    assert gaps["a"].as_json(0.0)["residual_mm"]["after"]["mean"] == pytest.approx(417.0)
+    assert gaps["b"].as_json(0.0)["residual_mm"]["after"]["mean"] == pytest.approx(415.0)
 
     prob, solved = _gap_problem(same_mesh=False)
     gaps, _ = dg._gaps(prob, null, null, say.append)  # nothing named: before is after
