@@ -139,8 +139,12 @@ def _gap_means(g: dict) -> tuple[float, float]:
     return m["before"]["mean"], (m.get("after") or {}).get("mean", np.nan)
 
 
-def gap_figure(gap_json: dict, floor_mm: float):
-    """Mean |residual| of every scan before and after (curved model surface); holdout hatched."""
+def gap_figure(gap_json: dict, floor_mm: float, named: tuple[str, ...] = ()):
+    """Mean |residual| of every scan before and after (curved model surface); holdout hatched.
+
+    ``named``: the named effects (the title says what "after" adds; nothing named: c1
+    alone refitted).
+    """
     from matplotlib.figure import Figure
 
     names = list(gap_json)
@@ -158,7 +162,11 @@ def gap_figure(gap_json: dict, floor_mm: float):
     ax.set_xticks(x, [f"{n}\n({gap_json[n]['role']})" for n in names])
     ax.set_ylabel("mean |residual| (mm, curved model surface)")
     ax.legend(fontsize=8)
-    ax.set_title("the gap before and after adding the named effect")
+    ax.set_title(
+        f"the gap before and after adding {' + '.join(named)}"
+        if named
+        else "nothing named: c1 alone (before) and refitted (after)"
+    )
     return fig
 
 

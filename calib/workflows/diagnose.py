@@ -171,7 +171,8 @@ def _figures(run: RunOutputs, d: Diagnosis, doc: dict) -> dict[str, list[str]]:
     R = np.asarray(prob.work.record["model"]["R_ref_from_phantom"], float)
     vmax = max(float(np.percentile(np.abs(g.before.vertex_error_mm), 99)) for g in d.gaps.values())
     figures: dict[str, list[str]] = {}
-    save_figure(gap_figure(doc["gap"], doc["noise"]["floor_mean_abs_mm"]), run.path("gap.png"))
+    gap = gap_figure(doc["gap"], doc["noise"]["floor_mean_abs_mm"], tuple(doc["named"]))
+    save_figure(gap, run.path("gap.png"))
     figures["the gap"] = ["gap.png"]
     for name, g in d.gaps.items():
         scan = prob.measurement(name)
