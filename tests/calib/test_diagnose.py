@@ -448,3 +448,20 @@ def test_points_at_the_clamped_rim_are_left_out():
         _off_the_rim(scan, 100, 0, 30.0)
     with pytest.raises(DiagnosisError, match="rim_margin_mm"):
         DiagnosisOptions(rim_margin_mm=-1.0)
+
+
+def test_the_gap_figure_says_what_after_adds():
+    from calib.report.diagnosis import gap_figure
+
+    summary = {"mean": 0.2, "rms": 0.25, "p95": 0.4, "n": 10}
+    gap = {
+        n: {"role": role, "residual_mm": {"before": summary, "after": summary | {"mean": 0.1}}}
+        for n, role in (("right_lateral", "diagnosis"), ("tilt_25", "holdout"))
+    }
+    ax = gap_figure(gap, 0.05, ("skin",)).axes[0]
+    assert ax.get_title() == "the gap before and after adding skin"
+    before, after = ax.containers
+    assert [b.get_height() for b in before] == [0.2, 0.2]
+    assert [b.get_height() for b in after] == [0.1, 0.1]
+    assert after[1].get_hatch() == "//" and after[0].get_hatch() is None  # the holdout
+    assert gap_figure(gap, 0.05).axes[0].get_title().startswith("nothing named")
