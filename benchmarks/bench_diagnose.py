@@ -182,7 +182,9 @@ def _table(rows: list[dict]) -> None:
           f"{'c1 refit':>8s} {'err %':>6s} {'hold cut':>8s} {'noise sd':>8s} "
           f"{'diag s':>7s}")  # fmt: skip
     for r in rows:
-        cut = r["holdout_cut_above_floor"]
+        # no cut without a named effect ("after" is c1 alone refitted; cases diagnosed
+        # before diagnosis.json said so carry one)
+        cut = r["holdout_cut_above_floor"] if r["named"] else None
         want = _expected(r) or "no name"
         print(f"{r['case']:16s} {r['verdict'][:34]:34s} {want:>10s} "
               f"{'yes' if _right(r) else 'NO':>5s} "
