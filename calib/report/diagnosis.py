@@ -335,4 +335,30 @@ def format_diagnosis(doc: dict) -> str:
     if note is not None:
         lines.append(f"{note}: before is c1 alone on that mesh; the calibration's own mean "
                      "errors: " + ", ".join(f"{n} {v:.3f} mm" for n, v in own))  # fmt: skip
+    hint = nuisance_only_hint(doc)
+    if hint:
+        lines.append(hint)
     return "\n".join(lines)
+
+
+def nuisance_only_hint(doc: dict) -> str:
+    """What to try when only per-scan nuisances screen significant and nothing is named.
+
+    On the quick null twins this is the model mesh's own error at the clamped rim in the
+    posture farthest from the reference (README, the diagnosis benchmark); a finer
+    ``--mesh-size`` tells it from a scan's gravity or registration error. Empty otherwise.
+    """
+    if doc["verdict"] != "unexplained":
+        return ""
+    kinds = {name: e.get("kind") for name, e in doc.get("library", {}).items()}
+    hits = [c["name"] for c in doc["screening"]["columns"] if c.get("significant")]
+    effects = {h.split("[")[0] for h in hits}
+    if not hits or any(kinds.get(e) != "nuisance" for e in effects):
+        return ""
+    scans = sorted({h.split("[")[1].split("]")[0] for h in hits if "[" in h})
+    return (
+        f"only per-scan nuisances screen significant ({', '.join(sorted(effects))} on "
+        f"{', '.join(scans)}) and none explains it: the model mesh's own error, largest at "
+        "the clamped rim in a posture far from the reference, looks like this; a finer "
+        "--mesh-size tells the two apart"
+    )

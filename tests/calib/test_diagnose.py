@@ -465,3 +465,26 @@ def test_the_gap_figure_says_what_after_adds():
     assert [b.get_height() for b in after] == [0.1, 0.1]
     assert after[1].get_hatch() == "//" and after[0].get_hatch() is None  # the holdout
     assert gap_figure(gap, 0.05).axes[0].get_title().startswith("nothing named")
+
+
+def test_an_unexplained_verdict_from_nuisances_alone_says_what_to_try():
+    from calib.report.diagnosis import nuisance_only_hint
+
+    kinds = {"skin": "material", "gravity": "nuisance", "registration": "nuisance"}
+    library = {name: {"kind": kind} for name, kind in kinds.items()}
+    names = ("skin", "gravity[right_lateral].a0", "registration[tilt_50].tx")
+
+    def doc(verdict, significant):
+        cols = [{"name": n, "significant": n in significant} for n in names]
+        return {"verdict": verdict, "library": library, "screening": {"columns": cols}}
+
+    hint = nuisance_only_hint(doc("unexplained", {"gravity[right_lateral].a0"}))
+    assert "gravity on right_lateral" in hint and "--mesh-size" in hint
+    both = nuisance_only_hint(
+        doc("unexplained", {"gravity[right_lateral].a0", "registration[tilt_50].tx"})
+    )
+    assert "(gravity, registration on right_lateral, tilt_50)" in both
+    # a physical effect among them, nothing significant, or a named effect: no hint
+    assert nuisance_only_hint(doc("unexplained", {"skin", "gravity[right_lateral].a0"})) == ""
+    assert nuisance_only_hint(doc("unexplained", set())) == ""
+    assert nuisance_only_hint(doc("named: skin", {"gravity[right_lateral].a0"})) == ""
