@@ -350,14 +350,13 @@ def nuisance_only_hint(doc: dict) -> str:
     """
     if doc["verdict"] != "unexplained":
         return ""
-    kinds = {name: e.get("kind") for name, e in doc.get("library", {}).items()}
-    hits = [c["name"] for c in doc["screening"]["columns"] if c.get("significant")]
-    effects = {h.split("[")[0] for h in hits}
-    if not hits or any(kinds.get(e) != "nuisance" for e in effects):
+    effects = sorted(e for e, v in doc["effects"].items() if v.get("significant"))
+    if not effects or any(doc["effects"][e]["kind"] != "nuisance" for e in effects):
         return ""
+    hits = [c["name"] for c in doc["screening"]["columns"] if c.get("significant")]
     scans = sorted({h.split("[")[1].split("]")[0] for h in hits if "[" in h})
     return (
-        f"only per-scan nuisances screen significant ({', '.join(sorted(effects))} on "
+        f"only per-scan nuisances screen significant ({', '.join(effects)} on "
         f"{', '.join(scans)}) and none explains it: the model mesh's own error, largest at "
         "the clamped rim in a posture far from the reference, looks like this; a finer "
         "--mesh-size tells the two apart"

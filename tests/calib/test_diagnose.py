@@ -471,12 +471,14 @@ def test_an_unexplained_verdict_from_nuisances_alone_says_what_to_try():
     from calib.report.diagnosis import nuisance_only_hint
 
     kinds = {"skin": "material", "gravity": "nuisance", "registration": "nuisance"}
-    library = {name: {"kind": kind} for name, kind in kinds.items()}
     names = ("skin", "gravity[right_lateral].a0", "registration[tilt_50].tx")
 
     def doc(verdict, significant):
+        # as diagnosis.json: an effect is significant where one of its columns is
         cols = [{"name": n, "significant": n in significant} for n in names]
-        return {"verdict": verdict, "library": library, "screening": {"columns": cols}}
+        hit = {n.split("[")[0] for n in significant}
+        effects = {e: {"kind": k, "significant": e in hit} for e, k in kinds.items()}
+        return {"verdict": verdict, "effects": effects, "screening": {"columns": cols}}
 
     hint = nuisance_only_hint(doc("unexplained", {"gravity[right_lateral].a0"}))
     assert "gravity on right_lateral" in hint and "--mesh-size" in hint
