@@ -219,19 +219,28 @@ def _parameters(record: dict) -> dict:
     return (record.get("provenance") or {}).get("parameters") or {}
 
 
-def _sized_model(work: WorkFolder, params: dict, model_on, size_mm: float):
-    """The model on a mesh of ``size_mm`` (asked for), its stress-free reference recovered.
+def _recovered_model(work: WorkFolder, model_on, size_mm: float):
+    """The model on the reference scan's mesh of ``size_mm``, recovered at the calibrated c1.
 
-    Built from the reference scan as the calibration builds its own (``model_on(loaded)``
-    tags the effect regions); the recovery at the calibrated c1 stays cached for the null
-    fit. Returns the model and the note that says the diagnosis mesh is not the
-    calibration's.
+    ``model_on(loaded_mesh)`` builds the model (it tags the effect regions); the recovery
+    stays cached for the null fit. Raises ``fem.ConvergenceError`` where it fails.
     """
     from ..model.reference import reference_mesh
 
     fm = model_on(reference_mesh(work.measurements.reference, size_mm=size_mm))
+    fm.stress_free(float(np.log(work.record["c1_pa"])))
+    return fm
+
+
+def _sized_model(work: WorkFolder, params: dict, model_on, size_mm: float):
+    """The model on a mesh of ``size_mm`` (asked for), its stress-free reference recovered.
+
+    Built from the reference scan as the calibration builds its own
+    (:func:`_recovered_model`). Returns the model and the note that says the diagnosis mesh
+    is not the calibration's.
+    """
     try:
-        fm.stress_free(float(np.log(work.record["c1_pa"])))
+        fm = _recovered_model(work, model_on, size_mm)
     except fem.ConvergenceError as exc:
         raise DiagnosisError(
             f"{work.path}: no straight stress-free reference on a {size_mm:g} mm model mesh "
@@ -260,18 +269,13 @@ def _straight_model(
     fit). The calibration's own mesh is skipped also when a straight recovery at the
     calibrated c1 fails there (``why`` says which). Returns the model and a note.
     """
-    from ..model.reference import reference_mesh
-
     size = float(params.get("mesh_size_mm", 12.0))
     sizes = [float(s) for s in params.get("mesh_retry_mm") or () if float(s) != size]
     sizes = ([size] if own_size else []) + (sizes or [size + 2.0, size + 4.0])
-    ref = work.measurements.reference
-    theta = float(np.log(work.record["c1_pa"]))
     tried = []
     for s in sizes:
-        fm = model_on(reference_mesh(ref, size_mm=s))
         try:
-            fm.stress_free(theta)
+            fm = _recovered_model(work, model_on, s)
         except fem.ConvergenceError as exc:
             tried.append(f"{s:g} mm: {exc}")
             continue
