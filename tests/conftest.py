@@ -4,7 +4,7 @@
 executed once per session at the tiny size. They run the whole chain (synth -> ingest ->
 calibrate -> validate) on the tiny fixed-seed twin, which is also the tiny case of the
 validation suite (``tests/validation/test_chain.py``): both read this one run instead of
-calibrating the same twin twice (about 3.5 minutes of the default suite on 2 cores).
+calibrating the same twin twice (in CI the tiny chain went from 227 s to 48 s).
 """
 
 from __future__ import annotations
