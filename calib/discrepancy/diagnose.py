@@ -13,10 +13,12 @@ Steps (the issue's; no files are written here, see :mod:`calib.workflows.diagnos
    (:mod:`calib.discrepancy.localise`).
 4. *Screen:* each requested effect's sensitivity field (:mod:`calib.discrepancy.fields`)
    with what ``ln c1`` and the per-scan offsets absorb projected out, a score test, Holm
-   across effects; identifiability and confounding (:mod:`calib.discrepancy.screen`).
+   across effects (a nuisance's per-scan columns tested jointly as one effect);
+   identifiability and confounding (:mod:`calib.discrepancy.screen`).
 5. *Confirm and name* by forward selection with backward pruning: the significant
-   effects, strongest first (``max_candidates`` per round), are refitted jointly with
-   ``ln c1`` by the full nonlinear FE model (:mod:`calib.discrepancy.refit`). An effect
+   physical effects, strongest first (``max_candidates`` per round), are refitted jointly
+   with ``ln c1`` by the full nonlinear FE model (:mod:`calib.discrepancy.refit`); the
+   significant nuisances only when none of them passes (:func:`_candidates`). An effect
    is named only if (a) its score test is significant after Holm at the current model,
    (b) the leave-one-posture-out prediction improves, (c) its fitted parameters are
    inside their physical range and not on a bound, and (d) it explains at least
@@ -107,7 +109,8 @@ class DiagnosisOptions:
         the calibration's (None). A finer mesh tells discretisation error from a missing
         effect (every FE solve costs more: about (h / size)^3).
     max_candidates : int
-        Significant effects refitted by FE per forward-selection round.
+        Significant effects refitted by FE per forward-selection round (physical effects
+        first; nuisances only when no physical candidate passes).
     max_named : int
     min_explained : float
         Share of the residual above the noise floor a named effect must explain.
@@ -556,41 +559,42 @@ def diagnose(
         sig = [s for s in _significant_effects(cur_scr) if s[0] not in named]
         if not sig:
             break
-        chosen, screened_only = _candidates(sig, partial(_cosine, cur_scr), o)
+        stages, screened_only = _candidates(sig, partial(_cosine, cur_scr), o)
         row = {s[0]: s for s in sig}
         for eff in screened_only:  # significant but only screened: recorded once
             if not any(c.effect == eff for c in candidates):
                 say(f"  {eff} is significant but not refitted: {NO_SLIDING_REFIT}")
                 candidates.append(_not_refitted(eff, rnd, row[eff]))
-        if not chosen:
-            break
-        say(f"round {rnd}: refitting {chosen} jointly with c1 (full FE)")
-        trials = {}
-        for eff in chosen:
-            key = tuple(sorted([*named, eff]))
-            try:
-                trials[eff] = fits.get(key) or refit(
-                    prob, key, screened=screened, theta0=current.theta,
-                    x0=dict(zip(current.names, current.x, strict=True)),
-                    max_iterations=o.refit_iterations, say=say,
-                )  # fmt: skip
-            except fem.ConvergenceError as exc:
-                say(f"  {eff}: no FE solution at the start ({exc})")
+        passing, trials = [], {}
+        for chosen in stages:  # physical effects first, nuisances if none passes
+            if passing or not chosen:
                 continue
-            fits[key] = trials[eff]
-            floor = min(floor, _noise_var(trials[eff].fields, prob.points))
-        judged = [_judge(prob, eff, rnd, row[eff], current, trials[eff], floor, o)
-                  for eff in chosen if eff in trials]  # fmt: skip
-        judged += [_not_refitted(eff, rnd, row[eff]) for eff in chosen if eff not in trials]
-        candidates.extend(judged)
-        passing = sorted((c for c in judged if c.passes), key=lambda c: -c.explained)
-        for c in judged:
-            if not np.isfinite(c.c1_pa):
-                say(f"  {c.effect}: not refitted ({c.reason})")
-                continue
-            say(f"  {c.effect}: c1 = {c.c1_pa:.1f} Pa, explains {c.explained:.0%} above the "
-                f"floor, LOPO {'better' if c.lopo_improves else 'not better'}"
-                + ("" if c.passes else f"; not named ({c.reason})"))  # fmt: skip
+            say(f"round {rnd}: refitting {chosen} jointly with c1 (full FE)")
+            for eff in chosen:
+                key = tuple(sorted([*named, eff]))
+                try:
+                    trials[eff] = fits.get(key) or refit(
+                        prob, key, screened=screened, theta0=current.theta,
+                        x0=dict(zip(current.names, current.x, strict=True)),
+                        max_iterations=o.refit_iterations, say=say,
+                    )  # fmt: skip
+                except fem.ConvergenceError as exc:
+                    say(f"  {eff}: no FE solution at the start ({exc})")
+                    continue
+                fits[key] = trials[eff]
+                floor = min(floor, _noise_var(trials[eff].fields, prob.points))
+            judged = [_judge(prob, eff, rnd, row[eff], current, trials[eff], floor, o)
+                      for eff in chosen if eff in trials]  # fmt: skip
+            judged += [_not_refitted(eff, rnd, row[eff]) for eff in chosen if eff not in trials]
+            candidates.extend(judged)
+            passing = sorted((c for c in judged if c.passes), key=lambda c: -c.explained)
+            for c in judged:
+                if not np.isfinite(c.c1_pa):
+                    say(f"  {c.effect}: not refitted ({c.reason})")
+                    continue
+                say(f"  {c.effect}: c1 = {c.c1_pa:.1f} Pa, explains {c.explained:.0%} above "
+                    f"the floor, LOPO {'better' if c.lopo_improves else 'not better'}"
+                    + ("" if c.passes else f"; not named ({c.reason})"))  # fmt: skip
         if not passing:
             break
         best = passing[0]
@@ -621,11 +625,17 @@ def diagnose(
     )  # fmt: skip
 
 
-def _candidates(sig, cosine, o) -> tuple[list[str], list[str]]:
-    """The effects a round refits, and the significant ones it cannot refit.
+def _candidates(sig, cosine, o) -> tuple[list[list[str]], list[str]]:
+    """The effects a round refits, physical ones first, and the ones it cannot refit.
 
-    The ``o.max_candidates`` strongest significant effects that can be refitted, plus any
-    significant effect whose signature is confounded with one of them; an effect that is
+    Stage one holds the ``o.max_candidates`` strongest significant physical effects (every
+    kind but ``nuisance``) that can be refitted, plus any significant effect whose
+    signature is confounded with one of them; stage two the nuisances, chosen the same
+    way, refitted only when no stage-one candidate passes. A per-scan nuisance (a gravity
+    angle, a rigid offset) is the explanation of last resort: it has parameters of its
+    own in every scan and can absorb a physical effect's print on one posture, while a
+    physical effect must predict every posture with one value; the next round screens
+    the nuisances again at the model with the physical effect in it. An effect that is
     only screened (:data:`SCREENED_ONLY`) takes no candidate's place, so a significant
     sliding plate does not keep the next effect from its refit.
 
@@ -639,15 +649,24 @@ def _candidates(sig, cosine, o) -> tuple[list[str], list[str]]:
 
     Returns
     -------
-    chosen, screened_only : list of str
+    stages : list of two lists of str
+        The physical candidates, then the nuisances.
+    screened_only : list of str
     """
     screened_only = [s[0] for s in sig if s[0] in SCREENED_ONLY]
-    refittable = [s[0] for s in sig if s[0] not in SCREENED_ONLY]
-    chosen = refittable[: o.max_candidates]
-    for eff in refittable[o.max_candidates :]:  # a confounded partner of a candidate joins it
-        if any(cosine(eff, c) >= o.confounded_above for c in chosen):
-            chosen.append(eff)
-    return chosen, screened_only
+    stages = []
+    for nuisance in (False, True):
+        refittable = [
+            s[0]
+            for s in sig
+            if s[0] not in SCREENED_ONLY and (LIBRARY[s[0]].kind == "nuisance") == nuisance
+        ]
+        chosen = refittable[: o.max_candidates]
+        for eff in refittable[o.max_candidates :]:  # a confounded partner joins
+            if any(cosine(eff, c) >= o.confounded_above for c in chosen):
+                chosen.append(eff)
+        stages.append(chosen)
+    return stages, screened_only
 
 
 def _not_refitted(eff: str, rnd: int, sig_row) -> Candidate:

@@ -6,8 +6,9 @@ label per scan; the noise model is a short-range variogram fit of those residual
 (:func:`calib.stats.estimate_noise`, one per scan, with the other plausible kernels as
 alternatives) — the session's noise, see below; :func:`calib.stats.misfit_test` asks
 whether any large-scale structure is left; :func:`calib.stats.screen_effects` gives each
-effect's score test with what ``ln c1`` absorbs projected out, Holm across effects,
-identifiability and confounding.
+effect's score test with what ``ln c1`` absorbs projected out, Holm across effects (a
+nuisance's per-scan columns are one effect, tested jointly), identifiability and
+confounding.
 
 Per-scan offsets: a constant normal offset of a scan's whole measured surface (a
 segmentation threshold; the model mesh's faceting, +0.1 mm on the twins' straight facets,
@@ -148,5 +149,5 @@ def screen(
     directions = [LIBRARY[effect[n]].direction if effect[n] in LIBRARY else 0 for n in names]
     res = _screen_effects(r, J, S, names, sample, fit.best, alpha=alpha,
                           confounded_above=confounded_above, alternatives=alt,
-                          directions=directions)  # fmt: skip
+                          directions=directions, effects=[effect[n] for n in names])  # fmt: skip
     return Screen(sample, fit, misfit, res, names)

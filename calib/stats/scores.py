@@ -30,7 +30,13 @@ Mooney c2 cannot be negative, a plate cannot be held tighter than clamped) is te
 against its one-sided alternative (Silvapulle & Silvapulle 1995, a score test against
 one-sided alternatives): the ratio's null distribution is symmetric, so the one-sided
 p-value is half the two-sided one when the estimate points the physical way and one
-minus that half when it does not. Holm (1979) controls the family-wise error across effects. The
+minus that half when it does not. Holm (1979) controls the family-wise error across
+effects, not columns: an effect with several columns (a gravity-direction error has two
+angles per scan, a rigid offset six) is one hypothesis, "all its columns are zero", tested
+by its smallest p-value times its number of tested columns (Bonferroni within the
+effect, a valid joint test that needs no joint null law); Holm then runs over the
+effects. A column is reported significant when its effect is and its own within-effect
+Bonferroni p is below ``alpha`` too. The
 projection also tells up front what the data cannot separate: in the metric of the noise
 model (whitened), the fraction of ``s_k`` that survives projection off ``J``
 (``retained_fraction``; below ``min_retained`` the effect is "not identifiable from
@@ -268,7 +274,9 @@ class EffectScore:
         Under the noise model (Imhof), largest over plausible models; two-sided or
         against the one-sided alternative (``alternative``).
     p_holm : float
-        Holm-adjusted across the identifiable effects (nan if not identifiable).
+        The larger of the effect's Holm-adjusted p (Holm across the identifiable effects
+        of the within-effect Bonferroni p) and this column's within-effect Bonferroni p;
+        nan if not identifiable. An effect's p is the smallest over its columns.
     significant : bool
         ``p_holm < alpha``.
     estimate : float
@@ -286,6 +294,8 @@ class EffectScore:
     n_modes : int
     alternative : {"two-sided", "greater", "less"}
         The alternative tested (``greater``: only estimates above neutral are physical).
+    effect : str
+        The effect (the family Holm runs over) this column belongs to; ``name`` if alone.
     """
 
     name: str
@@ -302,6 +312,7 @@ class EffectScore:
     dof: float
     n_modes: int
     alternative: Literal["two-sided", "greater", "less"] = "two-sided"
+    effect: str = ""
 
 
 #: The alternative of each direction of :func:`screen_effects`.
@@ -390,6 +401,42 @@ def holm(p_values: np.ndarray) -> np.ndarray:
     return out
 
 
+def _effect_holm(p_values: Sequence[float | None], effects: Sequence[str]) -> np.ndarray:
+    """Per column: Holm across effects of the within-effect Bonferroni p (module docstring).
+
+    Parameters
+    ----------
+    p_values : sequence of float or None, length q
+        Each column's p-value; None for a column not tested.
+    effects : sequence of str, length q
+        The effect of each column.
+
+    Returns
+    -------
+    ndarray, shape (q,)
+        ``max(effect's Holm-adjusted p, min(1, m p_col))`` with ``m`` the effect's number
+        of tested columns; nan for untested columns.
+    """
+    tested = [k for k, p in enumerate(p_values) if p is not None]
+    out = np.full(len(p_values), np.nan)
+    if not tested:
+        return out
+    members: dict[str, list[int]] = {}
+    for k in tested:
+        members.setdefault(effects[k], []).append(k)
+    names = list(members)
+    # Bonferroni within the effect: m times its smallest p
+    joint = np.array(
+        [min(1.0, len(members[n]) * min(p_values[k] for k in members[n])) for n in names]
+    )
+    family = dict(zip(names, holm(joint), strict=True))  # Holm (1979) across effects
+    for n in names:
+        m = len(members[n])
+        for k in members[n]:
+            out[k] = max(family[n], min(1.0, m * p_values[k]))
+    return out
+
+
 def signature_geometry(
     sample: SurfaceSample, jacobian: np.ndarray, sensitivities: np.ndarray, noise: NoiseArg
 ) -> tuple[np.ndarray, np.ndarray, str]:
@@ -467,6 +514,7 @@ def screen_effects(
     confounded_above: float = 0.9,
     alternatives: tuple[NoiseArg, ...] = (),
     directions: Sequence[int] | None = None,
+    effects: Sequence[str] | None = None,
 ) -> EffectScreening:
     """Score test of each candidate effect, Holm-corrected, with identifiability.
 
@@ -500,6 +548,9 @@ def screen_effects(
         Per effect, the sign a physical departure from neutral can take: +1 (neutral is
         the lower end of the range), -1 (the upper end), 0 (both; the default for all).
         A one-sided effect is tested against that alternative (module docstring).
+    effects : sequence of str, optional
+        Per column, the effect it belongs to (the family of the Holm correction, module
+        docstring); default: every column its own effect.
 
     Returns
     -------
@@ -518,6 +569,9 @@ def screen_effects(
     dirs = [0] * len(names) if directions is None else [int(d) for d in directions]
     if len(dirs) != len(names) or not set(dirs) <= {-1, 0, 1}:
         raise ScreeningError(f"need one direction in (-1, 0, 1) per effect, got {directions}")
+    groups = names if effects is None else tuple(str(e) for e in effects)
+    if len(groups) != len(names):
+        raise ScreeningError(f"need one effect per column ({len(names)}), got {len(groups)}")
     retained, cosine, metric = signature_geometry(sample, J, S, noise)
     ident = retained >= min_retained
     designs = {}
@@ -550,16 +604,14 @@ def screen_effects(
             if best is None or p > best[0]:
                 best = (p, t, st)
         rows.append((est, *best))
-    tested = [k for k in range(len(rows)) if rows[k] is not None]
-    adj = np.full(len(rows), np.nan)
-    if tested:
-        adj[tested] = holm(np.array([rows[k][1] for k in tested]))
+    adj = _effect_holm([None if row is None else row[1] for row in rows], groups)
     effects = []
     for k, name in enumerate(names):
         if rows[k] is None:
             effects.append(EffectScore(name, float("nan"), float("nan"), float("nan"), False,
                                        float("nan"), float("nan"), float("nan"), float("inf"),
-                                       float(retained[k]), False, float("nan"), 0))  # fmt: skip
+                                       float(retained[k]), False, float("nan"), 0,
+                                       effect=groups[k]))  # fmt: skip
             continue
         est, p, t, st = rows[k]
         tail = alpha if dirs[k] else 0.5 * alpha
@@ -567,7 +619,8 @@ def screen_effects(
         effects.append(EffectScore(name, float(t), float(p), float(adj[k]), bool(adj[k] < alpha),
                                    est, st.standard_error, st.plugin_standard_error,
                                    z * st.plugin_standard_error, float(retained[k]), True,
-                                   st.dof, st.n_modes, ALTERNATIVES[dirs[k]]))  # fmt: skip
+                                   st.dof, st.n_modes, ALTERNATIVES[dirs[k]],
+                                   groups[k]))  # fmt: skip
     cos = np.where(np.outer(ident, ident), cosine, np.nan)
     pairs = tuple(
         (names[i], names[j], float(cos[i, j]))

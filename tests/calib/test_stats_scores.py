@@ -19,6 +19,7 @@ from calib.stats.coverage import NoiseSampler, misfit_pattern, phantom_sample, s
 from calib.stats.noise import NoiseModel, estimate_noise
 from calib.stats.scores import (
     ScreeningError,
+    _effect_holm,
     holm,
     misfit_design,
     misfit_test,
@@ -43,6 +44,16 @@ def test_holm_closed_form():
     # sorted 0.01, 0.03, 0.04 -> 3 x 0.01, 2 x 0.03, max(0.06, 1 x 0.04)
     assert holm(np.array([0.01, 0.04, 0.03])) == pytest.approx([0.03, 0.06, 0.06])
     assert holm(np.array([0.5, 0.9])) == pytest.approx([1.0, 1.0])
+
+
+def test_holm_runs_across_effects_with_bonferroni_within_each():
+    # closed form: effect 'b' has two columns, so its joint p is 2 * 0.02 = 0.04; Holm over
+    # the three effects then gives a 3 * 0.01, b max(0.03, 2 * 0.04), c 0.5; a column's p
+    # is its effect's or its own within-effect Bonferroni p, whichever is larger
+    adj = _effect_holm([0.01, 0.02, 0.03, 0.5, None], ["a", "b", "b", "c", "d"])
+    assert adj[:4] == pytest.approx([0.03, 0.08, 0.08, 0.5])
+    assert np.isnan(adj[4])
+    assert _effect_holm([0.01, 0.02], ["a", "b"]) == pytest.approx(holm(np.array([0.01, 0.02])))
 
 
 def test_misfit_modes_are_orthonormal_and_ordered(setup):
@@ -144,6 +155,10 @@ def test_screening_false_positive_rate_on_correlated_null_residuals(setup):
         p.append([e.p_value for e in res.effects])
         fw.append(any(e.significant for e in res.effects))
     p = np.array(p)
+    # 'p2' and 'tilt' as the two columns of one effect: the family-wise rate over the two
+    # effects (Bonferroni within, Holm across) is held to the same bound
+    fw_joint = [np.nanmin(_effect_holm(list(q), ["smooth", "smooth", "bump"])) < 0.05 for q in p]
+    assert np.mean(fw_joint) <= 0.05 + 3 * 0.0178
     two = np.column_stack([2 * np.minimum(p[:, :2], 1 - p[:, :2]), p[:, 2]])
     for q in (p, two):
         rates = np.mean(q < 0.05, axis=0)
@@ -200,6 +215,7 @@ def test_identifiability_and_confounding(setup):
     assert res.confounded == (("a", "a-again", pytest.approx(1.0, abs=1e-9)),)
     # Holm is over the identifiable effects only
     assert np.isnan(res.effects[2].p_holm) and np.isfinite(res.effects[3].p_holm)
+    assert [e.effect for e in res.effects] == ["a", "a-again", "like-c1", "tilt"]
     doc = json.loads(json.dumps(res.as_json(), allow_nan=False))  # strict JSON: nan -> null
     assert doc["effects"][2]["p_value"] is None and doc["not_identifiable"] == ["like-c1"]
 
