@@ -7,7 +7,8 @@ to ~420 Pa) and the held-out posture's surface error above the noise floor cut b
 <= 15 min per quick scan set on 2 cores (the diagnosis alone).
 
 Cases (``--cases``): each library effect the twin can hide at its preset amplitude
-(``skin``, ``inclusions``, ``mooney``, ``poisson``, ``density``, ``sliding``) x
+(``skin``, ``inclusions``, ``mooney``, ``poisson``, ``density``, ``sliding``: the plate
+on tangential springs of ``SLIDING_SPRINGS_PA_PER_MM``) x
 ``--seeds`` (default 0,1,2), ``none`` x ``--null-seeds`` (default 0-4), and the
 detection curve ``skin=1.5:R`` for R in ``--ratios`` (default 2,4,8; R = 1 is the null
 set) at seed 0. Every case writes ``OUT/cases/<case>.json`` when done and is skipped when
@@ -39,6 +40,9 @@ from pathlib import Path
 import numpy as np
 
 TWIN_EFFECTS = ("skin", "inclusions", "mooney", "poisson", "density", "sliding")
+#: The sliding twin's plate rides on tangential springs of this stiffness (Pa/mm): the
+#: quick twin with a frictionless plate (``--effect sliding``) has no FE solution.
+SLIDING_SPRINGS_PA_PER_MM = 1000.0
 
 
 def _cases(args) -> list[tuple[str, list[str], int, str]]:
@@ -48,7 +52,8 @@ def _cases(args) -> list[tuple[str, list[str], int, str]]:
     seeds = [int(s) for s in args.seeds.split(",") if s]
     for eff in TWIN_EFFECTS:
         if eff in wanted or "effects" in wanted:
-            out += [(f"{eff}-s{s}", [eff], s, eff) for s in seeds]
+            spec = f"sliding={SLIDING_SPRINGS_PA_PER_MM:g}" if eff == "sliding" else eff
+            out += [(f"{eff}-s{s}", [spec], s, eff) for s in seeds]
     if "none" in wanted:
         out += [(f"none-s{s}", ["none"], s, "none") for s in map(int, args.null_seeds.split(","))]
     if "curve" in wanted:

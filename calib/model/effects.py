@@ -568,6 +568,8 @@ class TruthEffects:
         Poisson's ratio of every region.
     density_kg_m3 : float
         True density (the session declares 1000 kg/m^3).
+    sliding_stiffness_pa_per_mm : float
+        With ``sliding``, the tangential springs holding the plate (Pa/mm); 0: frictionless.
     """
 
     skin_thickness_mm: float = 0.0
@@ -577,6 +579,7 @@ class TruthEffects:
     c2_pa: float = 0.0
     nu: float = 0.499
     density_kg_m3: float = 1000.0
+    sliding_stiffness_pa_per_mm: float = 0.0
 
     def active(self) -> list[str]:
         """Names of the effects that differ from neutral."""
@@ -598,7 +601,9 @@ class TruthEffects:
             c2_ratio=self.c2_pa / c1_pa,
             nu=self.nu,
             density_kg_m3=self.density_kg_m3,
-            support_stiffness_pa_per_mm=0.0 if self.sliding else math.inf,
+            support_stiffness_pa_per_mm=self.sliding_stiffness_pa_per_mm
+            if self.sliding
+            else math.inf,
         )
 
 
@@ -620,6 +625,7 @@ _TWIN_RANGES = {
     "mooney": ((0.0, 1e4),),  # c2 in Pa
     "poisson": ((LIBRARY["poisson"].bounds[0], LIBRARY["poisson"].bounds[1]),),
     "density": ((500.0, 2000.0),),  # kg/m^3
+    "sliding": ((10.0, 1e6),),  # tangential springs, Pa/mm (no value: frictionless)
 }
 
 
@@ -635,9 +641,9 @@ def _number(text: str, name: str, lo: float, hi: float) -> float:
 
 def _apply(eff: dict, name: str, value: str | None) -> None:
     if name == "sliding":
-        if value not in (None, "1", "true", "yes"):
-            raise EffectError("effect 'sliding' takes no value")
         eff["sliding"] = True
+        if value not in (None, "true", "yes"):  # springs of this stiffness, Pa/mm
+            eff["sliding_stiffness_pa_per_mm"] = _number(value, name, *_TWIN_RANGES[name][0])
         return
     value = value or EFFECTS[name]
     ranges = _TWIN_RANGES[name]

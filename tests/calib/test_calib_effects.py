@@ -74,7 +74,8 @@ def test_every_listed_effect_parses_without_value():
         (["poisson=nan"], r"effect 'poisson': value nan outside the range"),
         (["poisson=abc"], r"effect 'poisson': 'abc' is not a number"),
         (["skin=thick:8"], r"effect 'skin': 'thick' is not a number"),
-        (["sliding=0"], r"effect 'sliding' takes no value"),
+        (["sliding=0"], r"effect 'sliding': value 0.0 outside the range \[10.0, 1000000.0\]"),
+        (["sliding=stiff"], r"effect 'sliding': 'stiff' is not a number"),
         (["none", "skin"], r"'none' cannot be combined with other effects"),
         (["skin", "none"], r"'none' cannot be combined with other effects"),
     ],
@@ -82,6 +83,16 @@ def test_every_listed_effect_parses_without_value():
 def test_bad_effects(specs, pattern):
     with pytest.raises(EffectError, match=pattern):
         parse_effects(specs, default=DEFAULT)
+
+
+def test_sliding_is_frictionless_or_on_springs_of_a_given_stiffness():
+    free = parse_effects(["sliding"], default=DEFAULT)
+    springs = parse_effects(["sliding=1000"], default=DEFAULT)
+    assert free.values(420.0).support == "sliding"
+    assert springs.values(420.0).support == "springs"
+    assert springs.values(420.0).support_stiffness_pa_per_mm == 1000.0
+    assert springs.active() == ["sliding"]
+    assert TruthEffects().values(420.0).support == "clamped"
 
 
 def test_effect_error_is_a_value_error():
