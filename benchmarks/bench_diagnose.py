@@ -42,7 +42,7 @@ import numpy as np
 TWIN_EFFECTS = ("skin", "inclusions", "mooney", "poisson", "density", "sliding")
 #: The sliding twin's plate rides on tangential springs of this stiffness (Pa/mm): the
 #: quick twin with a frictionless plate (``--effect sliding``) has no FE solution.
-SLIDING_SPRINGS_PA_PER_MM = 1000.0
+SLIDING_SPRINGS_PA_PER_MM = 100.0
 
 
 def _cases(args) -> list[tuple[str, list[str], int, str]]:
