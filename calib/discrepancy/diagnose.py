@@ -342,8 +342,7 @@ class Diagnosis:
         out = {}
         for name in self.options.effects:
             lib = LIBRARY[name]
-            rows = [e for e in (scr.effects if scr else ()) if e.name == name
-                    or e.name.startswith(f"{name}[")]  # fmt: skip
+            rows = [e for e in (scr.effects if scr else ()) if e.effect == name]
             entry = {"kind": lib.kind, "parameter": lib.parameter, "unit": lib.unit,
                      "columns": len(rows)}  # fmt: skip
             if name in self.unavailable:
@@ -476,7 +475,7 @@ def _significant_effects(scr: Screen) -> list[tuple[str, float, float]]:
     best: dict = {}
     for e in scr.screening.effects:
         if e.identifiable and e.significant:
-            eff = _effect_of(e.name)
+            eff = e.effect
             if eff not in best or abs(e.statistic) > best[eff][0]:
                 best[eff] = (abs(e.statistic), e.p_holm)
     return sorted(((k, v[0], v[1]) for k, v in best.items()), key=lambda t: -t[1])
@@ -487,15 +486,14 @@ def _cosine(scr: Screen, a: str, b: str) -> float:
     s = scr.screening
     if s is None:
         return 0.0
-    names = [e.name for e in s.effects]
-    ia = [i for i, n in enumerate(names) if _effect_of(n) == a]
-    ib = [i for i, n in enumerate(names) if _effect_of(n) == b]
+    ia = [i for i, e in enumerate(s.effects) if e.effect == a]
+    ib = [i for i, e in enumerate(s.effects) if e.effect == b]
     vals = [abs(s.cosine[i, j]) for i in ia for j in ib if np.isfinite(s.cosine[i, j])]
     return float(max(vals, default=0.0))
 
 
 def _columns_of(fields: FieldSet, effects: Sequence[str]) -> tuple[str, ...]:
-    return tuple(c.name for c in fields.columns if _effect_of(c.name) in effects)
+    return tuple(c.name for c in fields.columns if c.effect in effects)
 
 
 # ------------------------------------------------------------------------- diagnose

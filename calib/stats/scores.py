@@ -605,10 +605,10 @@ def screen_effects(
                 best = (p, t, st)
         rows.append((est, *best))
     adj = _effect_holm([None if row is None else row[1] for row in rows], groups)
-    effects = []
+    scores = []
     for k, name in enumerate(names):
         if rows[k] is None:
-            effects.append(EffectScore(name, float("nan"), float("nan"), float("nan"), False,
+            scores.append(EffectScore(name, float("nan"), float("nan"), float("nan"), False,
                                        float("nan"), float("nan"), float("nan"), float("inf"),
                                        float(retained[k]), False, float("nan"), 0,
                                        effect=groups[k]))  # fmt: skip
@@ -616,7 +616,7 @@ def screen_effects(
         est, p, t, st = rows[k]
         tail = alpha if dirs[k] else 0.5 * alpha
         z = float(stats.norm.ppf(1.0 - tail) + stats.norm.ppf(0.8))
-        effects.append(EffectScore(name, float(t), float(p), float(adj[k]), bool(adj[k] < alpha),
+        scores.append(EffectScore(name, float(t), float(p), float(adj[k]), bool(adj[k] < alpha),
                                    est, st.standard_error, st.plugin_standard_error,
                                    z * st.plugin_standard_error, float(retained[k]), True,
                                    st.dof, st.n_modes, ALTERNATIVES[dirs[k]],
@@ -629,4 +629,4 @@ def screen_effects(
         if ident[i] and ident[j] and abs(cos[i, j]) >= confounded_above
     )
     lost = tuple(n for n, ok in zip(names, ident, strict=True) if not ok)
-    return EffectScreening(tuple(effects), cos, pairs, lost, alpha, metric, _shown(noise))
+    return EffectScreening(tuple(scores), cos, pairs, lost, alpha, metric, _shown(noise))
