@@ -42,8 +42,8 @@ import numpy as np
 TWIN_EFFECTS = ("skin", "inclusions", "mooney", "poisson", "density", "sliding")
 #: The sliding twin's plate rides on tangential springs of this stiffness (Pa/mm): the
 #: quick twin with a frictionless plate (``--effect sliding``) has no FE solution, and on
-#: 100 Pa/mm springs (its surface 2-4 mm from the clamped twin's) the homogeneous
-#: calibration found no FE solution near the c1 it sought (~330 Pa).
+#: 100 Pa/mm springs the homogeneous calibration found no FE solution near the c1 it
+#: sought (~330 Pa).
 SLIDING_SPRINGS_PA_PER_MM = 1000.0
 
 
