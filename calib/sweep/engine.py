@@ -325,6 +325,9 @@ class DaskBackend(Backend):
                 threads_per_worker=1,
                 processes=True,
                 dashboard_address=None,
+                # the scheduler's HTTP server (health routes) starts even without a dashboard and
+                # would ask for port 8787 first; a free port instead
+                scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
                 silence_logs=logging.ERROR,
             )
             self.client = Client(self.cluster)

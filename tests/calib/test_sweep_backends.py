@@ -102,6 +102,9 @@ def test_dask_cluster_at_an_address_with_a_killed_worker_matches_serial(work, se
         threads_per_worker=1,
         processes=True,
         dashboard_address=None,
+        # the scheduler's HTTP server (health routes) starts even without a dashboard and
+        # would ask for port 8787 first; a free port instead
+        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
         silence_logs=logging.ERROR,
     ) as cluster:
         progress, state = _killer(3)
