@@ -51,6 +51,9 @@ class Discretization:
     pattern: Pattern
     spring: sp.csr_matrix | None  # full-size spring matrix of an elastic support, N/m
     skfem_basis: object  # scalar displacement basis (for probes and cross-checks)
+    # (facets, support) of every support with springs: their matrix is assembled on the
+    # current nodes (springs act per unit stress-free area), again by with_nodes
+    spring_faces: tuple = ()
 
     @property
     def mixed(self) -> bool:
@@ -79,13 +82,21 @@ class Discretization:
 
         Elements are affine, so the new gradients and weights follow from the
         reference-element data and the new vertex positions alone (no re-initialisation).
+        A support's springs act per unit area of the face on the new nodes and are
+        assembled there again.
         """
         mesh = self.mesh.with_nodes(nodes_mm)
         jac = _jacobians(mesh, self.R_solver_from_model)
         ref = self.reference_data
         grad = np.einsum("qam,emj->eqaj", ref["grad"], np.linalg.inv(jac), optimize=True)
         weights = np.abs(np.linalg.det(jac))[:, None] * ref["weights"][None, :]
-        return replace(self, mesh=mesh, grad_u=grad, weights=weights)
+        moved = replace(self, mesh=mesh, grad_u=grad, weights=weights)
+        if not self.spring_faces:
+            return moved
+        # the support's springs act per unit area of the face on these nodes: a face that
+        # stretches in its plane (a sliding back) carries more spring force
+        basis = moved.basis()
+        return replace(moved, spring=_springs(basis, self.spring_faces, self.n_dofs))
 
     def basis(self):
         """A scikit-fem basis of the displacement space on the current nodes."""
@@ -303,19 +314,19 @@ def discretize(
     dofs = _dofs(mesh, formulation)
     n_total = 3 * dofs["n_scalar_u"] + dofs["n_p"]
     fixed = np.zeros(n_total, dtype=bool)
-    spring = None
+    faces = []
     for sup in supports:
         facets = _support_dofs(geo["skfem_basis"], mesh, sup, fixed)
-        K = _support_springs(geo["skfem_basis"], facets, sup, n_total)
-        if K is not None:
-            spring = K if spring is None else spring + K
+        if _has_springs(sup):
+            faces.append((facets, sup))
     disc = Discretization(
         mesh=mesh,
         formulation=formulation,
         R_solver_from_model=R,
         fixed=fixed,
         pattern=None,  # type: ignore[arg-type]
-        spring=spring,
+        spring=_springs(geo["skfem_basis"], faces, n_total),
+        spring_faces=tuple(faces),
         **geo,
         **dofs,
     )
@@ -330,13 +341,26 @@ def _solver_rotation(mesh: TetMesh, supports: tuple) -> np.ndarray:
     return _rotation_to_minus_z(_outward_back_normal(mesh, planar[0])) if planar else np.eye(3)
 
 
+def _has_springs(support: Support) -> bool:
+    return isinstance(support, ElasticSupport) or (
+        isinstance(support, Sliding) and support.tangent_stiffness_pa_per_mm > 0
+    )
+
+
+def _springs(basis, faces, n_total: int) -> sp.csr_matrix | None:
+    """The summed spring matrix of ``faces`` ((facets, support) pairs), None without any."""
+    spring = None
+    for facets, sup in faces:
+        K = _support_springs(basis, facets, sup, n_total)
+        spring = K if spring is None else spring + K
+    return spring
+
+
 def _support_springs(basis, facets, support: Support, n_total: int):
     if isinstance(support, ElasticSupport):
         return _spring_matrix(basis, facets, support, n_total)
-    if isinstance(support, Sliding) and support.tangent_stiffness_pa_per_mm > 0:
-        springs = ElasticSupport(support.node_set, 1.0, support.tangent_stiffness_pa_per_mm)
-        return _drop_normal(_spring_matrix(basis, facets, springs, n_total))
-    return None
+    springs = ElasticSupport(support.node_set, 1.0, support.tangent_stiffness_pa_per_mm)
+    return _drop_normal(_spring_matrix(basis, facets, springs, n_total))
 
 
 def _drop_normal(K: sp.csr_matrix) -> sp.csr_matrix:

@@ -12,6 +12,11 @@ loaded scan ``x_m`` (``X = x_m - u0``, :mod:`fem.unload`), differentiating
 residual is an explicit, smooth function of the material parameters, so the difference
 error is ``O(eps^2)`` relative (1e-12 at ``eps = 1e-6``), far below the Newton tolerance.
 
+A support's springs (an elastic or sliding back) enter ``R`` and ``K`` as in the solver.
+Their force is per unit area of the stress-free face, so it also moves with ``X``; that
+part of ``D`` is not implemented, and asking for ``D`` with springs raises
+``NotImplementedError`` rather than return a derivative without it.
+
 References
 ----------
 Kleiber, M., Antunez, H., Hien, T. D. & Kowalczyk, P. (1997). *Parameter Sensitivity in
@@ -61,7 +66,10 @@ def residual(
         Gravity acceleration vector, model frame (:func:`fem.fields.gravity_vector`).
     """
     st = assemble(disc, model, state, tangent=False)
-    return scatter(disc, st.vectors) - external_force(disc, model, gravity_m_s2)
+    r = scatter(disc, st.vectors) - external_force(disc, model, gravity_m_s2)
+    if disc.spring is not None:  # a support's springs, as in the solver
+        r += disc.spring @ state
+    return r
 
 
 def parameter_derivative(
@@ -100,14 +108,29 @@ def tangent_matrix(
     """
     Ke = assemble(disc, model, state, tangent=True).matrices
     if shape_load_m_s2 is not None:
+        _no_spring_shape_derivative(disc)
         Ke = Ke - geometry_matrices(disc, model, state, shape_load_m_s2)
-    return disc.pattern.matrix(Ke)
+    K = disc.pattern.matrix(Ke)
+    if disc.spring is not None:  # a support's springs, as in the solver
+        K = K + disc.spring[disc.free][:, disc.free]
+    return K
+
+
+def _no_spring_shape_derivative(disc: Discretization) -> None:
+    """Refuse ``D`` with springs: their force changes with the face's area, not in ``D``."""
+    if disc.spring is not None:
+        raise NotImplementedError(
+            "the shape derivative D of a support's springs (their force per unit area of a "
+            "face that moves with the stress-free geometry) is not implemented: no "
+            "sensitivity through a recovered reference with an elastic or sliding support"
+        )
 
 
 def geometry_matrix(
     disc: Discretization, model: Model, state: np.ndarray, gravity_m_s2: np.ndarray
 ):
     """Free-dof shape derivative ``D = dR/dX`` (vertex columns only), sparse."""
+    _no_spring_shape_derivative(disc)
     return disc.pattern.matrix(geometry_matrices(disc, model, state, gravity_m_s2))
 
 

@@ -9,7 +9,9 @@ gravity is not the inverse in nonlinear elasticity. Three methods find ``X``:
   vertices; Newton's method on ``R(u; x_m - u) = 0`` uses the consistent Jacobian
   ``K - D`` (``D`` the residual's derivative in the reference geometry,
   :mod:`fem.shape_derivative`), with line search and load stepping; the loaded geometry
-  matches ``x_m`` at the vertices by construction (its P2 edge nodes are free).
+  matches ``x_m`` at the vertices by construction (its P2 edge nodes are free). The
+  springs of an elastic or sliding support carry ``-k u`` per unit stress-free area, as
+  in the forward solve.
 - ``"fixed-point"``: the backward-displacement iteration ``X <- X - a (X + u(X) - x_m)``
   with Aitken's adaptive relaxation ``a``, each forward solve warm-started from the last.
   The same discrete equations as ``newton``; they agree to their tolerance.
@@ -300,9 +302,17 @@ class _Inverse:
         if st.min_J <= 0:
             return None, None
         r = scatter(d, st.vectors) - lam * external_force(d, mdl, self.g)
+        if d.spring is not None:
+            # springs of an elastic or sliding support carry -k u, u the inverse's own
+            # unknown, per unit area of the stress-free face (``with_nodes`` assembles them
+            # there, as for a forward solve); their change with the face's stretch is left
+            # out of the tangent (an inexact Newton step, the residual exact)
+            r += d.spring @ u
         M = None
         if tangent:
             M = d.pattern.matrix(st.matrices - geometry_matrices(d, mdl, u, lam * self.g))
+            if d.spring is not None:
+                M = M + d.spring[self.free][:, self.free]
         return r[self.free], M
 
     def merit(self, r) -> float:

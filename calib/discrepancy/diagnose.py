@@ -73,9 +73,10 @@ DEFAULT_EFFECTS = (
 )  # fmt: skip
 #: Why a sliding plate is screened but never refitted (and so never named).
 NO_SLIDING_REFIT = (
-    "screened only: a refit needs the stress-free recovery with a sliding plate, which "
-    "fem.unload's inverse Newton does not do with springs (it leaves them out of the "
-    "residual), and the free plate's forward solve does not converge on calibration meshes"
+    "screened only: a refit needs the sensitivities through the stress-free recovery with "
+    "the plate on springs, whose shape derivative (spring force per unit area of the moving "
+    "face) fem.sensitivity does not implement, and the free plate's forward solve does "
+    "not converge on calibration meshes"
 )
 #: Effects that are screened but cannot be refitted (so never named).
 SCREENED_ONLY = ("sliding",)

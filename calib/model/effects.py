@@ -27,8 +27,8 @@ skin         skin/bulk stiffness ratio - 1 (band   0            [-0.9, 99]
              surface, not the back plate)
 sliding      back-plate support: clamped, tangential springs (``fem.Sliding`` with
              ``tangent_stiffness_pa_per_mm``, rim held) or frictionless; the
-             diagnosis screens the frictionless end (one FE solve per scan) and refits
-             the two end states
+             diagnosis screens it with a stiff-spring probe (one FE solve per scan) and
+             does not refit it (``calib.discrepancy.diagnose.NO_SLIDING_REFIT``)
 inclusions   inclusion/bulk stiffness ratio - 1    0            [-0.9, 99]
 mooney       c2 / c1 (Mooney-Rivlin, strain        0            [0, 4]
              stiffening of the I2 term)
