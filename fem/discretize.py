@@ -20,7 +20,14 @@ from .model import Clamped, Constrained, ElasticSupport, Sliding, Support, as_su
 from .pattern import Pattern, build_pattern
 from .units import M_PER_MM
 
-__all__ = ["FORMULATIONS", "Discretization", "Formulation", "discretize", "plane_fit"]
+__all__ = [
+    "FORMULATIONS",
+    "Discretization",
+    "Formulation",
+    "discretize",
+    "plane_fit",
+    "spring_shape_derivative",
+]
 
 Formulation = Literal["p1", "p2", "mini", "taylor-hood"]
 # name -> (displacement element, pressure element or None, quadrature order)
@@ -267,15 +274,30 @@ def _rim_dofs(basis, rim_nodes: np.ndarray, face_dofs: np.ndarray) -> np.ndarray
     return np.unique(np.concatenate(dofs))
 
 
-def _spring_matrix(basis, facets, support: ElasticSupport, n_total: int) -> sp.csr_matrix:
-    from skfem import BilinearForm, FacetBasis
+def _face_mass():
+    from skfem import BilinearForm
 
     @BilinearForm
     def mass(u, v, _):
         return u * v
 
+    return mass
+
+
+def _spring_diagonal(support: Support) -> np.ndarray:
+    """Spring stiffness per area along the solver axes (back normal z), (3,), N/m^3."""
+    if isinstance(support, ElasticSupport):
+        kn, kt = support.normal_stiffness_pa_per_mm, support.tangent_stiffness_pa_per_mm
+    else:  # Sliding on tangential springs: the normal is fixed, not sprung
+        kn, kt = 0.0, support.tangent_stiffness_pa_per_mm
+    return np.array([kt, kt, kn]) / M_PER_MM
+
+
+def _spring_matrix(basis, facets, support: ElasticSupport, n_total: int) -> sp.csr_matrix:
+    from skfem import FacetBasis
+
     fb = FacetBasis(basis.mesh, basis.elem, facets=facets)
-    M = mass.assemble(fb)
+    M = _face_mass().assemble(fb)
     kn = support.normal_stiffness_pa_per_mm / M_PER_MM
     kt = support.tangent_stiffness_pa_per_mm / M_PER_MM
     S = np.diag([kt, kt, kn])  # back normal is z in the solver frame
@@ -361,6 +383,64 @@ def _support_springs(basis, facets, support: Support, n_total: int):
         return _spring_matrix(basis, facets, support, n_total)
     springs = ElasticSupport(support.node_set, 1.0, support.tangent_stiffness_pa_per_mm)
     return _drop_normal(_spring_matrix(basis, facets, springs, n_total))
+
+
+def spring_shape_derivative(disc: Discretization, x: np.ndarray) -> sp.csr_matrix | None:
+    """``d(K_s(X) x)/dX`` of a support's springs, full size (vertex columns), N/m.
+
+    The springs act per unit area of the stress-free face: on a straight facet the P2
+    mass matrix is ``M_f = A_f Mhat``, so the facet's force ``c_f = (M_f (x) S) x_f``
+    moves with the area as ``dc_f = (c_f / A_f) dA_f``, with (triangle ``p0 p1 p2``, unit
+    normal ``n``) ``dA/dp0 = (p1 - p2) x n / 2`` and cyclically. Columns ``3 v + m`` are
+    the ``m``-th solver coordinate (m) of vertex ``v``'s displacement unknown, as in
+    :func:`fem.shape_derivative.geometry_matrices`. None without springs.
+
+    Parameters
+    ----------
+    disc : Discretization
+        On the stress-free nodes.
+    x : ndarray, shape (n_dofs,)
+        State (solver frame, SI).
+    """
+    if not disc.spring_faces:
+        return None
+    from skfem import FacetBasis
+
+    basis = disc.basis()
+    p = basis.mesh.p  # (3, n_vertices), solver frame, m
+    rows, cols, vals = [], [], []
+    for facets, sup in disc.spring_faces:
+        fb = FacetBasis(basis.mesh, basis.elem, facets=facets)
+        coo = _face_mass().coo_data(fb)
+        nb = coo.local_shape[0]
+        M = coo.data.reshape(nb, nb, -1)  # (a, b, facet)
+        dofs = fb.element_dofs  # (nb, n_facets) scalar dofs of the owning elements
+        S = _spring_diagonal(sup)
+        xs = x[: 3 * disc.n_scalar_u].reshape(-1, 3)[dofs]  # (nb, n_facets, 3)
+        c = np.einsum("abf,bfi->afi", M, xs) * S  # (a, facet, i), N
+        tri = basis.mesh.facets[:, facets]  # (3, n_facets) vertex ids
+        P = p[:, tri].transpose(1, 2, 0)  # (3 corners, n_facets, 3)
+        N = np.cross(P[1] - P[0], P[2] - P[0])
+        twice_area = np.linalg.norm(N, axis=1)
+        n = N / twice_area[:, None]
+        dA = 0.5 * np.stack([np.cross(P[(k + 1) % 3] - P[(k + 2) % 3], n) for k in range(3)])
+        c_per_area = c / (0.5 * twice_area)[None, :, None]
+        vdof = basis.nodal_dofs[0][tri]  # (3, n_facets) scalar dof of each corner
+        # entry (a, i, k, m): row 3 dofs[a] + i, column 3 vdof[k] + m
+        r = (3 * dofs)[:, None, None, None, :] + np.arange(3)[None, :, None, None, None]
+        q = (3 * vdof)[None, None, :, None, :] + np.arange(3)[None, None, None, :, None]
+        v = (
+            c_per_area.transpose(0, 2, 1)[:, :, None, None, :]
+            * dA.transpose(0, 2, 1)[None, None, :, :, :]
+        )
+        shape = (nb, 3, 3, 3, len(facets))
+        rows.append(np.broadcast_to(r, shape).ravel())
+        cols.append(np.broadcast_to(q, shape).ravel())
+        vals.append(np.broadcast_to(v, shape).ravel())
+    n = disc.n_dofs
+    return sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
+    )
 
 
 def _drop_normal(K: sp.csr_matrix) -> sp.csr_matrix:

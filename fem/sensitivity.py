@@ -12,10 +12,9 @@ loaded scan ``x_m`` (``X = x_m - u0``, :mod:`fem.unload`), differentiating
 residual is an explicit, smooth function of the material parameters, so the difference
 error is ``O(eps^2)`` relative (1e-12 at ``eps = 1e-6``), far below the Newton tolerance.
 
-A support's springs (an elastic or sliding back) enter ``R`` and ``K`` as in the solver.
-Their force is per unit area of the stress-free face, so it also moves with ``X``; that
-part of ``D`` is not implemented, and asking for ``D`` with springs raises
-``NotImplementedError`` rather than return a derivative without it.
+A support's springs (an elastic or sliding back) enter ``R`` and ``K`` as in the solver;
+their force is per unit area of the stress-free face, so they enter ``D`` too
+(:func:`fem.discretize.spring_shape_derivative`).
 
 References
 ----------
@@ -32,7 +31,7 @@ from collections.abc import Callable
 import numpy as np
 
 from .assemble import assemble, external_force, scatter
-from .discretize import Discretization
+from .discretize import Discretization, spring_shape_derivative
 from .linalg import factorize
 from .model import Model
 from .shape_derivative import geometry_matrices
@@ -108,30 +107,24 @@ def tangent_matrix(
     """
     Ke = assemble(disc, model, state, tangent=True).matrices
     if shape_load_m_s2 is not None:
-        _no_spring_shape_derivative(disc)
         Ke = Ke - geometry_matrices(disc, model, state, shape_load_m_s2)
     K = disc.pattern.matrix(Ke)
+    free = disc.free
     if disc.spring is not None:  # a support's springs, as in the solver
-        K = K + disc.spring[disc.free][:, disc.free]
+        K = K + disc.spring[free][:, free]
+        if shape_load_m_s2 is not None:
+            K = K - spring_shape_derivative(disc, state)[free][:, free]
     return K
-
-
-def _no_spring_shape_derivative(disc: Discretization) -> None:
-    """Refuse ``D`` with springs: their force changes with the face's area, not in ``D``."""
-    if disc.spring is not None:
-        raise NotImplementedError(
-            "the shape derivative D of a support's springs (their force per unit area of a "
-            "face that moves with the stress-free geometry) is not implemented: no "
-            "sensitivity through a recovered reference with an elastic or sliding support"
-        )
 
 
 def geometry_matrix(
     disc: Discretization, model: Model, state: np.ndarray, gravity_m_s2: np.ndarray
 ):
     """Free-dof shape derivative ``D = dR/dX`` (vertex columns only), sparse."""
-    _no_spring_shape_derivative(disc)
-    return disc.pattern.matrix(geometry_matrices(disc, model, state, gravity_m_s2))
+    D = disc.pattern.matrix(geometry_matrices(disc, model, state, gravity_m_s2))
+    if disc.spring is not None:  # springs per unit area of the moving face
+        D = D + spring_shape_derivative(disc, state)[disc.free][:, disc.free]
+    return D
 
 
 def vertex_dofs(disc: Discretization) -> np.ndarray:

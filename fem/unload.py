@@ -82,7 +82,7 @@ from typing import Literal
 import numpy as np
 
 from .assemble import assemble, external_force, scatter
-from .discretize import Formulation, discretize
+from .discretize import Formulation, discretize, spring_shape_derivative
 from .model import Model
 from .prestress import (
     Prestress,
@@ -304,15 +304,15 @@ class _Inverse:
         r = scatter(d, st.vectors) - lam * external_force(d, mdl, self.g)
         if d.spring is not None:
             # springs of an elastic or sliding support carry -k u, u the inverse's own
-            # unknown, per unit area of the stress-free face (``with_nodes`` assembles them
-            # there, as for a forward solve); their change with the face's stretch is left
-            # out of the tangent (an inexact Newton step, the residual exact)
+            # unknown, per unit area of the stress-free face X = x_m - u (``with_nodes``
+            # assembles them there, as for a forward solve)
             r += d.spring @ u
         M = None
         if tangent:
             M = d.pattern.matrix(st.matrices - geometry_matrices(d, mdl, u, lam * self.g))
             if d.spring is not None:
-                M = M + d.spring[self.free][:, self.free]
+                f = self.free
+                M = M + (d.spring - spring_shape_derivative(d, u))[f][:, f]
         return r[self.free], M
 
     def merit(self, r) -> float:

@@ -88,33 +88,79 @@ def test_newton_recovers_the_truth_on_a_back_sliding_on_springs(phantom):
     assert np.abs(rec.nodes_mm - truth.mesh.nodes_mm).max() <= 1e-4
 
 
-def test_state_sensitivity_carries_the_springs(phantom):
-    """d(displacement)/d(ln c1) on springs: the direct sensitivity against central differences."""
+def test_spring_shape_derivative_matches_central_differences(phantom):
+    """d(K_s(X) x)/dX against central differences of the springs on moved nodes."""
+    from fem.discretize import spring_shape_derivative
+    from fem.units import M_PER_MM
+
+    rng = np.random.default_rng(1)
+    X = phantom.mesh.nodes_mm
+    V = 0.5 * np.sin((X - X.mean(axis=0)) / 20.0)  # a smooth field of node moves, mm
+    for sup in (
+        fem.ElasticSupport(normal_stiffness_pa_per_mm=2000.0, tangent_stiffness_pa_per_mm=500.0),
+        fem.Sliding(hold="none", tangent_stiffness_pa_per_mm=1000.0),
+    ):
+        disc = fem.discretize(phantom.mesh, sup)
+        x = rng.normal(size=disc.n_dofs) * 1e-3
+        v = np.zeros(disc.n_dofs)  # V on the vertex columns, solver frame, m
+        vertex = 3 * disc.skfem_basis.nodal_dofs[0]
+        for m in range(3):
+            v[vertex + m] = ((V * M_PER_MM) @ disc.R_solver_from_model.T)[:, m]
+        analytic = spring_shape_derivative(disc, x) @ v
+        eps = 1e-2
+        fd = (disc.with_nodes(X + eps * V).spring @ x - disc.with_nodes(X - eps * V).spring @ x) / (
+            2 * eps
+        )
+        # a facet's area is smooth in its corners: O(eps^2) truncation (measured 5e-12
+        # relative at eps 1e-2), far below 1e-6
+        assert np.abs(analytic - fd).max() <= 1e-6 * np.abs(fd).max()
+
+
+def test_sensitivities_carry_the_springs(phantom):
+    """Springs in the direct sensitivities: a posture and the recovered reference, each
+    against central differences of its own solves."""
     from fem.fields import gravity_vector, vertex_displacement_mm
-    from fem.sensitivity import geometry_matrix, state_sensitivity
+    from fem.sensitivity import state_sensitivity, stress_free_sensitivity
 
     sup = fem.Sliding(hold="none", tangent_stiffness_pa_per_mm=1000.0)
     g = [1.0, 0.0, 0.0]
+    g_vec = gravity_vector(g, 9.81)
     disc = fem.discretize(phantom.mesh, sup)
 
-    def model_at(t):
-        return fem.Model.homogeneous(phantom.mesh, fem.NeoHookean(float(np.exp(t)), nu=0.49),
-                                     support=sup)  # fmt: skip
+    def model_at(t, mesh=phantom.mesh):
+        return fem.Model.homogeneous(mesh, fem.NeoHookean(float(np.exp(t)), nu=0.49), support=sup)
 
     theta, h = np.log(420.0), 1e-4
+    # forward, fixed geometry: K du = -dR/dp with the springs in K
     sol = fem.solve(model_at(theta), gravity=g, disc=disc)
-    du = state_sensitivity(disc, model_at, theta, sol.state, gravity_vector(g, 9.81))
-    analytic = vertex_displacement_mm(disc, du)
-    plus, minus = (fem.solve(model_at(theta + s * h), gravity=g, disc=disc, x0=sol.state)
-                   for s in (1, -1))  # fmt: skip
+    analytic = vertex_displacement_mm(
+        disc, state_sensitivity(disc, model_at, theta, sol.state, g_vec)
+    )
+    plus, minus = (
+        fem.solve(model_at(theta + s * h), gravity=g, disc=disc, x0=sol.state) for s in (1, -1)
+    )
     fd = (plus.displacement_mm - minus.displacement_mm) / (2 * h)
     # central differences: O(h^2) truncation; Newton's stopping error (rtol 1e-8 of the
     # ~10 mm displacement) over 2h -> ~1e-4 relative of the derivative (measured 2e-9;
     # springs left out of K: 340)
     assert np.abs(analytic - fd).max() <= 1e-4 * np.abs(fd).max()
-    # the springs' share of D (their force per unit stress-free area) is refused, not dropped
-    with pytest.raises(NotImplementedError, match="springs"):
-        geometry_matrix(disc, model_at(theta), sol.state, gravity_vector(g, 9.81))
+    # the recovered reference: (K0 - D0) du0 = -dR/dp, D0 with the springs' share
+    loaded = phantom.mesh.with_nodes(phantom.mesh.nodes_mm + sol.displacement_mm)
+    rec = recover_stress_free(model_at(theta, loaded), gravity=g)
+    disc0 = fem.discretize(loaded, sup).with_nodes(rec.nodes_mm)
+    du0 = stress_free_sensitivity(
+        disc0, lambda t: model_at(t, loaded), theta, rec.solution.state, g_vec
+    )
+    analytic = -vertex_displacement_mm(disc0, du0)  # X = x_m - u0
+    X = [
+        recover_stress_free(
+            model_at(theta + s * h, loaded), gravity=g, x0_state=rec.solution.state
+        ).nodes_mm
+        for s in (1, -1)
+    ]
+    fd = (X[0] - X[1]) / (2 * h)
+    # as above (measured 1.3e-9); the springs' shape derivative left out of D0: 9e-3
+    assert np.abs(analytic - fd).max() <= 1e-4 * np.abs(fd).max()
 
 
 def test_reversing_gravity_is_not_the_inverse(phantom):
