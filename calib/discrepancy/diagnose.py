@@ -71,15 +71,6 @@ log = logging.getLogger(__name__)
 DEFAULT_EFFECTS = (
     "skin", "sliding", "inclusions", "mooney", "poisson", "density", "gravity", "registration",
 )  # fmt: skip
-#: Why a sliding plate is screened but never refitted (and so never named).
-NO_SLIDING_REFIT = (
-    "screened only: a refit needs the sensitivities through the stress-free recovery with "
-    "the plate on springs, whose shape derivative (spring force per unit area of the moving "
-    "face) fem.sensitivity does not implement, and the free plate's forward solve does "
-    "not converge on calibration meshes"
-)
-#: Effects that are screened but cannot be refitted (so never named).
-SCREENED_ONLY = ("sliding",)
 FLOOR_LAG_MM = 20.0
 MAP_KERNEL_MM = 10.0  # the significance map's smoothing (a pad's print, a rim band)
 
@@ -92,7 +83,7 @@ class DiagnosisOptions:
     ----------
     effects : tuple of str
         Library effects to screen (:data:`calib.model.effects.LIBRARY`). ``sliding`` is
-        screened by a stiff-spring probe but never refitted (:data:`NO_SLIDING_REFIT`).
+        screened by a stiff-spring probe and refitted as ``ln k`` of the plate's springs.
     holdout : str or None
         Scan never fitted (default: the first validation scan; ``"none"``: none).
     alpha : float
@@ -363,8 +354,6 @@ class Diagnosis:
                     "estimate": _num(best.estimate) if rows and len(rows) == 1 else None,
                     "retained_fraction": _num(max(e.retained_fraction for e in rows)),
                 }
-                if name in SCREENED_ONLY:
-                    entry["note"] = NO_SLIDING_REFIT
                 if name == "density":
                     entry["note"] = (
                         "at fixed nu the solution depends on rho g / c1 only: its field is "
@@ -558,12 +547,8 @@ def diagnose(
         sig = [s for s in _significant_effects(cur_scr) if s[0] not in named]
         if not sig:
             break
-        stages, screened_only = _candidates(sig, partial(_cosine, cur_scr), o)
+        stages = _candidates(sig, partial(_cosine, cur_scr), o)
         row = {s[0]: s for s in sig}
-        for eff in screened_only:  # significant but only screened: recorded once
-            if not any(c.effect == eff for c in candidates):
-                say(f"  {eff} is significant but not refitted: {NO_SLIDING_REFIT}")
-                candidates.append(_not_refitted(eff, rnd, row[eff]))
         passing, trials = [], {}
         for chosen in stages:  # physical effects first, nuisances if none passes
             if passing or not chosen:
@@ -624,8 +609,8 @@ def diagnose(
     )  # fmt: skip
 
 
-def _candidates(sig, cosine, o) -> tuple[list[list[str]], list[str]]:
-    """The effects a round refits, physical ones first, and the ones it cannot refit.
+def _candidates(sig, cosine, o) -> list[list[str]]:
+    """The effects a round refits, physical ones first.
 
     Stage one holds the ``o.max_candidates`` strongest significant physical effects (every
     kind but ``nuisance``) that can be refitted, plus any significant effect whose
@@ -634,9 +619,7 @@ def _candidates(sig, cosine, o) -> tuple[list[list[str]], list[str]]:
     angle, a rigid offset) is the explanation of last resort: it has parameters of its
     own in every scan and can absorb a physical effect's print on one posture, while a
     physical effect must predict every posture with one value; the next round screens
-    the nuisances again at the model with the physical effect in it. An effect that is
-    only screened (:data:`SCREENED_ONLY`) takes no candidate's place, so a significant
-    sliding plate does not keep the next effect from its refit.
+    the nuisances again at the model with the physical effect in it.
 
     Parameters
     ----------
@@ -650,28 +633,22 @@ def _candidates(sig, cosine, o) -> tuple[list[list[str]], list[str]]:
     -------
     stages : list of two lists of str
         The physical candidates, then the nuisances.
-    screened_only : list of str
     """
-    screened_only = [s[0] for s in sig if s[0] in SCREENED_ONLY]
     stages = []
     for nuisance in (False, True):
-        refittable = [
-            s[0]
-            for s in sig
-            if s[0] not in SCREENED_ONLY and (LIBRARY[s[0]].kind == "nuisance") == nuisance
-        ]
+        refittable = [s[0] for s in sig if (LIBRARY[s[0]].kind == "nuisance") == nuisance]
         chosen = refittable[: o.max_candidates]
         for eff in refittable[o.max_candidates :]:  # a confounded partner joins
             if any(cosine(eff, c) >= o.confounded_above for c in chosen):
                 chosen.append(eff)
         stages.append(chosen)
-    return stages, screened_only
+    return stages
 
 
 def _not_refitted(eff: str, rnd: int, sig_row) -> Candidate:
     """A significant effect that could not be refitted (so not named)."""
     _, stat, p_holm = sig_row
-    why = NO_SLIDING_REFIT if eff in SCREENED_ONLY else "no FE solution at the refit's start"
+    why = "no FE solution at the refit's start"
     return Candidate(eff, rnd, True, float(p_holm), float(stat), None, None, False, {}, (),
                      False, float("nan"), False, float("nan"), float("nan"), why)  # fmt: skip
 
@@ -870,5 +847,8 @@ def _intervals(fit: Refit, prob: Problem) -> dict:
         if name in ("skin", "inclusions"):  # the parameter is the ratio - 1
             entry["ratio"] = float(1.0 + v)
             entry["ratio_ci95"] = [float(1.0 + iv.lower), float(1.0 + iv.upper)]
+        if name == "sliding":  # the parameter is ln k
+            entry["stiffness_pa_per_mm"] = float(np.exp(v))
+            entry["stiffness_ci95_pa_per_mm"] = [float(np.exp(iv.lower)), float(np.exp(iv.upper))]
         out[name] = entry
     return out

@@ -18,11 +18,15 @@ to the simulated surface) to each effect parameter ``p``:
   reference posture untouched;
 - a rigid offset of a scan: analytic, ``dr = u . (dt + dw x (p - centre))`` with ``u`` the
   unit direction from the simulated surface to the measured point;
-- sliding: one FE solve per scan and one of the reference posture with the plate on
-  stiff tangential springs (``SLIDING_PROBE_PA_PER_MM``) at the same c1 and stress-free
-  geometry, the reference posture's slip taken off to first order; the field is the
-  secant per unit of the probe's amplitude ``a`` (a = 1: springs of the probe's
-  stiffness; for stiff springs the slip goes as 1 / k).
+- sliding, at a clamped model (the screen): one FE solve per scan and one of the
+  reference posture with the plate on stiff tangential springs
+  (``SLIDING_PROBE_PA_PER_MM``) at the same c1 and stress-free geometry, the reference
+  posture's slip taken off to first order; the field is the secant per unit of the
+  probe's amplitude ``a`` (a = 1: springs of the probe's stiffness; for stiff springs the
+  slip goes as 1 / k);
+- sliding, at a model whose plate is on springs (the refit): the direct sensitivity to
+  ``ln k`` like the material effects', ``dR/d ln k = K_s u`` (the springs' own force:
+  their matrix is linear in k), through the stress-free recovery too.
 
 A vertex-position derivative becomes a residual derivative by the envelope theorem
 (the closest point's barycentric weights held fixed, :mod:`calib.model.residuals`).
@@ -143,7 +147,7 @@ def material_dpositions(
         The converged states of ``fm.evaluate``.
     names : sequence of str
         Library effects with a model value (``skin``, ``inclusions``, ``mooney``,
-        ``poisson``, ``density``).
+        ``poisson``, ``density``; ``sliding`` when the plate is on springs: ``ln k``).
     gravities : dict of str to ndarray (3,)
         Each scan's gravity direction, as solved.
     gravity_names : sequence of str
@@ -173,6 +177,13 @@ def material_dpositions(
     dX = {p: np.zeros_like(X) for p in params}
     dX_state = {p: None for p in params}
     unload = fm.reference_state == "unload"
+
+    def dR(p, state, g_vec):
+        """``dR/dp`` at a fixed state."""
+        if p == "sliding":  # d(k M u)/d ln k: the springs' own force
+            return disc.spring @ state
+        return parameter_derivative(disc, model_at(p), at[p], state, g_vec)
+
     if unload:
         u0 = fm.stress_free_state
         if u0 is None:
@@ -180,12 +191,13 @@ def material_dpositions(
         g0 = gravity_vector(fm.gravity_ref, fm.g_m_s2)
         solve0 = factorize(tangent_matrix(disc, model, u0, shape_load_m_s2=g0))
         for p in params:
-            rhs = -parameter_derivative(disc, model_at(p), at[p], u0, g0)
+            rhs = -dR(p, u0, g0)
             du0 = np.zeros(disc.n_dofs)
             du0[free] = solve0(rhs[free])
             dX[p] = -vertex_displacement_mm(disc, du0)
             dX_state[p] = np.zeros(disc.n_dofs)
             dX_state[p][v] = -du0[v]
+
     out: dict = {p: {} for p in params}
     for name, st in states.items():
         g_dir, mag = _load(fm, gravities[name])
@@ -193,7 +205,7 @@ def material_dpositions(
         solve = factorize(tangent_matrix(disc, model, st.state))
         D = geometry_matrix(disc, model, st.state, g_vec) if unload else None
         for p in params:
-            rhs = -parameter_derivative(disc, model_at(p), at[p], st.state, g_vec)[free]
+            rhs = -dR(p, st.state, g_vec)[free]
             if dX_state[p] is not None:
                 rhs = rhs - D @ dX_state[p][free]
             du = np.zeros(disc.n_dofs)
@@ -297,6 +309,8 @@ def effect_fields(
     J = {n: res[n].dr for n in names}
     unavailable: dict = {}
     mats = [e for e in effects if e in MATERIAL_EFFECTS]
+    if "sliding" in effects and values.support == "springs":
+        mats.append("sliding")  # the plate on springs: a direct sensitivity to ln k
     if "inclusions" in mats and not prob.inclusions:
         mats.remove("inclusions")
         unavailable["inclusions"] = "no inclusion was detected in the reference scan"
@@ -318,7 +332,7 @@ def effect_fields(
         elif e == "density":
             cols.append(Column(e, e, None, LIBRARY[e].parameter, {n: -J[n] for n in names}))
         elif e == "sliding":
-            if values.support != "clamped":
+            if values.support != "clamped":  # a free plate: no FE solution on these meshes
                 unavailable["sliding"] = f"the model's support is already {values.support}"
                 continue
             say(f"sensitivity of sliding: a stiff-spring probe, {len(names) + 1} FE solves")

@@ -7,7 +7,8 @@ Levenberg-Marquardt steps (Marquardt 1963: ``(A'A + lambda diag(A'A)) dx = -A'r`
 ``A = dr/dx`` from :mod:`calib.discrepancy.fields`), projected onto the bounds, with a
 backtracking line search on the sum of squares; a trial whose FE solve (or stress-free
 recovery) fails halves the step and is recorded, never replaced by a made-up value.
-``sliding`` is not refitted (:data:`calib.discrepancy.diagnose.NO_SLIDING_REFIT`).
+``sliding`` is fitted as ``ln k`` of the plate's tangential springs within
+:data:`SLIDING_LN_K_BOUNDS`, from the screen's probe stiffness.
 
 Leave-one-posture-out prediction (:func:`lopo`) is the first-order one at the fit: for
 each scan ``k``, the parameters refitted on the other scans by one Gauss-Newton step
@@ -23,21 +24,25 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
 import fem
 
 from ..model.effects import LIBRARY, EffectValues
-from .fields import MATERIAL_EFFECTS, FieldSet, effect_fields
+from .fields import MATERIAL_EFFECTS, SLIDING_PROBE_PA_PER_MM, FieldSet, effect_fields
 from .problem import Nuisance, Problem
 
 __all__ = ["Refit", "lopo", "refit"]
 
 log = logging.getLogger(__name__)
 
-GLOBAL = MATERIAL_EFFECTS  # continuous global effect parameters
+GLOBAL = (*MATERIAL_EFFECTS, "sliding")  # continuous global effect parameters
+#: Range of ``ln k`` (k: the plate's tangential springs, Pa/mm) in a refit: the twin's
+#: (``--effect sliding=K``). Above 1e6 Pa/mm a plate is clamped for every purpose here
+#: (slip below 1e-3 mm); below 10 the quick twin's plate has no FE solution.
+SLIDING_LN_K_BOUNDS = (math.log(10.0), math.log(1e6))
 _OFFSET_BOUNDS = (3.0, 3.0, 3.0, math.radians(2.0), math.radians(2.0), math.radians(2.0))
 _COMPONENTS = ("tx", "ty", "tz", "wx", "wy", "wz")
 
@@ -118,9 +123,10 @@ def _layout(prob: Problem, effects: Sequence[str], theta0: float):
     names, lo, hi = ["theta"], [theta0 - math.log(4.0)], [theta0 + math.log(4.0)]
     for e in effects:
         if e in GLOBAL:
+            b = SLIDING_LN_K_BOUNDS if e == "sliding" else LIBRARY[e].bounds
             names.append(e)
-            lo.append(LIBRARY[e].bounds[0])
-            hi.append(LIBRARY[e].bounds[1])
+            lo.append(b[0])
+            hi.append(b[1])
     if "gravity" in effects:
         b = LIBRARY["gravity"].bounds
         for n in prob.scans:
@@ -137,12 +143,9 @@ def _layout(prob: Problem, effects: Sequence[str], theta0: float):
     return tuple(names), np.array(lo), np.array(hi)
 
 
-def _unpack(prob: Problem, names, x, base: EffectValues, effects):
+def _unpack(prob: Problem, names, x, base: EffectValues):
     """``(theta, values, nuisance)`` of a parameter vector."""
     values = base
-    if "sliding" in effects:
-        values = replace(values, support_stiffness_pa_per_mm=0.0)
-    nz = {n: Nuisance() for n in prob.scans}
     grav = {n: np.zeros(2) for n in prob.scans}
     off = {n: np.zeros(6) for n in prob.scans}
     for name, v in zip(names[1:], x[1:], strict=True):
@@ -196,24 +199,24 @@ def refit(
     effects = tuple(effects)
     if "density" in effects:
         raise ValueError("density cannot be refitted: at fixed nu it is c1's own signature")
-    if "sliding" in effects:
-        raise ValueError("sliding cannot be refitted (see calib.discrepancy.NO_SLIDING_REFIT)")
     theta0 = prob.theta_calibrated if theta0 is None else theta0
     names, lo, hi = _layout(prob, effects, theta0)
-    neutral = {"poisson": prob.base.nu}  # the model's own nu is the neutral value
+    # the model's own nu is poisson's neutral value; a sliding plate starts on the
+    # screen's probe springs (its amplitude 1)
+    neutral = {"poisson": prob.base.nu, "sliding": math.log(SLIDING_PROBE_PA_PER_MM)}
     x = np.array([theta0] + [neutral.get(n, LIBRARY[n].neutral) if n in GLOBAL else 0.0
                              for n in names[1:]])  # fmt: skip
     for k, v in (x0 or {}).items():
         if k in names:
             x[names.index(k)] = v
     x = np.clip(x, lo, hi)
-    fitted = tuple(e for e in effects if e != "sliding")
+    fitted = effects
     wanted = tuple(dict.fromkeys([*fitted, *screened]))
     history: list[dict] = []
     failed = 0
 
     def evaluate(xv, gradient: bool, columns=fitted):
-        theta, values, nz = _unpack(prob, names, xv, prob.base, effects)
+        theta, values, nz = _unpack(prob, names, xv, prob.base)
         if gradient:
             return effect_fields(prob, theta, values, columns, nuisance=nz, say=lambda m: None)
         states = prob.solve(theta, values, prob.scans, gradient=False, nuisance=nz)
@@ -278,7 +281,7 @@ def refit(
             break
     if set(wanted) - set(fitted):
         fs = evaluate(x, True, wanted)  # every column to screen next, at the fit
-    theta, values, nz = _unpack(prob, names, x, prob.base, effects)
+    theta, values, nz = _unpack(prob, names, x, prob.base)
     return Refit(effects, theta, values, nz, names, x, lo, hi, fs, S, S / n_res, it,
                  len(history), failed, success, message, tuple(history))  # fmt: skip
 

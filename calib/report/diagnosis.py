@@ -203,6 +203,8 @@ def _summary(doc: dict) -> str:
                 lines.append(f"<p>{html.escape(pname)} = {iv['value']:.4g} "
                              f"(95 % {iv['ci95'][0]:.4g}–{iv['ci95'][1]:.4g})"
                              + (f", stiffness ratio {iv['ratio']:.2f}" if "ratio" in iv else "")
+                             + (f", springs {iv['stiffness_pa_per_mm']:.3g} Pa/mm"
+                                if "stiffness_pa_per_mm" in iv else "")
                              + "</p>")  # fmt: skip
     n = doc["noise"]
     m = n["model"]

@@ -368,10 +368,11 @@ def test_the_gap_compares_the_named_effect_on_one_mesh(monkeypatch):
     assert "calibration" not in doc["surface_error_mm"]
 
 
-def test_a_screened_only_effect_takes_no_candidate_place():
+def test_physical_effects_take_the_candidate_places_before_nuisances():
     # Quick poisson twin, seed 0 (nu 0.45): registration, sliding and poisson screened
-    # significant in that order; sliding (never refitted) took the second of two places
-    # and poisson, the hidden effect (Holm p = 3e-4), was never refitted.
+    # significant in that order. Two places (max_candidates): the strongest physical
+    # effects, sliding and poisson (the hidden one, Holm p = 3e-4), plus a confounded
+    # partner; the nuisance waits for its stage.
     from calib.discrepancy.diagnose import _candidates
 
     sig = [("registration", 6.1, 1e-4), ("sliding", 5.9, 2e-4), ("poisson", 5.6, 3e-4),
@@ -381,12 +382,9 @@ def test_a_screened_only_effect_takes_no_candidate_place():
     def cosine(a, b):
         return 0.95 if {a, b} == {"poisson", "inclusions"} else 0.1
 
-    stages, screened_only = _candidates(sig, cosine, o)
-    assert screened_only == ["sliding"]
     # physical effects first (inclusions: confounded with poisson), the nuisance after
-    assert stages == [["poisson", "skin", "inclusions"], ["registration"]]
-    stages, _ = _candidates(sig, lambda a, b: 0.0, o)
-    assert stages == [["poisson", "skin"], ["registration"]]
+    assert _candidates(sig, cosine, o) == [["sliding", "poisson", "inclusions"], ["registration"]]
+    assert _candidates(sig, lambda a, b: 0.0, o) == [["sliding", "poisson"], ["registration"]]
 
 
 def test_nuisances_are_refitted_only_when_no_physical_effect_passes():
@@ -397,9 +395,9 @@ def test_nuisances_are_refitted_only_when_no_physical_effect_passes():
     from calib.discrepancy.diagnose import _candidates
 
     sig = [("gravity", 4.11, 0.014), ("registration", 4.11, 0.028), ("inclusions", 3.11, 0.028)]
-    stages, _ = _candidates(sig, lambda a, b: 0.0, DiagnosisOptions())
+    stages = _candidates(sig, lambda a, b: 0.0, DiagnosisOptions())
     assert stages == [["inclusions"], ["gravity", "registration"]]
-    stages, _ = _candidates(sig[:2], lambda a, b: 0.0, DiagnosisOptions())
+    stages = _candidates(sig[:2], lambda a, b: 0.0, DiagnosisOptions())
     assert stages == [[], ["gravity", "registration"]]
 
 
@@ -505,3 +503,21 @@ def test_an_unexplained_verdict_from_nuisances_alone_says_what_to_try():
     assert nuisance_only_hint(doc("unexplained", {"skin", "gravity[right_lateral].a0"})) == ""
     assert nuisance_only_hint(doc("unexplained", set())) == ""
     assert nuisance_only_hint(doc("named: skin", {"gravity[right_lateral].a0"})) == ""
+
+
+def test_a_sliding_plate_is_refitted_as_ln_k_of_its_springs():
+    # the refit's parameter layout: ln k within the twin's spring range, and the model it
+    # unpacks holds the plate on springs of that stiffness (fem.Sliding, rim held)
+    import math
+
+    from calib.discrepancy.refit import SLIDING_LN_K_BOUNDS, _layout, _unpack
+    from calib.model.effects import effect_support
+
+    prob = SimpleNamespace(scans=SCANS)
+    names, lo, hi = _layout(prob, ("sliding",), math.log(420.0))
+    assert names == ("theta", "sliding")
+    assert (lo[1], hi[1]) == SLIDING_LN_K_BOUNDS == (math.log(10.0), math.log(1e6))
+    x = np.array([math.log(420.0), math.log(250.0)])
+    theta, values, _ = _unpack(prob, names, x, EffectValues())
+    assert values.support == "springs"
+    assert effect_support(values).tangent_stiffness_pa_per_mm == pytest.approx(250.0)

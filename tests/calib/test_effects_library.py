@@ -186,21 +186,29 @@ def test_density_field_is_minus_the_c1_field(phantom):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("which", ["skin", "inclusions", "mooney", "poisson"])
+@pytest.mark.parametrize("which", ["skin", "inclusions", "mooney", "poisson", "sliding"])
 def test_direct_sensitivities_match_central_differences(phantom, which):
     # full nonlinear solves with the stress-free recovery (unload) at p +- h; the
     # differences' truncation error is O(h^2) ~ 1e-4 relative, the recovery's tolerance
     # (1e-5 mm) over 2h adds < 1e-3 mm: agreement to 2 % of the largest derivative.
+    # sliding: ln k of the plate's springs (1000 Pa/mm, the refit's start)
     from calib.discrepancy.fields import material_dpositions
 
     theta = np.log(420.0)
-    base = EffectValues(skin_ratio=2.0, inclusion_ratio=2.0, c2_ratio=0.2, nu=0.49)
+    base = EffectValues(
+        skin_ratio=2.0,
+        inclusion_ratio=2.0,
+        c2_ratio=0.2,
+        nu=0.49,
+        support_stiffness_pa_per_mm=1000.0 if which == "sliding" else math.inf,
+    )
     mesh = tag_effect_regions(phantom, skin_thickness_mm=3.0, inclusions=[((0, 0, 20.0), 20.0)])
     fm = ForwardModel(mesh, _G0, effects=base)
     states = fm.evaluate(theta, {"s": _G}, gradient=False)
     d = material_dpositions(fm, theta, base, states, [which], {"s": _G})[which]["s"]
     e = LIBRARY[which]
-    p0, h = e.get(base), {"skin": 0.05, "inclusions": 0.05, "mooney": 0.02, "poisson": 0.002}[which]
+    p0 = e.get(base)
+    h = {"skin": 0.05, "inclusions": 0.05, "mooney": 0.02, "poisson": 0.002, "sliding": 0.05}[which]
     pos = []
     for p in (p0 + h, p0 - h):
         fm.set_effects(e.set(base, p))
