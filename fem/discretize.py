@@ -293,15 +293,14 @@ def _spring_diagonal(support: Support) -> np.ndarray:
     return np.array([kt, kt, kn]) / M_PER_MM
 
 
-def _spring_matrix(basis, facets, support: ElasticSupport, n_total: int) -> sp.csr_matrix:
+def _spring_matrix(basis, facets, support: Support, n_total: int) -> sp.csr_matrix:
+    """Node-major spring matrix ``M (x) S`` of one support's face (N/m), full size."""
     from skfem import FacetBasis
 
     fb = FacetBasis(basis.mesh, basis.elem, facets=facets)
     M = _face_mass().assemble(fb)
-    kn = support.normal_stiffness_pa_per_mm / M_PER_MM
-    kt = support.tangent_stiffness_pa_per_mm / M_PER_MM
-    S = np.diag([kt, kt, kn])  # back normal is z in the solver frame
-    K = sp.kron(M, sp.csr_matrix(S), format="csr")
+    S = sp.csr_matrix(np.diag(_spring_diagonal(support)))  # back normal is z (solver frame)
+    K = sp.kron(M, S, format="csr")
     K.resize((n_total, n_total))
     return K.tocsr()
 
@@ -373,16 +372,17 @@ def _springs(basis, faces, n_total: int) -> sp.csr_matrix | None:
     """The summed spring matrix of ``faces`` ((facets, support) pairs), None without any."""
     spring = None
     for facets, sup in faces:
-        K = _support_springs(basis, facets, sup, n_total)
+        K = _spring_matrix(basis, facets, sup, n_total)
         spring = K if spring is None else spring + K
     return spring
 
 
-def _support_springs(basis, facets, support: Support, n_total: int):
-    if isinstance(support, ElasticSupport):
-        return _spring_matrix(basis, facets, support, n_total)
-    springs = ElasticSupport(support.node_set, 1.0, support.tangent_stiffness_pa_per_mm)
-    return _drop_normal(_spring_matrix(basis, facets, springs, n_total))
+def _facet_normals(p: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (n_facets, 3) and areas (n_facets,) of triangles ``tri`` of points ``p``."""
+    P = p[:, tri]  # (3, 3 corners, n_facets)
+    N = np.cross((P[:, 1] - P[:, 0]).T, (P[:, 2] - P[:, 0]).T)
+    twice_area = np.linalg.norm(N, axis=1)
+    return N / twice_area[:, None], 0.5 * twice_area
 
 
 def spring_shape_derivative(disc: Discretization, x: np.ndarray) -> sp.csr_matrix | None:
@@ -406,8 +406,12 @@ def spring_shape_derivative(disc: Discretization, x: np.ndarray) -> sp.csr_matri
         return None
     from skfem import FacetBasis
 
-    basis = disc.basis()
-    p = basis.mesh.p  # (3, n_vertices), solver frame, m
+    # the facet mass per unit area is the same on any straight facet: it comes from the
+    # basis as built (no basis on the current nodes), the areas' derivative from the
+    # current nodes
+    basis = disc.skfem_basis
+    p0 = basis.mesh.p  # (3, n_vertices), solver frame, m
+    p = ((disc.mesh.nodes_mm * M_PER_MM) @ disc.R_solver_from_model.T).T
     rows, cols, vals = [], [], []
     for facets, sup in disc.spring_faces:
         fb = FacetBasis(basis.mesh, basis.elem, facets=facets)
@@ -419,12 +423,10 @@ def spring_shape_derivative(disc: Discretization, x: np.ndarray) -> sp.csr_matri
         xs = x[: 3 * disc.n_scalar_u].reshape(-1, 3)[dofs]  # (nb, n_facets, 3)
         c = np.einsum("abf,bfi->afi", M, xs) * S  # (a, facet, i), N
         tri = basis.mesh.facets[:, facets]  # (3, n_facets) vertex ids
+        c_per_area = c / _facet_normals(p0, tri)[1][None, :, None]
         P = p[:, tri].transpose(1, 2, 0)  # (3 corners, n_facets, 3)
-        N = np.cross(P[1] - P[0], P[2] - P[0])
-        twice_area = np.linalg.norm(N, axis=1)
-        n = N / twice_area[:, None]
+        n = _facet_normals(p, tri)[0]
         dA = 0.5 * np.stack([np.cross(P[(k + 1) % 3] - P[(k + 2) % 3], n) for k in range(3)])
-        c_per_area = c / (0.5 * twice_area)[None, :, None]
         vdof = basis.nodal_dofs[0][tri]  # (3, n_facets) scalar dof of each corner
         # entry (a, i, k, m): row 3 dofs[a] + i, column 3 vdof[k] + m
         r = (3 * dofs)[:, None, None, None, :] + np.arange(3)[None, :, None, None, None]
@@ -441,11 +443,3 @@ def spring_shape_derivative(disc: Discretization, x: np.ndarray) -> sp.csr_matri
     return sp.csr_matrix(
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
     )
-
-
-def _drop_normal(K: sp.csr_matrix) -> sp.csr_matrix:
-    """Remove the z (normal) rows and columns of a node-major spring matrix."""
-    keep = np.ones(K.shape[0])
-    keep[2::3] = 0.0
-    D = sp.diags(keep)
-    return (D @ K @ D).tocsr()
