@@ -27,6 +27,13 @@ apart and shown in the table.
 
     python benchmarks/bench_diagnose.py --out DIR [--cases skin,none,curve] [--seeds 0,1,2]
         [--null-seeds 0,1,2,3,4] [--ratios 2,4,8] [--only NAME,...] [--table]
+        [--rim-margin MM|element] [--rim-profile]
+
+``--rim-margin`` diagnoses with that margin (``diagnose --rim-margin``; use a fresh
+``--out``, the cases of another margin are skipped). ``--rim-profile`` prints, for each
+finished null case, the residual of its c1-only fit with every measured point kept (rim
+margin 0) by height above the back plate: the measurement behind ``--rim-margin
+element`` (:func:`calib.discrepancy.problem.rim_margin_of`).
 """
 
 from __future__ import annotations
@@ -87,7 +94,9 @@ def _noise_check(twin: Path, work: Path) -> dict:
     return out
 
 
-def run_case(root: Path, name: str, specs: list[str], seed: int, hidden: str) -> dict:
+def run_case(
+    root: Path, name: str, specs: list[str], seed: int, hidden: str, rim_margin=None
+) -> dict:
     import fem
     from calib.discrepancy import DiagnosisOptions
     from calib.fitting import CalibrationOptions
@@ -113,7 +122,8 @@ def run_case(root: Path, name: str, specs: list[str], seed: int, hidden: str) ->
         opts = CalibrationOptions(mesh_size_mm=14.0, mesh_retry_mm=(16.0,), profile_points=0)
         cal = run_calibration(twin / "scans", work, opts)
     t2 = time.perf_counter()
-    doc = run_diagnosis(work, DiagnosisOptions())
+    opts = DiagnosisOptions() if rim_margin is None else DiagnosisOptions(rim_margin_mm=rim_margin)
+    doc = run_diagnosis(work, opts)
     t3 = time.perf_counter()
     truth = json.loads((twin / "truth" / "truth.json").read_text())
     c1_true = truth["material"]["c1_pa"]
@@ -136,6 +146,7 @@ def run_case(root: Path, name: str, specs: list[str], seed: int, hidden: str) ->
         "c1_refit_ci95_pa": doc["c1_ci95_pa"],
         "c1_error": doc["c1_pa"] / c1_true - 1.0,
         "holdout": hold,
+        "rim_margin_mm": doc["scans"]["rim_margin_mm"],
         "holdout_cut_above_floor": gap[hold].get("cut_above_floor") if hold else None,
         "holdout_before_mm": gap[hold]["surface_error_mm"]["before"]["mean"] if hold else None,
         "holdout_after_mm": gap[hold]["surface_error_mm"].get("after", {}).get("mean")
@@ -187,7 +198,7 @@ def _table(rows: list[dict]) -> None:
     rows = [r for r in rows if not r.get("failed")]
     print(f"{'case':16s} {'verdict':34s} {'expect':>10s} {'right':>5s} {'c1 cal':>7s} "
           f"{'c1 refit':>8s} {'err %':>6s} {'hold cut':>8s} {'noise sd':>8s} "
-          f"{'diag s':>7s}")  # fmt: skip
+          f"{'diag s':>7s} {'rim mm':>6s}")  # fmt: skip
     for r in rows:
         # no cut without a named effect ("after" is c1 alone refitted; cases diagnosed
         # before diagnosis.json said so carry one)
@@ -197,7 +208,8 @@ def _table(rows: list[dict]) -> None:
               f"{'yes' if _right(r) else 'NO':>5s} "
               f"{r['c1_calibrated_pa']:7.1f} {r['c1_refit_pa']:8.1f} "
               f"{100 * r['c1_error']:+6.1f} {'' if cut is None else f'{100 * cut:.0f} %':>8s} "
-              f"{r['noise_model']['sigma_mm']:8.3f} {r['diagnose_s']:7.0f}")  # fmt: skip
+              f"{r['noise_model']['sigma_mm']:8.3f} {r['diagnose_s']:7.0f} "
+              f"{r.get('rim_margin_mm', 5.0):6g}")  # fmt: skip
     for r in failed:
         print(f"{r['case']:16s} FAILED {r['failed'][:100]}")
     preset = [r for r in rows if not _is_curve(r)]  # the bars: effects at preset amplitude
@@ -237,6 +249,48 @@ def _table(rows: list[dict]) -> None:
               + ", ".join(f"ratio {r['specs'][0][9:]}: {r['verdict']}" for r in curve))  # fmt: skip
 
 
+RIM_BANDS_MM = (0.0, 5.0, 8.0, 12.0, 16.0, 20.0, 30.0, np.inf)
+
+
+def rim_profile(work: Path) -> list[tuple[str, list[tuple[int, float]]]]:
+    """Per diagnosis scan, ``(points, rms mm)`` of the c1-only fit's residual per height band.
+
+    The residual is centred by its mean beyond 20 mm (a scan's offset is a nuisance).
+    """
+    from calib.data import read_work
+    from calib.discrepancy.problem import build_problem
+    from calib.discrepancy.refit import refit
+
+    wf = read_work(work)
+    prob = build_problem(wf, rim_margin_mm=0.0)
+    null = refit(prob, (), screened=(), say=lambda m: None)
+    out = []
+    for n in prob.scans:
+        scan = prob.measurement(n)
+        height = np.abs((prob.points[n] - scan.back_point_mm) @ scan.back_normal)
+        r = null.fields.residual[n]
+        r = r - r[height >= 20.0].mean()
+        bands = []
+        for lo, hi in zip(RIM_BANDS_MM[:-1], RIM_BANDS_MM[1:], strict=True):
+            sel = (height >= lo) & (height < hi)
+            bands.append((int(sel.sum()), float(np.sqrt(np.mean(r[sel] ** 2)))))
+        out.append((n, bands))
+    return out
+
+
+def _rim_table(root: Path, rows: list[dict]) -> None:
+    edges = zip(RIM_BANDS_MM[:-1], RIM_BANDS_MM[1:], strict=True)
+    head = " ".join(f"{f'{lo:g}-{hi:g}':>12s}" for lo, hi in edges)
+    print("residual rms (mm) of the c1-only fit by height above the back plate (mm), null sets")
+    print(f"{'case':10s} {'scan':14s} {head}")
+    for r in rows:
+        if r["hidden"] != "none" or r.get("failed"):
+            continue
+        for scan, bands in rim_profile(root / r["case"] / "work"):
+            cells = " ".join(f"{rms:6.3f} ({k:4d})" for k, rms in bands)
+            print(f"{r['case']:10s} {scan:14s} {cells}", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True, help="folder of the twins and results")
@@ -250,17 +304,33 @@ def main() -> None:
     ap.add_argument("--ratios", default="2,4,8")
     ap.add_argument("--only", default="", help="run only these case names")
     ap.add_argument("--table", action="store_true", help="print the table of the finished cases")
+    ap.add_argument(
+        "--rim-margin",
+        default=None,
+        help="diagnose with this rim margin (mm, or 'element'; default: diagnose's)",
+    )
+    ap.add_argument(
+        "--rim-profile",
+        action="store_true",
+        help="print the null cases' residual by height above the back plate (c1-only fits)",
+    )
     args = ap.parse_args()
     print("command:", " ".join([sys.executable, *sys.argv]))
     store = args.out / "cases"
     store.mkdir(parents=True, exist_ok=True)
+    if args.rim_profile:
+        _rim_table(args.out, [json.loads(p.read_text()) for p in sorted(store.glob("*.json"))])
+        return
     if not args.table:
         for name, specs, seed, hidden in _cases(args):
             path = store / f"{name}.json"
             if path.is_file():
                 continue
             print(f"case {name}: synth -> calibrate -> diagnose", flush=True)
-            row = run_case(args.out, name, specs, seed, hidden)
+            margin = args.rim_margin
+            if margin is not None and margin != "element":
+                margin = float(margin)
+            row = run_case(args.out, name, specs, seed, hidden, margin)
             path.write_text(json.dumps(row, indent=1))
             if row.get("failed"):
                 print(f"  FAILED {row['failed']}", flush=True)

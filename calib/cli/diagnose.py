@@ -33,11 +33,12 @@ def diagnose(
         float, typer.Option("--alpha", help="Family-wise error rate of the screening.")
     ] = 0.05,
     rim_margin: Annotated[
-        float | None,
+        str | None,
         typer.Option(
             "--rim-margin",
-            help="Measured points nearer than this to the back plate (mm) are not diagnosed "
-            "(the clamped junction; default 5; 0 keeps them).",
+            help="Measured points nearer than this to the back plate (mm) are only mapped, "
+            "not diagnosed (the clamped edge; default 5; 'element': one model element, the "
+            "mesh size; 0 keeps them).",
         ),
     ] = None,
     mesh_size: Annotated[
@@ -60,7 +61,7 @@ def diagnose(
             **({} if names is None else {"effects": names}),
             holdout=holdout,
             alpha=alpha,
-            **({} if rim_margin is None else {"rim_margin_mm": rim_margin}),
+            **({} if rim_margin is None else {"rim_margin_mm": _margin(rim_margin)}),
             mesh_size_mm=mesh_size,
         )
         doc = run_diagnosis(work, opts, progress=lambda msg: typer.echo(f"  {msg}"))
@@ -68,3 +69,13 @@ def diagnose(
         fail(exc)
     typer.echo(format_diagnosis(doc))
     typer.echo(f"wrote {work / 'diagnosis.json'} and {work / 'diagnosis'}/report.html")
+
+
+def _margin(text: str) -> float | str:
+    """``--rim-margin``: a width in mm or ``element``."""
+    if text.strip() == "element":
+        return "element"
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"--rim-margin must be a width in mm or 'element', got {text!r}") from None

@@ -48,6 +48,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
+from typing import Literal
 
 import numpy as np
 
@@ -93,9 +94,9 @@ class DiagnosisOptions:
     skin_thickness_mm : float
     max_points : int or None
         Measured points per scan (default: the calibration's).
-    rim_margin_mm : float
-        Points nearer the back plate are not diagnosed
-        (:data:`calib.discrepancy.problem.RIM_MARGIN_MM`); 0 keeps them.
+    rim_margin_mm : float or "element"
+        Points nearer the back plate (mm) are not diagnosed, only mapped; ``"element"``:
+        one model element (:func:`calib.discrepancy.problem.rim_margin_of`); 0 keeps them.
     mesh_size_mm : float or None
         Diagnose on a model mesh of this size, built from the reference scan, instead of
         the calibration's (None). A finer mesh tells discretisation error from a missing
@@ -119,7 +120,7 @@ class DiagnosisOptions:
     misfit_alpha: float = 0.01
     skin_thickness_mm: float = SKIN_THICKNESS_MM
     max_points: int | None = None
-    rim_margin_mm: float = RIM_MARGIN_MM
+    rim_margin_mm: float | Literal["element"] = RIM_MARGIN_MM
     mesh_size_mm: float | None = None
     max_candidates: int = 2
     max_named: int = 2
@@ -140,8 +141,9 @@ class DiagnosisOptions:
             raise DiagnosisError(f"alpha must lie in (0, 0.5), got {self.alpha}")
         if not 0.0 < self.min_explained <= 1.0:
             raise DiagnosisError(f"min_explained must lie in (0, 1], got {self.min_explained}")
-        if not 0.0 <= self.rim_margin_mm < 50.0:
-            raise DiagnosisError(f"rim_margin_mm must lie in [0, 50) mm, got {self.rim_margin_mm}")
+        m = self.rim_margin_mm
+        if m != "element" and (isinstance(m, str) or not 0.0 <= m < 50.0):
+            raise DiagnosisError(f"rim_margin_mm must lie in [0, 50) mm or be 'element', got {m!r}")
         if self.mesh_size_mm is not None and not 2.0 <= self.mesh_size_mm <= 40.0:
             raise DiagnosisError(f"mesh_size_mm must lie in [2, 40] mm, got {self.mesh_size_mm}")
         if self.max_candidates < 1 or self.max_named < 1:
@@ -376,7 +378,11 @@ class Diagnosis:
                 "run_id": prob.work.record.get("run_id"),
                 "mesh_note": prob.mesh_note or None,
             },
-            "scans": {"diagnosis": list(prob.scans), "holdout": prob.holdout},
+            "scans": {
+                "diagnosis": list(prob.scans),
+                "holdout": prob.holdout,
+                "rim_margin_mm": prob.rim_margin_mm,
+            },
             "null_fit": _fit_json(self.null),
             "refit": _fit_json(self.final) | {"intervals": self.intervals},
             "c1_pa": self.final.c1_pa,
@@ -523,7 +529,8 @@ def diagnose(
                          max_points=o.max_points, rim_margin_mm=o.rim_margin_mm,
                          mesh_size_mm=o.mesh_size_mm)  # fmt: skip
     say(f"diagnosis scans {prob.scans}, held out: {prob.holdout or 'none'}; model mesh "
-        f"{prob.mesh.n_tets} tets, {len(prob.inclusions)} inclusions tagged")  # fmt: skip
+        f"{prob.mesh.n_tets} tets, {len(prob.inclusions)} inclusions tagged; points within "
+        f"{prob.rim_margin_mm:g} mm of the back plate mapped, not diagnosed")  # fmt: skip
     if prob.mesh_note:
         say(f"  {prob.mesh_note}")
     screened = tuple(e for e in o.effects)
@@ -746,10 +753,21 @@ def _verdict(named, confounded, scr0: Screen, final: Screen | None, o) -> str:
 
 
 def _localise(prob: Problem, null: Refit, noise: NoiseFit) -> dict:
-    """Significance maps of the diagnosis scans at the null fit."""
+    """Significance maps of the diagnosis scans at the null fit.
+
+    The maps take in the points within the rim margin too (:attr:`Problem.rim_points`:
+    never fitted nor tested, but where the model misfits most); the ``rim`` region is
+    then the band the diagnosis leaves out, or 10 mm where the margin is narrower.
+    Residuals are centred by the mean of the diagnosed points, as the fit sees them.
+    """
     import json
     from pathlib import Path
 
+    rim = {n: p for n, p in prob.rim_points.items() if n in null.fields.scans and len(p)}
+    states = {}
+    if rim:  # the null fit's states again (warm: the forward model keeps them)
+        states = prob.solve(null.theta, null.values, list(rim), gradient=False,
+                            nuisance=null.nuisance)  # fmt: skip
     out = {}
     for n in null.fields.scans:
         s = prob.measurement(n)
@@ -759,11 +777,17 @@ def _localise(prob: Problem, null: Refit, noise: NoiseFit) -> dict:
                     float(i["diameter_mm"])) for i in doc.get("inclusions") or []]  # fmt: skip
         if s.tumour_mm is not None:
             spheres.append((s.tumour_mm, 10.0))
-        pts = prob.points[n]
-        labels = region_labels(pts, nipple_mm=s.nipple_mm, back_point_mm=s.back_point_mm,
-                               back_normal=s.back_normal, spheres=spheres)  # fmt: skip
         r = null.fields.residual[n]
-        out[n] = significance_map(n, pts, r - r.mean(), labels, noise.best,
+        centre = r.mean()
+        pts = prob.points[n]
+        if n in rim:
+            pos = states[n].positions_mm
+            r_rim = prob.residuals(n, pos, None, null.nuisance.get(n), points_mm=rim[n]).r
+            pts, r = np.vstack([pts, rim[n]]), np.concatenate([r, r_rim])
+        labels = region_labels(pts, nipple_mm=s.nipple_mm, back_point_mm=s.back_point_mm,
+                               back_normal=s.back_normal, spheres=spheres,
+                               rim_mm=max(10.0, prob.rim_margin_mm))  # fmt: skip
+        out[n] = significance_map(n, pts, r - centre, labels, noise.best,
                                   bandwidth_mm=MAP_KERNEL_MM)  # fmt: skip
     return out
 

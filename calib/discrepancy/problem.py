@@ -9,7 +9,7 @@ effect values it is exactly the calibration's model. Every solve goes through
 
 Residuals are those of the calibration's ``surface`` objective: signed distances of the
 measured surface points (the calibration's seeded subsample, off the back plate and
-farther than :data:`RIM_MARGIN_MM` from it) to the
+farther than the rim margin, :func:`rim_margin_of`, from it) to the
 simulated surface, in the fiducial (reference) frame, on the curved surface
 (:meth:`calib.model.residuals.SimulatedSurface.curved`: each facet carries its gap to the
 reference scan's surface, which on coarse model meshes is as large as the rest of the
@@ -24,6 +24,7 @@ import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -41,17 +42,13 @@ __all__ = [
     "Nuisance",
     "Problem",
     "build_problem",
+    "rim_margin_of",
     "rotate_gravity",
 ]
 
-#: Measured points this near the back plate are not diagnosed (mm). There the surface
-#: meets the clamped plate: the scan's surface extraction blurs the junction over a few
-#: voxels, and the clamped edge is a stress singularity that no model mesh resolves. On
-#: the quick twin (1.5 mm voxels, 14 mm model mesh) the residual of a homogeneous model
-#: against a homogeneous truth averages +0.09 to +0.21 mm with sd 0.15-0.42 mm within
-#: 5 mm of the plate, against 0.00 +- 0.07-0.10 mm beyond 5 mm; a band this wide made a
-#: sliding plate screen significant on a null set. The rim region of the localisation
-#: (10 mm) and the sliding probe still see the 5-10 mm band.
+#: Measured points this near the back plate are not diagnosed by default (mm): there the
+#: surface meets the clamped plate and the scan's surface extraction blurs the junction
+#: over a few voxels. ``"element"`` leaves out one model element (:func:`rim_margin_of`).
 RIM_MARGIN_MM = 5.0
 
 log = logging.getLogger(__name__)
@@ -138,6 +135,11 @@ class Problem:
         How far a plausible rigid registration error moves a scan's points: three times
         its expected target registration error (ingest's ``tre_nipple_mm``,
         ``tre_tumour_mm``, Fitzpatrick's formula) plus half a voxel.
+    rim_margin_mm : float
+        Points nearer the back plate than this are not diagnosed (:func:`rim_margin_of`).
+    rim_points : dict of str to ndarray (j, 3)
+        Each scan's measured points within the rim margin: mapped by the localisation,
+        never fitted nor tested.
     """
 
     work: WorkFolder
@@ -153,6 +155,8 @@ class Problem:
     skin_thickness_mm: float
     registration_tolerance_mm: dict = field(default_factory=dict)
     mesh_note: str = ""
+    rim_margin_mm: float = RIM_MARGIN_MM
+    rim_points: dict = field(default_factory=dict)
 
     @property
     def same_mesh(self) -> bool:
@@ -207,11 +211,23 @@ class Problem:
         positions_mm: np.ndarray,
         dpositions_mm: np.ndarray | None = None,
         nuisance: Nuisance | None = None,
+        *,
+        points_mm: np.ndarray | None = None,
     ) -> Residuals:
-        """Surface residuals of one scan for simulated positions (and their derivative)."""
+        """Surface residuals of one scan for simulated positions (and their derivative).
+
+        At the scan's diagnosed points, or at ``points_mm`` (e.g. its :attr:`rim_points`),
+        moved by the scan's rigid offset alike.
+        """
+        if points_mm is None:
+            measured = self.measured_points(name, nuisance)
+        elif nuisance is None:
+            measured = points_mm
+        else:
+            measured = _rigid(points_mm, nuisance.offset, self.centres[name])
         return scan_residuals(
             "surface", self.measurement(name), self.mesh, self.sim, positions_mm,
-            dpositions_mm, surface_points_mm=self.measured_points(name, nuisance),
+            dpositions_mm, surface_points_mm=measured,
         )  # fmt: skip
 
 
@@ -236,8 +252,8 @@ def _sized_model(work: WorkFolder, params: dict, model_on, size_mm: float):
     """The model on a mesh of ``size_mm`` (asked for), its stress-free reference recovered.
 
     Built from the reference scan as the calibration builds its own
-    (:func:`_recovered_model`). Returns the model and the note that says the diagnosis mesh
-    is not the calibration's.
+    (:func:`_recovered_model`). Returns the model, the note that says the diagnosis mesh
+    is not the calibration's, and the size.
     """
     try:
         fm = _recovered_model(work, model_on, size_mm)
@@ -247,7 +263,11 @@ def _sized_model(work: WorkFolder, params: dict, model_on, size_mm: float):
             f"at the calibrated c1 ({exc}); choose another --mesh-size"
         ) from exc
     own = float(params.get("mesh_size_mm", 12.0))
-    return fm, f"diagnosed on a {size_mm:g} mm mesh, as asked (the calibration's: {own:g} mm)"
+    return (
+        fm,
+        f"diagnosed on a {size_mm:g} mm mesh, as asked (the calibration's: {own:g} mm)",
+        size_mm,
+    )
 
 
 def _straight_model(
@@ -267,7 +287,8 @@ def _straight_model(
     first with ``own_size``) and the first whose recovery at the calibrated c1 succeeds
     (``model_on(loaded_mesh)`` builds the model; its recovery stays cached for the null
     fit). The calibration's own mesh is skipped also when a straight recovery at the
-    calibrated c1 fails there (``why`` says which). Returns the model and a note.
+    calibrated c1 fails there (``why`` says which). Returns the model, a note and the
+    mesh size.
     """
     size = float(params.get("mesh_size_mm", 12.0))
     sizes = [float(s) for s in params.get("mesh_retry_mm") or () if float(s) != size]
@@ -280,10 +301,14 @@ def _straight_model(
             tried.append(f"{s:g} mm: {exc}")
             continue
         if s == size:
-            return fm, ""  # the calibration's mesh size, rebuilt from the same scan
-        return fm, (
-            f"the calibration's {size:g} mm mesh admits no straight stress-free reference "
-            f"({why}); diagnosed on the {s:g} mm mesh"
+            return fm, "", s  # the calibration's mesh size, rebuilt from the same scan
+        return (
+            fm,
+            (
+                f"the calibration's {size:g} mm mesh admits no straight stress-free reference "
+                f"({why}); diagnosed on the {s:g} mm mesh"
+            ),
+            s,
         )
     raise DiagnosisError(
         f"{work.path}: no straight stress-free reference on the calibration's mesh ({why}) "
@@ -351,18 +376,50 @@ def choose_scans(work: WorkFolder, holdout: str | None) -> tuple[list[str], str 
     return scans, holdout
 
 
-def _off_the_rim(scan, n_pts: int, seed: int, margin_mm: float) -> np.ndarray:
-    """The calibration's seeded surface points of a scan, less those within the rim margin."""
+def rim_margin_of(mesh_size_mm: float, margin: float | Literal["element"] = RIM_MARGIN_MM) -> float:
+    """The band at the back plate that the diagnosis leaves out (mm).
+
+    Parameters
+    ----------
+    mesh_size_mm : float
+        Size of the diagnosis's model mesh.
+    margin : float or "element"
+        A width in mm, taken as it is, or ``"element"``: one model element,
+        ``max(RIM_MARGIN_MM, mesh_size_mm)``. The clamped edge is a stress singularity
+        that the first layer of elements cannot resolve, and a homogeneous model against
+        a homogeneous truth leaves a misfit there that no library effect explains. On
+        the quick twin's null sets (14-18 mm model meshes) the residual's rms by height
+        above the plate is 0.19-0.56 mm within 5 mm, 0.13-0.61 mm at 5-12 mm, 0.10-0.44
+        mm at 12-16 mm, 0.10-0.25 mm at 16-20 mm and 0.06-0.14 mm beyond 30 mm
+        (``python benchmarks/bench_diagnose.py --out DIR --rim-profile``). Leaving one
+        element out lets a stiff inclusion explain half of what remains, but it also
+        sharpens the noise model, so per-scan nuisances screen significant more often
+        (README, the diagnosis benchmark): it is an option, not the default.
+
+    Returns
+    -------
+    float
+    """
+    if margin == "element":
+        return max(RIM_MARGIN_MM, float(mesh_size_mm))
+    if isinstance(margin, str):
+        raise DiagnosisError(f"rim margin must be a width in mm or 'element', got {margin!r}")
+    return float(margin)
+
+
+def _off_the_rim(scan, n_pts: int, seed: int, margin_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The calibration's seeded surface points of a scan: beyond the rim margin, within it."""
     p = scan.surface_points(max_points=n_pts, seed=seed)
     if margin_mm <= 0:
-        return p
+        return p, p[:0]
     keep = np.abs((p - scan.back_point_mm) @ scan.back_normal) >= margin_mm
     if keep.sum() < 0.5 * len(p):
         raise DiagnosisError(
             f"{scan.name}: only {int(keep.sum())} of {len(p)} surface points lie farther "
-            f"than the rim margin ({margin_mm:g} mm) from the back plate; lower it"
+            f"than the rim margin ({margin_mm:g} mm) from the back plate; lower it "
+            "(--rim-margin)"
         )
-    return p[keep]
+    return p[keep], p[~keep]
 
 
 def build_problem(
@@ -371,7 +428,7 @@ def build_problem(
     holdout: str | None = None,
     skin_thickness_mm: float = SKIN_THICKNESS_MM,
     max_points: int | None = None,
-    rim_margin_mm: float = RIM_MARGIN_MM,
+    rim_margin_mm: float | Literal["element"] = RIM_MARGIN_MM,
     mesh_size_mm: float | None = None,
 ) -> Problem:
     """The diagnosis problem of a calibrated work folder, its stress-free reference recovered.
@@ -386,9 +443,9 @@ def build_problem(
         Band of the skin effect.
     max_points : int, optional
         Points per scan; default the calibration's.
-    rim_margin_mm : float
-        Measured points nearer than this to the scan's back plate are left out (see
-        :data:`RIM_MARGIN_MM`); 0 keeps them all.
+    rim_margin_mm : float or "element"
+        Measured points nearer than this to the scan's back plate are left out (mm;
+        ``"element"``: one model element, :func:`rim_margin_of`); 0 keeps them all.
     mesh_size_mm : float, optional
         A model mesh of this size (mm), built from the reference scan, instead of the
         calibration's; its stress-free reference is recovered at the calibrated c1.
@@ -429,26 +486,29 @@ def build_problem(
         )  # fmt: skip
 
     if mesh_size_mm is not None:
-        fm, note = _sized_model(work, params, model_on, mesh_size_mm)
+        fm, note, size = _sized_model(work, params, model_on, mesh_size_mm)
     elif prestressed:
         # --reference-state prestress: its own mesh may admit one; a switched unload: not
         own = record.get("reference_state") == "prestress"
-        fm, note = _straight_model(work, params, model_on, own_size=own)
+        fm, note, size = _straight_model(work, params, model_on, own_size=own)
     else:
         fm, note = model_on(work.mesh.with_nodes(_loaded_nodes(work))), ""
+        size = float((record.get("mesh") or {}).get("size_mm") or params.get("mesh_size_mm", 12.0))
         try:
             fm.stress_free(float(np.log(record["c1_pa"])))
         except fem.ConvergenceError as exc:
             # a cold recovery can fail where the calibration's own did not (see the README)
             why = f"its recovery fails at the calibrated c1: {exc}"
-            fm, note = _straight_model(work, params, model_on, own_size=False, why=why)
+            fm, note, size = _straight_model(work, params, model_on, own_size=False, why=why)
+    margin = rim_margin_of(size, rim_margin_mm)
     mesh = fm.mesh
     n_pts = int(max_points or params.get("max_points", 3000))
     seed = int(params.get("seed", 0))
-    points = {
-        n: _off_the_rim(work.measurements.scans[n], n_pts, seed, rim_margin_mm)
+    split = {
+        n: _off_the_rim(work.measurements.scans[n], n_pts, seed, margin)
         for n in [*scans, *([held] if held else [])]
     }
+    points = {n: beyond for n, (beyond, _) in split.items()}
     centres = {n: p.mean(axis=0) for n, p in points.items()}
     ref = work.measurements.reference  # facets carry their gap to the scanned surface
     sim = SimulatedSurface.of(mesh).curved(mesh.nodes_mm, ref.vertices_mm, ref.faces)
@@ -458,5 +518,6 @@ def build_problem(
         centres=centres, scans=scans, holdout=held,
         theta_calibrated=float(np.log(record["c1_pa"])), inclusions=inclusions,
         skin_thickness_mm=float(skin_thickness_mm), registration_tolerance_mm=tolerance,
-        mesh_note=note,
+        mesh_note=note, rim_margin_mm=margin,
+        rim_points={n: within for n, (_, within) in split.items()},
     )  # fmt: skip

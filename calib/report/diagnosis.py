@@ -308,7 +308,9 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
         f"{effects}"
         f"<details><summary>every column</summary>{columns}</details>"
         f"<h2>Confirmation (full FE refits)</h2>{cands}"
-        f"<h2>Localisation (at the c1-only refit)</h2>{loc}<h2>Figures</h2>{figs}"
+        f"<h2>Localisation (at the c1-only refit)</h2>{loc}"
+        f"<p>{esc(_rim(doc))}</p>"
+        f"<h2>Figures</h2>{figs}"
         "</body></html>\n"
     )
 
@@ -344,6 +346,16 @@ def format_diagnosis(doc: dict) -> str:
     if hint:
         lines.append(hint)
     return "\n".join(lines)
+
+
+def _rim(doc: dict) -> str:
+    """What the rim region holds (diagnoses before the margin was recorded: 5 mm)."""
+    margin = float(doc["scans"].get("rim_margin_mm", 5.0))
+    return (
+        f"The rim region is the band within {max(10.0, margin):g} mm of the back plate; its "
+        f"points within {margin:g} mm (the clamped edge) are mapped, but neither fitted nor "
+        "tested."
+    )
 
 
 def nuisance_only_hint(doc: dict) -> str:

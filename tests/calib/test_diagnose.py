@@ -215,6 +215,8 @@ def test_command_help_and_errors(tmp_path):
     assert res.exit_code == 2 and "calibration.json" in res.output
     res = runner.invoke(app, ["diagnose", str(tmp_path), "--effects", "skin,wrinkles"])
     assert res.exit_code == 2 and "unknown effect" in res.output
+    res = runner.invoke(app, ["diagnose", str(tmp_path), "--rim-margin", "wide"])
+    assert res.exit_code == 2 and "--rim-margin must be a width in mm or 'element'" in res.output
 
 
 def test_a_mesh_without_a_straight_reference_is_replaced_and_the_note_says_why(monkeypatch):
@@ -241,8 +243,8 @@ def test_a_mesh_without_a_straight_reference_is_replaced_and_the_note_says_why(m
     )
     why = "its recovery fails at the calibrated c1: load factor 0.93"
     params = {"mesh_size_mm": 14.0, "mesh_retry_mm": [16.0]}
-    fm, note = _straight_model(work, params, Model, own_size=False, why=why)
-    assert fm.size == 16.0
+    fm, note, size = _straight_model(work, params, Model, own_size=False, why=why)
+    assert fm.size == size == 16.0
     assert note == (
         f"the calibration's 14 mm mesh admits no straight stress-free reference ({why}); "
         "diagnosed on the 16 mm mesh"
@@ -272,7 +274,8 @@ def test_a_mesh_size_asked_for_is_built_from_the_reference_scan_and_said(monkeyp
     work = SimpleNamespace(
         path="WORK", measurements=SimpleNamespace(reference="ref"), record={"c1_pa": 423.4}
     )
-    fm, note = _sized_model(work, {"mesh_size_mm": 14.0}, Model, 10.0)
+    fm, note, size = _sized_model(work, {"mesh_size_mm": 14.0}, Model, 10.0)
+    assert size == 10.0
     # the reference scan's mesh of that size, recovered at the calibrated c1
     assert fm.mesh == ("ref", 10.0) and fm.theta == pytest.approx(np.log(423.4))
     assert note == "diagnosed on a 10 mm mesh, as asked (the calibration's: 14 mm)"
@@ -444,7 +447,7 @@ def test_the_curved_surface_carries_the_chord_gap_with_the_material():
 
 
 def test_points_at_the_clamped_rim_are_left_out():
-    from calib.discrepancy.problem import _off_the_rim
+    from calib.discrepancy.problem import RIM_MARGIN_MM, _off_the_rim, rim_margin_of
 
     z = np.linspace(0.0, 40.0, 81)  # heights above the back plate, mm
     pts = np.column_stack([np.zeros_like(z), np.ones_like(z), z])
@@ -454,13 +457,24 @@ def test_points_at_the_clamped_rim_are_left_out():
         back_normal=np.array([0.0, 0.0, -1.0]),  # the side the normal points to is no matter
         surface_points=lambda max_points, seed: pts,
     )
-    kept = _off_the_rim(scan, 100, 0, 5.0)
-    assert np.array_equal(kept, pts[z >= 5.0])
-    assert np.array_equal(_off_the_rim(scan, 100, 0, 0.0), pts)
+    kept, within = _off_the_rim(scan, 100, 0, 5.0)
+    assert np.array_equal(kept, pts[z >= 5.0]) and np.array_equal(within, pts[z < 5.0])
+    kept, within = _off_the_rim(scan, 100, 0, 0.0)
+    assert np.array_equal(kept, pts) and len(within) == 0
     with pytest.raises(DiagnosisError, match=r"tilt_50: only 21 of 81 .* rim margin \(30 mm\)"):
         _off_the_rim(scan, 100, 0, 30.0)
     with pytest.raises(DiagnosisError, match="rim_margin_mm"):
         DiagnosisOptions(rim_margin_mm=-1.0)
+    # "element" leaves out one model element, never less than the extraction's blur; a
+    # width is taken as it is
+    assert rim_margin_of(14.0, "element") == 14.0 and rim_margin_of(14.0, 3.0) == 3.0
+    assert rim_margin_of(4.0, "element") == RIM_MARGIN_MM == 5.0
+    assert rim_margin_of(14.0) == 5.0 and rim_margin_of(14.0, 0.0) == 0.0
+    with pytest.raises(DiagnosisError, match="'elements'"):
+        rim_margin_of(14.0, "elements")
+    assert DiagnosisOptions(rim_margin_mm="element").rim_margin_mm == "element"
+    with pytest.raises(DiagnosisError, match="rim_margin_mm"):
+        DiagnosisOptions(rim_margin_mm="one")
 
 
 def test_the_gap_figure_says_what_after_adds():
@@ -521,3 +535,44 @@ def test_a_sliding_plate_is_refitted_as_ln_k_of_its_springs():
     theta, values, _ = _unpack(prob, names, x, EffectValues())
     assert values.support == "springs"
     assert effect_support(values).tangent_stiffness_pa_per_mm == pytest.approx(250.0)
+
+
+def test_rim_points_are_moved_by_the_scan_offset_like_the_diagnosed_ones(monkeypatch):
+    # the localisation maps the band within the rim margin at the null fit: those points
+    # take the scan's rigid offset about the diagnosed points' centre, as the fit's do
+    import calib.discrepancy.problem as problem
+
+    seen = []
+
+    def residuals(*args, surface_points_mm):
+        seen.append(surface_points_mm)
+        return SimpleNamespace(r=surface_points_mm[:, 2])
+
+    monkeypatch.setattr(problem, "scan_residuals", residuals)
+    rng = np.random.default_rng(0)
+    pts, rim = rng.normal(size=(20, 3)) * 30.0, rng.normal(size=(5, 3)) * 30.0
+    prob = problem.Problem(
+        work=None,
+        fm=SimpleNamespace(mesh=None),
+        base=None,
+        sim=None,
+        points={"a": pts},
+        centres={"a": pts.mean(axis=0)},
+        scans=["a"],
+        holdout=None,
+        theta_calibrated=6.0,
+        inclusions=[],
+        skin_thickness_mm=1.5,
+        rim_margin_mm=14.0,
+        rim_points={"a": rim},
+    )
+    prob.measurement = lambda name: None
+    offset = np.array([0.5, -0.2, 0.1, 0.01, -0.02, 0.005])  # mm, rad
+    nz = problem.Nuisance(offset=offset, gravity_rad=np.zeros(2))
+    both = np.vstack([pts, rim])
+    moved = problem._rigid(both, offset, pts.mean(axis=0))  # one rigid motion for all
+    prob.residuals("a", None, None, nz)
+    prob.residuals("a", None, None, nz, points_mm=rim)
+    assert np.allclose(seen[0], moved[:20]) and np.allclose(seen[1], moved[20:])
+    prob.residuals("a", None, None, None, points_mm=rim)
+    assert seen[2] is rim
