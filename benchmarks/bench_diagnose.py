@@ -258,7 +258,7 @@ def rim_profile(work: Path) -> list[tuple[str, list[tuple[int, float]]]]:
     The residual is centred by its mean beyond 20 mm (a scan's offset is a nuisance).
     """
     from calib.data import read_work
-    from calib.discrepancy.problem import build_problem
+    from calib.discrepancy.problem import build_problem, plate_height_mm
     from calib.discrepancy.refit import refit
 
     wf = read_work(work)
@@ -266,8 +266,7 @@ def rim_profile(work: Path) -> list[tuple[str, list[tuple[int, float]]]]:
     null = refit(prob, (), screened=(), say=lambda m: None)
     out = []
     for n in prob.scans:
-        scan = prob.measurement(n)
-        height = np.abs((prob.points[n] - scan.back_point_mm) @ scan.back_normal)
+        height = plate_height_mm(prob.measurement(n), prob.points[n])
         r = null.fields.residual[n]
         r = r - r[height >= 20.0].mean()
         bands = []
@@ -322,14 +321,14 @@ def main() -> None:
         _rim_table(args.out, [json.loads(p.read_text()) for p in sorted(store.glob("*.json"))])
         return
     if not args.table:
+        from calib.discrepancy.problem import parse_rim_margin
+
+        margin = None if args.rim_margin is None else parse_rim_margin(args.rim_margin)
         for name, specs, seed, hidden in _cases(args):
             path = store / f"{name}.json"
             if path.is_file():
                 continue
             print(f"case {name}: synth -> calibrate -> diagnose", flush=True)
-            margin = args.rim_margin
-            if margin is not None and margin != "element":
-                margin = float(margin)
             row = run_case(args.out, name, specs, seed, hidden, margin)
             path.write_text(json.dumps(row, indent=1))
             if row.get("failed"):

@@ -52,6 +52,7 @@ def diagnose(
 ) -> None:
     """Find where model and scans disagree, name the missing effect, refit, show the gap."""
     from ..discrepancy import DiagnosisError, DiagnosisOptions
+    from ..discrepancy.problem import parse_rim_margin
     from ..report.diagnosis import format_diagnosis
     from ..workflows.diagnose import run_diagnosis
 
@@ -61,7 +62,7 @@ def diagnose(
             **({} if names is None else {"effects": names}),
             holdout=holdout,
             alpha=alpha,
-            **({} if rim_margin is None else {"rim_margin_mm": _margin(rim_margin)}),
+            **({} if rim_margin is None else {"rim_margin_mm": parse_rim_margin(rim_margin)}),
             mesh_size_mm=mesh_size,
         )
         doc = run_diagnosis(work, opts, progress=lambda msg: typer.echo(f"  {msg}"))
@@ -69,13 +70,3 @@ def diagnose(
         fail(exc)
     typer.echo(format_diagnosis(doc))
     typer.echo(f"wrote {work / 'diagnosis.json'} and {work / 'diagnosis'}/report.html")
-
-
-def _margin(text: str) -> float | str:
-    """``--rim-margin``: a width in mm or ``element``."""
-    if text.strip() == "element":
-        return "element"
-    try:
-        return float(text)
-    except ValueError:
-        raise ValueError(f"--rim-margin must be a width in mm or 'element', got {text!r}") from None

@@ -42,6 +42,8 @@ __all__ = [
     "Nuisance",
     "Problem",
     "build_problem",
+    "parse_rim_margin",
+    "plate_height_mm",
     "rim_margin_of",
     "rotate_gravity",
 ]
@@ -200,9 +202,15 @@ class Problem:
         gravities = {n: self.gravity(n, nz.get(n)) for n in names}
         return self.fm.evaluate(theta, gravities, gradient=gradient)
 
-    def measured_points(self, name: str, nuisance: Nuisance | None = None) -> np.ndarray:
-        """The scan's points moved by its rigid offset."""
-        p = self.points[name]
+    def measured_points(
+        self, name: str, nuisance: Nuisance | None = None, points_mm: np.ndarray | None = None
+    ) -> np.ndarray:
+        """The scan's points moved by its rigid offset.
+
+        ``points_mm`` (e.g. its :attr:`rim_points`) instead of the diagnosed points move
+        alike, about the diagnosed points' centre.
+        """
+        p = self.points[name] if points_mm is None else points_mm
         return p if nuisance is None else _rigid(p, nuisance.offset, self.centres[name])
 
     def residuals(
@@ -216,18 +224,11 @@ class Problem:
     ) -> Residuals:
         """Surface residuals of one scan for simulated positions (and their derivative).
 
-        At the scan's diagnosed points, or at ``points_mm`` (e.g. its :attr:`rim_points`),
-        moved by the scan's rigid offset alike.
+        At the scan's diagnosed points, or at ``points_mm`` (:meth:`measured_points`).
         """
-        if points_mm is None:
-            measured = self.measured_points(name, nuisance)
-        elif nuisance is None:
-            measured = points_mm
-        else:
-            measured = _rigid(points_mm, nuisance.offset, self.centres[name])
         return scan_residuals(
             "surface", self.measurement(name), self.mesh, self.sim, positions_mm,
-            dpositions_mm, surface_points_mm=measured,
+            dpositions_mm, surface_points_mm=self.measured_points(name, nuisance, points_mm),
         )  # fmt: skip
 
 
@@ -407,12 +408,29 @@ def rim_margin_of(mesh_size_mm: float, margin: float | Literal["element"] = RIM_
     return float(margin)
 
 
+def parse_rim_margin(text: str) -> float | Literal["element"]:
+    """A rim margin as typed (``--rim-margin``): a width in mm or ``element``."""
+    if text.strip() == "element":
+        return "element"
+    try:
+        return float(text)
+    except ValueError:
+        raise DiagnosisError(
+            f"--rim-margin must be a width in mm or 'element', got {text!r}"
+        ) from None
+
+
+def plate_height_mm(scan, points_mm: np.ndarray) -> np.ndarray:
+    """Distance of points (reference frame, mm) from a scan's back plate, shape (n,)."""
+    return np.abs((points_mm - scan.back_point_mm) @ scan.back_normal)
+
+
 def _off_the_rim(scan, n_pts: int, seed: int, margin_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """The calibration's seeded surface points of a scan: beyond the rim margin, within it."""
     p = scan.surface_points(max_points=n_pts, seed=seed)
     if margin_mm <= 0:
         return p, p[:0]
-    keep = np.abs((p - scan.back_point_mm) @ scan.back_normal) >= margin_mm
+    keep = plate_height_mm(scan, p) >= margin_mm
     if keep.sum() < 0.5 * len(p):
         raise DiagnosisError(
             f"{scan.name}: only {int(keep.sum())} of {len(p)} surface points lie farther "
