@@ -44,7 +44,7 @@ __all__ = ["ForwardModel", "ScanState"]
 # Inverse Newton inside the loop: 10 load steps at most (a sagging scan on a coarse mesh
 # can leave no valid stress-free state, where cut-backs would go on for many minutes).
 _UNLOAD_NEWTON = fem.SolverOptions(max_steps=10)
-_RECOVERIES_KEPT = 16  # converged recoveries kept by theta (a few MB each at most)
+_RECOVERIES_KEPT = 32  # converged recoveries kept by (effects, theta) (a few MB each at most)
 log = logging.getLogger(__name__)
 
 
@@ -108,7 +108,8 @@ class ForwardModel:
     _X_theta: float | None = None  # theta of a converged recovery held in _X
     current_dX: np.ndarray | None = None  # d stress-free nodes / d theta of the last evaluate
     _states: dict = field(default_factory=dict)
-    _recovered: dict = field(default_factory=dict)  # theta -> (X, u0, inverted elements)
+    # (effects, theta) -> (X, u0, inverted elements, prestress)
+    _recovered: dict = field(default_factory=dict)
     _du0: tuple | None = None  # (theta, d u0 / d theta) of the last gradient
     _ps: object = None  # fem.prestress.Prestress of the last spatial recovery
     _dF0: tuple | None = None  # (theta, d F0 / d theta) of the last spatial gradient
@@ -129,12 +130,12 @@ class ForwardModel:
     def set_effects(self, effects: EffectValues | None) -> None:
         """Use other effect values (or None: homogeneous, clamped).
 
-        Recovered references are forgotten (they depend on the material); warm starts are
-        kept unless the support changes.
+        Recovered references stay cached by effect values and theta (a diagnosis comes
+        back to a candidate's fit); warm starts are kept unless the support changes.
         """
         old = self._support()
         self.effects = effects
-        self._X_theta, self._recovered, self._du0, self._dF0 = None, {}, None, None
+        self._X_theta, self._du0, self._dF0 = None, None, None
         if self._support() != old:
             self._disc = fem.discretize(self.mesh, self._support(), formulation=self.formulation)
             self._states = {}
@@ -223,8 +224,9 @@ class ForwardModel:
             return self._X
         if theta == self._X_theta:  # recovered already (first estimate, final states)
             return self._X
-        if theta in self._recovered:  # e.g. the calibrated c1 again after the profile
-            self._X, self._u0, self.inverted_reference_elements, self._ps = self._recovered[theta]
+        key = (self.effects, theta)
+        if key in self._recovered:  # e.g. the calibrated c1 again after the profile
+            self._X, self._u0, self.inverted_reference_elements, self._ps = self._recovered[key]
             self._X_theta = theta
             return self._X
         start = self.model(theta)
@@ -233,7 +235,7 @@ class ForwardModel:
         if self.unload_method == "newton":
             try:
                 # a bounded effort: past it another method takes over (and says so)
-                rec = recover_stress_free(start, x0_state=self._u0, options=_UNLOAD_NEWTON, **kw)
+                rec = self._inverse_newton(start, theta, kw)
             except fem.ConvergenceError as exc:
                 if self.spatial_fallback and self._disc.spring is None:
                     log.warning(
@@ -271,7 +273,7 @@ class ForwardModel:
         # the warm start of the next recovery: the inverse's own unknown
         self._u0 = rec.prestress.inverse_state if rec.prestress is not None else rec.solution.state
         self._X_theta = theta
-        self._recovered[theta] = (self._X, self._u0, rec.inverted_elements, self._ps)
+        self._recovered[key] = (self._X, self._u0, rec.inverted_elements, self._ps)
         while len(self._recovered) > _RECOVERIES_KEPT:
             self._recovered.pop(next(iter(self._recovered)))
         if rec.inverted_elements != self.inverted_reference_elements and not self.prestressed:
@@ -283,6 +285,25 @@ class ForwardModel:
             )
         self.inverted_reference_elements = rec.inverted_elements
         return self._X
+
+    def _inverse_newton(self, start: fem.Model, theta: float, kw: dict):
+        """Inverse Newton from the last recovery's state; once more from rest if that fails.
+
+        The last recovery may be of other effect values (a diagnosis' other candidate, a
+        Poisson's ratio far from this one), a start outside this one's basin.
+        """
+        try:
+            return recover_stress_free(start, x0_state=self._u0, options=_UNLOAD_NEWTON, **kw)
+        except fem.ConvergenceError as exc:
+            if self._u0 is None:
+                raise
+            log.warning(
+                "inverse Newton from the last recovered state failed at c1=%.1f Pa (%s); "
+                "once more from rest",
+                np.exp(theta),
+                exc,
+            )
+        return recover_stress_free(start, x0_state=None, options=_UNLOAD_NEWTON, **kw)
 
     def use_spatial(self) -> None:
         """Switch to the prestressed formulation: recoveries and warm starts start over."""
