@@ -27,10 +27,11 @@ apart and shown in the table.
 
     python benchmarks/bench_diagnose.py --out DIR [--cases skin,none,curve] [--seeds 0,1,2]
         [--null-seeds 0,1,2,3,4] [--ratios 2,4,8] [--only NAME,...] [--table]
-        [--rim-margin MM|element] [--rim-profile]
+        [--rim-margin MM|element] [--noise-profile flat|plate] [--rim-profile]
 
-``--rim-margin`` diagnoses with that margin (``diagnose --rim-margin``; use a fresh
-``--out``, the cases of another margin are skipped). ``--rim-profile`` prints, for each
+``--rim-margin`` and ``--noise-profile`` diagnose with that option (``diagnose
+--rim-margin``, ``--noise-profile``; use a fresh ``--out``, the cases already there are
+skipped). ``--rim-profile`` prints, for each
 finished null case, the residual of its c1-only fit with every measured point kept (rim
 margin 0) by height above the back plate: the measurement behind ``--rim-margin
 element`` (:func:`calib.discrepancy.problem.rim_margin_of`).
@@ -95,7 +96,13 @@ def _noise_check(twin: Path, work: Path) -> dict:
 
 
 def run_case(
-    root: Path, name: str, specs: list[str], seed: int, hidden: str, rim_margin=None
+    root: Path,
+    name: str,
+    specs: list[str],
+    seed: int,
+    hidden: str,
+    rim_margin=None,
+    noise_profile: str = "flat",
 ) -> dict:
     import fem
     from calib.discrepancy import DiagnosisOptions
@@ -122,7 +129,8 @@ def run_case(
         opts = CalibrationOptions(mesh_size_mm=14.0, mesh_retry_mm=(16.0,), profile_points=0)
         cal = run_calibration(twin / "scans", work, opts)
     t2 = time.perf_counter()
-    opts = DiagnosisOptions() if rim_margin is None else DiagnosisOptions(rim_margin_mm=rim_margin)
+    margin = {} if rim_margin is None else {"rim_margin_mm": rim_margin}
+    opts = DiagnosisOptions(**margin, noise_profile=noise_profile)
     doc = run_diagnosis(work, opts)
     t3 = time.perf_counter()
     truth = json.loads((twin / "truth" / "truth.json").read_text())
@@ -147,6 +155,7 @@ def run_case(
         "c1_error": doc["c1_pa"] / c1_true - 1.0,
         "holdout": hold,
         "rim_margin_mm": doc["scans"]["rim_margin_mm"],
+        "noise_profile": doc["options"].get("noise_profile", "flat"),
         "holdout_cut_above_floor": gap[hold].get("cut_above_floor") if hold else None,
         "holdout_before_mm": gap[hold]["surface_error_mm"]["before"]["mean"] if hold else None,
         "holdout_after_mm": gap[hold]["surface_error_mm"].get("after", {}).get("mean")
@@ -198,7 +207,7 @@ def _table(rows: list[dict]) -> None:
     rows = [r for r in rows if not r.get("failed")]
     print(f"{'case':16s} {'verdict':34s} {'expect':>10s} {'right':>5s} {'c1 cal':>7s} "
           f"{'c1 refit':>8s} {'err %':>6s} {'hold cut':>8s} {'noise sd':>8s} "
-          f"{'diag s':>7s} {'rim mm':>6s}")  # fmt: skip
+          f"{'diag s':>7s} {'rim mm':>6s} {'profile':>7s}")  # fmt: skip
     for r in rows:
         # no cut without a named effect ("after" is c1 alone refitted; cases diagnosed
         # before diagnosis.json said so carry one)
@@ -209,7 +218,7 @@ def _table(rows: list[dict]) -> None:
               f"{r['c1_calibrated_pa']:7.1f} {r['c1_refit_pa']:8.1f} "
               f"{100 * r['c1_error']:+6.1f} {'' if cut is None else f'{100 * cut:.0f} %':>8s} "
               f"{r['noise_model']['sigma_mm']:8.3f} {r['diagnose_s']:7.0f} "
-              f"{r.get('rim_margin_mm', 5.0):6g}")  # fmt: skip
+              f"{r.get('rim_margin_mm', 5.0):6g} {r.get('noise_profile', 'flat'):>7s}")  # fmt: skip
     for r in failed:
         print(f"{r['case']:16s} FAILED {r['failed'][:100]}")
     preset = [r for r in rows if not _is_curve(r)]  # the bars: effects at preset amplitude
@@ -304,6 +313,12 @@ def main() -> None:
     ap.add_argument("--only", default="", help="run only these case names")
     ap.add_argument("--table", action="store_true", help="print the table of the finished cases")
     ap.add_argument(
+        "--noise-profile",
+        choices=("flat", "plate"),
+        default="flat",
+        help="diagnose with this noise profile (diagnose --noise-profile)",
+    )
+    ap.add_argument(
         "--rim-margin",
         default=None,
         help="diagnose with this rim margin (mm, or 'element'; default: diagnose's)",
@@ -329,7 +344,7 @@ def main() -> None:
             if path.is_file():
                 continue
             print(f"case {name}: synth -> calibrate -> diagnose", flush=True)
-            row = run_case(args.out, name, specs, seed, hidden, margin)
+            row = run_case(args.out, name, specs, seed, hidden, margin, args.noise_profile)
             path.write_text(json.dumps(row, indent=1))
             if row.get("failed"):
                 print(f"  FAILED {row['failed']}", flush=True)

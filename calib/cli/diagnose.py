@@ -49,6 +49,15 @@ def diagnose(
             "a finer one tells discretisation error from a missing effect (slower).",
         ),
     ] = None,
+    noise_profile: Annotated[
+        str,
+        typer.Option(
+            "--noise-profile",
+            help="'flat': one noise level at every height (default); 'plate': the noise "
+            "level by height above the back plate, measured on the residual, weighting "
+            "every residual (the clamped edge's larger spread).",
+        ),
+    ] = "flat",
 ) -> None:
     """Find where model and scans disagree, name the missing effect, refit, show the gap."""
     from ..discrepancy import DiagnosisError, DiagnosisOptions
@@ -64,6 +73,7 @@ def diagnose(
             alpha=alpha,
             **({} if rim_margin is None else {"rim_margin_mm": parse_rim_margin(rim_margin)}),
             mesh_size_mm=mesh_size,
+            noise_profile=noise_profile,
         )
         doc = run_diagnosis(work, opts, progress=lambda msg: typer.echo(f"  {msg}"))
     except (DiagnosisError, ValueError, OSError, RuntimeError, KeyError) as exc:

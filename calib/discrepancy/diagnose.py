@@ -8,7 +8,12 @@ Steps (the issue's; no files are written here, see :mod:`calib.workflows.diagnos
 2. *Noise model* (:func:`calib.stats.estimate_noise`, short range, from the residual's
    own variogram; the session's: the least-disturbed scan's fit,
    :func:`calib.stats.noise.session_noise`) and the *misfit test*
-   (:func:`calib.stats.misfit_test`).
+   (:func:`calib.stats.misfit_test`). With ``noise_profile="plate"`` the null fit's
+   residual first gives its spread by height above the back plate
+   (:func:`calib.stats.height_profile`); every residual and field is divided by it
+   (:attr:`calib.discrepancy.problem.Problem.profile`, weighted least squares) and the
+   null fit is repeated, so the stationary noise model sees a spread that does not
+   depend on height.
 3. *Localise:* a significance map and a region summary per scan
    (:mod:`calib.discrepancy.localise`).
 4. *Screen:* each requested effect's sensitivity field (:mod:`calib.discrepancy.fields`)
@@ -46,7 +51,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Literal
 
@@ -57,10 +62,10 @@ import fem
 from ..data.work import WorkFolder
 from ..evaluation import ScanMetrics, scan_metrics
 from ..model.effects import LIBRARY, SKIN_THICKNESS_MM
-from ..stats import NoiseFit, parameter_intervals
+from ..stats import NoiseFit, height_profile, parameter_intervals
 from .fields import FieldSet
 from .localise import region_labels, significance_map
-from .problem import RIM_MARGIN_MM, DiagnosisError, Problem, build_problem
+from .problem import RIM_MARGIN_MM, DiagnosisError, Problem, build_problem, plate_height_mm
 from .refit import Refit, lopo, refit
 from .screen import Screen, offset_columns, sample_of, screen, session_noise
 
@@ -73,6 +78,8 @@ DEFAULT_EFFECTS = (
     "skin", "sliding", "inclusions", "mooney", "poisson", "density", "gravity", "registration",
 )  # fmt: skip
 FLOOR_LAG_MM = 20.0
+#: ``DiagnosisOptions.noise_profile``'s choices.
+NOISE_PROFILES = ("flat", "plate")
 MAP_KERNEL_MM = 10.0  # the significance map's smoothing (a pad's print, a rim band)
 
 
@@ -101,6 +108,10 @@ class DiagnosisOptions:
         Diagnose on a model mesh of this size, built from the reference scan, instead of
         the calibration's (None). A finer mesh tells discretisation error from a missing
         effect (every FE solve costs more: about (h / size)^3).
+    noise_profile : {"flat", "plate"}
+        ``"flat"``: one noise level at every height (the default). ``"plate"``: the
+        noise level by height above the back plate, measured on the null fit's residual
+        (:func:`calib.stats.height_profile`); residuals and fields are weighted by it.
     max_candidates : int
         Significant effects refitted by FE per forward-selection round (physical effects
         first; nuisances only when no physical candidate passes).
@@ -122,6 +133,7 @@ class DiagnosisOptions:
     max_points: int | None = None
     rim_margin_mm: float | Literal["element"] = RIM_MARGIN_MM
     mesh_size_mm: float | None = None
+    noise_profile: Literal["flat", "plate"] = "flat"
     max_candidates: int = 2
     max_named: int = 2
     min_explained: float = 0.5
@@ -146,6 +158,10 @@ class DiagnosisOptions:
             raise DiagnosisError(f"rim_margin_mm must lie in [0, 50) mm or be 'element', got {m!r}")
         if self.mesh_size_mm is not None and not 2.0 <= self.mesh_size_mm <= 40.0:
             raise DiagnosisError(f"mesh_size_mm must lie in [2, 40] mm, got {self.mesh_size_mm}")
+        if self.noise_profile not in NOISE_PROFILES:
+            raise DiagnosisError(
+                f"noise_profile must be one of {NOISE_PROFILES}, got {self.noise_profile!r}"
+            )
         if self.max_candidates < 1 or self.max_named < 1:
             raise DiagnosisError("max_candidates and max_named must be >= 1")
 
@@ -393,6 +409,7 @@ class Diagnosis:
                 "floor_rms_mm": float(np.sqrt(max(self.floor_mm2, 0.0))),
                 "floor_mean_abs_mm": floor,
                 "floor_max_lag_mm": FLOOR_LAG_MM,
+                "height_profile": None if prob.profile is None else prob.profile.as_json(),
             },
             "misfit_test": self.screen.misfit.as_json(),
             "effects": self.effect_summary(),
@@ -539,6 +556,22 @@ def diagnose(
     unavailable = dict(null.fields.unavailable)
     say(f"  c1 = {null.c1_pa:.1f} Pa (calibration {np.exp(prob.theta_calibrated):.1f} Pa), "
         f"rms {np.sqrt(null.mean_sq_mm2):.3f} mm")  # fmt: skip
+    if o.noise_profile == "plate":
+        prob = replace(prob, profile=_height_profile(prob, null.fields))
+        rel = ", ".join(f"{v:.2f}" for v in prob.profile.relative_sd)
+        say(
+            f"noise by height above the plate, relative to beyond "
+            f"{prob.profile.edges_mm[-2]:g} mm: {rel}; null fit again, weighted"
+        )
+        null = refit(
+            prob,
+            (),
+            screened=screened,
+            theta0=null.theta,
+            max_iterations=o.refit_iterations,
+            say=say,
+        )
+        unavailable = dict(null.fields.unavailable)
     kw = {"alpha": o.alpha, "misfit_alpha": o.misfit_alpha, "confounded_above": o.confounded_above}
     scr0 = screen(null.fields, prob.points, **kw)
     nb = scr0.noise.best
@@ -614,6 +647,25 @@ def diagnose(
         floor_mm2=floor, unavailable=unavailable, options=o,
         wall_s=time.perf_counter() - t0, fe_solves=int(prob.fm.solves), final_states=states,
     )  # fmt: skip
+
+
+def _height_profile(prob: Problem, fields: FieldSet):
+    """The residual's spread by height above the plate, pooled over the diagnosis scans.
+
+    Each scan's residual is centred by its median beyond 20 mm (a scan's offset is a
+    nuisance, not spread).
+    """
+    heights, resid = [], []
+    for n in fields.scans:
+        h = plate_height_mm(prob.measurement(n), prob.points[n])
+        r = fields.residual[n]
+        far = h >= 20.0
+        resid.append(r - np.median(r[far] if far.any() else r))
+        heights.append(h)
+    try:
+        return height_profile(np.concatenate(heights), np.concatenate(resid))
+    except ValueError as exc:
+        raise DiagnosisError(f"{prob.work.path}: no noise profile by height ({exc})") from exc
 
 
 def _candidates(sig, cosine, o) -> list[list[str]]:
@@ -830,8 +882,10 @@ def _gaps(prob: Problem, null: Refit, final: Refit, say) -> tuple[dict, dict]:
         ra = prob.residuals(n, states[n].positions_mm, nuisance=final.nuisance.get(n)).r
         if null_states is None:
             before = calibration
-            rb = scan_residuals("surface", scan, work.mesh, cal_sim, saved.positions_mm, None,
-                                surface_points_mm=prob.measured_points(n, None)).r  # fmt: skip
+            rb = prob.weighted(n, scan_residuals("surface", scan, work.mesh, cal_sim,
+                                                 saved.positions_mm, None,
+                                                 surface_points_mm=prob.points[n]),
+                               prob.points[n]).r  # fmt: skip
         else:
             pos = null_states[n].positions_mm
             before = scan_metrics(scan, pos, prob.sim.faces, prob.nipple_node, None)

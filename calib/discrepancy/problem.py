@@ -35,6 +35,7 @@ from ..data.work import WorkFolder
 from ..model.effects import SKIN_THICKNESS_MM, EffectValues, tag_effect_regions
 from ..model.forward import ForwardModel, ScanState
 from ..model.residuals import Residuals, SimulatedSurface, scan_residuals
+from ..stats.profile import HeightProfile
 
 __all__ = [
     "RIM_MARGIN_MM",
@@ -142,6 +143,11 @@ class Problem:
     rim_points : dict of str to ndarray (j, 3)
         Each scan's measured points within the rim margin: mapped by the localisation,
         never fitted nor tested.
+    profile : HeightProfile or None
+        The residual's relative spread by height above the back plate (``--noise-profile
+        plate``, :func:`calib.stats.height_profile`): every residual and its derivatives
+        are divided by it (:meth:`residuals`), so the far band keeps its units (mm).
+        None: a noise level the same at every height (the default).
     """
 
     work: WorkFolder
@@ -159,6 +165,7 @@ class Problem:
     mesh_note: str = ""
     rim_margin_mm: float = RIM_MARGIN_MM
     rim_points: dict = field(default_factory=dict)
+    profile: HeightProfile | None = None
 
     @property
     def same_mesh(self) -> bool:
@@ -224,12 +231,25 @@ class Problem:
     ) -> Residuals:
         """Surface residuals of one scan for simulated positions (and their derivative).
 
-        At the scan's diagnosed points, or at ``points_mm`` (:meth:`measured_points`).
+        At the scan's diagnosed points, or at ``points_mm`` (:meth:`measured_points`);
+        divided by the :attr:`profile` at each point's height where there is one.
         """
-        return scan_residuals(
+        res = scan_residuals(
             "surface", self.measurement(name), self.mesh, self.sim, positions_mm,
             dpositions_mm, surface_points_mm=self.measured_points(name, nuisance, points_mm),
         )  # fmt: skip
+        return self.weighted(name, res, self.points[name] if points_mm is None else points_mm)
+
+    def weighted(self, name: str, res: Residuals, points_mm: np.ndarray) -> Residuals:
+        """``res`` divided by the :attr:`profile` at the height of ``points_mm`` (unmoved).
+
+        The weight of a point is that of its measured place: a rigid offset moves the
+        point, not its weight. Without a profile, ``res`` itself.
+        """
+        if self.profile is None:
+            return res
+        w = self.profile.weights(plate_height_mm(self.measurement(name), points_mm))
+        return Residuals(res.r * w, None if res.dr is None else res.dr * w, res.points_mm)
 
 
 def _parameters(record: dict) -> dict:

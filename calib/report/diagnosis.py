@@ -310,6 +310,7 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
         f"<h2>Confirmation (full FE refits)</h2>{cands}"
         f"<h2>Localisation (at the c1-only refit)</h2>{loc}"
         f"<p>{esc(_rim(doc))}</p>"
+        f"{'<p>' + esc(_profile(doc)) + '</p>' if _profile(doc) else ''}"
         f"<h2>Figures</h2>{figs}"
         "</body></html>\n"
     )
@@ -338,6 +339,8 @@ def format_diagnosis(doc: dict) -> str:
                      f"{'' if not np.isfinite(ra) else f'{ra:.3f}':>6s} "
                      f"{'' if cut is None else f'{100 * cut:.0f} %':>16s}")  # fmt: skip
     lines.append(f"noise floor (mean |e|) {doc['noise']['floor_mean_abs_mm']:.3f} mm")
+    if _profile(doc):
+        lines.append(_profile(doc))
     note, own = _calibration_errors(doc)
     if note is not None:
         lines.append(f"{note}: before is c1 alone on that mesh; the calibration's own mean "
@@ -346,6 +349,23 @@ def format_diagnosis(doc: dict) -> str:
     if hint:
         lines.append(hint)
     return "\n".join(lines)
+
+
+def _profile(doc: dict) -> str:
+    """What ``--noise-profile plate`` measured and weighted ('' without a profile)."""
+    prof = (doc.get("noise") or {}).get("height_profile")
+    if not prof:
+        return ""
+    edges = [e if e is not None else np.inf for e in prof["edges_mm"]]
+    bands = ", ".join(
+        f"{lo:g}-{hi:g} mm x{v:.2f}" if np.isfinite(hi) else f"beyond {lo:g} mm x{v:.2f}"
+        for lo, hi, v in zip(edges[:-1], edges[1:], prof["relative_sd"], strict=True)
+    )
+    return (
+        f"noise by height above the back plate (relative to {prof['far_sd_mm']:.3f} mm far "
+        f"from it): {bands}; every residual is divided by it, so residuals, the "
+        "localisation and the floor are in the far band's mm (surface errors in mm)"
+    )
 
 
 def _rim(doc: dict) -> str:

@@ -2,20 +2,22 @@
 
 Pure numpy/scipy (no FE, no files). ``noise``: variogram and kernel fit
 (:class:`NoiseModel`), covariances, whitening; ``intervals``: parameter intervals with
-measured coverage; ``scores``: the misfit test and effect screening; ``coverage``: cheap
-linear models on phantom-like geometry for the studies in
-``benchmarks/bench_coverage.py``.
+measured coverage; ``profile``: a noise level by height band; ``scores``: the misfit
+test and effect screening; ``coverage``: cheap linear models on phantom-like geometry
+for the studies in ``benchmarks/bench_coverage.py``.
 """
 
 from .intervals import ParameterInterval, parameter_intervals, sandwich_covariance
 from .kernels import KERNELS, correlation
 from .noise import NoiseFit, NoiseModel, Variogram, estimate_noise, whitener
+from .profile import HeightProfile, height_profile
 from .sample import SurfaceSample
 from .scores import EffectScreening, ModelFit, misfit_test, screen_effects
 
 __all__ = [
     "KERNELS",
     "EffectScreening",
+    "HeightProfile",
     "ModelFit",
     "NoiseFit",
     "NoiseModel",
@@ -24,6 +26,7 @@ __all__ = [
     "Variogram",
     "correlation",
     "estimate_noise",
+    "height_profile",
     "misfit_test",
     "parameter_intervals",
     "sandwich_covariance",

@@ -9,6 +9,7 @@ errors. The whole workflow on digital twins: ``test_diagnose_twins.py`` (slow).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -302,7 +303,7 @@ def _gap_problem(same_mesh: bool):
         scans=("a", "b"), holdout="h", solve=solve, work=work, same_mesh=same_mesh,
         sim=SimpleNamespace(faces=None), nipple_node=0, measurement=lambda n: n,
         residuals=lambda n, pos, nuisance=None: SimpleNamespace(r=pos[:, 0] + (nuisance or 0.0)),
-        measured_points=lambda n, _: None,
+        points=dict.fromkeys(("a", "b", "h")), weighted=lambda n, res, points: res,
     )  # fmt: skip
     return prob, solved
 
@@ -576,3 +577,45 @@ def test_rim_points_are_moved_by_the_scan_offset_like_the_diagnosed_ones(monkeyp
     assert np.allclose(seen[0], moved[:20]) and np.allclose(seen[1], moved[20:])
     prob.residuals("a", None, None, None, points_mm=rim)
     assert seen[2] is rim
+
+
+def test_a_noise_profile_weights_each_residual_by_its_measured_height(monkeypatch):
+    # --noise-profile plate: residual and derivative of a point are divided by the relative
+    # spread at its height above the plate; a rigid offset moves the point, not its weight
+    import calib.discrepancy.problem as problem
+    from calib.model.residuals import Residuals
+    from calib.stats import HeightProfile
+
+    monkeypatch.setattr(problem, "scan_residuals", lambda *a, surface_points_mm: Residuals(
+        np.ones(len(surface_points_mm)), np.full(len(surface_points_mm), 2.0),
+        surface_points_mm))  # fmt: skip
+    pts = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 6.0], [0.0, 0.0, 40.0], [5.0, 0.0, 4.9]])
+    prof = HeightProfile((0.0, 5.0, 30.0, np.inf), (4.0, 2.0, 1.0), (10, 10, 10), 0.1)
+    prob = problem.Problem(
+        work=None, fm=SimpleNamespace(mesh=None), base=None, sim=None, points={"a": pts},
+        centres={"a": pts.mean(axis=0)}, scans=["a"], holdout=None, theta_calibrated=6.0,
+        inclusions=[], skin_thickness_mm=1.5, profile=prof,
+    )  # fmt: skip
+    prob.measurement = lambda name: SimpleNamespace(
+        back_point_mm=np.zeros(3), back_normal=np.array([0.0, 0.0, -1.0])
+    )
+    w = np.array([0.25, 0.5, 1.0, 0.25])
+    res = prob.residuals("a", None, np.zeros((1, 3)))
+    assert np.allclose(res.r, w) and np.allclose(res.dr, 2.0 * w)
+    nz = problem.Nuisance(offset=np.array([0.0, 0.0, 3.0, 0.0, 0.0, 0.0]), gravity_rad=np.zeros(2))
+    moved = prob.residuals("a", None, None, nz)
+    assert np.allclose(moved.points_mm[:, 2], pts[:, 2] + 3.0)
+    assert np.allclose(moved.r, w)  # the weights of the measured places
+    rim = np.array([[0.0, 0.0, 0.5]])
+    assert prob.residuals("a", None, points_mm=rim).r.tolist() == [0.25]
+    flat = replace(prob, profile=None)
+    flat.measurement = prob.measurement
+    assert np.allclose(flat.residuals("a", None).r, 1.0)
+
+
+def test_the_noise_profile_option_is_checked():
+    assert DiagnosisOptions().noise_profile == "flat"
+    with pytest.raises(DiagnosisError, match="noise_profile must be one of"):
+        DiagnosisOptions(noise_profile="wavy")
+    res = CliRunner().invoke(app, ["diagnose", "nowhere", "--noise-profile", "wavy"])
+    assert res.exit_code == 2 and "noise_profile must be one of" in res.output

@@ -147,3 +147,29 @@ def test_an_effect_outside_the_library_is_unexplained(tmp_path_factory):
     assert doc["verdict"] == "unexplained", (doc["verdict"], doc["candidates"])
     loc = doc["localisation"]["tilt_50"]
     assert loc["max_abs_z"] > 4.0  # the pad's print is where the map lights up
+
+
+def test_a_noise_profile_by_height_names_the_skin_and_nothing_on_the_null(skin, none, tmp_path):
+    # --noise-profile plate on copies of the same two calibrations: the hidden skin is
+    # still named with c1 back within 5 % (issue 13's bar), the homogeneous truth gets no
+    # name (0 false namings), and the profile measured on the null twin's residual is
+    # louder at the plate than far from it (the clamped edge: 2-4x on the quick null
+    # twins, benchmarks/bench_diagnose.py --rim-profile)
+    import shutil
+
+    from calib.discrepancy import DiagnosisOptions
+    from calib.workflows.diagnose import run_diagnosis
+
+    opts = DiagnosisOptions(noise_profile="plate")
+    docs = {}
+    for name, (out, _) in {"skin": skin, "none": none}.items():
+        work = tmp_path / name
+        shutil.copytree(out / "work", work, ignore=shutil.ignore_patterns("diagnosis*"))
+        docs[name] = run_diagnosis(work, opts)
+    c1_true = json.loads((skin[0] / "twin" / "truth" / "truth.json").read_text())["material"]
+    assert docs["skin"]["verdict"].startswith("named: skin"), docs["skin"]["verdict"]
+    assert docs["skin"]["c1_pa"] == pytest.approx(c1_true["c1_pa"], rel=0.05)
+    assert docs["none"]["named"] == [], docs["none"]["verdict"]
+    prof = docs["none"]["noise"]["height_profile"]
+    assert prof["relative_sd"][0] > 1.5 and prof["relative_sd"][-1] == 1.0
+    assert docs["none"]["options"]["noise_profile"] == "plate"
