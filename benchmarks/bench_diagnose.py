@@ -258,9 +258,6 @@ def _table(rows: list[dict]) -> None:
               + ", ".join(f"ratio {r['specs'][0][9:]}: {r['verdict']}" for r in curve))  # fmt: skip
 
 
-RIM_BANDS_MM = (0.0, 5.0, 8.0, 12.0, 16.0, 20.0, 30.0, np.inf)
-
-
 def rim_profile(work: Path) -> list[tuple[str, list[tuple[int, float]]]]:
     """Per diagnosis scan, ``(points, rms mm)`` of the c1-only fit's residual per height band.
 
@@ -269,6 +266,7 @@ def rim_profile(work: Path) -> list[tuple[str, list[tuple[int, float]]]]:
     from calib.data import read_work
     from calib.discrepancy.problem import build_problem, plate_height_mm
     from calib.discrepancy.refit import refit
+    from calib.stats.profile import HEIGHT_BANDS_MM
 
     wf = read_work(work)
     prob = build_problem(wf, rim_margin_mm=0.0)
@@ -279,7 +277,7 @@ def rim_profile(work: Path) -> list[tuple[str, list[tuple[int, float]]]]:
         r = null.fields.residual[n]
         r = r - r[height >= 20.0].mean()
         bands = []
-        for lo, hi in zip(RIM_BANDS_MM[:-1], RIM_BANDS_MM[1:], strict=True):
+        for lo, hi in zip(HEIGHT_BANDS_MM[:-1], HEIGHT_BANDS_MM[1:], strict=True):
             sel = (height >= lo) & (height < hi)
             bands.append((int(sel.sum()), float(np.sqrt(np.mean(r[sel] ** 2)))))
         out.append((n, bands))
@@ -287,7 +285,9 @@ def rim_profile(work: Path) -> list[tuple[str, list[tuple[int, float]]]]:
 
 
 def _rim_table(root: Path, rows: list[dict]) -> None:
-    edges = zip(RIM_BANDS_MM[:-1], RIM_BANDS_MM[1:], strict=True)
+    from calib.stats.profile import HEIGHT_BANDS_MM  # the bands of --noise-profile plate
+
+    edges = zip(HEIGHT_BANDS_MM[:-1], HEIGHT_BANDS_MM[1:], strict=True)
     head = " ".join(f"{f'{lo:g}-{hi:g}':>12s}" for lo, hi in edges)
     print("residual rms (mm) of the c1-only fit by height above the back plate (mm), null sets")
     print(f"{'case':10s} {'scan':14s} {head}")

@@ -339,8 +339,8 @@ def format_diagnosis(doc: dict) -> str:
                      f"{'' if not np.isfinite(ra) else f'{ra:.3f}':>6s} "
                      f"{'' if cut is None else f'{100 * cut:.0f} %':>16s}")  # fmt: skip
     lines.append(f"noise floor (mean |e|) {doc['noise']['floor_mean_abs_mm']:.3f} mm")
-    if _profile(doc):
-        lines.append(_profile(doc))
+    if profile := _profile(doc):
+        lines.append(profile)
     note, own = _calibration_errors(doc)
     if note is not None:
         lines.append(f"{note}: before is c1 alone on that mesh; the calibration's own mean "

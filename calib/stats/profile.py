@@ -131,11 +131,8 @@ def height_profile(
         raise ValueError("the farthest band's residuals have no spread")
     rel = np.ones_like(sd)
     rel[measured] = sd[measured] / far
-    # a band too thin to measure takes the next band out's value; then non-increasing
-    # with height (the running maximum from the far side) and >= 1
-    for k in range(len(rel) - 2, -1, -1):
-        if not np.isfinite(sd[k]):
-            rel[k] = rel[k + 1]
+    # >= 1 and non-increasing with height: the running maximum from the far side, which
+    # also gives a band too thin to measure (1 here) the next band out's value
     rel = np.maximum.accumulate(np.maximum(rel, 1.0)[::-1])[::-1]
     return HeightProfile(
         tuple(float(x) for x in e),
