@@ -13,9 +13,15 @@ solver. Two users:
 
 Both build their materials with the same function (:func:`region_law`): an element
 carries the volume fractions of skin band and inclusion inside it (64 sub-tetrahedra
-sampled) and a volume (Voigt) mix of the laws, so a layer's stiffness times volume does
-not depend on the mesh (the twin's ``skin:f`` regions; the model mesh's ``skin:f``,
-``inclusion:f`` and ``mix:fs:fi`` regions).
+sampled) and mixes the laws by them (the twin's ``skin:f`` regions; the model mesh's
+``skin:f``, ``inclusion:f`` and ``mix:fs:fi`` regions). The skin band mixes by volume
+(Voigt): a thin layer along the surface is stretched with its neighbours, so a layer's
+stiffness times volume does not depend on the mesh. An inclusion's part of an element
+mixes by the Hashin-Shtrikman bound with the bulk as the connected phase
+(:func:`inclusion_mix`): a stiff sphere in a soft element stiffens it far less than its
+volume share of the stiffness (an element 30 % inside a ×5 inclusion: ×1.57, not ×2.2),
+and with the volume mix a refit on a coarse mesh found the ratio − 1 at 2.0–2.3 against
+a true 4.
 
 The library's effects (parameters of the diagnosis; neutral value; physical range):
 
@@ -49,7 +55,10 @@ overshoots by the exponential's curvature).
 References
 ----------
 Voigt, W. (1889). Ueber die Beziehung zwischen den beiden Elasticitätsconstanten
-isotroper Körper. *Ann. Phys.* 274, 573-587 (the volume mix of an element's laws).
+isotroper Körper. *Ann. Phys.* 274, 573-587 (the volume mix of the skin band).
+Hashin, Z. & Shtrikman, S. (1963). A variational approach to the theory of the elastic
+behaviour of multiphase materials. *J. Mech. Phys. Solids* 11, 127-140 (the inclusion's
+mix: the shear-modulus bound with the soft phase connected).
 """
 
 from __future__ import annotations
@@ -77,6 +86,7 @@ __all__ = [
     "TruthEffects",
     "effect_model",
     "effect_support",
+    "inclusion_mix",
     "parse_effects",
     "region_fractions",
     "region_law",
@@ -304,14 +314,37 @@ def tag_effect_regions(
     return mesh.with_regions(region, names)
 
 
-def region_law(name: str, c1_pa: float, values: EffectValues) -> fem.MooneyRivlin:
-    """The law of a region: a volume (Voigt) mix of bulk, skin and inclusion.
+def inclusion_mix(fraction: float, ratio_minus_one: float) -> float:
+    """Stiffening of an element a ``fraction`` of whose volume is inclusion, less one.
 
-    ``ratio = 1 + (skin_ratio - 1) f_skin + (inclusion_ratio - 1) f_inclusion``;
-    ``c1 = ratio c1_pa``, ``c2 = ratio c2_ratio c1_pa``, Poisson's ratio ``values.nu``.
+    The Hashin-Shtrikman bound of the shear modulus with the bulk as the connected
+    phase, both incompressible (the bulk's bulk modulus taken to infinity):
+    ``mu / mu_bulk - 1 = f d / (1 + 2 (1 - f) d / 5)``, ``d`` the inclusion's ratio
+    less one. It is the Mori-Tanaka estimate for spheres, Eshelby's dilute sphere
+    ``f 5 d / (5 + 2 d)`` as ``f -> 0``, ``d`` at ``f = 1`` and 0 at ``d = 0``; its slope
+    in ``d`` at ``d = 0`` is ``f``, the volume mix's, so the screen's fields (taken at
+    neutral) do not depend on the mix.
+
+    Parameters
+    ----------
+    fraction : float
+        Volume fraction of inclusion in the element, in [0, 1].
+    ratio_minus_one : float
+        Inclusion/bulk stiffness ratio less one, > -2.5 (the library's range: >= -0.9).
+    """
+    d = ratio_minus_one
+    return fraction * d / (1.0 + 0.4 * (1.0 - fraction) * d)  # HS bound, K_bulk -> inf
+
+
+def region_law(name: str, c1_pa: float, values: EffectValues) -> fem.MooneyRivlin:
+    """The law of a region: bulk, skin band by volume, inclusion by Hashin-Shtrikman.
+
+    ``ratio = 1 + (skin_ratio - 1) f_skin + inclusion_mix(f_inclusion, inclusion_ratio -
+    1)`` (:func:`inclusion_mix`); ``c1 = ratio c1_pa``, ``c2 = ratio c2_ratio c1_pa``,
+    Poisson's ratio ``values.nu``.
     """
     fs, fi = region_fractions(name)
-    ratio = 1.0 + (values.skin_ratio - 1.0) * fs + (values.inclusion_ratio - 1.0) * fi
+    ratio = 1.0 + (values.skin_ratio - 1.0) * fs + inclusion_mix(fi, values.inclusion_ratio - 1.0)
     c1 = c1_pa * ratio
     return fem.MooneyRivlin.from_poisson(c1, c1_pa * values.c2_ratio * ratio, values.nu)
 
@@ -480,7 +513,7 @@ LIBRARY: dict[str, Effect] = {
             0.0,
             (-0.9, 99.0),
             4.0,
-            implementation="regions inclusion, inclusion:f, mix: volume mix",
+            implementation="regions inclusion, inclusion:f, mix: Hashin-Shtrikman mix",
         ),
         Effect(
             "mooney",

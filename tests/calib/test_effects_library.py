@@ -26,6 +26,7 @@ from calib.model.effects import (
     TruthEffects,
     effect_model,
     effect_support,
+    inclusion_mix,
     region_fractions,
     region_law,
     tag_effect_regions,
@@ -123,13 +124,34 @@ def test_inclusion_volume_matches_the_sphere(box):
     assert np.all(fs + fi <= 1.0 + 1e-12)
 
 
-def test_laws_are_the_voigt_mix_and_neutral_values_give_one_material(box):
+def test_inclusion_mix_closed_forms():
+    # Hashin-Shtrikman with the bulk connected, both incompressible: exact limits, the
+    # dilute sphere of Eshelby (5 d / (5 + 2 d) per unit fraction), between the Reuss
+    # and Voigt bounds, and the volume mix's slope at neutral (the screen's field)
+    f = np.linspace(0.0, 1.0, 11)
+    for d in (-0.9, -0.5, 0.5, 4.0, 7.0, 99.0):
+        m = np.array([inclusion_mix(x, d) for x in f])
+        assert m[0] == 0.0 and m[-1] == pytest.approx(d, rel=1e-12)
+        assert inclusion_mix(1e-9, d) / 1e-9 == pytest.approx(5 * d / (5 + 2 * d), rel=1e-8)
+        reuss = 1.0 / ((1 - f) + f / (1 + d)) - 1.0
+        assert np.all(reuss <= m + 1e-12) and np.all(m <= f * d + 1e-12)
+        assert np.all(np.diff(m) * np.sign(d) > 0)  # more inclusion, more of its effect
+    assert all(inclusion_mix(x, 0.0) == 0.0 for x in f)
+    h = 1e-6  # central difference: O(h^2) ~ 1e-12 off the slope
+    slope = [(inclusion_mix(x, h) - inclusion_mix(x, -h)) / (2 * h) for x in f]
+    assert np.allclose(slope, f, atol=1e-9)
+    # the case the docstring quotes: 30 % of an element inside a x5 inclusion
+    assert 1 + inclusion_mix(0.3, 4.0) == pytest.approx(1.566, abs=1e-3)
+
+
+def test_laws_mix_skin_by_volume_inclusions_by_hs_and_neutral_values_give_one_material(box):
     mesh = tag_effect_regions(box, skin_thickness_mm=3.0, inclusions=[((30.0, 30.0, 15.0), 16.0)])
     v = EffectValues(skin_ratio=8.0, inclusion_ratio=5.0, c2_ratio=0.5, nu=0.45)
     for name in mesh.region_names:
         fs, fi = region_fractions(name)
         law = region_law(name, 420.0, v)
-        ratio = 1 + 7 * fs + 4 * fi  # Voigt: the stiffness mixes by volume
+        # Voigt for the skin band, Hashin-Shtrikman for the inclusion's part
+        ratio = 1 + 7 * fs + 4 * fi / (1 + 0.4 * (1 - fi) * 4)
         assert law.c1_pa == pytest.approx(420.0 * ratio, rel=1e-12)
         assert law.c2_pa == pytest.approx(210.0 * ratio, rel=1e-12)
     neutral = effect_model(mesh, 420.0, EffectValues())
