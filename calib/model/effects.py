@@ -48,7 +48,8 @@ registration rigid offset per scan: 3              0            +-3 mm, +-2 degr
 ============ ===================================== ============ =======================
 
 The skin and inclusion parameters are the stiffness ratio less one, not its logarithm:
-an element's stiffness is linear in it, so the residual is nearly linear too and a
+an element's stiffness is linear in it (an element only partly inside an inclusion:
+concave, the Hashin-Shtrikman mix), so the residual is nearly linear too and a
 Gauss-Newton step from neutral lands near the answer (in ln ratio a step from 1 to 8
 overshoots by the exponential's curvature).
 
