@@ -56,8 +56,11 @@ def _draw(fig, pos, v, faces, shade, face_values, mapper, title):
         rgba[:, :3] *= shade[:, None]
         ax.add_collection3d(Poly3DCollection(v[faces], facecolors=rgba, edgecolors="none"))
         lo, hi = v.min(axis=0), v.max(axis=0)
-        ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), zlim=(lo[2], hi[2]),
-               xlabel="x (mm)", ylabel="y (mm)", zlabel="z (mm)")  # fmt: skip
+        ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), zlim=(lo[2], hi[2]))
+        # mplot3d's default label pad puts a face-on axis' label on its tick labels
+        for axis, name in ((ax.xaxis, "x"), (ax.yaxis, "y"), (ax.zaxis, "z")):
+            axis.set_label_text(f"{name} (mm)")
+            axis.labelpad = 10
         ax.set_title(f"{title}\n{label}", fontsize=10)
         ax.set_box_aspect(hi - lo)
         ax.view_init(elev=elev, azim=azim)
