@@ -71,6 +71,7 @@ class ScanResult:
                 "point_lps_mm": self.back_plane.point_lps_mm.tolist(),
                 "normal": self.back_plane.normal.tolist(),
                 "method": self.back_plane.method,
+                "beyond_face": self.back_plane.beyond_face,
             },
             "quality": {
                 k: (v if isinstance(v, (bool, int, str)) else float(v))
