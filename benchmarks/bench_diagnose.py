@@ -49,12 +49,12 @@ import numpy as np
 
 TWIN_EFFECTS = ("skin", "inclusions", "mooney", "poisson", "density", "sliding")
 #: The sliding twin's plate rides on tangential springs of this stiffness (Pa/mm): the
-#: quick twin with a frictionless plate (``--effect sliding``) has no FE solution, and on
-#: 100 Pa/mm springs the homogeneous calibration found no FE solution near the c1 it
-#: sought (~330 Pa). The body's own shear stiffness per area of plate is about
-#: ``2 c1 / H`` = 840 Pa / 75 mm = 11 Pa/mm, so 1000 Pa/mm slips little (the clamped
-#: calibration takes it as c1 -2.3 %) and 300 Pa/mm more (-8 %); ``--sliding-springs``
-#: runs another stiffness (case names ``sliding-k<K>-s<seed>``).
+#: quick twin with a frictionless plate (``--effect sliding``) has no FE solution (on
+#: 100 Pa/mm springs the homogeneous calibration takes c1 as -22 %). The body's own
+#: shear stiffness per area of plate is about ``2 c1 / H`` = 840 Pa / 75 mm = 11 Pa/mm,
+#: so 1000 Pa/mm slips little (the clamped calibration takes it as c1 -2.3 %) and
+#: 300 Pa/mm more (-8 %); ``--sliding-springs`` runs another stiffness (case names
+#: ``sliding-k<K>-s<seed>``).
 SLIDING_SPRINGS_PA_PER_MM = 1000.0
 
 
