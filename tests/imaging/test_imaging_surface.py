@@ -114,7 +114,7 @@ def test_nipple_and_back_plane_on_dome():
 
 def test_back_plane_stays_on_the_face_when_tissue_bulges_past_the_plate():
     # A soft body in a lateral posture can hang past the plate's edge, below its flat
-    # back face (2.9-3.9 mm on a 200 Pa quick twin's lateral scans). Counted in, 2 % of
+    # back face (2.9-3.9 mm on a 200 Pa quick twin's lateral scans). Counted in, 3 % of
     # the vertices put the 1st percentile of the heights on them, off the face.
     v, _ = dome_surface((40.0, 30.0, 25.0), subdivisions=5)
     ang = np.linspace(0.0, 2.0 * np.pi, int(0.03 * len(v)), endpoint=False)
