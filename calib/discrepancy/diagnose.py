@@ -572,6 +572,8 @@ def diagnose(
             say=say,
         )
         unavailable = dict(null.fields.unavailable)
+    if not null.success:
+        say(f"  the null fit did not converge: {null.message}")
     kw = {"alpha": o.alpha, "misfit_alpha": o.misfit_alpha, "confounded_above": o.confounded_above}
     scr0 = screen(null.fields, prob.points, **kw)
     nb = scr0.noise.best

@@ -6,7 +6,9 @@ Least squares over the diagnosis scans' surface residuals (the calibration's
 Levenberg-Marquardt steps (Marquardt 1963: ``(A'A + lambda diag(A'A)) dx = -A'r`` with
 ``A = dr/dx`` from :mod:`calib.discrepancy.fields`), projected onto the bounds, with a
 backtracking line search on the sum of squares; a trial whose FE solve (or stress-free
-recovery) fails halves the step and is recorded, never replaced by a made-up value.
+recovery) fails halves the step and is recorded, never replaced by a made-up value. A
+search whose shortest trial has no FE solution ends unsuccessful: it cannot tell a
+minimum from a neighbourhood the model cannot solve.
 ``sliding`` is fitted as ``ln k`` of the plate's tangential springs within
 :data:`SLIDING_LN_K_BOUNDS`, from the screen's probe stiffness.
 
@@ -242,6 +244,7 @@ def refit(
         accepted = None
         t = min(1.0, 2.0 * t_last)
         step = None
+        last_failed = False  # whether the shortest trial so far had no FE solution
         while t >= 1.0 / 32.0:
             if step is None:
                 Hs = H / np.outer(d, d) + lam * np.eye(len(x))
@@ -251,11 +254,13 @@ def refit(
                 res = evaluate(trial, False)
             except fem.ConvergenceError as exc:
                 failed += 1
+                last_failed = True
                 history.append({"x": trial.tolist(), "failed": str(exc)})
                 say(f"  refit {'+'.join(effects) or 'c1'}: no FE solution at a trial point; "
                     "step halved")  # fmt: skip
                 t /= 2.0
                 continue
+            last_failed = False
             St = sumsq(res)
             history.append({"x": trial.tolist(), "sum_sq_mm2": St})
             if St < S:
@@ -263,7 +268,15 @@ def refit(
                 break
             t /= 2.0
         if accepted is None:
-            message, success = "no decrease along the step (a minimum within the tolerance)", True
+            if last_failed:  # cannot tell a minimum from a neighbourhood with no solution
+                message = (
+                    f"no FE solution along the step down to {t * 2.0:.3g} of it "
+                    "(not a minimum: the search could not go on)"
+                )
+                success = False
+            else:
+                message = "no decrease along the step (a minimum within the tolerance)"
+                success = True
             break
         x_new, S_new = accepted
         gain = (S - S_new) / S

@@ -619,3 +619,52 @@ def test_the_noise_profile_option_is_checked():
         DiagnosisOptions(noise_profile="wavy")
     res = CliRunner().invoke(app, ["diagnose", "nowhere", "--noise-profile", "wavy"])
     assert res.exit_code == 2 and "noise_profile must be one of" in res.output
+
+
+def _wall_problem(monkeypatch, wall_c1_pa: float | None):
+    """A stand-in Problem: r = ln c1 - ln 380 at every point, no FE solution below a wall."""
+    import math
+
+    import fem
+    from calib.discrepancy import refit as rf
+
+    def solve(theta, values, names, gradient, nuisance):
+        if wall_c1_pa is not None and theta < math.log(wall_c1_pa):
+            raise fem.ConvergenceError(f"no solution at {math.exp(theta):.1f} Pa")
+        return {n: SimpleNamespace(positions_mm=np.full(4, theta - math.log(380.0))) for n in names}
+
+    def fields(prob, theta, values, columns, nuisance, say):
+        res = {n: s.positions_mm for n, s in solve(theta, values, prob.scans, False, None).items()}
+        return FieldSet(prob.scans, res, {n: np.ones(4) for n in prob.scans}, (), {})
+
+    monkeypatch.setattr(rf, "effect_fields", fields)
+    return SimpleNamespace(
+        scans=SCANS, theta_calibrated=math.log(420.0), base=SimpleNamespace(nu=0.499),
+        solve=solve, residuals=lambda n, pos, weights, nuisance: SimpleNamespace(r=pos),
+    )  # fmt: skip
+
+
+def test_a_refit_whose_every_short_trial_has_no_fe_solution_does_not_claim_a_minimum(
+    monkeypatch,
+):
+    # A linear residual whose least squares lies at 380 Pa. Without a wall the refit
+    # lands there (one Gauss-Newton step is exact). With no FE solution below 419 Pa,
+    # every trial from 420 Pa towards 380 fails down to 1/32 of the step (420 -> 418.7
+    # Pa); before, the search then ended "no decrease along the step (a minimum within
+    # the tolerance)" with success, and the diagnosis could name an effect on it.
+    from calib.discrepancy.refit import refit
+
+    free = refit(_wall_problem(monkeypatch, None), ())
+    assert free.success and free.c1_pa == pytest.approx(380.0, rel=1e-9)
+
+    walled = refit(_wall_problem(monkeypatch, 419.0), ())
+    assert not walled.success
+    assert "no FE solution along the step" in walled.message
+    assert walled.c1_pa == pytest.approx(420.0)
+    assert walled.failed_evaluations == 6  # t = 1, 1/2, ..., 1/32
+
+    # a wall the short trials clear at first: the search walks up to it (420 -> 409.6 ->
+    # 405.8 Pa) and ends when every trial beyond fails, unsuccessful as well
+    near = refit(_wall_problem(monkeypatch, 405.0), ())
+    assert 405.0 <= near.c1_pa < 407.0
+    assert not near.success and near.failed_evaluations > 0
