@@ -149,6 +149,7 @@ def process_scan(
     quality.update({f"surface_{k}": v for k, v in surf.quality.items()})
     quality.update(
         n_fiducials=len(fid.centres_lps_mm),
+        fiducials_dropped=int(fid.quality["n_dropped"]),
         n_inclusions=len(inc.diameters_mm),
         back_plate_fraction=float(flags.mean()),
         nipple_height_mm=nipple.height_mm,
