@@ -151,6 +151,7 @@ def process_scan(
         n_fiducials=len(fid.centres_lps_mm),
         fiducials_dropped=int(fid.quality["n_dropped"]),
         n_inclusions=len(inc.diameters_mm),
+        inclusion_threshold=float(inc.quality["threshold"]),
         back_plate_fraction=float(flags.mean()),
         nipple_height_mm=nipple.height_mm,
         nipple_refined=bool(nipple.quality["refined"]),
