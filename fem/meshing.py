@@ -65,17 +65,23 @@ def _repair_surface(vertices, faces):
     return np.asarray(m.vertices), np.asarray(m.faces)
 
 
-def remesh_surface(vertices, faces, *, size_mm: float):
+def remesh_surface(vertices, faces, *, size_mm: float, grid_mm: float | None = None):
     """Rebuild a clean, closed, manifold surface from a possibly self-intersecting one.
 
     The inside is sampled on a grid (majority of ray-parity votes, robust to
-    self-intersections), then marching cubes, Taubin smoothing and decimation.
+    self-intersections), then marching cubes, Taubin smoothing and decimation to about
+    the face count of edges of ``size_mm``. The grid step ``grid_mm`` defaults to
+    ``size_mm / 3``; a finer one keeps more of the shape (a 14 mm model of the quick
+    twin's reference scan: 0.62 mm sd from the scan on the default 4.7 mm grid, 0.24 mm
+    on a 1 mm one, 0.15 mm without a remesh).
     """
     import open3d as o3d
     import trimesh
     from skimage.measure import marching_cubes
 
-    h = size_mm / 3.0
+    h = size_mm / 3.0 if grid_mm is None else float(grid_mm)
+    if not h > 0:
+        raise ValueError(f"grid_mm must be > 0, got {grid_mm}")
     lo, hi = vertices.min(0) - 2 * h, vertices.max(0) + 2 * h
     axes = [np.arange(a, b + h, h) for a, b in zip(lo, hi, strict=True)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)

@@ -44,3 +44,59 @@ def test_a_remeshed_reference_surface_keeps_its_back_plane(caplog):
     # the support finds its faces, all on the plane
     np.testing.assert_allclose((out.nodes_mm[back] - p0) @ n, 0.0, atol=1e-9)
     fem.discretize(out, fem.Clamped())
+
+
+def _dome_reference():
+    from imaging.testing import dome_surface
+
+    v, f = dome_surface((60.0, 45.0, 40.0), subdivisions=5)
+    return types.SimpleNamespace(
+        name="reference", vertices_mm=v, faces=f, back_normal=np.array([0.0, 0.0, -1.0]),
+        back_point_mm=np.zeros(3), nipple_mm=np.array([0.0, 0.0, 40.0]), gravity_ref=np.zeros(3),
+    )  # fmt: skip
+
+
+def _distance_to_mesh_mm(ref, mesh) -> np.ndarray:
+    """Signed distance of the scan's vertices more than 3 mm above the plate to the mesh."""
+    from calib.model.residuals import closest_on_surface
+
+    pts = ref.vertices_mm[ref.vertices_mm[:, 2] > 3.0]
+    c, _, _, n = closest_on_surface(mesh.nodes_mm, fem.boundary_faces(mesh.tets), pts)
+    return np.einsum("kj,kj->k", pts - c, n)
+
+
+def test_a_rejected_decimation_is_remeshed_from_the_full_surface_on_a_fine_grid(
+    monkeypatch, caplog
+):
+    # The quick twin scanned with 3 mm slices along the plate's normal: its decimated
+    # reference self-intersected at every target, and the fallback's remesh (of that
+    # folded decimation, on a size/3 grid) put the model surface 0.62 mm sd from the scan
+    # away from the plate; the full surface remeshed on a 1 mm grid, 0.31 mm. Here
+    # TetGen is made to reject the dome's decimation: the fine remesh must take over,
+    # flat on the plane, and follow the scan closer than the coarse one (this dome at
+    # 12 mm: 0.16 mm sd against 0.53 on a 4 mm grid; 0.09 when the decimation is taken).
+    import calib.model.reference as reference
+
+    real = reference.tetrahedralize
+    rejected = []
+
+    def tetgen(v, f, *, repair=True, **kw):
+        if not rejected:  # the first surface, the decimation: rejected as a folded one
+            rejected.append(len(f))
+            raise fem.MeshError("TetGen could not mesh the surface: as given: folded")
+        return real(v, f, repair=repair, **kw)
+
+    monkeypatch.setattr(reference, "tetrahedralize", tetgen)
+    ref = _dome_reference()
+    with caplog.at_level("INFO"):
+        fine = reference_mesh(ref, size_mm=12.0)
+    assert "remeshed on a 1 mm grid" in caplog.text
+    back = fine.node_set("back")
+    assert len(back) >= 20
+    np.testing.assert_allclose(fine.nodes_mm[back, 2], 0.0, atol=1e-9)
+
+    monkeypatch.setattr(reference, "REMESH_GRID_MM", 4.0)  # the fallback's grid: size/3
+    rejected.clear()
+    coarse = reference_mesh(ref, size_mm=12.0)
+    e_fine, e_coarse = _distance_to_mesh_mm(ref, fine), _distance_to_mesh_mm(ref, coarse)
+    assert e_fine.std() < 0.7 * e_coarse.std(), (e_fine.std(), e_coarse.std())
