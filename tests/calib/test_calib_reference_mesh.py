@@ -71,7 +71,7 @@ def test_a_rejected_decimation_is_remeshed_from_the_full_surface_on_a_fine_grid(
     # The quick twin scanned with 3 mm slices along the plate's normal: its decimated
     # reference self-intersected at every target, and the fallback's remesh (of that
     # folded decimation, on a size/3 grid) put the model surface 0.62 mm sd from the scan
-    # away from the plate; the full surface remeshed on a 1 mm grid, 0.31 mm. Here
+    # away from the plate; the full surface remeshed on a 1 mm grid, 0.32 mm. Here
     # TetGen is made to reject the dome's decimation: the fine remesh must take over,
     # flat on the plane, and follow the scan closer than the coarse one (this dome at
     # 12 mm: 0.16 mm sd against 0.53 on a 4 mm grid; 0.09 when the decimation is taken).
