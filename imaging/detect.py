@@ -15,7 +15,7 @@ import numpy as np
 from scipy import ndimage
 
 from imaging.errors import FiducialError, SegmentationError
-from imaging.segment import BodySegmentation
+from imaging.segment import BodySegmentation, robust_sd
 from imaging.volume import Volume
 
 __all__ = [
@@ -134,11 +134,11 @@ def detect_fiducials(
         "n_found": found,
         "n_dropped": 0,
     }
+    source = seg.mask.source.replace(" [body mask]", "")
     if expected is not None and found > expected:
         keep = _clear_markers(np.array(peaks), expected)
         if keep is not None:
             gone = sorted(set(range(found)) - set(keep))
-            source = seg.mask.source.replace(" [body mask]", "")
             kept = ", ".join(f"{peaks[i]:.2f}" for i in keep)
             left = "; ".join(
                 f"({centres[i][0]:.1f}, {centres[i][1]:.1f}, {centres[i][2]:.1f}) "
@@ -164,7 +164,7 @@ def detect_fiducials(
             for c, r, p in zip(centres, radii, peaks, strict=True)
         )
         raise FiducialError(
-            f"{seg.mask.source.replace(' [body mask]', '')}: found {found} fiducial markers, "
+            f"{source}: found {found} fiducial markers, "
             f"expected {expected}" + (f": {listing}" if listing else "")
         )
     order = np.lexsort(np.array(centres).T[::-1]) if centres else np.array([], int)
@@ -188,7 +188,7 @@ def _clear_markers(peaks: np.ndarray, expected: int) -> list[int] | None:
     order = np.argsort(-peaks, kind="stable")
     keep, rest = order[:expected], order[expected:]
     faintest, brightest_left = peaks[keep].min() - 1.0, peaks[rest].max() - 1.0
-    if brightest_left <= 0.0 or faintest >= MARKER_PEAK_GAP * brightest_left:
+    if faintest >= MARKER_PEAK_GAP * brightest_left:
         return sorted(int(i) for i in keep)
     return None
 
@@ -234,7 +234,7 @@ def detect_inclusions(
     inner = ndimage.distance_transform_edt(body, sampling=sp) > edge_margin_mm
     ns, n = seg.smoothed.array[crop], seg.normalised.array[crop]
     level = float(np.median(ns[inner])) if inner.any() else 1.0
-    noise_sd = float(1.4826 * np.median(np.abs(ns[inner] - level))) if inner.any() else 0.0
+    noise_sd = robust_sd(ns[inner]) if inner.any() else 0.0
     threshold = max(float(min_contrast), noise_sigmas * noise_sd)
     signs = {"bright": [1.0], "dark": [-1.0], "both": [1.0, -1.0]}[polarity]
     offset = np.array([s.start for s in crop], float)

@@ -53,6 +53,11 @@ class BodySegmentation:
     quality: dict = field(default_factory=dict)
 
 
+def robust_sd(values: np.ndarray) -> float:
+    """Standard deviation from the median absolute deviation (1.4826 MAD: Gaussian-consistent)."""
+    return float(1.4826 * np.median(np.abs(values - np.median(values))))
+
+
 def _poly_basis(coords: list[np.ndarray], degree: int) -> list[tuple[int, int, int]]:
     return [
         (a, b, c)
@@ -89,7 +94,7 @@ def fit_bias_field(
     for _ in range(3):
         coef = np.linalg.lstsq(X[keep], y[keep], rcond=None)[0]
         r = y - X @ coef
-        sigma = 1.4826 * np.median(np.abs(r[keep] - np.median(r[keep])))
+        sigma = robust_sd(r[keep])
         keep = np.abs(r) < 2.5 * max(sigma, 1e-6)
     axes = [np.linspace(-1.0, 1.0, n) for n in image.shape]
     logf = np.zeros(image.shape, np.float32)

@@ -55,14 +55,12 @@ def reference_mesh(ref: ScanMeasurement, *, size_mm: float = 8.0, back_tol_mm: f
     """
     v, f = _decimate(ref.vertices_mm, ref.faces, size_mm)
     n, p0 = ref.back_normal, ref.back_point_mm
-    near = np.abs((v - p0) @ n) < back_tol_mm
-    if near.sum() < 3:
+    v, on = _onto_plane(v, (p0, n, back_tol_mm))
+    if on < 3:
         raise fem.MeshError(
             f"reference scan {ref.name!r}: no surface vertices within {back_tol_mm} mm of the "
             "back plane; check the fiducials and the back-plate segmentation"
         )
-    v = v.copy()
-    v[near] -= np.outer((v[near] - p0) @ n, n)
     vol = size_mm**3 / (6.0 * np.sqrt(2.0))
     # a surface TetGen rejects is repaired or remeshed (fem.meshing.tetrahedralize); the
     # remeshed one comes from marching cubes on a size/3 grid, which leaves the back up to
@@ -73,7 +71,7 @@ def reference_mesh(ref: ScanMeasurement, *, size_mm: float = 8.0, back_tol_mm: f
         mesh = tetrahedralize(v, f, max_volume_mm3=vol, size_mm=size_mm, repair=False)
     except fem.MeshError as exc:
         log.info("TetGen rejected the decimated reference surface (%s)", exc)
-        mesh = _remeshed(ref, size_mm, vol, (p0, n, back_tol_mm))
+        mesh = _remeshed(ref, size_mm, vol, plane)
     if mesh is None:  # repaired, or remeshed on the coarse grid (fem.meshing says which)
         mesh = tetrahedralize(v, f, max_volume_mm3=vol, size_mm=size_mm, keep_planes=[plane])
     bnodes = np.unique(fem.boundary_faces(mesh.tets))
@@ -85,6 +83,17 @@ def reference_mesh(ref: ScanMeasurement, *, size_mm: float = 8.0, back_tol_mm: f
 
 #: Grid step (mm) of the remesh of a reference surface whose decimation TetGen rejects.
 REMESH_GRID_MM = 1.0
+
+
+def _onto_plane(v: np.ndarray, plane) -> tuple[np.ndarray, int]:
+    """The vertices within ``tol`` of the plane ``(p0, n, tol)`` put onto it (a copy).
+
+    Returns the new vertices and how many were put onto the plane.
+    """
+    p0, n, tol = plane
+    d = (v - p0) @ n
+    near = np.abs(d) < tol
+    return v - np.outer(np.where(near, d, 0.0), n), int(near.sum())
 
 
 def _remeshed(ref: ScanMeasurement, size_mm: float, vol: float, plane):
@@ -100,14 +109,11 @@ def _remeshed(ref: ScanMeasurement, size_mm: float, vol: float, plane):
     it, as in the fallback: within 1 mm only, half the face was left unclamped (3,587
     against 7,331 mm2) and c1 came out at 540 Pa. None when TetGen rejects it too.
     """
-    p0, n, tol = plane
     try:
         w, g = remesh_surface(ref.vertices_mm, ref.faces, size_mm=size_mm, grid_mm=REMESH_GRID_MM)
-        d = (w - p0) @ n
-        near = np.abs(d) < max(tol, size_mm / 5.0)  # as the fallback keeps its plane
-        if near.sum() < 3:
+        w, on = _onto_plane(w, plane)  # the fallback's plane (size/5)
+        if on < 3:
             return None
-        w = w - np.outer(np.where(near, d, 0.0), n)
         mesh = tetrahedralize(w, g, max_volume_mm3=vol, size_mm=size_mm, repair=False)
     except (fem.MeshError, ValueError) as exc:
         log.info(
