@@ -110,6 +110,7 @@ def run_case(
     hidden: str,
     rim_margin=None,
     noise_profile: str = "flat",
+    explained_margin=None,
 ) -> dict:
     import fem
     from calib.discrepancy import DiagnosisOptions
@@ -137,6 +138,8 @@ def run_case(
         cal = run_calibration(twin / "scans", work, opts)
     t2 = time.perf_counter()
     margin = {} if rim_margin is None else {"rim_margin_mm": rim_margin}
+    if explained_margin is not None:
+        margin["explained_margin_mm"] = explained_margin
     opts = DiagnosisOptions(**margin, noise_profile=noise_profile)
     doc = run_diagnosis(work, opts)
     t3 = time.perf_counter()
@@ -162,6 +165,7 @@ def run_case(
         "c1_error": doc["c1_pa"] / c1_true - 1.0,
         "holdout": hold,
         "rim_margin_mm": doc["scans"]["rim_margin_mm"],
+        "explained_margin_mm": doc["scans"].get("explained_margin_mm", 0.0),
         "noise_profile": doc["options"].get("noise_profile", "flat"),
         "holdout_cut_above_floor": gap[hold].get("cut_above_floor") if hold else None,
         "holdout_before_mm": gap[hold]["surface_error_mm"]["before"]["mean"] if hold else None,
@@ -212,20 +216,50 @@ def _right(row: dict) -> bool:
 def _table(rows: list[dict]) -> None:
     failed = [r for r in rows if r.get("failed")]
     rows = [r for r in rows if not r.get("failed")]
-    print(f"{'case':16s} {'verdict':34s} {'expect':>10s} {'right':>5s} {'c1 cal':>7s} "
-          f"{'c1 refit':>8s} {'err %':>6s} {'hold cut':>8s} {'noise sd':>8s} "
-          f"{'diag s':>7s} {'rim mm':>6s} {'profile':>7s}")  # fmt: skip
+    head = (
+        "case",
+        "verdict",
+        "expect",
+        "right",
+        "c1 cal",
+        "c1 refit",
+        "err %",
+        "hold cut",
+        "noise sd",
+        "diag s",
+        "rim mm",
+        "(d) mm",
+        "profile",
+    )
+    widths = (-16, -34, 10, 5, 7, 8, 6, 8, 8, 7, 6, 6, 7)  # negative: left-aligned
+
+    def line(cells) -> str:
+        return " ".join(
+            f"{c:<{-w}s}" if w < 0 else f"{c:>{w}s}" for c, w in zip(cells, widths, strict=True)
+        )
+
+    print(line(head))
     for r in rows:
         # no cut without a named effect ("after" is c1 alone refitted; cases diagnosed
         # before diagnosis.json said so carry one)
         cut = r["holdout_cut_above_floor"] if r["named"] else None
-        want = _expected(r) or "no name"
-        print(f"{r['case']:16s} {r['verdict'][:34]:34s} {want:>10s} "
-              f"{'yes' if _right(r) else 'NO':>5s} "
-              f"{r['c1_calibrated_pa']:7.1f} {r['c1_refit_pa']:8.1f} "
-              f"{100 * r['c1_error']:+6.1f} {'' if cut is None else f'{100 * cut:.0f} %':>8s} "
-              f"{r['noise_model']['sigma_mm']:8.3f} {r['diagnose_s']:7.0f} "
-              f"{r.get('rim_margin_mm', 5.0):6g} {r.get('noise_profile', 'flat'):>7s}")  # fmt: skip
+        judged = r.get("explained_margin_mm")  # rows from before 2026-12: every point
+        cells = (
+            r["case"],
+            r["verdict"][:34],
+            _expected(r) or "no name",
+            "yes" if _right(r) else "NO",
+            f"{r['c1_calibrated_pa']:.1f}",
+            f"{r['c1_refit_pa']:.1f}",
+            f"{100 * r['c1_error']:+.1f}",
+            "" if cut is None else f"{100 * cut:.0f} %",
+            f"{r['noise_model']['sigma_mm']:.3f}",
+            f"{r['diagnose_s']:.0f}",
+            f"{r.get('rim_margin_mm', 5.0):g}",
+            "-" if judged is None else f"{judged:.3g}",
+            r.get("noise_profile", "flat"),
+        )
+        print(line(cells))
     for r in failed:
         print(f"{r['case']:16s} FAILED {r['failed'][:100]}")
     preset = [r for r in rows if not _is_curve(r)]  # the bars: effects at preset amplitude
@@ -337,6 +371,12 @@ def main() -> None:
         help="diagnose with this rim margin (mm, or 'element'; default: diagnose's)",
     )
     ap.add_argument(
+        "--explained-margin",
+        default=None,
+        help="judge the share explained beyond this distance from the plate (mm, or "
+        "'element'; default: diagnose's; 0: every diagnosed point, the rule before 2026-12)",
+    )
+    ap.add_argument(
         "--rim-profile",
         action="store_true",
         help="print the null cases' residual by height above the back plate (c1-only fits)",
@@ -354,12 +394,19 @@ def main() -> None:
         from calib.discrepancy.problem import parse_rim_margin
 
         margin = None if args.rim_margin is None else parse_rim_margin(args.rim_margin)
+        explained = (
+            None
+            if args.explained_margin is None
+            else parse_rim_margin(args.explained_margin, "--explained-margin")
+        )
         for name, specs, seed, hidden in _cases(args):
             path = store / f"{name}.json"
             if path.is_file():
                 continue
             print(f"case {name}: synth -> calibrate -> diagnose", flush=True)
-            row = run_case(args.out, name, specs, seed, hidden, margin, args.noise_profile)
+            row = run_case(
+                args.out, name, specs, seed, hidden, margin, args.noise_profile, explained
+            )
             path.write_text(json.dumps(row, indent=1))
             if row.get("failed"):
                 print(f"  FAILED {row['failed']}", flush=True)

@@ -41,6 +41,15 @@ def diagnose(
             "mesh size; 0 keeps them).",
         ),
     ] = None,
+    explained_margin: Annotated[
+        str | None,
+        typer.Option(
+            "--explained-margin",
+            help="The share of the residual a named effect must explain is measured beyond "
+            "this distance from the back plate (mm; default 'element': one model element, "
+            "where the clamped edge's discretisation error lies; 0: every diagnosed point).",
+        ),
+    ] = None,
     mesh_size: Annotated[
         float | None,
         typer.Option(
@@ -72,6 +81,13 @@ def diagnose(
             holdout=holdout,
             alpha=alpha,
             **({} if rim_margin is None else {"rim_margin_mm": parse_rim_margin(rim_margin)}),
+            **(
+                {}
+                if explained_margin is None
+                else {
+                    "explained_margin_mm": parse_rim_margin(explained_margin, "--explained-margin")
+                }
+            ),
             mesh_size_mm=mesh_size,
             noise_profile=noise_profile,
         )

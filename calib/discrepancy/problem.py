@@ -140,6 +140,9 @@ class Problem:
         ``tre_tumour_mm``, Fitzpatrick's formula) plus half a voxel.
     rim_margin_mm : float
         Points nearer the back plate than this are not diagnosed (:func:`rim_margin_of`).
+    mesh_size_mm : float
+        Element size of the model mesh (mm): one element is the band at the clamped plate
+        where the model's own discretisation error is largest (:func:`rim_margin_of`).
     rim_points : dict of str to ndarray (j, 3)
         Each scan's measured points within the rim margin: mapped by the localisation,
         never fitted nor tested.
@@ -164,6 +167,7 @@ class Problem:
     registration_tolerance_mm: dict = field(default_factory=dict)
     mesh_note: str = ""
     rim_margin_mm: float = RIM_MARGIN_MM
+    mesh_size_mm: float = 0.0
     rim_points: dict = field(default_factory=dict)
     profile: HeightProfile | None = None
 
@@ -415,7 +419,9 @@ def rim_margin_of(mesh_size_mm: float, margin: float | Literal["element"] = RIM_
         (``python benchmarks/bench_diagnose.py --out DIR --rim-profile``). Leaving one
         element out lets a stiff inclusion explain half of what remains, but it also
         sharpens the noise model, so per-scan nuisances screen significant more often
-        (README, the diagnosis benchmark): it is an option, not the default.
+        (README, the diagnosis benchmark): it is an option, not the default. The share a
+        named effect must explain is judged beyond one element by default, with the
+        tests on every diagnosed point (``DiagnosisOptions.explained_margin_mm``).
 
     Returns
     -------
@@ -428,16 +434,14 @@ def rim_margin_of(mesh_size_mm: float, margin: float | Literal["element"] = RIM_
     return float(margin)
 
 
-def parse_rim_margin(text: str) -> float | Literal["element"]:
-    """A rim margin as typed (``--rim-margin``): a width in mm or ``element``."""
+def parse_rim_margin(text: str, flag: str = "--rim-margin") -> float | Literal["element"]:
+    """A margin at the plate as typed (``flag``): a width in mm or ``element``."""
     if text.strip() == "element":
         return "element"
     try:
         return float(text)
     except ValueError:
-        raise DiagnosisError(
-            f"--rim-margin must be a width in mm or 'element', got {text!r}"
-        ) from None
+        raise DiagnosisError(f"{flag} must be a width in mm or 'element', got {text!r}") from None
 
 
 def plate_height_mm(scan, points_mm: np.ndarray) -> np.ndarray:
@@ -556,6 +560,6 @@ def build_problem(
         centres=centres, scans=scans, holdout=held,
         theta_calibrated=float(np.log(record["c1_pa"])), inclusions=inclusions,
         skin_thickness_mm=float(skin_thickness_mm), registration_tolerance_mm=tolerance,
-        mesh_note=note, rim_margin_mm=margin,
+        mesh_note=note, rim_margin_mm=margin, mesh_size_mm=float(size),
         rim_points={n: within for n, (_, within) in split.items()},
     )  # fmt: skip

@@ -272,10 +272,25 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
                 for c in doc["screening"]["columns"]]  # fmt: skip
     columns = _table(["column", "score t", "p", "p (Holm)", "significant", "one-step estimate",
                       "se", "retained"], col_rows)  # fmt: skip
-    cand_rows = [[c["effect"], c["round"], c["c1_pa"], c["explained"], c["lopo_improves"],
-                  c["plausible"], c["passes"], c["reason"]] for c in doc["candidates"]]  # fmt: skip
-    cands = _table(["candidate", "round", "c1 Pa", "explained", "LOPO better", "plausible",
-                    "named", "why not"], cand_rows) if cand_rows else "<p>none</p>"  # fmt: skip
+    beyond = doc["scans"].get("explained_margin_mm")
+    judged = "explained" if beyond is None else f"explained beyond {beyond:.3g} mm"
+    cand_rows = [
+        [
+            c["effect"],
+            c["round"],
+            c["c1_pa"],
+            c["explained"],
+            c.get("explained_all_points"),
+            c["lopo_improves"],
+            c["plausible"],
+            c["passes"],
+            c["reason"],
+        ]
+        for c in doc["candidates"]
+    ]
+    head = ["candidate", "round", "c1 Pa", judged, "explained, every point", "LOPO better"]
+    head += ["plausible", "named", "why not"]
+    cands = _table(head, cand_rows) if cand_rows else "<p>none</p>"
     loc_rows = []
     for scan, m in doc["localisation"].items():
         for reg, r in m["regions"].items():

@@ -668,3 +668,118 @@ def test_a_refit_whose_every_short_trial_has_no_fe_solution_does_not_claim_a_min
     near = refit(_wall_problem(monkeypatch, 405.0), ())
     assert 405.0 <= near.c1_pa < 407.0
     assert not near.success and near.failed_evaluations > 0
+
+
+def _dome_problem(mesh_size_mm: float = 14.0):
+    """Two scans of points on a 60 mm dome over a back plate at z = 0 (no FE)."""
+    import calib.discrepancy.problem as problem
+
+    rng = np.random.default_rng(5)
+    pts = {}
+    for n in ("a", "b"):
+        u = rng.normal(size=(1200, 3))
+        u[:, 2] = np.abs(u[:, 2])
+        pts[n] = 60.0 * u / np.linalg.norm(u, axis=1)[:, None]
+        pts[n] = pts[n][pts[n][:, 2] >= 5.0]  # the default rim margin, left out
+    prob = problem.Problem(
+        work=None,
+        fm=SimpleNamespace(mesh=None),
+        base=None,
+        sim=None,
+        points=pts,
+        centres={n: p.mean(axis=0) for n, p in pts.items()},
+        scans=["a", "b"],
+        holdout=None,
+        theta_calibrated=6.0,
+        inclusions=[],
+        skin_thickness_mm=1.5,
+        rim_margin_mm=5.0,
+        mesh_size_mm=mesh_size_mm,
+    )
+    prob.measurement = lambda name: SimpleNamespace(
+        back_point_mm=np.zeros(3), back_normal=np.array([0.0, 0.0, 1.0])
+    )
+    return prob, rng
+
+
+def _fit_of(prob, residual: dict, columns: dict, x) -> Refit:
+    scans = tuple(prob.scans)
+    jac = {n: prob.points[n][:, 2] / 60.0 for n in scans}  # a sag-like dr/d ln c1
+    cols = tuple(Column(k, k.split("[")[0], None, "p", v) for k, v in columns.items())
+    fs = FieldSet(scans, residual, jac, cols, {})
+    r = fs.stack(residual)
+    k = len(x)
+    return Refit(
+        effects=tuple(c.effect for c in cols),
+        theta=float(x[0]),
+        values=EffectValues(),
+        nuisance={},
+        names=("theta", *columns),
+        x=np.asarray(x, float),
+        lower=np.full(k, -np.inf),
+        upper=np.full(k, np.inf),
+        fields=fs,
+        sum_sq_mm2=float(r @ r),
+        mean_sq_mm2=float(r @ r) / len(r),
+        iterations=1,
+        evaluations=1,
+        failed_evaluations=0,
+        success=True,
+        message="",
+    )
+
+
+def test_the_share_explained_is_judged_beyond_one_element_of_the_plate():
+    # The clamped rim carries the model's own discretisation error (0.4 mm here, within one
+    # 14 mm element of the plate), which no effect removes; the effect's print (0.15 mm
+    # over the dome) is removed whole by its refit. Closed form: beyond the element the
+    # refit explains var(print) / var(print) = 1 of the residual above the noise floor;
+    # on every point the rim's 0.4^2 mm^2 over a fifth of them keeps the share below a half.
+    from calib.discrepancy.diagnose import _explained, _judge, _judged_points
+
+    prob, rng = _dome_problem()
+    sigma = 0.05  # mm, the noise floor's sd
+    margin, keep = _judged_points(prob, "element")
+    h = {n: prob.points[n][:, 2] for n in prob.scans}
+    assert margin == 14.0 and all(np.array_equal(keep[n], h[n] >= 14.0) for n in prob.scans)
+    noise = {n: rng.normal(scale=sigma, size=len(h[n])) for n in prob.scans}
+    rim = {}
+    for n in prob.scans:  # +-0.4 mm within the element, in patches along x
+        rim[n] = np.where(h[n] < 14.0, 0.4 * np.sign(np.sin(prob.points[n][:, 0])), 0.0)
+    signal = {n: 0.15 * np.cos(prob.points[n][:, 0] / 15.0) for n in prob.scans}
+    before = {n: rim[n] + signal[n] + noise[n] for n in prob.scans}
+    after = {n: rim[n] + noise[n] for n in prob.scans}
+    b = _fit_of(prob, before, {}, [6.0])
+    col = {n: -signal[n] for n in prob.scans}
+    a_phys = _fit_of(prob, after, {"inclusions": col}, [6.0, 1.0])
+    floor = sigma**2
+    off = _explained(b.fields, a_phys.fields, floor, keep)
+    every = _explained(b.fields, a_phys.fields, floor, None)
+    # sampling: the floor is the noise's true variance, the noise's own mean square over
+    # ~1,600 points departs from it by ~3.5 % (sqrt(2 / n)), a share of ~0.2 % of the print's
+    assert off == pytest.approx(1.0, abs=0.05)
+    assert every < 0.4
+    # _judge: a physical effect is judged beyond the element, a nuisance (the explanation
+    # of last resort) on the stricter of the two shares; both shares are reported
+    o = DiagnosisOptions()
+    row = ("inclusions", 5.0, 1e-4)
+    phys = _judge(prob, "inclusions", 1, row, b, a_phys, (floor, floor, keep), o)
+    assert phys.explained == pytest.approx(off) and phys.explained_all_points == pytest.approx(
+        every
+    )
+    assert "explains" not in phys.reason
+    a_nuis = _fit_of(prob, after, {"gravity[a].a0": col}, [6.0, 0.01])
+    nuis = _judge(prob, "gravity", 1, ("gravity", 5.0, 1e-4), b, a_nuis, (floor, floor, keep), o)
+    assert nuis.explained == pytest.approx(every) and "explains" in nuis.reason
+    # a margin that leaves fewer than half a scan's points drops to the smallest median
+    # height (said and recorded); 0 or the rim margin judges every diagnosed point
+    margin, keep = _judged_points(prob, 50.0)
+    med = min(float(np.median(h[n])) for n in prob.scans)
+    assert margin == pytest.approx(med) and all(keep[n].mean() >= 0.5 for n in prob.scans)
+    for m in (0.0, 5.0):
+        assert all(k.all() for k in _judged_points(prob, m)[1].values())
+    assert _explained(b.fields, a_phys.fields, floor, _judged_points(prob, 0.0)[1]) == every
+    with pytest.raises(DiagnosisError, match="explained_margin_mm"):
+        DiagnosisOptions(explained_margin_mm=-2.0)
+    with pytest.raises(DiagnosisError, match="explained_margin_mm"):
+        DiagnosisOptions(explained_margin_mm="two")
