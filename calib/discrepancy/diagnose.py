@@ -31,10 +31,12 @@ Steps (the issue's; no files are written here, see :mod:`calib.workflows.diagnos
    (MS_before - floor) >= 0.5``, mean squares over the diagnosis scans less each scan's
    offset, ``floor`` the lowest short-range noise variance any model tried leaves (the
    session's noise, 20 mm variogram: the residual of a correct model is noise; a wrong
-   one keeps the misfit in its variogram). The mean squares are over the points farther
-   than ``explained_margin_mm`` from the back plate (default one model element): the
-   first layer of elements at the clamped edge carries the model's own discretisation
-   error, which no library effect explains (:func:`_judged_points`). Candidates passing
+   one keeps the misfit in its variogram). The share is taken on the points farther
+   than ``explained_margin_mm`` from the back plate (default one model element) and on
+   every diagnosed point: the first layer of elements at the clamped edge carries the
+   model's own discretisation error, which no library effect explains
+   (:func:`_judged_points`), and a physical effect passes on either set of points (a
+   sliding plate acts at the plate), a nuisance on both. Candidates passing
    with near-equal evidence (explained fractions within ``near_equal``) and similar
    projected signatures (``|cos| >= confounded_above``) are named together as
    confounded. After a second effect is added, each named one must stay significant at
@@ -133,9 +135,10 @@ class DiagnosisOptions:
         ``"element"``, the default: one model element,
         :func:`calib.discrepancy.problem.rim_margin_of`; at most the
         ``rim_margin_mm`` band: every diagnosed point), against the noise floor of those
-        points. The tests still use every diagnosed point. A nuisance (a per-scan gravity
-        angle or rigid offset, the explanation of last resort) must explain that share
-        both there and on every diagnosed point. The clamped edge is a stress
+        points. The tests still use every diagnosed point. A physical effect passes on
+        either set of points (a sliding plate acts at the plate itself); a nuisance (a
+        per-scan gravity angle or rigid offset, the explanation of last resort) must
+        explain that share on both. The clamped edge is a stress
         singularity: on null twins a c1-only fit leaves 0.10-0.61 mm rms within 16 mm of
         the plate against 0.06-0.14 mm beyond 30 mm
         (:func:`calib.discrepancy.problem.rim_margin_of`), a discretisation error no
@@ -214,9 +217,10 @@ class Candidate:
     at_bound : tuple of str
     plausible : bool
     explained : float
-        Share of the residual above the noise floor the refit explains, on the points
-        beyond ``explained_margin_mm`` and their own floor (criterion d); for a nuisance
-        the smaller of that and :attr:`explained_all_points`.
+        Share of the residual above the noise floor the refit explains (criterion d): on
+        the points beyond ``explained_margin_mm`` against their own floor, or on every
+        diagnosed point (:attr:`explained_all_points`), the larger of the two for a
+        physical effect and the smaller for a nuisance.
     passes : bool
     c1_pa : float
     rms_mm : float
@@ -843,8 +847,9 @@ def _judge(prob, eff, rnd, sig_row, before: Refit, after: Refit, floors: tuple, 
     floor, floor_judged, judged = floors
     explained_all = _explained(before.fields, after.fields, floor, None)
     explained = _explained(before.fields, after.fields, floor_judged, judged)
-    if nuisance:  # the explanation of last resort is held to the stricter share
-        explained = min(explained, explained_all)
+    # a physical effect may act at the plate itself (a sliding plate does); the
+    # explanation of last resort is held to the stricter share
+    explained = (min if nuisance else max)(explained, explained_all)
     reasons = []
     if not lopo_ok:
         what = "gets worse" if nuisance else "does not improve"

@@ -759,8 +759,8 @@ def test_the_share_explained_is_judged_beyond_one_element_of_the_plate():
     # ~1,600 points departs from it by ~3.5 % (sqrt(2 / n)), a share of ~0.2 % of the print's
     assert off == pytest.approx(1.0, abs=0.05)
     assert every < 0.4
-    # _judge: a physical effect is judged beyond the element, a nuisance (the explanation
-    # of last resort) on the stricter of the two shares; both shares are reported
+    # _judge: a physical effect takes the larger of the two shares, a nuisance (the
+    # explanation of last resort) the smaller; both shares are reported
     o = DiagnosisOptions()
     row = ("inclusions", 5.0, 1e-4)
     phys = _judge(prob, "inclusions", 1, row, b, a_phys, (floor, floor, keep), o)
@@ -768,6 +768,16 @@ def test_the_share_explained_is_judged_beyond_one_element_of_the_plate():
         every
     )
     assert "explains" not in phys.reason
+    # an effect acting at the plate (a sliding plate) that removes the rim's misfit and
+    # leaves the print: nothing beyond the element, most of it on every point; a physical
+    # effect passes on either set of points
+    at_rim = {n: signal[n] + noise[n] for n in prob.scans}
+    a_rim = _fit_of(prob, at_rim, {"sliding": {n: -rim[n] for n in prob.scans}}, [6.0, 1.0])
+    rim_off = _explained(b.fields, a_rim.fields, floor, keep)
+    rim_all = _explained(b.fields, a_rim.fields, floor, None)
+    assert abs(rim_off) < 0.05 and rim_all > 0.6
+    slid = _judge(prob, "sliding", 1, ("sliding", 5.0, 1e-4), b, a_rim, (floor, floor, keep), o)
+    assert slid.explained == pytest.approx(rim_all)
     a_nuis = _fit_of(prob, after, {"gravity[a].a0": col}, [6.0, 0.01])
     nuis = _judge(prob, "gravity", 1, ("gravity", 5.0, 1e-4), b, a_nuis, (floor, floor, keep), o)
     assert nuis.explained == pytest.approx(every) and "explains" in nuis.reason
