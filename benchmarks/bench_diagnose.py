@@ -165,7 +165,7 @@ def run_case(
         "c1_error": doc["c1_pa"] / c1_true - 1.0,
         "holdout": hold,
         "rim_margin_mm": doc["scans"]["rim_margin_mm"],
-        "explained_margin_mm": doc["scans"].get("explained_margin_mm", 0.0),
+        "explained_margin_mm": doc["scans"]["explained_margin_mm"],
         "noise_profile": doc["options"].get("noise_profile", "flat"),
         "holdout_cut_above_floor": gap[hold].get("cut_above_floor") if hold else None,
         "holdout_before_mm": gap[hold]["surface_error_mm"]["before"]["mean"] if hold else None,

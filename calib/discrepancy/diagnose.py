@@ -182,14 +182,10 @@ class DiagnosisOptions:
             raise DiagnosisError(f"alpha must lie in (0, 0.5), got {self.alpha}")
         if not 0.0 < self.min_explained <= 1.0:
             raise DiagnosisError(f"min_explained must lie in (0, 1], got {self.min_explained}")
-        m = self.rim_margin_mm
-        if m != "element" and (isinstance(m, str) or not 0.0 <= m < 50.0):
-            raise DiagnosisError(f"rim_margin_mm must lie in [0, 50) mm or be 'element', got {m!r}")
-        m = self.explained_margin_mm
-        if m != "element" and (isinstance(m, str) or not 0.0 <= m < 50.0):
-            raise DiagnosisError(
-                f"explained_margin_mm must lie in [0, 50) mm or be 'element', got {m!r}"
-            )
+        for name in ("rim_margin_mm", "explained_margin_mm"):
+            m = getattr(self, name)
+            if m != "element" and (isinstance(m, str) or not 0.0 <= m < 50.0):
+                raise DiagnosisError(f"{name} must lie in [0, 50) mm or be 'element', got {m!r}")
         if self.mesh_size_mm is not None and not 2.0 <= self.mesh_size_mm <= 40.0:
             raise DiagnosisError(f"mesh_size_mm must lie in [2, 40] mm, got {self.mesh_size_mm}")
         if self.noise_profile not in NOISE_PROFILES:

@@ -703,30 +703,16 @@ def _dome_problem(mesh_size_mm: float = 14.0):
 
 
 def _fit_of(prob, residual: dict, columns: dict, x) -> Refit:
-    scans = tuple(prob.scans)
-    jac = {n: prob.points[n][:, 2] / 60.0 for n in scans}  # a sag-like dr/d ln c1
-    cols = tuple(Column(k, k.split("[")[0], None, "p", v) for k, v in columns.items())
-    fs = FieldSet(scans, residual, jac, cols, {})
-    r = fs.stack(residual)
-    k = len(x)
-    return Refit(
-        effects=tuple(c.effect for c in cols),
-        theta=float(x[0]),
-        values=EffectValues(),
-        nuisance={},
-        names=("theta", *columns),
-        x=np.asarray(x, float),
-        lower=np.full(k, -np.inf),
-        upper=np.full(k, np.inf),
-        fields=fs,
-        sum_sq_mm2=float(r @ r),
-        mean_sq_mm2=float(r @ r) / len(r),
-        iterations=1,
-        evaluations=1,
-        failed_evaluations=0,
-        success=True,
-        message="",
-    )
+    """:func:`_refit` of per-scan residuals and columns at the dome's points."""
+    from calib.discrepancy.screen import sample_of
+
+    sample = sample_of(SimpleNamespace(scans=SCANS), prob.points)
+
+    def cat(per_scan: dict) -> np.ndarray:
+        return np.concatenate([per_scan[n] for n in SCANS])
+
+    J = cat({n: prob.points[n][:, 2] / 60.0 for n in SCANS})  # a sag-like dr/d ln c1
+    return _refit(sample, cat(residual), J, {k: cat(v) for k, v in columns.items()}, x)
 
 
 def test_the_share_explained_is_judged_beyond_one_element_of_the_plate():
