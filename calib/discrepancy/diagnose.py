@@ -978,7 +978,7 @@ def _gaps(prob: Problem, null: Refit, final: Refit, say) -> tuple[dict, dict]:
     before to after is the named effects' and not the mesh's. The calibration's own
     errors on its mesh are then kept beside (``ScanGap.calibration``).
     """
-    from ..model.residuals import SimulatedSurface, scan_residuals
+    from ..model.residuals import SimulatedSurface
 
     names = [*prob.scans, *([prob.holdout] if prob.holdout else [])]
     say(f"final model on {len(names)} scans (held out: {prob.holdout or 'none'})")
@@ -1007,10 +1007,7 @@ def _gaps(prob: Problem, null: Refit, final: Refit, say) -> tuple[dict, dict]:
         ra = prob.residuals(n, states[n].positions_mm, nuisance=final.nuisance.get(n)).r
         if null_states is None:
             before = calibration
-            rb = prob.weighted(n, scan_residuals("surface", scan, work.mesh, cal_sim,
-                                                 saved.positions_mm, None,
-                                                 surface_points_mm=prob.points[n]),
-                               prob.points[n]).r  # fmt: skip
+            rb = prob.residuals(n, saved.positions_mm).r
         else:
             pos = null_states[n].positions_mm
             before = scan_metrics(scan, pos, prob.sim.faces, prob.nipple_node, None)
