@@ -33,8 +33,14 @@ and then::
     python benchmarks/bench_reference.py --twin none=OUT/none/scans,OUT/none-work \\
         --twin skin=OUT/skin/scans,OUT/skin-work [--sizes 8,10,12,14,16] \\
         [--methods newton,spatial,mulf] [--c1-factors 1] [--repeat 3] [--fixed-point]
-        [--postures] [--jsonl rows.jsonl]
+        [--postures] [--jsonl rows.jsonl] [--max-dihedral default,165]
     python benchmarks/bench_reference.py --table-from rows.jsonl   # tables of saved rows
+
+With ``--max-dihedral 177,165`` (degrees; ``default``: the ``tetgen`` package's own bound),
+each size is meshed once per TetGen optimisation bound on the largest dihedral angle
+(``calib``'s ``CalibrationOptions.mesh_max_dihedral_deg``, ``calibrate
+--mesh-max-dihedral``); the table's ``slivers`` column counts the elements with a
+dihedral angle below 5 or above 175 degrees (``fem.mesh_quality``).
 
 With ``--postures``, where ``newton`` succeeds, each other scan's posture is solved from
 every method's reference state and its surface vertices compared with ``newton``'s (the
@@ -45,6 +51,7 @@ difference, plus MULF's path-dependent prestress).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import logging
 import shlex
@@ -70,8 +77,11 @@ C1_PA, NU, DENSITY_KG_M3 = 420.0, 0.499, 1000.0
 UNLOAD_OPTIONS = fem.SolverOptions(max_steps=10)  # the calibration's bound
 
 
-def reference_mesh(scans: Path, work: Path, size_mm: float):
-    """The calibration's model mesh of the reference scan, its gravity, the other postures'."""
+def reference_mesh(scans: Path, work: Path, size_mm: float, max_dihedral_deg=None):
+    """The calibration's model mesh of the reference scan, its gravity, the other postures'.
+
+    ``max_dihedral_deg``: TetGen's optimisation bound (None: the ``tetgen`` package's own).
+    """
     try:
         from calib.data.measurements import load_measurements
         from calib.data.session import load_session
@@ -83,7 +93,8 @@ def reference_mesh(scans: Path, work: Path, size_mm: float):
     meas = load_measurements(work, load_session(scans))
     ref = meas.reference
     others = {n: np.asarray(s.gravity_ref, float) for n, s in meas.scans.items() if n != ref.name}
-    return build(ref, size_mm=size_mm), np.asarray(ref.gravity_ref, float), others
+    kw = {} if max_dihedral_deg is None else {"max_dihedral_deg": max_dihedral_deg}
+    return build(ref, size_mm=size_mm, **kw), np.asarray(ref.gravity_ref, float), others
 
 
 def _model(mesh, c1_pa):
@@ -162,9 +173,13 @@ def print_postures(rows: list[dict]) -> None:
               f"{r['vs_newton_max_mm']:.3f} |")  # fmt: skip
 
 
-def bench_case(name, mesh, gravity, size, factor, methods, repeat, postures=None):
-    """Rows of one mesh and c1; with ``postures``, also the posture comparison rows."""
+def bench_case(name, mesh, gravity, size, factor, methods, repeat, postures=None, bound=None):
+    """Rows of one mesh and c1; with ``postures``, also the posture comparison rows.
+
+    ``bound``: the mesh's TetGen bound on the largest dihedral angle (None: the package's).
+    """
     rows, payloads = [], {}
+    slivers = fem.mesh_quality(mesh).n_slivers
     model = _model(mesh, C1_PA * factor)
     for method in methods:
         times, row, payload = [], None, None
@@ -186,6 +201,7 @@ def bench_case(name, mesh, gravity, size, factor, methods, repeat, postures=None
         row.update(twin=name, size_mm=size, tets=mesh.n_tets, c1_pa=C1_PA * factor,
                    method=method, wall_s=float(np.median(times)), wall_min_s=min(times),
                    wall_max_s=max(times), runs=len(times))  # fmt: skip
+        row.update(max_dihedral_deg=bound, slivers=slivers)
         row["round_trip_mm"] = round_trip_mm(method, model, gravity, payload) if payload else None
         payloads[method] = payload
         rows.append(row)
@@ -202,14 +218,15 @@ def _fmt(v, spec):
 
 
 def print_table(rows: list[dict]) -> None:
-    head = ("twin", "size", "tets", "c1 Pa", "method", "ok", "load f.", "Newton",
-            "wall s (min-max)", "x newton", "round trip mm")  # fmt: skip
+    head = ("twin", "size", "TetGen -o/", "tets", "slivers", "c1 Pa", "method", "ok", "load f.",
+            "Newton", "wall s (min-max)", "x newton", "round trip mm")  # fmt: skip
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for r in rows:
         wall = f"{r['wall_s']:.1f} ({r['wall_min_s']:.1f}-{r['wall_max_s']:.1f}, n={r['runs']})"
         print("| " + " | ".join([
-            r["twin"], f"{r['size_mm']:g}", str(r["tets"]), f"{r['c1_pa']:.0f}", r["method"],
+            r["twin"], f"{r['size_mm']:g}", _fmt(r.get("max_dihedral_deg"), "g"), str(r["tets"]),
+            _fmt(r.get("slivers"), "d"), f"{r['c1_pa']:.0f}", r["method"],
             "yes" if r["ok"] else "**no**", _fmt(r["load_factor"], ".3g"),
             _fmt(r["iterations"], "d"), wall, _fmt(r["ratio_to_newton"], ".2f"),
             _fmt(r["round_trip_mm"], ".2g")]) + " |")  # fmt: skip
@@ -227,6 +244,12 @@ def main(argv=None) -> None:
     p.add_argument("--postures", action="store_true",
                    help="also compare every other posture's surface with newton's")  # fmt: skip
     p.add_argument("--jsonl", type=Path, help="also append every row to this file")
+    p.add_argument(
+        "--max-dihedral",
+        default="default",
+        help="TetGen's optimisation bounds on the largest dihedral angle, degrees, "
+        "comma-separated; 'default': the tetgen package's",
+    )
     a = p.parse_args(argv)
     if a.table_from:
         saved = [json.loads(line) for line in a.table_from.read_text().splitlines() if line]
@@ -239,15 +262,16 @@ def main(argv=None) -> None:
     logging.basicConfig(level=logging.WARNING)
     warnings.simplefilter("ignore")  # TetGen/open3d chatter; the table says what failed
     methods = a.methods.split(",") + (["fixed-point"] if a.fixed_point else [])
+    bounds = [None if b == "default" else float(b) for b in a.max_dihedral.split(",")]
     rows, compared = [], []
     for spec in a.twin:
         name, paths = spec.split("=", 1)
         scans, work = (Path(x) for x in paths.split(","))
-        for size in (float(s) for s in a.sizes.split(",")):
-            mesh, gravity, others = reference_mesh(scans, work, size)
+        for size, bound in itertools.product((float(s) for s in a.sizes.split(",")), bounds):
+            mesh, gravity, others = reference_mesh(scans, work, size, bound)
             for factor in (float(f) for f in a.c1_factors.split(",")):
                 new, cmp = bench_case(name, mesh, gravity, size, factor, methods, a.repeat,
-                                      others if a.postures else None)  # fmt: skip
+                                      others if a.postures else None, bound)  # fmt: skip
                 rows += new
                 compared += cmp
                 if a.jsonl:

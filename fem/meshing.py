@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 _TETGEN_LITTER = ("_skipped.face", "_skipped.node")
 
 
-def _tetgen(vertices, faces, max_volume, min_ratio, min_dihedral, regions):
+def _tetgen(vertices, faces, max_volume, min_ratio, min_dihedral, regions, max_dihedral=None):
     import tetgen
 
     litter = [Path(name) for name in _TETGEN_LITTER if not Path(name).exists()]
@@ -42,6 +42,7 @@ def _tetgen(vertices, faces, max_volume, min_ratio, min_dihedral, regions):
             maxvolume=max_volume if max_volume else -1.0,
             fixedvolume=bool(max_volume),
             regionattrib=bool(regions),
+            **({} if max_dihedral is None else {"optmaxdihedral": float(max_dihedral)}),
         )
     finally:  # never leave TetGen's debug files in the user's folder
         for path in litter:
@@ -145,6 +146,7 @@ def tetrahedralize(
     max_volume_mm3: float | None = None,
     min_ratio: float = 1.5,
     min_dihedral_deg: float = 10.0,
+    max_dihedral_deg: float | None = None,
     regions: list | tuple = (),
     repair: bool = True,
     size_mm: float = 5.0,
@@ -163,6 +165,14 @@ def tetrahedralize(
         Bound of the radius-edge ratio (TetGen ``-q``).
     min_dihedral_deg : float
         Bound of the smallest dihedral angle.
+    max_dihedral_deg : float, optional
+        The largest dihedral angle TetGen's mesh optimisation (flips and smoothing, its
+        ``-o/`` switch) works to get every element below; None keeps the ``tetgen``
+        package's own value (177 degrees). A sliver has dihedral angles near 0 and 180
+        degrees, so a lower bound removes slivers: 165 degrees leaves 2.4-13 times fewer
+        (median 5) elements with an angle below 5 or above 175 degrees on the quick twins'
+        reference meshes (``benchmarks/bench_reference.py --max-dihedral``). It helps the
+        straight stress-free recovery where a sliver stops it, not everywhere (README).
     regions : sequence of (tag, point_mm)
         Region seeds: every element of the closed region containing the point gets the tag.
     repair : bool
@@ -181,6 +191,8 @@ def tetrahedralize(
     TetMesh
         Positively oriented, with region tags (``bulk`` = 1 when no regions are given).
     """
+    if max_dihedral_deg is not None and not 90.0 < max_dihedral_deg < 180.0:
+        raise ValueError(f"max_dihedral_deg must lie in (90, 180) degrees, got {max_dihedral_deg}")
     planes = [_plane(p) for p in keep_planes]
 
     def flat(v, f):
@@ -200,7 +212,7 @@ def tetrahedralize(
             if defects:
                 raise ValueError("surface is " + ", ".join(defects))
             nodes, tets, region = _tetgen(
-                v, f, max_volume_mm3, min_ratio, min_dihedral_deg, regions
+                v, f, max_volume_mm3, min_ratio, min_dihedral_deg, regions, max_dihedral_deg
             )
         except (RuntimeError, ValueError) as exc:
             errors.append(f"{label}: {exc}")

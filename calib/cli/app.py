@@ -169,6 +169,15 @@ def calibrate(
             "stress-free reference exists on the mesh (each retry is reported).",
         ),
     ] = None,
+    mesh_max_dihedral: Annotated[
+        float | None,
+        typer.Option(
+            "--mesh-max-dihedral",
+            help="TetGen's optimisation bound on the model mesh's largest dihedral angle, "
+            "degrees (default: the tetgen package's, 177); 165 removes most slivers, where "
+            "the stress-free recovery fails first.",
+        ),
+    ] = None,
     nu: Annotated[float, typer.Option("--nu", help="Poisson's ratio of the model.")] = 0.499,
     profile: Annotated[
         int, typer.Option("--profile", help="Points of the likelihood profile (0: none).")
@@ -195,6 +204,7 @@ def calibrate(
             objective=objective, reference_state=reference_state,
             **({} if mesh_size is None else {"mesh_size_mm": mesh_size, "mesh_retry_mm": ()}),
             nu=nu, profile_points=profile, mesh_check_ratio=mesh_check,
+            mesh_max_dihedral_deg=mesh_max_dihedral,
         )  # fmt: skip
         doc = run_calibration(scans, out, opts, progress=lambda msg: typer.echo(f"  {msg}"))
     except (ValueError, OSError, RuntimeError) as exc:

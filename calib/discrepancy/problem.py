@@ -264,11 +264,16 @@ def _recovered_model(work: WorkFolder, model_on, size_mm: float):
     """The model on the reference scan's mesh of ``size_mm``, recovered at the calibrated c1.
 
     ``model_on(loaded_mesh)`` builds the model (it tags the effect regions); the recovery
-    stays cached for the null fit. Raises ``fem.ConvergenceError`` where it fails.
+    stays cached for the null fit. The mesh is meshed as the calibration's was (its
+    TetGen bound on the largest dihedral angle, ``mesh_max_dihedral_deg``). Raises
+    ``fem.ConvergenceError`` where it fails.
     """
     from ..model.reference import reference_mesh
 
-    fm = model_on(reference_mesh(work.measurements.reference, size_mm=size_mm))
+    bound = _parameters(work.record).get("mesh_max_dihedral_deg")
+    fm = model_on(
+        reference_mesh(work.measurements.reference, size_mm=size_mm, max_dihedral_deg=bound)
+    )
     fm.stress_free(float(np.log(work.record["c1_pa"])))
     return fm
 

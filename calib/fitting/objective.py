@@ -47,7 +47,9 @@ class Calibrator:
         if not self.calibration_scans:
             raise ValueError("the session has no scan with role 'calibration'")
         ref = self.measurements.reference
-        self.mesh = reference_mesh(ref, size_mm=o.mesh_size_mm)
+        self.mesh = reference_mesh(
+            ref, size_mm=o.mesh_size_mm, max_dihedral_deg=o.mesh_max_dihedral_deg
+        )
         self.fm = ForwardModel(
             self.mesh, ref.gravity_ref, nu=o.nu, density_kg_m3=self.density_kg_m3,
             reference_state=o.reference_state, formulation=o.formulation,

@@ -78,6 +78,11 @@ class CalibrationOptions:
         Element edge length of the model mesh.
     mesh_retry_mm : tuple of float
         Sizes tried in turn when no stress-free reference exists on a mesh.
+    mesh_max_dihedral_deg : float or None
+        TetGen's optimisation bound on the largest dihedral angle of the model mesh
+        (:func:`fem.meshing.tetrahedralize`); None keeps the ``tetgen`` package's (177
+        degrees). 165 removes most slivers, where the straight stress-free recovery
+        fails first (README, "Slivers and the stress-free recovery").
     formulation : str
         FE formulation (:data:`fem.FORMULATIONS`).
     nu : float
@@ -101,6 +106,7 @@ class CalibrationOptions:
     reference_state: ReferenceState = "unload"
     mesh_size_mm: float = 12.0
     mesh_retry_mm: tuple[float, ...] = (14.0, 16.0)  # when the reference cannot be unloaded
+    mesh_max_dihedral_deg: float | None = None
     formulation: str = "taylor-hood"
     nu: float = 0.499
     max_points: int = 3000
@@ -121,6 +127,9 @@ class CalibrationOptions:
         for size in (self.mesh_size_mm, *self.mesh_retry_mm):
             if not 1.0 <= size <= 50.0:
                 raise ValueError(f"mesh size must lie in [1, 50] mm, got {size}")
+        bound = self.mesh_max_dihedral_deg
+        if bound is not None and not 90.0 < bound < 180.0:
+            raise ValueError(f"mesh max dihedral angle must lie in (90, 180) degrees, got {bound}")
         if not 0.0 < self.nu < 0.5:
             raise ValueError(f"Poisson's ratio must lie in (0, 0.5), got {self.nu}")
         if self.profile_points < 0:

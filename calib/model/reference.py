@@ -31,7 +31,13 @@ def _decimate(vertices: np.ndarray, faces: np.ndarray, size_mm: float):
     return np.asarray(m.vertices), np.asarray(m.triangles)
 
 
-def reference_mesh(ref: ScanMeasurement, *, size_mm: float = 8.0, back_tol_mm: float = 1.0):
+def reference_mesh(
+    ref: ScanMeasurement,
+    *,
+    size_mm: float = 8.0,
+    back_tol_mm: float = 1.0,
+    max_dihedral_deg: float | None = None,
+):
     """Tetrahedral mesh of the reference scan's surface with node sets.
 
     Boundary nodes within ``back_tol_mm`` of the measured back plane form the ``back``
@@ -47,6 +53,9 @@ def reference_mesh(ref: ScanMeasurement, *, size_mm: float = 8.0, back_tol_mm: f
     size_mm : float
         Target element edge length.
     back_tol_mm : float
+    max_dihedral_deg : float, optional
+        TetGen's optimisation bound on the largest dihedral angle
+        (:func:`fem.meshing.tetrahedralize`); None: the ``tetgen`` package's own.
 
     Returns
     -------
@@ -67,13 +76,14 @@ def reference_mesh(ref: ScanMeasurement, *, size_mm: float = 8.0, back_tol_mm: f
     # half a grid step (size/6) off its plane: vertices that near it go back onto it, so
     # the support keeps its faces
     plane = (p0, n, max(back_tol_mm, size_mm / 5.0))
+    sizing = {"max_volume_mm3": vol, "size_mm": size_mm, "max_dihedral_deg": max_dihedral_deg}
     try:
-        mesh = tetrahedralize(v, f, max_volume_mm3=vol, size_mm=size_mm, repair=False)
+        mesh = tetrahedralize(v, f, repair=False, **sizing)
     except fem.MeshError as exc:
         log.info("TetGen rejected the decimated reference surface (%s)", exc)
-        mesh = _remeshed(ref, size_mm, vol, plane)
+        mesh = _remeshed(ref, plane, sizing)
     if mesh is None:  # repaired, or remeshed on the coarse grid (fem.meshing says which)
-        mesh = tetrahedralize(v, f, max_volume_mm3=vol, size_mm=size_mm, keep_planes=[plane])
+        mesh = tetrahedralize(v, f, keep_planes=[plane], **sizing)
     bnodes = np.unique(fem.boundary_faces(mesh.tets))
     back = bnodes[np.abs((mesh.nodes_mm[bnodes] - p0) @ n) < 1e-6 * size_mm]
     log.info("reference mesh: %d tets, %d nodes, %d on the back plane", mesh.n_tets,
@@ -96,7 +106,7 @@ def _onto_plane(v: np.ndarray, plane) -> tuple[np.ndarray, int]:
     return v - np.outer(np.where(near, d, 0.0), n), int(near.sum())
 
 
-def _remeshed(ref: ScanMeasurement, size_mm: float, vol: float, plane):
+def _remeshed(ref: ScanMeasurement, plane, sizing: dict):
     """The scan's full surface remeshed on a fine grid, decimated, its back put on the plane.
 
     With 3 mm slices along the plate's normal (tilted 4 degrees: terraces), the quick
@@ -110,11 +120,13 @@ def _remeshed(ref: ScanMeasurement, size_mm: float, vol: float, plane):
     against 7,331 mm2) and c1 came out at 540 Pa. None when TetGen rejects it too.
     """
     try:
-        w, g = remesh_surface(ref.vertices_mm, ref.faces, size_mm=size_mm, grid_mm=REMESH_GRID_MM)
+        w, g = remesh_surface(
+            ref.vertices_mm, ref.faces, size_mm=sizing["size_mm"], grid_mm=REMESH_GRID_MM
+        )
         w, on = _onto_plane(w, plane)  # the fallback's plane (size/5)
         if on < 3:
             return None
-        mesh = tetrahedralize(w, g, max_volume_mm3=vol, size_mm=size_mm, repair=False)
+        mesh = tetrahedralize(w, g, repair=False, **sizing)
     except (fem.MeshError, ValueError) as exc:
         log.info(
             "the reference surface remeshed on a %g mm grid was rejected too (%s)",

@@ -117,6 +117,7 @@ def test_a_corrupted_series_is_never_calibrated_on_old_results(scans, tmp_path):
         (["--nu", "0.5"], r"Poisson's ratio must lie in \(0, 0\.5\)"),
         (["--profile", "-3"], r"profile points must be >= 0"),
         (["--objective", "volume"], r"objective must be one of"),
+        (["--mesh-max-dihedral", "180"], r"max dihedral angle must lie in \(90, 180\)"),
     ],
 )
 def test_calibrate_options_are_checked_before_any_work(tmp_path, args, pattern):

@@ -229,7 +229,7 @@ def test_a_mesh_without_a_straight_reference_is_replaced_and_the_note_says_why(m
     import fem
     from calib.discrepancy.problem import _straight_model
 
-    monkeypatch.setattr(reference, "reference_mesh", lambda ref, size_mm: size_mm)
+    monkeypatch.setattr(reference, "reference_mesh", lambda ref, size_mm, max_dihedral_deg: size_mm)
 
     class Model:
         def __init__(self, size):
@@ -261,7 +261,11 @@ def test_a_mesh_size_asked_for_is_built_from_the_reference_scan_and_said(monkeyp
     import fem
     from calib.discrepancy.problem import _sized_model
 
-    monkeypatch.setattr(reference, "reference_mesh", lambda ref, size_mm: (ref, size_mm))
+    monkeypatch.setattr(
+        reference,
+        "reference_mesh",
+        lambda ref, size_mm, max_dihedral_deg: (ref, size_mm, max_dihedral_deg),
+    )
 
     class Model:
         def __init__(self, mesh):
@@ -272,13 +276,16 @@ def test_a_mesh_size_asked_for_is_built_from_the_reference_scan_and_said(monkeyp
                 raise fem.ConvergenceError("inverse Newton stopped at load factor 0.5")
             self.theta = theta
 
+    # the calibration meshed with TetGen's bound on the largest dihedral angle
+    record = {"c1_pa": 423.4, "provenance": {"parameters": {"mesh_max_dihedral_deg": 165.0}}}
     work = SimpleNamespace(
-        path="WORK", measurements=SimpleNamespace(reference="ref"), record={"c1_pa": 423.4}
+        path="WORK", measurements=SimpleNamespace(reference="ref"), record=record
     )
     fm, note, size = _sized_model(work, {"mesh_size_mm": 14.0}, Model, 10.0)
     assert size == 10.0
-    # the reference scan's mesh of that size, recovered at the calibrated c1
-    assert fm.mesh == ("ref", 10.0) and fm.theta == pytest.approx(np.log(423.4))
+    # the reference scan's mesh of that size, meshed as the calibration's, recovered at
+    # the calibrated c1
+    assert fm.mesh == ("ref", 10.0, 165.0) and fm.theta == pytest.approx(np.log(423.4))
     assert note == "diagnosed on a 10 mm mesh, as asked (the calibration's: 14 mm)"
     with pytest.raises(DiagnosisError, match=r"32 mm model mesh.*load factor 0.5.*--mesh-size"):
         _sized_model(work, {"mesh_size_mm": 14.0}, Model, 32.0)
