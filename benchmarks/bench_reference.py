@@ -93,6 +93,7 @@ def reference_mesh(scans: Path, work: Path, size_mm: float, max_dihedral_deg=Non
     meas = load_measurements(work, load_session(scans))
     ref = meas.reference
     others = {n: np.asarray(s.gravity_ref, float) for n, s in meas.scans.items() if n != ref.name}
+    # the layout before calib's subpackages has no bound: passed only when asked for
     kw = {} if max_dihedral_deg is None else {"max_dihedral_deg": max_dihedral_deg}
     return build(ref, size_mm=size_mm, **kw), np.asarray(ref.gravity_ref, float), others
 

@@ -12,6 +12,7 @@ from .geometry import Phantom, sphere_surface
 from .mesh import REGION_IDS, MeshError, TetMesh, boundary_faces
 
 __all__ = [
+    "check_max_dihedral_deg",
     "find_back_plane",
     "mesh_phantom",
     "remesh_surface",
@@ -25,6 +26,15 @@ log = logging.getLogger(__name__)
 
 #: Debug files TetGen writes into the working directory when it skips input faces.
 _TETGEN_LITTER = ("_skipped.face", "_skipped.node")
+
+
+def check_max_dihedral_deg(value: float | None, name: str = "max_dihedral_deg") -> None:
+    """Raise ``ValueError`` unless ``value`` is None or a dihedral bound in (90, 180) degrees.
+
+    ``name`` is what the message calls it (an option's own name).
+    """
+    if value is not None and not 90.0 < value < 180.0:
+        raise ValueError(f"{name} must lie in (90, 180) degrees, got {value}")
 
 
 def _tetgen(vertices, faces, max_volume, min_ratio, min_dihedral, regions, max_dihedral=None):
@@ -191,8 +201,7 @@ def tetrahedralize(
     TetMesh
         Positively oriented, with region tags (``bulk`` = 1 when no regions are given).
     """
-    if max_dihedral_deg is not None and not 90.0 < max_dihedral_deg < 180.0:
-        raise ValueError(f"max_dihedral_deg must lie in (90, 180) degrees, got {max_dihedral_deg}")
+    check_max_dihedral_deg(max_dihedral_deg)
     planes = [_plane(p) for p in keep_planes]
 
     def flat(v, f):

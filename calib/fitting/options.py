@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from fem.meshing import check_max_dihedral_deg
+
 from ..model.residuals import OBJECTIVES
 
 __all__ = [
@@ -127,9 +129,7 @@ class CalibrationOptions:
         for size in (self.mesh_size_mm, *self.mesh_retry_mm):
             if not 1.0 <= size <= 50.0:
                 raise ValueError(f"mesh size must lie in [1, 50] mm, got {size}")
-        bound = self.mesh_max_dihedral_deg
-        if bound is not None and not 90.0 < bound < 180.0:
-            raise ValueError(f"mesh max dihedral angle must lie in (90, 180) degrees, got {bound}")
+        check_max_dihedral_deg(self.mesh_max_dihedral_deg, "mesh max dihedral angle")
         if not 0.0 < self.nu < 0.5:
             raise ValueError(f"Poisson's ratio must lie in (0, 0.5), got {self.nu}")
         if self.profile_points < 0:
