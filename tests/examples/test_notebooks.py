@@ -9,6 +9,7 @@ checks, in the style of scikit-fem's ``test_examples.py``.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -48,3 +49,24 @@ def test_03_sweep_surrogate_beats_the_dissertation(tiny_chain_notebooks, run_not
     assert s["ours_surface_mean_mm"] <= 0.02 and s["ours_surface_max_mm"] <= 0.2
     assert s["ours_tumour_max_mm"] <= 0.02
     assert s["ours_surface_mean_mm"] < s["mlps_surface_mean_mm"]
+
+
+@pytest.mark.parametrize(
+    "script",
+    sorted(p.name for p in (Path(__file__).parents[2] / "examples").glob("0*.py")),
+)
+def test_each_example_has_its_paired_notebook_with_the_same_cells(script):
+    # the .ipynb opened in Jupyter (make lab) is the script's pair: a script edited
+    # without `jupytext --sync` would open as an older notebook
+    import jupytext
+
+    py = Path(__file__).parents[2] / "examples" / script
+    ipynb = py.with_suffix(".ipynb")
+    assert ipynb.is_file(), f"{ipynb} is missing: run `jupytext --sync {py}`"
+    a, b = jupytext.read(py), jupytext.read(ipynb)
+    assert [(c.cell_type, c.source) for c in a.cells] == [
+        (c.cell_type, c.source) for c in b.cells
+    ], f"{ipynb.name} holds other cells than {script}: run `jupytext --sync {py}`"
+    assert all(not c.get("outputs") for c in b.cells if c.cell_type == "code"), (
+        f"{ipynb.name} carries outputs; the tracked notebooks are output-free"
+    )
