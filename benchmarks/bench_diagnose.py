@@ -29,6 +29,9 @@ apart and shown in the table.
         [--null-seeds 0,1,2,3,4] [--ratios 2,4,8] [--only NAME,...] [--table]
         [--rim-margin MM|element] [--noise-profile flat|plate] [--rim-profile]
 
+``--mesh-size MM`` calibrates on that model mesh (default 14 mm, MM + 2 the retry);
+``--mesh-max-dihedral DEG`` calibrates with TetGen's bound on the largest dihedral angle
+(``calibrate --mesh-max-dihedral``; the diagnosis rebuilds its meshes with it).
 ``--rim-margin`` and ``--noise-profile`` diagnose with that option (``diagnose
 --rim-margin``, ``--noise-profile``; use a fresh ``--out``, the cases already there are
 skipped). ``--rim-profile`` prints, for each
@@ -111,6 +114,8 @@ def run_case(
     rim_margin=None,
     noise_profile: str = "flat",
     explained_margin=None,
+    max_dihedral_deg=None,
+    mesh_size_mm: float = 14.0,
 ) -> dict:
     import fem
     from calib.discrepancy import DiagnosisOptions
@@ -134,7 +139,12 @@ def run_case(
     if (work / "calibration.json").is_file():  # a calibration of this case: reused
         cal = json.loads((work / "calibration.json").read_text())
     else:
-        opts = CalibrationOptions(mesh_size_mm=14.0, mesh_retry_mm=(16.0,), profile_points=0)
+        opts = CalibrationOptions(
+            mesh_size_mm=mesh_size_mm,
+            mesh_retry_mm=(mesh_size_mm + 2.0,),
+            profile_points=0,
+            mesh_max_dihedral_deg=max_dihedral_deg,
+        )
         cal = run_calibration(twin / "scans", work, opts)
     t2 = time.perf_counter()
     margin = {} if rim_margin is None else {"rim_margin_mm": rim_margin}
@@ -167,6 +177,9 @@ def run_case(
         "rim_margin_mm": doc["scans"]["rim_margin_mm"],
         "explained_margin_mm": doc["scans"]["explained_margin_mm"],
         "noise_profile": doc["options"].get("noise_profile", "flat"),
+        "mesh_max_dihedral_deg": max_dihedral_deg,
+        "mesh_size_mm": mesh_size_mm,
+        "mesh_note": doc["calibration"].get("mesh_note"),
         "holdout_cut_above_floor": gap[hold].get("cut_above_floor") if hold else None,
         "holdout_before_mm": gap[hold]["surface_error_mm"]["before"]["mean"] if hold else None,
         "holdout_after_mm": gap[hold]["surface_error_mm"].get("after", {}).get("mean")
@@ -181,6 +194,7 @@ def run_case(
             for k, v in doc["effects"].items()
         },  # fmt: skip
         "candidates": doc["candidates"],
+        "hidden_screen": _hidden_screen(doc, hidden),
         "synth_s": t1 - t0,
         "calibrate_s": t2 - t1,
         "diagnose_s": t3 - t2,
@@ -213,6 +227,16 @@ def _right(row: dict) -> bool:
     return want in named if want is not None else not named
 
 
+def _mesh_cell(row: dict) -> str:
+    """``SIZE[/BOUND]`` of the calibration's mesh: size in mm, TetGen's dihedral bound in
+    degrees when one was asked for; ``*`` when the diagnosis ran on another mesh (the
+    calibration's admitted no straight stress-free reference)."""
+    size = row.get("mesh_size_mm") or 14.0  # rows from before the option: 14 mm
+    bound = row.get("mesh_max_dihedral_deg")
+    cell = f"{size:g}" + (f"/{bound:g}" if bound else "")
+    return cell + ("*" if row.get("mesh_note") else "")
+
+
 def _table(rows: list[dict]) -> None:
     failed = [r for r in rows if r.get("failed")]
     rows = [r for r in rows if not r.get("failed")]
@@ -230,8 +254,9 @@ def _table(rows: list[dict]) -> None:
         "rim mm",
         "(d) mm",
         "profile",
+        "mesh",
     )
-    widths = (-16, -34, 10, 5, 7, 8, 6, 8, 8, 7, 6, 6, 7)  # negative: left-aligned
+    widths = (-16, -34, 10, 5, 7, 8, 6, 8, 8, 7, 6, 6, 7, -7)  # negative: left-aligned
 
     def line(cells) -> str:
         return " ".join(
@@ -258,6 +283,7 @@ def _table(rows: list[dict]) -> None:
             f"{r.get('rim_margin_mm', 5.0):g}",
             "-" if judged is None else f"{judged:.3g}",
             r.get("noise_profile", "flat"),
+            _mesh_cell(r),
         )
         print(line(cells))
     for r in failed:
@@ -340,6 +366,18 @@ def _rim_table(root: Path, rows: list[dict]) -> None:
             print(f"{r['case']:10s} {scan:14s} {cells}", flush=True)
 
 
+def _hidden_screen(doc: dict, hidden: str) -> dict | None:
+    """The first screen's column of the hidden effect with the smallest p: its score t,
+    one-step estimate, se, the size it finds with 80 % power (``detectable``), Holm p."""
+    cols = doc["screening"]["columns"]
+    cols = [c for c in cols if c["effect"] == hidden and c.get("p_value") is not None]
+    if not cols:
+        return None
+    best = min(cols, key=lambda c: c["p_value"])
+    keys = ("name", "statistic", "estimate", "standard_error", "detectable", "p_value", "p_holm")
+    return {k: best.get(k) for k in keys}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True, help="folder of the twins and results")
@@ -377,6 +415,21 @@ def main() -> None:
         "'element'; default: diagnose's; 0: every diagnosed point, the rule before 2026-12)",
     )
     ap.add_argument(
+        "--mesh-size",
+        type=float,
+        default=14.0,
+        metavar="MM",
+        help="calibrate on this model mesh size, with MM + 2 as the retry (default 14)",
+    )
+    ap.add_argument(
+        "--mesh-max-dihedral",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="calibrate with this TetGen bound on the largest dihedral angle "
+        "(calibrate --mesh-max-dihedral; default: TetGen's)",
+    )
+    ap.add_argument(
         "--rim-profile",
         action="store_true",
         help="print the null cases' residual by height above the back plate (c1-only fits)",
@@ -405,7 +458,16 @@ def main() -> None:
                 continue
             print(f"case {name}: synth -> calibrate -> diagnose", flush=True)
             row = run_case(
-                args.out, name, specs, seed, hidden, margin, args.noise_profile, explained
+                args.out,
+                name,
+                specs,
+                seed,
+                hidden,
+                margin,
+                args.noise_profile,
+                explained,
+                args.mesh_max_dihedral,
+                args.mesh_size,
             )
             path.write_text(json.dumps(row, indent=1))
             if row.get("failed"):
