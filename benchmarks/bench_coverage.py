@@ -26,7 +26,8 @@ Tables (``--table``):
 - ``misfit``: false-alarm rate of :func:`calib.stats.scores.misfit_test` (band-F and
   chi2) on null residuals, and power against an added smooth ``p2`` pattern.
 - ``screen``: per-effect and family-wise (Holm) false-positive rates of
-  :func:`calib.stats.scores.screen_effects` on null residuals, and power for one effect.
+  :func:`calib.stats.scores.screen_effects` on null residuals, power for one effect,
+  and the power at the size the screening reports as detectable.
 - ``postures``: false-alarm rate of :func:`calib.stats.consistency.posture_consistency`
   (Cochran's Q of each scan's own estimate, the session's noise model) on null
   residuals of three scans, ``ln c1`` fitted on the first alone as ``calibrate`` does,
@@ -320,7 +321,7 @@ def run_screen(cell: Cell, draws: int, seed: int) -> dict:
     S = effect_fields(sample, J)
     sampler = NoiseSampler.of(sample, cell.model())
     rng = np.random.default_rng(seed + 3)
-    p, ident, alt, cond = [], [], [], []
+    p, ident, alt, cond, sizes = [], [], [], [], []
     t0 = time.perf_counter()
     signal = 0.3 * cell.sigma_mm * S[:, 0]  # an effect of 0.3 sigma RMS (p2)
     Jc = np.column_stack([J, S[:, 0]])  # forward step: p2 named and fitted with c1
@@ -335,6 +336,7 @@ def run_screen(cell: Cell, draws: int, seed: int) -> dict:
             store.append([e.p_value for e in res.effects] + [e.significant for e in res.effects])
             if store is p:
                 ident.append([e.identifiable for e in res.effects])
+                sizes.append(res.effects[0].detectable)
                 cosine = res.cosine
                 continue
             rc = x - Jc @ np.linalg.lstsq(Jc, x, rcond=None)[0]
@@ -342,9 +344,20 @@ def run_screen(cell: Cell, draws: int, seed: int) -> dict:
             res = screen_effects(rc, Jc, S[:, 1:3], EFFECTS[1:3], sample, fit.best,
                                  alternatives=fit.plausible[1:])  # fmt: skip
             cond.append(any(e.significant for e in res.effects))
+    # p2 planted at the median of the size the null draws report (EffectScore.detectable:
+    # 80 % power after Holm, nominally)
+    size = float(np.median(sizes))
+    found = []
+    for _ in range(POWER_DRAWS):
+        x = sampler.draw(rng)[:, 0] + size * S[:, 0]
+        r = x - J * float(J @ x) / float(J @ J)
+        fit = fit_variogram(empirical_variogram(sample, r))
+        res = screen_effects(r, J, S, EFFECTS, sample, fit.best, alternatives=fit.plausible[1:])
+        found.append(res.effects[0].significant)
     _progress("screen", cell, t0)
     return {"cell": cell, "p": np.array(p, dtype=float), "alt": np.array(alt, dtype=float),
             "ident": np.array(ident), "cond": np.array(cond), "cosine": cosine,
+            "size": size, "size_spread": float(np.std(sizes) / size), "found": np.array(found),
             "draws": draws, "seconds": time.perf_counter() - t0}  # fmt: skip
 
 
@@ -374,6 +387,14 @@ def print_screen(results: list[dict]) -> None:
         cos = res["cosine"][0, 1:3]
         print(f"| {res['cell'].label:36s} | {row} | after p2: {binom(res['cond'])} | "
               f"cos tilt {cos[0]:+.2f}, bump {cos[1]:+.2f} |")  # fmt: skip
+    print(
+        "\nThe reported detectable size (EffectScore.detectable, 80 % power after Holm "
+        "nominally): p2's median over the null draws (its spread across draws, sd / median), "
+        f"and the % of {POWER_DRAWS} draws with p2 planted at that size where p2 is significant"
+    )
+    for res in results:
+        size = f"size {res['size']:.4g} ({100 * res['size_spread']:.0f} %)"
+        print(f"| {res['cell'].label:36s} | {size} | {binom(res['found'])} |")
 
 
 # ------------------------------------------------------------------------ variogram

@@ -268,10 +268,10 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
     effects = _table(["effect", "status", "score t", "p", "p (Holm)", "significant",
                       "retained", "note"], eff_rows)  # fmt: skip
     col_rows = [[c["name"], c["statistic"], c["p_value"], c["p_holm"], c["significant"],
-                 c["estimate"], c["standard_error"], c["retained_fraction"]]
-                for c in doc["screening"]["columns"]]  # fmt: skip
+                 c["estimate"], c["standard_error"], c.get("detectable"),
+                 c["retained_fraction"]] for c in doc["screening"]["columns"]]  # fmt: skip
     columns = _table(["column", "score t", "p", "p (Holm)", "significant", "one-step estimate",
-                      "se", "retained"], col_rows)  # fmt: skip
+                      "se", "detectable (80 % power)", "retained"], col_rows)  # fmt: skip
     beyond = doc["scans"].get("explained_margin_mm")
     judged = "explained" if beyond is None else f"explained beyond {beyond:.3g} mm"
     cand_rows = [

@@ -41,7 +41,10 @@ projection also tells up front what the data cannot separate: in the metric of t
 model (whitened), the fraction of ``s_k`` that survives projection off ``J``
 (``retained_fraction``; below ``min_retained`` the effect is "not identifiable from
 these data") and the cosine between two effects' projected whitened signatures
-(``|cos|`` above ``confounded_above``: confounded).
+(``|cos|`` above ``confounded_above``: confounded). Each tested column also reports the
+size it would find with 80 % power (:func:`detectable_size`) at its Bonferroni level,
+``alpha`` over the number of tested effects and the effect's tested columns (Holm's
+first step, so a bound for the step-down), from the observed series standard error.
 """
 
 from __future__ import annotations
@@ -54,6 +57,7 @@ import numpy as np
 
 from .intervals import (
     IntervalError,
+    SeriesStatistic,
     _jacobian,
     _json_number,
     _models,
@@ -63,7 +67,7 @@ from .intervals import (
 )
 from .modes import orthonormalise, scan_polynomials
 from .noise import NoiseArg, NoiseModel, _model_for, apply_covariance, local_counts, whitener
-from .quadform import Quantile, ratio_tail
+from .quadform import Quantile, ratio_critical_value, ratio_tail
 from .sample import MAX_DENSE_BLOCK, SurfaceSample
 
 __all__ = [
@@ -71,6 +75,7 @@ __all__ = [
     "EffectScreening",
     "ModelFit",
     "ScreeningError",
+    "detectable_size",
     "holm",
     "misfit_test",
     "screen_effects",
@@ -286,7 +291,9 @@ class EffectScore:
     plugin_standard_error : float
         ``sqrt(a' Sigma a)`` under the model.
     detectable : float
-        Smallest ``|beta|`` found with 80 % power at ``alpha`` (plug-in).
+        Smallest ``|beta|`` (in the units of ``estimate``) found with about 80 % power
+        after the family-wise correction, on the data's scale (module docstring,
+        :func:`detectable_size`).
     retained_fraction : float
         Whitened norm of ``s_k`` left after projecting off ``J``, over its whole norm.
     identifiable : bool
@@ -399,6 +406,50 @@ def holm(p_values: np.ndarray) -> np.ndarray:
     out = np.empty(q)
     out[order] = adj
     return out
+
+
+def detectable_size(
+    statistic: SeriesStatistic, alpha: float, *, one_sided: bool = False, power: float = 0.8
+) -> float:
+    """Effect size found with ``power`` by a score test at level ``alpha``.
+
+    The estimate of a present effect ``beta`` is ``beta + a' eps`` and its series standard
+    error does not see ``beta`` (the modes are orthogonal to the effect's column), so
+    ``T = beta / se + T0`` with ``T0`` the null ratio. The test rejects when ``T > c_a``
+    (``c_a`` the ratio's ``1 - alpha`` point, one- or two-sided) and ``P(T0 > -c_p) =
+    power`` gives ``beta = (c_a + c_p) se``. Both points are the ratio's Satterthwaite t
+    quantiles (within about 1 % of Imhof's for smooth modes,
+    :func:`calib.stats.quadform.ratio_critical_value`) and ``se`` is the observed series
+    standard error, so the size is on the data's scale, not the noise model's: where the
+    residual carries more than noise in the smooth modes, the size grows with it. The
+    far tail of a two-sided test is neglected. Measured power at this size:
+    ``benchmarks/bench_coverage.py --table screen``.
+
+    Parameters
+    ----------
+    statistic : SeriesStatistic
+        The column's series statistic (:func:`calib.stats.intervals.series_statistic`).
+    alpha : float
+        Level of the column's test, in (0, 1) (after any multiplicity correction).
+    one_sided : bool
+        Whether the test is against a one-sided alternative.
+    power : float
+        In (0.5, 1).
+
+    Returns
+    -------
+    float
+        In the units of the column's estimate.
+    """
+    tails = 2.0 if one_sided else 1.0  # the two-sided level whose one tail is alpha
+    if not 0.0 < tails * alpha < 1.0 or not 0.5 < power < 1.0:
+        raise ScreeningError(
+            f"need alpha in (0, {1 / tails:g}) and power in (0.5, 1), got {alpha}, {power}"
+        )
+    om, w = statistic.omega, statistic.weights
+    c_a = ratio_critical_value(om, w, level=1.0 - tails * alpha, method="satterthwaite")
+    c_p = ratio_critical_value(om, w, level=2.0 * power - 1.0, method="satterthwaite")
+    return float((c_a + c_p) * statistic.standard_error)
 
 
 def _effect_holm(p_values: Sequence[float | None], effects: Sequence[str]) -> np.ndarray:
@@ -605,6 +656,7 @@ def screen_effects(
                 best = (p, t, st)
         rows.append((est, *best))
     adj = _effect_holm([None if row is None else row[1] for row in rows], groups)
+    tested = [groups[k] for k in range(len(names)) if rows[k] is not None]
     scores = []
     for k, name in enumerate(names):
         if rows[k] is None:
@@ -614,11 +666,13 @@ def screen_effects(
                                        effect=groups[k]))  # fmt: skip
             continue
         est, p, t, st = rows[k]
-        tail = alpha if dirs[k] else 0.5 * alpha
-        z = float(stats.norm.ppf(1.0 - tail) + stats.norm.ppf(0.8))
+        # Bonferroni level of this column: Holm's first step over the tested effects,
+        # times the effect's own number of tested columns
+        level = alpha / (len(set(tested)) * tested.count(groups[k]))
+        found = detectable_size(st, level, one_sided=bool(dirs[k]))
         scores.append(EffectScore(name, float(t), float(p), float(adj[k]), bool(adj[k] < alpha),
                                    est, st.standard_error, st.plugin_standard_error,
-                                   z * st.plugin_standard_error, float(retained[k]), True,
+                                   found, float(retained[k]), True,
                                    st.dof, st.n_modes, ALTERNATIVES[dirs[k]],
                                    groups[k]))  # fmt: skip
     cos = np.where(np.outer(ident, ident), cosine, np.nan)
