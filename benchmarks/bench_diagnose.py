@@ -28,6 +28,7 @@ apart and shown in the table.
     python benchmarks/bench_diagnose.py --out DIR [--cases skin,none,curve] [--seeds 0,1,2]
         [--null-seeds 0,1,2,3,4] [--ratios 2,4,8] [--only NAME,...] [--table]
         [--rim-margin MM|element] [--noise-profile flat|plate] [--rim-profile]
+        [--mesh-size MM] [--mesh-max-dihedral DEG]
 
 ``--mesh-size MM`` calibrates on that model mesh (default 14 mm, MM + 2 the retry);
 ``--mesh-max-dihedral DEG`` calibrates with TetGen's bound on the largest dihedral angle

@@ -68,7 +68,7 @@ from ..data.work import WorkFolder
 from ..evaluation import ScanMetrics, scan_metrics
 from ..model.effects import LIBRARY, SKIN_THICKNESS_MM
 from ..stats import NoiseFit, height_profile, parameter_intervals
-from .fields import FieldSet
+from .fields import SLIDING_PROBE_PA_PER_MM, FieldSet
 from .localise import region_labels, significance_map
 from .problem import (
     RIM_MARGIN_MM,
@@ -253,6 +253,15 @@ class Candidate:
         return out
 
 
+def _screen_unit(effect: str) -> str:
+    """What one unit of the effect's screening column (its one-step estimate) is."""
+    if effect == "sliding":
+        return f"probe amplitude, 1 = tangential springs of {SLIDING_PROBE_PA_PER_MM:g} Pa/mm"
+    if effect == "poisson":
+        return "change of nu from the model's"
+    return LIBRARY[effect].unit
+
+
 def _num(v):
     return float(v) if v is not None and np.isfinite(v) else None
 
@@ -413,6 +422,8 @@ class Diagnosis:
                     "p_holm": _num(min((e.p_holm for e in tested), default=np.nan)),
                     "significant": any(e.significant for e in tested),
                     "estimate": _num(best.estimate) if rows and len(rows) == 1 else None,
+                    "detectable": _num(best.detectable) if len(rows) == 1 else None,
+                    "screen_unit": _screen_unit(name),
                     "retained_fraction": _num(max(e.retained_fraction for e in rows)),
                 }
                 if name == "density":
@@ -824,13 +835,35 @@ def _registration_excess(prob: Problem, fit: Refit) -> list[str]:
     return out
 
 
+def _gravity_excess(prob: Problem, fit: Refit) -> list[str]:
+    """Scans whose fitted gravity angle exceeds the rotation their registration allows.
+
+    A scan's gravity in the reference frame is the scanner's (``session.toml``, taken as
+    exact) turned by the scan's registered rotation, so its error is that rotation's: a
+    rotation by ``t`` moves the scan's farthest measured point (distance ``R`` from the
+    centre) by about ``R t``, and the registration allows ``tolerance / R``
+    (:attr:`Problem.registration_tolerance_mm`, the rigid offsets' bound).
+    """
+    out = []
+    for n in prob.scans:
+        angle = float(np.linalg.norm(fit.nuisance[n].gravity_rad))
+        arm = float(np.linalg.norm(prob.points[n] - prob.centres[n], axis=1).max())
+        allowed = prob.registration_tolerance_mm[n] / arm
+        if angle > allowed:
+            turned, limit = np.degrees(angle), np.degrees(allowed)
+            out.append(
+                f"{n}: gravity turned {turned:.2f} deg, its registration allows {limit:.2f} deg"
+            )
+    return out
+
+
 def _judge(prob, eff, rnd, sig_row, before: Refit, after: Refit, floors: tuple, o) -> Candidate:
     """The naming criteria of one refitted candidate.
 
     Per-scan nuisances (gravity, registration) cannot be learnt from the other postures,
     so for them criterion (b) is that the leave-one-posture-out prediction does not get
-    worse; a rigid offset is plausible only within its scan's registration tolerance
-    (:attr:`Problem.registration_tolerance_mm`).
+    worse; a rigid offset or a gravity angle is plausible only within its scan's
+    registration tolerance (:func:`_registration_excess`, :func:`_gravity_excess`).
     """
     _, stat, p_holm = sig_row
     lb, la = lopo(before)["mean_sq_mm2"], lopo(after)["mean_sq_mm2"]
@@ -839,7 +872,8 @@ def _judge(prob, eff, rnd, sig_row, before: Refit, after: Refit, floors: tuple, 
     own = [n for n in after.names if _effect_of(n) == eff]
     params = {n: after.parameter(n) for n in own}
     bound = tuple(n for n in after.at_bound() if n in own)
-    implausible = _registration_excess(prob, after) if eff == "registration" else []
+    excess = {"registration": _registration_excess, "gravity": _gravity_excess}.get(eff)
+    implausible = excess(prob, after) if excess else []
     floor, floor_judged, judged = floors
     explained_all = _explained(before.fields, after.fields, floor, None)
     explained = _explained(before.fields, after.fields, floor_judged, judged)

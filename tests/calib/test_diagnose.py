@@ -136,14 +136,21 @@ def test_local_z_map_is_calibrated_and_finds_a_bump_at_the_rim():
 
 
 def _refit(sample, r, J, cols: dict, x) -> Refit:
+    from calib.discrepancy.problem import Nuisance
+
     fs = _fields(sample, r, J, cols)
     names = ("theta", *cols)
     n = len(x)
+    nuisance = {s: Nuisance() for s in SCANS}  # every scan's, as refit's _unpack gives
+    for name, v in zip(cols, x[1:], strict=True):
+        if name.startswith("gravity["):
+            scan, k = name[8:].split("].a")
+            nuisance[scan].gravity_rad[int(k)] = v
     return Refit(
         tuple(cols),
         float(x[0]),
         EffectValues(),
-        {},
+        nuisance,
         names,
         np.asarray(x, float),
         np.full(n, -np.inf),
@@ -527,6 +534,29 @@ def test_an_unexplained_verdict_from_nuisances_alone_says_what_to_try():
     assert nuisance_only_hint(doc("named: skin", {"gravity[right_lateral].a0"})) == ""
 
 
+def test_the_summary_says_what_size_the_effects_not_found_would_need():
+    from calib.report.diagnosis import detection_limits
+
+    unit = "skin c1 / bulk c1 - 1"
+    effects = {
+        "skin": {
+            "kind": "material",
+            "significant": False,
+            "detectable": 0.512,
+            "screen_unit": unit,
+        },
+        "poisson": {"kind": "material", "significant": True, "detectable": 0.02},
+        "density": {"kind": "scaling", "significant": False, "detectable": None},
+        "gravity": {"kind": "nuisance", "significant": False, "detectable": None},
+    }
+    text = detection_limits({"effects": effects})
+    # only the physical effect that was screened and not found, in its column's units
+    assert text.endswith("skin 0.512 (skin c1 / bulk c1 - 1)"), text
+    assert "poisson" not in text and "density" not in text and "gravity" not in text
+    effects["skin"]["significant"] = True
+    assert detection_limits({"effects": effects}) == ""
+
+
 def test_a_sliding_plate_is_refitted_as_ln_k_of_its_springs():
     # the refit's parameter layout: ln k within the twin's spring range, and the model it
     # unpacks holds the plate on springs of that stiffness (fem.Sliding, rim held)
@@ -702,6 +732,7 @@ def _dome_problem(mesh_size_mm: float = 14.0):
         skin_thickness_mm=1.5,
         rim_margin_mm=5.0,
         mesh_size_mm=mesh_size_mm,
+        registration_tolerance_mm={"a": 1.0, "b": 1.0},  # 3 x TRE + half a 1.5 mm voxel
     )
     prob.measurement = lambda name: SimpleNamespace(
         back_point_mm=np.zeros(3), back_normal=np.array([0.0, 0.0, 1.0])
@@ -786,3 +817,30 @@ def test_the_share_explained_is_judged_beyond_one_element_of_the_plate():
         DiagnosisOptions(explained_margin_mm=-2.0)
     with pytest.raises(DiagnosisError, match="explained_margin_mm"):
         DiagnosisOptions(explained_margin_mm="two")
+
+
+def test_a_nuisance_beyond_the_registration_is_implausible():
+    # closed form: the scan's points lie on a sphere of 50 mm about its centre and its
+    # registration allows 0.5 mm, so a rigid offset may move them 0.5 mm and gravity may
+    # turn by 0.5 / 50 = 0.01 rad (0.57 deg), the rotation that moves the farthest point
+    # by the same 0.5 mm
+    from calib.discrepancy.diagnose import _gravity_excess, _registration_excess
+    from calib.discrepancy.problem import Nuisance
+
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(200, 3))
+    centre = np.array([10.0, 20.0, 30.0])
+    pts = 50.0 * u / np.linalg.norm(u, axis=1, keepdims=True) + centre
+    tolerance = {"a": 0.5}
+    prob = SimpleNamespace(
+        scans=["a"], points={"a": pts}, centres={"a": centre}, registration_tolerance_mm=tolerance
+    )
+
+    def fit(gravity=(0.0, 0.0), offset=(0.0,) * 6):
+        return SimpleNamespace(nuisance={"a": Nuisance(np.array(gravity), np.array(offset))})
+
+    assert _gravity_excess(prob, fit((0.006, 0.0079))) == []  # 0.00991 rad
+    (msg,) = _gravity_excess(prob, fit((0.006, -0.0081)))  # 0.01008 rad
+    assert "gravity turned 0.58 deg" in msg and "allows 0.57 deg" in msg
+    assert _registration_excess(prob, fit(offset=(0.3, 0.0, 0.39, 0, 0, 0))) == []
+    assert _registration_excess(prob, fit(offset=(0.3, 0.0, 0.41, 0, 0, 0)))

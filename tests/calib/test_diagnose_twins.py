@@ -119,6 +119,14 @@ def test_a_homogeneous_truth_has_no_missing_effect(none):
     _, doc = none
     assert doc["verdict"] == "no missing effect"
     assert doc["named"] == []
+    # and it says how large each physical effect would have to be to show
+    from calib.report.diagnosis import format_diagnosis
+
+    summary = format_diagnosis(doc)
+    for name, e in doc["effects"].items():
+        if e["kind"] != "nuisance" and e["status"] == "identifiable":
+            assert e["detectable"] > 0 and e["screen_unit"]
+            assert f"{name} {e['detectable']:.3g} ({e['screen_unit']})" in summary
 
 
 def test_the_noise_model_against_the_twin_imaging_error(none):
