@@ -666,8 +666,8 @@ def screen_effects(
                                        effect=groups[k]))  # fmt: skip
             continue
         est, p, t, st = rows[k]
-        # Bonferroni level of this column: Holm's first step over the tested effects,
-        # times the effect's own number of tested columns
+        # this column's Bonferroni level: alpha over the tested effects (Holm's first
+        # step) and over the effect's own tested columns
         level = alpha / (len(set(tested)) * tested.count(groups[k]))
         found = detectable_size(st, level, one_sided=bool(dirs[k]))
         scores.append(EffectScore(name, float(t), float(p), float(adj[k]), bool(adj[k] < alpha),
