@@ -148,6 +148,7 @@ def run_case(
         )
         cal = run_calibration(twin / "scans", work, opts)
     t2 = time.perf_counter()
+    used = (cal.get("provenance") or {}).get("parameters") or {}
     margin = {} if rim_margin is None else {"rim_margin_mm": rim_margin}
     if explained_margin is not None:
         margin["explained_margin_mm"] = explained_margin
@@ -178,8 +179,9 @@ def run_case(
         "rim_margin_mm": doc["scans"]["rim_margin_mm"],
         "explained_margin_mm": doc["scans"]["explained_margin_mm"],
         "noise_profile": doc["options"].get("noise_profile", "flat"),
-        "mesh_max_dihedral_deg": max_dihedral_deg,
-        "mesh_size_mm": mesh_size_mm,
+        # the calibration's own (a reused one may differ from the options asked for)
+        "mesh_max_dihedral_deg": used.get("mesh_max_dihedral_deg"),
+        "mesh_size_mm": used.get("mesh_size_mm", mesh_size_mm),
         "mesh_note": doc["calibration"].get("mesh_note"),
         "holdout_cut_above_floor": gap[hold].get("cut_above_floor") if hold else None,
         "holdout_before_mm": gap[hold]["surface_error_mm"]["before"]["mean"] if hold else None,
