@@ -136,24 +136,41 @@ def _effects(sample, J):
                             misfit_pattern(sample, kind="bump")])  # fmt: skip
 
 
-def test_screening_false_positive_rate_on_correlated_null_residuals(setup):
+#: Correlated noise of the screening's rate tests (exponential, 8 mm, no nugget).
+CORRELATED = NoiseModel("exponential", 0.2, 0.0, 8.0)
+
+
+@pytest.fixture(scope="module")
+def correlated():
+    """600 points, the sag Jacobian, a sampler of CORRELATED and the three effects."""
+    sample = phantom_sample(600, 1, seed=6)
+    J = sag_sensitivity(sample)
+    return sample, J, NoiseSampler.of(sample, CORRELATED), _effects(sample, J)
+
+
+def _screen_refitted(x, sample, J, S, **options):
+    """Screen the three effects on ``x`` less what c1 absorbs, the noise model refitted to
+    that residual (its best kernel, the other plausible ones as alternatives)."""
+    r = _residual(J, x)
+    fit = estimate_noise(sample, r)
+    names = ["p2", "tilt", "bump"]
+    return screen_effects(
+        r, J, S, names, sample, fit.best, alternatives=fit.plausible[1:], **options
+    )
+
+
+def test_screening_false_positive_rate_on_correlated_null_residuals(correlated):
     # three smooth candidate effects, no effect in the data (600 points, exponential
     # 8 mm). 150 seeded draws: per-effect rejection at alpha = 0.05 (unadjusted) at most
     # 5 + 3 * 1.78 %; family-wise (Holm) at most 5 + 3 * 1.78 %.
-    sample = phantom_sample(600, 1, seed=6)
-    J = sag_sensitivity(sample)
-    sampler = NoiseSampler.of(sample, NoiseModel("exponential", 0.2, 0.0, 8.0))
-    S = _effects(sample, J)
+    sample, J, sampler, S = correlated
     # 'p2' and 'tilt' are tested one-sided (up, down), 'bump' two-sided; the two-sided p of
     # a one-sided column is 2 min(p, 1 - p): both are held to the same bound.
     rng = np.random.default_rng(3)
     p, fw = [], []
     for _ in range(150):
-        r = _residual(J, sampler.draw(rng)[:, 0])
-        fit = estimate_noise(sample, r)
-        res = screen_effects(r, J, S, ["p2", "tilt", "bump"], sample, fit.best,
-                             alternatives=fit.plausible[1:], quantile="satterthwaite",
-                             directions=[1, -1, 0])  # fmt: skip
+        kw = {"quantile": "satterthwaite", "directions": [1, -1, 0]}
+        res = _screen_refitted(sampler.draw(rng)[:, 0], sample, J, S, **kw)
         p.append([e.p_value for e in res.effects])
         fw.append(any(e.significant for e in res.effects))
     p = np.array(p)
@@ -190,24 +207,18 @@ def test_a_one_sided_effect_is_tested_against_its_physical_direction(setup):
         screen_effects(r, J, S, ["p2", "tilt", "bump"], directions=[0, 2, 0], **kw)
 
 
-def test_the_detectable_size_is_found_about_four_times_in_five(setup):
+def test_the_detectable_size_is_found_about_four_times_in_five(correlated):
     # 'bump' (two-sided, one of three effects: Bonferroni level 0.05 / 3) planted at the
     # median of the size the null draws report. Nominal power 80 %; the approximation
     # leaves out that the noise model is refitted with the effect in the residual (the
     # sill and range grow; measured 70-77 % on 100 draws, every column of _effects), so
     # the bar is 80 - 10 - 3 binomial se (60 draws, 5.2 %) = 54 %. At half the size the
     # nominal power is 17 % (measured 21-25 %): at most 50 %, so the size is no loose bound.
-    sample = phantom_sample(600, 1, seed=6)
-    J = sag_sensitivity(sample)
-    sampler = NoiseSampler.of(sample, NoiseModel("exponential", 0.2, 0.0, 8.0))
-    S = _effects(sample, J)
+    sample, J, sampler, S = correlated
     rng = np.random.default_rng(11)
 
     def bump(x):
-        r = _residual(J, x)
-        fit = estimate_noise(sample, r)
-        kw = {"alternatives": fit.plausible[1:], "directions": [1, -1, 0]}
-        return screen_effects(r, J, S, ["p2", "tilt", "bump"], sample, fit.best, **kw).effects[2]
+        return _screen_refitted(x, sample, J, S, directions=[1, -1, 0]).effects[2]
 
     beta = np.median([bump(sampler.draw(rng)[:, 0]).detectable for _ in range(30)])
     found = [bump(sampler.draw(rng)[:, 0] + beta * S[:, 2]).significant for _ in range(60)]
@@ -215,9 +226,7 @@ def test_the_detectable_size_is_found_about_four_times_in_five(setup):
     assert np.mean(found) >= 0.54, np.mean(found)
     assert np.mean(half) <= 0.5, np.mean(half)
     design = series_design(sample, np.column_stack([J, S[:, 2]]), contrast=np.array([0.0, 1.0]))
-    st = series_statistic(
-        design, _residual(J, sampler.draw(rng)[:, 0]), NoiseModel("exponential", 0.2, 0.0, 8.0)
-    )
+    st = series_statistic(design, _residual(J, sampler.draw(rng)[:, 0]), CORRELATED)
     # one-sided: the same size as two-sided at twice the level
     assert detectable_size(st, 0.01, one_sided=True) == pytest.approx(detectable_size(st, 0.02))
     with pytest.raises(ScreeningError, match="alpha"):
