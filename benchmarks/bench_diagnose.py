@@ -240,6 +240,15 @@ def _mesh_cell(row: dict) -> str:
     return cell + ("*" if row.get("mesh_note") else "")
 
 
+def _hidden_cell(row: dict) -> str:
+    """The hidden effect's first-screen score t and one-step estimate with its detectable
+    size (``hidden_screen``; empty for null sets and rows from before it was kept)."""
+    h = row.get("hidden_screen")
+    if not h:
+        return ""
+    return f"{h['statistic']:.2f}, {h['estimate']:.3g} ({h['detectable']:.3g})"
+
+
 def _table(rows: list[dict]) -> None:
     failed = [r for r in rows if r.get("failed")]
     rows = [r for r in rows if not r.get("failed")]
@@ -258,8 +267,9 @@ def _table(rows: list[dict]) -> None:
         "(d) mm",
         "profile",
         "mesh",
+        "hidden t, est (detectable)",
     )
-    widths = (-16, -34, 10, 5, 7, 8, 6, 8, 8, 7, 6, 6, 7, -7)  # negative: left-aligned
+    widths = (-16, -34, 10, 5, 7, 8, 6, 8, 8, 7, 6, 6, 7, -7, -26)  # negative: left-aligned
 
     def line(cells) -> str:
         return " ".join(
@@ -287,6 +297,7 @@ def _table(rows: list[dict]) -> None:
             "-" if judged is None else f"{judged:.3g}",
             r.get("noise_profile", "flat"),
             _mesh_cell(r),
+            _hidden_cell(r),
         )
         print(line(cells))
     for r in failed:
