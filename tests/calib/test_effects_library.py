@@ -272,3 +272,30 @@ def test_recoveries_are_kept_by_effect_values_and_a_failed_warm_start_is_retried
     assert starts == ["warm", "rest"] and "once more from rest" in caplog.text
     # between the two recovered before (stress_free raises where it misses its tolerance)
     assert np.abs(X2 - X0).max() < np.abs(X1 - X0).max()
+
+
+def test_a_recovery_after_the_support_changes_starts_from_rest(phantom, monkeypatch):
+    # the clamped rim's stress-free reference is not unique: a recovery warm-started from
+    # a plate on springs converged to another one (README), so a change of support drops
+    # the warm start, and the clamped model's recovery is then the one a fresh model
+    # makes (to the recovery's own tolerance, 1e-5 mm)
+    import calib.model.forward as forward
+
+    theta = np.log(420.0)
+    fresh = ForwardModel(phantom, _G0, effects=EffectValues(skin_ratio=2.0))
+    X_rest = fresh.stress_free(theta).copy()
+    fm = ForwardModel(phantom, _G0, effects=EffectValues())
+    fm.stress_free(theta)
+    real, starts = forward.recover_stress_free, []
+
+    def recorded(model, *, x0_state=None, **kw):
+        starts.append("rest" if x0_state is None else "warm")
+        return real(model, x0_state=x0_state, **kw)
+
+    monkeypatch.setattr(forward, "recover_stress_free", recorded)
+    fm.set_effects(EffectValues(support_stiffness_pa_per_mm=1000.0))
+    fm.stress_free(theta)
+    fm.set_effects(EffectValues(skin_ratio=2.0))
+    X = fm.stress_free(theta)
+    assert starts == ["rest", "rest"]
+    assert np.abs(X - X_rest).max() < 1e-4
