@@ -28,7 +28,7 @@ apart and shown in the table.
     python benchmarks/bench_diagnose.py --out DIR [--cases skin,none,curve] [--seeds 0,1,2]
         [--null-seeds 0,1,2,3,4] [--ratios 2,4,8] [--only NAME,...] [--table]
         [--rim-margin MM|element] [--noise-profile flat|plate] [--rim-profile]
-        [--mesh-size MM] [--mesh-max-dihedral DEG]
+        [--mesh-size MM] [--mesh-max-dihedral DEG] [--parameter-limits]
 
 ``--mesh-size MM`` calibrates on that model mesh (default 14 mm, MM + 2 the retry);
 ``--mesh-max-dihedral DEG`` calibrates with TetGen's bound on the largest dihedral angle
@@ -117,6 +117,7 @@ def run_case(
     explained_margin=None,
     max_dihedral_deg=None,
     mesh_size_mm: float = 14.0,
+    parameter_limits: bool = False,
 ) -> dict:
     import fem
     from calib.discrepancy import DiagnosisOptions
@@ -152,7 +153,9 @@ def run_case(
     margin = {} if rim_margin is None else {"rim_margin_mm": rim_margin}
     if explained_margin is not None:
         margin["explained_margin_mm"] = explained_margin
-    opts = DiagnosisOptions(**margin, noise_profile=noise_profile)
+    opts = DiagnosisOptions(
+        **margin, noise_profile=noise_profile, parameter_limits=parameter_limits
+    )
     doc = run_diagnosis(work, opts)
     t3 = time.perf_counter()
     truth = json.loads((twin / "truth" / "truth.json").read_text())
@@ -242,11 +245,21 @@ def _mesh_cell(row: dict) -> str:
 
 def _hidden_cell(row: dict) -> str:
     """The hidden effect's first-screen score t and one-step estimate with its detectable
-    size (``hidden_screen``; empty for null sets and rows from before it was kept)."""
+    size (``hidden_screen``; empty for null sets and rows from before it was kept); with
+    ``--parameter-limits``, ``lim`` and the size of the effect's own parameter the scans
+    would show (``diagnose --parameter-limits``: inclusions and skin as the ratio to the
+    bulk's c1, sliding as the springs' Pa/mm, poisson as nu; ``beyond``: not within the
+    physical range)."""
     h = row.get("hidden_screen")
     if not h:
         return ""
-    return f"{h['statistic']:.2f}, {h['estimate']:.3g} ({h['detectable']:.3g})"
+    cell = f"{h['statistic']:.2f}, {h['estimate']:.3g} ({h['detectable']:.3g})"
+    lim = h.get("parameter_limit")
+    if not lim:
+        return cell
+    if lim["status"] == "reached":
+        return cell + f" lim {lim['value']:.3g}"
+    return cell + " lim " + ("beyond" if lim["status"] == "beyond the range" else "none")
 
 
 def _table(rows: list[dict]) -> None:
@@ -389,7 +402,9 @@ def _hidden_screen(doc: dict, hidden: str) -> dict | None:
         return None
     best = min(cols, key=lambda c: c["p_value"])
     keys = ("name", "statistic", "estimate", "standard_error", "detectable", "p_value", "p_holm")
-    return {k: best.get(k) for k in keys}
+    out = {k: best.get(k) for k in keys}
+    out["parameter_limit"] = (doc["effects"].get(hidden) or {}).get("parameter_limit")
+    return out
 
 
 def main() -> None:
@@ -444,6 +459,12 @@ def main() -> None:
         "(calibrate --mesh-max-dihedral; default: TetGen's)",
     )
     ap.add_argument(
+        "--parameter-limits",
+        action="store_true",
+        help="diagnose with --parameter-limits (the table's 'lim': the hidden effect's "
+        "detectable size in its own parameter)",
+    )
+    ap.add_argument(
         "--rim-profile",
         action="store_true",
         help="print the null cases' residual by height above the back plate (c1-only fits)",
@@ -482,6 +503,7 @@ def main() -> None:
                 explained,
                 args.mesh_max_dihedral,
                 args.mesh_size,
+                args.parameter_limits,
             )
             path.write_text(json.dumps(row, indent=1))
             if row.get("failed"):

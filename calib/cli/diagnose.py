@@ -67,6 +67,15 @@ def diagnose(
             "every residual (the clamped edge's larger spread).",
         ),
     ] = "flat",
+    parameter_limits: Annotated[
+        bool,
+        typer.Option(
+            "--parameter-limits",
+            help="For each physical effect not found, also the size of its own parameter "
+            "the scans would show (full FE: two to four solves of every diagnosis scan per "
+            "effect).",
+        ),
+    ] = False,
 ) -> None:
     """Find where model and scans disagree, name the missing effect, refit, show the gap."""
     from ..discrepancy import DiagnosisError, DiagnosisOptions
@@ -90,6 +99,7 @@ def diagnose(
             ),
             mesh_size_mm=mesh_size,
             noise_profile=noise_profile,
+            parameter_limits=parameter_limits,
         )
         doc = run_diagnosis(work, opts, progress=lambda msg: typer.echo(f"  {msg}"))
     except (DiagnosisError, ValueError, OSError, RuntimeError, KeyError) as exc:

@@ -69,6 +69,7 @@ from ..evaluation import ScanMetrics, scan_metrics
 from ..model.effects import LIBRARY, SKIN_THICKNESS_MM
 from ..stats import NoiseFit, height_profile, parameter_intervals
 from .fields import SLIDING_PROBE_PA_PER_MM, FieldSet
+from .limits import parameter_limits
 from .localise import region_labels, significance_map
 from .problem import (
     RIM_MARGIN_MM,
@@ -151,6 +152,11 @@ class DiagnosisOptions:
     near_equal : float
         Explained fractions within this ratio count as near-equal evidence.
     refit_iterations : int
+    parameter_limits : bool
+        For each physical effect the screen did not find, also the size of its own
+        parameter whose print the screen would estimate at the detectable size, by the
+        full FE model (:mod:`calib.discrepancy.limits`; two to four FE solves of every
+        diagnosis scan per effect). Off by default (the cost).
     """
 
     effects: tuple[str, ...] = DEFAULT_EFFECTS
@@ -169,6 +175,7 @@ class DiagnosisOptions:
     confounded_above: float = 0.9
     near_equal: float = 0.8
     refit_iterations: int = 10
+    parameter_limits: bool = False
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.effects) - set(LIBRARY))
@@ -362,6 +369,9 @@ class Diagnosis:
     fe_solves : int
     final_states : dict
         ScanState of every scan at the final model (for the refitted calibration).
+    limits : dict of str to ParameterLimit
+        Per physical effect not found, its detectable size in its own parameter
+        (``parameter_limits``; empty without it).
     """
 
     verdict: str
@@ -384,6 +394,7 @@ class Diagnosis:
     final_states: dict = field(repr=False, default_factory=dict)
     explained_margin_mm: float = 0.0
     explained_floor_mm2: float = 0.0
+    limits: dict = field(default_factory=dict)
 
     @property
     def c1_pa(self) -> float:
@@ -423,6 +434,7 @@ class Diagnosis:
                     "significant": any(e.significant for e in tested),
                     "estimate": _num(best.estimate) if rows and len(rows) == 1 else None,
                     "detectable": _num(best.detectable) if len(rows) == 1 else None,
+                    "parameter_limit": self.limits[name].as_json() if name in self.limits else None,
                     "screen_unit": _screen_unit(name),
                     "retained_fraction": _num(max(e.retained_fraction for e in rows)),
                 }
@@ -747,6 +759,10 @@ def diagnose(
     final_screen = cur_scr if named else None
     verdict = _verdict(named, confounded, scr0, final_screen, o)
     say(f"verdict: {verdict}")
+    limits = {}
+    if o.parameter_limits:
+        lost = [e for e in screened if e not in named]
+        limits = parameter_limits(prob, null, scr0, lost, say=say)
     gaps, states = _gaps(prob, null, current, say)
     intervals = _intervals(current, prob)
     return Diagnosis(
@@ -755,7 +771,7 @@ def diagnose(
         candidates=tuple(candidates), maps=maps, gaps=gaps, intervals=intervals,
         floor_mm2=floor, unavailable=unavailable, options=o,
         wall_s=time.perf_counter() - t0, fe_solves=int(prob.fm.solves), final_states=states,
-        explained_margin_mm=judged_beyond, explained_floor_mm2=floor_judged,
+        explained_margin_mm=judged_beyond, explained_floor_mm2=floor_judged, limits=limits,
     )  # fmt: skip
 
 

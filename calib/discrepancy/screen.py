@@ -49,10 +49,11 @@ from ..model.effects import LIBRARY
 from ..stats import EffectScreening, ModelFit, NoiseFit, SurfaceSample
 from ..stats import misfit_test as _misfit_test
 from ..stats import screen_effects as _screen_effects
+from ..stats.intervals import series_design
 from ..stats.noise import session_noise
 from .fields import FieldSet
 
-__all__ = ["Screen", "offset_columns", "sample_of", "screen", "session_noise"]
+__all__ = ["Screen", "influence", "offset_columns", "sample_of", "screen", "session_noise"]
 
 
 @dataclass(frozen=True)
@@ -95,6 +96,47 @@ def sample_of(fields: FieldSet, points: dict) -> SurfaceSample:
     return SurfaceSample(pts, lab)
 
 
+#: Largest polynomial degree of the series modes of every screened column
+#: (:func:`calib.stats.screen_effects`' ``degree``).
+SERIES_DEGREE = 2
+
+
+def _conditioned_on(fields: FieldSet, sample: SurfaceSample, absorbed: tuple = ()) -> np.ndarray:
+    """What every test projects out: ``dr/d ln c1``, the scans' offsets, ``absorbed``."""
+    J = np.column_stack([fields.stack(fields.jacobian), offset_columns(sample)])
+    return np.column_stack([J, fields.matrix(absorbed)]) if absorbed else J
+
+
+def influence(
+    fields: FieldSet, points: dict, name: str, *, absorbed: tuple[str, ...] = ()
+) -> np.ndarray:
+    """The one-step estimate of column ``name`` as a linear map of the residual.
+
+    :func:`screen`'s ``estimate`` of the column is ``influence @ r`` for the stacked
+    residual ``r`` (over ``fields.scans``); the vector is orthogonal to ``dr/d ln c1``,
+    the per-scan offsets and the ``absorbed`` columns, so what those absorb of a residual
+    never reaches the estimate.
+
+    Parameters
+    ----------
+    fields : FieldSet
+    points : dict of str to ndarray (k, 3)
+    name : str
+        A column of ``fields``.
+    absorbed : tuple of str
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        Parameter units per mm of residual.
+    """
+    sample = sample_of(fields, points)
+    J = _conditioned_on(fields, sample, absorbed)
+    design = np.column_stack([J, -fields.matrix([name])])
+    last = np.eye(design.shape[1])[-1]
+    return series_design(sample, design, contrast=last, degree=SERIES_DEGREE).influence
+
+
 def screen(
     fields: FieldSet,
     points: dict,
@@ -134,9 +176,7 @@ def screen(
     """
     sample = sample_of(fields, points)
     r = fields.stack(fields.residual)
-    J = np.column_stack([fields.stack(fields.jacobian), offset_columns(sample)])
-    if absorbed:
-        J = np.column_stack([J, fields.matrix(absorbed)])
+    J = _conditioned_on(fields, sample, absorbed)
     fit = noise or session_noise(sample, r - offset_columns(sample) @ _scan_means(sample, r))
     alt = tuple(fit.plausible[1:])
     misfit = _misfit_test(r, J, sample, fit.best, alpha=misfit_alpha, alternatives=alt)
@@ -147,7 +187,7 @@ def screen(
     S = -fields.matrix(names)  # the prediction's derivative: estimates are parameter steps
     effect = {c.name: c.effect for c in fields.columns}
     directions = [LIBRARY[effect[n]].direction if effect[n] in LIBRARY else 0 for n in names]
-    res = _screen_effects(r, J, S, names, sample, fit.best, alpha=alpha,
+    res = _screen_effects(r, J, S, names, sample, fit.best, alpha=alpha, degree=SERIES_DEGREE,
                           confounded_above=confounded_above, alternatives=alt,
                           directions=directions, effects=[effect[n] for n in names])  # fmt: skip
     return Screen(sample, fit, misfit, res, names)

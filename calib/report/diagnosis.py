@@ -379,7 +379,9 @@ def detection_limits(doc: dict) -> str:
     Per identifiable physical effect that is not significant, its column's
     ``detectable`` (80 % power nominally after the correction; in the one-step
     estimate's units, a linearisation at neutral, so a saturating effect such as a stiff
-    inclusion needs more than this size of its parameter). Empty when there is none.
+    inclusion needs more than this size of its parameter), and, where ``diagnose
+    --parameter-limits`` found it, the size of the parameter itself
+    (:mod:`calib.discrepancy.limits`). Empty when there is none.
     """
     parts = []
     for name, v in doc["effects"].items():
@@ -389,10 +391,30 @@ def detection_limits(doc: dict) -> str:
         parts.append(f"{name} {size:.3g} ({v.get('screen_unit') or v.get('unit', '')})")
     if not parts:
         return ""
-    return (
+    line = (
         "not found, and sizes these data would show 4 times in 5 (one-step, linearised at "
         "neutral): " + "; ".join(parts)
     )
+    effects = doc["effects"].items()
+    limits = [
+        _limit_phrase(n, v["parameter_limit"]) for n, v in effects if v.get("parameter_limit")
+    ]
+    if limits:
+        line += "; in the effects' own parameters (full FE): " + "; ".join(limits)
+    return line
+
+
+def _limit_phrase(name: str, lim: dict) -> str:
+    """``inclusions 9.3 or more (inclusion c1 / bulk c1)`` or why there is no value."""
+    q = lim["quantity"]
+    if lim["status"] == "reached":
+        more = {"sliding": "or softer", "poisson": "or less"}.get(name, "or more")
+        if "upper bound" in (lim.get("note") or ""):  # no FE solution nearer neutral
+            q += "; the model had no solution nearer neutral, so perhaps less"
+        return f"{name} {lim['value']:.3g} {more} ({q})"
+    if lim["status"] == "beyond the range":
+        return f"{name} beyond its physical range ({q})"
+    return f"{name}: {lim['status']} ({q})"
 
 
 def _profile(doc: dict) -> str:

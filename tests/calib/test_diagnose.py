@@ -218,7 +218,7 @@ def test_command_help_and_errors(tmp_path):
     runner = CliRunner()
     res = runner.invoke(app, ["diagnose", "--help"])
     assert res.exit_code == 0 and "--holdout" in res.output and "--effects" in res.output
-    assert "--mesh-size" in res.output
+    assert "--mesh-size" in res.output and "--parameter-limits" in res.output
     res = runner.invoke(app, ["diagnose", str(tmp_path / "nowhere")])
     assert res.exit_code == 2 and "calibration.json" in res.output
     res = runner.invoke(app, ["diagnose", str(tmp_path), "--effects", "skin,wrinkles"])
@@ -844,3 +844,137 @@ def test_a_nuisance_beyond_the_registration_is_implausible():
     assert "gravity turned 0.58 deg" in msg and "allows 0.57 deg" in msg
     assert _registration_excess(prob, fit(offset=(0.3, 0.0, 0.39, 0, 0, 0))) == []
     assert _registration_excess(prob, fit(offset=(0.3, 0.0, 0.41, 0, 0, 0)))
+
+
+def test_the_influence_vector_is_the_screens_one_step_estimate(linear):
+    # two code paths: screen()'s estimate of each column and influence @ r, on one draw
+    from calib.discrepancy.screen import influence
+
+    sample, J, cols, sampler = linear
+    r = _at_fit(J, sampler.draw(np.random.default_rng(3))[:, 0])
+    fields = _fields(sample, r, J, cols)
+    s = screen(fields, _points(sample))
+    for e in s.screening.effects:
+        a = influence(fields, _points(sample), e.name)
+        assert float(a @ r) == pytest.approx(e.estimate, rel=1e-9, abs=1e-12)
+
+
+def _limit_problem(
+    linear, effect: str, saturation: float, fails_above: float = np.inf, fails_below: float = 0.0
+):
+    """A null fit, its screen and a model whose effect's print saturates (no FE).
+
+    The effect at distance ``s`` from neutral (one-step units) with ``ln c1 = theta0 -
+    h(s) + x`` gives the residual ``r0 - g(s) P + x J - (x^2 / 2) Q``: ``g(s) = s / (1 +
+    s / saturation)``, ``P`` the 'tilt' pattern and ``Q`` the 'bump' (both orthogonal to
+    ``J``), ``h(s) = 0.3 s / d`` the c1-like part of the effect (``d`` the detectable
+    size; a stiff skin passes for a stiffer c1: skin x8 for c1 x1.3). The planted bulk
+    c1 that the null fit takes for its own (``theta0``) is at ``x = 0`` (its normal
+    equation ``J' Delta = 0``), where the screen's estimate of the planted print is
+    ``g(s)`` exactly (the influence vector is orthogonal to ``J`` and takes ``P``, the
+    column, to 1). Planted at the null fit's own c1 (``x = h``) it would be ``g(s) +
+    (h^2 / 2) a' Q``; ``Q`` is scaled so that is ``g(s) - 2 d`` at ``s = d``: negative,
+    as the skin's was on the twins. A c1 left :data:`C1_TOL` off moves the estimate by
+    at most ``(C1_TOL^2 / 2) |a' Q|``, 6e-4 d.
+    """
+    import fem
+    from calib.discrepancy.screen import influence
+
+    sample, J, _, sampler = linear
+
+    def off_J(v):
+        return v - J * float(J @ v) / float(J @ J)
+
+    P, Q = off_J(misfit_pattern(sample, kind="tilt")), off_J(misfit_pattern(sample, kind="bump"))
+    r0 = _at_fit(J, sampler.draw(np.random.default_rng(4))[:, 0])
+    sign = -1.0 if effect == "poisson" else 1.0  # nu = nu0 - s: dr/dnu = +P
+    fields = _fields(sample, r0, J, {effect: -sign * P, "p2": -misfit_pattern(sample)})
+    rows = screen(fields, _points(sample)).screening.effects
+    d = next(e.detectable for e in rows if e.name == effect)
+    Q = Q * (-2.0 * d) / (0.3**2 / 2.0 * float(influence(fields, _points(sample), effect) @ Q))
+    nu0 = 0.499
+    base = EffectValues(nu=nu0)
+    blocks = dict(zip(SCANS, sample.blocks, strict=True))
+
+    def s_of(values) -> float:
+        return nu0 - values.nu if effect == "poisson" else values.skin_ratio - 1.0
+
+    def solve(theta, values, names, *, gradient, nuisance=None):
+        s = s_of(values)
+        if s > fails_above or s < fails_below:
+            raise fem.ConvergenceError(f"no solution at s = {s}")
+        g = s / (1.0 + s / saturation)
+        x = theta - 6.0 + 0.3 * s / d
+        r = r0 - g * P + x * J - x**2 / 2.0 * Q
+        return {n: SimpleNamespace(positions_mm=r[blocks[n]]) for n in names}
+
+    prob = SimpleNamespace(
+        points=_points(sample),
+        base=base,
+        solve=solve,
+        residuals=lambda n, pos, dpos, nz: SimpleNamespace(r=pos),
+        fm=SimpleNamespace(set_effects=lambda v: None),
+    )
+    null = SimpleNamespace(fields=fields, theta=6.0, nuisance={})
+    return prob, null, screen(fields, _points(sample))
+
+
+@pytest.mark.parametrize("effect", ["skin", "poisson"])
+def test_a_parameter_limit_is_where_the_planted_print_reaches_the_detectable_size(linear, effect):
+    # Closed form: g(s) = d at s = d / (1 - d / saturation). With saturation 2 d the
+    # limit is 2 d: twice the linearisation; the search's own tolerance (rtol 5 %) on g
+    # is the test's. A linear print (no saturation) is found at the first step, s = d.
+    from calib.discrepancy.limits import C1_TOL, parameter_limit
+
+    prob, null, scr = _limit_problem(linear, effect, saturation=np.inf)
+    d = next(e.detectable for e in scr.screening.effects if e.name == effect)
+    lim = parameter_limit(prob, null, scr, effect, say=lambda m: None)
+    assert lim.status == "reached" and len(lim.steps) == 1
+    assert lim.distance == pytest.approx(d, rel=1e-12)
+
+    prob, null, scr = _limit_problem(linear, effect, saturation=2.0 * d)
+    lim = parameter_limit(prob, null, scr, effect, say=lambda m: None)
+    assert lim.status == "reached" and len(lim.steps) <= 8
+    # the planted bulk c1 over the null fit's: exp(-h(s)) (one Gauss-Newton step: x
+    # enters linearly along J), to the step tolerance
+    for s_, _, ratio in lim.steps:
+        assert np.log(ratio) == pytest.approx(-0.3 * s_ / d, abs=C1_TOL)
+    g = lim.distance / (1.0 + lim.distance / (2.0 * d))
+    assert g >= 0.95 * d and g == pytest.approx(d, rel=0.05)
+    assert lim.linearised_ratio == pytest.approx(2.0, rel=0.25)
+    expected = 0.499 - lim.distance if effect == "poisson" else 1.0 + lim.distance
+    assert lim.value == pytest.approx(expected)
+
+
+def test_a_print_that_saturates_below_the_detectable_size_is_beyond_the_range(linear):
+    # sup g = saturation = d / 2 < d: even the range's end (excess ratio 99) falls short
+    from calib.discrepancy.limits import parameter_limit
+
+    prob, null, scr = _limit_problem(linear, "skin", saturation=np.inf)
+    d = next(e.detectable for e in scr.screening.effects if e.name == "skin")
+    prob, null, scr = _limit_problem(linear, "skin", saturation=0.5 * d)
+    lim = parameter_limit(prob, null, scr, "skin", say=lambda m: None)
+    assert lim.status == "beyond the range" and lim.value is None
+    assert lim.steps[-1][0] == pytest.approx(99.0) and lim.steps[-1][1] < d
+    from calib.report.diagnosis import detection_limits
+
+    entry = {"kind": "material", "significant": False, "detectable": d}
+    doc = {"effects": {"skin": entry | {"parameter_limit": lim.as_json()}}}
+    assert "skin beyond its physical range (skin c1 / bulk c1)" in detection_limits(doc)
+
+    # the model has no solution past 1.5 d on the way to a limit of 2 d
+    prob, null, scr = _limit_problem(linear, "skin", saturation=2.0 * d, fails_above=1.5 * d)
+    lim = parameter_limit(prob, null, scr, "skin", say=lambda m: None)
+    assert lim.status == "no FE solution" and lim.value is None
+
+    # none at the first size (1.01 d and below; a stiff plate's recovery on springs): once,
+    # 1.5 times it (a linear print: the estimate is 1.5 d), then bisection above the
+    # failed size; the limit found is an upper bound, which the note says
+    prob, null, scr = _limit_problem(linear, "skin", saturation=np.inf, fails_below=1.01 * d)
+    lim = parameter_limit(prob, null, scr, "skin", say=lambda m: None)
+    assert lim.status == "reached" and 1.01 * d < lim.distance <= 1.5 * d
+    assert lim.steps[0][0] == pytest.approx(1.5 * d)
+    assert "no FE solution" in lim.note and "upper bound" in lim.note
+    doc = {"effects": {"skin": entry | {"parameter_limit": lim.as_json()}}}
+    assert "no solution nearer neutral, so perhaps less" in detection_limits(doc)
+    assert all(step[0] <= 1.5 * d for step in lim.steps)

@@ -10,7 +10,9 @@ right lateral and 50 deg; held out: 25 deg):
 - an effect outside the library, built here for the test only (a local pad pressing on
   the flank in the 50 deg posture: point loads added to that posture's truth solve), is
   ``unexplained``;
-- the noise model, measured from the residuals, against the twin's known imaging error.
+- the noise model, measured from the residuals, against the twin's known imaging error;
+- on the homogeneous twin, the skin's detectable size in its own ratio lies under the x8
+  the skin twin names.
 
 Each twin costs about 1 min to build and calibrate and 2-4 min to diagnose on 2 cores.
 """
@@ -127,6 +129,27 @@ def test_a_homogeneous_truth_has_no_missing_effect(none):
         if e["kind"] != "nuisance" and e["status"] == "identifiable":
             assert e["detectable"] > 0 and e["screen_unit"]
             assert f"{name} {e['detectable']:.3g} ({e['screen_unit']})" in summary
+
+
+def test_the_skin_limit_in_its_own_ratio_lies_under_the_skin_the_twin_names(none):
+    # --parameter-limits on the homogeneous twin, skin screened alone: the full-FE size of
+    # the skin the scans would show. The preset's skin (x8) is named on the same postures
+    # and mesh (test_the_hidden_skin_is_named), so the limit must be reached below x8;
+    # a stiffer skin passes partly for a stiffer c1, so the planted bulk c1 that the null
+    # fit takes for its own is lower at every size tried.
+    from calib.data import read_work
+    from calib.discrepancy import DiagnosisOptions, diagnose
+    from calib.report.diagnosis import detection_limits
+
+    out, _ = none
+    opts = DiagnosisOptions(effects=("skin",), parameter_limits=True)
+    d = diagnose(read_work(out / "work"), opts)
+    lim = d.limits["skin"]
+    assert lim.status == "reached" and 1.0 < lim.value < 8.0, lim
+    assert all(ratio < 1.0 for _, _, ratio in lim.steps)
+    doc = d.to_json()
+    assert doc["effects"]["skin"]["parameter_limit"]["value"] == pytest.approx(lim.value)
+    assert f"skin {lim.value:.3g} or more (skin c1 / bulk c1)" in detection_limits(doc)
 
 
 def test_the_noise_model_against_the_twin_imaging_error(none):

@@ -1,0 +1,330 @@
+"""Detectable sizes in the effects' own parameters (``diagnose --parameter-limits``).
+
+The screen's detectable size (:func:`calib.stats.scores.detectable_size`) is in the
+units of the one-step estimate: a linearisation at neutral. An effect whose surface
+signature saturates needs more of its parameter than that: on the quick twins the
+one-step estimate of inclusions five times stiffer than the bulk (excess ratio 4) is
+1.3-1.6. This module finds, by the full nonlinear FE model, the parameter value at which
+the screen's estimate would reach the detectable size.
+
+Had the scans been made by the model with the effect at ``p`` and a bulk c1 of
+``exp(t)`` (the null fit's nuisances, every other effect neutral), the null fit at
+``theta`` would leave ``Delta(t, p) = r(theta, p0) - r(t, p)`` more in its residual,
+``r(t, p)`` the residuals of that model at the same measured points (``p0`` neutral).
+The screen's estimate of the effect is a linear map of the residual, ``e = a' r``
+(:func:`calib.discrepancy.screen.influence`), with ``a`` orthogonal to ``J = dr/d ln
+c1`` and the scans' offsets, so what c1 absorbs of ``Delta`` to first order never
+reaches it. An effect with a large c1-like part does not stop at first order (a skin 8
+times stiffer than the bulk passes for a c1 1.3 times the truth; planted at the null
+fit's own c1, the skin's estimate turned negative between ratios of 2.2 and 6 on the
+quick twins), so ``t`` is the bulk c1 whose planted scans the null fit would fit with its own
+c1: Gauss-Newton steps ``t += J' Delta / J' J`` (``J`` at the null fit) until they are
+below :data:`C1_TOL` (``Delta`` orthogonal to ``J``, the null fit's normal equation)::
+
+    e(p) = a' Delta(t(p), p),    e(p) -> p - p0 as p -> p0 (the column is -dr/dp at p0)
+
+The limit is where ``e`` reaches the detectable size ``d`` on the effect's physical side:
+stiffer skin and inclusions, c2 > 0, a more compressible material (nu below the
+model's), a plate on softer tangential springs. Along that side the distance ``s`` from
+neutral is in the screen's units (``s = p - p0``; poisson ``s = nu0 - nu``; sliding the
+probe amplitude, ``s = k_probe / k``, the slip of stiff springs going as ``1 / k``). The
+search starts at the linearisation ``s = d`` and takes secant steps on ``ln e`` against
+``ln s`` (slope 1 at the start), clipped to the physical range; it ends within
+``rtol`` of ``d``, at the range's end with ``e`` still short of ``d`` ("beyond the
+range"), or where the FE model has no solution. When the first size has none (on the
+quick twins the stress-free recovery with the plate on springs stiffer than 1500 Pa/mm
+can fail), a size :data:`FAILED_GROWTH` times larger is tried once, and a limit found
+from there is an upper bound (``note`` says so).
+
+It costs one FE solve of each diagnosis scan per c1 step (and the effect's stress-free
+recovery), one to three c1 steps per size and two to five sizes per effect.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+import fem
+
+from ..model.effects import LIBRARY, EffectValues
+from .fields import SLIDING_PROBE_PA_PER_MM
+from .problem import Problem
+from .refit import SLIDING_LN_K_BOUNDS, Refit
+from .screen import Screen, influence
+
+__all__ = ["LIMITED_EFFECTS", "ParameterLimit", "parameter_limit", "parameter_limits"]
+
+log = logging.getLogger(__name__)
+
+#: Gauss-Newton steps of ln c1 below this end the planted model's bulk c1 (0.5 %
+#: of c1: ``a`` is orthogonal to ``J``, so the error left is second order in it).
+C1_TOL = 0.005
+#: Gauss-Newton steps of ln c1 at most per size.
+C1_STEPS = 4
+#: A size step grows the distance from neutral by this factor at most.
+MAX_GROWTH = 4.0
+#: When the first size has no FE solution, the next is this much larger (once).
+FAILED_GROWTH = 1.5
+
+#: Effects whose limit is searched: the global physical ones with a model parameter.
+LIMITED_EFFECTS = ("skin", "inclusions", "mooney", "poisson", "sliding")
+
+
+@dataclass(frozen=True)
+class ParameterLimit:
+    """The parameter value whose signature the screen would estimate at its detectable size.
+
+    Attributes
+    ----------
+    effect : str
+    detectable : float
+        The screen's detectable size (one-step units, :attr:`steps` ``s``).
+    status : {"reached", "beyond the range", "no FE solution", "not settled"}
+        ``reached``: ``value`` is the limit: the smallest size solved whose estimate came
+        within ``rtol`` of the detectable size or above it (the limit itself, or an upper
+        bound of it when the steps ran out); ``beyond the range``: even the physical
+        range's end gives less; ``no FE solution``: the search stopped where the model
+        could not be solved, short of the size; ``not settled``: the steps ran out short
+        of it.
+    distance : float or None
+        The limit's distance from neutral in one-step units (``s``), None when not reached.
+    value : float or None
+        The limit in the quantity :attr:`quantity` names, None when not reached.
+    quantity : str
+        What ``value`` is (``"skin c1 / bulk c1"``, ``"nu"``, ``"springs, Pa/mm"``, ...).
+    steps : tuple of (float, float, float)
+        ``(s, e(s), c1 ratio)`` of every size solved, in order: the ratio is the planted
+        model's bulk c1 (``exp(t)``) over the null fit's, the c1 the effect passes for
+        being the null fit's (below 1 for a stiffer skin).
+    note : str
+        Why the search stopped short, where it did (the FE failure's message).
+    """
+
+    effect: str
+    detectable: float
+    status: Literal["reached", "beyond the range", "no FE solution", "not settled"]
+    distance: float | None
+    value: float | None
+    quantity: str
+    steps: tuple = ()
+    note: str = ""
+
+    @property
+    def linearised_ratio(self) -> float | None:
+        """``distance / detectable``: how much more than the linearisation the limit needs."""
+        return None if self.distance is None else self.distance / self.detectable
+
+    def as_json(self) -> dict:
+        """Plain JSON (``diagnosis.json``'s ``effects.<name>.parameter_limit``)."""
+        return {
+            "status": self.status,
+            "value": self.value,
+            "quantity": self.quantity,
+            "distance": self.distance,
+            "detectable": self.detectable,
+            "steps": [[float(v) for v in step] for step in self.steps],
+            "note": self.note or None,
+        }
+
+
+def _quantity(effect: str) -> str:
+    return {
+        "skin": "skin c1 / bulk c1",
+        "inclusions": "inclusion c1 / bulk c1",
+        "mooney": "c2 / c1",
+        "poisson": "nu",
+        "sliding": "tangential springs, Pa/mm",
+    }[effect]
+
+
+def _s_max(effect: str, nu0: float) -> float:
+    """The physical range's end along the effect's side, in one-step units.
+
+    ``nu0`` is the model's nu (poisson's neutral).
+    """
+    if effect == "poisson":
+        return nu0 - LIBRARY["poisson"].bounds[0]
+    if effect == "sliding":
+        return SLIDING_PROBE_PA_PER_MM / math.exp(SLIDING_LN_K_BOUNDS[0])
+    return LIBRARY[effect].bounds[1]
+
+
+def _value(effect: str, s: float, nu0: float) -> float:
+    """The quantity :func:`_quantity` names at distance ``s`` from neutral."""
+    if effect in ("skin", "inclusions"):
+        return 1.0 + s
+    if effect == "poisson":
+        return nu0 - s
+    if effect == "sliding":
+        return SLIDING_PROBE_PA_PER_MM / s
+    return s
+
+
+def _values_at(effect: str, base: EffectValues, s: float) -> EffectValues:
+    """``base`` with the effect at distance ``s`` from neutral on its physical side."""
+    lib = LIBRARY[effect]
+    if effect == "poisson":
+        return lib.set(base, base.nu - s)
+    if effect == "sliding":
+        return lib.set(base, math.log(SLIDING_PROBE_PA_PER_MM / s))
+    return lib.set(base, s)
+
+
+def parameter_limit(
+    prob: Problem,
+    null: Refit,
+    scr: Screen,
+    effect: str,
+    *,
+    rtol: float = 0.05,
+    max_steps: int = 8,
+    say: Callable[[str], None] | None = None,
+) -> ParameterLimit:
+    """The limit of one effect (see the module docstring).
+
+    Parameters
+    ----------
+    prob : Problem
+    null : Refit
+        The null fit (c1 alone) the screen ``scr`` was made at.
+    scr : Screen
+        The null fit's screen; its column ``effect`` gives the detectable size.
+    effect : str
+        One of :data:`LIMITED_EFFECTS`.
+    rtol : float
+        Relative tolerance on reaching the detectable size.
+    max_steps : int
+        Sizes tried at most (each one to :data:`C1_STEPS` FE solves of every scan).
+    say : callable, optional
+        Progress lines.
+
+    Returns
+    -------
+    ParameterLimit
+
+    Raises
+    ------
+    ValueError
+        An effect outside :data:`LIMITED_EFFECTS`, or one the screen did not test (no
+        column, not identifiable, or no finite detectable size).
+    """
+    say = say or log.info
+    if effect not in LIMITED_EFFECTS:
+        raise ValueError(f"no parameter limit for {effect!r}; it is for {LIMITED_EFFECTS}")
+    rows = [e for e in (scr.screening.effects if scr.screening else ()) if e.name == effect]
+    if not rows or not rows[0].identifiable or not np.isfinite(rows[0].detectable):
+        raise ValueError(f"the screen has no tested column {effect!r} with a detectable size")
+    d = float(rows[0].detectable)
+    sign = -1.0 if LIBRARY[effect].direction < 0 else 1.0  # poisson: the estimate is -s
+    a = influence(null.fields, prob.points, effect)
+    base_r = null.fields.stack(null.fields.residual)
+    names = list(null.fields.scans)
+    nu0 = prob.base.nu
+    s_max = _s_max(effect, nu0)
+    quantity = _quantity(effect)
+
+    J = null.fields.stack(null.fields.jacobian)
+    nz = null.nuisance
+    t_of: dict[float, float] = {}  # the c1 found at each size: the next one starts there
+
+    def estimate(s: float) -> tuple[float, float]:
+        values = _values_at(effect, prob.base, s)
+        near = min(t_of, key=lambda k: abs(math.log(k / s)), default=None)
+        t = null.theta if near is None else t_of[near]
+        for _ in range(C1_STEPS):
+            states = prob.solve(t, values, names, gradient=False, nuisance=nz)
+            res = [prob.residuals(n, states[n].positions_mm, None, nz.get(n)).r for n in names]
+            delta = base_r - np.concatenate(res)
+            step = float(J @ delta) / float(J @ J)
+            if abs(step) < C1_TOL:
+                break
+            t += step
+        t_of[s] = t
+        return sign * float(a @ delta), float(np.exp(t - null.theta))
+
+    steps: list[tuple[float, float, float]] = []
+    note, failed_at = "", 0.0
+    s, slope = min(d, s_max), 1.0
+    status: str = "beyond the range"
+    for _ in range(max_steps):
+        try:
+            e, c1_ratio = estimate(s)
+        except fem.ConvergenceError as exc:
+            note = f"no FE solution at {quantity} {_value(effect, s, nu0):.4g} ({exc})"
+            say(f"  {effect}: {note}")
+            status = "no FE solution"
+            if steps or s >= s_max or failed_at:
+                break
+            # the first size has none (a stiff plate's recovery on springs): once, a
+            # larger one; a limit found above it is then an upper bound of the limit
+            failed_at, s = s, min(FAILED_GROWTH * s, s_max)
+            continue
+        steps.append((s, e, c1_ratio))
+        at = _value(effect, s, nu0)
+        c1 = f"planted bulk c1 x{c1_ratio:.3f} of the null fit's"
+        say(f"  {effect} at {quantity} {at:.4g}: estimate {e:.3g} (detectable {d:.3g}), {c1}")
+        if e > 0 and abs(e / d - 1.0) <= rtol:
+            status = "reached"
+            break
+        if s >= s_max and e < d:
+            break
+        good = [(si, ei) for si, ei, _ in steps if ei > 0]
+        if len(good) >= 2:
+            (s0, e0), (s1, e1) = good[-2], good[-1]
+            if s1 != s0 and e1 != e0:
+                slope = max(math.log(e1 / e0) / math.log(s1 / s0), 0.05)
+        s_next = s * 2.0 if e <= 0 else s * (d / e) ** (1.0 / slope)
+        s_next = min(s_next, MAX_GROWTH * s)  # a flat secant must not leap to the range's end
+        below = [si for si, ei, _ in steps if ei < d]
+        above = [si for si, ei, _ in steps if ei >= d]
+        lo, hi = max([*below, failed_at], default=0.0), min(above, default=math.inf)
+        if not lo < s_next < hi:  # keep the bracket: bisect in ln s
+            s_next = math.sqrt(lo * hi) if lo > 0 and math.isfinite(hi) else s_next
+        s = min(s_next, s_max)
+    prob.fm.set_effects(prob.base)
+    # the smallest size solved whose estimate reached d (within rtol): at the tolerance
+    # when the search settled, else an upper bound of the limit
+    reached = [si for si, ei, _ in steps if ei >= d * (1.0 - rtol)]
+    if reached:
+        s = min(reached)
+        value = _value(effect, s, nu0)
+        if failed_at:
+            note += "; the limit found above it is an upper bound"
+        return ParameterLimit(effect, d, "reached", s, value, quantity, tuple(steps), note)
+    if status != "no FE solution" and not (steps and steps[-1][0] >= s_max):
+        status = "not settled"
+    return ParameterLimit(effect, d, status, None, None, quantity, tuple(steps), note)
+
+
+def parameter_limits(
+    prob: Problem,
+    null: Refit,
+    scr: Screen,
+    effects,
+    *,
+    rtol: float = 0.05,
+    say: Callable[[str], None] | None = None,
+) -> dict[str, ParameterLimit]:
+    """:func:`parameter_limit` of each of ``effects`` the screen tested and did not find.
+
+    Effects outside :data:`LIMITED_EFFECTS`, not tested (unavailable, not identifiable)
+    or significant are left out.
+    """
+    say = say or log.info
+    rows = {e.name: e for e in (scr.screening.effects if scr.screening else ())}
+    out = {}
+    for eff in effects:
+        row = rows.get(eff)
+        if eff not in LIMITED_EFFECTS or row is None or not row.identifiable or row.significant:
+            continue
+        if not np.isfinite(row.detectable):
+            continue
+        say(f"parameter limit of {eff}: the size whose estimate reaches {row.detectable:.3g}")
+        out[eff] = parameter_limit(prob, null, scr, eff, rtol=rtol, say=say)
+    return out
