@@ -2,7 +2,8 @@
 
 Where the calibrated model and the scans disagree (:mod:`.localise`), which effect of the
 library could explain it (:mod:`.fields`, :mod:`.screen`), its confirmation by a full FE
-refit (:mod:`.refit`) and the verdict (:mod:`.diagnose`). Writing is
+refit (:mod:`.refit`), the verdict (:mod:`.diagnose`) and, for what was not found, the
+sizes the scans would show in the effects' own parameters (:mod:`.limits`). Writing is
 :mod:`calib.workflows.diagnose`'s.
 """
 
