@@ -410,8 +410,9 @@ def _limit_phrase(name: str, lim: dict) -> str:
     if lim["status"] == "reached":
         more = {"sliding": "or softer", "poisson": "or less"}.get(name, "or more")
         if "upper bound" in (lim.get("note") or ""):  # no FE solution nearer neutral
-            q += "; the model had no solution nearer neutral, so perhaps less"
-        return f"{name} {lim['value']:.3g} {more} ({q})"
+            q += "; the model had no solution nearer neutral, where the limit may lie"
+        v = lim["value"]
+        return f"{name} {v:.3g} {more} ({q})" if v < 1000 else f"{name} {v:.0f} {more} ({q})"
     if lim["status"] == "beyond the range":
         return f"{name} beyond its physical range ({q})"
     return f"{name}: {lim['status']} ({q})"
