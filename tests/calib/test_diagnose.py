@@ -978,3 +978,30 @@ def test_a_print_that_saturates_below_the_detectable_size_is_beyond_the_range(li
     doc = {"effects": {"skin": entry | {"parameter_limit": lim.as_json()}}}
     assert "no solution nearer neutral, where the limit may lie" in detection_limits(doc)
     assert all(step[0] <= 1.5 * d for step in lim.steps)
+
+
+def test_the_bench_says_whether_a_missed_truth_lies_inside_its_limit():
+    # benchmarks/bench_diagnose.py's --table line: inside = nearer neutral than the limit
+    # (springs stiffer, nu higher, a ratio lower); none without a reached limit
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).parents[2] / "benchmarks" / "bench_diagnose.py"
+    spec = importlib.util.spec_from_file_location("bench_diagnose", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    truth = dict(sliding_stiffness_pa_per_mm=1000.0, nu=0.45, inclusion_ratio=5.0)
+    truth |= dict(skin_ratio=8.0, c2_pa=210.0)
+
+    def row(hidden, value, status="reached"):
+        screen = {"parameter_limit": {"status": status, "value": value}}
+        return dict(hidden=hidden, truth_effects=truth, c1_true_pa=420.0, hidden_screen=screen)
+
+    assert bench._inside_limit(row("sliding", 914.0)) is True
+    assert bench._inside_limit(row("sliding", 1100.0)) is False
+    assert bench._inside_limit(row("poisson", 0.455)) is False
+    assert bench._inside_limit(row("inclusions", 33.7)) is True
+    assert bench._inside_limit(row("skin", 2.7)) is False
+    assert bench._inside_limit(row("mooney", 0.6)) is True  # c2 / c1 = 0.5
+    assert bench._inside_limit(row("inclusions", None, "no FE solution")) is None
+    assert bench._inside_limit({"hidden": "skin", "truth_effects": truth}) is None
