@@ -41,7 +41,9 @@ sys.path.insert(0, str(Path.cwd()))  # the notebooks' settings module, beside th
 import _settings
 
 import calib
+from calib.discrepancy import DiagnosisOptions
 from calib.model.effects import TruthEffects
+from calib.report.diagnosis import detection_limits
 from calib.twin import DISSERTATION_POSTURES
 from calib.workflows.diagnose import run_diagnosis
 
@@ -125,12 +127,19 @@ print(
 
 # %% [markdown]
 # ## 4. A twin with no hidden effect
+#
+# `no missing effect` is not "no effect": the diagnosis says how large each physical
+# effect would have had to be for these scans to show it, 4 times in 5. With
+# `parameter_limits` (`diagnose --parameter-limits`) it also finds that size in the
+# effect's own parameter by the full FE model: a skin of that stiffness ratio, springs
+# under the plate that soft.
 
 # %%
 calib.synthesize(out / "none", preset=preset, seed=0, effects=TruthEffects(), overwrite=True)
 calib.calibrate(out / "none" / "scans", out / "none-work", **options)
-null = run_diagnosis(out / "none-work")
+null = run_diagnosis(out / "none-work", DiagnosisOptions(parameter_limits=True))
 print("verdict:", null["verdict"], f"(c1 {null['c1_pa']:.1f} Pa)")
+print(detection_limits(null))
 
 # %%
 summary = {
@@ -139,6 +148,7 @@ summary = {
     "c1_refit_pa": doc["c1_pa"],
     "c1_true_pa": truth["material"]["c1_pa"],
     "none_verdict": null["verdict"],
+    "none_skin_limit": (null["effects"]["skin"].get("parameter_limit") or {}).get("value"),
 }
 (_settings.OUT / "04_summary.json").write_text(json.dumps(summary, indent=2))
 summary
