@@ -155,8 +155,8 @@ class DiagnosisOptions:
     parameter_limits : bool
         For each physical effect the screen did not find, also the size of its own
         parameter whose print the screen would estimate at the detectable size, by the
-        full FE model (:mod:`calib.discrepancy.limits`; two to four FE solves of every
-        diagnosis scan per effect). Off by default (the cost).
+        full FE model (:mod:`calib.discrepancy.limits`; a few FE solves of every
+        diagnosis scan per effect, 30-250 s more on the quick twins). Off by default.
     """
 
     effects: tuple[str, ...] = DEFAULT_EFFECTS

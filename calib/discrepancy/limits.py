@@ -104,6 +104,9 @@ class ParameterLimit:
         being the null fit's (below 1 for a stiffer skin).
     note : str
         Why the search stopped short, where it did (the FE failure's message).
+    upper_bound : bool
+        ``reached`` from above a size with no FE solution: the limit may lie nearer
+        neutral than ``value``.
     """
 
     effect: str
@@ -114,6 +117,7 @@ class ParameterLimit:
     quantity: str
     steps: tuple = ()
     note: str = ""
+    upper_bound: bool = False
 
     @property
     def linearised_ratio(self) -> float | None:
@@ -130,6 +134,7 @@ class ParameterLimit:
             "detectable": self.detectable,
             "steps": [[float(v) for v in step] for step in self.steps],
             "note": self.note or None,
+            "upper_bound": self.upper_bound,
         }
 
 
@@ -296,7 +301,9 @@ def parameter_limit(
         value = _value(effect, s, nu0)
         if failed_at:
             note += "; the limit found above it is an upper bound"
-        return ParameterLimit(effect, d, "reached", s, value, quantity, tuple(steps), note)
+        return ParameterLimit(
+            effect, d, "reached", s, value, quantity, tuple(steps), note, bool(failed_at)
+        )
     if status != "no FE solution" and not (steps and steps[-1][0] >= s_max):
         status = "not settled"
     return ParameterLimit(effect, d, status, None, None, quantity, tuple(steps), note)

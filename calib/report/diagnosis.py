@@ -405,11 +405,11 @@ def detection_limits(doc: dict) -> str:
 
 
 def _limit_phrase(name: str, lim: dict) -> str:
-    """``inclusions 9.3 or more (inclusion c1 / bulk c1)`` or why there is no value."""
+    """``inclusions 33.7 or more (inclusion c1 / bulk c1)`` or why there is no value."""
     q = lim["quantity"]
     if lim["status"] == "reached":
         more = {"sliding": "or softer", "poisson": "or less"}.get(name, "or more")
-        if "upper bound" in (lim.get("note") or ""):  # no FE solution nearer neutral
+        if lim.get("upper_bound"):  # no FE solution nearer neutral
             q += "; the model had no solution nearer neutral, where the limit may lie"
         v = lim["value"]
         return f"{name} {v:.3g} {more} ({q})" if v < 1000 else f"{name} {v:.0f} {more} ({q})"

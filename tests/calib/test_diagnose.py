@@ -974,7 +974,7 @@ def test_a_print_that_saturates_below_the_detectable_size_is_beyond_the_range(li
     lim = parameter_limit(prob, null, scr, "skin", say=lambda m: None)
     assert lim.status == "reached" and 1.01 * d < lim.distance <= 1.5 * d
     assert lim.steps[0][0] == pytest.approx(1.5 * d)
-    assert "no FE solution" in lim.note and "upper bound" in lim.note
+    assert "no FE solution" in lim.note and lim.upper_bound
     doc = {"effects": {"skin": entry | {"parameter_limit": lim.as_json()}}}
     assert "no solution nearer neutral, where the limit may lie" in detection_limits(doc)
     assert all(step[0] <= 1.5 * d for step in lim.steps)
