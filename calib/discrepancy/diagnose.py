@@ -761,8 +761,10 @@ def diagnose(
     say(f"verdict: {verdict}")
     limits = {}
     if o.parameter_limits:
+        # at the final model: what its screen would have found besides the named effects
         lost = [e for e in screened if e not in named]
-        limits = parameter_limits(prob, null, scr0, lost, say=say)
+        absorbed = _columns_of(current.fields, named)
+        limits = parameter_limits(prob, current, cur_scr, lost, absorbed=absorbed, say=say)
     gaps, states = _gaps(prob, null, current, say)
     intervals = _intervals(current, prob)
     return Diagnosis(

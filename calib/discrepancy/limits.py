@@ -7,21 +7,29 @@ one-step estimate of inclusions five times stiffer than the bulk (excess ratio 4
 1.3-1.6. This module finds, by the full nonlinear FE model, the parameter value at which
 the screen's estimate would reach the detectable size.
 
-Had the scans been made by the model with the effect at ``p`` and a bulk c1 of
-``exp(t)`` (the null fit's nuisances, every other effect neutral), the null fit at
-``theta`` would leave ``Delta(t, p) = r(theta, p0) - r(t, p)`` more in its residual,
-``r(t, p)`` the residuals of that model at the same measured points (``p0`` neutral).
-The screen's estimate of the effect is a linear map of the residual, ``e = a' r``
-(:func:`calib.discrepancy.screen.influence`), with ``a`` orthogonal to ``J = dr/d ln
-c1`` and the scans' offsets, so what c1 absorbs of ``Delta`` to first order never
-reaches it. An effect with a large c1-like part does not stop at first order (a skin 8
-times stiffer than the bulk passes for a c1 1.3 times the truth; planted at the null
-fit's own c1, the skin's estimate turned negative between ratios of 2.2 and 6 on the
-quick twins), so ``t`` is the bulk c1 whose planted scans the null fit would fit with its own
-c1: Gauss-Newton steps ``t += J' Delta / J' J`` (``J`` at the null fit) until they are
-below :data:`C1_TOL` (``Delta`` orthogonal to ``J``, the null fit's normal equation)::
+The limits are computed at the final model, the one whose screen found nothing more:
+the null fit (c1 alone) when nothing was named, else the refit with the named effects
+(its screen projects their columns out; a residual that still carried a named skin
+would put the other effects' limits where the skin's print is: nu 0.339 on the quick
+skin twin at the null fit). Write ``x`` for that fit's parameters (``ln c1`` first,
+then the named effects'). Had the scans been made by the model at ``x'`` with the
+effect at ``p`` (every other effect as fitted), the fit at ``x`` would leave
+``Delta(x', p) = r(x, p0) - r(x', p)`` more in its residual, ``r(x', p)`` the
+residuals of that model at the same measured points (``p0`` neutral). The screen's
+estimate of the effect is a linear map of the residual, ``e = a' r``
+(:func:`calib.discrepancy.screen.influence`), with ``a`` orthogonal to ``J = dr/dx``
+(``dr/d ln c1`` and the named effects' columns) and the scans' offsets, so what the fit
+absorbs of ``Delta`` to first order never reaches it. An effect with a large c1-like
+part does not stop at first order (a skin 8 times stiffer than the bulk passes for a
+c1 1.3 times the truth; planted at the null fit's own c1, the skin's estimate turned
+negative between ratios of 2.2 and 6 on the quick twins), so ``x'`` holds the
+parameters whose planted scans the fit would take for its own ``x``: Gauss-Newton steps
+``x' += argmin |J dx - Delta|`` (``J`` at the fit) until a step moves the residual by
+less than a c1 step of :data:`C1_TOL` would (``Delta`` orthogonal to ``J``, the fit's
+normal equations; with c1 alone, ``t += J' Delta / J' J`` until ``|step| <
+C1_TOL``)::
 
-    e(p) = a' Delta(t(p), p),    e(p) -> p - p0 as p -> p0 (the column is -dr/dp at p0)
+    e(p) = a' Delta(x'(p), p),    e(p) -> p - p0 as p -> p0 (the column is -dr/dp at p0)
 
 The limit is where ``e`` reaches the detectable size ``d`` on the effect's physical side:
 stiffer skin and inclusions, c2 > 0, a more compressible material (nu below the
@@ -55,7 +63,7 @@ import fem
 from ..model.effects import LIBRARY, EffectValues
 from .fields import SLIDING_PROBE_PA_PER_MM
 from .problem import Problem
-from .refit import SLIDING_LN_K_BOUNDS, Refit
+from .refit import SLIDING_LN_K_BOUNDS, Refit, unpack_parameters
 from .screen import Screen, influence
 
 __all__ = ["LIMITED_EFFECTS", "ParameterLimit", "parameter_limit", "parameter_limits"]
@@ -100,13 +108,16 @@ class ParameterLimit:
         What ``value`` is (``"skin c1 / bulk c1"``, ``"nu"``, ``"springs, Pa/mm"``, ...).
     steps : tuple of (float, float, float)
         ``(s, e(s), c1 ratio)`` of every size solved, in order: the ratio is the planted
-        model's bulk c1 (``exp(t)``) over the null fit's, the c1 the effect passes for
-        being the null fit's (below 1 for a stiffer skin).
+        model's bulk c1 over the fit's, the c1 whose planted scans the fit takes for its
+        own c1 (below 1 for a stiffer skin).
     note : str
         Why the search stopped short, where it did (the FE failure's message).
     upper_bound : bool
         ``reached`` from above a size with no FE solution: the limit may lie nearer
         neutral than ``value``.
+    model : tuple of str
+        The effects in the model the limit was computed at, besides c1 (the named ones;
+        empty: the null fit).
     """
 
     effect: str
@@ -118,6 +129,7 @@ class ParameterLimit:
     steps: tuple = ()
     note: str = ""
     upper_bound: bool = False
+    model: tuple = ()
 
     @property
     def linearised_ratio(self) -> float | None:
@@ -135,6 +147,7 @@ class ParameterLimit:
             "steps": [[float(v) for v in step] for step in self.steps],
             "note": self.note or None,
             "upper_bound": self.upper_bound,
+            "model": list(self.model),
         }
 
 
@@ -183,10 +196,11 @@ def _values_at(effect: str, base: EffectValues, s: float) -> EffectValues:
 
 def parameter_limit(
     prob: Problem,
-    null: Refit,
+    fit: Refit,
     scr: Screen,
     effect: str,
     *,
+    absorbed: tuple[str, ...] = (),
     rtol: float = 0.05,
     max_steps: int = 8,
     say: Callable[[str], None] | None = None,
@@ -196,12 +210,17 @@ def parameter_limit(
     Parameters
     ----------
     prob : Problem
-    null : Refit
-        The null fit (c1 alone) the screen ``scr`` was made at.
+    fit : Refit
+        The fit the screen ``scr`` was made at: the null fit (c1 alone) or a refit with
+        named effects (their values stay in the planted model, their parameters join
+        c1 in the Gauss-Newton steps).
     scr : Screen
-        The null fit's screen; its column ``effect`` gives the detectable size.
+        The fit's screen; its column ``effect`` gives the detectable size.
     effect : str
-        One of :data:`LIMITED_EFFECTS`.
+        One of :data:`LIMITED_EFFECTS`, not among ``fit.effects``.
+    absorbed : tuple of str
+        The columns ``scr`` projected out besides c1 (the named effects'; ``screen``'s
+        ``absorbed``).
     rtol : float
         Relative tolerance on reaching the detectable size.
     max_steps : int
@@ -216,42 +235,48 @@ def parameter_limit(
     Raises
     ------
     ValueError
-        An effect outside :data:`LIMITED_EFFECTS`, or one the screen did not test (no
-        column, not identifiable, or no finite detectable size).
+        An effect outside :data:`LIMITED_EFFECTS` or in the fit, or one the screen did
+        not test (no column, not identifiable, or no finite detectable size).
     """
     say = say or log.info
     if effect not in LIMITED_EFFECTS:
         raise ValueError(f"no parameter limit for {effect!r}; it is for {LIMITED_EFFECTS}")
+    if effect in fit.effects:
+        raise ValueError(f"{effect!r} is in the fit already (its effects: {fit.effects})")
     rows = [e for e in (scr.screening.effects if scr.screening else ()) if e.name == effect]
     if not rows or not rows[0].identifiable or not np.isfinite(rows[0].detectable):
         raise ValueError(f"the screen has no tested column {effect!r} with a detectable size")
     d = float(rows[0].detectable)
     sign = -1.0 if LIBRARY[effect].direction < 0 else 1.0  # poisson: the estimate is -s
-    a = influence(null.fields, prob.points, effect)
-    base_r = null.fields.stack(null.fields.residual)
-    names = list(null.fields.scans)
-    nu0 = prob.base.nu
+    a = influence(fit.fields, prob.points, effect, absorbed=absorbed)
+    base_r = fit.fields.stack(fit.fields.residual)
+    names = list(fit.fields.scans)
+    nu0 = fit.values.nu
     s_max = _s_max(effect, nu0)
     quantity = _quantity(effect)
 
-    J = null.fields.stack(null.fields.jacobian)
-    nz = null.nuisance
-    t_of: dict[float, float] = {}  # the c1 found at each size: the next one starts there
+    J = fit.jacobian()  # (n, len(x)): dr/d ln c1 first
+    small = C1_TOL * float(np.linalg.norm(J[:, 0]))  # what a c1 step of C1_TOL moves
+    x_of: dict[float, np.ndarray] = {}  # the x' found at each size: the next starts there
 
     def estimate(s: float) -> tuple[float, float]:
-        values = _values_at(effect, prob.base, s)
-        near = min(t_of, key=lambda k: abs(math.log(k / s)), default=None)
-        t = null.theta if near is None else t_of[near]
+        near = min(x_of, key=lambda k: abs(math.log(k / s)), default=None)
+        x = np.array(fit.x, float) if near is None else x_of[near].copy()
         for _ in range(C1_STEPS):
-            states = prob.solve(t, values, names, gradient=False, nuisance=nz)
+            theta, values, nz = unpack_parameters(prob, fit.names, x, fit.values)
+            values = _values_at(effect, values, s)
+            states = prob.solve(theta, values, names, gradient=False, nuisance=nz)
             res = [prob.residuals(n, states[n].positions_mm, None, nz.get(n)).r for n in names]
             delta = base_r - np.concatenate(res)
-            step = float(J @ delta) / float(J @ J)
-            if abs(step) < C1_TOL:
+            step = np.linalg.lstsq(J, delta, rcond=None)[0]
+            if float(np.linalg.norm(J @ step)) < small:
                 break
-            t += step
-        t_of[s] = t
-        return sign * float(a @ delta), float(np.exp(t - null.theta))
+            # the named effects stay in their physical range; c1 is free (the refit's
+            # bounds on it are a search range about the calibration's)
+            x = x + step
+            x[1:] = np.clip(x[1:], fit.lower[1:], fit.upper[1:])
+        x_of[s] = x
+        return sign * float(a @ delta), float(np.exp(x[0] - fit.theta))
 
     steps: list[tuple[float, float, float]] = []
     note, failed_at = "", 0.0
@@ -272,7 +297,7 @@ def parameter_limit(
             continue
         steps.append((s, e, c1_ratio))
         at = _value(effect, s, nu0)
-        c1 = f"planted bulk c1 x{c1_ratio:.3f} of the null fit's"
+        c1 = f"planted bulk c1 x{c1_ratio:.3f} of the fit's"
         say(f"  {effect} at {quantity} {at:.4g}: estimate {e:.3g} (detectable {d:.3g}), {c1}")
         if e > 0 and abs(e / d - 1.0) <= rtol:
             status = "reached"
@@ -293,6 +318,7 @@ def parameter_limit(
             s_next = math.sqrt(lo * hi) if lo > 0 and math.isfinite(hi) else s_next
         s = min(s_next, s_max)
     prob.fm.set_effects(prob.base)
+    model = tuple(fit.effects)
     # the smallest size solved whose estimate reached d (within rtol): at the tolerance
     # when the search settled, else an upper bound of the limit
     reached = [si for si, ei, _ in steps if ei >= d * (1.0 - rtol)]
@@ -302,36 +328,40 @@ def parameter_limit(
         if failed_at:
             note += "; the limit found above it is an upper bound"
         return ParameterLimit(
-            effect, d, "reached", s, value, quantity, tuple(steps), note, bool(failed_at)
+            effect, d, "reached", s, value, quantity, tuple(steps), note, bool(failed_at), model
         )
     if status != "no FE solution" and not (steps and steps[-1][0] >= s_max):
         status = "not settled"
-    return ParameterLimit(effect, d, status, None, None, quantity, tuple(steps), note)
+    return ParameterLimit(effect, d, status, None, None, quantity, tuple(steps), note, model=model)
 
 
 def parameter_limits(
     prob: Problem,
-    null: Refit,
+    fit: Refit,
     scr: Screen,
     effects,
     *,
+    absorbed: tuple[str, ...] = (),
     rtol: float = 0.05,
     say: Callable[[str], None] | None = None,
 ) -> dict[str, ParameterLimit]:
     """:func:`parameter_limit` of each of ``effects`` the screen tested and did not find.
 
-    Effects outside :data:`LIMITED_EFFECTS`, not tested (unavailable, not identifiable)
-    or significant are left out.
+    Effects outside :data:`LIMITED_EFFECTS`, in the fit, not tested (unavailable, not
+    identifiable) or significant are left out. ``fit``, ``scr`` and ``absorbed`` as for
+    :func:`parameter_limit`.
     """
     say = say or log.info
     rows = {e.name: e for e in (scr.screening.effects if scr.screening else ())}
     out = {}
     for eff in effects:
         row = rows.get(eff)
-        if eff not in LIMITED_EFFECTS or row is None or not row.identifiable or row.significant:
+        if eff not in LIMITED_EFFECTS or eff in fit.effects or row is None:
+            continue
+        if not row.identifiable or row.significant:
             continue
         if not np.isfinite(row.detectable):
             continue
         say(f"parameter limit of {eff}: the size whose estimate reaches {row.detectable:.3g}")
-        out[eff] = parameter_limit(prob, null, scr, eff, rtol=rtol, say=say)
+        out[eff] = parameter_limit(prob, fit, scr, eff, absorbed=absorbed, rtol=rtol, say=say)
     return out

@@ -145,8 +145,26 @@ def _layout(prob: Problem, effects: Sequence[str], theta0: float):
     return tuple(names), np.array(lo), np.array(hi)
 
 
-def _unpack(prob: Problem, names, x, base: EffectValues):
-    """``(theta, values, nuisance)`` of a parameter vector."""
+def unpack_parameters(prob: Problem, names, x, base: EffectValues):
+    """``(theta, values, nuisance)`` of a parameter vector.
+
+    Parameters
+    ----------
+    prob : Problem
+    names : sequence of str
+        :attr:`Refit.names` (``theta`` first).
+    x : ndarray, shape (len(names),)
+    base : EffectValues
+        The values of the effects not in ``names``.
+
+    Returns
+    -------
+    theta : float
+        ``ln c1``.
+    values : EffectValues
+    nuisance : dict of str to Nuisance
+        Per scan (zero where ``names`` has none).
+    """
     values = base
     grav = {n: np.zeros(2) for n in prob.scans}
     off = {n: np.zeros(6) for n in prob.scans}
@@ -218,7 +236,7 @@ def refit(
     failed = 0
 
     def evaluate(xv, gradient: bool, columns=fitted):
-        theta, values, nz = _unpack(prob, names, xv, prob.base)
+        theta, values, nz = unpack_parameters(prob, names, xv, prob.base)
         if gradient:
             return effect_fields(prob, theta, values, columns, nuisance=nz, say=lambda m: None)
         states = prob.solve(theta, values, prob.scans, gradient=False, nuisance=nz)
@@ -294,7 +312,7 @@ def refit(
             break
     if set(wanted) - set(fitted):
         fs = evaluate(x, True, wanted)  # every column to screen next, at the fit
-    theta, values, nz = _unpack(prob, names, x, prob.base)
+    theta, values, nz = unpack_parameters(prob, names, x, prob.base)
     return Refit(effects, theta, values, nz, names, x, lo, hi, fs, S, S / n_res, it,
                  len(history), failed, success, message, tuple(history))  # fmt: skip
 

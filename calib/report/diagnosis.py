@@ -381,7 +381,8 @@ def detection_limits(doc: dict) -> str:
     estimate's units, a linearisation at neutral, so a saturating effect such as a stiff
     inclusion needs more than this size of its parameter), and, where ``diagnose
     --parameter-limits`` found it, the size of the parameter itself
-    (:mod:`calib.discrepancy.limits`). Empty when there is none.
+    (:mod:`calib.discrepancy.limits`; at the final model, which the line names when it
+    holds named effects). Empty when there is none.
     """
     parts = []
     for name, v in doc["effects"].items():
@@ -395,12 +396,13 @@ def detection_limits(doc: dict) -> str:
         "not found, and sizes these data would show 4 times in 5 (one-step, linearised at "
         "neutral): " + "; ".join(parts)
     )
-    effects = doc["effects"].items()
-    limits = [
-        _limit_phrase(n, v["parameter_limit"]) for n, v in effects if v.get("parameter_limit")
-    ]
-    if limits:
-        line += "; in the effects' own parameters (full FE): " + "; ".join(limits)
+    found = {n: v["parameter_limit"] for n, v in doc["effects"].items() if v.get("parameter_limit")}
+    if found:
+        # computed at the final model: with the named effects in it, if any
+        model = sorted({e for lim in found.values() for e in lim.get("model") or ()})
+        at = f", the model with {' and '.join(model)}" if model else ""
+        limits = [_limit_phrase(n, lim) for n, lim in found.items()]
+        line += f"; in the effects' own parameters (full FE{at}): " + "; ".join(limits)
     return line
 
 

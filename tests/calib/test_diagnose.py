@@ -23,7 +23,7 @@ from calib.discrepancy.fields import Column, FieldSet
 from calib.discrepancy.localise import region_labels, significance_map
 from calib.discrepancy.refit import Refit, lopo
 from calib.discrepancy.screen import screen
-from calib.model.effects import EffectValues
+from calib.model.effects import LIBRARY, EffectValues
 from calib.stats.coverage import NoiseSampler, misfit_pattern, phantom_sample, sag_sensitivity
 from calib.stats.noise import NoiseModel
 
@@ -141,7 +141,7 @@ def _refit(sample, r, J, cols: dict, x) -> Refit:
     fs = _fields(sample, r, J, cols)
     names = ("theta", *cols)
     n = len(x)
-    nuisance = {s: Nuisance() for s in SCANS}  # every scan's, as refit's _unpack gives
+    nuisance = {s: Nuisance() for s in SCANS}  # every scan's, as refit's unpack_parameters gives
     for name, v in zip(cols, x[1:], strict=True):
         if name.startswith("gravity["):
             scan, k = name[8:].split("].a")
@@ -562,7 +562,7 @@ def test_a_sliding_plate_is_refitted_as_ln_k_of_its_springs():
     # unpacks holds the plate on springs of that stiffness (fem.Sliding, rim held)
     import math
 
-    from calib.discrepancy.refit import SLIDING_LN_K_BOUNDS, _layout, _unpack
+    from calib.discrepancy.refit import SLIDING_LN_K_BOUNDS, _layout, unpack_parameters
     from calib.model.effects import effect_support
 
     prob = SimpleNamespace(scans=SCANS)
@@ -570,7 +570,7 @@ def test_a_sliding_plate_is_refitted_as_ln_k_of_its_springs():
     assert names == ("theta", "sliding")
     assert (lo[1], hi[1]) == SLIDING_LN_K_BOUNDS == (math.log(10.0), math.log(1e6))
     x = np.array([math.log(420.0), math.log(250.0)])
-    theta, values, _ = _unpack(prob, names, x, EffectValues())
+    theta, values, _ = unpack_parameters(prob, names, x, EffectValues())
     assert values.support == "springs"
     assert effect_support(values).tangent_stiffness_pa_per_mm == pytest.approx(250.0)
 
@@ -909,13 +909,25 @@ def _limit_problem(
         return {n: SimpleNamespace(positions_mm=r[blocks[n]]) for n in names}
 
     prob = SimpleNamespace(
+        scans=SCANS,
         points=_points(sample),
         base=base,
         solve=solve,
         residuals=lambda n, pos, dpos, nz: SimpleNamespace(r=pos),
         fm=SimpleNamespace(set_effects=lambda v: None),
     )
-    null = SimpleNamespace(fields=fields, theta=6.0, nuisance={})
+    null = SimpleNamespace(
+        fields=fields,
+        theta=6.0,
+        nuisance={},
+        effects=(),
+        values=base,
+        names=("theta",),
+        x=np.array([6.0]),
+        lower=np.array([5.0]),
+        upper=np.array([7.0]),
+        jacobian=lambda: J[:, None],
+    )
     return prob, null, screen(fields, _points(sample))
 
 
@@ -978,6 +990,94 @@ def test_a_print_that_saturates_below_the_detectable_size_is_beyond_the_range(li
     doc = {"effects": {"skin": entry | {"parameter_limit": lim.as_json()}}}
     assert "no solution nearer neutral, where the limit may lie" in detection_limits(doc)
     assert all(step[0] <= 1.5 * d for step in lim.steps)
+
+
+def test_a_limit_at_a_refit_moves_the_named_effects_parameters_too(linear):
+    # At a refit with skin named, nu's limit: the planted print g(s) P (saturation 2 d)
+    # comes with a c1-like part (ln c1 down 0.3 s / d) and a skin-like part (the skin's
+    # parameter down 0.3 s / d) that enters the residual through y N - (y^2 / 2) Q, y
+    # the skin parameter's offset. P and Q are orthogonal to J and N (the skin's
+    # column), so Gauss-Newton on both parameters finds y = 0 and the estimate is g(s)
+    # exactly: the limit is where g = d (2 d, within the search's 5 %). On c1 alone y
+    # would stay at 0.3 s / d and the estimate would be g(s) - 2 d (s / d)^2 < 0 (Q
+    # scaled so): no limit.
+    from calib.discrepancy.limits import C1_TOL, parameter_limit
+    from calib.discrepancy.screen import influence
+
+    sample, J, _, sampler = linear
+
+    def off(v, *basis):
+        B = np.column_stack(basis)
+        return v - B @ np.linalg.lstsq(B, v, rcond=None)[0]
+
+    N = off(misfit_pattern(sample), J)
+    P = off(misfit_pattern(sample, kind="tilt"), J, N)
+    Q = off(misfit_pattern(sample, kind="bump"), J, N)
+    r0 = off(sampler.draw(np.random.default_rng(4))[:, 0], J, N)  # the refit's residual
+    fields = _fields(sample, r0, J, {"skin": N, "poisson": P, "p2b": -misfit_pattern(sample)})
+    pts = _points(sample)
+    scr = screen(fields, pts, absorbed=("skin",))
+    d = next(e.detectable for e in scr.screening.effects if e.name == "poisson")
+    a = influence(fields, pts, "poisson", absorbed=("skin",))
+    assert abs(float(a @ N)) < 1e-9 * np.linalg.norm(a) * np.linalg.norm(N)
+    # the estimate of nu's print is -a' Delta (nu = nu0 - s): the Q term is -2 d at s = d
+    Q = Q * (-2.0 * d) / (0.3**2 / 2.0 * -float(a @ Q))
+    nu0, v_fit = 0.499, 3.0
+    values = LIBRARY["skin"].set(EffectValues(nu=nu0), v_fit)
+    blocks = dict(zip(SCANS, sample.blocks, strict=True))
+
+    def solve(theta, vals, names, *, gradient, nuisance=None):
+        s = nu0 - vals.nu
+        x = theta - 6.0 + 0.3 * s / d
+        y = vals.skin_ratio - 1.0 - v_fit + 0.3 * s / d
+        g = s / (1.0 + s / (2.0 * d))
+        r = r0 - g * P + x * J + y * N - y**2 / 2.0 * Q
+        return {n: SimpleNamespace(positions_mm=r[blocks[n]]) for n in names}
+
+    prob = SimpleNamespace(
+        scans=SCANS,
+        points=pts,
+        base=EffectValues(nu=nu0),
+        solve=solve,
+        residuals=lambda n, pos, dpos, nz: SimpleNamespace(r=pos),
+        fm=SimpleNamespace(set_effects=lambda v: None),
+    )
+    fit = SimpleNamespace(
+        fields=fields,
+        theta=6.0,
+        effects=("skin",),
+        values=values,
+        names=("theta", "skin"),
+        x=np.array([6.0, v_fit]),
+        lower=np.array([5.0, -0.9]),
+        upper=np.array([7.0, 99.0]),
+        jacobian=lambda: np.column_stack([J, N]),
+    )
+    say = lambda m: None  # noqa: E731
+    lim = parameter_limit(prob, fit, scr, "poisson", absorbed=("skin",), say=say)
+    assert lim.status == "reached" and lim.model == ("skin",)
+    assert lim.as_json()["model"] == ["skin"]
+    from calib.report.diagnosis import detection_limits
+
+    entry = {"kind": "material", "significant": False, "detectable": d}
+    doc = {"effects": {"poisson": entry | {"parameter_limit": lim.as_json()}}}
+    assert f"(full FE, the model with skin): poisson {lim.value:.3g} or less (nu)" in (
+        detection_limits(doc)
+    )
+    g = lim.distance / (1.0 + lim.distance / (2.0 * d))
+    assert g >= 0.95 * d and g == pytest.approx(d, rel=0.05)
+    assert lim.value == pytest.approx(nu0 - lim.distance)
+    for s_, _, ratio in lim.steps:  # the c1 part, to the Gauss-Newton tolerance
+        assert np.log(ratio) == pytest.approx(-0.3 * s_ / d, abs=C1_TOL)
+    with pytest.raises(ValueError, match="in the fit already"):
+        parameter_limit(prob, fit, scr, "skin", absorbed=("skin",), say=say)
+    # with c1 alone in the steps (the named skin held at its fit) there is no limit
+    held = SimpleNamespace(**(vars(fit) | {"names": ("theta",), "x": np.array([6.0])}))
+    held.lower, held.upper, held.jacobian = fit.lower[:1], fit.upper[:1], lambda: J[:, None]
+    assert parameter_limit(prob, held, scr, "poisson", absorbed=("skin",), say=say).status in (
+        "not settled",
+        "beyond the range",
+    )
 
 
 def test_the_bench_says_whether_a_missed_truth_lies_inside_its_limit():
