@@ -392,15 +392,16 @@ def detection_limits(doc: dict) -> str:
         parts.append(f"{name} {size:.3g} ({v.get('screen_unit') or v.get('unit', '')})")
     if not parts:
         return ""
+    null = " at the null fit" if doc.get("named") else ""  # the screening table's
     line = (
-        "not found, and sizes these data would show 4 times in 5 (one-step, linearised at "
-        "neutral): " + "; ".join(parts)
+        f"not found, and sizes these data would show 4 times in 5 (one-step{null}, "
+        "linearised at neutral): " + "; ".join(parts)
     )
     found = {n: v["parameter_limit"] for n, v in doc["effects"].items() if v.get("parameter_limit")}
     if found:
         # computed at the final model: with the named effects in it, if any
         model = sorted({e for lim in found.values() for e in lim.get("model") or ()})
-        at = f", the model with {' and '.join(model)}" if model else ""
+        at = f", at the model with {' and '.join(model)}" if model else ""
         limits = [_limit_phrase(n, lim) for n, lim in found.items()]
         line += f"; in the effects' own parameters (full FE{at}): " + "; ".join(limits)
     return line

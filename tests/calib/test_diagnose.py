@@ -1060,10 +1060,10 @@ def test_a_limit_at_a_refit_moves_the_named_effects_parameters_too(linear):
     from calib.report.diagnosis import detection_limits
 
     entry = {"kind": "material", "significant": False, "detectable": d}
-    doc = {"effects": {"poisson": entry | {"parameter_limit": lim.as_json()}}}
-    assert f"(full FE, the model with skin): poisson {lim.value:.3g} or less (nu)" in (
-        detection_limits(doc)
-    )
+    doc = {"named": ["skin"], "effects": {"poisson": entry | {"parameter_limit": lim.as_json()}}}
+    line = detection_limits(doc)
+    assert f"(full FE, at the model with skin): poisson {lim.value:.3g} or less (nu)" in line
+    assert "(one-step at the null fit, linearised at neutral): poisson" in line
     g = lim.distance / (1.0 + lim.distance / (2.0 * d))
     assert g >= 0.95 * d and g == pytest.approx(d, rel=0.05)
     assert lim.value == pytest.approx(nu0 - lim.distance)
