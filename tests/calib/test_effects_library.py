@@ -300,3 +300,28 @@ def test_a_recovery_after_the_support_changes_starts_from_rest(phantom, monkeypa
     X = fm.stress_free(theta)
     assert starts == [("rest", 30), ("rest", 10)]
     assert np.abs(X - X_rest).max() < 1e-4
+
+
+def test_a_recovery_within_one_support_does_not_depend_on_its_warm_start(phantom, monkeypatch):
+    # the calibration's optimiser visits c1 in its own order, each recovery warm-started
+    # from the last: within one support (the calibration's, clamped) the inverse Newton
+    # must reach the reference it reaches from rest, or c1 would depend on the path. On
+    # the quick null twin (14 mm) warm starts from 0.67x to 1.5x c1 gave it to 1e-12 mm;
+    # here 1e-6 mm, far below the recovery's 0.01 mm check (Newton's own tolerance).
+    import calib.model.forward as forward
+
+    theta = np.log(420.0)
+    X_rest = ForwardModel(phantom, _G0).stress_free(theta).copy()
+    real, starts = forward.recover_stress_free, []
+
+    def recorded(model, *, x0_state=None, **kw):
+        starts.append("rest" if x0_state is None else "warm")
+        return real(model, x0_state=x0_state, **kw)
+
+    monkeypatch.setattr(forward, "recover_stress_free", recorded)
+    for f in (1.5, 1 / 1.5):
+        fm = ForwardModel(phantom, _G0)
+        fm.stress_free(theta + np.log(f))
+        X = fm.stress_free(theta)
+        assert np.abs(X - X_rest).max() < 1e-6
+    assert starts == ["rest", "warm"] * 2
