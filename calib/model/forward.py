@@ -142,7 +142,8 @@ class ForwardModel:
         reference is not unique, and an inverse Newton started from the recovery of a
         plate on springs converged to another one (the quick null twin, seed 0: a stiff
         inclusion's print 0.068 mm mean against 0.073 from rest, its screen estimate 1.22
-        against 0.86).
+        against 0.86). Within one support the warm start does not change the recovery
+        (from rest and from 0.67x to 1.5x c1 alike, to 1e-12 mm on that twin; tested).
         """
         old = self._support()
         self.effects = effects
