@@ -66,7 +66,13 @@ from .problem import Problem
 from .refit import SLIDING_LN_K_BOUNDS, Refit, unpack_parameters
 from .screen import Screen, influence
 
-__all__ = ["LIMITED_EFFECTS", "ParameterLimit", "parameter_limit", "parameter_limits"]
+__all__ = [
+    "LIMITED_EFFECTS",
+    "SATURATED_BELOW",
+    "ParameterLimit",
+    "parameter_limit",
+    "parameter_limits",
+]
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +85,11 @@ C1_STEPS = 4
 MAX_GROWTH = 4.0
 #: When the first size has no FE solution, the next is this much larger (once).
 FAILED_GROWTH = 1.5
+
+#: An elasticity ``d ln e / d ln s`` below this at the limit is a saturated print: the
+#: size would have to grow 16-fold to double the estimate (stiff inclusions on the quick
+#: twins: 0.03-0.5; every other effect 0.8-1.2).
+SATURATED_BELOW = 0.25
 
 #: Effects whose limit is searched: the global physical ones with a model parameter.
 LIMITED_EFFECTS = ("skin", "inclusions", "mooney", "poisson", "sliding")
@@ -132,6 +143,28 @@ class ParameterLimit:
     model: tuple = ()
 
     @property
+    def elasticity(self) -> float | None:
+        """``d ln e / d ln s`` at the limit (or the largest size tried when not reached).
+
+        The secant through the two sizes nearest it with a positive estimate; None with
+        fewer. Near 1 the print grows with the size; below :data:`SATURATED_BELOW` it
+        has saturated, and the limit says little more than "barely visible at any size".
+        """
+        good = [(si, ei) for si, ei, _ in self.steps if ei > 0]
+        if len(good) < 2:
+            return None
+        at = self.distance if self.distance is not None else max(si for si, _ in good)
+        near = sorted(good, key=lambda p: abs(math.log(p[0] / at)))[:2]
+        (s0, e0), (s1, e1) = sorted(near)
+        return math.log(e1 / e0) / math.log(s1 / s0) if s1 != s0 else None
+
+    @property
+    def saturated(self) -> bool:
+        """The :attr:`elasticity` is below :data:`SATURATED_BELOW`."""
+        el = self.elasticity
+        return el is not None and el < SATURATED_BELOW
+
+    @property
     def linearised_ratio(self) -> float | None:
         """``distance / detectable``: how much more than the linearisation the limit needs."""
         return None if self.distance is None else self.distance / self.detectable
@@ -148,6 +181,8 @@ class ParameterLimit:
             "note": self.note or None,
             "upper_bound": self.upper_bound,
             "model": list(self.model),
+            "elasticity": self.elasticity,
+            "saturated": self.saturated,
         }
 
 

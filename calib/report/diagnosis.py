@@ -410,6 +410,8 @@ def detection_limits(doc: dict) -> str:
 def _limit_phrase(name: str, lim: dict) -> str:
     """``inclusions 33.7 or more (inclusion c1 / bulk c1)`` or why there is no value."""
     q = lim["quantity"]
+    if lim.get("saturated"):  # a limit that says little more than "barely visible"
+        q += f"; its print saturates: the estimate grows as the size^{lim['elasticity']:.2f} there"
     if lim["status"] == "reached":
         more = {"sliding": "or softer", "poisson": "or less"}.get(name, "or more")
         if lim.get("upper_bound"):  # no FE solution nearer neutral

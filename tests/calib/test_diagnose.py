@@ -943,6 +943,7 @@ def test_a_parameter_limit_is_where_the_planted_print_reaches_the_detectable_siz
     lim = parameter_limit(prob, null, scr, effect, say=lambda m: None)
     assert lim.status == "reached" and len(lim.steps) == 1
     assert lim.distance == pytest.approx(d, rel=1e-12)
+    assert lim.elasticity is None and not lim.saturated  # one size: no secant
 
     prob, null, scr = _limit_problem(linear, effect, saturation=2.0 * d)
     lim = parameter_limit(prob, null, scr, effect, say=lambda m: None)
@@ -954,13 +955,16 @@ def test_a_parameter_limit_is_where_the_planted_print_reaches_the_detectable_siz
     g = lim.distance / (1.0 + lim.distance / (2.0 * d))
     assert g >= 0.95 * d and g == pytest.approx(d, rel=0.05)
     assert lim.linearised_ratio == pytest.approx(2.0, rel=0.25)
+    # d ln g / d ln s = 1 / (1 + s / saturation): 1/2 at the limit; a secant through
+    # sizes within a factor 4 of it lies between 1/5 and 4/5 (the ends' tangents)
+    assert 0.2 < lim.elasticity < 0.8 and not lim.saturated
     expected = 0.499 - lim.distance if effect == "poisson" else 1.0 + lim.distance
     assert lim.value == pytest.approx(expected)
 
 
 def test_a_print_that_saturates_below_the_detectable_size_is_beyond_the_range(linear):
     # sup g = saturation = d / 2 < d: even the range's end (excess ratio 99) falls short
-    from calib.discrepancy.limits import parameter_limit
+    from calib.discrepancy.limits import SATURATED_BELOW, parameter_limit
 
     prob, null, scr = _limit_problem(linear, "skin", saturation=np.inf)
     d = next(e.detectable for e in scr.screening.effects if e.name == "skin")
@@ -968,11 +972,15 @@ def test_a_print_that_saturates_below_the_detectable_size_is_beyond_the_range(li
     lim = parameter_limit(prob, null, scr, "skin", say=lambda m: None)
     assert lim.status == "beyond the range" and lim.value is None
     assert lim.steps[-1][0] == pytest.approx(99.0) and lim.steps[-1][1] < d
+    # g's elasticity 1 / (1 + s / saturation) is under 1e-3 beyond s = 50 (saturation
+    # d / 2 = 0.034 here): saturated, and the summary says so
+    assert lim.saturated and lim.elasticity < SATURATED_BELOW
     from calib.report.diagnosis import detection_limits
 
     entry = {"kind": "material", "significant": False, "detectable": d}
     doc = {"effects": {"skin": entry | {"parameter_limit": lim.as_json()}}}
-    assert "skin beyond its physical range (skin c1 / bulk c1)" in detection_limits(doc)
+    line = detection_limits(doc)
+    assert "skin beyond its physical range (skin c1 / bulk c1; its print saturates" in line
 
     # the model has no solution past 1.5 d on the way to a limit of 2 d
     prob, null, scr = _limit_problem(linear, "skin", saturation=2.0 * d, fails_above=1.5 * d)
