@@ -298,6 +298,7 @@ def parameter_limit(
         near = min(x_of, key=lambda k: abs(math.log(k / s)), default=None)
         x = np.array(fit.x, float) if near is None else x_of[near].copy()
         for _ in range(C1_STEPS):
+            x_solved = x
             theta, values, nz = unpack_parameters(prob, fit.names, x, fit.values)
             values = _values_at(effect, values, s)
             states = prob.solve(theta, values, names, gradient=False, nuisance=nz)
@@ -311,7 +312,9 @@ def parameter_limit(
             x = x + step
             x[1:] = np.clip(x[1:], fit.lower[1:], fit.upper[1:])
         x_of[s] = x
-        return sign * float(a @ delta), float(np.exp(x[0] - fit.theta))
+        # the estimate and the c1 ratio of the last model solved (x moved on when the
+        # steps ran out)
+        return sign * float(a @ delta), float(np.exp(x_solved[0] - fit.theta))
 
     steps: list[tuple[float, float, float]] = []
     note, failed_at = "", 0.0
