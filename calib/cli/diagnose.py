@@ -72,8 +72,8 @@ def diagnose(
         typer.Option(
             "--parameter-limits",
             help="For each physical effect not found, also the size of its own parameter "
-            "the scans would show (full FE: a few solves of every diagnosis scan per effect; "
-            "30-250 s more on the quick twins).",
+            "the scans would show, at the final model (with the named effects; full FE: a "
+            "few solves of every diagnosis scan per effect; 30-250 s more on the quick twins).",
         ),
     ] = False,
 ) -> None:

@@ -153,9 +153,10 @@ class DiagnosisOptions:
         Explained fractions within this ratio count as near-equal evidence.
     refit_iterations : int
     parameter_limits : bool
-        For each physical effect the screen did not find, also the size of its own
-        parameter whose print the screen would estimate at the detectable size, by the
-        full FE model (:mod:`calib.discrepancy.limits`; a few FE solves of every
+        For each physical effect the final screen did not find, also the size of its
+        own parameter whose print that screen would estimate at the detectable size, by
+        the full FE model at the final model (the null fit, or the refit with the named
+        effects; :mod:`calib.discrepancy.limits`; a few FE solves of every
         diagnosis scan per effect, 30-250 s more on the quick twins). Off by default.
     """
 
