@@ -173,6 +173,53 @@ def gap_figure(gap_json: dict, floor_mm: float, named: tuple[str, ...] = ()):
     return fig
 
 
+def limits_figure(effects_json: dict):
+    """The parameter limits' searches: the estimate against the size, one panel per effect.
+
+    ``effects_json`` is ``diagnosis.json``'s ``effects``. Every size the search solved
+    (one-step units, log scale) against the screen's estimate of its planted print, the
+    linearisation ``estimate = size``, the detectable size and the limit: a print that
+    saturates bends away from the linearisation. None when no effect has a limit with
+    steps.
+    """
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import NullLocator
+
+    limits = {n: v.get("parameter_limit") or {} for n, v in effects_json.items()}
+    found = {n: lim for n, lim in limits.items() if lim.get("steps")}
+    if not found:
+        return None
+    fig = Figure(figsize=(3.6 * len(found), 3.4), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(1, len(found)))
+    for ax, (name, lim) in zip(axes, found.items(), strict=True):
+        s, e = np.array([step[:2] for step in lim["steps"]], float).T
+        order = np.argsort(s)
+        d = lim["detectable"]
+        grid = np.geomspace(min(s.min(), d) / 1.5, s.max() * 1.5, 50)
+        ax.plot(grid, grid, color="0.6", lw=1, ls=":", label="linearisation")
+        ax.plot(s[order], e[order], "o-", color="#3b6ea8", label="planted print's estimate")
+        ax.axhline(d, color="k", ls="--", lw=1, label="detectable (80 % power)")
+        if lim["status"] == "reached":
+            ax.axvline(lim["distance"], color="#c0392b", lw=1, label="limit")
+            what = f"{lim['value']:.3g} ({lim['quantity']})"
+        else:
+            what = lim["status"]
+        ax.set_xscale("log")
+        ax.set_xlim(grid[0], grid[-1])
+        ticks = sorted({float(f"{v:.2g}") for v in np.geomspace(grid[0], grid[-1], 6)[1:-1]})
+        ax.set_xticks(ticks, [f"{v:g}" for v in ticks])
+        ax.xaxis.set_minor_locator(NullLocator())
+        ax.set_ylim(min(0.0, e.min() * 1.1), max(e.max(), d) * 1.3)
+        ax.set_xlabel("size, one-step units (log)")
+        ax.set_ylabel("screen's estimate")
+        ax.set_title(f"{name}: {what}", fontsize=9)
+    axes[0].legend(fontsize=7, loc="lower right")
+    model = sorted({e for lim in found.values() for e in lim.get("model") or ()})
+    at = f"the model with {' and '.join(model)}" if model else "the null fit"
+    fig.suptitle(f"parameter limits at {at} (full FE)", fontsize=10)
+    return fig
+
+
 def _fmt(v, spec=".3g") -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "–"

@@ -26,6 +26,7 @@ from ..io import RunOutputs, atomic_write, provenance
 from ..report.diagnosis import (
     diagnosis_html,
     gap_figure,
+    limits_figure,
     localisation_figure,
     residual_maps_figure,
 )
@@ -184,6 +185,10 @@ def _figures(run: RunOutputs, d: Diagnosis, doc: dict) -> dict[str, list[str]]:
     for name, m in d.maps.items():
         save_figure(localisation_figure(m, R), run.path(f"{name}_localisation.png"))
         figures.setdefault(f"{name} (diagnosis)", []).append(f"{name}_localisation.png")
+    lim = limits_figure(doc["effects"])
+    if lim is not None:  # --parameter-limits
+        save_figure(lim, run.path("limits.png"))
+        figures["parameter limits (the planted prints' estimates)"] = ["limits.png"]
     return figures
 
 

@@ -1088,6 +1088,31 @@ def test_a_limit_at_a_refit_moves_the_named_effects_parameters_too(linear):
     )
 
 
+def test_the_limits_figure_shows_each_search_and_the_model_it_ran_at():
+    from calib.report.diagnosis import limits_figure
+
+    steps = [[1.0, 0.8, 0.97], [1.25, 0.99, 0.96]]
+    reached = {"status": "reached", "value": 2.25, "quantity": "skin c1 / bulk c1"}
+    reached |= {"distance": 1.25, "detectable": 1.0, "steps": steps, "model": ["poisson"]}
+    beyond = {"status": "beyond the range", "value": None, "quantity": "inclusion c1 / bulk c1"}
+    beyond |= {"distance": None, "detectable": 2.5, "steps": [[2.5, 1.2, 1.0], [99.0, 2.3, 1.0]]}
+    effects = {
+        "skin": {"parameter_limit": reached},
+        "inclusions": {"parameter_limit": beyond},
+        "sliding": {"parameter_limit": {"status": "no FE solution", "steps": []}},
+        "density": {"parameter_limit": None},
+    }
+    fig = limits_figure(effects)
+    assert [ax.get_title() for ax in fig.axes] == [
+        "skin: 2.25 (skin c1 / bulk c1)",
+        "inclusions: beyond the range",
+    ]
+    assert fig.get_suptitle() == "parameter limits at the model with poisson (full FE)"
+    x, y = fig.axes[1].lines[1].get_data()  # the search's sizes and estimates, in order
+    assert list(x) == [2.5, 99.0] and list(y) == [1.2, 2.3]
+    assert limits_figure({"sliding": effects["sliding"], "density": {}}) is None
+
+
 def test_the_bench_says_whether_a_missed_truth_lies_inside_its_limit():
     # benchmarks/bench_diagnose.py's --table line: inside = nearer neutral than the limit
     # (springs stiffer, nu higher, a ratio lower); none without a reached limit
