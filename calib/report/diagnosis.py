@@ -173,6 +173,12 @@ def gap_figure(gap_json: dict, floor_mm: float, named: tuple[str, ...] = ()):
     return fig
 
 
+def _limits_model(limits: dict) -> str | None:
+    """``"the model with skin"``, the limits' model (their named effects); None: null fit."""
+    model = sorted({e for lim in limits.values() for e in lim.get("model") or ()})
+    return f"the model with {' and '.join(model)}" if model else None
+
+
 def limits_figure(effects_json: dict):
     """The parameter limits' searches: the estimate against the size, one panel per effect.
 
@@ -214,9 +220,9 @@ def limits_figure(effects_json: dict):
         ax.set_ylabel("screen's estimate")
         ax.set_title(f"{name}: {what}", fontsize=9)
     axes[0].legend(fontsize=7, loc="lower right")
-    model = sorted({e for lim in found.values() for e in lim.get("model") or ()})
-    at = f"the model with {' and '.join(model)}" if model else "the null fit"
-    fig.suptitle(f"parameter limits at {at} (full FE)", fontsize=10)
+    fig.suptitle(
+        f"parameter limits at {_limits_model(found) or 'the null fit'} (full FE)", fontsize=10
+    )
     return fig
 
 
@@ -447,8 +453,8 @@ def detection_limits(doc: dict) -> str:
     found = {n: v["parameter_limit"] for n, v in doc["effects"].items() if v.get("parameter_limit")}
     if found:
         # computed at the final model: with the named effects in it, if any
-        model = sorted({e for lim in found.values() for e in lim.get("model") or ()})
-        at = f", at the model with {' and '.join(model)}" if model else ""
+        model = _limits_model(found)
+        at = f", at {model}" if model else ""
         limits = [_limit_phrase(n, lim) for n, lim in found.items()]
         line += f"; in the effects' own parameters (full FE{at}): " + "; ".join(limits)
     return line
