@@ -859,6 +859,19 @@ def test_the_influence_vector_is_the_screens_one_step_estimate(linear):
         assert float(a @ r) == pytest.approx(e.estimate, rel=1e-9, abs=1e-12)
 
 
+def _fake_problem(points, base, solve):
+    """A Problem for the limits without FE: ``solve`` returns the stacked residual's
+    blocks as 'positions', which ``residuals`` passes on unchanged."""
+    return SimpleNamespace(
+        scans=SCANS,
+        points=points,
+        base=base,
+        solve=solve,
+        residuals=lambda n, pos, dpos, nz: SimpleNamespace(r=pos),
+        fm=SimpleNamespace(set_effects=lambda v: None),
+    )
+
+
 def _limit_problem(
     linear, effect: str, saturation: float, fails_above: float = np.inf, fails_below: float = 0.0
 ):
@@ -908,14 +921,7 @@ def _limit_problem(
         r = r0 - g * P + x * J - x**2 / 2.0 * Q
         return {n: SimpleNamespace(positions_mm=r[blocks[n]]) for n in names}
 
-    prob = SimpleNamespace(
-        scans=SCANS,
-        points=_points(sample),
-        base=base,
-        solve=solve,
-        residuals=lambda n, pos, dpos, nz: SimpleNamespace(r=pos),
-        fm=SimpleNamespace(set_effects=lambda v: None),
-    )
+    prob = _fake_problem(_points(sample), base, solve)
     null = SimpleNamespace(
         fields=fields,
         theta=6.0,
@@ -1042,14 +1048,7 @@ def test_a_limit_at_a_refit_moves_the_named_effects_parameters_too(linear):
         r = r0 - g * P + x * J + y * N - y**2 / 2.0 * Q
         return {n: SimpleNamespace(positions_mm=r[blocks[n]]) for n in names}
 
-    prob = SimpleNamespace(
-        scans=SCANS,
-        points=pts,
-        base=EffectValues(nu=nu0),
-        solve=solve,
-        residuals=lambda n, pos, dpos, nz: SimpleNamespace(r=pos),
-        fm=SimpleNamespace(set_effects=lambda v: None),
-    )
+    prob = _fake_problem(pts, EffectValues(nu=nu0), solve)
     fit = SimpleNamespace(
         fields=fields,
         theta=6.0,
