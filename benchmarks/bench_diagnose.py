@@ -8,7 +8,8 @@ to ~420 Pa) and the held-out posture's surface error above the noise floor cut b
 
 Cases (``--cases``): each library effect the twin can hide at its preset amplitude
 (``skin``, ``inclusions``, ``mooney``, ``poisson``, ``density``, ``sliding``: the plate
-on tangential springs of ``--sliding-springs``, default ``SLIDING_SPRINGS_PA_PER_MM``) x
+on tangential springs of ``--sliding-springs``, default ``SLIDING_SPRINGS_PA_PER_MM``;
+``inclusions`` at ``--inclusion-ratio`` times the bulk's stiffness when given) x
 ``--seeds`` (default 0,1,2), ``none`` x ``--null-seeds`` (default 0-4), and the
 detection curve ``skin=1.5:R`` for R in ``--ratios`` (default 2,4,8; R = 1 is the null
 set) at seed 0. Every case writes ``OUT/cases/<case>.json`` when done and is skipped when
@@ -29,6 +30,7 @@ apart and shown in the table.
         [--null-seeds 0,1,2,3,4] [--ratios 2,4,8] [--only NAME,...] [--table]
         [--rim-margin MM|element] [--noise-profile flat|plate] [--rim-profile]
         [--mesh-size MM] [--mesh-max-dihedral DEG] [--parameter-limits]
+        [--sliding-springs PA_PER_MM] [--inclusion-ratio R]
 
 ``--mesh-size MM`` calibrates on that model mesh (default 14 mm, MM + 2 the retry);
 ``--mesh-max-dihedral DEG`` calibrates with TetGen's bound on the largest dihedral angle
@@ -74,6 +76,11 @@ def _cases(args) -> list[tuple[str, list[str], int, str]]:
                 k = args.sliding_springs
                 spec = f"sliding={k:g}"
                 tag = "sliding" if k == SLIDING_SPRINGS_PA_PER_MM else f"sliding-k{k:g}"
+            if eff == "inclusions" and args.inclusion_ratio is not None:
+                spec, tag = (
+                    f"inclusions={args.inclusion_ratio:g}",
+                    f"inclusions-r{args.inclusion_ratio:g}",
+                )
             out += [(f"{tag}-s{s}", [spec], s, eff) for s in seeds]
     if "none" in wanted:
         out += [(f"none-s{s}", ["none"], s, "none") for s in map(int, args.null_seeds.split(","))]
@@ -270,16 +277,20 @@ def _inside_limit(row: dict) -> bool | None:
     truth = row.get("truth_effects") or {}
     if lim.get("status") != "reached" or not truth:
         return None
+    from calib.discrepancy.limits import visible_side
+
     v, hidden = lim["value"], row["hidden"]
-    if hidden == "sliding":  # springs: stiffer than the limit is inside it
-        return truth["sliding_stiffness_pa_per_mm"] > v
-    if hidden == "poisson":
-        return truth["nu"] > v
-    if hidden in ("skin", "inclusions"):
-        return truth["skin_ratio" if hidden == "skin" else "inclusion_ratio"] < v
-    if hidden == "mooney":
-        return truth["c2_pa"] / row["c1_true_pa"] < v
-    return None
+    true = {  # the truth in the limit's quantity (ParameterLimit.quantity)
+        "sliding": lambda: truth["sliding_stiffness_pa_per_mm"],
+        "poisson": lambda: truth["nu"],
+        "skin": lambda: truth["skin_ratio"],
+        "inclusions": lambda: truth["inclusion_ratio"],
+        "mooney": lambda: truth["c2_pa"] / row["c1_true_pa"],
+    }.get(hidden)
+    if true is None:
+        return None
+    side = lim.get("visible") or visible_side(hidden)  # cases diagnosed before the field
+    return true() < v if side == "above" else true() > v
 
 
 def _table(rows: list[dict]) -> None:
@@ -452,6 +463,13 @@ def main() -> None:
         default=SLIDING_SPRINGS_PA_PER_MM,
         help="the sliding twin's tangential springs, Pa/mm (> 0: frictionless has no solution)",
     )
+    ap.add_argument(
+        "--inclusion-ratio",
+        type=float,
+        default=None,
+        help="the inclusions twin's stiffness ratio to the bulk (default: the preset's; "
+        "case names inclusions-r<R>-s<seed>)",
+    )
     ap.add_argument("--table", action="store_true", help="print the table of the finished cases")
     ap.add_argument(
         "--noise-profile",
@@ -499,6 +517,8 @@ def main() -> None:
     args = ap.parse_args()
     if not args.sliding_springs > 0:
         ap.error(f"--sliding-springs must be > 0 Pa/mm, got {args.sliding_springs:g}")
+    if args.inclusion_ratio is not None and not args.inclusion_ratio > 0:
+        ap.error(f"--inclusion-ratio must be > 0, got {args.inclusion_ratio:g}")
     print("command:", " ".join([sys.executable, *sys.argv]))
     store = args.out / "cases"
     store.mkdir(parents=True, exist_ok=True)

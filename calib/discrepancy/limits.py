@@ -72,6 +72,7 @@ __all__ = [
     "ParameterLimit",
     "parameter_limit",
     "parameter_limits",
+    "visible_side",
 ]
 
 log = logging.getLogger(__name__)
@@ -165,6 +166,11 @@ class ParameterLimit:
         return el is not None and el < SATURATED_BELOW
 
     @property
+    def visible(self) -> Literal["above", "below"]:
+        """:func:`visible_side` of the effect."""
+        return visible_side(self.effect)
+
+    @property
     def linearised_ratio(self) -> float | None:
         """``distance / detectable``: how much more than the linearisation the limit needs."""
         return None if self.distance is None else self.distance / self.detectable
@@ -183,7 +189,29 @@ class ParameterLimit:
             "model": list(self.model),
             "elasticity": self.elasticity,
             "saturated": self.saturated,
+            "visible": self.visible,
         }
+
+
+def visible_side(effect: str) -> Literal["above", "below"]:
+    """Where the screen would find an effect relative to its limit's value.
+
+    ``"above"``: stiffer skin and inclusions, more c2; ``"below"``: a smaller nu, softer
+    springs (the quantity falls as the distance from neutral grows). A truth on the
+    other side of the limit lies inside it: these data would not show it.
+
+    Parameters
+    ----------
+    effect : str
+        One of :data:`LIMITED_EFFECTS`.
+
+    Returns
+    -------
+    {"above", "below"}
+    """
+    if effect not in LIMITED_EFFECTS:
+        raise ValueError(f"no parameter limit for {effect!r}; it is for {LIMITED_EFFECTS}")
+    return "below" if _value(effect, 2.0, 0.5) < _value(effect, 1.0, 0.5) else "above"
 
 
 def _quantity(effect: str) -> str:

@@ -462,11 +462,15 @@ def detection_limits(doc: dict) -> str:
 
 def _limit_phrase(name: str, lim: dict) -> str:
     """``inclusions 33.7 or more (inclusion c1 / bulk c1)`` or why there is no value."""
+    from ..discrepancy.limits import visible_side  # imports fem: only where limits are
+
     q = lim["quantity"]
     if lim.get("saturated"):  # a limit that says little more than "barely visible"
         q += f"; its print saturates: the estimate grows as the size^{lim['elasticity']:.2f} there"
     if lim["status"] == "reached":
-        more = {"sliding": "or softer", "poisson": "or less"}.get(name, "or more")
+        side = lim.get("visible") or visible_side(name)  # diagnoses before the field
+        more = {"above": "or more", "below": "or softer" if name == "sliding" else "or less"}
+        more = more[side]
         if lim.get("upper_bound"):  # no FE solution nearer neutral
             q += "; the model had no solution nearer neutral, where the limit may lie"
         v = lim["value"]

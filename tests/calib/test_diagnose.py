@@ -966,6 +966,13 @@ def test_a_parameter_limit_is_where_the_planted_print_reaches_the_detectable_siz
     assert 0.2 < lim.elasticity < 0.8 and not lim.saturated
     expected = 0.499 - lim.distance if effect == "poisson" else 1.0 + lim.distance
     assert lim.value == pytest.approx(expected)
+    # the sizes the search tried short of the limit (estimate under d, beyond the 5 %
+    # tolerance) lie on the side opposite the visible one: inside the limit
+    short = [0.499 - s_ if effect == "poisson" else 1.0 + s_ for s_, e_, _ in lim.steps]
+    short = [v for v, (_, e_, _) in zip(short, lim.steps, strict=True) if e_ < 0.95 * d]
+    side = lim.as_json()["visible"]
+    assert side == ("below" if effect == "poisson" else "above") and short
+    assert all((v > lim.value) if side == "below" else (v < lim.value) for v in short)
 
 
 def test_a_print_that_saturates_below_the_detectable_size_is_beyond_the_range(linear):
@@ -1137,3 +1144,8 @@ def test_the_bench_says_whether_a_missed_truth_lies_inside_its_limit():
     assert bench._inside_limit(row("mooney", 0.6)) is True  # c2 / c1 = 0.5
     assert bench._inside_limit(row("inclusions", None, "no FE solution")) is None
     assert bench._inside_limit({"hidden": "skin", "truth_effects": truth}) is None
+    # the limit's own "visible" (diagnosis.json) is what decides; without it (older
+    # files) calib.discrepancy.limits.visible_side
+    flipped = row("sliding", 914.0)
+    flipped["hidden_screen"]["parameter_limit"]["visible"] = "above"
+    assert bench._inside_limit(flipped) is False
