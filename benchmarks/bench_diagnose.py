@@ -231,7 +231,14 @@ def _expected(row: dict) -> str | None:
 
 def _is_curve(row: dict) -> bool:
     """A detection-curve case (``skin-rR-s0``), not an effect at its preset amplitude."""
-    return "-r" in row["case"]
+    return row["case"].startswith("skin-r")
+
+
+def _at_preset(row: dict) -> bool:
+    """An effect at its preset amplitude or a null set: not the curve, not another
+    amplitude (``--sliding-springs``: ``sliding-kK-sS``; ``--inclusion-ratio``:
+    ``inclusions-rR-sS``)."""
+    return not any(tag in row["case"] for tag in ("-k", "-r"))
 
 
 def _right(row: dict) -> bool:
@@ -346,7 +353,8 @@ def _table(rows: list[dict]) -> None:
         print(line(cells))
     for r in failed:
         print(f"{r['case']:16s} FAILED {r['failed'][:100]}")
-    preset = [r for r in rows if not _is_curve(r)]  # the bars: effects at preset amplitude
+    preset = [r for r in rows if _at_preset(r)]  # the bars: effects at preset amplitude
+    other = [r for r in rows if not _at_preset(r) and not _is_curve(r)]
     eff = [r for r in preset if _expected(r) is not None]
     apart = [r for r in preset if r["hidden"] != "none" and _expected(r) is None]
     null = [r for r in rows if r["hidden"] == "none"]
@@ -354,6 +362,10 @@ def _table(rows: list[dict]) -> None:
     print()
     if eff:
         print(f"right name: {len(named_ok)}/{len(eff)} effect sets (bar >= 90 %)")
+    if other:
+        which = ", ".join(f"{r['case']} {'yes' if _right(r) else 'no'}" for r in other)
+        n_right = sum(map(_right, other))
+        print(f"right name at other amplitudes (not in the bars): {n_right}/{len(other)} ({which})")
     if apart:
         print(
             f"hidden effects the diagnosis cannot name (density, not identifiable, "
