@@ -1149,3 +1149,37 @@ def test_the_bench_says_whether_a_missed_truth_lies_inside_its_limit():
     flipped = row("sliding", 914.0)
     flipped["hidden_screen"]["parameter_limit"]["visible"] = "above"
     assert bench._inside_limit(flipped) is False
+
+
+def test_the_bench_keeps_other_amplitudes_out_of_the_bars():
+    # benchmarks/bench_diagnose.py: --sliding-springs and --inclusion-ratio name their
+    # cases by amplitude; the bars count the preset amplitude only, the curve is the skin's
+    import argparse
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).parents[2] / "benchmarks" / "bench_diagnose.py"
+    spec = importlib.util.spec_from_file_location("bench_diagnose", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    args = argparse.Namespace(
+        cases="sliding,inclusions,none,curve",
+        seeds="1",
+        null_seeds="0",
+        ratios="4",
+        only=None,
+        sliding_springs=300.0,
+        inclusion_ratio=30.0,
+    )
+    cases = {name: specs for name, specs, _, _ in bench._cases(args)}
+    assert cases == {
+        "inclusions-r30-s1": ["inclusions=30"],
+        "sliding-k300-s1": ["sliding=300"],
+        "none-s0": ["none"],
+        "skin-r4-s0": ["skin=1.5:4"],
+    }
+    preset = {n for n in cases if bench._at_preset({"case": n})}
+    curve = {n for n in cases if bench._is_curve({"case": n})}
+    assert preset == {"none-s0"} and curve == {"skin-r4-s0"}
+    args.sliding_springs, args.inclusion_ratio = bench.SLIDING_SPRINGS_PA_PER_MM, None
+    assert all(bench._at_preset({"case": n}) for n, *_ in bench._cases(args) if "-r4" not in n)
