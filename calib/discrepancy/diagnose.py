@@ -66,7 +66,7 @@ import fem
 
 from ..data.work import WorkFolder
 from ..evaluation import ScanMetrics, scan_metrics
-from ..model.effects import LIBRARY, SKIN_THICKNESS_MM
+from ..model.effects import ADMISSIBLE, LIBRARY, SKIN_THICKNESS_MM
 from ..stats import NoiseFit, height_profile, parameter_intervals
 from .fields import SLIDING_PROBE_PA_PER_MM, FieldSet
 from .limits import parameter_limits
@@ -1071,6 +1071,32 @@ def _gaps(prob: Problem, null: Refit, final: Refit, say) -> tuple[dict, dict]:
     return out, states
 
 
+def _admissible_interval(name: str, lower: float, upper: float) -> tuple[float, float]:
+    """A parameter's interval cut to the values the model admits.
+
+    The truth lies in :data:`calib.model.effects.ADMISSIBLE`, so the cut interval holds
+    it exactly when the uncut one does: the coverage is unchanged. A saturated print
+    (stiff inclusions) has a Wald interval reaching a negative stiffness ratio.
+
+    Parameters
+    ----------
+    name : str
+        A fit parameter's name (``theta``, an effect, a nuisance: those without an
+        admissible range are returned as they are).
+    lower, upper : float
+        The interval, in the parameter's units.
+
+    Returns
+    -------
+    (float, float)
+        The cut interval; where it misses the admissible range entirely, the range's
+        nearer end twice (an empty interval: the fit's value lies outside it).
+    """
+    a, b = ADMISSIBLE.get(name, (-np.inf, np.inf))
+    lo, hi = min(max(float(lower), a), b), max(min(float(upper), b), a)
+    return lo, hi
+
+
 def _intervals(fit: Refit, prob: Problem) -> dict:
     """95 % intervals of the final model's parameters (series estimator, calib.stats)."""
     f = fit.fields
@@ -1088,6 +1114,10 @@ def _intervals(fit: Refit, prob: Problem) -> dict:
     for name, iv, v in zip(fit.names, ivs, fit.x, strict=False):
         entry = {"value": float(v), "ci95": [float(iv.lower), float(iv.upper)],
                  "standard_error": float(iv.standard_error)}  # fmt: skip
+        lo, hi = _admissible_interval(name, iv.lower, iv.upper)
+        if (lo, hi) != (iv.lower, iv.upper):  # a saturated print's Wald interval, cut
+            entry["ci95_unclipped"] = entry["ci95"]
+            entry["ci95"] = [lo, hi]
         if name == "theta":
             # the model mesh's own error: the calibration's mesh check (GCI of ln c1 on
             # this mesh) in quadrature with the noise, as ``calibrate`` does
@@ -1099,7 +1129,7 @@ def _intervals(fit: Refit, prob: Problem) -> dict:
             entry["gci_ln_c1"] = gci
         if name in ("skin", "inclusions"):  # the parameter is the ratio - 1
             entry["ratio"] = float(1.0 + v)
-            entry["ratio_ci95"] = [float(1.0 + iv.lower), float(1.0 + iv.upper)]
+            entry["ratio_ci95"] = [1.0 + b for b in entry["ci95"]]
         if name == "sliding":  # the parameter is ln k
             entry["stiffness_pa_per_mm"] = float(np.exp(v))
             entry["stiffness_ci95_pa_per_mm"] = [float(np.exp(iv.lower)), float(np.exp(iv.upper))]

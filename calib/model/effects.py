@@ -78,6 +78,7 @@ from fem.meshing import skin_fraction
 from ..stats.scores import ALTERNATIVES
 
 __all__ = [
+    "ADMISSIBLE",
     "EFFECTS",
     "LIBRARY",
     "SKIN_THICKNESS_MM",
@@ -100,6 +101,18 @@ __all__ = [
 #: the surface shape sees (the layer's added membrane stiffness), so the fitted ratio
 #: at this thickness stands for that product.
 SKIN_THICKNESS_MM = 1.5
+
+
+#: The parameter values the model admits (:class:`EffectValues`' checks), per global
+#: effect whose parameter is bounded: a stiffness ratio above 0, c2 >= 0, nu in (0,
+#: 0.5). Wider than :attr:`Effect.bounds` (the search range) and certain: a truth lies
+#: inside, so an interval cut to it keeps its coverage. ``sliding``'s ln k is unbounded.
+ADMISSIBLE: dict[str, tuple[float, float]] = {
+    "skin": (-1.0, math.inf),
+    "inclusions": (-1.0, math.inf),
+    "mooney": (0.0, math.inf),
+    "poisson": (0.0, 0.5),
+}
 
 
 class EffectError(ValueError):

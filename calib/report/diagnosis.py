@@ -262,6 +262,8 @@ def _summary(doc: dict) -> str:
                              + (f", springs {iv['stiffness_pa_per_mm']:.3g} Pa/mm"
                                 if "stiffness_pa_per_mm" in iv else "")
                              + "</p>")  # fmt: skip
+                if "ci95_unclipped" in iv:
+                    lines.append(f"<p>{html.escape(_cut_note(pname, iv))}</p>")
     n = doc["noise"]
     m = n["model"]
     lines.append(
@@ -389,6 +391,15 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
     )
 
 
+def _cut_note(name: str, iv: dict) -> str:
+    """Why an interval was cut (``diagnosis.json``'s ``ci95_unclipped``)."""
+    lo, hi = iv["ci95_unclipped"]
+    return (
+        f"{name}: its 95 % interval ({lo:.4g} - {hi:.4g}) is cut to the values the model "
+        "admits (the truth lies there, so the coverage is kept)"
+    )
+
+
 def format_diagnosis(doc: dict) -> str:
     """The command's summary: verdict, c1 before/after and the gap per scan (plain text)."""
     lines = [f"verdict: {doc['verdict']}"]
@@ -400,6 +411,8 @@ def format_diagnosis(doc: dict) -> str:
         if name != "theta" and any(name == e or name.startswith(f"{e}[") for e in doc["named"]):
             lines.append(f"{name} = {iv['value']:.4g} (95 % {iv['ci95'][0]:.4g} - "
                          f"{iv['ci95'][1]:.4g})")  # fmt: skip
+            if "ci95_unclipped" in iv:
+                lines.append("  " + _cut_note(name, iv))
     lines.append(f"{'scan':15s} {'role':10s} {'mean before':>12s} {'mean after':>11s} "
                  f"{'|residual| before':>18s} {'after':>6s} {'cut above floor':>16s}")  # fmt: skip
     for name, g in doc["gap"].items():

@@ -1183,3 +1183,30 @@ def test_the_bench_keeps_other_amplitudes_out_of_the_bars():
     assert preset == {"none-s0"} and curve == {"skin-r4-s0"}
     args.sliding_springs, args.inclusion_ratio = bench.SLIDING_SPRINGS_PA_PER_MM, None
     assert all(bench._at_preset({"case": n}) for n, *_ in bench._cases(args) if "-r4" not in n)
+
+
+def test_an_interval_cut_to_the_admissible_values_keeps_its_coverage():
+    # The truth lies in ADMISSIBLE, so "truth in the cut interval" is the same event as
+    # "truth in the interval": checked draw by draw on seeded Wald intervals about
+    # truths at and near the range's ends (the coverage is then equal, not close).
+    from calib.discrepancy.diagnose import _admissible_interval
+    from calib.model.effects import ADMISSIBLE
+
+    # inclusions seed 2 at ratio 30 (bench_diagnose --inclusion-ratio 30): ratio - 1
+    # 28.3 with a Wald interval reaching a negative stiffness
+    assert _admissible_interval("inclusions", -133.1, 189.8) == (-1.0, 189.8)
+    assert _admissible_interval("poisson", 0.45, 0.52) == (0.45, 0.5)
+    assert _admissible_interval("theta", -9.0, 9.0) == (-9.0, 9.0)  # no admissible range
+    assert _admissible_interval("mooney", -0.5, -0.1) == (0.0, 0.0)  # entirely outside
+    rng = np.random.default_rng(13)
+    for name, truths in {"inclusions": (-0.99, -0.5), "poisson": (0.49, 0.499)}.items():
+        a, b = ADMISSIBLE[name]
+        for truth in truths:
+            se = 0.6 if name == "inclusions" else 0.01
+            est = truth + se * rng.standard_normal(4000)
+            lo, hi = est - 1.96 * se, est + 1.96 * se
+            cut = np.array([_admissible_interval(name, x, y) for x, y in zip(lo, hi, strict=True)])
+            assert np.all(cut[:, 0] >= a) and np.all(cut[:, 1] <= b)
+            inside = (lo <= truth) & (truth <= hi)
+            assert np.array_equal(inside, (cut[:, 0] <= truth) & (truth <= cut[:, 1]))
+            assert np.any(cut != np.column_stack([lo, hi]))  # some were cut
