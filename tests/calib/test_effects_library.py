@@ -20,6 +20,7 @@ from calib_helpers import small_phantom_mesh
 
 import fem
 from calib.model.effects import (
+    ADMISSIBLE,
     LIBRARY,
     EffectError,
     EffectValues,
@@ -65,6 +66,27 @@ def test_effect_values_are_checked_and_round_trip_through_json():
                        (dict(support_stiffness_pa_per_mm=-1.0), "support")):  # fmt: skip
         with pytest.raises(EffectError, match=match):
             EffectValues(**bad)
+
+
+def test_the_admissible_values_are_those_the_model_accepts():
+    # ADMISSIBLE (the diagnosis cuts intervals to it) against EffectValues' own checks:
+    # just inside each finite end is a model, at the end and beyond is an EffectError;
+    # the library's search range lies inside it
+    base, eps = EffectValues(), 1e-9
+    for name, (a, b) in ADMISSIBLE.items():
+        e = LIBRARY[name]
+        assert a <= e.bounds[0] and e.bounds[1] <= b, name
+
+        def model(p, e=e, name=name):  # mooney's setter clips at 0: build it directly
+            return EffectValues(c2_ratio=p) if name == "mooney" else e.set(base, p)
+
+        for end, inward in ((a, 1.0), (b, -1.0)):
+            if not math.isfinite(end):
+                continue
+            model(end + inward * 1e-6)
+            with pytest.raises(EffectError):
+                model(end - inward * eps if name == "mooney" else end)
+    assert "sliding" not in ADMISSIBLE  # ln k: any real is a model
 
 
 def test_supports():
