@@ -1115,7 +1115,7 @@ def _intervals(fit: Refit, prob: Problem) -> dict:
         entry = {"value": float(v), "ci95": [float(iv.lower), float(iv.upper)],
                  "standard_error": float(iv.standard_error)}  # fmt: skip
         lo, hi = _admissible_interval(name, iv.lower, iv.upper)
-        if (lo, hi) != (iv.lower, iv.upper):  # a saturated print's Wald interval, cut
+        if (lo, hi) != (iv.lower, iv.upper):  # e.g. a saturated print's Wald interval
             entry["ci95_unclipped"] = entry["ci95"]
             entry["ci95"] = [lo, hi]
         if name == "theta":
