@@ -1119,9 +1119,8 @@ def test_the_limits_figure_shows_each_search_and_the_model_it_ran_at():
     assert limits_figure({"sliding": effects["sliding"], "density": {}}) is None
 
 
-def test_the_bench_says_whether_a_missed_truth_lies_inside_its_limit():
-    # benchmarks/bench_diagnose.py's --table line: inside = nearer neutral than the limit
-    # (springs stiffer, nu higher, a ratio lower); none without a reached limit
+def _bench_module():
+    """``benchmarks/bench_diagnose.py`` as a module (the benchmarks are not a package)."""
     import importlib.util
     from pathlib import Path
 
@@ -1129,6 +1128,13 @@ def test_the_bench_says_whether_a_missed_truth_lies_inside_its_limit():
     spec = importlib.util.spec_from_file_location("bench_diagnose", path)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
+    return bench
+
+
+def test_the_bench_says_whether_a_missed_truth_lies_inside_its_limit():
+    # benchmarks/bench_diagnose.py's --table line: inside = nearer neutral than the limit
+    # (springs stiffer, nu higher, a ratio lower); none without a reached limit
+    bench = _bench_module()
     truth = dict(sliding_stiffness_pa_per_mm=1000.0, nu=0.45, inclusion_ratio=5.0)
     truth |= dict(skin_ratio=8.0, c2_pa=210.0)
 
@@ -1155,13 +1161,8 @@ def test_the_bench_keeps_other_amplitudes_out_of_the_bars():
     # benchmarks/bench_diagnose.py: --sliding-springs and --inclusion-ratio name their
     # cases by amplitude; the bars count the preset amplitude only, the curve is the skin's
     import argparse
-    import importlib.util
-    from pathlib import Path
 
-    path = Path(__file__).parents[2] / "benchmarks" / "bench_diagnose.py"
-    spec = importlib.util.spec_from_file_location("bench_diagnose", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = _bench_module()
     args = argparse.Namespace(
         cases="sliding,inclusions,none,curve",
         seeds="1",
