@@ -1132,6 +1132,6 @@ def _intervals(fit: Refit, prob: Problem) -> dict:
             entry["ratio_ci95"] = [1.0 + b for b in entry["ci95"]]
         if name == "sliding":  # the parameter is ln k
             entry["stiffness_pa_per_mm"] = float(np.exp(v))
-            entry["stiffness_ci95_pa_per_mm"] = [float(np.exp(iv.lower)), float(np.exp(iv.upper))]
+            entry["stiffness_ci95_pa_per_mm"] = [float(np.exp(b)) for b in entry["ci95"]]
         out[name] = entry
     return out
