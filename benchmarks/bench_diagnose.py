@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -125,6 +126,7 @@ def run_case(
     max_dihedral_deg=None,
     mesh_size_mm: float = 14.0,
     parameter_limits: bool = False,
+    inclusion_mesh_mm: float | None = None,
 ) -> dict:
     import fem
     from calib.discrepancy import DiagnosisOptions
@@ -161,7 +163,10 @@ def run_case(
     if explained_margin is not None:
         margin["explained_margin_mm"] = explained_margin
     opts = DiagnosisOptions(
-        **margin, noise_profile=noise_profile, parameter_limits=parameter_limits
+        **margin,
+        noise_profile=noise_profile,
+        parameter_limits=parameter_limits,
+        inclusion_mesh_mm=inclusion_mesh_mm,
     )
     doc = run_diagnosis(work, opts)
     t3 = time.perf_counter()
@@ -193,6 +198,7 @@ def run_case(
         "mesh_max_dihedral_deg": used.get("mesh_max_dihedral_deg"),
         "mesh_size_mm": used.get("mesh_size_mm", mesh_size_mm),
         "mesh_note": doc["calibration"].get("mesh_note"),
+        "inclusion_mesh_mm": inclusion_mesh_mm,
         "holdout_cut_above_floor": gap[hold].get("cut_above_floor") if hold else None,
         "holdout_before_mm": gap[hold]["surface_error_mm"]["before"]["mean"] if hold else None,
         "holdout_after_mm": gap[hold]["surface_error_mm"].get("after", {}).get("mean")
@@ -254,6 +260,8 @@ def _mesh_cell(row: dict) -> str:
     size = row.get("mesh_size_mm") or 14.0  # rows from before the option: 14 mm
     bound = row.get("mesh_max_dihedral_deg")
     cell = f"{size:g}" + (f"/{bound:g}" if bound else "")
+    if row.get("inclusion_mesh_mm"):  # diagnose --inclusion-mesh: spheres of these elements
+        cell += f"+i{row['inclusion_mesh_mm']:g}"
     return cell + ("*" if row.get("mesh_note") else "")
 
 
@@ -298,6 +306,61 @@ def _inside_limit(row: dict) -> bool | None:
         return None
     side = lim.get("visible") or visible_side(hidden)  # cases diagnosed before the field
     return true() < v if side == "above" else true() > v
+
+
+def _physical(name: str, v: float) -> str:
+    """A refitted library parameter as the quantity the README gives: the stiffness ratio
+    for skin and inclusions (the parameter is the ratio - 1), the springs for sliding (ln
+    k), c2/c1 for mooney, nu for poisson; a nuisance's own name and value otherwise."""
+    if name in ("skin", "inclusions"):
+        return f"ratio {1.0 + v:.3g}"
+    if name == "sliding":
+        return f"springs {math.exp(v):.3g} Pa/mm"
+    if name == "mooney":
+        return f"c2/c1 {v:.3g}"
+    if name == "poisson":
+        return f"nu {v:.4g}"
+    return f"{name} {v:.3g}"
+
+
+def _detail_lines(rows: list[dict]) -> list[str]:
+    """Per effect set: the hidden effect's screen (t, se, Holm p: ``hidden_screen``) and
+    every refitted candidate (its physical parameters, the share of the residual above the
+    floor it explains, named or why not: ``candidates``), as kept in ``cases/<case>.json``."""
+    out = []
+    for r in rows:
+        h = r.get("hidden_screen")
+        if r["hidden"] == "none" or _is_curve(r) or not (h or r.get("candidates")):
+            continue
+        screen = "no screen column"
+        if h:
+            screen = (
+                f"t {h['statistic']:.2f}, se {h['standard_error']:.3g}, Holm p {h['p_holm']:.2g}"
+            )
+        refits = []
+        for c in r.get("candidates") or []:
+            params = ", ".join(
+                _physical(n, v)
+                for n, v in (c.get("parameters") or {}).items()
+                if "[" not in n  # per-scan nuisances: their names carry the scan
+            )
+            share = c.get("explained")
+            if not c.get("passes"):
+                what = c.get("reason") or "not named"
+            elif c["effect"] in r["named"] or c["effect"] in r["confounded_with"]:
+                what = "named"
+            else:
+                what = "passes, not named"
+            refits.append(
+                f"{c['effect']}{' ' + params if params else ''}"
+                + ("" if share is None else f", explains {100 * share:.0f} %")
+                + f" ({what})"
+            )
+        out.append(
+            f"{r['case']}: {r['hidden']} screen {screen}; refits: "
+            + ("; ".join(refits) if refits else "none")
+        )
+    return out
 
 
 def _table(rows: list[dict]) -> None:
@@ -400,6 +463,12 @@ def _table(rows: list[dict]) -> None:
     if curve:
         print("detection curve (skin 1.5 mm, seed 0): "
               + ", ".join(f"ratio {r['specs'][0][9:]}: {r['verdict']}" for r in curve))  # fmt: skip
+    details = _detail_lines(rows)
+    if details:
+        print()
+        print("hidden effect's screen and the refits, per effect set (cases/<case>.json):")
+        for d in details:
+            print("  " + d)
 
 
 def rim_profile(work: Path) -> list[tuple[str, list[tuple[int, float]]]]:
@@ -522,6 +591,14 @@ def main() -> None:
         "detectable size in its own parameter)",
     )
     ap.add_argument(
+        "--inclusion-mesh",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="diagnose with the segmented inclusions meshed as spheres of MM elements "
+        "(diagnose --inclusion-mesh)",
+    )
+    ap.add_argument(
         "--rim-profile",
         action="store_true",
         help="print the null cases' residual by height above the back plate (c1-only fits)",
@@ -563,6 +640,7 @@ def main() -> None:
                 args.mesh_max_dihedral,
                 args.mesh_size,
                 args.parameter_limits,
+                args.inclusion_mesh,
             )
             path.write_text(json.dumps(row, indent=1))
             if row.get("failed"):

@@ -42,8 +42,9 @@ def _tetgen(vertices, faces, max_volume, min_ratio, min_dihedral, regions, max_d
 
     litter = [Path(name) for name in _TETGEN_LITTER if not Path(name).exists()]
     tg = tetgen.TetGen(np.asarray(vertices, float), np.asarray(faces, np.int32))
-    for tag, point in regions:
-        tg.add_region(int(tag), np.asarray(point, float), -1.0)
+    for tag, point, *vol in regions:  # (tag, point[, max volume mm^3])
+        tg.add_region(int(tag), np.asarray(point, float), float(vol[0]) if vol else -1.0)
+    sized = any(len(r) > 2 for r in regions)
     try:
         nodes, tets, attrib, _ = tg.tetrahedralize(
             quality=True,
@@ -51,6 +52,7 @@ def _tetgen(vertices, faces, max_volume, min_ratio, min_dihedral, regions, max_d
             mindihedral=min_dihedral,
             maxvolume=max_volume if max_volume else -1.0,
             fixedvolume=bool(max_volume),
+            varvolume=sized,
             regionattrib=bool(regions),
             **({} if max_dihedral is None else {"optmaxdihedral": float(max_dihedral)}),
         )
@@ -60,6 +62,7 @@ def _tetgen(vertices, faces, max_volume, min_ratio, min_dihedral, regions, max_d
                 log.info("TetGen skipped input faces (its %s is removed)", path)
                 path.unlink(missing_ok=True)
     region = attrib[:, 0].astype(int) if regions else np.full(len(tets), REGION_IDS["bulk"])
+    region[region == 0] = REGION_IDS["bulk"]  # TetGen's attribute of a region not seeded
     return nodes, tets, region
 
 
@@ -183,8 +186,10 @@ def tetrahedralize(
         (median 5) elements with an angle below 5 or above 175 degrees on the quick twins'
         reference meshes (``benchmarks/bench_reference.py --max-dihedral``). It helps the
         straight stress-free recovery where a sliver stops it, not everywhere (README).
-    regions : sequence of (tag, point_mm)
-        Region seeds: every element of the closed region containing the point gets the tag.
+    regions : sequence of (tag, point_mm) or (tag, point_mm, max_volume_mm3)
+        Region seeds: every element of the closed region containing the point gets the tag
+        (and, with a third item, a volume of at most that, TetGen's ``-a`` without a
+        number); elements of a region no seed lies in get ``bulk``.
     repair : bool
         When TetGen rejects the surface (self-intersections, holes), repair it and, if
         that fails, remesh it, then try again; logs what was done.

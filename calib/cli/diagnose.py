@@ -58,6 +58,15 @@ def diagnose(
             "a finer one tells discretisation error from a missing effect (slower).",
         ),
     ] = None,
+    inclusion_mesh: Annotated[
+        float | None,
+        typer.Option(
+            "--inclusion-mesh",
+            help="Diagnose on a model mesh (of --mesh-size, else the calibration's size) "
+            "whose segmented inclusions are meshed as spheres with elements of this size "
+            "(mm) inside: a stiff inclusion's print is local (slower).",
+        ),
+    ] = None,
     noise_profile: Annotated[
         str,
         typer.Option(
@@ -98,6 +107,7 @@ def diagnose(
                 }
             ),
             mesh_size_mm=mesh_size,
+            inclusion_mesh_mm=inclusion_mesh,
             noise_profile=noise_profile,
             parameter_limits=parameter_limits,
         )

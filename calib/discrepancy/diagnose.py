@@ -121,6 +121,12 @@ class DiagnosisOptions:
         Diagnose on a model mesh of this size, built from the reference scan, instead of
         the calibration's (None). A finer mesh tells discretisation error from a missing
         effect (every FE solve costs more: about (h / size)^3).
+    inclusion_mesh_mm : float or None
+        Diagnose on a model mesh built from the reference scan (of ``mesh_size_mm``, else
+        the calibration's size) whose segmented inclusions are meshed as spheres with
+        elements of this size (mm) inside, instead of the calibration's mesh (None): a
+        stiff inclusion's print is local, and on the calibration's mesh the inclusions
+        only stiffen the elements they cut (:func:`calib.model.effects.inclusion_mix`).
     noise_profile : {"flat", "plate"}
         ``"flat"``: one noise level at every height (the default). ``"plate"``: the
         noise level by height above the back plate, measured on the null fit's residual
@@ -168,6 +174,7 @@ class DiagnosisOptions:
     max_points: int | None = None
     rim_margin_mm: float | Literal["element"] = RIM_MARGIN_MM
     mesh_size_mm: float | None = None
+    inclusion_mesh_mm: float | None = None
     noise_profile: Literal["flat", "plate"] = "flat"
     max_candidates: int = 2
     max_named: int = 2
@@ -196,6 +203,12 @@ class DiagnosisOptions:
                 raise DiagnosisError(f"{name} must lie in [0, 50) mm or be 'element', got {m!r}")
         if self.mesh_size_mm is not None and not 2.0 <= self.mesh_size_mm <= 40.0:
             raise DiagnosisError(f"mesh_size_mm must lie in [2, 40] mm, got {self.mesh_size_mm}")
+        h = self.inclusion_mesh_mm
+        if h is not None and not (1.0 <= h <= 40.0 and h <= (self.mesh_size_mm or 40.0)):
+            raise DiagnosisError(
+                f"inclusion_mesh_mm must lie in [1, 40] mm and not above mesh_size_mm "
+                f"({self.mesh_size_mm}), got {h}"
+            )
         if self.noise_profile not in NOISE_PROFILES:
             raise DiagnosisError(
                 f"noise_profile must be one of {NOISE_PROFILES}, got {self.noise_profile!r}"
@@ -644,9 +657,15 @@ def diagnose(
     o = options or DiagnosisOptions()
     say = progress or log.info
     t0 = time.perf_counter()
-    prob = build_problem(work, holdout=o.holdout, skin_thickness_mm=o.skin_thickness_mm,
-                         max_points=o.max_points, rim_margin_mm=o.rim_margin_mm,
-                         mesh_size_mm=o.mesh_size_mm)  # fmt: skip
+    prob = build_problem(
+        work,
+        holdout=o.holdout,
+        skin_thickness_mm=o.skin_thickness_mm,
+        max_points=o.max_points,
+        rim_margin_mm=o.rim_margin_mm,
+        mesh_size_mm=o.mesh_size_mm,
+        inclusion_mesh_mm=o.inclusion_mesh_mm,
+    )
     say(f"diagnosis scans {prob.scans}, held out: {prob.holdout or 'none'}; model mesh "
         f"{prob.mesh.n_tets} tets, {len(prob.inclusions)} inclusions tagged; points within "
         f"{prob.rim_margin_mm:g} mm of the back plate mapped, not diagnosed")  # fmt: skip

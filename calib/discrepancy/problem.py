@@ -260,42 +260,52 @@ def _parameters(record: dict) -> dict:
     return (record.get("provenance") or {}).get("parameters") or {}
 
 
-def _recovered_model(work: WorkFolder, model_on, size_mm: float):
+def _recovered_model(work: WorkFolder, model_on, size_mm: float, spheres=None):
     """The model on the reference scan's mesh of ``size_mm``, recovered at the calibrated c1.
 
     ``model_on(loaded_mesh)`` builds the model (it tags the effect regions); the recovery
     stays cached for the null fit. The mesh is meshed as the calibration's was (its
-    TetGen bound on the largest dihedral angle, ``mesh_max_dihedral_deg``). Raises
+    TetGen bound on the largest dihedral angle, ``mesh_max_dihedral_deg``); ``spheres``,
+    ``(inclusions, element size mm)``, are meshed inside it. Raises
     ``fem.ConvergenceError`` where it fails.
     """
     from ..model.reference import reference_mesh
 
     bound = _parameters(work.record).get("mesh_max_dihedral_deg")
-    fm = model_on(
-        reference_mesh(work.measurements.reference, size_mm=size_mm, max_dihedral_deg=bound)
+    inner = {} if spheres is None else {"spheres": spheres[0], "sphere_size_mm": spheres[1]}
+    loaded = reference_mesh(
+        work.measurements.reference, size_mm=size_mm, max_dihedral_deg=bound, **inner
     )
+    fm = model_on(loaded)
     fm.stress_free(float(np.log(work.record["c1_pa"])))
     return fm
 
 
-def _sized_model(work: WorkFolder, params: dict, model_on, size_mm: float):
+def _sized_model(work: WorkFolder, params: dict, model_on, size_mm: float, spheres=None):
     """The model on a mesh of ``size_mm`` (asked for), its stress-free reference recovered.
 
     Built from the reference scan as the calibration builds its own
-    (:func:`_recovered_model`). Returns the model, the note that says the diagnosis mesh
-    is not the calibration's, and the size.
+    (:func:`_recovered_model`), with ``spheres`` ``(inclusions, element size mm)`` meshed
+    inside. Returns the model, the note that says the diagnosis mesh is not the
+    calibration's, and the size.
     """
+    inner = ""
+    if spheres is not None:  # reference_mesh meshes those at least one element wide
+        n, h = sum(float(d) >= spheres[1] for _, d in spheres[0]), spheres[1]
+        inner = f" with its {n} inclusions {h:g} mm or wider meshed as spheres of {h:g} mm"
     try:
-        fm = _recovered_model(work, model_on, size_mm)
+        fm = _recovered_model(work, model_on, size_mm, spheres)
+    except fem.MeshError as exc:
+        raise DiagnosisError(f"{work.path}: no {size_mm:g} mm model mesh{inner}: {exc}") from exc
     except fem.ConvergenceError as exc:
         raise DiagnosisError(
-            f"{work.path}: no straight stress-free reference on a {size_mm:g} mm model mesh "
-            f"at the calibrated c1 ({exc}); choose another --mesh-size"
+            f"{work.path}: no straight stress-free reference on a {size_mm:g} mm model mesh"
+            f"{inner} at the calibrated c1 ({exc}); choose another --mesh-size"
         ) from exc
     own = float(params.get("mesh_size_mm", 12.0))
     return (
         fm,
-        f"diagnosed on a {size_mm:g} mm mesh, as asked (the calibration's: {own:g} mm)",
+        f"diagnosed on a {size_mm:g} mm mesh{inner}, as asked (the calibration's: {own:g} mm)",
         size_mm,
     )
 
@@ -477,6 +487,7 @@ def build_problem(
     max_points: int | None = None,
     rim_margin_mm: float | Literal["element"] = RIM_MARGIN_MM,
     mesh_size_mm: float | None = None,
+    inclusion_mesh_mm: float | None = None,
 ) -> Problem:
     """The diagnosis problem of a calibrated work folder, its stress-free reference recovered.
 
@@ -496,10 +507,17 @@ def build_problem(
     mesh_size_mm : float, optional
         A model mesh of this size (mm), built from the reference scan, instead of the
         calibration's; its stress-free reference is recovered at the calibrated c1.
+    inclusion_mesh_mm : float, optional
+        A model mesh built from the reference scan (of ``mesh_size_mm``, else the
+        calibration's size) with the segmented inclusions meshed as spheres of elements
+        of this size (:func:`calib.model.reference.reference_mesh`); its stress-free
+        reference is recovered at the calibrated c1.
 
     Raises
     ------
     DiagnosisError
+        Among others: ``inclusion_mesh_mm`` without inclusions segmented in the reference
+        scan, or with one that cannot be meshed as a sphere inside the body.
     """
     record = work.record
     model = record["model"]
@@ -532,7 +550,17 @@ def build_problem(
             fixed_point_fallback=False, effects=base,
         )  # fmt: skip
 
-    if mesh_size_mm is not None:
+    if inclusion_mesh_mm is not None:
+        if not inclusions:
+            raise DiagnosisError(
+                f"{work.path}: inclusion_mesh_mm={inclusion_mesh_mm:g} asks for the inclusions "
+                "to be meshed, but ingest segmented none in the reference scan"
+            )
+        own = float(params.get("mesh_size_mm", 12.0))
+        size = own if mesh_size_mm is None else mesh_size_mm
+        spheres = (inclusions, inclusion_mesh_mm)
+        fm, note, size = _sized_model(work, params, model_on, size, spheres=spheres)
+    elif mesh_size_mm is not None:
         fm, note, size = _sized_model(work, params, model_on, mesh_size_mm)
     elif prestressed:
         # --reference-state prestress: its own mesh may admit one; a switched unload: not

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 
 import numpy as np
 
 import fem
-from fem.meshing import remesh_surface, tag_node_sets, tetrahedralize
+from fem.mesh import REGION_IDS
+from fem.meshing import remesh_surface, surface_defects, tag_node_sets, tetrahedralize
 
 from ..data.measurements import ScanMeasurement
 
@@ -37,6 +39,8 @@ def reference_mesh(
     size_mm: float = 8.0,
     back_tol_mm: float = 1.0,
     max_dihedral_deg: float | None = None,
+    spheres: Sequence[tuple[Sequence[float], float]] = (),
+    sphere_size_mm: float | None = None,
 ):
     """Tetrahedral mesh of the reference scan's surface with node sets.
 
@@ -56,12 +60,36 @@ def reference_mesh(
     max_dihedral_deg : float, optional
         TetGen's optimisation bound on the largest dihedral angle
         (:func:`fem.meshing.tetrahedralize`); None: the ``tetgen`` package's own.
+    spheres : sequence of (centre_mm, diameter_mm)
+        Spheres (the inclusions ingest segmented in the reference scan) meshed as internal
+        surfaces, so that elements do not straddle them, with elements of
+        ``sphere_size_mm`` inside (region ``inclusion``); the sphere's surface is an
+        icosphere of edges nearest that size (one subdivision at least). Each must lie
+        inside the body, clear of the surface and of the others by half an inner element.
+        Spheres narrower than ``sphere_size_mm`` are not meshed (a region tagging by
+        volume fraction, :func:`calib.model.effects.tag_effect_regions`, still sees them).
+    sphere_size_mm : float, optional
+        Element edge length inside the spheres; default ``size_mm / 2``.
 
     Returns
     -------
     TetMesh
         Nodes in the reference frame (mm); node sets ``back``, ``surface``, ``nipple``.
+
+    Raises
+    ------
+    fem.MeshError
+        No usable surface, or a sphere that reaches the surface or another sphere.
     """
+    if spheres:
+        return _with_spheres(
+            ref,
+            size_mm,
+            back_tol_mm,
+            max_dihedral_deg,
+            spheres,
+            size_mm / 2.0 if sphere_size_mm is None else sphere_size_mm,
+        )
     v, f = _decimate(ref.vertices_mm, ref.faces, size_mm)
     n, p0 = ref.back_normal, ref.back_point_mm
     v, on = _onto_plane(v, (p0, n, back_tol_mm))
@@ -89,6 +117,118 @@ def reference_mesh(
     log.info("reference mesh: %d tets, %d nodes, %d on the back plane", mesh.n_tets,
              mesh.n_nodes, len(back))  # fmt: skip
     return tag_node_sets(mesh, back, n)
+
+
+#: Mean edge of an icosphere of radius 1 after 0, 1, 2, 3 subdivisions (trimesh). One at
+#: least: the icosahedron holds 61 % of its sphere's volume, one subdivision 87 %.
+_ICO_EDGE = np.array([1.0515, 0.5823, 0.2993, 0.1508])
+
+
+def _sphere_plc(spheres, outer_v, outer_f, h: float):
+    """The outer surface with the spheres appended as internal surfaces, and their seeds.
+
+    Spheres narrower than ``h`` are left out. Raises ``fem.MeshError`` for a sphere
+    within ``h / 2`` of the outer surface or of another sphere (TetGen may crash the
+    process on intersecting surfaces).
+    """
+    import open3d as o3d
+
+    from fem.geometry import sphere_surface
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(outer_v.astype(np.float32)), o3d.core.Tensor(outer_f.astype(np.uint32))
+    )
+    centres = np.array([np.asarray(c, float).reshape(3) for c, _ in spheres])
+    radii = np.array([0.5 * float(d) for _, d in spheres])
+    if not np.all(radii > 0):
+        raise fem.MeshError(f"sphere diameters must be positive, got {2 * radii}")
+    keep = 2.0 * radii >= h  # smaller ones keep the mix by volume fraction
+    centres, radii = centres[keep], radii[keep]
+    # open3d's signed distance is negative inside a closed surface
+    depth = -scene.compute_signed_distance(o3d.core.Tensor(centres.astype(np.float32))).numpy()
+    verts, tris, regions = [outer_v], [outer_f], []
+    off = len(outer_v)
+    for i, (c, r) in enumerate(zip(centres, radii, strict=True)):
+        if depth[i] < r + 0.5 * h:
+            raise fem.MeshError(
+                f"inclusion at {np.round(c, 1).tolist()} mm (diameter {2 * r:.1f} mm) lies "
+                f"{depth[i]:.1f} mm inside the reference surface: it reaches within "
+                f"{0.5 * h:g} mm of it, so it cannot be meshed as an internal sphere"
+            )
+        gap = np.linalg.norm(centres - c, axis=1) - radii - r
+        gap[i] = np.inf
+        if gap.min() < 0.5 * h:
+            j = int(np.argmin(gap))
+            raise fem.MeshError(
+                f"inclusions {i} and {j} lie {gap[j]:.1f} mm apart (< "
+                f"{0.5 * h:g} mm): they cannot be meshed as two spheres"
+            )
+        level = 1 + int(np.argmin(np.abs(np.log(_ICO_EDGE[1:] * r / h))))  # edge nearest h
+        v, f = sphere_surface(c, r, subdivisions=level)
+        verts.append(v)
+        tris.append(f + off)
+        off += len(v)
+        regions.append((REGION_IDS["inclusion"], c, h**3 / (6.0 * np.sqrt(2.0))))
+    return np.vstack(verts), np.vstack(tris), regions
+
+
+def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, spheres, h):
+    """:func:`reference_mesh` with internal spheres.
+
+    The outer surface is tried as the plain mesh tries it (decimated, then the scan's
+    surface remeshed on a fine grid), with the spheres inside; TetGen's repair fallbacks
+    do not apply to a surface with inner ones.
+    """
+    if not 0 < h <= size_mm:
+        raise fem.MeshError(f"sphere element size must lie in (0, {size_mm:g}] mm, got {h}")
+    n, p0 = ref.back_normal, ref.back_point_mm
+
+    def decimated():
+        v, f = _decimate(ref.vertices_mm, ref.faces, size_mm)
+        return _onto_plane(v, (p0, n, back_tol_mm))[0], f
+
+    def remeshed():
+        w, g = remesh_surface(ref.vertices_mm, ref.faces, size_mm=size_mm, grid_mm=REMESH_GRID_MM)
+        return _onto_plane(w, (p0, n, max(back_tol_mm, size_mm / 5.0)))[0], g
+
+    vol = size_mm**3 / (6.0 * np.sqrt(2.0))
+    errors = []
+    for label, outer in (("decimated", decimated), ("remeshed", remeshed)):
+        w, g = outer()
+        defects = surface_defects(w, g)
+        if defects:  # TetGen may crash the process on a defective surface
+            errors.append(f"{label}: surface is {', '.join(defects)}")
+            continue
+        pv, pf, regions = _sphere_plc(spheres, w, g, h)  # a sphere that does not fit: raised
+        try:
+            mesh = tetrahedralize(
+                pv,
+                pf,
+                max_volume_mm3=vol,
+                regions=regions,
+                repair=False,
+                size_mm=size_mm,
+                max_dihedral_deg=max_dihedral_deg,
+            )
+        except fem.MeshError as exc:
+            errors.append(f"{label}: {exc}")
+            continue
+        bnodes = np.unique(fem.boundary_faces(mesh.tets))
+        back = bnodes[np.abs((mesh.nodes_mm[bnodes] - p0) @ n) < 1e-6 * size_mm]
+        log.info(
+            "reference mesh (%s surface) with %d inclusion spheres of %g mm elements: "
+            "%d tets, %d nodes",
+            label,
+            len(spheres),
+            h,
+            mesh.n_tets,
+            mesh.n_nodes,
+        )
+        return tag_node_sets(mesh, back, n)
+    raise fem.MeshError(
+        "TetGen could not mesh the reference surface with its inclusions: " + "; ".join(errors)
+    )
 
 
 #: Grid step (mm) of the remesh of a reference surface whose decimation TetGen rejects.

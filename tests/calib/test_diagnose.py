@@ -300,6 +300,43 @@ def test_a_mesh_size_asked_for_is_built_from_the_reference_scan_and_said(monkeyp
         DiagnosisOptions(mesh_size_mm=0.5)
 
 
+def test_inclusions_meshed_as_spheres_are_passed_on_and_said(monkeypatch):
+    # diagnose --inclusion-mesh: the segmented inclusions go to reference_mesh as spheres
+    # with their element size; a sphere that cannot be meshed is a DiagnosisError naming
+    # the mesh, not a traceback; the options refuse an inner size above the mesh's
+    import calib.model.reference as reference
+    import fem
+    from calib.discrepancy.problem import _sized_model
+
+    def mesh(ref, size_mm, max_dihedral_deg, spheres=(), sphere_size_mm=None):
+        if sphere_size_mm == 3.0:
+            raise fem.MeshError("inclusion at [0, 0, 46] mm reaches the surface")
+        return (size_mm, len(spheres), sphere_size_mm)
+
+    monkeypatch.setattr(reference, "reference_mesh", mesh)
+
+    class Model:
+        def __init__(self, mesh):
+            self.mesh = mesh
+
+        def stress_free(self, theta):
+            pass
+
+    ref = SimpleNamespace(reference="ref")
+    work = SimpleNamespace(path="WORK", measurements=ref, record={"c1_pa": 423.4})
+    spheres = [((0.0, 0.0, 20.0), 12.0), ((10.0, 0.0, 30.0), 8.0), ((0.0, 9.0, 9.0), 4.0)]
+    fm, note, size = _sized_model(work, {"mesh_size_mm": 14.0}, Model, 14.0, (spheres, 5.0))
+    assert fm.mesh == (14.0, 3, 5.0)
+    said = "with its 2 inclusions 5 mm or wider meshed as spheres of 5 mm, as asked"
+    assert note == f"diagnosed on a 14 mm mesh {said} (the calibration's: 14 mm)"
+    with pytest.raises(DiagnosisError, match=r"no 14 mm model mesh with its 3 .*reaches the"):
+        _sized_model(work, {"mesh_size_mm": 14.0}, Model, 14.0, (spheres, 3.0))
+    with pytest.raises(DiagnosisError, match="inclusion_mesh_mm must lie in"):
+        DiagnosisOptions(mesh_size_mm=10.0, inclusion_mesh_mm=12.0)
+    with pytest.raises(DiagnosisError, match="inclusion_mesh_mm must lie in"):
+        DiagnosisOptions(inclusion_mesh_mm=0.5)
+
+
 def _gap_problem(same_mesh: bool):
     """A stand-in Problem whose posture solve puts every node at (c1, c1, c1) mm."""
     solved = []
@@ -1184,6 +1221,81 @@ def test_the_bench_keeps_other_amplitudes_out_of_the_bars():
     assert preset == {"none-s0"} and curve == {"skin-r4-s0"}
     args.sliding_springs, args.inclusion_ratio = bench.SLIDING_SPRINGS_PA_PER_MM, None
     assert all(bench._at_preset({"case": n}) for n, *_ in bench._cases(args) if "-r4" not in n)
+
+
+def test_the_bench_prints_the_refits_in_physical_units():
+    # --table's per-set block: the candidates of diagnosis.json (Candidate.as_json) with
+    # the parameter as the README gives it (sliding's ln k as springs, a ratio - 1 as the
+    # ratio), the explained share, and named or the reason it is not
+    import math
+
+    from calib.discrepancy.diagnose import Candidate
+
+    bench = _bench_module()
+
+    def cand(effect, params, explained, passes, reason=""):
+        return Candidate(
+            effect=effect,
+            round=1,
+            significant=True,
+            p_holm=0.01,
+            statistic=3.0,
+            lopo_before_mm2=1.0,
+            lopo_after_mm2=0.5,
+            lopo_improves=True,
+            parameters=params,
+            at_bound=(),
+            plausible=True,
+            explained=explained,
+            passes=passes,
+            c1_pa=410.0,
+            rms_mm=0.5,
+            reason=reason,
+            explained_all_points=explained,
+        ).as_json()
+
+    screen = {"statistic": 2.82, "standard_error": 0.75, "p_holm": 0.027}
+    rows = [
+        {
+            "case": "sliding-k300-s0",
+            "hidden": "sliding",
+            "hidden_screen": screen,
+            "named": ["sliding"],
+            "confounded_with": [],
+            "candidates": [
+                cand("sliding", {"sliding": math.log(311.0)}, 0.92, True),
+                cand(
+                    "inclusions",
+                    {"inclusions": 10.8},
+                    0.32,
+                    False,
+                    "explains 32 % < 50 % of the residual above the noise floor",
+                ),
+            ],
+        },
+        {
+            "case": "none-s0",
+            "hidden": "none",
+            "hidden_screen": None,
+            "named": [],
+            "confounded_with": [],
+            "candidates": [cand("skin", {"skin": 1.0}, 0.1, False, "x")],
+        },
+        {
+            "case": "skin-r4-s0",
+            "hidden": "skin",
+            "hidden_screen": screen,
+            "named": [],
+            "confounded_with": [],
+            "candidates": [],
+        },
+    ]
+    lines = bench._detail_lines(rows)
+    assert lines == [
+        "sliding-k300-s0: sliding screen t 2.82, se 0.75, Holm p 0.027; refits: sliding "
+        "springs 311 Pa/mm, explains 92 % (named); inclusions ratio 11.8, explains 32 % "
+        "(explains 32 % < 50 % of the residual above the noise floor)"
+    ]
 
 
 def test_an_interval_cut_to_the_admissible_values_keeps_its_coverage():
