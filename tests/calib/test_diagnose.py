@@ -225,6 +225,11 @@ def test_command_help_and_errors(tmp_path):
     assert res.exit_code == 2 and "unknown effect" in res.output
     res = runner.invoke(app, ["diagnose", str(tmp_path), "--rim-margin", "wide"])
     assert res.exit_code == 2 and "--rim-margin must be a width in mm or 'element'" in res.output
+    assert "--inclusion-mesh" in runner.invoke(app, ["diagnose", "--help"]).output
+    res = runner.invoke(
+        app, ["diagnose", str(tmp_path), "--mesh-size", "10", "--inclusion-mesh", "12"]
+    )
+    assert res.exit_code == 2 and "inclusion_mesh_mm must lie in [1, 40] mm" in res.output
 
 
 def test_a_mesh_without_a_straight_reference_is_replaced_and_the_note_says_why(monkeypatch):
