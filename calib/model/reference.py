@@ -65,7 +65,8 @@ def reference_mesh(
         surfaces, so that elements do not straddle them, with elements of
         ``sphere_size_mm`` inside (region ``inclusion``); the sphere's surface is an
         icosphere of edges nearest that size (one subdivision at least). Each must lie
-        inside the body, clear of the surface and of the others by half an inner element.
+        inside the body, clear of the surface and of the others by an eighth of an inner
+        element (:data:`SPHERE_CLEARANCE`).
         Spheres narrower than ``sphere_size_mm`` are not meshed (a region tagging by
         volume fraction, :func:`calib.model.effects.tag_effect_regions`, still sees them).
     sphere_size_mm : float, optional
@@ -119,6 +120,12 @@ def reference_mesh(
     return tag_node_sets(mesh, back, n)
 
 
+#: Smallest gap between a meshed sphere and the outer surface or another sphere, in inner
+#: elements: TetGen fills a narrow gap with small elements, and an intersection may crash
+#: it. Half an element refused the quick twins' inclusions x5 on seeds 0 and 1 (an 8.3 mm
+#: inclusion 3.9 mm under the surface, with 8 mm elements).
+SPHERE_CLEARANCE = 0.125
+
 #: Mean edge of an icosphere of radius 1 after 0, 1, 2, 3 subdivisions (trimesh). One at
 #: least: the icosahedron holds 61 % of its sphere's volume, one subdivision 87 %.
 _ICO_EDGE = np.array([1.0515, 0.5823, 0.2993, 0.1508])
@@ -128,7 +135,7 @@ def _sphere_plc(spheres, outer_v, outer_f, h: float):
     """The outer surface with the spheres appended as internal surfaces, and their seeds.
 
     Spheres narrower than ``h`` are left out. Raises ``fem.MeshError`` for a sphere
-    within ``h / 2`` of the outer surface or of another sphere (TetGen may crash the
+    within ``SPHERE_CLEARANCE * h`` of the outer surface or of another sphere (TetGen may crash the
     process on intersecting surfaces).
     """
     import open3d as o3d
@@ -150,19 +157,19 @@ def _sphere_plc(spheres, outer_v, outer_f, h: float):
     verts, tris, regions = [outer_v], [outer_f], []
     off = len(outer_v)
     for i, (c, r) in enumerate(zip(centres, radii, strict=True)):
-        if depth[i] < r + 0.5 * h:
+        if depth[i] < r + SPHERE_CLEARANCE * h:
             raise fem.MeshError(
                 f"inclusion at {np.round(c, 1).tolist()} mm (diameter {2 * r:.1f} mm) lies "
                 f"{depth[i]:.1f} mm inside the reference surface: it reaches within "
-                f"{0.5 * h:g} mm of it, so it cannot be meshed as an internal sphere"
+                f"{SPHERE_CLEARANCE * h:g} mm of it, so it cannot be meshed as an internal sphere"
             )
         gap = np.linalg.norm(centres - c, axis=1) - radii - r
         gap[i] = np.inf
-        if gap.min() < 0.5 * h:
+        if gap.min() < SPHERE_CLEARANCE * h:
             j = int(np.argmin(gap))
             raise fem.MeshError(
                 f"inclusions {i} and {j} lie {gap[j]:.1f} mm apart (< "
-                f"{0.5 * h:g} mm): they cannot be meshed as two spheres"
+                f"{SPHERE_CLEARANCE * h:g} mm): they cannot be meshed as two spheres"
             )
         level = 1 + int(np.argmin(np.abs(np.log(_ICO_EDGE[1:] * r / h))))  # edge nearest h
         v, f = sphere_surface(c, r, subdivisions=level)
