@@ -129,7 +129,7 @@ def run_case(
     inclusion_mesh_mm: float | None = None,
 ) -> dict:
     import fem
-    from calib.discrepancy import DiagnosisOptions
+    from calib.discrepancy import DiagnosisError, DiagnosisOptions
     from calib.fitting import CalibrationOptions
     from calib.model.effects import parse_effects
     from calib.twin import PRESETS, synthesize
@@ -168,7 +168,11 @@ def run_case(
         parameter_limits=parameter_limits,
         inclusion_mesh_mm=inclusion_mesh_mm,
     )
-    doc = run_diagnosis(work, opts)
+    try:
+        doc = run_diagnosis(work, opts)
+    except DiagnosisError as exc:  # e.g. --inclusion-mesh with an inclusion at the surface
+        failed = f"diagnose: {exc}"
+        return {"case": name, "specs": specs, "seed": seed, "hidden": hidden, "failed": failed}
     t3 = time.perf_counter()
     truth = json.loads((twin / "truth" / "truth.json").read_text())
     c1_true = truth["material"]["c1_pa"]
