@@ -135,8 +135,8 @@ def _sphere_plc(spheres, outer_v, outer_f, h: float):
     """The outer surface with the spheres appended as internal surfaces, and their seeds.
 
     Spheres narrower than ``h`` are left out. Raises ``fem.MeshError`` for a sphere
-    within ``SPHERE_CLEARANCE * h`` of the outer surface or of another sphere (TetGen may crash the
-    process on intersecting surfaces).
+    within ``SPHERE_CLEARANCE * h`` of the outer surface or of another sphere (TetGen may
+    crash the process on intersecting surfaces).
     """
     import open3d as o3d
 
@@ -152,6 +152,8 @@ def _sphere_plc(spheres, outer_v, outer_f, h: float):
         raise fem.MeshError(f"sphere diameters must be positive, got {2 * radii}")
     keep = 2.0 * radii >= h  # smaller ones keep the mix by volume fraction
     centres, radii = centres[keep], radii[keep]
+    if not len(centres):
+        return outer_v, outer_f, []
     # open3d's signed distance is negative inside a closed surface
     depth = -scene.compute_signed_distance(o3d.core.Tensor(centres.astype(np.float32))).numpy()
     verts, tris, regions = [outer_v], [outer_f], []
@@ -167,8 +169,9 @@ def _sphere_plc(spheres, outer_v, outer_f, h: float):
         gap[i] = np.inf
         if gap.min() < SPHERE_CLEARANCE * h:
             j = int(np.argmin(gap))
+            where = [np.round(x, 1).tolist() for x in (c, centres[j])]
             raise fem.MeshError(
-                f"inclusions {i} and {j} lie {gap[j]:.1f} mm apart (< "
+                f"inclusions at {where[0]} and {where[1]} mm lie {gap[j]:.1f} mm apart (< "
                 f"{SPHERE_CLEARANCE * h:g} mm): they cannot be meshed as two spheres"
             )
         level = 1 + int(np.argmin(np.abs(np.log(_ICO_EDGE[1:] * r / h))))  # edge nearest h

@@ -91,7 +91,10 @@ def test_a_sphere_that_does_not_fit_is_refused_with_the_reason():
     ref = _dome()
     with pytest.raises(fem.MeshError, match=r"lies .* mm inside the reference surface"):
         reference_mesh(ref, size_mm=SIZE, spheres=[((0.0, 0.0, 46.0), 10.0)])
-    with pytest.raises(fem.MeshError, match=r"inclusions 0 and 1 lie .* apart"):
+    with pytest.raises(
+        fem.MeshError,
+        match=r"inclusions at \[0.0, 0.0, 20.0\] and \[6.0, 0.0, 20.0\] mm lie -4.0 mm apart",
+    ):
         reference_mesh(
             ref, size_mm=SIZE, spheres=[((0.0, 0.0, 20.0), 10.0), ((6.0, 0.0, 20.0), 10.0)]
         )
@@ -113,3 +116,6 @@ def test_a_sphere_narrower_than_an_inner_element_is_not_meshed():
     centroids = mesh.nodes_mm[mesh.tets].mean(axis=1)
     assert inside.any()
     assert np.all(np.linalg.norm(centroids[inside] - CENTRE, axis=1) < 0.5 * DIAMETER)
+    # none wide enough: the plain mesh's body, no inclusion region
+    plain = reference_mesh(_dome(), size_mm=SIZE, spheres=[(small, 3.0)], sphere_size_mm=INNER)
+    assert not np.any(plain.region == fem.mesh.REGION_IDS["inclusion"])
