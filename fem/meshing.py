@@ -12,6 +12,7 @@ from .geometry import Phantom, sphere_surface
 from .mesh import REGION_IDS, MeshError, TetMesh, boundary_faces
 
 __all__ = [
+    "append_spheres",
     "check_max_dihedral_deg",
     "find_back_plane",
     "mesh_phantom",
@@ -402,14 +403,33 @@ def _skin_regions(mesh: TetMesh, thickness_mm: float, back_nodes) -> TetMesh:
     return mesh.with_regions(region, names)
 
 
-def _inclusion_plc(phantom: Phantom, vertices, faces):
-    verts, tris, off = [vertices], [faces], len(vertices)
-    for c, d in zip(phantom.inclusion_centres_mm, phantom.inclusion_diameters_mm, strict=True):
-        v, f = sphere_surface(c, d / 2, subdivisions=1 if d < 6 else 2)
+def append_spheres(vertices, faces, spheres) -> tuple[np.ndarray, np.ndarray]:
+    """A surface with icospheres appended as further closed surfaces (internal facets).
+
+    Parameters
+    ----------
+    vertices : ndarray, shape (n, 3)
+    faces : ndarray, shape (m, 3)
+    spheres : sequence of (centre_mm, radius_mm, subdivisions)
+
+    Returns
+    -------
+    vertices, faces : ndarray
+        The input first, then each sphere's (:func:`fem.geometry.sphere_surface`).
+    """
+    verts, tris, off = [np.asarray(vertices)], [np.asarray(faces)], len(vertices)
+    for c, r, level in spheres:
+        v, f = sphere_surface(c, r, subdivisions=level)
         verts.append(v)
         tris.append(f + off)
         off += len(v)
     return np.vstack(verts), np.vstack(tris)
+
+
+def _inclusion_plc(phantom: Phantom, vertices, faces):
+    pairs = zip(phantom.inclusion_centres_mm, phantom.inclusion_diameters_mm, strict=True)
+    spheres = [(c, d / 2, 1 if d < 6 else 2) for c, d in pairs]
+    return append_spheres(vertices, faces, spheres)
 
 
 def mesh_phantom(

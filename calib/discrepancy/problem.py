@@ -289,9 +289,11 @@ def _sized_model(work: WorkFolder, params: dict, model_on, size_mm: float, spher
     inside. Returns the model, the note that says the diagnosis mesh is not the
     calibration's, and the size.
     """
+    from ..model.reference import meshed_spheres
+
     inner = ""
-    if spheres is not None:  # reference_mesh meshes those at least one element wide
-        n, h = sum(float(d) >= spheres[1] for _, d in spheres[0]), spheres[1]
+    if spheres is not None:
+        n, h = len(meshed_spheres(*spheres)), spheres[1]
         inner = f" with its {n} inclusions {h:g} mm or wider meshed as spheres of {h:g} mm"
     try:
         fm = _recovered_model(work, model_on, size_mm, spheres)

@@ -9,11 +9,17 @@ import numpy as np
 
 import fem
 from fem.mesh import REGION_IDS
-from fem.meshing import remesh_surface, surface_defects, tag_node_sets, tetrahedralize
+from fem.meshing import (
+    append_spheres,
+    remesh_surface,
+    surface_defects,
+    tag_node_sets,
+    tetrahedralize,
+)
 
 from ..data.measurements import ScanMeasurement
 
-__all__ = ["reference_mesh"]
+__all__ = ["meshed_spheres", "reference_mesh"]
 
 log = logging.getLogger(__name__)
 
@@ -113,10 +119,18 @@ def reference_mesh(
         mesh = _remeshed(ref, plane, sizing)
     if mesh is None:  # repaired, or remeshed on the coarse grid (fem.meshing says which)
         mesh = tetrahedralize(v, f, keep_planes=[plane], **sizing)
+    mesh = _with_back(mesh, p0, n, size_mm)
+    back = len(mesh.node_set("back"))
+    log.info(
+        "reference mesh: %d tets, %d nodes, %d on the back plane", mesh.n_tets, mesh.n_nodes, back
+    )
+    return mesh
+
+
+def _with_back(mesh, p0, n, size_mm: float):
+    """The mesh with its node sets: ``back`` the boundary nodes on the plane ``(p0, n)``."""
     bnodes = np.unique(fem.boundary_faces(mesh.tets))
     back = bnodes[np.abs((mesh.nodes_mm[bnodes] - p0) @ n) < 1e-6 * size_mm]
-    log.info("reference mesh: %d tets, %d nodes, %d on the back plane", mesh.n_tets,
-             mesh.n_nodes, len(back))  # fmt: skip
     return tag_node_sets(mesh, back, n)
 
 
@@ -131,6 +145,16 @@ SPHERE_CLEARANCE = 0.125
 _ICO_EDGE = np.array([1.0515, 0.5823, 0.2993, 0.1508])
 
 
+def meshed_spheres(spheres, sphere_size_mm: float) -> list:
+    """The spheres :func:`reference_mesh` meshes: those at least ``sphere_size_mm`` wide.
+
+    Narrower ones are left to the volume-fraction tagging
+    (:func:`calib.model.effects.tag_effect_regions`): meshing them would force elements
+    smaller than the size asked for.
+    """
+    return [(c, d) for c, d in spheres if float(d) >= sphere_size_mm]
+
+
 def _sphere_plc(spheres, outer_v, outer_f, h: float):
     """The outer surface with the spheres appended as internal surfaces, and their seeds.
 
@@ -140,24 +164,21 @@ def _sphere_plc(spheres, outer_v, outer_f, h: float):
     """
     import open3d as o3d
 
-    from fem.geometry import sphere_surface
-
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
         o3d.core.Tensor(outer_v.astype(np.float32)), o3d.core.Tensor(outer_f.astype(np.uint32))
     )
-    centres = np.array([np.asarray(c, float).reshape(3) for c, _ in spheres])
-    radii = np.array([0.5 * float(d) for _, d in spheres])
-    if not np.all(radii > 0):
-        raise fem.MeshError(f"sphere diameters must be positive, got {2 * radii}")
-    keep = 2.0 * radii >= h  # smaller ones keep the mix by volume fraction
-    centres, radii = centres[keep], radii[keep]
-    if not len(centres):
+    diameters = np.array([float(d) for _, d in spheres])
+    if not np.all(diameters > 0):
+        raise fem.MeshError(f"sphere diameters must be positive, got {diameters}")
+    kept = meshed_spheres(spheres, h)
+    if not kept:
         return outer_v, outer_f, []
+    centres = np.array([np.asarray(c, float).reshape(3) for c, _ in kept])
+    radii = np.array([0.5 * float(d) for _, d in kept])
     # open3d's signed distance is negative inside a closed surface
     depth = -scene.compute_signed_distance(o3d.core.Tensor(centres.astype(np.float32))).numpy()
-    verts, tris, regions = [outer_v], [outer_f], []
-    off = len(outer_v)
+    surfaces, regions = [], []
     for i, (c, r) in enumerate(zip(centres, radii, strict=True)):
         if depth[i] < r + SPHERE_CLEARANCE * h:
             raise fem.MeshError(
@@ -175,12 +196,9 @@ def _sphere_plc(spheres, outer_v, outer_f, h: float):
                 f"{SPHERE_CLEARANCE * h:g} mm): they cannot be meshed as two spheres"
             )
         level = 1 + int(np.argmin(np.abs(np.log(_ICO_EDGE[1:] * r / h))))  # edge nearest h
-        v, f = sphere_surface(c, r, subdivisions=level)
-        verts.append(v)
-        tris.append(f + off)
-        off += len(v)
+        surfaces.append((c, r, level))
         regions.append((REGION_IDS["inclusion"], c, h**3 / (6.0 * np.sqrt(2.0))))
-    return np.vstack(verts), np.vstack(tris), regions
+    return *append_spheres(outer_v, outer_f, surfaces), regions
 
 
 def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, spheres, h):
@@ -224,18 +242,16 @@ def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, spheres, h):
         except fem.MeshError as exc:
             errors.append(f"{label}: {exc}")
             continue
-        bnodes = np.unique(fem.boundary_faces(mesh.tets))
-        back = bnodes[np.abs((mesh.nodes_mm[bnodes] - p0) @ n) < 1e-6 * size_mm]
         log.info(
             "reference mesh (%s surface) with %d inclusion spheres of %g mm elements: "
             "%d tets, %d nodes",
             label,
-            len(spheres),
+            len(meshed_spheres(spheres, h)),
             h,
             mesh.n_tets,
             mesh.n_nodes,
         )
-        return tag_node_sets(mesh, back, n)
+        return _with_back(mesh, p0, n, size_mm)
     raise fem.MeshError(
         "TetGen could not mesh the reference surface with its inclusions: " + "; ".join(errors)
     )
