@@ -223,7 +223,11 @@ def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, spheres, h):
     vol = size_mm**3 / (6.0 * np.sqrt(2.0))
     errors = []
     for label, outer in (("decimated", decimated), ("remeshed", remeshed)):
-        w, g = outer()
+        try:
+            w, g = outer()
+        except ValueError as exc:  # remesh_surface on a surface it cannot grid
+            errors.append(f"{label}: {exc}")
+            continue
         defects = surface_defects(w, g)
         if defects:  # TetGen may crash the process on a defective surface
             errors.append(f"{label}: surface is {', '.join(defects)}")

@@ -119,3 +119,20 @@ def test_a_sphere_narrower_than_an_inner_element_is_not_meshed():
     # none wide enough: the plain mesh's body, no inclusion region
     plain = reference_mesh(_dome(), size_mm=SIZE, spheres=[(small, 3.0)], sphere_size_mm=INNER)
     assert not np.any(plain.region == fem.mesh.REGION_IDS["inclusion"])
+
+
+def test_a_surface_neither_path_can_mesh_is_a_mesh_error_with_both_reasons(monkeypatch):
+    # the decimated surface reported defective and the remesh refusing the scan (as
+    # skimage's marching cubes does on a surface that encloses no grid cell): the caller
+    # gets the MeshError it handles, with each path's reason, not the remesh's ValueError
+    import calib.model.reference as reference
+
+    def no_grid(*args, **kwargs):
+        raise ValueError("Surface level must be within volume data range.")
+
+    monkeypatch.setattr(reference, "surface_defects", lambda v, f: ["self-intersecting"])
+    monkeypatch.setattr(reference, "remesh_surface", no_grid)
+    with pytest.raises(fem.MeshError) as err:
+        reference_mesh(_dome(), size_mm=SIZE, spheres=[(CENTRE, DIAMETER)], sphere_size_mm=INNER)
+    assert "decimated: surface is self-intersecting" in str(err.value)
+    assert "remeshed: Surface level must be within volume data range" in str(err.value)
