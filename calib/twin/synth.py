@@ -96,10 +96,10 @@ def _conforming_inclusions(eff: TruthEffects) -> bool:
     (:func:`fem.meshing.mesh_phantom` ``embed_inclusions``). Tagging the elements whose
     centroid lies in a sphere instead made a different body: on the quick twin (10 mm
     elements) seed 0's tagged volume is 3875 mm3 against the spheres' 3451, in elements
-    reaching past them, and at a stiffness ratio of 30 its surface print was 1.45 times
-    the conforming spheres' (rms 0.21 against 0.14 mm on the right lateral, correlation
-    0.99), a larger effect than the images show. Elsewhere they are bulk material and
-    the lighter mesh is the same body.
+    reaching past them, and at a stiffness ratio of 30 its surface print was 1.42-1.47
+    times the conforming spheres' (rms 0.28 against 0.19 mm on the right lateral,
+    correlation 0.99; ``benchmarks/bench_twin_inclusions.py``), a larger effect than the
+    images show. Elsewhere they are bulk material and the lighter mesh is the same body.
     """
     return eff.inclusion_ratio != 1.0
 
