@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -316,10 +315,11 @@ def _physical(name: str, v: float) -> str:
     """A refitted library parameter as the quantity the README gives: the stiffness ratio
     for skin and inclusions (the parameter is the ratio - 1), the springs for sliding (ln
     k), c2/c1 for mooney, nu for poisson; a nuisance's own name and value otherwise."""
-    if name in ("skin", "inclusions"):
-        return f"ratio {1.0 + v:.3g}"
-    if name == "sliding":
-        return f"springs {math.exp(v):.3g} Pa/mm"
+    from calib.discrepancy.refit import PHYSICAL
+
+    if name in PHYSICAL:
+        q = PHYSICAL[name]
+        return f"{q.label} {q.convert(v):.3g} {q.unit}".rstrip()
     if name == "mooney":
         return f"c2/c1 {v:.3g}"
     if name == "poisson":

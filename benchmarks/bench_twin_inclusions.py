@@ -31,20 +31,14 @@ import numpy as np
 import fem
 from calib.model.effects import TruthEffects, truth_model
 from calib.model.residuals import closest_on_surface
-from calib.twin.synth import G_SCANNER, PRESETS
+from calib.twin.synth import G_SCANNER, PRESETS, scanner_poses
 from fem.geometry import PhantomSpec, build_phantom
 from fem.meshing import mesh_phantom
-from fem.postures import random_scanner_pose
 
 
 def _gravities(seed: int, preset) -> dict[str, np.ndarray]:
     """The phantom-frame gravity of each posture, as ``synthesize`` draws them."""
-    rng = np.random.default_rng([seed, 2])
-    out = {}
-    for post in preset.postures:
-        T = random_scanner_pose(post.angle_deg, G_SCANNER, rng, centre_mm=[0.0, 0.0, 35.0])
-        out[post.name] = T[:3, :3].T @ G_SCANNER
-    return out
+    return {n: T[:3, :3].T @ G_SCANNER for n, T in scanner_poses(preset, seed).items()}
 
 
 def _surfaces(mesh: fem.TetMesh, ratio: float, gravities: dict, c1_pa: float) -> dict:

@@ -15,6 +15,7 @@ __all__ = [
     "append_spheres",
     "check_max_dihedral_deg",
     "find_back_plane",
+    "inclusion_spheres",
     "mesh_phantom",
     "remesh_surface",
     "surface_defects",
@@ -426,10 +427,26 @@ def append_spheres(vertices, faces, spheres) -> tuple[np.ndarray, np.ndarray]:
     return np.vstack(verts), np.vstack(tris)
 
 
-def _inclusion_plc(phantom: Phantom, vertices, faces):
+def inclusion_spheres(phantom: Phantom) -> list[tuple[np.ndarray, float, int]]:
+    """The phantom's inclusions as the spheres :func:`mesh_phantom` embeds.
+
+    Parameters
+    ----------
+    phantom : Phantom
+
+    Returns
+    -------
+    list of (centre_mm, radius_mm, subdivisions)
+        One per inclusion, in the phantom's order: centre, shape (3,), LPS mm; radius in
+        mm; the icosphere's subdivisions (1 below 6 mm diameter, else 2), as
+        :func:`append_spheres` takes them.
+    """
     pairs = zip(phantom.inclusion_centres_mm, phantom.inclusion_diameters_mm, strict=True)
-    spheres = [(c, d / 2, 1 if d < 6 else 2) for c, d in pairs]
-    return append_spheres(vertices, faces, spheres)
+    return [(np.asarray(c), float(d) / 2, 1 if d < 6 else 2) for c, d in pairs]
+
+
+def _inclusion_plc(phantom: Phantom, vertices, faces):
+    return append_spheres(vertices, faces, inclusion_spheres(phantom))
 
 
 def mesh_phantom(

@@ -79,7 +79,7 @@ from .problem import (
     plate_height_mm,
     rim_margin_of,
 )
-from .refit import Refit, lopo, refit
+from .refit import PHYSICAL, Refit, lopo, refit
 from .screen import Screen, offset_columns, sample_of, screen, session_noise
 
 __all__ = ["DEFAULT_EFFECTS", "Candidate", "Diagnosis", "DiagnosisOptions", "diagnose"]
@@ -1146,11 +1146,9 @@ def _intervals(fit: Refit, prob: Problem) -> dict:
             entry["c1_ci95_pa"] = [float(np.exp(v - lo)), float(np.exp(v + hi))]
             entry["noise_only_c1_ci95_pa"] = [float(np.exp(iv.lower)), float(np.exp(iv.upper))]
             entry["gci_ln_c1"] = gci
-        if name in ("skin", "inclusions"):  # the parameter is the ratio - 1
-            entry["ratio"] = float(1.0 + v)
-            entry["ratio_ci95"] = [1.0 + b for b in entry["ci95"]]
-        if name == "sliding":  # the parameter is ln k
-            entry["stiffness_pa_per_mm"] = float(np.exp(v))
-            entry["stiffness_ci95_pa_per_mm"] = [float(np.exp(b)) for b in entry["ci95"]]
+        if name in PHYSICAL:  # the ratio - 1 of skin and inclusions, ln k of sliding
+            q = PHYSICAL[name]
+            entry[q.key] = float(q.convert(v))
+            entry[q.ci_key] = [float(q.convert(b)) for b in entry["ci95"]]
         out[name] = entry
     return out

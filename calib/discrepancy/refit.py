@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,7 +36,7 @@ from ..model.effects import LIBRARY, EffectValues
 from .fields import MATERIAL_EFFECTS, SLIDING_PROBE_PA_PER_MM, FieldSet, effect_fields
 from .problem import Nuisance, Problem
 
-__all__ = ["Refit", "lopo", "refit"]
+__all__ = ["PHYSICAL", "PhysicalParameter", "Refit", "lopo", "refit"]
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +45,38 @@ GLOBAL = (*MATERIAL_EFFECTS, "sliding")  # continuous global effect parameters
 #: (``--effect sliding=K``). Above 1e6 Pa/mm a plate is clamped for every purpose here
 #: (slip below 1e-3 mm); below 10 the quick twin's plate has no FE solution.
 SLIDING_LN_K_BOUNDS = (math.log(10.0), math.log(1e6))
+
+
+@dataclass(frozen=True)
+class PhysicalParameter:
+    """How a refit parameter that is not itself a physical quantity reads as one.
+
+    Attributes
+    ----------
+    key, ci_key : str
+        ``diagnosis.json``'s keys of the quantity and of its 95 % interval.
+    label, unit : str
+        The quantity's short name and unit ("" when it has none).
+    convert : callable
+        The parameter's value to the quantity's.
+    """
+
+    key: str
+    ci_key: str
+    label: str
+    unit: str
+    convert: Callable[[float], float]
+
+
+_RATIO = PhysicalParameter("ratio", "ratio_ci95", "ratio", "", lambda v: 1.0 + v)  # ratio - 1
+#: The refit parameters that are not physical quantities (c2/c1 and nu are).
+PHYSICAL = {
+    "skin": _RATIO,
+    "inclusions": _RATIO,
+    "sliding": PhysicalParameter(  # ln k
+        "stiffness_pa_per_mm", "stiffness_ci95_pa_per_mm", "springs", "Pa/mm", math.exp
+    ),
+}
 _OFFSET_BOUNDS = (3.0, 3.0, 3.0, math.radians(2.0), math.radians(2.0), math.radians(2.0))
 _COMPONENTS = ("tx", "ty", "tz", "wx", "wy", "wz")
 

@@ -27,7 +27,7 @@ from fem.postures import random_scanner_pose
 from ..io import clean_stale, provenance, write_json_atomic
 from ..model.effects import TruthEffects, truth_model
 
-__all__ = ["PRESETS", "Posture", "TwinPreset", "synthesize"]
+__all__ = ["PRESETS", "Posture", "TwinPreset", "scanner_poses", "synthesize"]
 
 log = logging.getLogger(__name__)
 G_SCANNER = np.array([0.0, 1.0, 0.0])
@@ -244,6 +244,38 @@ def synthesize(
     return record
 
 
+def _pose_rng(seed: int) -> np.random.Generator:
+    # the poses' stream; the tumour hint draws from it after the poses
+    return np.random.default_rng([seed, 2])
+
+
+def _draw_poses(p: TwinPreset, rng: np.random.Generator) -> list[np.ndarray]:
+    centre_mm = [0.0, 0.0, 35.0]  # the phantom's middle above the plate, in the bore's centre
+    return [
+        random_scanner_pose(post.angle_deg, G_SCANNER, rng, centre_mm=centre_mm)
+        for post in p.postures
+    ]
+
+
+def scanner_poses(p: TwinPreset, seed: int) -> dict[str, np.ndarray]:
+    """The scanner poses :func:`synthesize` draws for a preset and seed.
+
+    Parameters
+    ----------
+    p : TwinPreset
+    seed : int
+
+    Returns
+    -------
+    dict of str to ndarray, shape (4, 4)
+        ``T_scanner_from_phantom`` per posture name, in the preset's order; the phantom-frame
+        gravity of a posture is ``T[:3, :3].T @ G_SCANNER``.
+    """
+    return dict(
+        zip((post.name for post in p.postures), _draw_poses(p, _pose_rng(seed)), strict=True)
+    )
+
+
 def _build(tmp: Path, p: TwinPreset, preset: str, seed: int, eff: TruthEffects, say) -> dict:
     import imaging
 
@@ -254,10 +286,9 @@ def _build(tmp: Path, p: TwinPreset, preset: str, seed: int, eff: TruthEffects, 
     model = truth_model(mesh, p.c1_pa, eff)
     disc = fem.discretize(mesh, model.support, formulation=p.formulation)
     say(f"truth mesh: {mesh.n_tets} tets, {disc.pattern.n_free} dofs")
-    rng = np.random.default_rng([seed, 2])
+    rng = _pose_rng(seed)
     scans, solved = {}, []
-    for i, post in enumerate(p.postures):
-        T = random_scanner_pose(post.angle_deg, G_SCANNER, rng, centre_mm=[0.0, 0.0, 35.0])
+    for i, (post, T) in enumerate(zip(p.postures, _draw_poses(p, rng), strict=True)):
         g_phantom = T[:3, :3].T @ G_SCANNER
         truth = _deform(phantom, mesh, model, disc, g_phantom, _warm_start(solved, g_phantom))
         solved.append((g_phantom, truth.solution.state))

@@ -171,16 +171,16 @@ def test_an_inclusions_twin_meshes_the_spheres_the_renderer_draws():
     # 3875 mm3 of 10 mm elements reaching past the spheres (3451 mm3) on this seed.
     import fem
     from fem.geometry import PhantomSpec, build_phantom, sphere_surface
+    from fem.meshing import inclusion_spheres
 
     p = calib.twin.synth.PRESETS["quick"]
     phantom = build_phantom(PhantomSpec(resolution_mm=p.phantom_resolution_mm, seed=0))
     mesh = calib.twin.synth._truth_mesh(phantom, p, TruthEffects(inclusion_ratio=5.0))
     inside = mesh.region == fem.mesh.REGION_IDS["inclusion"]
     centres, diameters = phantom.inclusion_centres_mm, phantom.inclusion_diameters_mm
-    levels = [1 if d < 6 else 2 for d in diameters]  # the subdivisions mesh_phantom uses
     polyhedra = sum(
-        _polyhedron_volume(*sphere_surface(c, d / 2, subdivisions=k))
-        for c, d, k in zip(centres, diameters, levels, strict=True)
+        _polyhedron_volume(*sphere_surface(c, r, subdivisions=k))
+        for c, r, k in inclusion_spheres(phantom)
     )
     assert mesh.volumes_mm3()[inside].sum() == pytest.approx(polyhedra, rel=1e-9)
     node_d = np.linalg.norm(mesh.nodes_mm[mesh.tets[inside]][:, :, None] - centres, axis=3)

@@ -21,7 +21,7 @@ from calib.discrepancy import DiagnosisError, DiagnosisOptions
 from calib.discrepancy.diagnose import _verdict
 from calib.discrepancy.fields import Column, FieldSet
 from calib.discrepancy.localise import region_labels, significance_map
-from calib.discrepancy.refit import Refit, lopo
+from calib.discrepancy.refit import PHYSICAL, SLIDING_LN_K_BOUNDS, Refit, lopo
 from calib.discrepancy.screen import screen
 from calib.model.effects import LIBRARY, EffectValues
 from calib.stats.coverage import NoiseSampler, misfit_pattern, phantom_sample, sag_sensitivity
@@ -1328,3 +1328,17 @@ def test_an_interval_cut_to_the_admissible_values_keeps_its_coverage():
             inside = (lo <= truth) & (truth <= hi)
             assert np.array_equal(inside, (cut[:, 0] <= truth) & (truth <= cut[:, 1]))
             assert np.any(cut != np.column_stack([lo, hi]))  # some were cut
+
+
+def test_the_refit_parameters_read_as_the_quantities_the_library_names():
+    # skin and inclusions are refitted as ratio - 1 (admissible above -1: a positive
+    # ratio), sliding as ln k within SLIDING_LN_K_BOUNDS (10 to 1e6 Pa/mm, refit.py);
+    # exact up to the exponential's round-off
+    from calib.model.effects import ADMISSIBLE
+
+    for name in ("skin", "inclusions"):
+        assert PHYSICAL[name].convert(ADMISSIBLE[name][0]) == 0.0
+        assert PHYSICAL[name].convert(7.0) == 8.0
+    springs = [PHYSICAL["sliding"].convert(b) for b in SLIDING_LN_K_BOUNDS]
+    assert springs == pytest.approx([10.0, 1e6], rel=1e-12)
+    assert set(PHYSICAL) <= set(LIBRARY)
