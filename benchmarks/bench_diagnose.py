@@ -28,7 +28,7 @@ apart and shown in the table.
 
     python benchmarks/bench_diagnose.py --out DIR [--cases skin,none,curve] [--seeds 0,1,2]
         [--null-seeds 0,1,2,3,4] [--ratios 2,4,8] [--only NAME,...] [--table]
-        [--rim-margin MM|element] [--noise-profile flat|plate] [--rim-profile]
+        [--rim-margin MM|element] [--noise-profile flat|plate] [--rim-profile] [--model-error]
         [--mesh-size MM] [--mesh-max-dihedral DEG] [--parameter-limits]
         [--sliding-springs PA_PER_MM] [--inclusion-ratio R]
 
@@ -40,7 +40,12 @@ apart and shown in the table.
 skipped). ``--rim-profile`` prints, for each
 finished null case, the residual of its c1-only fit with every measured point kept (rim
 margin 0) by height above the back plate: the measurement behind ``--rim-margin
-element`` (:func:`calib.discrepancy.problem.rim_margin_of`).
+element`` (:func:`calib.discrepancy.problem.rim_margin_of`). ``--model-error`` prints,
+for each finished effect case whose diagnosis refitted its hidden effect and whose seed
+has a finished null case (``none-s<seed>``), how much of what the effect adds to the
+residual over the null twin the best refit removes, beside the diagnosis' share (which
+counts the model's own error above the noise floor as residual to explain;
+:func:`model_error`).
 """
 
 from __future__ import annotations
@@ -501,6 +506,159 @@ def rim_profile(work: Path) -> list[tuple[str, list[tuple[int, float]]]]:
     return out
 
 
+def _judged_ms(
+    work: Path,
+    like: dict,
+    states: list,
+    *,
+    mesh_size_mm: float | None = None,
+    inclusion_mesh_mm: float | None = None,
+) -> dict:
+    """Mean squares beyond the share's margin (each scan's mean removed) of model states.
+
+    The diagnosis problem of ``work`` is built with the options of the diagnosis ``like``
+    (a ``diagnosis.json``: its held-out scan, rim margin, mesh options and the margin
+    beyond which it judged the share explained), so that an effect twin and the null twin
+    of its seed are read on the same points criterion. Each of ``states`` is None (the
+    c1-only fit, refitted; first), ``(c1 Pa, {effect: parameter})`` (re-solved by the FE
+    model) or an effect's name (refitted jointly with c1 from the c1-only fit).
+    ``mesh_size_mm``, ``inclusion_mesh_mm``: that model mesh instead (``diagnose
+    --mesh-size``, ``--inclusion-mesh``).
+    """
+    from types import SimpleNamespace
+
+    from calib.data import read_work
+    from calib.discrepancy.diagnose import _centred_ms, _judged_points
+    from calib.discrepancy.problem import build_problem
+    from calib.discrepancy.refit import refit
+    from calib.model.effects import LIBRARY
+
+    opt, sc = like["options"], like["scans"]
+    prob = build_problem(
+        read_work(work),
+        holdout=sc["holdout"] or "none",
+        rim_margin_mm=sc["rim_margin_mm"],
+        mesh_size_mm=mesh_size_mm or opt.get("mesh_size_mm"),
+        inclusion_mesh_mm=inclusion_mesh_mm or opt.get("inclusion_mesh_mm"),
+    )
+    margin, judged = _judged_points(prob, sc["explained_margin_mm"])
+    fits, null = [], None
+    for at in states:
+        if at is None or isinstance(at, str):
+            start = None if null is None else null.theta
+            fit = refit(prob, () if at is None else (at,), say=lambda m: None, theta0=start)
+            null = fit if at is None else null
+            c1, res = fit.c1_pa, fit.fields.residual
+            params = {n: fit.parameter(n) for n in fit.names[1:]}
+        else:
+            (c1, params), values = at, prob.base
+            for name, v in params.items():
+                values = LIBRARY[name].set(values, v)
+            states_ = prob.solve(float(np.log(c1)), values, prob.scans, gradient=False)
+            res = {n: prob.residuals(n, states_[n].positions_mm, None, None).r for n in prob.scans}
+        ms = _centred_ms(SimpleNamespace(residual=res), judged)
+        fits.append({"c1_pa": c1, "parameters": params, "ms_mm2": ms})
+    return {"fits": fits, "margin_mm": margin, "mesh_size_mm": prob.mesh_size_mm}
+
+
+def model_error(root: Path, row: dict, inclusion_mesh_mm: float | None = None) -> dict | None:
+    """How much of what a hidden effect adds the best refit of it removes, beyond the margin.
+
+    For an effect case whose diagnosis refitted its hidden effect, with a null case of the
+    same seed under ``root``: the mean squares beyond the margin the share was judged on
+    (:func:`_judged_ms`) of the c1-only fit (``before``), of that refit re-solved
+    (``after``), and of the null twin's c1-only fit on the same points criterion
+    (``null``; on a mesh of the effect case's size where its own differs). The diagnosis'
+    share is ``(before - after) / (before - floor)``, the floor the short-range noise
+    (``diagnosis.json``); ``(before - after) / (before - null)`` is the share of what the
+    effect adds over the null twin, whose residual above the floor is the model's own
+    error (mesh, reference surface), which no library effect removes. With
+    ``inclusion_mesh_mm`` both twins are read on a model mesh with their segmented
+    inclusions meshed as spheres of that size, the hidden effect refitted there (the
+    diagnosis' share is then not recomputed: ``share`` is that refit's against the
+    diagnosis' floor). None where there is no such refit or null case.
+    """
+    work = root / row["case"] / "work"
+    null_work = root / f"none-s{row['seed']}" / "work"
+    doc = json.loads((work / "diagnosis.json").read_text())
+    cands = [c for c in doc["candidates"] if c["effect"] == row["hidden"] and c["parameters"]]
+    if not cands or not (null_work / "calibration.json").is_file():
+        return None
+    best = max(cands, key=lambda c: c["explained"])
+    if inclusion_mesh_mm is None:
+        own = _judged_ms(work, doc, [None, (best["c1_pa"], best["parameters"])])
+    else:
+        from calib.discrepancy import DiagnosisError
+
+        try:
+            own = _judged_ms(work, doc, [None, row["hidden"]], inclusion_mesh_mm=inclusion_mesh_mm)
+        except DiagnosisError:  # no straight stress-free reference: the next size, as the
+            size = float(json.loads((work / "calibration.json").read_text())["mesh"]["size_mm"])
+            own = _judged_ms(  # diagnosis takes for a prestressed calibration (+2 mm)
+                work,
+                doc,
+                [None, row["hidden"]],
+                mesh_size_mm=size + 2.0,
+                inclusion_mesh_mm=inclusion_mesh_mm,
+            )
+        best = {**own["fits"][1], "explained": float("nan")}
+    size, im = own["mesh_size_mm"], {"inclusion_mesh_mm": inclusion_mesh_mm}
+    null = _judged_ms(
+        null_work, doc, [None], mesh_size_mm=size if inclusion_mesh_mm else None, **im
+    )
+    if null["mesh_size_mm"] != size:  # the null twin on the same size
+        null = _judged_ms(null_work, doc, [None], mesh_size_mm=size, **im)
+    floor = float(doc["noise"]["explained_floor_rms_mm"]) ** 2
+    b, a = own["fits"][0]["ms_mm2"], own["fits"][1]["ms_mm2"]
+    n = null["fits"][0]["ms_mm2"]
+    return {
+        "case": row["case"],
+        "candidate": best,
+        "mesh_size_mm": size,
+        "margin_mm": own["margin_mm"],
+        "null_mesh_size_mm": null["mesh_size_mm"],
+        "ms_mm2": {"before": b, "after": a, "null": n, "floor": floor},
+        "share": (b - a) / (b - floor),
+        "share_of_added": (b - a) / (b - n) if b > n else float("nan"),
+    }
+
+
+def _model_error_table(root: Path, rows: list[dict], inclusion_mesh_mm: float | None) -> None:
+    print(
+        "beyond the share's margin: rms (mm) of the c1-only fit, of the best refit of the "
+        "hidden effect, of the null twin of the same seed, and the noise floor; the share "
+        "explained (diagnosis.json, recomputed) and the share of what the effect adds over "
+        "the null twin"
+    )
+    print(
+        f"{'case':22s} {'mesh':>5s} {'margin':>6s} {'refit':>18s} {'before':>7s} {'after':>7s} "
+        f"{'null':>7s} {'floor':>7s} {'share':>13s} {'of added':>8s}"
+    )
+    for r in rows:
+        if r["hidden"] == "none" or r.get("failed"):
+            continue
+        from calib.discrepancy import DiagnosisError
+
+        try:
+            m = model_error(root, r, inclusion_mesh_mm)
+        except DiagnosisError as exc:
+            print(f"{r['case']:22s} no model: {exc}", flush=True)
+            continue
+        if m is None:
+            continue
+        c = m["candidate"]
+        refit_s = ", ".join(f"{k} {v:.3g}" for k, v in c["parameters"].items())
+        rms = " ".join(f"{np.sqrt(v):7.4f}" for v in m["ms_mm2"].values())
+        same = m["mesh_size_mm"] == m["null_mesh_size_mm"]
+        told = "     –" if np.isnan(c["explained"]) else f"{c['explained']:6.0%}"
+        print(
+            f"{m['case']:22s} {m['mesh_size_mm']:5.3g} {m['margin_mm']:6.3g} {refit_s:>18s} "
+            f"{rms} {told} {m['share']:6.0%} {m['share_of_added']:8.0%}"
+            + ("" if same else "  (null twin on another mesh)"),
+            flush=True,
+        )
+
+
 def _rim_table(root: Path, rows: list[dict]) -> None:
     from calib.stats.profile import HEIGHT_BANDS_MM  # the bands of --noise-profile plate
 
@@ -541,7 +699,9 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--null-seeds", default="0,1,2,3,4")
     ap.add_argument("--ratios", default="2,4,8")
-    ap.add_argument("--only", default="", help="run only these case names")
+    ap.add_argument(
+        "--only", default="", help="run (with --model-error: read) only these case names"
+    )
     ap.add_argument(
         "--sliding-springs",
         type=float,
@@ -603,6 +763,13 @@ def main() -> None:
         "(diagnose --inclusion-mesh)",
     )
     ap.add_argument(
+        "--model-error",
+        action="store_true",
+        help="print, for each finished effect case with a null case of its seed, how much "
+        "of what the hidden effect adds its best refit removes (FE re-solves; with "
+        "--inclusion-mesh MM both twins on that mesh, the hidden effect refitted there)",
+    )
+    ap.add_argument(
         "--rim-profile",
         action="store_true",
         help="print the null cases' residual by height above the back plate (c1-only fits)",
@@ -617,6 +784,12 @@ def main() -> None:
     store.mkdir(parents=True, exist_ok=True)
     if args.rim_profile:
         _rim_table(args.out, [json.loads(p.read_text()) for p in sorted(store.glob("*.json"))])
+        return
+    if args.model_error:
+        rows = [json.loads(p.read_text()) for p in sorted(store.glob("*.json"))]
+        keep = set(args.only.split(",")) if args.only else None
+        rows = [r for r in rows if keep is None or r["case"] in keep]
+        _model_error_table(args.out, rows, args.inclusion_mesh)
         return
     if not args.table:
         from calib.discrepancy.problem import parse_rim_margin
