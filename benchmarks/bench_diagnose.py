@@ -581,7 +581,11 @@ def model_error(root: Path, row: dict, inclusion_mesh_mm: float | None = None) -
     work = root / row["case"] / "work"
     null_work = root / f"none-s{row['seed']}" / "work"
     doc = json.loads((work / "diagnosis.json").read_text())
-    cands = [c for c in doc["candidates"] if c["effect"] == row["hidden"] and c["parameters"]]
+    cands = [  # refitted from the c1-only fit (round 1): "before" is that fit
+        c
+        for c in doc["candidates"]
+        if c["effect"] == row["hidden"] and c["parameters"] and c["round"] == 1
+    ]
     if not cands or not (null_work / "calibration.json").is_file():
         return None
     best = max(cands, key=lambda c: c["explained"])
@@ -589,18 +593,24 @@ def model_error(root: Path, row: dict, inclusion_mesh_mm: float | None = None) -
         own = _judged_ms(work, doc, [None, (best["c1_pa"], best["parameters"])])
     else:
         from calib.discrepancy import DiagnosisError
+        from calib.discrepancy.problem import next_mesh_sizes
 
-        try:
-            own = _judged_ms(work, doc, [None, row["hidden"]], inclusion_mesh_mm=inclusion_mesh_mm)
-        except DiagnosisError:  # no straight stress-free reference: the next size, as the
-            size = float(json.loads((work / "calibration.json").read_text())["mesh"]["size_mm"])
-            own = _judged_ms(  # diagnosis takes for a prestressed calibration (+2 mm)
-                work,
-                doc,
-                [None, row["hidden"]],
-                mesh_size_mm=size + 2.0,
-                inclusion_mesh_mm=inclusion_mesh_mm,
-            )
+        record = json.loads((work / "calibration.json").read_text())
+        params = record["provenance"]["parameters"]
+        sizes = [None, *next_mesh_sizes(params)]  # as the diagnosis of a prestressed one
+        for k, s in enumerate(sizes):
+            try:
+                own = _judged_ms(
+                    work,
+                    doc,
+                    [None, row["hidden"]],
+                    mesh_size_mm=s,
+                    inclusion_mesh_mm=inclusion_mesh_mm,
+                )
+                break
+            except DiagnosisError:  # no model mesh of this size: the next
+                if k == len(sizes) - 1:
+                    raise
         best = {**own["fits"][1], "explained": float("nan")}
     size, im = own["mesh_size_mm"], {"inclusion_mesh_mm": inclusion_mesh_mm}
     null = _judged_ms(
@@ -634,11 +644,11 @@ def _model_error_table(root: Path, rows: list[dict], inclusion_mesh_mm: float | 
         f"{'case':22s} {'mesh':>5s} {'margin':>6s} {'refit':>18s} {'before':>7s} {'after':>7s} "
         f"{'null':>7s} {'floor':>7s} {'share':>13s} {'of added':>8s}"
     )
+    from calib.discrepancy import DiagnosisError
+
     for r in rows:
         if r["hidden"] == "none" or r.get("failed"):
             continue
-        from calib.discrepancy import DiagnosisError
-
         try:
             m = model_error(root, r, inclusion_mesh_mm)
         except DiagnosisError as exc:

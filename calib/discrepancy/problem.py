@@ -43,6 +43,7 @@ __all__ = [
     "Nuisance",
     "Problem",
     "build_problem",
+    "next_mesh_sizes",
     "parse_rim_margin",
     "plate_height_mm",
     "rim_margin_of",
@@ -312,6 +313,26 @@ def _sized_model(work: WorkFolder, params: dict, model_on, size_mm: float, spher
     )
 
 
+def next_mesh_sizes(params: dict) -> list[float]:
+    """The model mesh sizes a diagnosis tries after the calibration's own (mm).
+
+    The calibration's retry sizes (``mesh_retry_mm``) other than its own size, else the
+    own size + 2 and + 4 mm.
+
+    Parameters
+    ----------
+    params : dict
+        The calibration's parameters (``calibration.json``'s ``provenance.parameters``).
+
+    Returns
+    -------
+    list of float
+    """
+    size = float(params.get("mesh_size_mm", 12.0))
+    sizes = [float(s) for s in params.get("mesh_retry_mm") or () if float(s) != size]
+    return sizes or [size + 2.0, size + 4.0]
+
+
 def _straight_model(
     work: WorkFolder,
     params: dict,
@@ -333,8 +354,7 @@ def _straight_model(
     mesh size.
     """
     size = float(params.get("mesh_size_mm", 12.0))
-    sizes = [float(s) for s in params.get("mesh_retry_mm") or () if float(s) != size]
-    sizes = ([size] if own_size else []) + (sizes or [size + 2.0, size + 4.0])
+    sizes = ([size] if own_size else []) + next_mesh_sizes(params)
     tried = []
     for s in sizes:
         try:
