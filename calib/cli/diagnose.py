@@ -64,7 +64,9 @@ def diagnose(
             "--inclusion-mesh",
             help="Diagnose on a model mesh (of --mesh-size, else the calibration's size) "
             "whose segmented inclusions are meshed as spheres with elements of this size "
-            "(mm) inside: a stiff inclusion's print is local (slower).",
+            "(mm) inside: a stiff inclusion's print is local (slower). Without "
+            "--mesh-size, where the calibration's size admits no straight stress-free "
+            "reference, the next size is taken, and said.",
         ),
     ] = None,
     noise_profile: Annotated[

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -282,35 +283,60 @@ def _recovered_model(work: WorkFolder, model_on, size_mm: float, spheres=None):
     return fm
 
 
-def _sized_model(work: WorkFolder, params: dict, model_on, size_mm: float, spheres=None):
+def _sized_model(
+    work: WorkFolder,
+    params: dict,
+    model_on,
+    size_mm: float,
+    spheres=None,
+    *,
+    then: Sequence[float] = (),
+):
     """The model on a mesh of ``size_mm`` (asked for), its stress-free reference recovered.
 
     Built from the reference scan as the calibration builds its own
     (:func:`_recovered_model`), with ``spheres`` ``(inclusions, element size mm)`` meshed
-    inside. Returns the model, the note that says the diagnosis mesh is not the
-    calibration's, and the size.
+    inside. Where the recovery at the calibrated c1 fails on ``size_mm``, the sizes
+    ``then`` are tried in turn (empty: a size asked for is not replaced) and the note
+    says why the diagnosis runs on another. Returns the model, the note that says the
+    diagnosis mesh is not the calibration's, and the size.
     """
     from ..model.reference import meshed_spheres
 
     inner = ""
     if spheres is not None:
         n, h = len(meshed_spheres(*spheres)), spheres[1]
-        inner = f" with its {n} inclusions {h:g} mm or wider meshed as spheres of {h:g} mm"
-    try:
-        fm = _recovered_model(work, model_on, size_mm, spheres)
-    except fem.MeshError as exc:
-        raise DiagnosisError(f"{work.path}: no {size_mm:g} mm model mesh{inner}: {exc}") from exc
-    except fem.ConvergenceError as exc:
-        raise DiagnosisError(
-            f"{work.path}: no straight stress-free reference on a {size_mm:g} mm model mesh"
-            f"{inner} at the calibrated c1 ({exc}); choose another --mesh-size"
-        ) from exc
+        them = "inclusion" if n == 1 else "inclusions"
+        inner = f" with its {n} {them} {h:g} mm or wider meshed as spheres of {h:g} mm"
     own = float(params.get("mesh_size_mm", 12.0))
-    return (
-        fm,
-        f"diagnosed on a {size_mm:g} mm mesh{inner}, as asked (the calibration's: {own:g} mm)",
-        size_mm,
+    failed = []
+    for s in [size_mm, *then]:
+        try:
+            fm = _recovered_model(work, model_on, s, spheres)
+        except fem.MeshError as exc:
+            raise DiagnosisError(f"{work.path}: no {s:g} mm model mesh{inner}: {exc}") from exc
+        except fem.ConvergenceError as exc:
+            failed.append((s, exc))
+            continue
+        if not failed:
+            note = f"diagnosed on a {s:g} mm mesh{inner}, as asked (the calibration's: {own:g} mm)"
+            return fm, note, s
+        note = (
+            f"no straight stress-free reference on a {_tried(failed, inner)}; diagnosed on "
+            f"the {s:g} mm mesh{inner} (the calibration's: {own:g} mm)"
+        )
+        return fm, note, s
+    raise DiagnosisError(
+        f"{work.path}: no straight stress-free reference on a {_tried(failed, inner)}; "
+        "choose another --mesh-size"
     )
+
+
+def _tried(failed: list, inner: str) -> str:
+    """The model meshes whose recovery at the calibrated c1 failed, each with why."""
+    (s, exc), rest = failed[0], failed[1:]
+    said = f"{s:g} mm model mesh{inner} at the calibrated c1 ({exc})"
+    return said + "".join(f" nor on a {t:g} mm one ({e})" for t, e in rest)
 
 
 def next_mesh_sizes(params: dict) -> list[float]:
@@ -533,7 +559,10 @@ def build_problem(
         A model mesh built from the reference scan (of ``mesh_size_mm``, else the
         calibration's size) with the segmented inclusions meshed as spheres of elements
         of this size (:func:`calib.model.reference.reference_mesh`); its stress-free
-        reference is recovered at the calibrated c1.
+        reference is recovered at the calibrated c1. Without ``mesh_size_mm``, where that
+        recovery fails on the calibration's size, the next sizes
+        (:func:`next_mesh_sizes`) are tried, as for a prestressed calibration, and the
+        mesh note says so; a size asked for is never replaced.
 
     Raises
     ------
@@ -580,8 +609,10 @@ def build_problem(
             )
         own = float(params.get("mesh_size_mm", 12.0))
         size = own if mesh_size_mm is None else mesh_size_mm
+        # a size asked for stays; the calibration's gives way to its next sizes
+        then = next_mesh_sizes(params) if mesh_size_mm is None else []
         spheres = (inclusions, inclusion_mesh_mm)
-        fm, note, size = _sized_model(work, params, model_on, size, spheres=spheres)
+        fm, note, size = _sized_model(work, params, model_on, size, spheres, then=then)
     elif mesh_size_mm is not None:
         fm, note, size = _sized_model(work, params, model_on, mesh_size_mm)
     elif prestressed:

@@ -338,6 +338,51 @@ def test_inclusions_meshed_as_spheres_are_passed_on_and_said(monkeypatch):
         _sized_model(work, {"mesh_size_mm": 14.0}, Model, 14.0, (spheres, 3.0))
     with pytest.raises(DiagnosisError, match="inclusion_mesh_mm must lie in"):
         DiagnosisOptions(mesh_size_mm=10.0, inclusion_mesh_mm=12.0)
+
+
+def test_inclusions_meshed_on_the_calibrations_size_fall_back_as_the_plain_mesh_does(
+    monkeypatch,
+):
+    # quick x30 inclusions twin, seed 1: its 14 mm mesh with 4 mm spheres had no straight
+    # stress-free reference at the calibrated c1, and diagnose --inclusion-mesh stopped
+    # where the plain diagnosis moves on to 16 mm. Now the calibration's size gives way
+    # to its next sizes (said in the note); a size asked for with --mesh-size does not
+    import calib.model.reference as reference
+    import fem
+    from calib.discrepancy.problem import _sized_model, next_mesh_sizes
+
+    def mesh(ref, size_mm, max_dihedral_deg, spheres=(), sphere_size_mm=None):
+        return size_mm
+
+    monkeypatch.setattr(reference, "reference_mesh", mesh)
+
+    class Model:
+        def __init__(self, mesh):
+            self.mesh = mesh
+
+        def stress_free(self, theta):
+            if self.mesh < 16.0:
+                raise fem.ConvergenceError(f"load factor 0.{int(self.mesh)}")
+
+    ref = SimpleNamespace(reference="r")
+    work = SimpleNamespace(path="WORK", measurements=ref, record={"c1_pa": 423.4})
+    params = {"mesh_size_mm": 14.0}
+    spheres = ([((0.0, 0.0, 20.0), 12.0)], 4.0)
+    then = next_mesh_sizes(params)
+    assert then == [16.0, 18.0]
+    fm, note, size = _sized_model(work, params, Model, 14.0, spheres, then=then)
+    inner = "with its 1 inclusion 4 mm or wider meshed as spheres of 4 mm"
+    assert fm.mesh == size == 16.0
+    assert note == (
+        f"no straight stress-free reference on a 14 mm model mesh {inner} at the "
+        f"calibrated c1 (load factor 0.14); diagnosed on the 16 mm mesh {inner} (the "
+        "calibration's: 14 mm)"
+    )
+    both = r"on a 12 mm model mesh .*\(load factor 0.12\) nor on a 14 mm one \(load factor 0.14\)"
+    with pytest.raises(DiagnosisError, match=both + "; choose another --mesh-size"):
+        _sized_model(work, params, Model, 12.0, spheres, then=[14.0])
+    with pytest.raises(DiagnosisError, match=r"on a 12 mm model mesh .*0.12\); choose"):
+        _sized_model(work, params, Model, 12.0, spheres)  # asked for: never replaced
     with pytest.raises(DiagnosisError, match="inclusion_mesh_mm must lie in"):
         DiagnosisOptions(inclusion_mesh_mm=0.5)
 
@@ -1342,3 +1387,31 @@ def test_the_refit_parameters_read_as_the_quantities_the_library_names():
     springs = [PHYSICAL["sliding"].convert(b) for b in SLIDING_LN_K_BOUNDS]
     assert springs == pytest.approx([10.0, 1e6], rel=1e-12)
     assert set(PHYSICAL) <= set(LIBRARY)
+
+
+def test_the_model_error_parts_pool_to_the_share_s_mean_square():
+    # bench_diagnose --model-error's rows by scan, localisation region and height band:
+    # each part's centred mean square, weighted by its points, pools back to the mean
+    # square the share is judged on (calib.discrepancy.diagnose._centred_ms), a second
+    # code path; the parts' shares of what the effect adds read the same formula
+    from calib.discrepancy.diagnose import _centred_ms
+
+    bench = _bench_module()
+    rng = np.random.default_rng(3)
+    res = {"a": rng.normal(0.2, 0.1, 50), "b": rng.normal(-0.1, 0.3, 80)}
+    judged = {n: rng.random(len(r)) < 0.7 for n, r in res.items()}
+    kinds = {
+        "region": {n: rng.choice(["apex", "bulk", "rim"], int(k.sum())) for n, k in judged.items()},
+        "height": {n: rng.choice(["14-20 mm", ">45 mm"], int(k.sum())) for n, k in judged.items()},
+    }
+    parts = bench._ms_by_part(res, judged, kinds)
+    total = _centred_ms(SimpleNamespace(residual=res), judged)
+    for kind in ("scan", "region", "height"):
+        mine = [v for k, v in parts.items() if k.startswith(kind + " ")]
+        n = sum(k for _, k in mine)
+        assert n == sum(int(k.sum()) for k in judged.values())
+        assert sum(ms * k for ms, k in mine) / n == pytest.approx(total, rel=1e-12)
+    after = {k: (0.5 * ms, n) for k, (ms, n) in parts.items()}
+    null = {k: (0.25 * ms, n) for k, (ms, n) in parts.items()}
+    rows = bench._parts(parts, after, null)  # half of each part removed, a quarter left
+    assert all(r["of_added"] == pytest.approx(2 / 3) for r in rows.values())
