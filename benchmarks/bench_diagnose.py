@@ -528,7 +528,7 @@ def _judged_ms(
     from types import SimpleNamespace
 
     from calib.data import read_work
-    from calib.discrepancy.diagnose import _centred_ms, _judged_points
+    from calib.discrepancy.diagnose import _centred_ms, _judged_points, _scan_regions
     from calib.discrepancy.problem import build_problem
     from calib.discrepancy.refit import refit
     from calib.model.effects import LIBRARY
@@ -542,6 +542,10 @@ def _judged_ms(
         inclusion_mesh_mm=inclusion_mesh_mm or opt.get("inclusion_mesh_mm"),
     )
     margin, judged = _judged_points(prob, sc["explained_margin_mm"])
+    labels = {  # per part kind, each judged point's part
+        "region": {n: _scan_regions(prob, n, prob.points[n])[judged[n]] for n in prob.scans},
+        "height": {n: _height_band(prob, n, judged[n], margin) for n in prob.scans},
+    }
     fits, null = [], None
     for at in states:
         if at is None or isinstance(at, str):
@@ -557,8 +561,44 @@ def _judged_ms(
             states_ = prob.solve(float(np.log(c1)), values, prob.scans, gradient=False)
             res = {n: prob.residuals(n, states_[n].positions_mm, None, None).r for n in prob.scans}
         ms = _centred_ms(SimpleNamespace(residual=res), judged)
-        fits.append({"c1_pa": c1, "parameters": params, "ms_mm2": ms})
+        parts = _ms_by_part(res, judged, labels)
+        fits.append({"c1_pa": c1, "parameters": params, "ms_mm2": ms, "parts": parts})
     return {"fits": fits, "margin_mm": margin, "mesh_size_mm": prob.mesh_size_mm}
+
+
+#: Height bands above the back plate (mm) of --model-error's parts, beyond the margin.
+PART_HEIGHTS_MM = (20.0, 30.0, 45.0)
+
+
+def _height_band(prob, name: str, keep: np.ndarray, margin_mm: float) -> np.ndarray:
+    """Each judged point's band of height above its scan's back plate (from the margin
+    up, :data:`PART_HEIGHTS_MM`), as a label."""
+    from calib.discrepancy.problem import plate_height_mm
+
+    h = plate_height_mm(prob.measurement(name), prob.points[name][keep])
+    edges = [e for e in PART_HEIGHTS_MM if e > margin_mm]
+    lows = [margin_mm, *edges]
+    names = [f"{a:g}-{b:g} mm" for a, b in zip(lows[:-1], edges, strict=True)]
+    names.append(f">{lows[-1]:g} mm")
+    return np.array(names)[np.searchsorted(edges, h, side="right")]
+
+
+def _ms_by_part(res: dict, judged: dict, labels: dict) -> dict:
+    """A fit's centred mean squares by scan and by each labelling's parts (pooled).
+
+    Each scan's residual less its mean over the judged points, as the share's mean
+    square (:func:`calib.discrepancy.diagnose._centred_ms`); ``labels`` maps a kind
+    ("region", "height") to each scan's labels of those points. Returns
+    ``{"scan NAME" | "KIND PART": (mm^2, points)}``.
+    """
+    centred = {n: r[judged[n]] - r[judged[n]].mean() for n, r in res.items()}
+    out = {f"scan {n}": (float(np.mean(c**2)), len(c)) for n, c in centred.items()}
+    sq = np.concatenate(list(centred.values())) ** 2
+    for kind, of in labels.items():
+        lab = np.concatenate([of[n] for n in centred])
+        for g in sorted(set(lab)):
+            out[f"{kind} {g}"] = (float(np.mean(sq[lab == g])), int(np.sum(lab == g)))
+    return out
 
 
 def model_error(root: Path, row: dict, inclusion_mesh_mm: float | None = None) -> dict | None:
@@ -591,26 +631,8 @@ def model_error(root: Path, row: dict, inclusion_mesh_mm: float | None = None) -
     best = max(cands, key=lambda c: c["explained"])
     if inclusion_mesh_mm is None:
         own = _judged_ms(work, doc, [None, (best["c1_pa"], best["parameters"])])
-    else:
-        from calib.discrepancy import DiagnosisError
-        from calib.discrepancy.problem import next_mesh_sizes
-
-        record = json.loads((work / "calibration.json").read_text())
-        params = record["provenance"]["parameters"]
-        sizes = [None, *next_mesh_sizes(params)]  # as the diagnosis of a prestressed one
-        for k, s in enumerate(sizes):
-            try:
-                own = _judged_ms(
-                    work,
-                    doc,
-                    [None, row["hidden"]],
-                    mesh_size_mm=s,
-                    inclusion_mesh_mm=inclusion_mesh_mm,
-                )
-                break
-            except DiagnosisError:  # no model mesh of this size: the next
-                if k == len(sizes) - 1:
-                    raise
+    else:  # the calibration's size, else its next (build_problem), as the diagnosis does
+        own = _judged_ms(work, doc, [None, row["hidden"]], inclusion_mesh_mm=inclusion_mesh_mm)
         best = {**own["fits"][1], "explained": float("nan")}
     size, im = own["mesh_size_mm"], {"inclusion_mesh_mm": inclusion_mesh_mm}
     null = _judged_ms(
@@ -630,7 +652,19 @@ def model_error(root: Path, row: dict, inclusion_mesh_mm: float | None = None) -
         "ms_mm2": {"before": b, "after": a, "null": n, "floor": floor},
         "share": (b - a) / (b - floor),
         "share_of_added": (b - a) / (b - n) if b > n else float("nan"),
+        "parts": _parts(own["fits"][0]["parts"], own["fits"][1]["parts"], null["fits"][0]["parts"]),
     }
+
+
+def _parts(before: dict, after: dict, null: dict) -> dict:
+    """Per part (:func:`_ms_by_part`): mean squares before, after and of the null twin
+    (mm^2), the effect case's point count, and the share of what the effect adds there."""
+    out = {}
+    for part, (b, k) in before.items():
+        a, n = after[part][0], null.get(part, (float("nan"), 0))[0]
+        added = (b - a) / (b - n) if b > n else float("nan")
+        out[part] = {"before": b, "after": a, "null": n, "n": k, "of_added": added}
+    return out
 
 
 def _model_error_table(root: Path, rows: list[dict], inclusion_mesh_mm: float | None) -> None:
@@ -667,6 +701,10 @@ def _model_error_table(root: Path, rows: list[dict], inclusion_mesh_mm: float | 
             + ("" if same else "  (null twin on another mesh)"),
             flush=True,
         )
+        for part, v in m["parts"].items():  # where the effect's print and the refit's differ
+            rms = " ".join(f"{np.sqrt(v[k]):7.4f}" for k in ("before", "after", "null"))
+            added = "     –" if np.isnan(v["of_added"]) else f"{v['of_added']:8.0%}"
+            print(f"  {part:39s} {v['n']:6d} {rms} {'':29s} {added}", flush=True)
 
 
 def _rim_table(root: Path, rows: list[dict]) -> None:

@@ -15,7 +15,11 @@ inclusions at the bulk's stiffness and at ``--ratio`` times it, and prints per p
 
 and per seed the stiff volume of each mesh against the spheres' (mm3).
 
-    python benchmarks/bench_twin_inclusions.py [--seeds 0] [--ratio 30]
+    python benchmarks/bench_twin_inclusions.py [--seeds 0] [--ratio 30] [--finer MM]
+
+With ``--finer MM`` the twin's own conforming mesh is compared instead with a conforming
+mesh of MM elements (the columns "tagged" then read "twin", "conforming" the finer
+mesh): whether the twin's stiff-inclusion print is converged in its mesh.
 
 One solve per posture and mesh; the conforming mesh (about 36,000 elements on the quick
 twin) takes most of the time, a few minutes per seed on one core.
@@ -61,9 +65,20 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default="0")
     ap.add_argument("--ratio", type=float, default=30.0)
+    ap.add_argument(
+        "--finer",
+        type=float,
+        default=None,
+        help="compare the twin's conforming mesh with a conforming one of this size (mm)",
+    )
     args = ap.parse_args()
     p = PRESETS["quick"]
     print(f"quick twin, inclusions {args.ratio:g} x the bulk, c1 = {p.c1_pa:g} Pa")
+    meshes = [("tagged", False, p.truth_mesh_mm), ("conforming", True, p.truth_mesh_mm)]
+    if args.finer is not None:  # the twin's own mesh first: its surface nodes sample
+        twin = f"the twin's conforming {p.truth_mesh_mm:g} mm mesh"
+        print(f"tagged: {twin}; conforming: {args.finer:g} mm")
+        meshes = [("tagged", True, p.truth_mesh_mm), ("conforming", True, args.finer)]
     print(
         f"{'seed':>4} {'posture':14s} {'tagged rms':>10} {'max':>6} {'conform rms':>11} "
         f"{'max':>6} {'slope':>6} {'corr':>5} {'diff rms':>8}"
@@ -73,9 +88,9 @@ def main() -> None:
         phantom = build_phantom(PhantomSpec(resolution_mm=p.phantom_resolution_mm, seed=seed))
         gravities = _gravities(seed, p)
         prints, volumes = {}, {}
-        for label, embed in (("tagged", False), ("conforming", True)):
+        for label, embed, size in meshes:
             mesh = mesh_phantom(
-                phantom, size_mm=p.truth_mesh_mm, skin_thickness_mm=0.0, embed_inclusions=embed
+                phantom, size_mm=size, skin_thickness_mm=0.0, embed_inclusions=embed
             )
             inside = mesh.region == fem.mesh.REGION_IDS["inclusion"]
             volumes[label] = (mesh.volumes_mm3()[inside].sum(), mesh.n_tets)

@@ -127,6 +127,9 @@ class DiagnosisOptions:
         elements of this size (mm) inside, instead of the calibration's mesh (None): a
         stiff inclusion's print is local, and on the calibration's mesh the inclusions
         only stiffen the elements they cut (:func:`calib.model.effects.inclusion_mix`).
+        Without ``mesh_size_mm``, where the calibration's size admits no straight
+        stress-free reference, the next size is taken
+        (:func:`calib.discrepancy.problem.next_mesh_sizes`) and the mesh note says so.
     noise_profile : {"flat", "plate"}
         ``"flat"``: one noise level at every height (the default). ``"plate"``: the
         noise level by height above the back plate, measured on the null fit's residual
@@ -1009,9 +1012,6 @@ def _localise(prob: Problem, null: Refit, noise: NoiseFit) -> dict:
     then the band the diagnosis leaves out, or 10 mm where the margin is narrower.
     Residuals are centred by the mean of the diagnosed points, as the fit sees them.
     """
-    import json
-    from pathlib import Path
-
     rim = {n: p for n, p in prob.rim_points.items() if n in null.fields.scans and len(p)}
     states = {}
     if rim:  # the null fit's states again (warm: the forward model keeps them)
@@ -1019,13 +1019,6 @@ def _localise(prob: Problem, null: Refit, noise: NoiseFit) -> dict:
                             nuisance=null.nuisance)  # fmt: skip
     out = {}
     for n in null.fields.scans:
-        s = prob.measurement(n)
-        doc = json.loads((Path(prob.work.path) / "scans" / n / "ingest.json").read_text())
-        T = s.T_ref_from_scan
-        spheres = [(T[:3, :3] @ np.asarray(i["centre_lps_mm"], float) + T[:3, 3],
-                    float(i["diameter_mm"])) for i in doc.get("inclusions") or []]  # fmt: skip
-        if s.tumour_mm is not None:
-            spheres.append((s.tumour_mm, 10.0))
         r = null.fields.residual[n]
         centre = r.mean()
         pts = prob.points[n]
@@ -1033,12 +1026,39 @@ def _localise(prob: Problem, null: Refit, noise: NoiseFit) -> dict:
             pos = states[n].positions_mm
             r_rim = prob.residuals(n, pos, None, null.nuisance.get(n), points_mm=rim[n]).r
             pts, r = np.vstack([pts, rim[n]]), np.concatenate([r, r_rim])
-        labels = region_labels(pts, nipple_mm=s.nipple_mm, back_point_mm=s.back_point_mm,
-                               back_normal=s.back_normal, spheres=spheres,
-                               rim_mm=max(10.0, prob.rim_margin_mm))  # fmt: skip
+        labels = _scan_regions(prob, n, pts)
         out[n] = significance_map(n, pts, r - centre, labels, noise.best,
                                   bandwidth_mm=MAP_KERNEL_MM)  # fmt: skip
     return out
+
+
+def _scan_regions(prob: Problem, name: str, points_mm: np.ndarray) -> np.ndarray:
+    """The localisation region of each of a scan's points (reference frame, mm).
+
+    Over inclusions: those ingest segmented in that scan, and its tumour landmark as a
+    10 mm sphere; the rim: the band the diagnosis leaves out, or 10 mm where the margin
+    is narrower (:func:`calib.discrepancy.localise.region_labels`). Shape (n,) of str.
+    """
+    import json
+    from pathlib import Path
+
+    s = prob.measurement(name)
+    doc = json.loads((Path(prob.work.path) / "scans" / name / "ingest.json").read_text())
+    T = s.T_ref_from_scan
+    spheres = [
+        (T[:3, :3] @ np.asarray(i["centre_lps_mm"], float) + T[:3, 3], float(i["diameter_mm"]))
+        for i in doc.get("inclusions") or []
+    ]
+    if s.tumour_mm is not None:
+        spheres.append((s.tumour_mm, 10.0))
+    return region_labels(
+        points_mm,
+        nipple_mm=s.nipple_mm,
+        back_point_mm=s.back_point_mm,
+        back_normal=s.back_normal,
+        spheres=spheres,
+        rim_mm=max(10.0, prob.rim_margin_mm),
+    )
 
 
 def _gaps(prob: Problem, null: Refit, final: Refit, say) -> tuple[dict, dict]:
