@@ -31,6 +31,11 @@ __all__ = ["PRESETS", "Posture", "TwinPreset", "scanner_poses", "synthesize"]
 
 log = logging.getLogger(__name__)
 G_SCANNER = np.array([0.0, 1.0, 0.0])
+#: Subdivisions of the icospheres the renderer draws the inclusions as (162 vertices):
+#: each encloses 0.966 of its nominal sphere's volume (the truth's diameters are the
+#: spheres'; the conforming truth mesh meshes the same icospheres, see
+#: ``fem.meshing.mesh_phantom``).
+RENDERED_SPHERE_SUBDIVISIONS = 2
 
 
 @dataclass(frozen=True)
@@ -126,7 +131,7 @@ def _deform(phantom, mesh, model, disc, g_phantom, x0) -> _Truth:
     faces = fem.boundary_faces(mesh.tets)
     incl = []
     for c, d in zip(phantom.inclusion_centres_mm, phantom.inclusion_diameters_mm, strict=True):
-        v, f = sphere_surface(c, d / 2, subdivisions=2)
+        v, f = sphere_surface(c, d / 2, subdivisions=RENDERED_SPHERE_SUBDIVISIONS)
         incl.append((v + np.round(fem.displacement_at(disc, sol.state, v), 9), f))
     tumour = phantom.tumour_mm + fem.displacement_at(disc, sol.state, phantom.tumour_mm[None])[0]
     nipple = mesh.node_set("nipple")[0]
