@@ -601,6 +601,13 @@ def _ms_by_part(res: dict, judged: dict, labels: dict) -> dict:
     return out
 
 
+def _calibration_mesh_mm(work: Path) -> float:
+    """The element size of a calibration's own mesh (mm), as ``build_problem`` reads it."""
+    record = json.loads((work / "calibration.json").read_text())
+    params = (record.get("provenance") or {}).get("parameters") or {}
+    return float((record.get("mesh") or {}).get("size_mm") or params.get("mesh_size_mm", 12.0))
+
+
 def model_error(root: Path, row: dict, inclusion_mesh_mm: float | None = None) -> dict | None:
     """How much of what a hidden effect adds the best refit of it removes, beyond the margin.
 
@@ -635,10 +642,10 @@ def model_error(root: Path, row: dict, inclusion_mesh_mm: float | None = None) -
         own = _judged_ms(work, doc, [None, row["hidden"]], inclusion_mesh_mm=inclusion_mesh_mm)
         best = {**own["fits"][1], "explained": float("nan")}
     size, im = own["mesh_size_mm"], {"inclusion_mesh_mm": inclusion_mesh_mm}
-    null = _judged_ms(
-        null_work, doc, [None], mesh_size_mm=size if inclusion_mesh_mm else None, **im
-    )
-    if null["mesh_size_mm"] != size:  # the null twin on the same size
+    # the null twin on the same size: its calibration's mesh where that is the size
+    own_mesh = inclusion_mesh_mm is None and _calibration_mesh_mm(null_work) == size
+    null = _judged_ms(null_work, doc, [None], mesh_size_mm=None if own_mesh else size, **im)
+    if null["mesh_size_mm"] != size:  # its own mesh's recovery gave way to another size
         null = _judged_ms(null_work, doc, [None], mesh_size_mm=size, **im)
     floor = float(doc["noise"]["explained_floor_rms_mm"]) ** 2
     b, a = own["fits"][0]["ms_mm2"], own["fits"][1]["ms_mm2"]
