@@ -29,6 +29,7 @@ apart and shown in the table.
     python benchmarks/bench_diagnose.py --out DIR [--cases skin,none,curve] [--seeds 0,1,2]
         [--null-seeds 0,1,2,3,4] [--ratios 2,4,8] [--only NAME,...] [--table]
         [--rim-margin MM|element] [--noise-profile flat|plate] [--rim-profile] [--model-error]
+        [--mesh-series MM,...]
         [--mesh-size MM] [--mesh-max-dihedral DEG] [--parameter-limits]
         [--sliding-springs PA_PER_MM] [--inclusion-ratio R]
 
@@ -45,7 +46,8 @@ for each finished effect case whose diagnosis refitted its hidden effect and who
 has a finished null case (``none-s<seed>``), how much of what the effect adds to the
 residual over the null twin the best refit removes, beside the diagnosis' share (which
 counts the model's own error above the noise floor as residual to explain;
-:func:`model_error`).
+:func:`model_error`). ``--mesh-series MM,...`` prints each finished case's c1-only fit
+beyond the share's margin on model meshes of those sizes (:func:`mesh_series`).
 """
 
 from __future__ import annotations
@@ -663,6 +665,72 @@ def model_error(root: Path, row: dict, inclusion_mesh_mm: float | None = None) -
     }
 
 
+def mesh_series(
+    root: Path, row: dict, sizes_mm, inclusion_mesh_mm: float | None = None
+) -> list[dict]:
+    """The c1-only fit of a finished case on each model mesh size, beyond the share's margin.
+
+    On the diagnosis' own problem and points (:func:`_judged_ms`, its ``diagnosis.json``;
+    the plain model mesh, or with ``inclusion_mesh_mm`` its segmented inclusions meshed
+    as spheres) the c1-only fit is made on a mesh of each of ``sizes_mm``. Each row: the
+    size asked for and the one used, c1 (Pa), the mean square beyond the margin and by
+    scan (mm^2), the diagnosis' floor (mm^2), or ``failed`` (why: no straight
+    stress-free reference on that size). Whether the residual above the floor shrinks as
+    the mesh is refined says whether it is the model's own error or the data's: no
+    library effect is needed for what a finer mesh removes.
+    """
+    from calib.discrepancy.problem import DiagnosisError
+
+    work = root / row["case"] / "work"
+    like = json.loads((work / "diagnosis.json").read_text())
+    like["options"] = {**like["options"], "inclusion_mesh_mm": inclusion_mesh_mm}
+    floor = float(like["noise"]["explained_floor_rms_mm"]) ** 2
+    out = []
+    for size in sizes_mm:
+        try:
+            m = _judged_ms(work, like, [None], mesh_size_mm=float(size))
+        except DiagnosisError as exc:  # no straight stress-free reference at this size
+            out.append({"size_mm": float(size), "failed": str(exc)})
+            continue
+        fit = m["fits"][0]
+        scans = {k[5:]: v[0] for k, v in fit["parts"].items() if k.startswith("scan ")}
+        out.append(
+            {
+                "size_mm": float(size),
+                "mesh_size_mm": m["mesh_size_mm"],
+                "c1_pa": fit["c1_pa"],
+                "ms_mm2": fit["ms_mm2"],
+                "scans_ms_mm2": scans,
+                "floor_ms_mm2": floor,
+            }
+        )
+    return out
+
+
+def _mesh_series_table(root: Path, rows: list, sizes_mm, inclusion_mesh_mm) -> None:
+    print(
+        "c1-only fit on each model mesh size, beyond the share's margin: c1, rms, the "
+        "excess above the diagnosis' noise floor (sqrt(ms - floor^2)) and rms by scan (mm)"
+    )
+    print(f"{'case':22s} {'mesh':>5s} {'c1 Pa':>7s} {'rms':>7s} {'excess':>7s}  by scan")
+    for row in rows:
+        if row.get("failed"):
+            continue
+        if not (root / row["case"] / "work" / "diagnosis.json").is_file():
+            print(f"{row['case']:22s} no diagnosis: {root / row['case'] / 'work'}")
+            continue
+        for r in mesh_series(root, row, sizes_mm, inclusion_mesh_mm):
+            if "failed" in r:
+                why = r["failed"].split(": ", 1)[-1].split(" (")[0]  # without the path, the detail
+                print(f"{row['case']:22s} {r['size_mm']:5g} {why}")
+                continue
+            excess = np.sqrt(max(r["ms_mm2"] - r["floor_ms_mm2"], 0.0))
+            scans = " ".join(f"{n} {np.sqrt(v):.4f}" for n, v in r["scans_ms_mm2"].items())
+            rms = np.sqrt(r["ms_mm2"])
+            head = f"{row['case']:22s} {r['mesh_size_mm']:5g} {r['c1_pa']:7.1f} {rms:7.4f}"
+            print(f"{head} {excess:7.4f}  {scans}", flush=True)
+
+
 def _parts(before: dict, after: dict, null: dict) -> dict:
     """Per part (:func:`_ms_by_part`): mean squares before, after and of the null twin
     (mm^2), the effect case's point count, and the share of what the effect adds there."""
@@ -825,6 +893,13 @@ def main() -> None:
         "--inclusion-mesh MM both twins on that mesh, the hidden effect refitted there)",
     )
     ap.add_argument(
+        "--mesh-series",
+        default="",
+        metavar="MM,...",
+        help="print each finished case's c1-only fit (beyond the share's margin) on model "
+        "meshes of these sizes (with --inclusion-mesh MM its inclusions meshed as spheres)",
+    )
+    ap.add_argument(
         "--rim-profile",
         action="store_true",
         help="print the null cases' residual by height above the back plate (c1-only fits)",
@@ -839,6 +914,12 @@ def main() -> None:
     store.mkdir(parents=True, exist_ok=True)
     if args.rim_profile:
         _rim_table(args.out, [json.loads(p.read_text()) for p in sorted(store.glob("*.json"))])
+        return
+    if args.mesh_series:  # --only: any case folder with a diagnosis, in that order
+        rows = [json.loads(p.read_text()) for p in sorted(store.glob("*.json"))]
+        rows = [{"case": n} for n in args.only.split(",")] if args.only else rows
+        sizes = [float(v) for v in args.mesh_series.split(",")]
+        _mesh_series_table(args.out, rows, sizes, args.inclusion_mesh)
         return
     if args.model_error:
         rows = [json.loads(p.read_text()) for p in sorted(store.glob("*.json"))]
