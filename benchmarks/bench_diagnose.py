@@ -603,13 +603,6 @@ def _ms_by_part(res: dict, judged: dict, labels: dict) -> dict:
     return out
 
 
-def _calibration_mesh_mm(work: Path) -> float:
-    """The element size of a calibration's own mesh (mm), as ``build_problem`` reads it."""
-    record = json.loads((work / "calibration.json").read_text())
-    params = (record.get("provenance") or {}).get("parameters") or {}
-    return float((record.get("mesh") or {}).get("size_mm") or params.get("mesh_size_mm", 12.0))
-
-
 def model_error(root: Path, row: dict, inclusion_mesh_mm: float | None = None) -> dict | None:
     """How much of what a hidden effect adds the best refit of it removes, beyond the margin.
 
@@ -627,6 +620,8 @@ def model_error(root: Path, row: dict, inclusion_mesh_mm: float | None = None) -
     diagnosis' share is then not recomputed: ``share`` is that refit's against the
     diagnosis' floor). None where there is no such refit or null case.
     """
+    from calib.discrepancy.problem import calibration_mesh_mm
+
     work = root / row["case"] / "work"
     null_work = root / f"none-s{row['seed']}" / "work"
     doc = json.loads((work / "diagnosis.json").read_text())
@@ -645,7 +640,8 @@ def model_error(root: Path, row: dict, inclusion_mesh_mm: float | None = None) -
         best = {**own["fits"][1], "explained": float("nan")}
     size, im = own["mesh_size_mm"], {"inclusion_mesh_mm": inclusion_mesh_mm}
     # the null twin on the same size: its calibration's mesh where that is the size
-    own_mesh = inclusion_mesh_mm is None and _calibration_mesh_mm(null_work) == size
+    record = json.loads((null_work / "calibration.json").read_text())
+    own_mesh = inclusion_mesh_mm is None and calibration_mesh_mm(record) == size
     null = _judged_ms(null_work, doc, [None], mesh_size_mm=None if own_mesh else size, **im)
     if null["mesh_size_mm"] != size:  # its own mesh's recovery gave way to another size
         null = _judged_ms(null_work, doc, [None], mesh_size_mm=size, **im)

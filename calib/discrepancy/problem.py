@@ -44,6 +44,7 @@ __all__ = [
     "Nuisance",
     "Problem",
     "build_problem",
+    "calibration_mesh_mm",
     "next_mesh_sizes",
     "parse_rim_margin",
     "plate_height_mm",
@@ -260,6 +261,24 @@ class Problem:
 
 def _parameters(record: dict) -> dict:
     return (record.get("provenance") or {}).get("parameters") or {}
+
+
+def calibration_mesh_mm(record: dict) -> float:
+    """The element size of a calibration's own model mesh (mm), from its record.
+
+    Parameters
+    ----------
+    record : dict
+        A ``calibration.json``.
+
+    Returns
+    -------
+    float
+        The size of the mesh it ran on (``mesh.size_mm``), else the size asked for
+        (``provenance.parameters.mesh_size_mm``, 12 mm by default).
+    """
+    params = _parameters(record)
+    return float((record.get("mesh") or {}).get("size_mm") or params.get("mesh_size_mm", 12.0))
 
 
 def _recovered_model(work: WorkFolder, model_on, size_mm: float, spheres=None):
@@ -621,7 +640,7 @@ def build_problem(
         fm, note, size = _straight_model(work, params, model_on, own_size=own)
     else:
         fm, note = model_on(work.mesh.with_nodes(_loaded_nodes(work))), ""
-        size = float((record.get("mesh") or {}).get("size_mm") or params.get("mesh_size_mm", 12.0))
+        size = calibration_mesh_mm(record)
         try:
             fm.stress_free(float(np.log(record["c1_pa"])))
         except fem.ConvergenceError as exc:
