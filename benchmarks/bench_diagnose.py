@@ -913,12 +913,14 @@ def main() -> None:
         _rim_table(args.out, [json.loads(p.read_text()) for p in sorted(store.glob("*.json"))])
         return
     if args.mesh_series:  # --only: any case folder with a diagnosis, in that order
-        rows = [json.loads(p.read_text()) for p in sorted(store.glob("*.json"))]
-        rows = [{"case": n} for n in args.only.split(",")] if args.only else rows
         try:
             sizes = [float(v) for v in args.mesh_series.split(",")]
         except ValueError:
             ap.error(f"--mesh-series takes sizes in mm, as 14,16,18; got {args.mesh_series!r}")
+        if args.only:
+            rows = [{"case": n} for n in args.only.split(",")]
+        else:
+            rows = [json.loads(p.read_text()) for p in sorted(store.glob("*.json"))]
         _mesh_series_table(args.out, rows, sizes, args.inclusion_mesh)
         return
     if args.model_error:

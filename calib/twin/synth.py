@@ -33,8 +33,8 @@ log = logging.getLogger(__name__)
 G_SCANNER = np.array([0.0, 1.0, 0.0])
 #: Subdivisions of the icospheres the renderer draws the inclusions as (162 vertices):
 #: each encloses 0.966 of its nominal sphere's volume (the truth's diameters are the
-#: spheres'; the conforming truth mesh meshes the same icospheres, see
-#: ``fem.meshing.mesh_phantom``).
+#: spheres'). The conforming truth mesh meshes the same icospheres from 6 mm diameter,
+#: and smaller ones with 1 subdivision (0.873; ``fem.meshing.inclusion_spheres``).
 RENDERED_SPHERE_SUBDIVISIONS = 2
 
 
