@@ -808,6 +808,14 @@ def _hidden_screen(doc: dict, hidden: str) -> dict | None:
     return out
 
 
+def _numbers(ap: argparse.ArgumentParser, flag: str, text: str, kind: type) -> list:
+    """A comma list of numbers as typed (``flag``), else argparse's error (exit 2)."""
+    try:
+        return [kind(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        ap.error(f"{flag} takes a comma list of {kind.__name__}s, as 0,1,2; got {text!r}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True, help="folder of the twins and results")
@@ -902,21 +910,44 @@ def main() -> None:
         help="print the null cases' residual by height above the back plate (c1-only fits)",
     )
     args = ap.parse_args()
+    # every argument is checked before OUT is touched
     if not args.sliding_springs > 0:
         ap.error(f"--sliding-springs must be > 0 Pa/mm, got {args.sliding_springs:g}")
     if args.inclusion_ratio is not None and not args.inclusion_ratio > 0:
         ap.error(f"--inclusion-ratio must be > 0, got {args.inclusion_ratio:g}")
-    print("command:", " ".join([sys.executable, *sys.argv]))
+    sizes = _numbers(ap, "--mesh-series", args.mesh_series, float) if args.mesh_series else []
+    known = ["effects", "none", "curve", *TWIN_EFFECTS]
+    unknown = sorted(set(args.cases.split(",")) - set(known))
+    if unknown:
+        ap.error(f"--cases: unknown {', '.join(unknown)}; known: {', '.join(known)}")
+    for flag in ("--seeds", "--null-seeds"):
+        _numbers(ap, flag, getattr(args, flag[2:].replace("-", "_")), int)
+    _numbers(ap, "--ratios", args.ratios, float)
+    from calib.discrepancy import DiagnosisError
+    from calib.discrepancy.problem import parse_rim_margin
+
+    try:
+        margin = None if args.rim_margin is None else parse_rim_margin(args.rim_margin)
+        explained = (
+            None
+            if args.explained_margin is None
+            else parse_rim_margin(args.explained_margin, "--explained-margin")
+        )
+    except DiagnosisError as exc:
+        ap.error(str(exc))
     store = args.out / "cases"
-    store.mkdir(parents=True, exist_ok=True)
+    reads = args.rim_profile or args.model_error or args.table or (sizes and not args.only)
+    if reads and not store.is_dir():
+        ap.error(f"{store} does not exist: run the matrix into --out first")
+    if sizes and args.only and not args.out.is_dir():
+        ap.error(f"--out {args.out} does not exist (--mesh-series --only reads case folders there)")
+    print("command:", " ".join([sys.executable, *sys.argv]))
+    if not (reads or sizes):  # the matrix: its results go to OUT/cases
+        store.mkdir(parents=True, exist_ok=True)
     if args.rim_profile:
         _rim_table(args.out, [json.loads(p.read_text()) for p in sorted(store.glob("*.json"))])
         return
-    if args.mesh_series:  # --only: any case folder with a diagnosis, in that order
-        try:
-            sizes = [float(v) for v in args.mesh_series.split(",")]
-        except ValueError:
-            ap.error(f"--mesh-series takes sizes in mm, as 14,16,18; got {args.mesh_series!r}")
+    if sizes:  # --only: any case folder with a diagnosis, in that order
         if args.only:
             rows = [{"case": n} for n in args.only.split(",")]
         else:
@@ -930,14 +961,6 @@ def main() -> None:
         _model_error_table(args.out, rows, args.inclusion_mesh)
         return
     if not args.table:
-        from calib.discrepancy.problem import parse_rim_margin
-
-        margin = None if args.rim_margin is None else parse_rim_margin(args.rim_margin)
-        explained = (
-            None
-            if args.explained_margin is None
-            else parse_rim_margin(args.explained_margin, "--explained-margin")
-        )
         for name, specs, seed, hidden in _cases(args):
             path = store / f"{name}.json"
             if path.is_file():

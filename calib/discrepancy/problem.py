@@ -33,6 +33,7 @@ import fem
 from fem.units import STANDARD_GRAVITY_M_S2
 
 from ..data.work import WorkFolder
+from ..fitting import CalibrationOptions
 from ..model.effects import SKIN_THICKNESS_MM, EffectValues, tag_effect_regions
 from ..model.forward import ForwardModel, ScanState
 from ..model.residuals import Residuals, SimulatedSurface, scan_residuals
@@ -263,6 +264,14 @@ def _parameters(record: dict) -> dict:
     return (record.get("provenance") or {}).get("parameters") or {}
 
 
+def _asked_mesh_mm(params: dict) -> float:
+    """The model mesh size a calibration asked for (mm).
+
+    Its ``mesh_size_mm``, else calibrate's default (:class:`calib.fitting.CalibrationOptions`).
+    """
+    return float(params.get("mesh_size_mm", CalibrationOptions.mesh_size_mm))
+
+
 def calibration_mesh_mm(record: dict) -> float:
     """The element size of a calibration's own model mesh (mm), from its record.
 
@@ -275,10 +284,10 @@ def calibration_mesh_mm(record: dict) -> float:
     -------
     float
         The size of the mesh it ran on (``mesh.size_mm``), else the size asked for
-        (``provenance.parameters.mesh_size_mm``, 12 mm by default).
+        (``provenance.parameters.mesh_size_mm``, calibrate's default where absent).
     """
-    params = _parameters(record)
-    return float((record.get("mesh") or {}).get("size_mm") or params.get("mesh_size_mm", 12.0))
+    ran = (record.get("mesh") or {}).get("size_mm")
+    return float(ran) if ran else _asked_mesh_mm(_parameters(record))
 
 
 def _recovered_model(work: WorkFolder, model_on, size_mm: float, spheres=None):
@@ -302,6 +311,38 @@ def _recovered_model(work: WorkFolder, model_on, size_mm: float, spheres=None):
     return fm
 
 
+def _first_recovered(work: WorkFolder, model_on, sizes: Sequence[float], spheres=None):
+    """The model on the first of ``sizes`` whose recovery at the calibrated c1 succeeds.
+
+    Each size is built by :func:`_recovered_model`. Returns the model and its size (both
+    None where every size failed) and the sizes that failed before it, each with its
+    ``fem.ConvergenceError``. A mesh that cannot be built is a :class:`DiagnosisError`
+    naming it.
+    """
+    failed = []
+    for s in sizes:
+        try:
+            return _recovered_model(work, model_on, s, spheres), s, failed
+        except fem.MeshError as exc:
+            raise DiagnosisError(
+                f"{work.path}: no {s:g} mm model mesh{_spheres_said(spheres)}: {exc}"
+            ) from exc
+        except fem.ConvergenceError as exc:
+            failed.append((s, exc))
+    return None, None, failed
+
+
+def _spheres_said(spheres) -> str:
+    """How a model mesh meshes ``spheres`` ``(inclusions, element size mm)``, for notes."""
+    if spheres is None:
+        return ""
+    from ..model.reference import meshed_spheres
+
+    n, h = len(meshed_spheres(*spheres)), spheres[1]
+    them = "inclusion" if n == 1 else "inclusions"
+    return f" with its {n} {them} {h:g} mm or wider meshed as spheres of {h:g} mm"
+
+
 def _sized_model(
     work: WorkFolder,
     params: dict,
@@ -320,35 +361,21 @@ def _sized_model(
     says why the diagnosis runs on another. Returns the model, the note that says the
     diagnosis mesh is not the calibration's, and the size.
     """
-    from ..model.reference import meshed_spheres
-
-    inner = ""
-    if spheres is not None:
-        n, h = len(meshed_spheres(*spheres)), spheres[1]
-        them = "inclusion" if n == 1 else "inclusions"
-        inner = f" with its {n} {them} {h:g} mm or wider meshed as spheres of {h:g} mm"
-    own = float(params.get("mesh_size_mm", 12.0))
-    failed = []
-    for s in [size_mm, *then]:
-        try:
-            fm = _recovered_model(work, model_on, s, spheres)
-        except fem.MeshError as exc:
-            raise DiagnosisError(f"{work.path}: no {s:g} mm model mesh{inner}: {exc}") from exc
-        except fem.ConvergenceError as exc:
-            failed.append((s, exc))
-            continue
-        if not failed:
-            note = f"diagnosed on a {s:g} mm mesh{inner}, as asked (the calibration's: {own:g} mm)"
-            return fm, note, s
-        note = (
-            f"no straight stress-free reference on a {_tried(failed, inner)}; diagnosed on "
-            f"the {s:g} mm mesh{inner} (the calibration's: {own:g} mm)"
+    inner, own = _spheres_said(spheres), _asked_mesh_mm(params)
+    fm, s, failed = _first_recovered(work, model_on, [size_mm, *then], spheres)
+    if fm is None:
+        raise DiagnosisError(
+            f"{work.path}: no straight stress-free reference on a {_tried(failed, inner)}; "
+            "choose another --mesh-size"
         )
+    if not failed:
+        note = f"diagnosed on a {s:g} mm mesh{inner}, as asked (the calibration's: {own:g} mm)"
         return fm, note, s
-    raise DiagnosisError(
-        f"{work.path}: no straight stress-free reference on a {_tried(failed, inner)}; "
-        "choose another --mesh-size"
+    note = (
+        f"no straight stress-free reference on a {_tried(failed, inner)}; diagnosed on "
+        f"the {s:g} mm mesh{inner} (the calibration's: {own:g} mm)"
     )
+    return fm, note, s
 
 
 def _tried(failed: list, inner: str) -> str:
@@ -373,7 +400,7 @@ def next_mesh_sizes(params: dict) -> list[float]:
     -------
     list of float
     """
-    size = float(params.get("mesh_size_mm", 12.0))
+    size = _asked_mesh_mm(params)
     sizes = [float(s) for s in params.get("mesh_retry_mm") or () if float(s) != size]
     return sizes or [size + 2.0, size + 4.0]
 
@@ -398,29 +425,22 @@ def _straight_model(
     calibrated c1 fails there (``why`` says which). Returns the model, a note and the
     mesh size.
     """
-    size = float(params.get("mesh_size_mm", 12.0))
+    size = _asked_mesh_mm(params)
     sizes = ([size] if own_size else []) + next_mesh_sizes(params)
-    tried = []
-    for s in sizes:
-        try:
-            fm = _recovered_model(work, model_on, s)
-        except fem.ConvergenceError as exc:
-            tried.append(f"{s:g} mm: {exc}")
-            continue
-        if s == size:
-            return fm, "", s  # the calibration's mesh size, rebuilt from the same scan
-        return (
-            fm,
-            (
-                f"the calibration's {size:g} mm mesh admits no straight stress-free reference "
-                f"({why}); diagnosed on the {s:g} mm mesh"
-            ),
-            s,
+    fm, s, failed = _first_recovered(work, model_on, sizes)
+    if fm is None:
+        tried = "; ".join(f"{t:g} mm: {exc}" for t, exc in failed)
+        raise DiagnosisError(
+            f"{work.path}: no straight stress-free reference on the calibration's mesh ({why}) "
+            f"nor on other meshes ({tried}); recalibrate with another --mesh-size"
         )
-    raise DiagnosisError(
-        f"{work.path}: no straight stress-free reference on the calibration's mesh ({why}) "
-        f"nor on other meshes ({'; '.join(tried)}); recalibrate with another --mesh-size"
+    if s == size:
+        return fm, "", s  # the calibration's mesh size, rebuilt from the same scan
+    note = (
+        f"the calibration's {size:g} mm mesh admits no straight stress-free reference "
+        f"({why}); diagnosed on the {s:g} mm mesh"
     )
+    return fm, note, s
 
 
 def _loaded_nodes(work: WorkFolder) -> np.ndarray:
@@ -626,8 +646,7 @@ def build_problem(
                 f"{work.path}: inclusion_mesh_mm={inclusion_mesh_mm:g} asks for the inclusions "
                 "to be meshed, but ingest segmented none in the reference scan"
             )
-        own = float(params.get("mesh_size_mm", 12.0))
-        size = own if mesh_size_mm is None else mesh_size_mm
+        size = _asked_mesh_mm(params) if mesh_size_mm is None else mesh_size_mm
         # a size asked for stays; the calibration's gives way to its next sizes
         then = next_mesh_sizes(params) if mesh_size_mm is None else []
         spheres = (inclusions, inclusion_mesh_mm)

@@ -1273,6 +1273,32 @@ def test_the_bench_keeps_other_amplitudes_out_of_the_bars():
     assert all(bench._at_preset({"case": n}) for n, *_ in bench._cases(args) if "-r4" not in n)
 
 
+@pytest.mark.parametrize(
+    ("argv", "said"),
+    [
+        (["--seeds", "0,x"], "--seeds takes a comma list of ints"),
+        (["--cases", "skin,skn"], "--cases: unknown skn"),
+        (["--mesh-series", "14,1e"], "--mesh-series takes a comma list of floats"),
+        (["--rim-margin", "wide"], "--rim-margin must be a width in mm or 'element'"),
+        (["--table"], "cases does not exist: run the matrix into --out first"),
+        (["--mesh-series", "14", "--only", "none-s0"], "does not exist (--mesh-series --only"),
+    ],
+)
+def test_the_bench_refuses_bad_arguments_before_it_writes(
+    tmp_path, monkeypatch, capsys, argv, said
+):
+    # benchmarks/bench_diagnose.py: a bad argument is argparse's error (exit 2) naming it,
+    # and OUT is left as it was (it created OUT/cases before checking, last note)
+    bench = _bench_module()
+    out = tmp_path / "out"
+    monkeypatch.setattr("sys.argv", ["bench_diagnose.py", "--out", str(out), *argv])
+    with pytest.raises(SystemExit) as exc:
+        bench.main()
+    assert exc.value.code == 2
+    assert said in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_the_bench_prints_the_refits_in_physical_units():
     # --table's per-set block: the candidates of diagnosis.json (Candidate.as_json) with
     # the parameter as the README gives it (sliding's ln k as springs, a ratio - 1 as the
