@@ -31,6 +31,10 @@ class ScanMeasurement:
     back_point_mm, back_normal : ndarray, shape (3,)
         The back plane (outward normal) mapped into the reference frame.
     T_ref_from_scan : ndarray, shape (4, 4)
+    posture_plane : str or None
+        The session's nominal posture plane (``posture.plane``), if given.
+    posture_angle_deg : float or None
+        The session's nominal posture angle (``posture.angle_deg``), if given.
     """
 
     name: str
@@ -44,6 +48,8 @@ class ScanMeasurement:
     back_point_mm: np.ndarray
     back_normal: np.ndarray
     T_ref_from_scan: np.ndarray
+    posture_plane: str | None = None
+    posture_angle_deg: float | None = None
 
     def surface_points(self, *, max_points: int = 4000, seed: int = 0) -> np.ndarray:
         """Measured surface vertices off the back plate, a seeded subsample, (k, 3)."""
@@ -103,6 +109,8 @@ def read_scan(work: Path, entry: ScanEntry) -> ScanMeasurement:
         back_point_mm=back_point,
         back_normal=normal,
         T_ref_from_scan=T,
+        posture_plane=entry.posture_plane,
+        posture_angle_deg=entry.posture_angle_deg,
     )
 
 

@@ -24,7 +24,7 @@ from .objective import Calibrator
 from .optimise import optimise, prepare
 from .options import CalibrationOptions, mesh_check_ratios
 from .profile import likelihood_profile, nipple_interval, profile_rows
-from .result import Calibration
+from .result import Calibration, phantom_frame
 from .uncertainty import Uncertainty, gauss_newton_uncertainty, series_uncertainty
 
 __all__ = ["fit"]
@@ -162,13 +162,15 @@ def fit(
     Raises
     ------
     ValueError
-        No scan with role ``calibration``.
+        No scan with role ``calibration``; no scan whose gravity defines the phantom
+        frame's axes (:func:`calib.fitting.result.phantom_frame`), said before any FE work.
     fem.ConvergenceError
         No stress-free reference on any model mesh tried.
     """
     options = options or CalibrationOptions()
     say = progress or log.info
     t0 = time.perf_counter()
+    phantom_frame(measurements.reference, measurements.scans.values())  # fails before the FE
     cal, theta0, failed_sizes = prepare(measurements, options, density_kg_m3, say)
     theta, value, status = optimise(cal, say, theta0)
     c1 = float(np.exp(theta))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -24,31 +25,60 @@ FRAMES = {
 }
 
 
-def phantom_frame(reference) -> np.ndarray:
+# A scan whose gravity lies within 10 degrees of the plate's normal (a prone or supine
+# posture) leaves the in-plane axes to the registration's gravity error (about a degree,
+# README): it does not define them.
+_MIN_IN_PLANE = float(np.sin(np.radians(10.0)))
+
+
+def phantom_frame(reference, others: Iterable = ()) -> np.ndarray:
     """Rotation ``R_ref_from_phantom`` (3, 3) of the phantom frame of posture angles.
 
     The phantom frame's columns in the reference scan's frame: ``z`` points from the back
-    plate into the breast (minus the back plate's outward normal), ``x`` is the reference
-    scan's gravity made orthogonal to ``z`` (posture angle 0, left lateral), ``y = z x x``.
-    A posture angle ``a`` in the transverse (x-z) plane is the gravity
-    ``R_ref_from_phantom @ (cos a, 0, sin a)`` (:func:`fem.postures.gravity_for_angle`).
+    plate into the breast (minus the back plate's outward normal). A posture angle ``a``
+    is the gravity ``R_ref_from_phantom @ (cos a, 0, sin a)`` in the transverse plane,
+    ``@ (0, cos a, sin a)`` in the sagittal one (:func:`fem.postures.gravity_for_angle`;
+    0 degrees left lateral). So the part of a scan's gravity orthogonal to ``z`` is
+    ``cos a`` times ``x`` (sagittal: ``y``): that axis is the part normalised, its sign
+    that of ``cos a`` of the scan's nominal angle (``posture.angle_deg``; none given: 0,
+    a reference at 180 degrees gives the same frame as one at 0). The reference scan
+    defines it; where its gravity lies within 10 degrees of the plate's normal, the first
+    of ``others`` whose gravity does not. Then ``y = z x x`` (sagittal: ``x = y x z``).
 
     Parameters
     ----------
     reference : ScanMeasurement
-        The reference scan (its gravity and back plane, reference frame).
+        The reference scan (its gravity, back plane and nominal posture, reference frame).
+    others : iterable of ScanMeasurement
+        The session's other scans, tried in turn where the reference's gravity is normal
+        to its plate.
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+
+    Raises
+    ------
+    ValueError
+        No scan's gravity has a part in the plate's plane.
     """
     z = -np.asarray(reference.back_normal, float)
     z /= np.linalg.norm(z)
-    x = np.asarray(reference.gravity_ref, float)
-    x = x - (x @ z) * z
-    if np.linalg.norm(x) < 1e-6:
-        raise ValueError(
-            "the reference scan's gravity is normal to the back plate: "
-            "its posture angle is undefined"
-        )
-    x /= np.linalg.norm(x)
-    return np.column_stack([x, np.cross(z, x), z])
+    for scan in [reference, *others]:
+        g = np.asarray(scan.gravity_ref, float)
+        axis = g - (g @ z) * z
+        if np.linalg.norm(axis) < _MIN_IN_PLANE:
+            continue
+        angle = scan.posture_angle_deg or 0.0
+        axis *= (-1.0 if np.cos(np.radians(angle)) < 0 else 1.0) / np.linalg.norm(axis)
+        if scan.posture_plane == "sagittal":
+            return np.column_stack([np.cross(axis, z), axis, z])
+        return np.column_stack([axis, np.cross(z, axis), z])
+    raise ValueError(
+        f"the gravity of the reference scan {reference.name!r} (and of every other scan) "
+        "lies within 10 degrees of the back plate's normal: the posture angles' axes are "
+        "undefined; add a scan in a lateral posture"
+    )
 
 
 @dataclass(frozen=True)
@@ -136,7 +166,8 @@ class Calibration:
             doc["g_m_s2"] = fm.g_m_s2
             doc["reference_scan"] = cal.measurements.reference.name
             doc["nipple_node"] = int(cal.mesh.node_set("nipple")[0])
-            doc["R_ref_from_phantom"] = phantom_frame(cal.measurements.reference).tolist()
+            ms = cal.measurements
+            doc["R_ref_from_phantom"] = phantom_frame(ms.reference, ms.scans.values()).tolist()
             if cal.tumour is not None and fm.stress_free_nodes_mm is not None:
                 doc["tumour_stress_free_mm"] = cal.tumour.place_mm(fm.stress_free_nodes_mm).tolist()
         return doc
