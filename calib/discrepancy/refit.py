@@ -78,6 +78,21 @@ PHYSICAL = {
     ),
 }
 _OFFSET_BOUNDS = (3.0, 3.0, 3.0, math.radians(2.0), math.radians(2.0), math.radians(2.0))
+
+
+def _offset_bounds(tolerance_mm: float | None) -> tuple[float, ...]:
+    """A scan's rigid offset bounds (mm, rad).
+
+    :data:`_OFFSET_BOUNDS`, the translations widened to twice the scan's registration
+    tolerance where that is more. A plausible offset moves no point by more than the
+    tolerance (3 x TRE + half a voxel, :attr:`Problem.registration_tolerance_mm`); on a
+    scan with a large TRE a fixed 3 mm bound would stop one first, and the judge would
+    call it "at a bound". The twin's tolerance (0.87 mm) leaves the bounds as they were.
+    """
+    t = max(_OFFSET_BOUNDS[0], 2.0 * float(tolerance_mm or 0.0))
+    return (t, t, t, *_OFFSET_BOUNDS[3:])
+
+
 _COMPONENTS = ("tx", "ty", "tz", "wx", "wy", "wz")
 
 
@@ -170,7 +185,8 @@ def _layout(prob: Problem, effects: Sequence[str], theta0: float):
                 hi.append(b[1])
     if "registration" in effects:
         for n in prob.scans:
-            for c, b in zip(_COMPONENTS, _OFFSET_BOUNDS, strict=True):
+            tol = prob.registration_tolerance_mm.get(n)
+            for c, b in zip(_COMPONENTS, _offset_bounds(tol), strict=True):
                 names.append(f"registration[{n}].{c}")
                 lo.append(-b)
                 hi.append(b)

@@ -662,6 +662,23 @@ def test_a_sliding_plate_is_refitted_as_ln_k_of_its_springs():
     assert effect_support(values).tangent_stiffness_pa_per_mm == pytest.approx(250.0)
 
 
+def test_a_rigid_offset_may_reach_twice_its_scans_registration_tolerance():
+    # a plausible offset moves no point by more than the scan's tolerance (3 x TRE + half
+    # a voxel); with a large TRE the fixed 3 mm bound stopped it first ("at a bound")
+    import math
+
+    from calib.discrepancy.refit import _layout
+
+    tol = {SCANS[0]: 0.87, SCANS[1]: 2.5}  # the twin's; a scan with a 0.6 mm TRE
+    prob = SimpleNamespace(scans=SCANS, registration_tolerance_mm=tol)
+    names, lo, hi = _layout(prob, ("registration",), math.log(420.0))
+    bound = dict(zip(names, hi, strict=True))
+    assert [bound[f"registration[{SCANS[0]}].{c}"] for c in ("tx", "ty", "tz")] == [3.0] * 3
+    assert [bound[f"registration[{SCANS[1]}].{c}"] for c in ("tx", "ty", "tz")] == [5.0] * 3
+    assert bound[f"registration[{SCANS[1]}].wx"] == pytest.approx(math.radians(2.0))
+    assert np.array_equal(lo[1:], -hi[1:])
+
+
 def test_rim_points_are_moved_by_the_scan_offset_like_the_diagnosed_ones(monkeypatch):
     # the localisation maps the band within the rim margin at the null fit: those points
     # take the scan's rigid offset about the diagnosed points' centre, as the fit's do
