@@ -129,3 +129,22 @@ def test_a_rejected_decimation_is_remeshed_from_the_full_surface_on_a_fine_grid(
     coarse = reference_mesh(ref, size_mm=12.0)
     e_fine, e_coarse = _distance_to_mesh_mm(ref, fine), _distance_to_mesh_mm(ref, coarse)
     assert e_fine.std() < 0.7 * e_coarse.std(), (e_fine.std(), e_coarse.std())
+
+
+def test_a_back_face_off_its_plane_is_warned_about(caplog):
+    # Only scan vertices within back_tol_mm (1 mm) of the back plane are clamped: a back
+    # face rougher than that, or a plane off the face, leaves part of the plate free and
+    # the fit reads it as a softer material. The dome's flat base is its flagged plate;
+    # lifting the base's inner part 2 mm leaves its rim clamped and warns (the quick
+    # twin's reference clamps 0.96 of its flagged area, SUPPORT_AREA_SHARE is 0.8)
+    ref = _dome_reference()
+    ref.back_plate = np.abs(ref.vertices_mm[:, 2]) < 1e-9
+    with caplog.at_level("WARNING", logger="calib.model.reference"):
+        reference_mesh(ref, size_mm=10.0)
+    assert "back plate" not in caplog.text
+    r = np.hypot(ref.vertices_mm[:, 0] / 60.0, ref.vertices_mm[:, 1] / 45.0)
+    ref.vertices_mm = ref.vertices_mm.copy()
+    ref.vertices_mm[ref.back_plate & (r < 0.7), 2] += 2.0
+    with caplog.at_level("WARNING", logger="calib.model.reference"):
+        reference_mesh(ref, size_mm=10.0)
+    assert "of the" in caplog.text and "flagged as back plate" in caplog.text
