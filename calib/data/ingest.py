@@ -64,6 +64,28 @@ TUMOUR_MIN_CONFIDENCE = 0.95
 #: Standard deviation of one inclusion diameter measurement, mm: the same inclusion measured
 #: in two postures of the digital twin differs by 0.3-0.4 mm rms at 1.5-2 mm voxels.
 SIZE_SD_MM = 0.3
+#: The largest voxel edge up to which :data:`SIZE_SD_MM` was measured, mm.
+SIZE_SD_VOXEL_MM = 2.0
+
+
+def size_sd_mm(*voxel_sizes_mm) -> float:
+    """Standard deviation of an inclusion diameter measured on voxels of these sizes (mm).
+
+    :data:`SIZE_SD_MM` up to :data:`SIZE_SD_VOXEL_MM` voxels (as measured on the twin),
+    in proportion to the largest voxel edge beyond (a diameter's partial-volume error
+    scales with the voxel: thick slices must not make the size match overconfident).
+
+    Parameters
+    ----------
+    *voxel_sizes_mm : array_like, shape (3,)
+        The scans' voxel sizes.
+
+    Returns
+    -------
+    float
+    """
+    edge = max((float(np.max(v)) for v in voxel_sizes_mm), default=0.0)
+    return SIZE_SD_MM * max(1.0, edge / SIZE_SD_VOXEL_MM)
 
 
 @dataclass(frozen=True)
@@ -131,7 +153,7 @@ def _choose_tumour(session: Session, res) -> TumourChoice:
     if len(d) > 1:
         second = float(np.sort(d)[-2])
         why += f"; the next largest is {second:.1f} mm"
-        if d[k] - second < 2.0 * np.sqrt(2.0) * SIZE_SD_MM:
+        if d[k] - second < 2.0 * np.sqrt(2.0) * size_sd_mm(res.voxel_size_mm):
             why += ", within the measurement noise: set [landmarks] tumour to choose"
     return TumourChoice(k, why + ")")
 
@@ -184,7 +206,7 @@ def _track_inclusions(session: Session, scans: dict, fiducial_regs: dict, choice
             anchors_reference_mm=r.nipple_lps_mm[None],
             anchors_mm=nipple,
             base_plane=plane,
-            size_sd_mm=SIZE_SD_MM,
+            size_sd_mm=size_sd_mm(r.voxel_size_mm, res.voxel_size_mm),
         )
         ident = tuple(None if i < 0 else int(i) for i in m.reference_index)
         conf = tuple(float(c) for c in m.confidence)

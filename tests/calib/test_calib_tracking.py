@@ -215,6 +215,7 @@ def _scan(centres, diameters, nipple):
         ),
         nipple_lps_mm=np.asarray(nipple, float),
         back_plane=SimpleNamespace(point_lps_mm=np.zeros(3), normal=np.array([0.0, 0.0, 1.0])),
+        voxel_size_mm=np.full(3, 1.5),
     )
 
 
@@ -359,3 +360,13 @@ def test_sliding_twin(tmp_path, seed):
     # the softest the FE solves on this small twin (900 Pa fails for seed 1): inclusion
     # motion 40.8 and 41.7 mm; the former tracker was 30.6 and 52.6 mm off on these seeds.
     _assert_tracked_with_large_motion(tmp_path, SLIDING_SMALL, seed)
+
+
+def test_the_size_sd_grows_with_voxels_past_those_it_was_measured_on():
+    # closed form: 0.3 mm up to 2 mm voxels (measured on the twin at 1.5-2 mm: the twin's
+    # matching is unchanged), in proportion to the largest voxel edge beyond (thick slices)
+    from calib.data.ingest import size_sd_mm
+
+    assert size_sd_mm([1.5, 1.5, 1.5]) == size_sd_mm([0.8] * 3, [2.0] * 3) == 0.3
+    assert size_sd_mm([1.0, 1.0, 3.0]) == pytest.approx(0.45)
+    assert size_sd_mm([0.8] * 3, [1.0, 1.0, 4.0]) == pytest.approx(0.6)
