@@ -81,10 +81,40 @@ def _read_nifti(path: Path) -> Volume:
         arr = arr[..., 0]
     if arr.ndim != 3:
         raise VolumeReadError(f"{path}: expected a 3-D volume, got shape {arr.shape}")
+    _check_nifti_geometry(path, img.header)
     affine = _RAS_FROM_LPS @ np.asarray(img.affine, float)
     if not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < 1e-12:
         raise VolumeReadError(f"{path}: NIfTI affine is missing or singular")
     return Volume(np.array(arr), affine, str(path))
+
+
+def _check_nifti_geometry(path: Path, header) -> None:
+    """Refuse a NIfTI whose placement in the scanner is unknown or not in millimetres.
+
+    Without an sform or a qform (both codes 0) nibabel places the voxels by their sizes
+    alone, and the session's gravity would land in an arbitrary frame; spatial units
+    other than mm (``unknown`` is read as mm, as scanners' converters write it) would
+    scale every length. An sform and a qform that disagree are logged; the sform is used,
+    as nibabel does.
+    """
+    s_code, q_code = int(header["sform_code"]), int(header["qform_code"])
+    if s_code == 0 and q_code == 0:
+        raise VolumeReadError(
+            f"{path}: the NIfTI header has neither an sform nor a qform (both codes 0), so "
+            "its orientation in the scanner is unknown; write it with its scanner geometry"
+        )
+    unit = header.get_xyzt_units()[0]
+    if unit not in ("mm", "unknown"):
+        raise VolumeReadError(
+            f"{path}: the NIfTI spatial unit is {unit!r}; phantom-calib reads millimetres "
+            "(xyzt_units mm)"
+        )
+    if s_code > 0 and q_code > 0:
+        gap = np.abs(header.get_sform() - header.get_qform()).max()
+        if gap > 1e-3:
+            log.warning(
+                "%s: NIfTI sform and qform differ by up to %.3g; the sform is used", path, gap
+            )
 
 
 def _read_itk(path: Path) -> Volume:

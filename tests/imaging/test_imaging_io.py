@@ -174,6 +174,41 @@ def test_corrupt_nifti(small_volume, tmp_path):
         read_volume(p)
 
 
+def _renifti(path, **change):
+    """The NIfTI at ``path`` saved again with header fields changed (sform/qform codes, units)."""
+    import nibabel as nib
+
+    img = nib.load(path)
+    img = nib.Nifti1Image(np.asanyarray(img.dataobj), None, img.header)
+    for key, value in change.items():
+        if key == "units":
+            img.header.set_xyzt_units(value)
+        else:
+            img.header[key] = value
+    out = path.with_name(f"changed_{len(list(path.parent.iterdir()))}.nii.gz")
+    nib.save(img, out)
+    return out
+
+
+def test_a_nifti_without_scanner_placement_or_in_other_units_is_refused(small_volume, tmp_path):
+    # without sform and qform nibabel places voxels by their sizes alone (gravity would land
+    # in an arbitrary frame); metres would scale every length by 1000
+    p = write_nifti(small_volume, tmp_path / "v.nii.gz")
+    np.testing.assert_allclose(
+        read_volume(p).affine_lps_from_index, small_volume.affine_lps_from_index, atol=1e-4
+    )
+    with pytest.raises(VolumeReadError, match=r"changed_\d.nii.gz: .*neither an sform nor a qform"):
+        read_volume(_renifti(p, sform_code=0, qform_code=0))
+    with pytest.raises(VolumeReadError, match="spatial unit is 'meter'"):
+        read_volume(_renifti(p, units="meter"))
+    # only one of the two, or units left unknown (as converters write them): read as before
+    for change in ({"sform_code": 0}, {"qform_code": 0}, {"units": "unknown"}):
+        v = read_volume(_renifti(p, **change))
+        np.testing.assert_allclose(
+            v.affine_lps_from_index, small_volume.affine_lps_from_index, atol=1e-4
+        )
+
+
 def test_writer_refuses_to_overwrite(series, small_volume):
     with pytest.raises(FileExistsError):
         write_dicom_series(small_volume, series)
