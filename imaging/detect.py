@@ -65,6 +65,10 @@ def _weighted_centroid(weights: np.ndarray, offset: np.ndarray) -> np.ndarray:
     return (ijk * w[:, None]).sum(0) / w.sum() + offset
 
 
+def _at(c) -> str:
+    return f"({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f})"
+
+
 def detect_fiducials(
     seg: BodySegmentation,
     *,
@@ -93,7 +97,9 @@ def detect_fiducials(
     ------
     FiducialError
         The number of markers found differs from ``expected`` (and a surplus does not
-        stand apart by brightness); the message lists them with their peaks.
+        stand apart by brightness); the message lists them with their peaks, and where
+        too few were found the bright blobs rejected (and why) and the brightest point
+        under the threshold (dim markers, as on thick slices).
     """
     vol = seg.smoothed
     sp, vv = vol.spacing_mm, vol.voxel_volume_mm3
@@ -102,7 +108,7 @@ def detect_fiducials(
     n = seg.normalised.array[crop]
     lab, nlab = ndimage.label(ns > marker_ratio)
     offset = np.array([s.start for s in crop], float)
-    centres, radii, peaks = [], [], []
+    centres, radii, peaks, rejected = [], [], [], []
     for k, sl in enumerate(ndimage.find_objects(lab), start=1):
         pad = tuple(
             slice(max(s.start - 3, 0), min(s.stop + 3, dim))
@@ -117,11 +123,16 @@ def detect_fiducials(
         frac_vol = float(np.clip(w / max(peak - base, 1e-6), 0, 1).sum() * vv)
         r_eq = (3.0 * frac_vol / (4.0 * np.pi)) ** (1.0 / 3.0)
         extent = (np.array([s.stop - s.start for s in sl]) * sp).max()
-        if (
-            not (radius_range_mm[0] <= r_eq <= radius_range_mm[1])
-            or extent > 4.0 * r_eq + 2 * sp.max()
-        ):
+        why = None
+        if not radius_range_mm[0] <= r_eq <= radius_range_mm[1]:
+            why = f"radius outside {radius_range_mm[0]:g}-{radius_range_mm[1]:g} mm"
+        elif extent > 4.0 * r_eq + 2 * sp.max():
+            why = f"extent {extent:.1f} mm, not compact"
+        if why is not None:
             log.debug("rejected bright blob %d: r_eq %.2f mm, extent %.1f mm", k, r_eq, extent)
+            box = offset + np.array([(s.start + s.stop - 1) / 2.0 for s in sl])
+            at = _at(vol.index_to_lps(box[None])[0])
+            rejected.append(f"{at} r={r_eq:.1f} mm peak {peak:.2f} ({why})")
             continue
         offs = offset + np.array([s.start for s in pad], float)
         centres.append(vol.index_to_lps(_weighted_centroid(w, offs)[None])[0])
@@ -160,13 +171,22 @@ def detect_fiducials(
             found = len(centres)
     if expected is not None and found != expected:
         listing = "; ".join(
-            f"({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) r={r:.1f} mm peak {p:.2f}"
+            f"{_at(c)} r={r:.1f} mm peak {p:.2f}"
             for c, r, p in zip(centres, radii, peaks, strict=True)
         )
-        raise FiducialError(
-            f"{source}: found {found} fiducial markers, "
-            f"expected {expected}" + (f": {listing}" if listing else "")
-        )
+        said = f"{source}: found {found} fiducial markers, expected {expected}"
+        said += f": {listing}" if listing else ""
+        if found < expected:  # what a user needs to see why markers were missed
+            if rejected:
+                said += f"; bright blobs rejected: {'; '.join(rejected)}"
+            # away from the blobs over the threshold (their rims lie just under it)
+            under = ns[~ndimage.binary_dilation(lab > 0, iterations=3)]
+            if under.size:
+                said += (
+                    f"; away from those, the brightest point under the marker threshold "
+                    f"({marker_ratio:g} times the body level) reaches {float(under.max()):.2f}"
+                )
+        raise FiducialError(said)
     order = np.lexsort(np.array(centres).T[::-1]) if centres else np.array([], int)
     return FiducialDetection(
         np.array(centres, float).reshape(-1, 3)[order],

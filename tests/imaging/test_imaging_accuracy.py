@@ -111,6 +111,29 @@ def test_a_faint_surplus_blob_is_left_out_and_a_bright_one_is_an_error(oblique_s
         process_scan(_with_blob(oblique_scan, 3.0))
 
 
+def test_missed_markers_are_explained(oblique_scan):
+    # Markers dimmed under the threshold (as thick slices average them with the plate's
+    # background) or a bright blob that is no marker: the error says what was seen, not
+    # only "found 0". Markers peak at 3.43-3.53 times the body level on this scan;
+    # clipped at 1.8 times the body's median they stay under the 2.0 threshold.
+    vol = oblique_scan.volume
+    arr = np.array(vol.array, np.float32)
+    body = float(np.median(arr[arr > 0.5 * arr.max() / 3.5]))
+    dim = Volume(np.minimum(arr, 1.8 * body), vol.affine_lps_from_index, "dim.nii.gz")
+    with pytest.raises(FiducialError) as exc:
+        process_scan(dim)
+    text = str(exc.value)
+    assert "dim.nii.gz: found 0 fiducial markers, expected 3" in text
+    peak = float(text.split("body level) reaches ")[1])
+    assert 1.0 < peak < 2.0, text  # the dimmed markers (and the body) lie under it
+    # one marker too many asked for: the three found and why nothing else counted
+    said = r"found 3 fiducial markers, expected 4: .*; away from those, the brightest point"
+    with pytest.raises(FiducialError, match=said) as exc:
+        process_scan(vol, expected_fiducials=4)
+    # the inclusions (1.6 times the body), not the markers' rims just under the threshold
+    assert 1.3 < float(str(exc.value).split("body level) reaches ")[1]) < 1.9
+
+
 def test_inclusion_threshold_rises_with_the_noise():
     # With a fixed contrast threshold of 0.15 this scan at SNR 8 gave 105 inclusions (5
     # true) and at SNR 5 114; on the quick twin at SNR 8, 1,384, whose tracking across
