@@ -21,13 +21,16 @@ class BackPlane:
     ``point_lps_mm`` (3,) on the body's flat back face, unit ``normal``
     (3,) pointing from the plate into the body, ``method`` ("fiducials" or "ransac") and
     ``beyond_face``: surface vertices more than ``face_tol_mm`` past the flat face (tissue
-    that bulges past the plate's edge), left out of the face's height.
+    that bulges past the plate's edge), left out of the face's height;
+    ``fiducials_off_face_deg``: with fiducials, the angle between their plane and the
+    surface's largest plane (the flat back face), or None where none was checked.
     """
 
     point_lps_mm: np.ndarray
     normal: np.ndarray
     method: str
     beyond_face: int = 0
+    fiducials_off_face_deg: float | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,6 +50,27 @@ class Nipple:
 #: above the lowest vertex (mm), and how much denser than the window's median bin the
 #: face's bin must be (a 50 mm disc puts ~100 times a wall's vertices in one 0.25 mm bin).
 FACE_BIN_MM, FACE_WINDOW_MM, FACE_CONTRAST = 0.25, 10.0, 10.0
+
+#: The fiducials' plane is trusted as the plate's while it lies within this angle of the
+#: surface's largest plane (degrees). On the quick twin's four scans and the oblique test
+#: scan the two agree to 0.01-0.07 degrees; markers not on the plate (posts, a tilted
+#: frame) tilt the fiducials' plane, and the face's height then finds no face.
+FIDUCIALS_OFF_FACE_DEG = 3.0
+#: ... and while that largest plane holds at least this share of the surface's vertices
+#: (the quick twin's back face: 16-21 %); a smaller one may not be the face.
+FACE_MIN_SHARE = 0.05
+
+
+def _largest_plane(v: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """RANSAC's largest plane of points ``v``: unit normal, a point on it, inlier share."""
+    import open3d as o3d
+
+    o3d.utility.random.seed(seed)
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(v))
+    (a, b, c, d), inliers = pc.segment_plane(0.5, 3, 1000)
+    normal = np.array([a, b, c], float)
+    origin = -d * normal / float(normal @ normal)
+    return normal / np.linalg.norm(normal), origin, len(inliers) / max(len(v), 1)
 
 
 def _face_height(h: np.ndarray) -> float | None:
@@ -70,7 +94,10 @@ def estimate_back_plane(
 
     With three or more non-collinear fiducials (which sit on the plate) the normal is the
     normal of their best-fit plane; otherwise it is the largest plane found by RANSAC on the
-    surface vertices (the flat back face). The normal is oriented towards the body and the
+    surface vertices (the flat back face). Where that largest plane holds at least
+    :data:`FACE_MIN_SHARE` of the vertices and the fiducials' plane lies more than
+    :data:`FIDUCIALS_OFF_FACE_DEG` off it (markers not on the plate), the face's plane is
+    taken, with a warning. The normal is oriented towards the body and the
     plane is moved onto the body's back face: the 1st percentile of the vertex heights,
     leaving out the vertices more than ``face_tol_mm`` below the densest 0.25 mm slab of
     heights near the bottom (the face). A soft body in a lateral posture can bulge past
@@ -79,20 +106,24 @@ def estimate_back_plane(
     of the face unflagged and the model mesh without a support.
     """
     v = np.asarray(vertices_lps_mm, float)
-    method = "ransac"
+    method, off = "ransac", None
+    face_normal, face_origin, share = _largest_plane(v, seed)
+    normal, origin = face_normal, face_origin
     if fiducials_lps_mm is not None and len(fiducials_lps_mm) >= 3:
         f = np.asarray(fiducials_lps_mm, float)
         _, s, vt = np.linalg.svd(f - f.mean(0))
         if s[1] > 1e-3 * max(s[0], 1e-9):
-            normal, method, origin = vt[2], "fiducials", f.mean(0)
-    if method == "ransac":
-        import open3d as o3d
-
-        o3d.utility.random.seed(seed)
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(v))
-        (a, b, c, d), _ = pc.segment_plane(0.5, 3, 1000)
-        normal = np.array([a, b, c], float)
-        origin = -d * normal / float(normal @ normal)
+            off = float(np.degrees(np.arccos(min(1.0, abs(float(vt[2] @ face_normal))))))
+            if off <= FIDUCIALS_OFF_FACE_DEG or share < FACE_MIN_SHARE:
+                normal, method, origin = vt[2], "fiducials", f.mean(0)
+            else:
+                log.warning(
+                    "back plane: the fiducials' plane lies %.1f degrees off the surface's flat "
+                    "back face (%.0f %% of the vertices): markers not on the plate? The plane "
+                    "follows the face",
+                    off,
+                    100.0 * share,
+                )
     normal = normal / np.linalg.norm(normal)
     h = (v - origin) @ normal
     if h.mean() < 0:  # the body lies on the positive side of the plate
@@ -107,7 +138,7 @@ def estimate_back_plane(
             face - float(h.min()),
         )
     base = float(np.percentile(h[~beyond], 1.0))
-    return BackPlane(origin + base * normal, normal, method, int(beyond.sum()))
+    return BackPlane(origin + base * normal, normal, method, int(beyond.sum()), off)
 
 
 def _plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

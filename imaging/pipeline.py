@@ -72,6 +72,7 @@ class ScanResult:
                 "normal": self.back_plane.normal.tolist(),
                 "method": self.back_plane.method,
                 "beyond_face": self.back_plane.beyond_face,
+                "fiducials_off_face_deg": self.back_plane.fiducials_off_face_deg,
             },
             "quality": {
                 k: (v if isinstance(v, (bool, int, str)) else float(v))

@@ -132,6 +132,25 @@ def test_back_plane_stays_on_the_face_when_tissue_bulges_past_the_plate():
     assert open_plane.point_lps_mm[2] == pytest.approx(np.percentile(h, 1.0), abs=1e-9)
 
 
+def test_fiducials_off_the_plate_give_way_to_the_flat_face(caplog):
+    # markers on posts or a tilted frame tilt the fiducials' plane; the surface's largest
+    # plane is the flat back face (z = 0): beyond 3 degrees the plane follows it, said
+    v, _ = dome_surface((40.0, 30.0, 25.0), subdivisions=5)
+    xy = np.array([[50.0, 0.0], [-50.0, 10.0], [0.0, -45.0]])
+    on = estimate_back_plane(v, fiducials_lps_mm=np.c_[xy, np.zeros(3)])
+    assert on.method == "fiducials" and on.fiducials_off_face_deg < 0.1
+    np.testing.assert_allclose(on.normal, [0.0, 0.0, 1.0], atol=1e-9)
+    tilt = np.c_[xy, 0.1 * xy[:, 0]]  # 5.7 degrees about y
+    with caplog.at_level("WARNING", logger="imaging.landmarks"):
+        off = estimate_back_plane(v, fiducials_lps_mm=tilt)
+    assert off.method == "ransac" and off.fiducials_off_face_deg == pytest.approx(5.71, abs=0.1)
+    assert off.normal[2] > 0.9999 and abs(off.point_lps_mm[2]) < 0.1
+    assert "5.7 degrees off the surface's flat back face" in caplog.text
+    # 2 degrees off: within the bar, the fiducials' plane stays
+    kept = estimate_back_plane(v, fiducials_lps_mm=np.c_[xy, np.tan(np.radians(2.0)) * xy[:, 0]])
+    assert kept.method == "fiducials" and kept.fiducials_off_face_deg == pytest.approx(2.0, abs=0.1)
+
+
 def test_render_is_seeded_and_partial_volume_is_consistent():
     a = make_scan(spacing=(1.2, 1.2, 1.5), seed=4, n_inclusions=2)
     b = make_scan(spacing=(1.2, 1.2, 1.5), seed=4, n_inclusions=2)
