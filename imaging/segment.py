@@ -130,6 +130,44 @@ def _crop_box(mask: np.ndarray, margin: np.ndarray) -> tuple[slice, slice, slice
     return tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))  # type: ignore[return-value]
 
 
+#: Room kept around a marker beyond the crop's margin (mm): the marker detection measures
+#: a blob's background in a shell a few voxels outside it.
+MARKER_PAD_MM = 8.0
+#: Volume-equivalent radii (mm) of a bright blob beyond the margin that the crop grows
+#: to hold: the marker detection's accepted range (:func:`imaging.detect.detect_fiducials`).
+FAR_MARKER_RADIUS_MM = (1.0, 6.0)
+
+
+def _with_far_markers(crop, bright: np.ndarray, voxel_mm3: float, pad: np.ndarray, src: str):
+    """``crop`` grown to hold every marker-sized ``bright`` blob outside it, padded.
+
+    Markers on a frame farther from the body than the margin were cut off by the crop
+    (and ingest found too few). ``bright``: voxels over the marker ratio times the body's
+    median intensity, before bias correction. Only blobs of a marker's size reaching
+    outside the crop count (a larger bright object in the field of view, such as a
+    reference vial, stays out); inside the margin nothing changes.
+    """
+    inside = np.zeros(bright.shape, bool)
+    inside[crop] = True
+    lab, n = ndimage.label(bright)
+    if n == 0:
+        return crop
+    counts = np.bincount(lab.ravel(), minlength=n + 1)
+    out = np.bincount(lab[~inside].ravel(), minlength=n + 1)
+    r_eq = (3.0 * counts * voxel_mm3 / (4.0 * np.pi)) ** (1.0 / 3.0)
+    lo_r, hi_r = FAR_MARKER_RADIUS_MM
+    far = [k for k in range(1, n + 1) if out[k] > 0 and lo_r <= r_eq[k] <= hi_r]
+    if not far:
+        return crop
+    nz = np.argwhere(np.isin(lab, far))
+    lo = np.minimum([c.start for c in crop], np.maximum(nz.min(axis=0) - pad, 0))
+    hi = np.maximum([c.stop for c in crop], np.minimum(nz.max(axis=0) + pad + 1, bright.shape))
+    log.info(
+        "%s: the crop grows to hold %d marker-sized bright blobs beyond its margin", src, len(far)
+    )
+    return tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+
+
 def segment_body(
     volume: Volume,
     *,
@@ -148,7 +186,8 @@ def segment_body(
     smoothing_mm : float
         Gaussian sigma (mm) of the smoothing before thresholds.
     margin_mm : float
-        Margin around the body kept in the crop (the fiducials must lie within it).
+        Margin around the body kept in the crop; it grows to hold marker-sized blobs
+        brighter than ``marker_ratio`` times the body's median farther out.
     bias_degree : int
         Total degree of the bias polynomial (0 switches bias correction off).
     marker_ratio : float
@@ -169,10 +208,17 @@ def segment_body(
     sigma = smoothing_mm / sp
     sub = arr[::3, ::3, ::3]
     thr = _otsu(sub.ravel())
-    coarse, n_comp = _largest_component(ndimage.gaussian_filter(arr, sigma) > thr)
+    smooth = ndimage.gaussian_filter(arr, sigma)
+    coarse, n_comp = _largest_component(smooth > thr)
     if coarse.sum() < 100:
         raise SegmentationError(f"{src}: empty segmentation (no body above threshold {thr:.3g})")
-    crop = _crop_box(coarse, np.ceil(margin_mm / sp).astype(int))
+    crop = _with_far_markers(
+        _crop_box(coarse, np.ceil(margin_mm / sp).astype(int)),
+        smooth > marker_ratio * float(np.median(smooth[coarse])),
+        volume.voxel_volume_mm3,
+        np.ceil(MARKER_PAD_MM / sp).astype(int),
+        src,
+    )
     a = arr[crop]
     g = ndimage.gaussian_filter(a, sigma)
     inner = ndimage.binary_erosion(coarse[crop], iterations=2)

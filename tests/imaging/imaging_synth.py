@@ -33,8 +33,14 @@ def make_scan(
     semi_axes=(45.0, 35.0, 30.0),
     n_inclusions=5,
     skin=0.0,
+    fiducials_mm=None,
 ) -> PosedScan:
+    """A posed, rendered test phantom; ``fiducials_mm`` (phantom frame) replaces its markers."""
     ph = make_test_phantom(semi_axes_mm=semi_axes, n_inclusions=n_inclusions, seed=seed)
+    if fiducials_mm is not None:
+        from dataclasses import replace
+
+        ph = replace(ph, fiducial_centres_mm=np.asarray(fiducials_mm, float))
     T = np.eye(4)
     T[:3, :3] = Rotation.from_euler("xyz", angles, degrees=True).as_matrix()
     T[:3, 3] = [10.0, -20.0, 30.0]

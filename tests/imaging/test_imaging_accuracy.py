@@ -134,6 +134,41 @@ def test_missed_markers_are_explained(oblique_scan):
     assert 1.3 < float(str(exc.value).split("body level) reaches ")[1]) < 1.9
 
 
+def test_a_marker_beyond_the_crop_margin_is_found_and_a_vial_stays_out():
+    # The crop keeps 30 mm around the body; a marker on a frame farther out was cut off
+    # ("found 2 fiducial markers"). Now marker-sized bright blobs grow the crop; a larger
+    # bright object in the field of view (a 16 mm reference vial) does not.
+    from imaging.testing import make_test_phantom
+
+    fid = np.array(make_test_phantom(semi_axes_mm=(45.0, 35.0, 30.0), seed=1).fiducial_centres_mm)
+    far = fid.copy()
+    far[0, :2] *= 1.0 + 40.0 / np.linalg.norm(far[0, :2])  # 40 mm farther out
+    scan = make_scan(fiducials_mm=far)
+    res = process_scan(scan.volume)
+    err = np.linalg.norm(res.fiducials_lps_mm[:, None] - scan.to_scanner(far)[None], axis=2)
+    assert err.min(1).max() <= 0.2  # issue 3's fiducial bar
+
+
+def test_only_marker_sized_blobs_grow_the_crop():
+    # 1 mm voxels, a crop of [20, 40) on each axis: a 2.5 mm ball beyond it grows the
+    # crop to hold it with 8 mm around; a 16 mm vial beyond it does not, nor does a
+    # marker inside
+    from imaging.segment import _with_far_markers
+
+    idx = np.indices((100, 100, 100)).reshape(3, -1).T
+    crop = (slice(20, 40),) * 3
+
+    def ball(centre, r):
+        return (np.linalg.norm(idx - centre, axis=1) < r).reshape(100, 100, 100)
+
+    pad = np.full(3, 8)
+    vial = ball([80, 80, 80], 8.0)
+    assert _with_far_markers(crop, vial | ball([30, 30, 30], 2.5), 1.0, pad, "t") == crop
+    grown = _with_far_markers(crop, vial | ball([60, 30, 30], 2.5), 1.0, pad, "t")
+    # the ball's last voxels (60 + 2, 30 + 2) and 8 around: stops 71 and 41
+    assert grown == (slice(20, 71), slice(20, 41), slice(20, 41))
+
+
 def test_inclusion_threshold_rises_with_the_noise():
     # With a fixed contrast threshold of 0.15 this scan at SNR 8 gave 105 inclusions (5
     # true) and at SNR 5 114; on the quick twin at SNR 8, 1,384, whose tracking across
