@@ -24,6 +24,7 @@ __all__ = [
     "StaleIngestError",
     "TumourChoice",
     "TumourNotFoundWarning",
+    "TumourHintWarning",
     "ingest_inputs",
     "ingest_scans",
     "load_ingest",
@@ -57,6 +58,16 @@ def _process(entry, session: Session, progress):
 
 class TumourNotFoundWarning(UserWarning):
     """The tracked tumour has no matching inclusion in a scan (its tumour is left unset)."""
+
+
+class TumourHintWarning(UserWarning):
+    """No inclusion of the reference scan lies near the ``[landmarks] tumour`` hint."""
+
+
+#: The inclusion nearest the tumour hint is taken for the tumour; farther than its own
+#: radius plus this (mm) from the hint, the tumour itself was likely not segmented (too
+#: large, too small, darker than the body) and the pick is warned about.
+TUMOUR_HINT_SLACK_MM = 5.0
 
 
 #: Below this match confidence the tracked tumour's identity in a scan is ambiguous (warned).
@@ -146,6 +157,17 @@ def _choose_tumour(session: Session, res) -> TumourChoice:
     if session.tumour_hint_lps_mm is not None:
         dist = np.sort(np.linalg.norm(c - session.tumour_hint_lps_mm, axis=1))
         other = f"; the next nearest is {dist[1]:.1f} mm away" if len(dist) > 1 else ""
+        if dist[0] > 0.5 * d[k] + TUMOUR_HINT_SLACK_MM:
+            import warnings
+
+            warnings.warn(
+                f"{session.reference.name!r}: the inclusion nearest the [landmarks] tumour "
+                f"hint is {dist[0]:.1f} mm from it ({d[k]:.1f} mm wide): the tumour itself "
+                "may not be segmented (ingest finds bright inclusions 2-15 mm wide); it is "
+                "tracked all the same",
+                TumourHintWarning,
+                stacklevel=2,
+            )
         return TumourChoice(
             k, f"nearest to the [landmarks] tumour hint ({dist[0]:.1f} mm away{other})"
         )

@@ -370,3 +370,23 @@ def test_the_size_sd_grows_with_voxels_past_those_it_was_measured_on():
     assert size_sd_mm([1.5, 1.5, 1.5]) == size_sd_mm([0.8] * 3, [2.0] * 3) == 0.3
     assert size_sd_mm([1.0, 1.0, 3.0]) == pytest.approx(0.45)
     assert size_sd_mm([0.8] * 3, [1.0, 1.0, 4.0]) == pytest.approx(0.6)
+
+
+def test_a_tumour_hint_far_from_every_inclusion_is_warned_about():
+    # a tumour ingest did not segment (too large, dark): the nearest inclusion is tracked
+    # as the tumour all the same, no longer silently (radius + 5 mm: TUMOUR_HINT_SLACK_MM)
+    from calib.data.ingest import TumourHintWarning, _choose_tumour
+
+    res = _scan([[0.0, 0.0, 20.0], [30.0, 0.0, 20.0]], [8.0, 6.0], [0.0, 0.0, 60.0])
+
+    def session(hint):
+        return SimpleNamespace(reference=SimpleNamespace(name="ref"), tumour_hint_lps_mm=hint)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        near = _choose_tumour(session(np.array([0.0, 8.9, 20.0])), res)  # 4 + 5 mm: within
+    assert near.reference_index == 0
+    said = r"'ref': .* nearest the \[landmarks\] tumour hint is 9.1 mm from it \(8.0 mm wide\)"
+    with pytest.warns(TumourHintWarning, match=said):
+        far = _choose_tumour(session(np.array([0.0, 9.1, 20.0])), res)
+    assert far.reference_index == 0 and "9.1 mm away" in far.reason
