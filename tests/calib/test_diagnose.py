@@ -662,6 +662,21 @@ def test_a_sliding_plate_is_refitted_as_ln_k_of_its_springs():
     assert effect_support(values).tangent_stiffness_pa_per_mm == pytest.approx(250.0)
 
 
+def test_the_registration_tolerance_takes_half_the_largest_voxel_edge(tmp_path):
+    # closed form: 3 x the larger expected TRE + half the largest voxel edge (thick
+    # slices place a point to half a slice along their axis; the twin is isotropic)
+    import json
+
+    from calib.discrepancy.problem import _registration_tolerance
+
+    scan = tmp_path / "scans" / "a"
+    scan.mkdir(parents=True)
+    doc = {"tre_nipple_mm": 0.1, "tre_tumour_mm": 0.2, "voxel_size_mm": [1.0, 1.0, 3.0]}
+    (scan / "ingest.json").write_text(json.dumps(doc))
+    work = SimpleNamespace(path=tmp_path)
+    assert _registration_tolerance(work, "a") == pytest.approx(3.0 * 0.2 + 1.5)
+
+
 def test_a_rigid_offset_may_reach_twice_its_scans_registration_tolerance():
     # a plausible offset moves no point by more than the scan's tolerance (3 x TRE + half
     # a voxel); with a large TRE the fixed 3 mm bound stopped it first ("at a bound")
