@@ -34,6 +34,7 @@ def make_scan(
     n_inclusions=5,
     skin=0.0,
     fiducials_mm=None,
+    intensities=None,
 ) -> PosedScan:
     """A posed, rendered test phantom; ``fiducials_mm`` (phantom frame) replaces its markers."""
     ph = make_test_phantom(semi_axes_mm=semi_axes, n_inclusions=n_inclusions, seed=seed)
@@ -59,6 +60,7 @@ def make_scan(
         snr=snr,
         seed=seed,
         skin_thickness_mm=skin,
+        intensities=intensities,
     )
     return scan
 

@@ -169,6 +169,21 @@ def test_only_marker_sized_blobs_grow_the_crop():
     assert grown == (slice(20, 71), slice(20, 41), slice(20, 41))
 
 
+@pytest.mark.parametrize("skin", [1.6, 0.7])
+def test_a_visible_skin_layer_keeps_the_accuracy_bars(skin):
+    # A 1.5 mm skin rendered at 1.6 (0.7) times the body: before, the inner tail of a
+    # bright skin's blur passed the edge margin in fragments and 84 of them were taken
+    # for inclusions (20 at 1.3 times); the surface already met the bars (mean 0.22 mm).
+    # Now a candidate whose brightest voxel lies on the margin is a surface layer.
+    from imaging.synthetic import MRIntensities
+
+    scan = make_scan(skin=1.5, intensities=MRIntensities(skin=1000.0 * skin))
+    res = process_scan(scan.volume)
+    _check_accuracy(scan, res)  # issue 3's bars, the 5 inclusions and nothing spurious
+    if skin > 1.0:
+        assert res.inclusions.quality["n_surface_layer"] > 0  # the fragments were there
+
+
 def test_inclusion_threshold_rises_with_the_noise():
     # With a fixed contrast threshold of 0.15 this scan at SNR 8 gave 105 inclusions (5
     # true) and at SNR 5 114; on the quick twin at SNR 8, 1,384, whose tracking across
