@@ -43,8 +43,9 @@ density      ln of density / declared density      0            [ln 0.5, ln 2]
              (not identifiable: at fixed nu the solution depends on rho g / c1 only)
 gravity      2 angles of the gravity direction     0            +-5 degrees, per scan
              error per scan (rad)
-registration rigid offset per scan: 3              0            +-3 mm, +-2 degrees
-             translations (mm), 3 rotations (rad)
+registration rigid offset per scan: 3              0            +-3 mm (or twice the
+             translations (mm), 3 rotations (rad)              scan's registration
+                                                               tolerance), +-2 degrees
 ============ ===================================== ============ =======================
 
 The skin and inclusion parameters are the stiffness ratio less one, not its logarithm:
