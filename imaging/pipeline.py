@@ -81,6 +81,43 @@ class ScanResult:
         }
 
 
+#: Body voxels on the volume's edge up to this height above the back plane (mm, plus one
+#: voxel) are the back face resting on a field of view that starts at the plate.
+FOV_CUT_TOL_MM = 2.0
+
+
+def fov_cut_height_mm(mask: Volume, plane: BackPlane) -> float:
+    """Largest height above ``plane`` of a body voxel on the volume's edge (mm; 0: none).
+
+    A field of view that cuts the body leaves body voxels on the volume's edge; the
+    extracted surface there is the volume's edge. The back face resting on the plate may
+    lie on the edge (heights near 0).
+
+    Parameters
+    ----------
+    mask : Volume
+        The body mask (:class:`imaging.segment.BodySegmentation`'s ``mask``).
+    plane : BackPlane
+
+    Returns
+    -------
+    float
+    """
+    a = np.asarray(mask.array).astype(bool)
+    edge = np.zeros(a.shape, bool)
+    for axis in range(3):
+        first = [slice(None)] * 3
+        first[axis] = slice(0, 1)
+        last = [slice(None)] * 3
+        last[axis] = slice(-1, None)
+        edge[tuple(first)] = edge[tuple(last)] = True
+    idx = np.argwhere(a & edge)
+    if not len(idx):
+        return 0.0
+    h = (mask.index_to_lps(idx.astype(float)) - plane.point_lps_mm) @ plane.normal
+    return float(max(0.0, h.max()))
+
+
 def process_scan(
     volume: Volume,
     *,
@@ -142,6 +179,15 @@ def process_scan(
         tol_mm=back_plate_tol_mm,
     )
     nipple = find_nipple(surf.vertices_lps_mm, plane)
+    cut = fov_cut_height_mm(seg.mask, plane)
+    if cut > FOV_CUT_TOL_MM + float(volume.spacing_mm.max()):
+        log.warning(
+            "%s: the field of view cuts the body: body voxels on the volume's edge lie up to "
+            "%.0f mm above the back plate, where the surface is the volume's edge, not the "
+            "phantom's",
+            volume.source,
+            cut,
+        )
     tumour = None
     if len(inc.diameters_mm):
         k = select_tumour(inc.centres_lps_mm, inc.diameters_mm, hint_lps_mm=tumour_hint_lps_mm)
@@ -156,6 +202,7 @@ def process_scan(
         back_plate_fraction=float(flags.mean()),
         nipple_height_mm=nipple.height_mm,
         nipple_refined=bool(nipple.quality["refined"]),
+        fov_cut_height_mm=cut,
         **times,
     )
     surface = SurfaceMesh(surf.vertices_lps_mm, surf.faces, flags, surf.quality)

@@ -184,6 +184,20 @@ def test_a_visible_skin_layer_keeps_the_accuracy_bars(skin):
         assert res.inclusions.quality["n_surface_layer"] > 0  # the fragments were there
 
 
+def test_a_field_of_view_that_cuts_the_body_is_said(oblique_scan, oblique_result, caplog):
+    # the surface where the volume's edge cuts the body is the edge, not the phantom's:
+    # a silent wrong answer before. The whole scan: no body voxel on the edge.
+    assert oblique_result.quality["fov_cut_height_mm"] == 0.0
+    vol = oblique_scan.volume
+    mask = oblique_result.mask.array.astype(bool)
+    keep = int(np.argwhere(mask.any(axis=(1, 2))).mean())  # through the body's middle
+    cut = Volume(np.array(vol.array)[:keep], vol.affine_lps_from_index, "cut.nii.gz")
+    with caplog.at_level("WARNING", logger="imaging.pipeline"):
+        res = process_scan(cut, expected_fiducials=None)
+    assert res.quality["fov_cut_height_mm"] > 10.0
+    assert "cut.nii.gz: the field of view cuts the body" in caplog.text
+
+
 def test_inclusion_threshold_rises_with_the_noise():
     # With a fixed contrast threshold of 0.15 this scan at SNR 8 gave 105 inclusions (5
     # true) and at SNR 5 114; on the quick twin at SNR 8, 1,384, whose tracking across
