@@ -14,6 +14,7 @@ import types
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 import fem
 from calib.model.reference import reference_mesh
@@ -148,3 +149,21 @@ def test_a_back_face_off_its_plane_is_warned_about(caplog):
     with caplog.at_level("WARNING", logger="calib.model.reference"):
         reference_mesh(ref, size_mm=10.0)
     assert "of the" in caplog.text and "flagged as back plate" in caplog.text
+
+
+def test_the_model_nipple_is_the_node_at_the_measured_nipple():
+    # the apex (the node highest above the plate) was the model's nipple; a nipple tipped
+    # over by a lateral load, or a phantom whose highest point is not its nipple, put it
+    # elsewhere. The dome's measured nipple moved 20 mm down its side: the node nearest it
+    ref = _dome_reference()
+    apex = reference_mesh(ref, size_mm=10.0)
+    top = apex.nodes_mm[apex.node_set("nipple")[0]]
+    assert top[2] == pytest.approx(apex.nodes_mm[:, 2].max())  # at the top: the apex
+    x = 20.0  # on the dome (60, 45, 40): z = 40 sqrt(1 - (x / 60)^2)
+    ref.nipple_mm = np.array([x, 0.0, 40.0 * np.sqrt(1.0 - (x / 60.0) ** 2)])
+    moved = reference_mesh(ref, size_mm=10.0)
+    k = moved.node_set("nipple")[0]
+    surf = moved.node_set("surface")
+    gap = np.linalg.norm(moved.nodes_mm[surf] - ref.nipple_mm, axis=1)
+    assert np.linalg.norm(moved.nodes_mm[k] - ref.nipple_mm) == pytest.approx(gap.min())
+    assert gap.min() < 10.0 and np.linalg.norm(moved.nodes_mm[k] - top) > 10.0
