@@ -20,7 +20,7 @@ from calib_helpers import SMALL_VALIDATION_PRESET, make_scan_folder
 from typer.testing import CliRunner
 
 from calib.cli import app
-from calib.data.ingest import StaleIngestError, stale_reasons
+from calib.data.ingest import StaleIngestError, TumourHintWarning, stale_reasons
 from calib.data.measurements import load_measurements
 from calib.data.session import load_session
 from calib.io import RunOutputs, StaleOutputError, check_run, write_json_atomic
@@ -83,7 +83,10 @@ def test_a_swapped_reference_is_re_ingested_and_said(scans, tmp_path):
     assert any("session.toml changed" in r for r in stale_reasons(work, session))
     with pytest.raises(StaleIngestError, match="session.toml changed"):
         load_measurements(work, session)
-    result = _calibrate(scans, work)
+    # the [landmarks] tumour hint is still in the old reference scan's frame: the new
+    # reference's nearest inclusion lies far from it, which ingest now says
+    with pytest.warns(TumourHintWarning, match="nearest the \\[landmarks\\] tumour hint is"):
+        result = _calibrate(scans, work)
     assert result.exit_code == 0, result.output
     assert "ingesting the scans (session.toml changed" in result.output
     # right_lateral is the reference now: its registration is the identity, and the

@@ -27,6 +27,7 @@ def _dome():
         faces=np.asarray(s.faces, np.int64),
         back_point_mm=np.zeros(3),
         back_normal=np.array([0.0, 0.0, -1.0]),
+        nipple_mm=np.array([0.0, 0.0, 50.0]),  # the dome's top
     )
 
 
