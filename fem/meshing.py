@@ -303,8 +303,19 @@ def find_back_plane(mesh: TetMesh, *, angle_tol_deg: float = 2.0, dist_tol_mm: f
     return nodes, normal, offset
 
 
-def tag_node_sets(mesh: TetMesh, back_nodes: np.ndarray, back_normal: np.ndarray) -> TetMesh:
+def tag_node_sets(
+    mesh: TetMesh,
+    back_nodes: np.ndarray,
+    back_normal: np.ndarray,
+    *,
+    nipple_mm: np.ndarray | None = None,
+) -> TetMesh:
     """Add node sets ``back``, ``surface`` (boundary without the back) and ``nipple``.
+
+    ``nipple`` is the surface node nearest ``nipple_mm`` (a measured nipple, mm), else the
+    apex: the surface node highest above the back. Under a lateral load a nipple tips
+    over (1.6-1.8 mm from the apex on the digital twin), and a phantom's highest point
+    need not be its nipple.
 
     Raises
     ------
@@ -325,8 +336,12 @@ def tag_node_sets(mesh: TetMesh, back_nodes: np.ndarray, back_normal: np.ndarray
             "tetrahedralize)"
         )
     surface = np.setdiff1d(bnodes, back_nodes)
-    height = -(mesh.nodes_mm[surface] - mesh.nodes_mm[back_nodes].mean(0)) @ back_normal
-    nipple = surface[[int(np.argmax(height))]]
+    if nipple_mm is None:
+        height = -(mesh.nodes_mm[surface] - mesh.nodes_mm[back_nodes].mean(0)) @ back_normal
+        nipple = surface[[int(np.argmax(height))]]
+    else:
+        gap = np.linalg.norm(mesh.nodes_mm[surface] - np.asarray(nipple_mm, float), axis=1)
+        nipple = surface[[int(np.argmin(gap))]]
     return mesh.with_node_sets(back=back_nodes, surface=surface, nipple=nipple)
 
 

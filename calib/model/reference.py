@@ -92,7 +92,7 @@ def reference_mesh(
     if spheres:
         h = size_mm / 2.0 if sphere_size_mm is None else sphere_size_mm
         mesh = _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, spheres, h)
-        return _with_measured_nipple(ref, _support_checked(ref, mesh, back_tol_mm))
+        return _support_checked(ref, mesh, back_tol_mm)
     v, f = _decimate(ref.vertices_mm, ref.faces, size_mm)
     n, p0 = ref.back_normal, ref.back_point_mm
     v, on = _onto_plane(v, (p0, n, back_tol_mm))
@@ -115,36 +115,12 @@ def reference_mesh(
         mesh = _remeshed(ref, plane, sizing)
     if mesh is None:  # repaired, or remeshed on the coarse grid (fem.meshing says which)
         mesh = tetrahedralize(v, f, keep_planes=[plane], **sizing)
-    mesh = _with_back(mesh, p0, n, size_mm)
+    mesh = _with_back(mesh, p0, n, size_mm, ref.nipple_mm)
     back = len(mesh.node_set("back"))
     log.info(
         "reference mesh: %d tets, %d nodes, %d on the back plane", mesh.n_tets, mesh.n_nodes, back
     )
-    return _with_measured_nipple(ref, _support_checked(ref, mesh, back_tol_mm))
-
-
-def _with_measured_nipple(ref, mesh):
-    """``mesh`` with its ``nipple`` node the surface node nearest the scan's nipple.
-
-    :func:`fem.meshing.tag_node_sets` takes the apex, the surface node highest above the
-    plate; under a lateral load the nipple tips over (ingest's nipple is the bump's tip,
-    1.6-1.8 mm from the apex on the twin), and another phantom's highest point need not
-    be its nipple. On the quick twin's reference (seed 0) the two are the same node on
-    8-16 mm meshes.
-    """
-    surf = mesh.node_set("surface")
-    k = int(surf[np.argmin(np.linalg.norm(mesh.nodes_mm[surf] - ref.nipple_mm, axis=1))])
-    apex = int(mesh.node_set("nipple")[0])
-    if k != apex:
-        log.info(
-            "model nipple: node %d, %.1f mm from the measured nipple (the apex, node %d, is "
-            "%.1f mm from it)",
-            k,
-            np.linalg.norm(mesh.nodes_mm[k] - ref.nipple_mm),
-            apex,
-            np.linalg.norm(mesh.nodes_mm[apex] - ref.nipple_mm),
-        )
-    return mesh.with_node_sets(nipple=np.array([k]))
+    return _support_checked(ref, mesh, back_tol_mm)
 
 
 #: Below this share of the scan's back-plate area (its triangles flagged ``back_plate``,
@@ -190,11 +166,15 @@ def _support_checked(ref, mesh, back_tol_mm: float):
     return mesh
 
 
-def _with_back(mesh, p0, n, size_mm: float):
-    """The mesh with its node sets: ``back`` the boundary nodes on the plane ``(p0, n)``."""
+def _with_back(mesh, p0, n, size_mm: float, nipple_mm: np.ndarray):
+    """The mesh with its node sets (:func:`fem.meshing.tag_node_sets`).
+
+    ``back``: the boundary nodes on the plane ``(p0, n)``; ``nipple``: the surface node
+    nearest the measured ``nipple_mm``.
+    """
     bnodes = np.unique(fem.boundary_faces(mesh.tets))
     back = bnodes[np.abs((mesh.nodes_mm[bnodes] - p0) @ n) < 1e-6 * size_mm]
-    return tag_node_sets(mesh, back, n)
+    return tag_node_sets(mesh, back, n, nipple_mm=nipple_mm)
 
 
 #: Smallest gap between a meshed sphere and the outer surface or another sphere, in inner
@@ -318,7 +298,7 @@ def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, spheres, h):
             mesh.n_tets,
             mesh.n_nodes,
         )
-        return _with_back(mesh, p0, n, size_mm)
+        return _with_back(mesh, p0, n, size_mm, ref.nipple_mm)
     raise fem.MeshError(
         "TetGen could not mesh the reference surface with its inclusions: " + "; ".join(errors)
     )
