@@ -19,6 +19,7 @@ from dataclasses import asdict
 import numpy as np
 
 from ..data.measurements import Measurements
+from ..model.residuals import surface_area_mm2
 from .meshcheck import MeshCheck, combined_ci95, describe_mesh_check, mesh_check
 from .objective import Calibrator
 from .optimise import optimise, prepare
@@ -86,10 +87,7 @@ def _measured_area_mm2(cal: Calibrator) -> float:
     """Area of the calibration scans' measured surfaces off the back plate, mm^2."""
     total = 0.0
     for s in cal.calibration_scans:
-        off = ~s.back_plate[s.faces].all(axis=1)
-        tri = s.vertices_mm[s.faces[off]]
-        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        total += 0.5 * float(np.linalg.norm(cross, axis=1).sum())
+        total += surface_area_mm2(s.vertices_mm, s.faces[~s.back_plate[s.faces].all(axis=1)])
     return total
 
 

@@ -18,6 +18,7 @@ from fem.meshing import (
 )
 
 from ..data.measurements import ScanMeasurement
+from .residuals import surface_area_mm2
 
 __all__ = ["meshed_spheres", "reference_mesh"]
 
@@ -130,12 +131,6 @@ def reference_mesh(
 SUPPORT_AREA_SHARE = 0.8
 
 
-def _area_mm2(v: np.ndarray, f: np.ndarray) -> float:
-    """Area of triangles ``f`` (k, 3) over vertices ``v`` (mm^2)."""
-    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    return 0.5 * float(np.linalg.norm(cross, axis=1).sum())
-
-
 def _support_checked(ref, mesh, back_tol_mm: float):
     """``mesh``, with a warning where its clamped back covers little of the scan's plate.
 
@@ -147,11 +142,13 @@ def _support_checked(ref, mesh, back_tol_mm: float):
     flags = getattr(ref, "back_plate", None)
     if flags is None:
         return mesh
-    plate = _area_mm2(ref.vertices_mm, ref.faces[np.asarray(flags, bool)[ref.faces].all(axis=1)])
+    plate = surface_area_mm2(
+        ref.vertices_mm, ref.faces[np.asarray(flags, bool)[ref.faces].all(axis=1)]
+    )
     faces = fem.boundary_faces(mesh.tets)[:, :3]
     on = np.zeros(mesh.n_nodes, bool)
     on[mesh.node_set("back")] = True
-    clamped = _area_mm2(mesh.nodes_mm, faces[on[faces].all(axis=1)])
+    clamped = surface_area_mm2(mesh.nodes_mm, faces[on[faces].all(axis=1)])
     if plate > 0 and clamped < SUPPORT_AREA_SHARE * plate:
         log.warning(
             "reference scan %r: the model mesh clamps %.0f mm^2 of the %.0f mm^2 flagged as "

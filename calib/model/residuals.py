@@ -38,6 +38,13 @@ def _scene(vertices: np.ndarray, faces: np.ndarray):
     return scene
 
 
+def surface_area_mm2(vertices_mm: np.ndarray, faces: np.ndarray) -> float:
+    """Total area of the triangles ``faces`` (k, 3) over ``vertices_mm`` (n, 3), mm^2."""
+    tri = np.asarray(vertices_mm, float)[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return 0.5 * float(np.linalg.norm(cross, axis=1).sum())
+
+
 def closest_on_surface(vertices, faces, points, *, scene=None):
     """Closest points, triangle ids, barycentric weights (k, 3) and unit face normals.
 
