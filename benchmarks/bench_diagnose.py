@@ -920,8 +920,8 @@ def main() -> None:
     unknown = sorted(set(args.cases.split(",")) - set(known))
     if unknown:
         ap.error(f"--cases: unknown {', '.join(unknown)}; known: {', '.join(known)}")
-    for flag in ("--seeds", "--null-seeds"):
-        _numbers(ap, flag, getattr(args, flag[2:].replace("-", "_")), int)
+    _numbers(ap, "--seeds", args.seeds, int)
+    _numbers(ap, "--null-seeds", args.null_seeds, int)
     _numbers(ap, "--ratios", args.ratios, float)
     from calib.discrepancy import DiagnosisError
     from calib.discrepancy.problem import parse_rim_margin

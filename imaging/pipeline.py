@@ -104,13 +104,8 @@ def fov_cut_height_mm(mask: Volume, plane: BackPlane) -> float:
     float
     """
     a = np.asarray(mask.array).astype(bool)
-    edge = np.zeros(a.shape, bool)
-    for axis in range(3):
-        first = [slice(None)] * 3
-        first[axis] = slice(0, 1)
-        last = [slice(None)] * 3
-        last[axis] = slice(-1, None)
-        edge[tuple(first)] = edge[tuple(last)] = True
+    edge = np.ones(a.shape, bool)
+    edge[1:-1, 1:-1, 1:-1] = False  # the voxels on the volume's six faces
     idx = np.argwhere(a & edge)
     if not len(idx):
         return 0.0

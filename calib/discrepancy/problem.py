@@ -476,7 +476,7 @@ def _registration_tolerance(work: WorkFolder, name: str) -> float:
     """3 x the scan's expected TRE (ingest.json) + half its largest voxel edge, mm.
 
     The largest edge: on thick slices a surface point is placed to half a slice along
-    the slice axis (the smallest edge, as before, allowed an isotropic scan's offset).
+    the slice axis.
     """
     doc = json.loads((Path(work.path) / "scans" / name / "ingest.json").read_text())
     tre = max(float(doc.get("tre_nipple_mm") or 0.0), float(doc.get("tre_tumour_mm") or 0.0))
