@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -11,7 +12,9 @@ import numpy as np
 __all__ = ["ScanEntry", "Session", "SessionError", "load_session", "scaffold_session"]
 
 ROLES = ("reference", "calibration", "validation")
-PLANES = ("transverse", "sagittal", "coronal")
+PLANES = ("transverse", "sagittal")  # fem.postures.PLANES
+#: A scan name is a folder name under WORK/scans/ and part of output file names.
+NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 VOLUME_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
 
 
@@ -136,6 +139,11 @@ def _scan(entry, index: int, folder: Path, toml: Path) -> ScanEntry:
     for key in ("name", "path", "role"):
         if not isinstance(entry.get(key), str) or not entry[key]:
             raise SessionError(f"{where}: '{key}' must be a non-empty string")
+    if not NAME_PATTERN.fullmatch(entry["name"]):
+        raise SessionError(
+            f"{where}: name {entry['name']!r} must start with a letter or digit and hold only "
+            "letters, digits, '.', '_' and '-' (it names folders and files in the work folder)"
+        )
     if entry["role"] not in ROLES:
         raise SessionError(f"{where}: role must be one of {ROLES}, got {entry['role']!r}")
     path = (folder / entry["path"]).resolve()
@@ -170,7 +178,9 @@ def load_session(folder: str | Path) -> Session:
     if not toml.is_file():
         raise SessionError(f"{folder}: no session.toml (create one with `phantom-calib init`)")
     try:
-        doc = tomllib.loads(toml.read_text())
+        doc = tomllib.loads(toml.read_bytes().decode("utf-8-sig"))  # a leading BOM is dropped
+    except UnicodeDecodeError as exc:
+        raise SessionError(f"{toml}: not UTF-8 text (byte {exc.start}): save it as UTF-8") from exc
     except tomllib.TOMLDecodeError as exc:
         raise SessionError(f"{toml}: not valid TOML: {exc}") from exc
     unknown = set(doc) - _KEYS[""]
@@ -219,7 +229,7 @@ def _find_scans(folder: Path) -> list[Path]:
 
 
 def _unique_names(paths: list[Path]) -> list[str]:
-    """Scan names from file names without volume suffixes, made unique."""
+    """Scan names from file names without volume suffixes, valid (:data:`NAME_PATTERN`), unique."""
     names = []
     for p in paths:
         stem = p.name
@@ -227,7 +237,8 @@ def _unique_names(paths: list[Path]) -> list[str]:
             if stem.lower().endswith(suf):
                 stem = stem[: -len(suf)]
                 break
-        name, k = stem or "scan", 2
+        stem = re.sub(r"[^A-Za-z0-9._-]", "_", stem).lstrip("._-") or "scan"
+        name, k = stem, 2
         while name in names:
             name, k = f"{stem}_{k}", k + 1
         names.append(name)

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..data.ingest import stale_reasons
 from ..data.measurements import load_measurements
-from ..data.session import load_session
+from ..data.session import SessionError, load_session
 from ..evaluation import ScanEvaluation, check_postures, evaluate, model_fit_with_postures
 from ..fitting import Calibration, CalibrationOptions, fit
 from ..io import RunOutputs, provenance
@@ -204,6 +204,11 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     work = Path(work)
     check_work_folder(work)
     session = load_session(scans_dir)
+    if not session.by_role("calibration"):
+        raise SessionError(
+            f"{session.folder / 'session.toml'}: no scan has role 'calibration' (calibrate "
+            f"fits c1 to them; scans: {[(s.name, s.role) for s in session.scans]})"
+        )
     reasons = stale_reasons(work, session)
     if reasons:
         from .ingest import run_ingest

@@ -162,6 +162,28 @@ BAD_SESSIONS = [
         r"#2: posture.angle_deg must be a number, got '180'",
     ),
     (
+        "name-climbs-out",
+        VALID_TOML.replace('name = "tilt"', 'name = "../../evil"'),
+        r"#3: name '../../evil' must start with a letter or digit",
+    ),
+    (
+        "name-with-a-slash",
+        VALID_TOML.replace('name = "tilt"', 'name = "tilt/25"'),
+        r"#3: name 'tilt/25' must start .* only letters, digits",
+    ),
+    (
+        "name-with-a-space",
+        VALID_TOML.replace('name = "tilt"', 'name = "tilt 25"'),
+        r"#3: name 'tilt 25' must",
+    ),
+    (
+        "posture-plane-coronal",
+        VALID_TOML.replace(
+            'plane = "transverse", angle_deg = 180', 'plane = "coronal", angle_deg = 180'
+        ),
+        r"#2: posture.plane must be one of \('transverse', 'sagittal'\), got 'coronal'",
+    ),
+    (
         "posture-not-a-table",
         VALID_TOML.replace('posture = { plane = "transverse", angle_deg = 180 }', "posture = 180"),
         r"#2: posture must be an inline table",
@@ -180,6 +202,20 @@ def test_bad_session_names_file_and_problem(tmp_path, toml, pattern):
     assert str(folder.resolve() / "session.toml") in message
     assert re.search(pattern, message), message
     assert "\n" not in message.split(": not valid TOML")[0]  # one line up to the parser's text
+
+
+def test_a_byte_order_mark_is_read_and_other_encodings_are_refused(tmp_path):
+    folder = make_scan_folder(tmp_path / "scans", VALID_TOML)
+    toml = folder / "session.toml"
+    toml.write_bytes(b"\xef\xbb\xbf" + VALID_TOML.encode())  # as Windows editors save UTF-8
+    assert [s.name for s in load_session(folder).scans] == ["left", "right", "tilt"]
+    toml.write_bytes(
+        VALID_TOML.replace('name = "tilt"', 'name = "tilt"  # r\u00e9p\u00e9t\u00e9').encode(
+            "latin-1"
+        )
+    )
+    with pytest.raises(SessionError, match=r"session.toml: not UTF-8 text \(byte \d+\)"):
+        load_session(folder)
 
 
 def test_session_error_is_a_value_error():
@@ -273,8 +309,27 @@ def test_cli_init_missing_folder(tmp_path):
     assert len(result.stderr.strip().splitlines()) == 1
 
 
+def test_scaffold_names_are_valid_scan_names(tmp_path):
+    (tmp_path / "left lateral (1).nii.gz").write_bytes(b"placeholder")
+    (tmp_path / "_25deg.mha").write_bytes(b"placeholder")
+    scaffold_session(tmp_path)
+    assert [s.name for s in load_session(tmp_path).scans] == ["25deg", "left_lateral__1_"]
+
+
 def test_scaffold_result_loads_when_stems_collide(tmp_path):
     (tmp_path / "a.nii.gz").write_bytes(b"placeholder")
     (tmp_path / "a.mha").write_bytes(b"placeholder")
     scaffold_session(tmp_path)
     assert len(load_session(tmp_path).scans) == 2
+
+
+def test_calibrate_without_a_calibration_scan_stops_before_ingest(tmp_path):
+    from calib.fitting import CalibrationOptions
+    from calib.workflows.calibrate import run_calibration
+
+    toml = VALID_TOML.replace('role = "calibration"', 'role = "validation"')
+    folder = make_scan_folder(tmp_path / "scans", toml)
+    work = tmp_path / "work"
+    with pytest.raises(SessionError, match=r"session.toml: no scan has role 'calibration'"):
+        run_calibration(folder, work, CalibrationOptions())
+    assert not (work / "scans").exists()  # nothing ingested
