@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,11 @@ log = logging.getLogger(__name__)
 
 _RAS_FROM_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
 _ITK_SUFFIXES = (".nrrd", ".nhdr", ".mha", ".mhd")
+_DICOM_FILE_SUFFIXES = (".dcm", ".dicom", ".ima")
+#: The most of a file read to find its NRRD or MetaImage text header.
+_HEADER_BYTES = 1 << 20
+#: NRRD ``space units`` read as millimetres; "" is NRRD's unknown unit, read as mm as NIfTI's.
+_MM_UNITS = {"", "mm", "millimeter", "millimeters", "millimetre", "millimetres"}
 
 
 def _suffix(path: Path) -> str:
@@ -38,8 +44,8 @@ def read_volume(path: str | os.PathLike) -> Volume:
     Parameters
     ----------
     path : path-like
-        A folder holding one DICOM series, or a ``.nii``/``.nii.gz``, ``.nrrd``/``.nhdr`` or
-        ``.mha``/``.mhd`` file.
+        A folder holding one DICOM series (not one of its files), or a ``.nii``/``.nii.gz``,
+        ``.nrrd``/``.nhdr`` or ``.mha``/``.mhd`` file.
 
     Returns
     -------
@@ -49,7 +55,8 @@ def read_volume(path: str | os.PathLike) -> Volume:
     Raises
     ------
     VolumeReadError
-        Missing, truncated, corrupt or unsupported input; the message names the file.
+        Missing, truncated, corrupt or unsupported input, or one whose placement in the
+        scanner is unknown or not in millimetres; the message names the file.
     """
     p = Path(path)
     if p.is_dir():
@@ -63,6 +70,11 @@ def read_volume(path: str | os.PathLike) -> Volume:
         return _read_nifti(p)
     if suffix in _ITK_SUFFIXES:
         return _read_itk(p)
+    if suffix in _DICOM_FILE_SUFFIXES:
+        raise VolumeReadError(
+            f"{p}: a single DICOM file; a DICOM scan is read as a whole series: point `path` "
+            f"at the series folder that holds all its slices ({p.parent})"
+        )
     raise VolumeReadError(
         f"{p}: unsupported volume format {suffix!r} (expected a DICOM folder, .nii, .nii.gz, "
         ".nrrd, .nhdr, .mha or .mhd)"
@@ -127,7 +139,74 @@ def _read_itk(path: Path) -> Volume:
         raise VolumeReadError(f"{path}: cannot read image ({msg})") from exc
     if img.GetDimension() != 3 or img.GetNumberOfComponentsPerPixel() != 1:
         raise VolumeReadError(f"{path}: expected a 3-D scalar volume")
+    if _suffix(path) in (".nrrd", ".nhdr"):
+        _check_nrrd_geometry(path)
+    else:
+        _check_metaimage_geometry(path)
     return Volume.from_sitk(img, source=str(path))
+
+
+def _header_lines(path: Path) -> list[str]:
+    """The text lines at the start of a file (its NRRD or MetaImage header and what follows)."""
+    with open(path, "rb") as fh:
+        head = fh.read(_HEADER_BYTES)
+    return head.decode("latin-1").replace("\r\n", "\n").split("\n")
+
+
+def _check_nrrd_geometry(path: Path) -> None:
+    """Refuse an NRRD whose placement in the scanner is unknown or not in millimetres.
+
+    SimpleITK reads an NRRD without ``space`` and ``space directions`` as the identity at
+    origin 0, and ignores ``space units`` (metres would be read as mm, a 1000-fold error),
+    so both are checked on the text header (which ends at the first empty line).
+    """
+    fields: dict[str, str] = {}
+    for line in _header_lines(path)[1:]:
+        if not line.strip():
+            break
+        name, sep, value = line.partition(":")
+        if line.startswith("#") or not sep or value.startswith("="):  # comment, key:=value
+            continue
+        fields[name.strip()] = value.strip()
+    missing = [f"`{name}`" for name in ("space", "space directions") if name not in fields]
+    if missing:
+        raise VolumeReadError(
+            f"{path}: the NRRD header has no {' or '.join(missing)} field, so its orientation "
+            "in the scanner is unknown; write it with its scanner geometry (`space`, "
+            "`space directions`, `space origin`)"
+        )
+    if "space units" in fields:
+        raw = fields["space units"]
+        units = re.findall(r'"([^"]*)"', raw) if '"' in raw else raw.split()
+        if any(u.strip().lower() not in _MM_UNITS for u in units):
+            raise VolumeReadError(
+                f"{path}: the NRRD space units are {raw}; phantom-calib reads millimetres "
+                '(space units "mm", or none)'
+            )
+
+
+def _check_metaimage_geometry(path: Path) -> None:
+    """Refuse a MetaImage header that says nothing of where the volume lies in the scanner.
+
+    Without ``TransformMatrix`` and ``Offset`` (or their aliases) SimpleITK places the voxels
+    at the identity at origin 0. MetaImage stores no spatial unit, so units are not checked.
+    """
+    keys = set()
+    for line in _header_lines(path):
+        name, sep, _ = line.partition("=")
+        if not sep:
+            continue
+        keys.add(name.strip().lower())
+        if name.strip().lower() == "elementdatafile":  # the last header line
+            break
+    oriented = bool(keys & {"transformmatrix", "rotation", "orientation"})
+    placed = bool(keys & {"offset", "position", "origin"})
+    if not (oriented or placed):
+        raise VolumeReadError(
+            f"{path}: the MetaImage header has neither `TransformMatrix` nor `Offset` (nor "
+            "`Rotation`/`Orientation`, `Position`/`Origin`), so its placement in the scanner "
+            "is unknown; write it with its scanner geometry"
+        )
 
 
 def write_nifti(volume: Volume, path: str | os.PathLike) -> Path:

@@ -198,6 +198,31 @@ def test_a_field_of_view_that_cuts_the_body_is_said(oblique_scan, oblique_result
     assert "cut.nii.gz: the field of view cuts the body" in caplog.text
 
 
+@pytest.mark.parametrize("offset", [0.3, -0.5])
+def test_a_background_offset_keeps_the_accuracy_bars(oblique_scan, oblique_result, offset, caplog):
+    # the thresholds are fractions of the body level above zero: a DC offset of +0.3 (-0.5)
+    # times the body level grew (shrank) the segmented body by 5 % (7 %) and moved the
+    # nipple 0.45 (3.6) mm. Now the background's median is subtracted where it is more
+    # than 3 robust sds from zero; a magnitude image's noise floor (1.75 sds) is left.
+    assert oblique_result.quality["seg_background_offset"] == 0.0
+    vol = oblique_scan.volume
+    image = np.asarray(vol.array, np.float32) + 1000.0 * offset
+    shifted = Volume(image, vol.affine_lps_from_index, "offset.nii.gz")
+    with caplog.at_level("WARNING", logger="imaging.segment"):
+        res = process_scan(shifted)
+    assert "offset.nii.gz: the background lies at" in caplog.text
+    # the offset found: the shift plus the noise floor's median (Rayleigh, SNR 25 of a
+    # body at 1000: 1.18 x 40 = 47) within 2 % of the body level
+    assert res.quality["seg_background_offset"] == pytest.approx(1000.0 * offset + 47, abs=20)
+    _check_accuracy(oblique_scan, res)
+    # as the scan without the offset: measured 0.995 of its volume (without the mend 1.033,
+    # 0.947), surface mean 0.041 mm (0.035; without 0.28, 0.41 mm): bars well inside those
+    ratio = res.quality["seg_volume_ml"] / oblique_result.quality["seg_volume_ml"]
+    assert ratio == pytest.approx(1.0, abs=0.01)
+    d0 = true_surface_distance(oblique_scan, oblique_result.surface.vertices_lps_mm).mean()
+    assert true_surface_distance(oblique_scan, res.surface.vertices_lps_mm).mean() <= d0 + 0.02
+
+
 def test_inclusion_threshold_rises_with_the_noise():
     # With a fixed contrast threshold of 0.15 this scan at SNR 8 gave 105 inclusions (5
     # true) and at SNR 5 114; on the quick twin at SNR 8, 1,384, whose tracking across
