@@ -164,6 +164,8 @@ class ScanEvaluation:
     metrics : ScanMetrics or None
     failed : str or None
         Why there is no FE solution at the calibrated c1.
+    posture : dict or None
+        The session's nominal posture (``plane``, ``angle_deg``; None where not given).
     """
 
     name: str
@@ -175,10 +177,11 @@ class ScanEvaluation:
     dtumour_mm: np.ndarray | None
     metrics: ScanMetrics | None
     failed: str | None = None
+    posture: dict | None = None
 
     def to_json(self) -> dict:
         """The scan's block of ``calibration.json`` (``scans.<name>``)."""
-        out = {"role": self.role, "gravity_ref": self.gravity_ref.tolist()}
+        out = {"role": self.role, "gravity_ref": self.gravity_ref.tolist(), "posture": self.posture}
         if self.failed is not None:
             return out | {"failed": self.failed}
         return out | self.metrics.to_json()
@@ -223,19 +226,20 @@ def evaluate(
     out = {}
     for name in names:
         scan = meas.scans[name]
+        head = (name, scan.role, scan.gravity_ref)
         try:
             st = cal.fm.evaluate(theta, {name: scan.gravity_ref}, gradient=gradient)[name]
         except fem.ConvergenceError as exc:
             log.warning("scan %s: no FE solution at the calibrated c1 (%s)", name, exc)
             out[name] = ScanEvaluation(
-                name, scan.role, scan.gravity_ref, None, None, None, None, None, failed=str(exc)
+                *head, *(None,) * 5, failed=str(exc), posture=scan.nominal_posture
             )
             continue
         tumour = cal.tumour_position(st, gradient)
         t, dt = (None, None) if tumour is None else tumour
         metrics = scan_metrics(scan, st.positions_mm, cal.sim.faces, nipple, t)
         out[name] = ScanEvaluation(
-            name, scan.role, scan.gravity_ref, st.positions_mm, st.dpositions_mm, t, dt, metrics
+            *head, st.positions_mm, st.dpositions_mm, t, dt, metrics, posture=scan.nominal_posture
         )
     return out
 

@@ -77,7 +77,11 @@ class ScanValidation:
     ----------
     name, role : str
     posture_angle_deg : float
-        The scan's gravity in the phantom frame's transverse plane (from the data).
+        The angle of the scan's registered gravity in its posture plane of the phantom
+        frame (from the data, :func:`fem.postures.gravity_for_angle`'s convention).
+    posture_plane : {"transverse", "sagittal"}
+        The session's nominal plane; none given: the plane holding the larger part of the
+        gravity in the plate's plane (with a nominal angle and no plane: transverse).
     surface : dict
         ``{frame: {stat: Band}}`` with stats mean, sd, median, p95, max (mm).
     nipple : dict
@@ -87,7 +91,8 @@ class ScanValidation:
     registration : dict
         ``fre_mm``, ``tre_nipple_mm``, ``tre_tumour_mm`` of the scan's fiducial fit.
     reference : dict or None
-        The dissertation's figures for this posture angle (within 5 deg), if any.
+        The dissertation's figures for this posture (transverse 25 or 50 deg, nominal angle
+        within :data:`DISSERTATION_MATCH_DEG`; none given: the measured angle), if any.
     metrics : ScanMetrics
         The full measurement at the calibrated c1 (per-vertex errors for maps).
     displacement_mm : ndarray, shape (n_vertices,)
@@ -98,6 +103,7 @@ class ScanValidation:
     name: str
     role: str
     posture_angle_deg: float
+    posture_plane: str
     surface: dict
     nipple: dict
     tumour: dict | None
@@ -106,11 +112,18 @@ class ScanValidation:
     metrics: ScanMetrics = field(repr=False)
     displacement_mm: np.ndarray = field(repr=False)
 
+    @property
+    def posture_label(self) -> str:
+        """The measured posture for titles and tables: ``25°``, ``30° sagittal``."""
+        plane = " sagittal" if self.posture_plane == "sagittal" else ""
+        return f"{self.posture_angle_deg:.0f}°{plane}"
+
     def to_json(self) -> dict:
         """The scan's block of ``validation.json``."""
         return {
             "role": self.role,
             "posture_angle_deg": self.posture_angle_deg,
+            "posture_plane": self.posture_plane,
             "surface_error_mm": {
                 f: {k: b.to_json() for k, b in s.items()} for f, s in self.surface.items()
             },
@@ -159,22 +172,36 @@ class Validation:
         }
 
 
-def _posture_angle_deg(work: WorkFolder, gravity_ref: np.ndarray) -> float:
+#: How close a validation scan's posture must be to the dissertation's (deg) for its
+#: figures: the registered gravity is good to about a degree, and a session's 30 degree
+#: posture must not be read as the dissertation's 25.
+DISSERTATION_MATCH_DEG = 2.5
+
+
+def _posture(work: WorkFolder, scan) -> tuple[float, str]:
+    """The measured posture angle (deg) of a scan in its plane, and the plane."""
     R = np.asarray(work.record["model"]["R_ref_from_phantom"], float)
-    g = R.T @ gravity_ref
-    angle = float(np.degrees(np.arctan2(g[2], g[0])))
-    return angle + 360.0 if angle <= -179.5 else angle  # in (-179.5, 180.5]
+    g = R.T @ scan.gravity_ref
+    plane = scan.posture_plane
+    if plane is None:
+        near_y = scan.posture_angle_deg is None and abs(g[1]) > abs(g[0])
+        plane = "sagittal" if near_y else "transverse"
+    angle = float(np.degrees(np.arctan2(g[2], g[1] if plane == "sagittal" else g[0])))
+    return (angle + 360.0 if angle <= -179.5 else angle), plane  # in (-179.5, 180.5]
 
 
-def _reference_figures(angle_deg: float, role: str) -> dict | None:
-    if role == "calibration":
+def _reference_figures(scan, angle_deg: float, plane: str) -> dict | None:
+    if scan.role == "calibration":
         return {
             "c1_pa": DISSERTATION_C1_PA,
             "nipple_mm": DISSERTATION_CALIBRATION_NIPPLE_MM,
             "source": "the fitted nipple error (ch. 4.3.2)",
         }
+    if plane != "transverse":  # the dissertation's tilts are transverse
+        return None
+    angle = angle_deg if scan.posture_angle_deg is None else scan.posture_angle_deg
     for nominal, figures in DISSERTATION.items():
-        if abs(angle_deg - nominal) <= 5.0:
+        if abs(angle - nominal) <= DISSERTATION_MATCH_DEG:
             return {"posture_angle_deg": nominal, "c1_pa": DISSERTATION_C1_PA} | figures
     return None
 
@@ -232,16 +259,17 @@ def _scan_validation(work: WorkFolder, name: str, faces: np.ndarray) -> ScanVali
     if m.tumour_error_mm is not None:
         tumour_b = {f: _band([r.tumour_error_mm[f] for r in runs]) for f in m.tumour_error_mm}
     ing = ingest_record(work, name)
-    angle = _posture_angle_deg(work, scan.gravity_ref)
+    angle, plane = _posture(work, scan)
     return ScanValidation(
         name=name,
         role=scan.role,
         posture_angle_deg=angle,
+        posture_plane=plane,
         surface=surface,
         nipple=nipple_b,
         tumour=tumour_b,
         registration={k: ing.get(k) for k in ("fre_mm", "tre_nipple_mm", "tre_tumour_mm")},
-        reference=_reference_figures(angle, scan.role),
+        reference=_reference_figures(scan, angle, plane),
         metrics=m,
         displacement_mm=_displacement_near(work, name, scan),
     )

@@ -104,23 +104,30 @@ class PostureCheck:
 
 def check_posture(
     gravity_ref_by_scan: dict[str, np.ndarray],
-    nominal_angles_deg: dict[str, float],
+    nominal_angles_deg: dict[str, float] | None = None,
     *,
+    nominal_gravity: dict[str, np.ndarray] | None = None,
     warn_deg: float = 2.0,
     error_deg: float = 10.0,
 ) -> list[PostureCheck]:
-    """Cross-check registered gravity directions against nominal posture angles.
+    """Cross-check registered gravity directions against nominal postures.
 
-    For every pair of scans that both have a nominal angle (rotations in one common plane,
-    as in session.toml's ``posture``), the angle between their gravity vectors must equal the
-    difference of their nominal angles.
+    For every pair of scans that both have a nominal posture, the angle between their
+    registered gravity vectors must equal the angle between their nominal gravities: the
+    difference of their nominal angles for rotations in one common plane
+    (``nominal_angles_deg``), or the angle between nominal directions given in any one
+    common frame (``nominal_gravity``: postures in several planes).
 
     Parameters
     ----------
     gravity_ref_by_scan : dict of str to array_like, shape (3,)
         Gravity per scan in the reference frame.
-    nominal_angles_deg : dict of str to float
-        Nominal posture angle per scan, degrees; scans missing here are not checked.
+    nominal_angles_deg : dict of str to float, optional
+        Nominal posture angle per scan (one common plane), degrees; scans missing here are
+        not checked.
+    nominal_gravity : dict of str to array_like, shape (3,), optional
+        Instead of ``nominal_angles_deg``: nominal gravity direction per scan in one common
+        frame (any length); scans missing here are not checked.
     warn_deg : float
         Discrepancy above which a :class:`PostureMismatchWarning` is issued.
     error_deg : float
@@ -136,18 +143,25 @@ def check_posture(
     PostureMismatchError
         Some pair disagrees by more than ``error_deg``; the message lists every such pair.
     RegistrationError
-        A nominal angle names a scan without a gravity vector, or thresholds are invalid.
+        A nominal posture names a scan without a gravity vector, both or neither kinds of
+        nominal posture are given, or thresholds are invalid.
     """
     if not 0.0 <= warn_deg <= error_deg:
         raise RegistrationError(f"need 0 <= warn_deg <= error_deg, got {warn_deg}, {error_deg}")
-    unknown = sorted(set(nominal_angles_deg) - set(gravity_ref_by_scan))
+    if (nominal_angles_deg is None) == (nominal_gravity is None):
+        raise RegistrationError("give either nominal_angles_deg or nominal_gravity")
+    nominal_of = nominal_angles_deg if nominal_gravity is None else nominal_gravity
+    unknown = sorted(set(nominal_of) - set(gravity_ref_by_scan))
     if unknown:
-        raise RegistrationError(f"nominal posture angles given for unknown scans: {unknown}")
-    names = [s for s in gravity_ref_by_scan if s in nominal_angles_deg]
+        raise RegistrationError(f"nominal postures given for unknown scans: {unknown}")
+    names = [s for s in gravity_ref_by_scan if s in nominal_of]
     checks = []
     for a, b in itertools.combinations(names, 2):
         measured = angle_between_deg(gravity_ref_by_scan[a], gravity_ref_by_scan[b])
-        nominal = _nominal_difference_deg(nominal_angles_deg[a], nominal_angles_deg[b])
+        if nominal_gravity is None:
+            nominal = _nominal_difference_deg(nominal_angles_deg[a], nominal_angles_deg[b])
+        else:
+            nominal = angle_between_deg(nominal_gravity[a], nominal_gravity[b])
         disc = abs(measured - nominal)
         status = "error" if disc > error_deg else "warn" if disc > warn_deg else "ok"
         checks.append(PostureCheck(a, b, measured, nominal, disc, status))

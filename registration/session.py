@@ -109,6 +109,7 @@ def register_scans(
     reference: str,
     gravity_scanner: Sequence[float] | dict[str, Sequence[float]] = (0.0, 1.0, 0.0),
     nominal_angles_deg: dict[str, float] | None = None,
+    nominal_gravity: dict[str, Sequence[float]] | None = None,
     landmarks_by_scan: dict[str, dict[str, np.ndarray]] | None = None,
     correspondence: str = "auto",
     fle_mm: float | None = None,
@@ -131,6 +132,9 @@ def register_scans(
     nominal_angles_deg : dict of str to float, optional
         Nominal posture angles (one common rotation plane); checked against the registered
         gravity with :func:`registration.gravity.check_posture`.
+    nominal_gravity : dict of str to array_like, shape (3,), optional
+        Instead of ``nominal_angles_deg`` (postures in several planes): nominal gravity
+        directions in one common frame, checked the same way.
     landmarks_by_scan : dict of str to dict of str to array_like, shape (3,), optional
         Per scan, ``"nipple"`` and/or ``"tumour"`` in the scan's LPS frame, millimetres; the
         TRE is evaluated there.
@@ -200,10 +204,11 @@ def register_scans(
             fle_mm=fle,
         )
         log.info("registered %s: FRE %.3f mm", scan, out[scan].fre_mm)
-    if nominal_angles_deg:
+    if nominal_angles_deg or nominal_gravity:
         check_posture(
             {s: r.gravity_ref for s, r in out.items()},
-            nominal_angles_deg,
+            nominal_angles_deg or None,
+            nominal_gravity=nominal_gravity or None,
             warn_deg=posture_warn_deg,
             error_deg=posture_error_deg,
         )

@@ -327,9 +327,14 @@ def _with_tumour(res, i: int | None):
 
 def _register(session: Session, scans: dict, landmarks: bool):
     import registration
+    from fem.postures import gravity_for_angle
 
     fids = {n: r.fiducials_lps_mm for n, r in scans.items()}
-    angles = {s.name: s.posture_angle_deg for s in session.scans if s.posture_angle_deg is not None}
+    nominal = {  # in the nominal phantom frame: only the angles between them are checked
+        s.name: gravity_for_angle(s.posture_angle_deg, plane=s.posture_plane or "transverse")
+        for s in session.scans
+        if s.posture_angle_deg is not None
+    }
     marks = None
     if landmarks:
         marks = {
@@ -341,9 +346,30 @@ def _register(session: Session, scans: dict, landmarks: bool):
         fids,
         reference=session.reference.name,
         gravity_scanner=session.gravity_scanner,
-        nominal_angles_deg=angles if len(angles) >= 2 else None,
+        nominal_gravity=nominal if len(nominal) >= 2 else None,
         landmarks_by_scan=marks,
     )
+
+
+def _check_patient_positions(session: Session) -> None:
+    """Warn where the DICOM scans were written in different patient positions.
+
+    ``scanner.gravity`` is one vector in every scan's image coordinates; DICOM's patient
+    coordinates turn with PatientPosition (``HFS`` to ``HFP`` flips y and x), so scans
+    written in different positions see gravity in different directions.
+    """
+    from imaging.dicom import patient_position
+
+    found = {s.name: patient_position(s.path) for s in session.scans if s.path.is_dir()}
+    if len({p for p in found.values() if p is not None}) > 1:
+        said = ", ".join(f"{n}: {p or 'none'}" for n, p in found.items())
+        log.warning(
+            "%s: the DICOM scans were written in different patient positions (%s); "
+            "scanner.gravity is read in every scan's image coordinates, which turn with "
+            "the patient position: check that gravity is the same vector in all of them",
+            session.folder / "session.toml",
+            said,
+        )
 
 
 def ingest_scans(session: Session, *, progress=None) -> IngestResult:
@@ -365,6 +391,7 @@ def ingest_scans(session: Session, *, progress=None) -> IngestResult:
     import registration
 
     tick = progress or (lambda name: log.info("processed scan %s", name))
+    _check_patient_positions(session)
     scans = {s.name: _process(s, session, tick) for s in session.scans}
     regs = _register(session, scans, landmarks=False)
     choice = _choose_tumour(session, scans[session.reference.name])

@@ -51,6 +51,13 @@ class ScanMeasurement:
     posture_plane: str | None = None
     posture_angle_deg: float | None = None
 
+    @property
+    def nominal_posture(self) -> dict | None:
+        """``{"plane", "angle_deg"}`` as the session gives them (None: no posture given)."""
+        if self.posture_plane is None and self.posture_angle_deg is None:
+            return None
+        return {"plane": self.posture_plane, "angle_deg": self.posture_angle_deg}
+
     def surface_points(self, *, max_points: int = 4000, seed: int = 0) -> np.ndarray:
         """Measured surface vertices off the back plate, a seeded subsample, (k, 3)."""
         pts = self.vertices_mm[~self.back_plate]

@@ -88,6 +88,12 @@ def _vec(value) -> np.ndarray | None:
     return None if value is None else np.asarray(value, float)
 
 
+def _entry(name: str, role: str, posture: dict | None, work: Path) -> ScanEntry:
+    """A scan as calibration.json records it (no ``posture`` in older files: none given)."""
+    posture = posture or {}
+    return ScanEntry(name, work, role, posture.get("plane"), posture.get("angle_deg"))
+
+
 def read_work(work: str | Path) -> WorkFolder:
     """Read a calibrated work folder.
 
@@ -115,8 +121,8 @@ def read_work(work: str | Path) -> WorkFolder:
             f"{work / 'calibration.json'}: written by an older phantom-calib "
             "(no `model` block); run `phantom-calib calibrate` again"
         )
-    entries = [ScanEntry(ref_name, work, "reference")] + [
-        ScanEntry(name, work, s["role"]) for name, s in record["scans"].items()
+    entries = [_entry(ref_name, "reference", model.get("reference_posture"), work)] + [
+        _entry(name, s["role"], s.get("posture"), work) for name, s in record["scans"].items()
     ]
     scans = {e.name: read_scan(work, e) for e in entries}
     measurements = Measurements(scans[ref_name], scans)

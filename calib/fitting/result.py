@@ -157,6 +157,7 @@ class Calibration:
             "support": "clamped",
             "g_m_s2": None,
             "reference_scan": None,
+            "reference_posture": None,
             "tumour_stress_free_mm": None,
             "nipple_node": None,
             "R_ref_from_phantom": None,
@@ -165,6 +166,7 @@ class Calibration:
             fm = cal.fm
             doc["g_m_s2"] = fm.g_m_s2
             doc["reference_scan"] = cal.measurements.reference.name
+            doc["reference_posture"] = cal.measurements.reference.nominal_posture
             doc["nipple_node"] = int(cal.mesh.node_set("nipple")[0])
             ms = cal.measurements
             doc["R_ref_from_phantom"] = phantom_frame(ms.reference, ms.scans.values()).tolist()

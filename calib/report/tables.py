@@ -118,6 +118,11 @@ def _band(b: dict | None, fmt: str = ".2f") -> str:
     return f"{b['value']:{fmt}}" + ("" if ci is None else f" ({ci[0]:{fmt}}–{ci[1]:{fmt}})")
 
 
+def _plane(scan: dict) -> str:
+    """``°`` after a transverse posture angle, ``°s`` after a sagittal one."""
+    return "°s" if scan.get("posture_plane") == "sagittal" else "° "
+
+
 def _reference(ref: dict) -> str:
     if ref.get("surface_mean_mm") is not None:
         return f"{ref['surface_mean_mm']} ± {ref['surface_sd_mm']}"
@@ -137,7 +142,7 @@ def format_validation(doc: dict) -> str:
         tumour = (s.get("tumour_error_mm") or {}).get("fiducial")
         nipple = s["nipple_error_mm"]["fiducial"]
         lines.append(
-            f"{name:<16}{s['role']:<13}{s['posture_angle_deg']:>7.0f}°  "
+            f"{name:<16}{s['role']:<13}{s['posture_angle_deg']:>6.0f}{_plane(s)}  "
             f"{_band(surf['mean']):<26}{surf['sd']['value']:>6.2f}  "
             f"{_band(nipple):<22}{_band(tumour):<22}{_reference(s.get('dissertation') or {}):<20}"
         )

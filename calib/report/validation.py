@@ -92,7 +92,7 @@ def error_surface_figure(
     fig.colorbar(mapper, ax=fig.axes, shrink=0.7, label="distance to the model surface (mm)")
     mean = sv.surface["fiducial"]["mean"].value
     fig.suptitle(
-        f"{sv.name} ({sv.role}, posture {sv.posture_angle_deg:.0f}°): surface error, "
+        f"{sv.name} ({sv.role}, posture {sv.posture_label}): surface error, "
         f"mean {mean:.2f} mm (fiducial frame)"
     )
     return fig
@@ -129,7 +129,7 @@ def error_by_displacement_figure(scans: list[ScanValidation]):
         ax.set_xlabel("distance of the measured surface to the model (mm)")
         ax.set_ylabel("surface points (%)")
         ax.set_title(
-            f"{sv.name} ({sv.role}, {sv.posture_angle_deg:.0f}°): mean "
+            f"{sv.name} ({sv.role}, {sv.posture_label}): mean "
             f"{err.mean():.2f} mm, p95 {np.percentile(err, 95):.2f} mm"
         )
         ax.legend(fontsize=8)
@@ -245,7 +245,7 @@ def _row(sv: ScanValidation) -> list[str]:
     return [
         sv.name,
         sv.role,
-        f"{sv.posture_angle_deg:.0f}",
+        sv.posture_label,
         f"{fid['mean'].text()} ± {fid['sd'].value:.2f}",
         fid["median"].text(),
         fid["p95"].text(),
@@ -265,7 +265,7 @@ def _row(sv: ScanValidation) -> list[str]:
 HEADER = [
     "scan",
     "role",
-    "posture °",
+    "posture",
     "surface mean ± sd (fiducial)",
     "median",
     "p95",

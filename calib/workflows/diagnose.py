@@ -91,8 +91,12 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
                 t = tumour.position_mm(X, st.state)
                 if st.dstate is not None and fm.current_dX is not None:
                     dt = tumour.position_mm(fm.current_dX, st.dstate)
-            entry = {"role": "validation" if gap.role == "holdout" else "calibration",
-                     "gravity_ref": prob.measurement(name).gravity_ref.tolist()}  # fmt: skip
+            scan = prob.measurement(name)
+            entry = {
+                "role": "validation" if gap.role == "holdout" else "calibration",
+                "gravity_ref": scan.gravity_ref.tolist(),
+                "posture": scan.nominal_posture,
+            }
             entry |= gap.after.to_json()
             entry["model"] = {
                 "nipple_mm": st.positions_mm[prob.nipple_node].tolist(),

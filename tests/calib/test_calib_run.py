@@ -63,7 +63,7 @@ def test_failed_mesh_size_is_reported_and_retried(nipple_run):
 
 # calibration.json of phantom-calib 0.1 (before the library issue): its keys stay, new
 # ones are only added (schema_version 1 adds schema_version, run_id, optimiser, model,
-# model_fit; uncertainty adds interval).
+# model_fit; uncertainty adds interval; each scan adds model and its nominal posture).
 KEYS_0_1 = {"c1_pa", "c1_ci95_pa", "objective", "objective_value_mm2", "reference_state",
             "uncertainty", "frames", "scans", "iterations", "fe_solves", "reference_recovery",
             "history", "profile", "mesh", "wall_s", "provenance"}  # fmt: skip
@@ -80,7 +80,9 @@ def test_calibration_json_keys_are_those_of_0_1_plus_the_documented_additions(ni
     assert set(doc) == KEYS_0_1 | KEYS_ADDED
     assert doc["schema_version"] == 1
     for name, scan in doc["scans"].items():
-        assert set(scan) == SCAN_KEYS_0_1 | {"model"}, name
+        assert set(scan) == SCAN_KEYS_0_1 | {"model", "posture"}, name
+    assert doc["scans"]["right_lateral"]["posture"] == {"plane": "transverse", "angle_deg": 180.0}
+    assert doc["model"]["reference_posture"] == {"plane": "transverse", "angle_deg": 0.0}
     assert set(doc["uncertainty"]) == UNCERTAINTY_KEYS_0_1 | {"interval"}
     assert doc["model_fit"] is None  # the misfit test is the surface objective's
     assert set(doc["mesh"]) == MESH_KEYS_0_1
@@ -211,7 +213,9 @@ def test_scan_without_solution_at_the_calibrated_c1_is_reported():
 
     from calib.evaluation import evaluate
 
-    scan = SimpleNamespace(name="tilt", role="validation", gravity_ref=np.array([0.0, 0, 1]))
+    posture = {"plane": "transverse", "angle_deg": 50.0}
+    g = np.array([0.0, 0, 1])
+    scan = SimpleNamespace(name="tilt", role="validation", gravity_ref=g, nominal_posture=posture)
     cal = _failing_calibrator(1e9)
     cal.mesh = SimpleNamespace(node_set=lambda name: np.array([0]))
     cal.measurements = SimpleNamespace(scans={"tilt": scan})
@@ -219,4 +223,4 @@ def test_scan_without_solution_at_the_calibrated_c1_is_reported():
     out = evaluate(calibration, scans=["tilt"])["tilt"]
     assert out.failed is not None and "load not applied" in out.failed
     assert out.to_json() == {"role": "validation", "gravity_ref": [0.0, 0.0, 1.0],
-                             "failed": out.failed}  # fmt: skip
+                             "posture": posture, "failed": out.failed}  # fmt: skip

@@ -150,3 +150,24 @@ def test_session_errors():
     assert angle_between_deg(
         per_scan["a"].gravity_ref, -register_scans(markers, reference="ref")["a"].gravity_ref
     ) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_postures_in_two_planes_are_checked_by_their_nominal_directions():
+    # transverse 0 deg (1, 0, 0) and sagittal 50 deg (0, cos 50, sin 50) are 90 deg apart,
+    # not 50: the angle between the nominal directions is what the registration must show
+    t = np.radians(50.0)
+    nominal = {"left": np.array([1.0, 0.0, 0.0]), "tilt": np.array([0.0, np.cos(t), np.sin(t)])}
+    rotate = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()  # any common frame
+    g = {k: rotate @ v for k, v in nominal.items()}
+    (check,) = check_posture(g, nominal_gravity=nominal)
+    # exact geometry: round-off tolerance
+    assert check.nominal_deg == pytest.approx(90.0, abs=1e-9)
+    assert check.status == "ok"
+    with pytest.raises(PostureMismatchError, match="nominal 50.00 deg"):
+        check_posture(g, {"left": 0.0, "tilt": 50.0})  # read as one plane
+    u = np.radians(10.0)  # the left scan at transverse 10 deg: 82.4 deg from the tilt
+    g["left"] = rotate @ np.array([np.cos(u), 0.0, np.sin(u)])
+    with pytest.raises(PostureMismatchError, match="tilt.*nominal 90.00 deg"):
+        check_posture(g, nominal_gravity=nominal, error_deg=5.0)
+    with pytest.raises(RegistrationError, match="either nominal_angles_deg or nominal_gravity"):
+        check_posture(g, {"left": 0.0}, nominal_gravity=nominal)
