@@ -26,6 +26,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +36,7 @@ from .io_tetgen import read_tetgen, read_tetgen_face, write_tetgen
 from .mesh import REGION_IDS, MeshError, TetMesh
 
 __all__ = [
+    "InputPoints",
     "atomic_write",
     "read_mesh",
     "read_tetgen",
@@ -49,6 +51,60 @@ _TAG_KEYS = ("region", "gmsh:physical", "medit:ref", "tetgen:ref", "CellEntityId
 _VOLUME_CELLS = {"tetra", "tetra10", "hexahedron", "hexahedron20", "hexahedron27", "wedge"}
 _VOLUME_CELLS |= {"wedge15", "pyramid", "pyramid13", "polyhedron"}
 _SET_PREFIX, _REGION_PREFIX = "set:", "region:"
+
+
+@dataclass(frozen=True)
+class InputPoints:
+    """The point array of a mesh file and where the nodes of the mesh read from it came from.
+
+    :func:`read_mesh` drops the points of the file that no tetrahedron uses (and the
+    mid-side nodes of quadratic tetrahedra) and numbers the rest anew; this maps results
+    on the read mesh back onto the file's own point numbering.
+
+    Attributes
+    ----------
+    points_mm : ndarray, shape (n_points, 3)
+        Every point of the file, in the file's order, mm.
+    node_index : ndarray of int, shape (n_nodes,)
+        The file's point number of each node of the read :class:`TetMesh`.
+    """
+
+    points_mm: np.ndarray
+    node_index: np.ndarray
+
+    @property
+    def n_points(self) -> int:
+        """Number of points in the file."""
+        return len(self.points_mm)
+
+    def scatter(self, values: np.ndarray, fill: float = np.nan) -> np.ndarray:
+        """Per-node values of the read mesh as per-point values of the file.
+
+        Parameters
+        ----------
+        values : array_like, shape (n_nodes,) or (n_nodes, k)
+            One row per node of the read mesh.
+        fill : float
+            The value of the points the read mesh dropped.
+
+        Returns
+        -------
+        ndarray, shape (n_points,) or (n_points, k)
+            Float rows in the file's point order; ``fill`` where no node came from.
+
+        Raises
+        ------
+        ValueError
+            ``values`` does not have one row per node.
+        """
+        v = np.asarray(values, dtype=float)
+        if v.ndim == 0 or len(v) != len(self.node_index):
+            raise ValueError(
+                f"expected one row per mesh node ({len(self.node_index)}), got shape {v.shape}"
+            )
+        out = np.full((self.n_points, *v.shape[1:]), fill, dtype=float)
+        out[self.node_index] = v
+        return out
 
 
 def _tags_from_cell_data(m, tet_blocks: list[int]) -> tuple[np.ndarray, dict] | None:
@@ -114,7 +170,7 @@ def _node_sets(m, keep: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
-def _to_tetmesh(m, path: Path, *, orient: bool) -> TetMesh:
+def _to_tetmesh(m, path: Path, *, orient: bool) -> tuple[TetMesh, InputPoints]:
     types = [c.type for c in m.cells]
     tet_blocks = [i for i, t in enumerate(types) if t in ("tetra", "tetra10")]
     other_volumes = sorted({t for t in types if t in _VOLUME_CELLS} - {"tetra", "tetra10"})
@@ -137,10 +193,12 @@ def _to_tetmesh(m, path: Path, *, orient: bool) -> TetMesh:
     if points.shape[1] != 3:
         raise MeshError(f"{path}: expected 3-D points, got {points.shape[1]} coordinates")
     mesh = TetMesh(points[keep], remap[tets], region, names, _node_sets(m, keep))
-    return mesh.oriented() if orient else mesh
+    return (mesh.oriented() if orient else mesh), InputPoints(points, keep)
 
 
-def read_mesh(path: str | os.PathLike, *, orient: bool = True) -> TetMesh:
+def read_mesh(
+    path: str | os.PathLike, *, orient: bool = True, return_input_points: bool = False
+) -> TetMesh | tuple[TetMesh, InputPoints]:
     """Read a tetrahedral mesh (coordinates in mm) from any format meshio reads.
 
     Parameters
@@ -150,12 +208,19 @@ def read_mesh(path: str | os.PathLike, *, orient: bool = True) -> TetMesh:
     orient : bool
         Flip negatively oriented elements (:meth:`TetMesh.oriented`); degenerate
         elements raise :class:`fem.MeshError` either way.
+    return_input_points : bool
+        Also return the file's points and the file point number of each mesh node
+        (:class:`InputPoints`), to write results in the file's own numbering.
 
     Returns
     -------
     TetMesh
         Linear tets (quadratic ones lose their mid-side nodes; unused nodes are
-        dropped), region tags and node sets as described in the module docstring.
+        dropped and the rest numbered anew), region tags and node sets as described
+        in the module docstring.
+    InputPoints
+        Only with ``return_input_points``. (TetGen files keep every node: the map is
+        the identity.)
 
     Raises
     ------
@@ -166,7 +231,10 @@ def read_mesh(path: str | os.PathLike, *, orient: bool = True) -> TetMesh:
     """
     path = Path(path)
     if path.suffix.lower() in (".node", ".ele"):
-        return read_tetgen(path, orient=orient)
+        mesh = read_tetgen(path, orient=orient)
+        if not return_input_points:
+            return mesh
+        return mesh, InputPoints(mesh.nodes_mm.copy(), np.arange(mesh.n_nodes))
     if not path.is_file():
         raise FileNotFoundError(f"mesh file not found: {path}")
     if path.stat().st_size == 0:
@@ -184,7 +252,8 @@ def read_mesh(path: str | os.PathLike, *, orient: bool = True) -> TetMesh:
     except (Exception, SystemExit) as exc:  # noqa: BLE001
         why = " ".join(said.getvalue().split()) or f"{type(exc).__name__}: {exc}"
         raise MeshError(f"{path}: cannot read mesh ({why})") from exc
-    return _to_tetmesh(m, path, orient=orient)
+    mesh, points = _to_tetmesh(m, path, orient=orient)
+    return (mesh, points) if return_input_points else mesh
 
 
 def _meshio_mesh(mesh: TetMesh, path: Path, fmt: str, point_data, cell_data):

@@ -53,7 +53,11 @@ class MeshMismatchError(ValueError):
 
 @dataclass(frozen=True)
 class SurrogateMesh:
-    """The mesh a surrogate predicts on (stress-free reference, reference frame, mm)."""
+    """The mesh a surrogate predicts on (the sweep's reference mesh, reference frame, mm).
+
+    The stress-free mesh, or the loaded reference scan's mesh for a prestressed reference
+    (:attr:`Surrogate.prestressed`).
+    """
 
     nodes_mm: np.ndarray
     tets: np.ndarray
@@ -151,6 +155,18 @@ class Surrogate:
         return self.meta["report"]
 
     @property
+    def prestressed(self) -> bool:
+        """True when the sweep's reference is the prestressed loaded mesh.
+
+        The store's ``model.prestress`` (or ``reference_state`` ``prestress``): the
+        displacements are then relative to the loaded reference scan's mesh
+        (``mesh.nodes_mm``), and the true answer at zero gravity is the stress-free
+        shape, away from that mesh, which the sweep never solved.
+        """
+        model = self.meta["model"]
+        return bool(model.get("prestress")) or model.get("reference_state") == "prestress"
+
+    @property
     def mesh_sha256(self) -> str:
         """Identity of the mesh the surrogate was trained on."""
         return self.meta["mesh_sha256"]
@@ -192,13 +208,29 @@ class Surrogate:
         rho = float(self.meta["model"]["density_kg_m3"])
         q = rho * np.linalg.norm(g, axis=1) / c1
         qlo, qhi = self.meta["trained"]["load_per_m"]
-        outq = (q > 0) & ((q < qlo * (1 - _REL_TOL)) | (q > qhi * (1 + _REL_TOL)))
+        if self.prestressed and np.any(q == 0):
+            warnings.warn(
+                "zero gravity on a prestressed reference is the loaded reference shape's "
+                f"own state, not in the trained range [{qlo:.6g}, {qhi:.6g}] 1/m: the "
+                "surrogate answers zero displacement (the loaded reference shape), not "
+                "the stress-free shape",
+                ExtrapolationWarning,
+                stacklevel=3,
+            )
+        below = q < qlo * (1 - _REL_TOL)
+        outq = (q > 0) & (below | (q > qhi * (1 + _REL_TOL)))
         if np.any(outq) and not np.any(out):
+            pre = (
+                "; on a prestressed reference it interpolates towards zero displacement "
+                "(the loaded reference shape) at zero load, not the stress-free shape"
+                if self.prestressed and np.any(below & outq)
+                else ""
+            )
             warnings.warn(
                 f"load rho g / c1 = {q[outq][0]:.6g} 1/m lies outside the trained "
                 f"range [{qlo:.6g}, {qhi:.6g}] 1/m (gravity magnitude "
                 f"{np.linalg.norm(g[outq][0]):.4g} m/s^2): the surrogate "
-                "extrapolates",
+                f"extrapolates{pre}",
                 ExtrapolationWarning,
                 stacklevel=3,
             )
@@ -210,7 +242,9 @@ class Surrogate:
         ----------
         gravity : array_like, shape (3,) or (B, 3)
             Gravity acceleration in m/s^2 (the length is the magnitude; a zero vector is
-            no load and gives zero displacement), in ``frame``.
+            no load and gives zero displacement: the stress-free shape, or, for a
+            :attr:`prestressed` reference, the loaded reference shape, with a warning),
+            in ``frame``.
         c1_pa : float or array_like, optional
             c1 of each query (default: the calibrated c1 of the sweep).
         frame : {"phantom", "ref"}
@@ -230,7 +264,9 @@ class Surrogate:
         Warns
         -----
         ExtrapolationWarning
-            c1, or the load ``rho g / c1``, outside the range of the training scenarios.
+            c1, or the load ``rho g / c1``, outside the range of the training scenarios;
+            on a :attr:`prestressed` reference also zero gravity, whose true answer (the
+            stress-free shape) the sweep never solved.
         """
         import torch
 

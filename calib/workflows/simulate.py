@@ -162,8 +162,28 @@ def check_output(out_path: Path) -> None:
         raise PermissionError(f"--out {out_path}: {parent} is not writable")
 
 
+def _in_file_numbering(mesh: fem.TetMesh, points, u_mm: np.ndarray):
+    """The deformed mesh and its displacement on every point of the input file.
+
+    Points the solve did not use (in no tetrahedron, or mid-side nodes of quadratic
+    tetrahedra) keep their input position and get a NaN displacement.
+    """
+    k = points.node_index
+    u = points.scatter(u_mm)
+    x = points.points_mm.copy()
+    x[k] += u_mm
+    sets = {name: k[ids] for name, ids in mesh.node_sets.items()}
+    out = fem.TetMesh(x, k[mesh.tets], mesh.region, mesh.region_names, sets)
+    return out, u
+
+
 def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict:
     """Solve the gravity load on a mesh file and write ``out_path`` and its ``.json``.
+
+    The result is written in the input file's point numbering: point ``i`` of
+    ``out_path`` is point ``i`` of ``mesh_path``. Points the solve does not use (in no
+    tetrahedron, or mid-side nodes of quadratic tetrahedra) keep their input position
+    with a NaN ``displacement_mm``; ``RESULT.json`` counts them (``unsolved_points``).
 
     Returns
     -------
@@ -175,7 +195,8 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
     check_output(Path(out_path))
     t0 = time.perf_counter()
     try:
-        mesh = read_mesh(mesh_path).oriented()
+        mesh, points = read_mesh(mesh_path, return_input_points=True)
+        mesh = mesh.oriented()
         if mesh.n_tets == 0:
             raise fem.MeshError("the mesh has no tetrahedra")
         check_mesh(mesh, mesh_path)
@@ -190,6 +211,16 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
         model, gravity=np.array(opts.gravity), g_m_s2=opts.g_m_s2, formulation=opts.formulation
     )
     nipple = int(mesh.node_set("nipple")[0])
+    unsolved = points.n_points - mesh.n_nodes
+    if unsolved:
+        log.warning(
+            "%s: %d of its %d points are in no tetrahedron (or are mid-side nodes of "
+            "quadratic ones) and were not solved: their displacement_mm in %s is NaN",
+            mesh_path,
+            unsolved,
+            points.n_points,
+            out_path,
+        )
     extent = float(np.ptp(mesh.nodes_mm, axis=0).max())
     if sol.max_displacement_mm > 0.5 * extent:
         log.warning(
@@ -202,7 +233,9 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
     summary = {
         "max_displacement_mm": sol.max_displacement_mm,
         "nipple_displacement_mm": float(np.linalg.norm(sol.displacement_mm[nipple])),
-        "nipple_node": nipple,
+        "nipple_node": int(points.node_index[nipple]),  # the input file's numbering
+        "points": points.n_points,
+        "unsolved_points": unsolved,
         "converged": sol.converged,
         "newton_iterations": sol.newton_iterations,
         "load_steps": sol.load_steps,
@@ -212,10 +245,7 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
         "provenance": provenance(inputs={"mesh": mesh_path}, parameters=opts.__dict__),
     }
     json_path = out_path.with_suffix(".json")
-    deformed = mesh.with_nodes(mesh.nodes_mm + sol.displacement_mm)
-    atomic_write(
-        out_path,
-        lambda p: write_mesh(deformed, p, point_data={"displacement_mm": sol.displacement_mm}),
-    )
+    deformed, u = _in_file_numbering(mesh, points, sol.displacement_mm)
+    atomic_write(out_path, lambda p: write_mesh(deformed, p, point_data={"displacement_mm": u}))
     write_json_atomic(json_path, summary)
     return summary

@@ -8,8 +8,10 @@ store and :func:`run_surrogate_predict` writes one prediction as a mesh.
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
+import re
 import shutil
 import time
 from dataclasses import asdict, dataclass
@@ -28,10 +30,20 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+_BACKENDS = ("serial", "pool", "dask")
+#: ``--dask``: ``local``, or a scheduler address ``[tcp://|tls://]HOST:PORT`` (IPv6 in [])
+_DASK_ADDRESS = re.compile(r"(?:(?:tcp|tls)://)?(?:\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]]+):(\d{1,5})")
+_KINDS = ("ours", "dissertation")
+_PREDICT_SUFFIXES = (".vtu", ".ply")
+
 
 @dataclass(frozen=True)
 class SweepOptions:
     """Options of ``phantom-calib sweep`` (see its ``--help``).
+
+    Every option that needs no file (backend, counts, the form of the ``dask``
+    address) is checked at construction, so a bad one fails before anything is read
+    or written; the plan and c1 axis are checked against the calibration it reads.
 
     Attributes
     ----------
@@ -74,6 +86,33 @@ class SweepOptions:
     overwrite: bool = False
     retry_failed: bool = False
 
+    def __post_init__(self) -> None:
+        """Check the options that need no file, so that a bad one fails before any work.
+
+        Raises
+        ------
+        ValueError
+            An unknown backend, fewer than 1 worker, thread or scenario per chunk, or a
+            ``dask`` that is neither ``local`` nor a ``tcp://HOST:PORT`` address (its
+            form only: whether a scheduler answers there is known when it is reached).
+        """
+        if self.backend not in _BACKENDS:
+            raise ValueError(f"unknown backend {self.backend!r}; choose serial, pool or dask")
+        for name, value in (
+            ("--workers", self.workers),
+            ("--chunk-size", self.chunk_size),
+            ("threads", self.threads),
+        ):
+            if not isinstance(value, int | np.integer) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        if self.dask is not None and self.dask != "local":
+            m = _DASK_ADDRESS.fullmatch(self.dask)
+            if m is None or not 1 <= int(m.group(1)) <= 65535:
+                raise ValueError(
+                    f"--dask must be 'local' or a scheduler address tcp://HOST:PORT, "
+                    f"got {self.dask!r}"
+                )
+
 
 def _versions() -> dict:
     out = {}
@@ -83,6 +122,10 @@ def _versions() -> dict:
         except metadata.PackageNotFoundError:
             out[p] = None
     return out
+
+
+def _has_distributed() -> bool:
+    return importlib.util.find_spec("distributed") is not None
 
 
 def _is_store(path: Path) -> bool:
@@ -184,6 +227,15 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
         ``work`` has no calibration.
     calib.sweep.store.StoreError
         ``out`` is not a store, a store of another model or plan, or locked.
+    RuntimeError
+        The dask backend without dask.distributed installed (checked first), or a
+        backend that cannot start (no scheduler at ``options.dask``): a store this
+        call created is removed again.
+
+    Notes
+    -----
+    The options themselves are checked when :class:`SweepOptions` is built, before
+    anything is read or written.
     """
     import fem
 
@@ -192,9 +244,15 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     from ..sweep.engine import make_backend, run_scenarios
     from ..sweep.store import StoreError, SweepStore
 
-    opts = options or SweepOptions()
+    opts = options or SweepOptions()  # SweepOptions checks itself when built
     t0 = time.perf_counter()
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise StoreError(f"--out {out}: exists and is not a folder")
+    if opts.backend == "dask" and not _has_distributed():
+        raise RuntimeError(
+            "the dask backend needs dask.distributed: pip install 'phantom-calib[sweep]'"
+        )
     model = load_sweep_model(work)
     if model.reference_state == "shortcut":
         log.warning(
@@ -207,14 +265,13 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     )
     loads = plan.gravity_phantom * (model.c1_pa / plan.c1_pa)[:, None]
     cont = plan_continuation(loads, chunk_size=opts.chunk_size, max_angle_deg=opts.max_angle_deg)
-    if out.exists() and not out.is_dir():
-        raise StoreError(f"--out {out}: exists and is not a folder")
     clean_stale(out.parent, (out.name,))  # staging folders of creations killed midway
     if out.exists() and opts.overwrite and any(out.iterdir()):
         if not _is_store(out):
             raise StoreError(f"--out {out}: not a sweep store; --overwrite removes only stores")
         SweepStore.open(out).lock()  # refuses a store that a live sweep is writing
         shutil.rmtree(out)
+    created, was_empty_folder = False, out.is_dir()
     if out.exists() and any(out.iterdir()):
         store = SweepStore.open(out)
         store.check_matches(
@@ -226,6 +283,7 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
         prov = provenance(inputs=model.source, parameters=asdict(opts))
         prov["versions"] |= _versions()
         store = _create_store(out, model, plan, cont, disc.n_dofs, opts, prov)
+        created = True
     store.lock()
     backend = None
     try:
@@ -240,9 +298,16 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
         info = {"backend": opts.backend, "workers": 0}
         run = {"solved": 0, "failed": 0, "retried": 0}
         if pending:
-            backend = make_backend(
-                opts.backend, workers=opts.workers, dask=opts.dask, threads=opts.threads
-            )
+            try:
+                backend = make_backend(
+                    opts.backend, workers=opts.workers, dask=opts.dask, threads=opts.threads
+                )
+            except BaseException:
+                if created:  # e.g. no scheduler at --dask: a refused run leaves no store
+                    shutil.rmtree(out, ignore_errors=True)
+                    if was_empty_folder:
+                        out.mkdir()
+                raise
             info = backend.describe()
             run = run_scenarios(
                 model, store, backend, retry_failed=opts.retry_failed, progress=progress
@@ -254,6 +319,12 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
         if backend is not None:
             backend.close()
         store.unlock()
+
+
+def _check_out(out) -> None:
+    """Refuse an ``--out`` that is a folder before any work (a file is replaced)."""
+    if Path(out).is_dir():
+        raise IsADirectoryError(f"--out {out}: is a folder; name the file to write")
 
 
 def run_surrogate_train(
@@ -286,19 +357,33 @@ def run_surrogate_train(
     -------
     dict
         The training report (also inside the model file).
+
+    Raises
+    ------
+    ValueError
+        An unknown ``kind`` or ``device``, ``cuda`` without a CUDA device, or
+        ``iterations`` below 1: checked before the store is read.
+    IsADirectoryError
+        ``out`` is a folder.
+    nn.StoreFormatError
+        ``sweep`` is not a readable sweep store.
     """
     import nn
 
     from ..io import atomic_write
 
+    if kind not in _KINDS:
+        raise ValueError(f"unknown surrogate kind {kind!r}; choose ours or dissertation")
+    nn.select_device(device)  # an unknown name, or cuda without a GPU, before any reading
+    if iterations is not None and iterations < 1:
+        raise ValueError(f"--iterations must be >= 1, got {iterations}")
+    _check_out(out)
     data = nn.load_sweep(sweep)
     if kind == "ours":
         fit = nn.fit_reduced_kernel(data, device=device, progress=progress)
-    elif kind == "dissertation":
+    else:
         kw = {} if iterations is None else {"iterations": iterations}
         fit = nn.fit_dissertation_mlps(data, device=device, seed=seed, progress=progress, **kw)
-    else:
-        raise ValueError(f"unknown surrogate kind {kind!r}; choose ours or dissertation")
     sur = nn.Surrogate.from_fit(fit, data)
     atomic_write(out, lambda p: nn.save_surrogate(sur, p))
     return sur.report
@@ -332,15 +417,33 @@ def run_surrogate_predict(
     -------
     dict
         ``max_displacement_mm``, ``tumour_mm``, ``nipple_mm``, ``out``.
+
+    Raises
+    ------
+    ValueError
+        ``out`` not ``.vtu`` or ``.ply``, or ``frame`` unknown (checked before the model
+        is loaded); bad ``gravity`` or ``c1_pa``; a ``.vtu`` of a surface-only model.
+    IsADirectoryError
+        ``out`` is a folder.
+    nn.SurrogateFileError
+        ``model_path`` is not a surrogate file.
+
+    Warns
+    -----
+    nn.ExtrapolationWarning
+        A query outside the trained range (see :meth:`nn.Surrogate.predict`).
     """
     import nn
 
-    sur = nn.load_surrogate(model_path)
-    pred = sur.predict(np.asarray(gravity, float), c1_pa=c1_pa, frame=frame)
     out = Path(out)
     suffix = out.suffix.lower()
-    if suffix not in (".vtu", ".ply"):
-        raise ValueError(f"--out {out}: write .vtu or .ply")
+    if suffix not in _PREDICT_SUFFIXES:
+        raise ValueError(f"--out {out}: write .vtu or .ply, got suffix {out.suffix!r}")
+    if frame not in ("phantom", "ref"):
+        raise ValueError(f"--frame must be 'phantom' or 'ref', got {frame!r}")
+    _check_out(out)
+    sur = nn.load_surrogate(model_path)
+    pred = sur.predict(np.asarray(gravity, float), c1_pa=c1_pa, frame=frame)
     mesh = sur.mesh
     if suffix == ".vtu":
         if pred.nodes_mm is None:

@@ -1,0 +1,101 @@
+"""``phantom-calib sweep``: a refused option reads no calibration and leaves nothing on disk.
+
+The README promises that options are checked before any work; a ``--workers 0`` or a
+malformed ``--dask`` used to fail only after the store had been created (audit item 1).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "nn"))
+from sweep_helpers import make_box_work  # noqa: E402
+
+import calib.sweep  # noqa: E402
+import calib.sweep.engine  # noqa: E402
+from calib.cli import app  # noqa: E402
+from calib.workflows import sweep as wsweep  # noqa: E402
+from calib.workflows.sweep import SweepOptions, run_sweep  # noqa: E402
+
+
+@pytest.fixture
+def no_reading(monkeypatch):
+    """Fail the test if the calibration is read (the first work of a sweep)."""
+
+    def refuse(work):
+        raise AssertionError(f"the calibration of {work} was read before the options were checked")
+
+    monkeypatch.setattr(calib.sweep, "load_sweep_model", refuse)
+
+
+@pytest.mark.parametrize(
+    ("kw", "match"),
+    [
+        ({"workers": 0}, "--workers must be an integer >= 1, got 0"),
+        ({"chunk_size": 0}, "--chunk-size must be an integer >= 1"),
+        ({"threads": 0}, "threads must be an integer >= 1"),
+        ({"backend": "mpi"}, "unknown backend 'mpi'"),
+        ({"backend": "dask", "dask": "locall"}, "--dask must be 'local' or .*tcp://HOST:PORT"),
+        ({"backend": "dask", "dask": "tcp//10.0.0.5:8786"}, "--dask must be"),
+        ({"backend": "dask", "dask": "tcp://10.0.0.5"}, "--dask must be"),
+        ({"backend": "dask", "dask": "tcp://10.0.0.5:99999"}, "--dask must be"),
+    ],
+)
+def test_bad_options_are_refused_when_built(kw, match):
+    with pytest.raises(ValueError, match=match):
+        SweepOptions(**kw)
+
+
+@pytest.mark.parametrize(
+    "address", ["local", "tcp://10.0.0.5:8786", "tls://sched.hpc:8786", "tcp://[::1]:8786"]
+)
+def test_good_dask_addresses_are_accepted(address):
+    assert SweepOptions(backend="dask", dask=address).dask == address
+
+
+@pytest.mark.parametrize(
+    ("args", "match"),
+    [
+        (["--workers", "0"], "--workers must be an integer >= 1, got 0"),
+        (["--dask", "tcp//10.0.0.5:8786"], "--dask must be 'local' or"),
+        (["--chunk-size", "0"], "--chunk-size must be"),
+    ],
+)
+def test_cli_refuses_before_reading_or_writing(tmp_path, no_reading, args, match):
+    out = tmp_path / "sub" / "SWEEP"
+    res = CliRunner().invoke(app, ["sweep", str(tmp_path / "work"), "--out", str(out), *args])
+    assert res.exit_code == 2, res.output
+    assert match in res.output
+    assert not out.exists() and not out.parent.exists()
+
+
+def test_dask_backend_without_distributed_is_refused_first(tmp_path, no_reading, monkeypatch):
+    monkeypatch.setattr(wsweep, "_has_distributed", lambda: False)
+    out = tmp_path / "SWEEP"
+    with pytest.raises(RuntimeError, match=r"needs dask\.distributed"):
+        run_sweep(tmp_path / "work", out, SweepOptions(backend="dask", dask="local"))
+    assert not out.exists()
+
+
+def test_a_backend_that_cannot_start_leaves_no_store(tmp_path, monkeypatch):
+    # the address's form is checked first; whether a scheduler answers there is known only
+    # when it is reached, after the store exists: the store this run created goes again
+    work = make_box_work(tmp_path / "work")
+
+    def unreachable(*args, **kw):
+        raise RuntimeError("cannot reach the Dask scheduler at tcp://10.0.0.5:8786")
+
+    monkeypatch.setattr(calib.sweep.engine, "make_backend", unreachable)
+    opts = SweepOptions(plan="sphere:6", backend="dask", dask="tcp://10.0.0.5:8786")
+    with pytest.raises(RuntimeError, match="cannot reach"):
+        run_sweep(work, tmp_path / "s", opts)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["work"]
+    (tmp_path / "empty").mkdir()  # an empty folder given as --out stays an empty folder
+    with pytest.raises(RuntimeError, match="cannot reach"):
+        run_sweep(work, tmp_path / "empty", opts)
+    assert not any((tmp_path / "empty").iterdir())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "work"]
