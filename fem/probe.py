@@ -11,6 +11,7 @@ solver state at the same coordinates (P2 for Taylor-Hood).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
@@ -18,7 +19,7 @@ import scipy.sparse as sp
 from .discretize import Discretization, _skfem_mesh
 from .units import MM_PER_M, mm_to_m
 
-__all__ = ["MaterialPoint"]
+__all__ = ["MaterialPoint", "nearest_inside_mm"]
 
 
 @dataclass(frozen=True)
@@ -40,7 +41,13 @@ class MaterialPoint:
     R_solver_from_model: np.ndarray
 
     @classmethod
-    def locate(cls, disc: Discretization, point_mm: np.ndarray) -> MaterialPoint:
+    def locate(
+        cls,
+        disc: Discretization,
+        point_mm: np.ndarray,
+        *,
+        outside: Literal["raise", "nearest"] = "raise",
+    ) -> MaterialPoint:
         """The material point at ``point_mm`` of ``disc.mesh``'s current geometry.
 
         Parameters
@@ -49,15 +56,22 @@ class MaterialPoint:
             Of the mesh in the configuration where ``point_mm`` is given.
         point_mm : array_like, shape (3,)
             Model frame, mm.
+        outside : {"raise", "nearest"}
+            A point outside the mesh raises, or is taken at the nearest point inside
+            (:func:`nearest_inside_mm`; a coarse model surface cuts the body's curved
+            surface, and a point just under it can lie outside): compare
+            :meth:`place_mm` of the mesh's nodes with ``point_mm`` to know how far.
 
         Raises
         ------
         ValueError
-            The point lies outside the mesh.
+            The point lies outside the mesh (``outside="raise"``).
         """
         from skfem import Basis, ElementTetP1
 
         R = disc.R_solver_from_model
+        if outside == "nearest":
+            point_mm = nearest_inside_mm(disc.mesh, point_mm)
         pts = mm_to_m(np.asarray(point_mm, float).reshape(1, 3)) @ R.T
         try:
             p1 = Basis(_skfem_mesh(disc.mesh, R), ElementTetP1(), intorder=1)
@@ -85,3 +99,46 @@ class MaterialPoint:
         ``dX`` and ``dstate``.
         """
         return self.place_mm(nodes_mm) + self.displacement_mm(state)
+
+
+def nearest_inside_mm(mesh, point_mm: np.ndarray, *, candidates: int = 32) -> np.ndarray:
+    """``point_mm`` where it lies in a tetrahedron of ``mesh``, else the nearest point inside.
+
+    The nearest point of each of the ``candidates`` tetrahedra with the nearest centroids
+    (non-negative least squares for its barycentric coordinates, their sum held at 1 by a
+    heavily weighted row), moved a millionth of the way to that element's centroid so that
+    it lies strictly inside.
+
+    Parameters
+    ----------
+    mesh : fem.TetMesh
+    point_mm : array_like, shape (3,)
+        Model frame, mm.
+    candidates : int
+        Elements tried.
+
+    Returns
+    -------
+    ndarray, shape (3,)
+    """
+    from scipy.optimize import nnls
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(point_mm, float).reshape(3)
+    X = mesh.nodes_mm[mesh.tets]  # (n_tets, 4, 3)
+    centroid = X.mean(axis=1)
+    _, near = cKDTree(centroid).query(p, k=min(candidates, len(X)))
+    best, best_d = p, np.inf
+    for t in np.atleast_1d(near):
+        T = (X[t, 1:] - X[t, 0]).T
+        lam = np.linalg.solve(T, p - X[t, 0])
+        bary = np.r_[1.0 - lam.sum(), lam]
+        if np.all(bary >= 0.0):
+            return p  # inside
+        w = 1e4 * max(float(np.ptp(X[t], axis=0).max()), 1e-9)
+        bary, _ = nnls(np.vstack([X[t].T, np.full(4, w)]), np.r_[p, w])
+        q = (bary / bary.sum()) @ X[t]
+        d = float(np.linalg.norm(q - p))
+        if d < best_d:
+            best, best_d = q + 1e-6 * (centroid[t] - q), d
+    return best

@@ -61,14 +61,24 @@ class Calibrator:
         self.points = {s.name: s.surface_points(max_points=o.max_points, seed=o.seed)
                        for s in self.measurements.scans.values()}  # fmt: skip
         # the tumour: a material point of the reference scan, followed through the solves
-        self.tumour = (
-            MaterialPoint.locate(self.fm.discretization, ref.tumour_mm)
-            if ref.tumour_mm is not None
-            else None
-        )
+        self.tumour = None if ref.tumour_mm is None else self._tumour(ref.tumour_mm)
         self.states: dict = {}
         self._cache = None
         self.gauss_newton_curvature = 1.0
+
+    def _tumour(self, tumour_mm: np.ndarray) -> MaterialPoint:
+        """The tumour's material point; one outside the model mesh at the nearest inside."""
+        disc = self.fm.discretization
+        point = MaterialPoint.locate(disc, tumour_mm, outside="nearest")
+        off = float(np.linalg.norm(point.place_mm(disc.mesh.nodes_mm) - tumour_mm))
+        if off > 1e-3:
+            msg = "the tumour centre %s lies %.2f mm outside the model mesh (its surface cuts "
+            log.warning(
+                msg + "the scan's curved one): followed from the nearest point inside",
+                np.round(tumour_mm, 2),
+                off,
+            )
+        return point
 
     def targets(self) -> list[ScanMeasurement]:
         """Every scan but the reference."""

@@ -68,8 +68,9 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
     fm = prob.fm
     X = fm.stress_free_nodes_mm
     ref = work.measurements.reference
-    tumour = MaterialPoint.locate(fm.discretization, ref.tumour_mm) if ref.tumour_mm is not None \
-        else None  # fmt: skip
+    tumour = None  # as calibrate follows it (an outside point: the nearest inside)
+    if ref.tumour_mm is not None:
+        tumour = MaterialPoint.locate(fm.discretization, ref.tumour_mm, outside="nearest")
     record = json.loads(json.dumps(work.record))
     record.pop("run_id", None)
     with RunOutputs(folder, folder="calibration", record="calibration.json") as run:

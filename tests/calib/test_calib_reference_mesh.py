@@ -167,3 +167,31 @@ def test_the_model_nipple_is_the_node_at_the_measured_nipple():
     gap = np.linalg.norm(moved.nodes_mm[surf] - ref.nipple_mm, axis=1)
     assert np.linalg.norm(moved.nodes_mm[k] - ref.nipple_mm) == pytest.approx(gap.min())
     assert gap.min() < 10.0 and np.linalg.norm(moved.nodes_mm[k] - top) > 10.0
+
+
+def test_calibrate_follows_a_tumour_outside_the_model_mesh_and_says_so(caplog):
+    # before: "material point ... lies outside the mesh" stopped calibrate (a tumour just
+    # under a curved surface that the coarse model surface cuts off)
+    from types import SimpleNamespace
+
+    from skfem import MeshTet
+
+    from calib.fitting.objective import Calibrator
+    from fem import Clamped, TetMesh, discretize
+
+    m = MeshTet.init_tensor(*(np.linspace(0.0, s, k) for s, k in ((10, 3), (20, 4), (30, 5))))
+    box = TetMesh(m.p.T, m.t.T, np.ones(m.t.shape[1], int), {"bulk": 1}, {}).oriented()
+    z0 = {"z0": np.flatnonzero(np.isclose(box.nodes_mm[:, 2], 0.0))}
+    box = TetMesh(box.nodes_mm, box.tets, box.region, box.region_names, z0)
+
+    cal = object.__new__(Calibrator)
+    cal.fm = SimpleNamespace(discretization=discretize(box, Clamped("z0"), formulation="p1"))
+    with caplog.at_level("WARNING", logger="calib.fitting.objective"):
+        inside = cal._tumour(np.array([5.0, 7.0, 11.0]))
+    assert caplog.text == ""
+    with caplog.at_level("WARNING", logger="calib.fitting.objective"):
+        outside = cal._tumour(np.array([12.5, 7.0, 11.0]))
+    assert "lies 2.50 mm outside the model mesh" in caplog.text
+    # tolerance: the 1e-6 nudge towards the element's centroid (< 3e-5 mm)
+    np.testing.assert_allclose(outside.place_mm(box.nodes_mm), [10.0, 7.0, 11.0], atol=3e-5)
+    np.testing.assert_allclose(inside.place_mm(box.nodes_mm), [5.0, 7.0, 11.0], atol=1e-12)
