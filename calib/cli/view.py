@@ -38,10 +38,17 @@ def view(
 
     from ..viewer import PortInUseError, SurfaceModelMismatchError, load_scene, make_server
 
+    expected = (PortInUseError, SurfaceModelMismatchError, nn.SurrogateFileError, OSError)
     try:
         scene = load_scene(work, model)
+    except expected as exc:
+        fail(exc)
+    names = [s["name"] for s in scene.info.get("scans", [])]
+    if scan is not None and scan not in names:  # before a port is opened
+        fail(ValueError(f"--scan {scan!r}: no such scan in {work}; choose from {names}"))
+    try:
         server = make_server(scene, port=port)
-    except (PortInUseError, SurfaceModelMismatchError, nn.SurrogateFileError, OSError) as exc:
+    except expected as exc:
         fail(exc)
     url = server.url if scan is None else f"{server.url}?scan={quote(scan)}"
     shot_url = url + ("&" if "?" in url else "?") + "aa=1"  # antialiased, also in software

@@ -245,7 +245,9 @@ def _sliding_secant(prob: Problem, theta: float, values: EffectValues, names: Se
     The postures are solved with the springs on the stress-free geometry of the clamped
     model, and the slip the springs allow in the reference posture, ``d0 = X + u0 -
     x_ref``, is taken off (to first order the springy model's own stress-free geometry
-    is ``X - d0``): one FE solve per scan and one of the reference posture.
+    is ``X - d0``): one FE solve per scan and one of the reference posture. Under the
+    ``shortcut`` reference state ``X`` is the loaded mesh and the reference posture
+    carries no load (the solves take ``g - g0``), so there is no slip to take off.
     """
     fm = prob.fm
     X = fm.stress_free_nodes_mm
@@ -253,15 +255,18 @@ def _sliding_secant(prob: Problem, theta: float, values: EffectValues, names: Se
     disc = fem.discretize(prob.mesh, effect_support(probe), formulation=fm.formulation)
     disc = disc.with_nodes(X)
     model = effect_model(disc.mesh, float(np.exp(theta)), probe)
-    ref = fem.solve(model, gravity=fm.gravity_ref, g_m_s2=fm.g_m_s2, disc=disc)
-    d0 = X + ref.displacement_mm - prob.mesh.nodes_mm
+    if fm.reference_state == "shortcut":  # X is the loaded mesh, under no load: no slip
+        d0, solves = 0.0, 0
+    else:
+        ref = fem.solve(model, gravity=fm.gravity_ref, g_m_s2=fm.g_m_s2, disc=disc)
+        d0, solves = X + ref.displacement_mm - prob.mesh.nodes_mm, 1
     out = {}
     for n in names:
         g, mag = _load(fm, prob.gravity(n, nuisance.get(n)))
         sol = fem.solve(model, gravity=g, g_m_s2=mag, disc=disc, x0=states[n].state)
         pos = X + sol.displacement_mm - d0
         out[n] = prob.residuals(n, pos, None, nuisance.get(n)).r - base[n]
-    fm.solves += len(names) + 1
+    fm.solves += len(names) + solves
     return out
 
 

@@ -57,6 +57,9 @@ __all__ = [
 #: surface meets the clamped plate and the scan's surface extraction blurs the junction
 #: over a few voxels. ``"element"`` leaves out one model element (:func:`rim_margin_of`).
 RIM_MARGIN_MM = 5.0
+#: Fewest fitted scans for leave-one-posture-out (:func:`calib.discrepancy.refit.lopo`),
+#: without which no effect is named.
+MIN_FITTED_SCANS = 2
 
 log = logging.getLogger(__name__)
 
@@ -177,8 +180,13 @@ class Problem:
 
     @property
     def same_mesh(self) -> bool:
-        """Whether the diagnosis runs on the calibration's model mesh (see ``mesh_note``)."""
-        return self.mesh.n_nodes == self.work.mesh.n_nodes
+        """Whether the diagnosis runs on the calibration's model (mesh and reference).
+
+        False where ``mesh_note`` says why not (another mesh, or a prestressed
+        calibration diagnosed with a straight stress-free reference): the gap's before
+        is then c1 alone solved on the diagnosis model, not the calibration's states.
+        """
+        return self.mesh.n_nodes == self.work.mesh.n_nodes and not self.mesh_note
 
     @property
     def nipple_node(self) -> int:
@@ -434,8 +442,12 @@ def _straight_model(
             f"{work.path}: no straight stress-free reference on the calibration's mesh ({why}) "
             f"nor on other meshes ({tried}); recalibrate with another --mesh-size"
         )
-    if s == size:
-        return fm, "", s  # the calibration's mesh size, rebuilt from the same scan
+    if s == size:  # the calibration's mesh size, rebuilt from the same scan
+        note = (
+            f"the calibration's reference is prestressed (curved stress-free elements); "
+            f"diagnosed with a straight stress-free reference on its own {s:g} mm mesh"
+        )
+        return fm, note, s
     note = (
         f"the calibration's {size:g} mm mesh admits no straight stress-free reference "
         f"({why}); diagnosed on the {s:g} mm mesh"
@@ -488,13 +500,22 @@ def choose_scans(work: WorkFolder, holdout: str | None) -> tuple[list[str], str 
     """The diagnosis scans and the held-out one.
 
     ``holdout=None`` holds out the first validation scan of the calibration (session
-    order), if any; ``"none"`` holds out nothing. Every other scan but the reference is
-    fitted.
+    order), if any, where that leaves :data:`MIN_FITTED_SCANS` scans to fit (else
+    nothing, with a warning); ``"none"`` holds out nothing. Every other scan but the
+    reference is fitted. Naming an effect needs leave-one-posture-out over at least two
+    fitted scans: a named holdout that leaves fewer is refused, and a session with a
+    single scan to fit is warned about (nothing can be named).
     """
     names = [n for n, s in work.record["scans"].items() if not s.get("failed")]
     roles = {n: work.record["scans"][n]["role"] for n in names}
+    named = holdout is not None and holdout.lower() != "none"
     if holdout is None:
         holdout = next((n for n in names if roles[n] == "validation"), None)
+        if holdout is not None and len(names) - 1 < MIN_FITTED_SCANS:
+            msg = "%s: holding out %s would leave %d scan(s) to fit, and naming an effect "
+            msg += "needs leave-one-posture-out over %d: nothing is held out"
+            log.warning(msg, work.path, holdout, len(names) - 1, MIN_FITTED_SCANS)
+            holdout = None
     elif holdout.lower() == "none":
         holdout = None
     elif holdout not in names:
@@ -504,6 +525,14 @@ def choose_scans(work: WorkFolder, holdout: str | None) -> tuple[list[str], str 
     scans = [n for n in names if n != holdout]
     if not scans:
         raise DiagnosisError(f"{work.path}: no scan left to diagnose besides the held-out one")
+    if named and len(scans) < MIN_FITTED_SCANS:
+        raise DiagnosisError(
+            f"--holdout {holdout}: leaves {scans} to fit, and naming an effect needs "
+            f"leave-one-posture-out over {MIN_FITTED_SCANS} scans (--holdout none fits all)"
+        )
+    if len(scans) < MIN_FITTED_SCANS:
+        msg = "%s: a single scan to fit (%s): leave-one-posture-out cannot run, so no effect "
+        log.warning(msg + "can be named (the screen and maps are still made)", work.path, scans[0])
     return scans, holdout
 
 
@@ -610,11 +639,19 @@ def build_problem(
     Raises
     ------
     DiagnosisError
-        Among others: ``inclusion_mesh_mm`` without inclusions segmented in the reference
-        scan, or with one that cannot be meshed as a sphere inside the body.
+        Among others: a diagnosis' own refit (its effects would be read as c1 alone),
+        ``inclusion_mesh_mm`` without inclusions segmented in the reference scan, or with
+        one that cannot be meshed as a sphere inside the body.
     """
     record = work.record
     model = record["model"]
+    if record.get("diagnosis") or model.get("effects"):
+        made = record.get("diagnosis") or {}
+        raise DiagnosisError(
+            f"{work.path}: the refitted model of a diagnosis (named: "
+            f"{', '.join(made.get('named') or []) or 'none'}); diagnose the calibration it came "
+            f"from ({made.get('source_work', 'its source work folder')})"
+        )
     params = _parameters(record)
     state = record.get("reference_state", "unload")
     if state not in ("unload", "prestress", "shortcut"):

@@ -371,10 +371,26 @@ def _refit_maps(work: Path, missing: list) -> dict:
 
     ``diagnose`` saves the refitted model as a work folder (states, no error PLYs); its
     errors are measured here as ``calibrate`` measures them
-    (:func:`calib.evaluation.scan_metrics` of the saved state).
+    (:func:`calib.evaluation.scan_metrics` of the saved state). A refit made from
+    another calibration than the folder's current one (``calibrate`` ran since) is left
+    out and said.
     """
+    import json
+
     refit = work / "diagnosis" / "refit"
     if not (refit / "calibration.json").is_file():
+        return {}
+    try:
+        made_from = json.loads((refit / "calibration.json").read_text())["diagnosis"]
+        current = json.loads((work / "calibration.json").read_text()).get("run_id")
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        missing.append(f"diagnose's refitted model could not be read back: {exc}")
+        return {}
+    if made_from.get("calibration_run_id") != current:
+        missing.append(
+            f"{work / 'diagnosis'} is of an earlier calibration (run "
+            f"{made_from.get('calibration_run_id')}; now {current}): run diagnose again"
+        )
         return {}
     from ..data.work import read_work
     from ..evaluation import scan_metrics

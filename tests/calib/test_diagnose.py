@@ -1473,3 +1473,60 @@ def test_the_model_error_parts_pool_to_the_share_s_mean_square():
     null = {k: (0.25 * ms, n) for k, (ms, n) in parts.items()}
     rows = bench._parts(parts, after, null)  # half of each part removed, a quarter left
     assert all(r["of_added"] == pytest.approx(2 / 3) for r in rows.values())
+
+
+def test_the_holdout_never_leaves_a_single_scan_to_fit(caplog):
+    # one calibration and one validation scan: holding out the validation scan left one
+    # scan, leave-one-posture-out could not run and every candidate failed (`unexplained`)
+    from calib.discrepancy.problem import choose_scans
+
+    def work(**roles):
+        return SimpleNamespace(
+            path="W", record={"scans": {n: {"role": r} for n, r in roles.items()}}
+        )
+
+    with caplog.at_level("WARNING", logger="calib.discrepancy.problem"):
+        assert choose_scans(work(lat="calibration", tilt="validation"), None) == (
+            ["lat", "tilt"],
+            None,
+        )
+    assert "holding out tilt would leave 1 scan(s) to fit" in caplog.text
+    with pytest.raises(DiagnosisError, match=r"--holdout tilt: leaves \['lat'\] to fit"):
+        choose_scans(work(lat="calibration", tilt="validation"), "tilt")
+    three = work(a="calibration", b="calibration", v="validation")
+    assert choose_scans(three, None) == (["a", "b"], "v")
+    assert choose_scans(three, "a") == (["b", "v"], "a")
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="calib.discrepancy.problem"):
+        assert choose_scans(work(a="calibration"), None) == (["a"], None)
+    assert "a single scan to fit (a): leave-one-posture-out cannot run" in caplog.text
+
+
+def test_a_diagnosis_model_said_to_differ_is_not_the_calibrations_own():
+    # a --reference-state prestress calibration diagnosed with a straight recovery on its own
+    # mesh had the same node count: the gap's "before" was the prestressed calibration's
+    # states against an "after" of the straight model, the reference state's change
+    # credited to the named effect
+    from calib.discrepancy.problem import Problem
+
+    mesh = SimpleNamespace(n_nodes=100)
+    same = Problem.same_mesh.fget
+    assert same(SimpleNamespace(mesh=mesh, work=SimpleNamespace(mesh=mesh), mesh_note=""))
+    noted = SimpleNamespace(mesh=mesh, work=SimpleNamespace(mesh=mesh), mesh_note="prestressed")
+    assert not same(noted)
+    other = SimpleNamespace(mesh=SimpleNamespace(n_nodes=90), work=SimpleNamespace(mesh=mesh))
+    assert not same(SimpleNamespace(**vars(other), mesh_note=""))
+
+
+def test_a_diagnosis_refit_is_not_diagnosed_as_a_calibration():
+    # its model.effects were ignored: the problem was built as c1 alone while its saved
+    # states (the gap's "before") include the effects
+    from calib.discrepancy.problem import build_problem
+
+    record = {
+        "model": {"effects": {"named": ["skin"]}},
+        "diagnosis": {"named": ["skin"], "source_work": "WORK"},
+        "scans": {},
+    }
+    with pytest.raises(DiagnosisError, match=r"a diagnosis \(named: skin\); diagnose .* \(WORK\)"):
+        build_problem(SimpleNamespace(path="WORK/diagnosis/refit", record=record))

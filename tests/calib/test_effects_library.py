@@ -347,3 +347,30 @@ def test_a_recovery_within_one_support_does_not_depend_on_its_warm_start(phantom
         X = fm.stress_free(theta)
         assert np.abs(X - X_rest).max() < 1e-6
     assert starts == ["rest", "warm"] * 2
+
+
+def test_the_sliding_probe_under_the_shortcut_takes_no_reference_slip(phantom):
+    # shortcut: X is the loaded mesh and the reference posture carries no load (solves of
+    # g - g0), so the probe's column is springs minus clamped at g - g0. Before, the
+    # reference solve applied the whole g0 and took its sag off as a "slip" (mm).
+    from types import SimpleNamespace
+
+    from calib.discrepancy.fields import SLIDING_PROBE_PA_PER_MM, _sliding_secant
+    from calib.model.effects import effect_model, effect_support
+    from fem.unload import shortcut_gravity
+
+    theta = np.log(420.0)
+    fm = ForwardModel(phantom, _G0, reference_state="shortcut", effects=EffectValues())
+    states = fm.evaluate(theta, {"s": _G}, gradient=False)
+    identity = SimpleNamespace  # residuals: the positions themselves
+    prob = SimpleNamespace(fm=fm, mesh=phantom, gravity=lambda n, nuis=None: _G)
+    prob.residuals = lambda n, pos, m, nuis: identity(r=pos)
+    base = {"s": states["s"].positions_mm}
+    col = _sliding_secant(prob, theta, EffectValues(), ["s"], base, states, {})["s"]
+    springs = EffectValues(support_stiffness_pa_per_mm=SLIDING_PROBE_PA_PER_MM)
+    disc = fem.discretize(phantom, effect_support(springs), formulation=fm.formulation)
+    g, mag = shortcut_gravity(_G, _G0, g_m_s2=fm.g_m_s2)  # the load g - g0
+    sol = fem.solve(effect_model(phantom, 420.0, springs), gravity=g, g_m_s2=mag, disc=disc)
+    # both Newton solves to their tolerance (1e-6 mm scale)
+    np.testing.assert_allclose(col, phantom.nodes_mm + sol.displacement_mm - base["s"], atol=1e-5)
+    assert np.abs(col).max() > 0.01  # the springs do move the plate

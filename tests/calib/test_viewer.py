@@ -269,7 +269,7 @@ def _work_with_scans(root: Path, model: Path) -> tuple[Path, dict]:
             point_data={"displacement_mm": u},
         )
         write_error_ply(run.path("tilt_50_error.ply"), measured, faces, error)
-        run.commit(doc)
+        run_id = run.commit(doc)["run_id"]
     refit = work / "diagnosis" / "refit"  # as calib.workflows.diagnose.write_refit writes it
     shutil.copytree(work / "scans", refit / "scans")
     with RunOutputs(refit, folder="calibration", record="calibration.json") as run:
@@ -280,7 +280,7 @@ def _work_with_scans(root: Path, model: Path) -> tuple[Path, dict]:
             run.path("tilt_50_deformed.vtu"),
             point_data={"displacement_mm": u_after},
         )
-        run.commit(doc)
+        run.commit(doc | {"diagnosis": {"calibration_run_id": run_id}})
     planted = {
         "R": R, "g_ph": g_ph, "measured": measured, "error": error, "back": back,
         "state": (mesh.nodes_mm + u)[nodes], "fiducials": fid,
@@ -315,6 +315,27 @@ def test_scene_reads_scans_states_and_maps_into_the_phantom_frame(scans_work, bo
     assert scans["tilt_50"]["maps"] == ["error_mm", "error_after_mm"]
     np.testing.assert_allclose(scene.info["landmarks"]["fiducials_mm"], p["fiducials"] @ R)
     assert not any("diagnos" in m for m in scene.missing)
+
+
+def test_a_diagnosis_of_an_earlier_calibration_is_not_shown(scans_work, box, tmp_path):
+    # calibrate does not remove WORK/diagnosis/: its refit's maps were shown beside the new
+    # calibration's error map, on one scale, as if they were its "after"
+    work = tmp_path / "work"
+    shutil.copytree(scans_work[0], work)
+    refit = work / "diagnosis" / "refit" / "calibration.json"
+    doc = json.loads(refit.read_text())
+    doc["diagnosis"]["calibration_run_id"] = "20260101T000000.000000Z-1"
+    refit.write_text(json.dumps(doc))
+    scene = load_scene(work, box[1])
+    assert "error_after_mm" not in scene.overlays["tilt_50"]
+    assert any("is of an earlier calibration (run 20260101T000000" in m for m in scene.missing)
+
+
+def test_an_unknown_scan_is_refused_before_a_port_is_opened(scans_work):
+    # it was a note on the page, and --screenshot saved the default view and exited 0
+    res = CliRunner().invoke(app, ["view", str(scans_work[0]), "--scan", "tilt_25", "--port", "0"])
+    assert res.exit_code == 2
+    assert "--scan 'tilt_25': no such scan" in res.output and "tilt_50" in res.output
 
 
 def test_page_at_a_scan_posture_shows_its_error_map(scans_work, box, browser, tmp_path):
