@@ -307,6 +307,9 @@ class ScanGap:
         noise floor describes: the cut above the floor is measured on them.
     calibration : ScanMetrics or None
         The calibration's own errors on its mesh, when that is not the diagnosis mesh.
+    failed : str or None
+        Why the final model has no FE solution for this (held-out) scan; ``after`` is
+        then None.
     """
 
     name: str
@@ -316,6 +319,7 @@ class ScanGap:
     residual_before_mm: np.ndarray
     residual_after_mm: np.ndarray | None
     calibration: ScanMetrics | None = None
+    failed: str | None = None
 
     def as_json(self, floor_mm: float, *, named: bool = True) -> dict:
         """Surface errors (fiducial frame) and residuals before/after, the cut above the floor.
@@ -333,6 +337,8 @@ class ScanGap:
             out["surface_error_mm"]["calibration"] = self.calibration.surface_error_mm["fiducial"]
             out["nipple_error_mm"]["calibration"] = self.calibration.nipple_error_mm.get("fiducial")
         out["residual_mm"] = {"before": _abs_summary(self.residual_before_mm)}
+        if self.failed is not None:
+            out["failed"] = self.failed
         if self.after is not None:
             a = self.after.surface_error_mm["fiducial"]
             out["surface_error_mm"]["after"] = a
@@ -1068,35 +1074,48 @@ def _gaps(prob: Problem, null: Refit, final: Refit, say) -> tuple[dict, dict]:
     the calibration's saved states; where the diagnosis runs on another mesh
     (:attr:`Problem.mesh_note`) it is the null fit solved there, so the change from
     before to after is the named effects' and not the mesh's. The calibration's own
-    errors on its mesh are then kept beside (``ScanGap.calibration``).
+    errors on its mesh are then kept beside (``ScanGap.calibration``). A held-out scan
+    the final model has no FE solution for (the diagnosis scans solved in every refit;
+    it never did) keeps its before, with the reason (``ScanGap.failed``).
     """
     from ..model.residuals import SimulatedSurface
 
     names = [*prob.scans, *([prob.holdout] if prob.holdout else [])]
     say(f"final model on {len(names)} scans (held out: {prob.holdout or 'none'})")
 
-    def solve(fit: Refit) -> dict:
-        nz = {n: fit.nuisance.get(n) for n in names}
-        return prob.solve(fit.theta, fit.values, names, gradient=True,
+    def solve(fit: Refit, which: list) -> dict:
+        nz = {n: fit.nuisance.get(n) for n in which}
+        return prob.solve(fit.theta, fit.values, which, gradient=True,
                           nuisance={k: v for k, v in nz.items() if v is not None})  # fmt: skip
 
-    states = solve(final)
+    failed = None
+    try:
+        states = solve(final, names)
+    except fem.ConvergenceError as exc:
+        if not prob.holdout:
+            raise
+        failed = f"no FE solution with the final model ({exc})"
+        say(f"  {prob.holdout} (held out): {failed}")
+        states = solve(final, list(prob.scans))
     work = prob.work
     cal_sim = prob.sim if prob.same_mesh else SimulatedSurface.of(work.mesh)
     if prob.same_mesh:
         null_states = None
     else:
         say("c1 alone on the diagnosis mesh (the gap's before)")
-        null_states = states if null is final else solve(null)
+        null_states = states if null is final and failed is None else solve(null, names)
     out = {}
     for n in names:
         scan = prob.measurement(n)
         saved = work.states[n]
         calibration = scan_metrics(scan, saved.positions_mm, cal_sim.faces, work.nipple_node,
                                    saved.tumour_mm)  # fmt: skip
-        after = scan_metrics(scan, states[n].positions_mm, prob.sim.faces, prob.nipple_node, None)
-        # a named rigid offset moves the scan's points (as in the fit); gravity is in states
-        ra = prob.residuals(n, states[n].positions_mm, nuisance=final.nuisance.get(n)).r
+        after = ra = None
+        if n in states:
+            pos = states[n].positions_mm
+            after = scan_metrics(scan, pos, prob.sim.faces, prob.nipple_node, None)
+            # a named rigid offset moves the scan's points (as in the fit); gravity: states
+            ra = prob.residuals(n, pos, nuisance=final.nuisance.get(n)).r
         if null_states is None:
             before = calibration
             rb = prob.residuals(n, saved.positions_mm).r
@@ -1106,7 +1125,8 @@ def _gaps(prob: Problem, null: Refit, final: Refit, say) -> tuple[dict, dict]:
             rb = prob.residuals(n, pos).r
         role = "holdout" if n == prob.holdout else "diagnosis"
         own = None if null_states is None else calibration
-        out[n] = ScanGap(n, role, before, after, rb, ra, calibration=own)
+        why = failed if n not in states else None
+        out[n] = ScanGap(n, role, before, after, rb, ra, calibration=own, failed=why)
     return out, states
 
 

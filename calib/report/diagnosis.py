@@ -424,6 +424,9 @@ def format_diagnosis(doc: dict) -> str:
                      f"{'' if a is None else f'{a:.3f}':>11s} {rb:18.3f} "
                      f"{'' if not np.isfinite(ra) else f'{ra:.3f}':>6s} "
                      f"{'' if cut is None else f'{100 * cut:.0f} %':>16s}")  # fmt: skip
+    for name, g in doc["gap"].items():
+        if g.get("failed"):
+            lines.append(f"{name} ({g['role']}): {g['failed']}")
     lines.append(f"noise floor (mean |e|) {doc['noise']['floor_mean_abs_mm']:.3f} mm")
     if profile := _profile(doc):
         lines.append(profile)

@@ -77,6 +77,15 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
         write_mesh(prob.mesh.with_nodes(X), run.path("reference_mesh.vtu"))
         scans = {}
         for name, gap in d.gaps.items():
+            scan = prob.measurement(name)
+            entry = {
+                "role": "validation" if gap.role == "holdout" else "calibration",
+                "gravity_ref": scan.gravity_ref.tolist(),
+                "posture": scan.nominal_posture,
+            }
+            if gap.failed is not None:  # as calibrate writes a scan without a solution
+                scans[name] = entry | {"failed": gap.failed}
+                continue
             st = d.final_states[name]
             files = [f"calibration/{name}_deformed.vtu"]
             data = {
@@ -92,12 +101,6 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
                 t = tumour.position_mm(X, st.state)
                 if st.dstate is not None and fm.current_dX is not None:
                     dt = tumour.position_mm(fm.current_dX, st.dstate)
-            scan = prob.measurement(name)
-            entry = {
-                "role": "validation" if gap.role == "holdout" else "calibration",
-                "gravity_ref": scan.gravity_ref.tolist(),
-                "posture": scan.nominal_posture,
-            }
             entry |= gap.after.to_json()
             entry["model"] = {
                 "nipple_mm": st.positions_mm[prob.nipple_node].tolist(),

@@ -1530,3 +1530,42 @@ def test_a_diagnosis_refit_is_not_diagnosed_as_a_calibration():
     }
     with pytest.raises(DiagnosisError, match=r"a diagnosis \(named: skin\); diagnose .* \(WORK\)"):
         build_problem(SimpleNamespace(path="WORK/diagnosis/refit", record=record))
+
+
+def test_a_held_out_scan_without_a_solution_keeps_its_before_and_says_why(monkeypatch):
+    # the held-out posture is solved only at the end, with the final model: its failure
+    # ended the whole run with the bare fem message and no diagnosis.json
+    import importlib
+
+    import calib.model.residuals as residuals
+    import fem
+
+    dg = importlib.import_module("calib.discrepancy.diagnose")
+
+    def metrics(scan, positions_mm, faces, nipple, tumour):
+        mean = float(positions_mm.mean())
+        return SimpleNamespace(surface_error_mm={"fiducial": {"mean": mean}},
+                               nipple_error_mm={"fiducial": mean})  # fmt: skip
+
+    monkeypatch.setattr(dg, "scan_metrics", metrics)
+    monkeypatch.setattr(residuals.SimulatedSurface, "of", staticmethod(lambda mesh: mesh))
+    null, final = _fit(430.0), _fit(415.0)
+    for same_mesh, before in ((False, 430.0), (True, 0.0)):
+        prob, solved = _gap_problem(same_mesh=same_mesh)
+        plain = prob.solve
+
+        def solve(theta, values, names, gradient, nuisance, plain=plain):
+            if "h" in names and np.isclose(np.exp(theta), 415.0):
+                raise fem.ConvergenceError("load factor 0.6")
+            return plain(theta, values, names, gradient, nuisance)
+
+        prob.solve = solve
+        say = []
+        gaps, states = dg._gaps(prob, null, final, say.append)
+        assert set(states) == {"a", "b"} and set(gaps) == {"a", "b", "h"}
+        doc = gaps["h"].as_json(floor_mm=0.0)
+        assert doc["failed"] == "no FE solution with the final model (load factor 0.6)"
+        assert "after" not in doc["surface_error_mm"] and "cut_above_floor" not in doc
+        assert doc["surface_error_mm"]["before"]["mean"] == pytest.approx(before)
+        assert gaps["a"].as_json(0.0)["surface_error_mm"]["after"]["mean"] == pytest.approx(415.0)
+        assert any("h (held out): no FE solution" in s for s in say)
