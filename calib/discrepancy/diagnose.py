@@ -704,6 +704,8 @@ def diagnose(
         unavailable = dict(null.fields.unavailable)
     if not null.success:
         say(f"  the null fit did not converge: {null.message}")
+    if none_tested := _none_testable(o.effects, unavailable):
+        log.warning(none_tested)
     kw = {"alpha": o.alpha, "misfit_alpha": o.misfit_alpha, "confounded_above": o.confounded_above}
     scr0 = screen(null.fields, prob.points, **kw)
     nb = scr0.noise.best
@@ -988,6 +990,15 @@ def _prune(prob, named, fits, current, cur_scr, o, screened, say):
             cur_scr = scr
             break
     return named, current, cur_scr
+
+
+def _none_testable(effects, unavailable: dict) -> str | None:
+    """What to say when none of the effects asked for can be tested (None: some can)."""
+    if not effects or not set(effects) <= set(unavailable):
+        return None
+    why = "; ".join(f"{e}: {unavailable[e]}" for e in effects)
+    tail = "the verdict rests on the misfit test alone"
+    return f"none of the effects asked for can be tested ({why}): {tail}"
 
 
 def _verdict(named, confounded, scr0: Screen, final: Screen | None, o) -> str:

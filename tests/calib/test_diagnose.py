@@ -1569,3 +1569,15 @@ def test_a_held_out_scan_without_a_solution_keeps_its_before_and_says_why(monkey
         assert doc["surface_error_mm"]["before"]["mean"] == pytest.approx(before)
         assert gaps["a"].as_json(0.0)["surface_error_mm"]["after"]["mean"] == pytest.approx(415.0)
         assert any("h (held out): no FE solution" in s for s in say)
+
+
+def test_effects_that_cannot_be_tested_are_said():
+    # `--effects inclusions` on a phantom without inclusions answered `no missing effect`
+    # from the misfit test alone, without a word
+    from calib.discrepancy.diagnose import _none_testable
+
+    why = {"inclusions": "no inclusion was detected in the reference scan"}
+    said = _none_testable(("inclusions",), why)
+    assert said.startswith("none of the effects asked for can be tested (inclusions: no inc")
+    assert "misfit test alone" in said
+    assert _none_testable(("inclusions", "skin"), why) is None  # skin is tested
