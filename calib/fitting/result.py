@@ -160,6 +160,7 @@ class Calibration:
             "reference_posture": None,
             "tumour_stress_free_mm": None,
             "nipple_node": None,
+            "nipple_node_offset_mm": None,
             "R_ref_from_phantom": None,
         }
         if cal is not None:
@@ -167,7 +168,9 @@ class Calibration:
             doc["g_m_s2"] = fm.g_m_s2
             doc["reference_scan"] = cal.measurements.reference.name
             doc["reference_posture"] = cal.measurements.reference.nominal_posture
-            doc["nipple_node"] = int(cal.mesh.node_set("nipple")[0])
+            doc["nipple_node"] = k = int(cal.mesh.node_set("nipple")[0])
+            off = cal.mesh.nodes_mm[k] - cal.measurements.reference.nipple_mm
+            doc["nipple_node_offset_mm"] = float(np.linalg.norm(off))
             ms = cal.measurements
             doc["R_ref_from_phantom"] = phantom_frame(ms.reference, ms.scans.values()).tolist()
             if cal.tumour is not None and fm.stress_free_nodes_mm is not None:

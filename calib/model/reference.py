@@ -20,7 +20,7 @@ from fem.meshing import (
 from ..data.measurements import ScanMeasurement
 from .residuals import surface_area_mm2
 
-__all__ = ["meshed_spheres", "reference_mesh"]
+__all__ = ["meshed_spheres", "model_mesh_notes", "reference_mesh"]
 
 log = logging.getLogger(__name__)
 
@@ -161,6 +161,55 @@ def _support_checked(ref, mesh, back_tol_mm: float):
             back_tol_mm,
         )
     return mesh
+
+
+#: Farther than this (mm) from the measured nipple, the model's nipple node is said: its
+#: residual then carries that offset. The twins' reference meshes: 0.75-1.56 mm (8.6 to
+#: 19.6 mm meshes); a smooth dome without a nipple bump: 3.5-6.3 mm on 12 mm meshes.
+NIPPLE_NODE_OFFSET_MM = 2.5
+#: Fewer elements than this through the body's height (height / mesh size), the mesh is
+#: said to be coarse for the body. The twins: 6.3 at 12 mm, 5.4 at 14 mm (75 mm tall).
+MIN_ELEMENTS_IN_HEIGHT = 4.0
+
+
+def model_mesh_notes(ref, mesh, size_mm: float) -> list[str]:
+    """What a user should know about a calibration's model mesh of ``ref`` (may be empty).
+
+    The model's nipple is the surface node nearest the measured nipple: on a coarse mesh
+    of a smooth dome it can lie several mm away (:data:`NIPPLE_NODE_OFFSET_MM`). A body
+    only a few elements tall (:data:`MIN_ELEMENTS_IN_HEIGHT`) is meshed far more coarsely
+    than the twins the README's figures come from.
+
+    Parameters
+    ----------
+    ref : ScanMeasurement
+        The reference scan.
+    mesh : fem.TetMesh
+        Its model mesh (:func:`reference_mesh`).
+    size_mm : float
+        The mesh size asked for.
+
+    Returns
+    -------
+    list of str
+    """
+    notes = []
+    k = int(mesh.node_set("nipple")[0])
+    offset = float(np.linalg.norm(mesh.nodes_mm[k] - ref.nipple_mm))
+    if offset > NIPPLE_NODE_OFFSET_MM:
+        notes.append(
+            f"the model's nipple node lies {offset:.1f} mm from the measured nipple (the "
+            f"{size_mm:g} mm mesh's nearest surface node): nipple errors carry that offset; "
+            "a smaller --mesh-size brings a node nearer"
+        )
+    height = float(np.max((ref.back_point_mm - mesh.nodes_mm) @ ref.back_normal))
+    if height < MIN_ELEMENTS_IN_HEIGHT * size_mm:
+        notes.append(
+            f"the body is {height:.0f} mm tall: {height / size_mm:.1f} elements of "
+            f"{size_mm:g} mm through its height, fewer than {MIN_ELEMENTS_IN_HEIGHT:g}; "
+            f"consider --mesh-size {height / 6:.0f}"
+        )
+    return notes
 
 
 def _with_back(mesh, p0, n, size_mm: float, nipple_mm: np.ndarray):

@@ -195,3 +195,28 @@ def test_calibrate_follows_a_tumour_outside_the_model_mesh_and_says_so(caplog):
     # tolerance: the 1e-6 nudge towards the element's centroid (< 3e-5 mm)
     np.testing.assert_allclose(outside.place_mm(box.nodes_mm), [10.0, 7.0, 11.0], atol=3e-5)
     np.testing.assert_allclose(inside.place_mm(box.nodes_mm), [5.0, 7.0, 11.0], atol=1e-12)
+
+
+def test_a_far_nipple_node_and_a_coarse_mesh_for_the_body_are_said():
+    # a smooth dome without a nipple bump put the nearest surface node 3.5-6.3 mm from the
+    # measured nipple on 12 mm meshes (the twins: 0.75-1.56 mm), and a 40 mm tall phantom
+    # gets about 3 elements of 12 mm through its height (the twins: 6): both silent before
+    from types import SimpleNamespace
+
+    from skfem import MeshTet
+
+    from calib.model.reference import model_mesh_notes
+    from fem import TetMesh
+
+    m = MeshTet.init_tensor(*(np.linspace(0.0, s, 5) for s in (40.0, 40.0, 20.0)))
+    top = int(np.argmax(m.p[2] - 1e-3 * np.abs(m.p[0] - 20) - 1e-3 * np.abs(m.p[1] - 20)))
+    mesh = TetMesh(m.p.T, m.t.T, np.ones(m.t.shape[1], int), {"bulk": 1}, {"nipple": [top]})
+    apex = mesh.nodes_mm[top]
+    plate = {"back_point_mm": np.zeros(3), "back_normal": np.array([0.0, 0.0, -1.0])}
+    ref = SimpleNamespace(nipple_mm=apex + [0.0, 1.0, 0.0], **plate)
+    assert model_mesh_notes(ref, mesh, 4.0) == []  # 1 mm off, 5 elements of 4 mm
+    far = SimpleNamespace(**{**vars(ref), "nipple_mm": apex + [3.0, 0.0, 0.0]})
+    (note,) = model_mesh_notes(far, mesh, 4.0)
+    assert note.startswith("the model's nipple node lies 3.0 mm from the measured nipple")
+    (note,) = model_mesh_notes(ref, mesh, 12.0)
+    assert note.startswith("the body is 20 mm tall: 1.7 elements of 12 mm")
