@@ -18,7 +18,7 @@ from fem.probe import MaterialPoint
 
 from ..data.measurements import Measurements, ScanMeasurement
 from ..model.forward import ForwardModel
-from ..model.reference import model_mesh_notes, reference_mesh
+from ..model.reference import reference_mesh
 from ..model.residuals import Residuals, SimulatedSurface, scan_residuals
 from .options import CalibrationOptions
 
@@ -50,8 +50,6 @@ class Calibrator:
         self.mesh = reference_mesh(
             ref, size_mm=o.mesh_size_mm, max_dihedral_deg=o.mesh_max_dihedral_deg
         )
-        for note in model_mesh_notes(ref, self.mesh, o.mesh_size_mm):
-            log.warning("reference scan %r: %s", ref.name, note)
         self.fm = ForwardModel(
             self.mesh, ref.gravity_ref, nu=o.nu, density_kg_m3=self.density_kg_m3,
             reference_state=o.reference_state, formulation=o.formulation,

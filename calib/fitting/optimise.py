@@ -16,6 +16,7 @@ import numpy as np
 import fem
 
 from ..data.measurements import Measurements
+from ..model.reference import model_mesh_notes
 from .objective import Calibrator, EvaluationFailed
 from .options import CalibrationOptions
 
@@ -105,6 +106,9 @@ def prepare(
             f"reference mesh: {cal.mesh.n_tets} tets ({size:g} mm); calibration scans: "
             f"{[s.name for s in cal.calibration_scans]}"
         )
+        ref = measurements.reference
+        for note in model_mesh_notes(ref, cal.mesh, size):  # the calibration's, not checks'
+            log.warning("reference scan %r: %s", ref.name, note)
         return cal, _start(cal, say), attempts
 
     sizes = (options.mesh_size_mm, *options.mesh_retry_mm)
