@@ -70,16 +70,22 @@ class MaterialPoint:
         from skfem import Basis, ElementTetP1
 
         R = disc.R_solver_from_model
-        if outside == "nearest":
-            point_mm = nearest_inside_mm(disc.mesh, point_mm)
-        pts = mm_to_m(np.asarray(point_mm, float).reshape(1, 3)) @ R.T
-        try:
+
+        def at(point: np.ndarray) -> MaterialPoint:
+            pts = mm_to_m(np.asarray(point, float).reshape(1, 3)) @ R.T
             p1 = Basis(_skfem_mesh(disc.mesh, R), ElementTetP1(), intorder=1)
-            vertex = p1.probes(pts.T)
-            shape = disc.basis().probes(pts.T)
+            return cls(
+                sp.csr_matrix(p1.probes(pts.T)), sp.csr_matrix(disc.basis().probes(pts.T)), R
+            )
+
+        try:
+            return at(point_mm)
         except ValueError as exc:
-            raise ValueError(f"material point {np.ravel(point_mm)} lies outside the mesh") from exc
-        return cls(sp.csr_matrix(vertex), sp.csr_matrix(shape), R)
+            if outside != "nearest":
+                raise ValueError(
+                    f"material point {np.ravel(point_mm)} lies outside the mesh"
+                ) from exc
+        return at(nearest_inside_mm(disc.mesh, point_mm))
 
     def place_mm(self, nodes_mm: np.ndarray) -> np.ndarray:
         """Position (mm) of the point in a configuration of the mesh's vertices, (3,)."""
@@ -102,7 +108,11 @@ class MaterialPoint:
 
 
 def nearest_inside_mm(mesh, point_mm: np.ndarray, *, candidates: int = 32) -> np.ndarray:
-    """``point_mm`` where it lies in a tetrahedron of ``mesh``, else the nearest point inside.
+    """``point_mm`` where it lies in one of the candidate tetrahedra, else the nearest point inside.
+
+    Meant for a point outside the mesh (:meth:`MaterialPoint.locate` calls it only then):
+    the candidates are the elements nearest by centroid, which in a strongly graded mesh
+    need not hold an inside point's own element.
 
     The nearest point of each of the ``candidates`` tetrahedra with the nearest centroids
     (non-negative least squares for its barycentric coordinates, their sum held at 1 by a

@@ -136,6 +136,8 @@ def _read_file(path: Path):  # noqa: ANN202 - pydicom Dataset or None
     if has_pixels:
         _refuse_multi_frame(path, ds)
     if not has_pixels:
+        if sop == MR_IMAGE_STORAGE or (not sop and has_position):  # a slice cut short
+            raise DicomSeriesError(f"{path}: an MR image slice without pixel data (truncated?)")
         log.warning("%s: skipped, a DICOM file without pixel data (SOP class %s)", path, sop)
         return None
     if not has_position and sop not in (MR_IMAGE_STORAGE, ""):

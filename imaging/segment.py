@@ -173,6 +173,11 @@ def _with_far_markers(crop, bright: np.ndarray, voxel_mm3: float, pad: np.ndarra
 #: median 1.177 sigma, IQR 0.907 sigma) sits at 1.75 sds, a zero-mean one at 0: both are
 #: left as they are.
 OFFSET_SDS = 3.0
+#: A positive offset must also exceed this share of the body's level: a sum-of-squares
+#: image's noise floor sits at 2.65, 3.87, 5.56 sds for 2, 4, 8 coils, a median of up to
+#: 0.16 of the body at a per-coil SNR of 25 (8 coils), and is not an offset. A negative
+#: one never is a noise floor (magnitudes are >= 0).
+OFFSET_MIN_SHARE = 0.2
 
 
 def background_offset(image: np.ndarray, body: np.ndarray) -> float:
@@ -181,8 +186,9 @@ def background_offset(image: np.ndarray, body: np.ndarray) -> float:
     The thresholds of :func:`segment_body` are fractions of the body's level above zero, so
     an offset (a rescale intercept, a renderer's DC level) moves the surface: +30 % of the
     body level grew the segmented volume by 5 %, -50 % shrank it by 7 %. The offset is the
-    median of the voxels more than 3 voxels from ``body`` where it exceeds
-    :data:`OFFSET_SDS` robust sds of theirs.
+    median of the voxels more than 3 voxels from ``body`` where it lies more than
+    :data:`OFFSET_SDS` robust sds of theirs from zero, and, above zero, more than
+    :data:`OFFSET_MIN_SHARE` of the body's median.
 
     Parameters
     ----------
@@ -201,7 +207,11 @@ def background_offset(image: np.ndarray, body: np.ndarray) -> float:
         return 0.0
     q1, median, q3 = np.percentile(bg, [25.0, 50.0, 75.0])
     sd = (q3 - q1) / 1.349
-    return float(median) if abs(median) > OFFSET_SDS * sd else 0.0
+    if abs(median) <= OFFSET_SDS * sd:
+        return 0.0
+    if median > 0 and median <= OFFSET_MIN_SHARE * float(np.median(image[body])):
+        return 0.0
+    return float(median)
 
 
 def segment_body(
@@ -287,7 +297,12 @@ def segment_body(
     vals = n[ndimage.binary_erosion(body, iterations=2)]
     med = float(np.median(vals)) if vals.size else 1.0
     bg = arr[~ndimage.binary_dilation(coarse, iterations=3)]
-    noise = float(np.sqrt(np.mean(bg.astype(float) ** 2) / 2.0)) if bg.size else float("nan")
+    if not bg.size:
+        noise = float("nan")
+    elif offset:  # a magnitude floor shifted by the offset: Rayleigh IQR = 0.907 sigma
+        noise = float(np.subtract(*np.percentile(bg, [75.0, 25.0])) / 0.907)
+    else:  # a magnitude floor (Rayleigh): E[bg^2] = 2 sigma^2
+        noise = float(np.sqrt(np.mean(bg.astype(float) ** 2) / 2.0))
     level = float(np.median(field_[inner]))
     quality = {
         "otsu_threshold": thr,

@@ -44,7 +44,7 @@ def view(
     except expected as exc:
         fail(exc)
     names = [s["name"] for s in scene.info.get("scans", [])]
-    if scan is not None and scan not in names:  # before a port is opened
+    if scan is not None and names and scan not in names:  # before a port is opened
         fail(ValueError(f"--scan {scan!r}: no such scan in {work}; choose from {names}"))
     try:
         server = make_server(scene, port=port)

@@ -1087,7 +1087,8 @@ def _gaps(prob: Problem, null: Refit, final: Refit, say) -> tuple[dict, dict]:
     before to after is the named effects' and not the mesh's. The calibration's own
     errors on its mesh are then kept beside (``ScanGap.calibration``). A held-out scan
     the final model has no FE solution for (the diagnosis scans solved in every refit;
-    it never did) keeps its before, with the reason (``ScanGap.failed``).
+    it never did) keeps its before, with the reason (``ScanGap.failed``); where c1 alone
+    has no solution for it on the diagnosis mesh either, its before is the calibration's.
     """
     from ..model.residuals import SimulatedSurface
 
@@ -1114,7 +1115,15 @@ def _gaps(prob: Problem, null: Refit, final: Refit, say) -> tuple[dict, dict]:
         null_states = None
     else:
         say("c1 alone on the diagnosis mesh (the gap's before)")
-        null_states = states if null is final and failed is None else solve(null, names)
+        if null is final:
+            null_states = states
+        else:
+            try:
+                null_states = solve(null, names)
+            except fem.ConvergenceError:
+                if failed is None:
+                    raise
+                null_states = solve(null, list(prob.scans))
     out = {}
     for n in names:
         scan = prob.measurement(n)
@@ -1127,7 +1136,7 @@ def _gaps(prob: Problem, null: Refit, final: Refit, say) -> tuple[dict, dict]:
             after = scan_metrics(scan, pos, prob.sim.faces, prob.nipple_node, None)
             # a named rigid offset moves the scan's points (as in the fit); gravity: states
             ra = prob.residuals(n, pos, nuisance=final.nuisance.get(n)).r
-        if null_states is None:
+        if null_states is None or n not in null_states:  # (the latter: a failed holdout)
             before = calibration
             rb = prob.residuals(n, saved.positions_mm).r
         else:

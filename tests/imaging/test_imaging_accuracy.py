@@ -217,6 +217,10 @@ def test_a_background_offset_keeps_the_accuracy_bars(oblique_scan, oblique_resul
     _check_accuracy(oblique_scan, res)
     # as the scan without the offset: measured 0.995 of its volume (without the mend 1.033,
     # 0.947), surface mean 0.041 mm (0.035; without 0.28, 0.41 mm): bars well inside those
+    # the noise under the offset: the rendered sigma is 1/25 of the body level (it read
+    # 0.47 of that, the floor's median taken off with the offset); the bias field's +-20 %
+    # and the level's share of the floor's median: 15 %
+    assert res.quality["seg_noise_sigma_rel"] == pytest.approx(0.04, rel=0.15)
     ratio = res.quality["seg_volume_ml"] / oblique_result.quality["seg_volume_ml"]
     assert ratio == pytest.approx(1.0, abs=0.01)
     d0 = true_surface_distance(oblique_scan, oblique_result.surface.vertices_lps_mm).mean()
@@ -265,3 +269,32 @@ def test_full_size_scan_accuracy():
     )
     res = process_scan(scan.volume)
     _check_accuracy(scan, res)
+
+
+def test_a_noise_floor_is_not_an_offset_but_a_level_off_zero_is():
+    # closed forms of the background's median: Rayleigh 1.18 sigma; a sum of squares over
+    # 8 coils (chi, 16 dof) 3.9 sigma = 157 at sigma 40: 5.6 robust sds, which the sd rule
+    # alone took for an offset (the body shrank 1.8 %); Gaussian noise around +300 / -500
+    from imaging.segment import background_offset
+
+    rng = np.random.default_rng(0)
+    body = np.zeros((40, 40, 40), bool)
+    body[12:28, 12:28, 12:28] = True
+
+    def image(bg):
+        out = bg.reshape(body.shape).copy()
+        out[body] = 1000.0
+        return out
+
+    n = body.size
+    rayleigh = np.hypot(*rng.normal(0.0, 40.0, (2, n)))
+    coils8 = np.sqrt((rng.normal(0.0, 40.0, (16, n)) ** 2).sum(axis=0))
+    assert background_offset(image(rayleigh), body) == 0.0
+    assert background_offset(image(coils8), body) == 0.0
+    # the median of 40-sd noise over ~60 000 voxels: within 1
+    assert background_offset(image(300.0 + rng.normal(0.0, 40.0, n)), body) == pytest.approx(
+        300.0, abs=1.0
+    )
+    assert background_offset(image(-500.0 + rng.normal(0.0, 40.0, n)), body) == pytest.approx(
+        -500.0, abs=1.0
+    )

@@ -125,6 +125,17 @@ def test_truncated_file(series):
         read_volume(series)
 
 
+@pytest.mark.parametrize("name", ["IM00001.dcm", "IM00004.dcm"])
+def test_a_slice_cut_before_its_pixel_data_is_an_error(series, name):
+    # read with force, a file cut before (7FE0,0010) is a dataset without pixel data: it
+    # was skipped as a report, and a first or last slice went missing without a word
+    f = series / name
+    data = f.read_bytes()
+    f.write_bytes(data[: data.rfind(b"\xe0\x7f\x10\x00")])
+    with pytest.raises(DicomSeriesError, match=f"{name}: an MR image slice without pixel data"):
+        read_volume(series)
+
+
 def test_corrupt_file(series):
     (series / "IM00002.dcm").write_bytes(b"not a dicom file at all" * 10)
     with pytest.raises(DicomSeriesError, match="IM00002.dcm.*not a readable DICOM"):
