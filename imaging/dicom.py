@@ -272,8 +272,10 @@ def _slice_order(
 ) -> tuple[list[int], float, np.ndarray]:
     """Order the slices along ``normal``; return the order, the spacing and the first position.
 
-    Spacing and first position come from a least-squares straight, evenly spaced line through
-    all ImagePositionPatient, so that positions rounded by the writer average out.
+    Where the writer rounded the positions (to 0.1, 0.01 or 0.001 mm), spacing and first
+    position come from a least-squares straight, evenly spaced line through all of them, so
+    that the rounding averages out; exact positions give the first slice's position and
+    the median gap.
     """
     pos = np.array([np.array(datasets[p].ImagePositionPatient, float) for p in paths])
     s = pos @ normal
@@ -323,6 +325,8 @@ def _slice_order(
             f"{paths[worst]}: ImagePositionPatient is off the slice-normal line (gantry tilt "
             "or mixed stacks are not supported)"
         )
+    if q == 0.0:  # exact positions: the first slice's and the median gap, as written
+        return order, float(np.median(np.diff(s_sorted))), pos[order[0]]
     in_plane = pos - np.outer(s, normal)
     first = in_plane.mean(axis=0) + intercept * normal
     return order, dz, first
