@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fem.postures import PLANES
+
 from .data.work import WorkFolder, ingest_record
 from .evaluation import ScanMetrics, scan_metrics
 
@@ -186,7 +188,8 @@ def _posture(work: WorkFolder, scan) -> tuple[float, str]:
     if plane is None:
         near_y = scan.posture_angle_deg is None and abs(g[1]) > abs(g[0])
         plane = "sagittal" if near_y else "transverse"
-    angle = float(np.degrees(np.arctan2(g[2], g[1] if plane == "sagittal" else g[0])))
+    in_plane, up = PLANES[plane]  # the axes of fem.postures.gravity_for_angle's plane
+    angle = float(np.degrees(np.arctan2(g[up], g[in_plane])))
     return (angle + 360.0 if angle <= -179.5 else angle), plane  # in (-179.5, 180.5]
 
 

@@ -298,7 +298,6 @@ def _slice_order(
             )
     k = np.arange(len(paths), dtype=float)
     slope, intercept = np.polyfit(k, s_sorted, 1)
-    dz = float(slope)
     resid = s_sorted - (intercept + slope * k)
     # Writers round ImagePositionPatient, often to 0.1 mm: each coordinate then errs by up to
     # q/2 (q the decimal step all positions are multiples of), the position along the normal
@@ -309,13 +308,13 @@ def _slice_order(
     # for an axial stack rounded to 0.1 mm, up to 0.17 mm for a doubly oblique one.
     # Exact positions keep the former bound, max(0.01 mm, 1 % of the spacing).
     q = _position_quantum(pos)
-    tol = max(q * float(np.abs(normal).sum()), 0.01, 0.01 * dz)
+    tol = max(q * float(np.abs(normal).sum()), 0.01, 0.01 * slope)
     worst = int(np.argmax(np.abs(resid)))
     if abs(resid[worst]) > tol:
         raise DicomSeriesError(
             f"{paths[order[worst]]}: non-uniform slice spacing: ImagePositionPatient lies "
             f"{resid[worst]:+.4f} mm off the evenly spaced line fitted to the series' "
-            f"positions (spacing {dz:.4f} mm; tolerance {tol:.3f} mm)"
+            f"positions (spacing {slope:.4f} mm; tolerance {tol:.3f} mm)"
         )
     lateral = (pos - pos[order[0]]) - np.outer((pos - pos[order[0]]) @ normal, normal)
     worst = int(np.argmax(np.linalg.norm(lateral, axis=1)))
@@ -326,10 +325,9 @@ def _slice_order(
             "or mixed stacks are not supported)"
         )
     if q == 0.0:  # exact positions: the first slice's and the median gap, as written
-        return order, float(np.median(np.diff(s_sorted))), pos[order[0]]
+        return order, dz, pos[order[0]]
     in_plane = pos - np.outer(s, normal)
-    first = in_plane.mean(axis=0) + intercept * normal
-    return order, dz, first
+    return order, float(slope), in_plane.mean(axis=0) + intercept * normal
 
 
 def read_dicom_series(folder: str | os.PathLike) -> Volume:
