@@ -167,6 +167,19 @@ class Surrogate:
         return bool(model.get("prestress")) or model.get("reference_state") == "prestress"
 
     @property
+    def surface_only(self) -> bool:
+        """True for the dissertation baseline, which predicts surface nodes only."""
+        return self.kind == "dissertation"
+
+    @property
+    def boundary_known(self) -> bool:
+        """True when every boundary vertex's displacement follows from a prediction.
+
+        A surface-only model of a non-clamped support does not know its back plate's.
+        """
+        return not self.surface_only or self.meta["model"].get("support") == "clamped"
+
+    @property
     def mesh_sha256(self) -> str:
         """Identity of the mesh the surrogate was trained on."""
         return self.meta["mesh_sha256"]
@@ -293,7 +306,7 @@ class Surrogate:
         """
         if pred.nodes_mm is not None:
             return pred.nodes_mm[k]
-        if self.meta["model"].get("support") != "clamped":
+        if not self.boundary_known:
             raise ValueError(
                 "the dissertation baseline predicts surface nodes only; the back "
                 "plate of a non-clamped model is unknown"

@@ -154,9 +154,19 @@ def _create_store(out: Path, model, plan, cont, n_dofs: int, opts: SweepOptions,
         max_angle_deg=opts.max_angle_deg,
         provenance=prov,
     )
-    if out.exists():
-        out.rmdir()  # an empty folder (checked by the caller)
-    os.replace(stage, out)
+    if out.exists() and any(out.iterdir()):  # --overwrite: the old store goes only now
+        old = out.parent / f".{out.name}.old-{os.getpid()}"
+        os.replace(out, old)
+        try:
+            os.replace(stage, out)
+        except BaseException:
+            os.replace(old, out)  # the old store back in place
+            raise
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        if out.exists():
+            out.rmdir()  # an empty folder (checked by the caller)
+        os.replace(stage, out)
     return SweepStore.open(out)
 
 
@@ -237,9 +247,7 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     The options themselves are checked when :class:`SweepOptions` is built, before
     anything is read or written.
     """
-    import fem
-
-    from ..io import clean_stale, provenance
+    from ..io import clean_stale
     from ..sweep import load_sweep_model, make_plan, plan_continuation
     from ..sweep.engine import make_backend, run_scenarios
     from ..sweep.store import StoreError, SweepStore
@@ -266,27 +274,29 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     loads = plan.gravity_phantom * (model.c1_pa / plan.c1_pa)[:, None]
     cont = plan_continuation(loads, chunk_size=opts.chunk_size, max_angle_deg=opts.max_angle_deg)
     clean_stale(out.parent, (out.name,))  # staging folders of creations killed midway
-    if out.exists() and opts.overwrite and any(out.iterdir()):
+    replacing = out.exists() and opts.overwrite and any(out.iterdir())
+    old = None
+    if replacing:
         if not _is_store(out):
             raise StoreError(f"--out {out}: not a sweep store; --overwrite removes only stores")
-        SweepStore.open(out).lock()  # refuses a store that a live sweep is writing
-        shutil.rmtree(out)
-    created, was_empty_folder = False, out.is_dir()
-    if out.exists() and any(out.iterdir()):
-        store = SweepStore.open(out)
-        store.check_matches(
-            model, plan, chunk_size=opts.chunk_size, max_angle_deg=opts.max_angle_deg
-        )
-    else:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        disc = fem.discretize(model.tet_mesh(), fem.Clamped(), formulation=model.formulation)
-        prov = provenance(inputs=model.source, parameters=asdict(opts))
-        prov["versions"] |= _versions()
-        store = _create_store(out, model, plan, cont, disc.n_dofs, opts, prov)
-        created = True
-    store.lock()
-    backend = None
+        old = SweepStore.open(out)
+        old.lock()  # refuses a store that a live sweep is writing
+    store, backend = None, None
     try:
+        if out.exists() and any(out.iterdir()) and not replacing:
+            store = SweepStore.open(out)
+            store.check_matches(
+                model, plan, chunk_size=opts.chunk_size, max_angle_deg=opts.max_angle_deg
+            )
+        else:
+            # the backend first: one that cannot start (no scheduler at --dask) leaves the
+            # old store and the file system as they were
+            backend = make_backend(
+                opts.backend, workers=opts.workers, dask=opts.dask, threads=opts.threads
+            )
+            store = _create_new_store(out, model, plan, cont, opts)
+            old = None  # replaced, lock and all
+        store.lock()
         removed = store.clean_partial()
         if removed:
             log.info("%s: removed %d partial chunk files of an interrupted run", out, removed)
@@ -298,16 +308,10 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
         info = {"backend": opts.backend, "workers": 0}
         run = {"solved": 0, "failed": 0, "retried": 0}
         if pending:
-            try:
+            if backend is None:
                 backend = make_backend(
                     opts.backend, workers=opts.workers, dask=opts.dask, threads=opts.threads
                 )
-            except BaseException:
-                if created:  # e.g. no scheduler at --dask: a refused run leaves no store
-                    shutil.rmtree(out, ignore_errors=True)
-                    if was_empty_folder:
-                        out.mkdir()
-                raise
             info = backend.describe()
             run = run_scenarios(
                 model, store, backend, retry_failed=opts.retry_failed, progress=progress
@@ -318,7 +322,35 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     finally:
         if backend is not None:
             backend.close()
-        store.unlock()
+        if store is not None:
+            store.unlock()
+        if old is not None:
+            old.unlock()
+
+
+def _create_new_store(out: Path, model, plan, cont, opts: SweepOptions):
+    """Create the store at ``out`` (replacing a store there), with any missing parents.
+
+    Parent folders this call made are removed again if the creation fails.
+    """
+    import fem
+
+    from ..io import provenance
+
+    made = [p for p in (out.parent, *out.parent.parents) if not p.exists()]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        disc = fem.discretize(model.tet_mesh(), fem.Clamped(), formulation=model.formulation)
+        prov = provenance(inputs=model.source, parameters=asdict(opts))
+        prov["versions"] |= _versions()
+        return _create_store(out, model, plan, cont, disc.n_dofs, opts, prov)
+    except BaseException:
+        for p in made:  # deepest first
+            try:
+                p.rmdir()
+            except OSError:
+                break
+        raise
 
 
 def _check_out(out) -> None:
@@ -443,13 +475,16 @@ def run_surrogate_predict(
         raise ValueError(f"--frame must be 'phantom' or 'ref', got {frame!r}")
     _check_out(out)
     sur = nn.load_surrogate(model_path)
+    if suffix == ".vtu" and sur.surface_only:  # checked before predicting
+        raise ValueError(f"{model_path}: this surrogate predicts surface nodes only; write a .ply")
+    if suffix == ".ply" and not sur.boundary_known:
+        raise ValueError(
+            f"{model_path}: this surrogate predicts surface nodes only and its back plate "
+            "is not clamped: its boundary is unknown"
+        )
     pred = sur.predict(np.asarray(gravity, float), c1_pa=c1_pa, frame=frame)
     mesh = sur.mesh
     if suffix == ".vtu":
-        if pred.nodes_mm is None:
-            raise ValueError(
-                f"{model_path}: this surrogate predicts surface nodes only; write a .ply"
-            )
         from fem import TetMesh
         from fem.io import write_mesh
 

@@ -99,3 +99,44 @@ def test_a_backend_that_cannot_start_leaves_no_store(tmp_path, monkeypatch):
         run_sweep(work, tmp_path / "empty", opts)
     assert not any((tmp_path / "empty").iterdir())
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "work"]
+
+
+def _tree(path: Path) -> dict[str, bytes]:
+    return {
+        str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()
+    }
+
+
+def test_overwrite_keeps_the_old_store_when_the_backend_cannot_start(tmp_path, monkeypatch):
+    # the old store used to be removed before the scheduler was reached: an unreachable
+    # --dask with --overwrite lost it
+    work = make_box_work(tmp_path / "work")
+    store = tmp_path / "s"
+    run_sweep(work, store, SweepOptions(plan="sphere:6"))
+    before = _tree(store)
+
+    def unreachable(*args, **kw):
+        raise RuntimeError("cannot reach the Dask scheduler at tcp://10.0.0.5:8786")
+
+    monkeypatch.setattr(calib.sweep.engine, "make_backend", unreachable)
+    opts = SweepOptions(plan="sphere:8", backend="dask", dask="tcp://10.0.0.5:8786", overwrite=True)
+    with pytest.raises(RuntimeError, match="cannot reach"):
+        run_sweep(work, store, opts)
+    assert _tree(store) == before  # the old store, lock released, nothing beside it
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s", "work"]
+    monkeypatch.undo()
+    summary = run_sweep(work, store, SweepOptions(plan="sphere:8", overwrite=True))
+    assert summary["pending"] == 0 and summary["solved"] == 8
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s", "work"]
+
+
+def test_parent_folders_made_for_out_go_when_the_creation_fails(tmp_path, monkeypatch):
+    work = make_box_work(tmp_path / "work")
+
+    def broken(*args, **kw):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(wsweep, "_create_store", broken)
+    with pytest.raises(OSError, match="disk full"):
+        run_sweep(work, tmp_path / "a" / "b" / "SWEEP", SweepOptions(plan="sphere:6"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["work"]

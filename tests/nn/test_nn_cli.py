@@ -138,7 +138,7 @@ def test_train_errors(box_sweep, tmp_path):
     assert res.exit_code == 2 and "surrogate file not found" in res.output
 
 
-def test_baseline_cli_writes_surface_only(box_sweep, tmp_path):
+def test_baseline_cli_writes_surface_only(box_sweep, tmp_path, monkeypatch):
     out = tmp_path / "mlp.pt"
     res = runner.invoke(
         app,
@@ -159,18 +159,20 @@ def test_baseline_cli_writes_surface_only(box_sweep, tmp_path):
     assert res.exit_code == 0, res.output
     assert "dissertation surrogate: trained on 37 scenarios" in res.output
     assert "test (9)" in res.output
-    res = runner.invoke(
-        app,
-        [
-            "surrogate",
-            "predict",
-            str(out),
-            "--gravity",
-            "9.81,0,0",
-            "--out",
-            str(tmp_path / "r.vtu"),
-        ],
-    )
+    with monkeypatch.context() as m:  # a .vtu is refused before predicting
+        m.setattr(nn.Surrogate, "predict", lambda *a, **k: pytest.fail("predicted first"))
+        res = runner.invoke(
+            app,
+            [
+                "surrogate",
+                "predict",
+                str(out),
+                "--gravity",
+                "9.81,0,0",
+                "--out",
+                str(tmp_path / "r.vtu"),
+            ],
+        )
     assert res.exit_code == 2 and "surface nodes only" in res.output
     res = runner.invoke(
         app,
