@@ -30,7 +30,33 @@ __all__ = [
     "validation_markdown",
 ]
 
-DISPLACEMENT_BINS_MM = (0.0, 5.0, 10.0, 20.0, np.inf)
+
+def displacement_bins_mm(displacement_mm: np.ndarray) -> tuple[float, ...]:
+    """Edges ``(0, s, 2 s, 3 s, inf)`` of the displacement bins of one scan (mm).
+
+    ``s`` is a quarter of the 99th percentile of the finite displacements, rounded to
+    1, 2 or 5 times a power of ten: one scale fits a 2 mm tilt and a 35 mm turn alike.
+
+    Parameters
+    ----------
+    displacement_mm : ndarray, shape (n,)
+        How far the surface moved near each measured vertex (mm); NaN where unknown.
+
+    Returns
+    -------
+    tuple of float
+        Increasing edges; ``(0, inf)`` when nothing moved or nothing is known.
+    """
+    d = np.asarray(displacement_mm, float)
+    d = d[np.isfinite(d)]
+    top = float(np.percentile(d, 99)) if d.size else 0.0
+    if not top > 0.0:
+        return (0.0, np.inf)
+    raw = top / 4.0
+    power = 10.0 ** np.floor(np.log10(raw))
+    m = raw / power
+    step = power * (1.0 if m < 1.5 else 2.0 if m < 3.5 else 5.0 if m < 7.5 else 10.0)
+    return (0.0, step, 2 * step, 3 * step, np.inf)
 
 
 def _phantom_coordinates(points_mm: np.ndarray, R_ref_from_phantom: np.ndarray) -> np.ndarray:
@@ -104,11 +130,11 @@ def error_by_displacement_figure(scans: list[ScanValidation]):
 
     fig = Figure(figsize=(9, 2.8 * max(len(scans), 1) + 0.6), layout="constrained")
     axes = fig.subplots(max(len(scans), 1), 1, squeeze=False)[:, 0]
-    edges = DISPLACEMENT_BINS_MM
     for ax, sv in zip(axes, scans, strict=False):
         off = sv.metrics.vertex_error_mm != 0.0
         err = np.abs(sv.metrics.vertex_error_mm[off])
         disp = sv.displacement_mm[off]
+        edges = displacement_bins_mm(disp)
         top = max(float(np.percentile(err, 99.5)), 0.1)
         bins = np.linspace(0.0, top, 21)
         stacks, labels, colours = [], [], []
@@ -121,6 +147,8 @@ def error_by_displacement_figure(scans: list[ScanValidation]):
                     f"moved {a:g}–{b:g} mm ({100 * sel.mean():.0f} %)"
                     if np.isfinite(b)
                     else f"moved > {a:g} mm ({100 * sel.mean():.0f} %)"
+                    if a > 0
+                    else "all points"
                 )
         if not stacks:  # no displacement saved: one histogram
             stacks, labels, colours = [err], ["all points"], ["0.5"]

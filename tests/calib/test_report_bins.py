@@ -1,0 +1,34 @@
+"""The validation report's displacement bins follow the scan, not one phantom's sag.
+
+The bins were 0/5/10/20 mm, sized for the twin's ~24 mm sag: a 25 degree tilt that moved
+the surface 2.5 mm had all its points in one bin. The edges are exact (a 1-2-5 ladder on
+a quarter of the 99th percentile), so the checks are equalities.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib.report.validation import displacement_bins_mm
+
+
+@pytest.mark.parametrize(
+    ("top_mm", "step_mm"),
+    [(2.53, 0.5), (7.34, 2.0), (22.0, 5.0), (34.89, 10.0), (0.04, 0.01), (400.0, 100.0)],
+)
+def test_a_quarter_of_the_top_rounded_on_a_1_2_5_ladder(top_mm, step_mm):
+    d = np.linspace(0.0, top_mm, 100_001)
+    d = d * top_mm / np.percentile(d, 99)  # its 99th percentile is top_mm
+    edges = displacement_bins_mm(d)
+    assert edges[:4] == pytest.approx((0.0, step_mm, 2 * step_mm, 3 * step_mm), rel=1e-12)
+    assert edges[4] == np.inf
+    shares = np.histogram(d, bins=np.array(edges[:4] + (d.max() + 1,)))[0] / d.size
+    assert (shares > 0).all()  # every bin holds points: no single-bin histogram
+
+
+def test_nothing_known_or_nothing_moved_is_one_bin():
+    assert displacement_bins_mm(np.full(10, np.nan)) == (0.0, np.inf)
+    assert displacement_bins_mm(np.zeros(10)) == (0.0, np.inf)
+    assert displacement_bins_mm(np.array([])) == (0.0, np.inf)
+    assert displacement_bins_mm(np.array([np.nan, 3.0, 4.0]))[1] == pytest.approx(1.0)
