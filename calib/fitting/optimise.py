@@ -141,6 +141,10 @@ def _check_reference(cal: Calibrator, theta0: float, progress) -> None:
                 "  no stress-free mesh with straight elements (slivers at the clamped rim); "
                 "solved with curved ones: the reference is the prestressed loaded mesh"
             )
+        # the formulation is chosen here, once: a later straight-element failure (a line
+        # search's or the profile's softer c1) is a failed evaluation, not a switch that
+        # would leave c1 and its interval from one model and every later output another's
+        cal.fm.spatial_fallback = False
     except fem.ConvergenceError as exc:
         size = cal.options.mesh_size_mm
         raise fem.ConvergenceError(
