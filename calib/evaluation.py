@@ -251,6 +251,11 @@ POSTURE_ALPHA = 0.04
 
 #: Fewest surface residuals of a scan for its own estimate (as the series interval).
 MIN_SCAN_POINTS = 200
+#: A scan whose residual's c1 derivative (centred: each scan's own fit takes its offset)
+#: is below this share of the strongest scan's, RMS over its points, carries no c1 of its
+#: own (a repeat of the reference posture): its weight in Cochran's Q would be < 1e-4 of
+#: that scan's, and its own estimate round-off. It is left out of the posture test.
+MIN_POSTURE_SENSITIVITY_SHARE = 0.01
 
 
 def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALPHA):
@@ -273,8 +278,9 @@ def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALP
     -------
     tuple of (PostureConsistency, dict of int to str) or None
         The test and the scan name of each label; None for an objective other than
-        ``surface``, or when fewer than two scans have a solution and at least
-        ``MIN_SCAN_POINTS`` surface points.
+        ``surface``, or when fewer than two scans have a solution, at least
+        ``MIN_SCAN_POINTS`` surface points and a surface that changes with c1
+        (``MIN_POSTURE_SENSITIVITY_SHARE``; a scan left out is warned about).
     """
     from .model.residuals import scan_residuals
     from .stats import SurfaceSample
@@ -283,7 +289,7 @@ def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALP
     cal = calibration.calibrator
     if cal is None or calibration.objective != "surface":
         return None
-    rs, js, pts, labels, names = [], [], [], [], {}
+    rs, js, pts, labels, names, found = [], [], [], [], {}, []
     for name, ev in evaluations.items():
         if ev.failed is not None or ev.dpositions_mm is None:
             continue
@@ -297,6 +303,17 @@ def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALP
             surface_points_mm=cal.points[name],
         )
         if len(res.r) < MIN_SCAN_POINTS:
+            continue
+        found.append((name, res, float(np.sqrt(np.mean((res.dr - res.dr.mean()) ** 2)))))
+    strongest = max((f[2] for f in found), default=0.0)
+    for name, res, sensitivity in found:
+        if not sensitivity > MIN_POSTURE_SENSITIVITY_SHARE * strongest:
+            log.warning(
+                "scan %r: its surface barely changes with c1 (%.2g of the most sensitive "
+                "scan's; the reference posture again?): left out of the posture test",
+                name,
+                sensitivity / strongest if strongest > 0 else 0.0,
+            )
             continue
         names[len(rs)] = name
         labels.append(np.full(len(res.r), len(rs)))

@@ -51,6 +51,13 @@ def _optimiser_lines(opt: dict | None) -> list[str]:
     return lines
 
 
+def _own_c1(theta) -> str:
+    """A scan's own c1 from its ln c1; none where it is not a number or out of range."""
+    if theta is None or not math.isfinite(theta) or abs(theta) > 50.0:  # e^50 Pa
+        return "no c1 of its own"
+    return f"{math.exp(theta):.0f} Pa"
+
+
 def _model_fit_lines(fit: dict | None, recovery: dict | None) -> list[str]:
     lines = []
     if fit and fit.get("p_value") is not None:
@@ -59,9 +66,7 @@ def _model_fit_lines(fit: dict | None, recovery: dict | None) -> list[str]:
         lines.append(f"  band-F misfit test: p = {fit['p_value']:.2g} ({what} beyond the noise)")
     postures = (fit or {}).get("postures")
     if postures:
-        own = ", ".join(
-            f"{name} {math.exp(s['theta']):.0f} Pa" for name, s in postures["scans"].items()
-        )
+        own = ", ".join(f"{name} {_own_c1(s['theta'])}" for name, s in postures["scans"].items())
         lines.append(
             f"  posture consistency: Cochran Q p = {postures['p_value']:.2g} "
             f"({postures['verdict']}; each scan alone: {own})"
