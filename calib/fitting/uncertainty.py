@@ -49,7 +49,8 @@ class Uncertainty:
     ----------
     se_ln_c1 : float or None
         Standard error of ln c1; None when the residuals leave no degree of freedom to
-        estimate their noise (a single residual: the ``nipple`` objective).
+        estimate their noise (a single residual: the ``nipple`` objective) or do not
+        change with c1 (then ``c1_ci95_pa`` is None too).
     c1_ci95_pa : tuple of float or None
     residual_sd_mm : float
         Residual noise estimate.
@@ -62,7 +63,9 @@ class Uncertainty:
         likelihood profile with a noise level measured apart: :func:`profile_ci95`).
     interval : dict or None
         ``series``: :meth:`calib.stats.ParameterInterval.as_json` of ln c1 (standard error,
-        critical value, degrees of freedom, the noise model behind it).
+        critical value, degrees of freedom, the noise model behind it); ``gauss-newton``:
+        ``distribution`` (student t), ``standard_error``, ``critical_value`` and
+        ``degrees_of_freedom``.
     """
 
     se_ln_c1: float | None
@@ -78,7 +81,10 @@ class Uncertainty:
 def gauss_newton_uncertainty(
     c1_pa: float, r: np.ndarray, dr: np.ndarray, points_mm: np.ndarray, *, area_mm2: float | None
 ) -> Uncertainty:
-    """Gauss-Newton standard error of ln c1, inflated by ``n / n_eff``.
+    """Gauss-Newton standard error of ln c1, inflated by ``n / n_eff``, and its t interval.
+
+    The 95 % interval takes Student's t quantile on ``n_eff - 1`` degrees of freedom (the
+    noise's sd is estimated from the same residuals); ``interval`` records it.
 
     Parameters
     ----------
@@ -90,6 +96,8 @@ def gauss_newton_uncertainty(
     area_mm2 : float or None
         Measured area the residuals cover; None treats the residuals as independent.
     """
+    from scipy import stats
+
     n = len(r)
     if n < 2:  # one residual and one parameter: no degree of freedom left for the noise
         return Uncertainty(None, None, float(np.abs(r).sum()), n, float(n), 0.0)
@@ -99,9 +107,21 @@ def gauss_newton_uncertainty(
         float(n) if not area_mm2 or ell == 0 else float(np.clip(area_mm2 / (np.pi * ell**2), 2, n))
     )
     info = float(np.sum(dr**2))
-    se = sd / np.sqrt(info) * np.sqrt(n / n_eff) if info > 0 else np.inf
-    ci = (c1_pa * float(np.exp(-1.96 * se)), c1_pa * float(np.exp(1.96 * se)))
-    return Uncertainty(float(se), ci, sd, n, n_eff, ell)
+    if not info > 0:  # the residuals do not change with c1: the data do not bound it
+        return Uncertainty(None, None, sd, n, n_eff, ell)
+    se = sd / np.sqrt(info) * np.sqrt(n / n_eff)
+    # Student's t on the effective count less the fitted parameter: with few residuals
+    # (the landmarks of one or two scans) the normal 1.96 covered 81-92 % of nominal 95 %
+    dof = max(n_eff - 1.0, 1.0)
+    crit = float(stats.t.ppf(0.975, dof))
+    ci = (c1_pa * float(np.exp(-crit * se)), c1_pa * float(np.exp(crit * se)))
+    interval = {
+        "distribution": "student t",
+        "standard_error": float(se),
+        "critical_value": crit,
+        "degrees_of_freedom": float(dof),
+    }
+    return Uncertainty(float(se), ci, sd, n, n_eff, ell, interval=interval)
 
 
 def series_uncertainty(
