@@ -117,15 +117,22 @@ def _uncertainty(cal: Calibrator, theta: float, say):
 
 #: Fewest surface residuals for the variogram noise model and the series interval.
 MIN_SERIES_POINTS = 200
+#: Said with a ``fits`` verdict whose noise model's correlation length ended on its bound.
+LENGTH_AT_BOUND_NOTE = (
+    "but the noise model's correlation length ended at its search bound (the residual "
+    "does not level off across the phantom): smooth structure was taken for noise, so "
+    "this test cannot tell a smooth misfit from noise here"
+)
 
 
 def _model_fit_line(fit) -> str:
     """The misfit test's verdict in one progress line."""
     if fit.verdict == "fits":
-        return (
+        line = (
             f"model fit: no large-scale structure beyond the noise (band-F p = {fit.p_value:.2g}"
             f" >= {fit.alpha:g})"
         )
+        return line + (f"; {LENGTH_AT_BOUND_NOTE}" if fit.noise.length_at_bound else "")
     return (
         f"MODEL MISFIT: the residual holds large-scale structure the noise cannot explain "
         f"(band-F p = {fit.p_value:.2g} < {fit.alpha:g}); the interval covers noise and mesh, "

@@ -64,6 +64,11 @@ def _model_fit_lines(fit: dict | None, recovery: dict | None) -> list[str]:
         band = fit.get("band_f_verdict", fit.get("verdict"))
         what = "large-scale structure" if band == "misfit" else "no structure"
         lines.append(f"  band-F misfit test: p = {fit['p_value']:.2g} ({what} beyond the noise)")
+        if band != "misfit" and (fit.get("noise") or {}).get("length_at_bound"):
+            lines.append(
+                "    its noise model's correlation length ended at the search bound: smooth "
+                "structure was taken for noise (a smooth misfit cannot be told from noise)"
+            )
     postures = (fit or {}).get("postures")
     if postures:
         own = ", ".join(f"{name} {_own_c1(s['theta'])}" for name, s in postures["scans"].items())
