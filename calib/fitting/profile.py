@@ -31,12 +31,46 @@ __all__ = [
     "likelihood_profile",
     "nipple_interval",
     "nipple_noise_sd_mm",
+    "nipple_patches",
     "profile_rows",
 ]
 
 log = logging.getLogger(__name__)
 PATCH_RADIUS_MM = 15.0
 MIN_PATCH_POINTS = 10
+
+
+def nipple_patches(cal, *, radius_mm: float = PATCH_RADIUS_MM) -> list:
+    """Each calibration scan and its measured surface points near its nipple.
+
+    Measured points only: the ``nipple`` objective checks them before its fit, so that a
+    patch too small for the noise level stops the run before the optimisation.
+
+    Parameters
+    ----------
+    cal : Calibrator
+    radius_mm : float
+
+    Returns
+    -------
+    list of (ScanMeasurement, ndarray of shape (k, 3))
+
+    Raises
+    ------
+    ValueError
+        A scan with fewer than ``MIN_PATCH_POINTS`` sampled points within ``radius_mm``.
+    """
+    out = []
+    for s in cal.calibration_scans:
+        pts = cal.points[s.name]
+        near = pts[np.linalg.norm(pts - s.nipple_mm, axis=1) < radius_mm]
+        if len(near) < MIN_PATCH_POINTS:
+            raise ValueError(
+                f"scan {s.name!r}: {len(near)} measured surface points within {radius_mm} mm "
+                f"of the nipple (at least {MIN_PATCH_POINTS} needed for its noise level)"
+            )
+        out.append((s, near))
+    return out
 
 
 def nipple_noise_sd_mm(cal, *, radius_mm: float = PATCH_RADIUS_MM) -> float:
@@ -50,14 +84,7 @@ def nipple_noise_sd_mm(cal, *, radius_mm: float = PATCH_RADIUS_MM) -> float:
         Patch radius around each calibration scan's measured nipple.
     """
     r = []
-    for s in cal.calibration_scans:
-        pts = cal.points[s.name]
-        near = pts[np.linalg.norm(pts - s.nipple_mm, axis=1) < radius_mm]
-        if len(near) < MIN_PATCH_POINTS:
-            raise ValueError(
-                f"scan {s.name!r}: {len(near)} measured surface points within {radius_mm} mm "
-                f"of the nipple (at least {MIN_PATCH_POINTS} needed for its noise level)"
-            )
+    for s, near in nipple_patches(cal, radius_mm=radius_mm):
         st = cal.states[s.name]
         res = scan_residuals("surface", s, cal.mesh, cal.sim, st.positions_mm, None,
                              surface_points_mm=near)  # fmt: skip

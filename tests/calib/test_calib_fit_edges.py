@@ -118,3 +118,18 @@ def test_a_scan_of_the_reference_posture_is_left_out_of_the_posture_test(measure
     lines = _model_fit_lines(model_fit_with_postures(cal.model_fit, test, names), None)
     assert any("each scan alone" in line for line in lines)
     assert all(math.isfinite(s.theta) for s in test.estimates)
+
+
+def test_a_nipple_patch_too_small_is_refused_before_the_optimisation(measurements, monkeypatch):
+    # the nipple objective's interval needs the surface noise near each nipple: a patch
+    # with too few points raised after the whole fit and lost it (audit E, item 5)
+    import calib.fitting.pipeline as pipeline
+    import calib.fitting.profile as profile
+
+    monkeypatch.setattr(profile, "MIN_PATCH_POINTS", 10**6)
+    monkeypatch.setattr(pipeline, "optimise", lambda *a, **k: pytest.fail("optimised first"))
+    opts = CalibrationOptions(
+        objective="nipple", mesh_size_mm=16.0, mesh_retry_mm=(), mesh_check_ratio=0.0
+    )
+    with pytest.raises(ValueError, match=r"measured surface points within 15.0 mm of the nipple"):
+        pipeline.fit(measurements, opts, density_kg_m3=1000.0, progress=lambda m: None)
