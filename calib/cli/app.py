@@ -191,6 +191,15 @@ def calibrate(
             "ratios (1.4,0.714): coarser and finer, the observed order (0: off, noise only).",
         ),
     ] = "1.4",
+    c1_guess: Annotated[
+        float,
+        typer.Option(
+            "--c1-guess",
+            help="c1 (Pa) of the first linear solve that scales to the first estimate; the "
+            "estimate itself where the nipple moved < 0.5 mm in every calibration scan (a "
+            "stiff phantom), and the search spans x/÷ 4 around the estimate.",
+        ),
+    ] = 500.0,
 ) -> None:
     """Fit c1 to the calibration scans; write calibration.json and error maps."""
     from ..fitting import CalibrationOptions
@@ -204,7 +213,7 @@ def calibrate(
             objective=objective, reference_state=reference_state,
             **({} if mesh_size is None else {"mesh_size_mm": mesh_size, "mesh_retry_mm": ()}),
             nu=nu, profile_points=profile, mesh_check_ratio=mesh_check,
-            mesh_max_dihedral_deg=mesh_max_dihedral,
+            mesh_max_dihedral_deg=mesh_max_dihedral, c1_guess_pa=c1_guess,
         )  # fmt: skip
         doc = run_calibration(scans, out, opts, progress=lambda msg: typer.echo(f"  {msg}"))
     except (ValueError, OSError, RuntimeError) as exc:

@@ -30,6 +30,9 @@ class EvaluationFailed(fem.ConvergenceError):
 
 
 log = logging.getLogger(__name__)
+#: A calibration scan's measured nipple displacement (mm) below which the first estimate
+#: does not use it: a few times the nipple's measured noise (0.1-0.2 mm on the twins).
+MIN_NIPPLE_DISPLACEMENT_MM = 0.5
 
 
 @dataclass
@@ -166,7 +169,15 @@ class Calibrator:
         for s in self.calibration_scans:
             d_sim = np.linalg.norm(states[s.name].positions_mm[nipple] - x_ref) / load_fraction
             d_meas = np.linalg.norm(s.nipple_mm - ref_n)
-            if d_meas > 0.5:
+            if d_meas > MIN_NIPPLE_DISPLACEMENT_MM:
                 ratios.append(d_sim / d_meas)
+        if not ratios:
+            log.warning(
+                "the nipple moved less than %.1f mm in every calibration scan: the first "
+                "estimate is the guess, c1 = %.0f Pa (--c1-guess), and the search spans "
+                "x/÷ 4 around it",
+                MIN_NIPPLE_DISPLACEMENT_MM,
+                self.options.c1_guess_pa,
+            )
         est = self.options.c1_guess_pa * (float(np.median(ratios)) if ratios else 1.0)
         return float(np.clip(est, 20.0, 1e5))

@@ -290,7 +290,8 @@ def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, Op
             success = False
             around = np.exp(theta0)
             message = (
-                f"c1 reached the {name} bound of its search range (x/÷ 4 around {around:.0f} Pa)"
+                f"c1 reached the {name} bound of its search range (x/÷ 4 around {around:.0f} Pa;"
+                " --c1-guess moves it)"
             )
             log.warning(
                 "c1 ended on the %s bound (%.0f Pa): the estimate may be poor", name, np.exp(theta)

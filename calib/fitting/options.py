@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -136,8 +137,8 @@ class CalibrationOptions:
             raise ValueError(f"profile points must be >= 0, got {self.profile_points}")
         if self.max_points < 10:
             raise ValueError(f"max points must be >= 10, got {self.max_points}")
-        if not self.c1_guess_pa > 0:
-            raise ValueError(f"c1 guess must be positive, got {self.c1_guess_pa}")
+        if not (self.c1_guess_pa > 0 and math.isfinite(self.c1_guess_pa)):
+            raise ValueError(f"--c1-guess must be a positive c1 in Pa, got {self.c1_guess_pa}")
         if isinstance(self.mesh_check_ratio, list):
             object.__setattr__(self, "mesh_check_ratio", tuple(self.mesh_check_ratio))
         mesh_check_ratios(self.mesh_check_ratio)

@@ -133,3 +133,32 @@ def test_a_nipple_patch_too_small_is_refused_before_the_optimisation(measurement
     )
     with pytest.raises(ValueError, match=r"measured surface points within 15.0 mm of the nipple"):
         pipeline.fit(measurements, opts, density_kg_m3=1000.0, progress=lambda m: None)
+
+
+def test_a_phantom_whose_nipple_barely_moves_starts_at_the_guess_and_says_so(
+    measurements, monkeypatch, caplog
+):
+    # a stiff phantom: no calibration scan's nipple moved 0.5 mm; the first estimate is
+    # the guess (--c1-guess), which used to be silent
+    import calib.fitting.objective as objective
+
+    monkeypatch.setattr(objective, "MIN_NIPPLE_DISPLACEMENT_MM", 1e6)
+    opts = CalibrationOptions(mesh_size_mm=16.0, mesh_retry_mm=(), c1_guess_pa=2500.0)
+    cal = objective.Calibrator(measurements, opts, density_kg_m3=1000.0)
+    with caplog.at_level("WARNING"):
+        assert cal.first_estimate() == 2500.0
+    assert "the first estimate is the guess, c1 = 2500 Pa (--c1-guess)" in caplog.text
+
+
+@pytest.mark.parametrize("guess", ["0", "-5", "nan", "inf"])
+def test_a_bad_c1_guess_is_refused_first(tmp_path, guess):
+    from typer.testing import CliRunner
+
+    from calib.cli import app
+
+    res = CliRunner().invoke(
+        app,
+        ["calibrate", str(tmp_path / "none"), "--out", str(tmp_path / "w"), "--c1-guess", guess],
+    )
+    assert res.exit_code == 2 and "--c1-guess must be a positive c1 in Pa" in res.output
+    assert not (tmp_path / "w").exists()
