@@ -37,6 +37,12 @@ __all__ = [
 FORMAT, FORMAT_VERSION = "phantom-calib.surrogate", 1
 _EXTRA = "surrogate.json"
 _REL_TOL = 1e-3  # range checks: 0.1 % slack (rounded user input, e.g. 6.9367,0,6.9367)
+#: A query direction farther than this from every training direction, or than twice the
+#: training directions' median spacing where that is wider, is an extrapolation: one
+#: great circle (``--plan dissertation:transverse``) answers a direction 90 degrees off it
+#: without a word otherwise. 5 degrees: the plans' own rounding and a few degrees of
+#: posture error stay inside (the reduced model's kernel varies smoothly over ~1 degree).
+DIRECTION_SLACK_DEG = 5.0
 
 
 class ExtrapolationWarning(UserWarning):
@@ -85,9 +91,29 @@ class Prediction:
     nipple_mm: np.ndarray | None
 
 
+def _directions(gravity_ref: np.ndarray) -> tuple[list, float]:
+    """The distinct unit directions of the training gravities and their median spacing.
+
+    The spacing is the median angle (degrees) from each direction to its nearest other;
+    0 for a single direction.
+    """
+    from scipy.spatial import cKDTree
+
+    g = np.asarray(gravity_ref, float)
+    g = g[np.linalg.norm(g, axis=1) > 0]
+    d = g / np.linalg.norm(g, axis=1, keepdims=True)
+    d = np.unique(np.round(d, 9), axis=0)
+    if len(d) < 2:
+        return d.tolist(), 0.0
+    chord = cKDTree(d).query(d, k=2)[0][:, 1]
+    spacing = np.degrees(2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0)))
+    return d.tolist(), float(np.median(spacing))
+
+
 def _fit_meta(fit, data: SweepData) -> dict:
     train = data.subset(data.role == "train")
     q = np.linalg.norm(train.load_per_m, axis=1)
+    directions, spacing = _directions(train.gravity_ref)
     return {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -97,6 +123,8 @@ def _fit_meta(fit, data: SweepData) -> dict:
         "trained": {
             "c1_pa": [float(train.c1_pa.min()), float(train.c1_pa.max())],
             "load_per_m": [float(q.min()), float(q.max())],
+            "directions_ref": directions,
+            "direction_spacing_deg": spacing,
         },
         "store": {"path": str(data.path), "plan": data.attrs.get("plan", {})},
         "report": fit.report,
@@ -207,6 +235,31 @@ class Surrogate:
         self._warn_range(g, c1)
         return g, c1
 
+    def _warn_direction(self, g: np.ndarray) -> None:
+        """Warn when a loaded query's direction lies away from every training direction.
+
+        Surrogates saved before the directions were recorded are not checked.
+        """
+        from scipy.spatial import cKDTree
+
+        trained = self.meta["trained"]
+        dirs = trained.get("directions_ref")
+        if dirs is None or not len(g) or not len(dirs):
+            return
+        u = g / np.linalg.norm(g, axis=1, keepdims=True)
+        chord = cKDTree(np.asarray(dirs, float)).query(u)[0]
+        angle = np.degrees(2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0)))
+        limit = max(DIRECTION_SLACK_DEG, 2.0 * float(trained["direction_spacing_deg"]))
+        if np.any(angle > limit):
+            k = int(np.argmax(angle))
+            warnings.warn(
+                f"gravity direction {np.round(u[k], 3).tolist()} (reference frame) lies "
+                f"{angle[k]:.1f} degrees from the nearest training direction (limit "
+                f"{limit:.1f}): the surrogate extrapolates",
+                ExtrapolationWarning,
+                stacklevel=4,
+            )
+
     def _warn_range(self, g: np.ndarray, c1: np.ndarray) -> None:
         lo, hi = self.meta["trained"]["c1_pa"]
         loaded = np.linalg.norm(g, axis=1) > 0  # no load: zero displacement at any c1
@@ -230,6 +283,7 @@ class Surrogate:
                 ExtrapolationWarning,
                 stacklevel=3,
             )
+        self._warn_direction(g[loaded])
         below = q < qlo * (1 - _REL_TOL)
         outq = (q > 0) & (below | (q > qhi * (1 + _REL_TOL)))
         if np.any(outq) and not np.any(out):

@@ -237,3 +237,26 @@ def test_gpu_training_agrees_with_cpu(box_data):
     assert np.abs(cpu.predict_numpy(x)[0] - gpu.predict_numpy(x)[0]).max() < 1e-8
     fit = nn.fit_dissertation_mlps(box_data, device="cuda", iterations=200)
     assert fit.report["device"].startswith("cuda")
+
+
+def test_a_direction_off_the_training_circles_warns(ours, box_data):
+    # the dissertation plan trains on two orthogonal great circles, 15 degrees apart on
+    # each: a direction away from both answered without a word (audit F, item 4). The
+    # farthest from both is (n1 + n2 + n1 x n2) / sqrt(3), n1, n2 their planes' normals:
+    # arcsin(1 / sqrt(3)) = 35.3 degrees off each, beyond the limit of 2 x 15 degrees.
+    train = box_data.subset(box_data.role == "train")
+    dirs = np.unique(np.round(train.gravity_ref, 9), axis=0)
+    n1, n2 = (
+        np.linalg.svd(train.gravity_ref[train.plane == p])[2][-1] for p in np.unique(train.plane)
+    )
+    assert abs(n1 @ n2) < 1e-9  # orthogonal circles
+    c1 = float(box_data.model["c1_pa"])
+    assert ours.meta["trained"]["direction_spacing_deg"] == pytest.approx(15.0, abs=1e-6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # on a circle, and halfway between two directions
+        ours.predict(9.81 * dirs[0], c1_pa=c1, frame="ref")
+        mid = dirs[0] + dirs[np.argsort(np.linalg.norm(dirs - dirs[0], axis=1))[1]]
+        ours.predict(9.81 * mid / np.linalg.norm(mid), c1_pa=c1, frame="ref")
+    off = (n1 + n2 + np.cross(n1, n2)) / np.sqrt(3.0)
+    with pytest.warns(nn.ExtrapolationWarning, match=r"35\.3 degrees from the nearest training"):
+        ours.predict(9.81 * off, c1_pa=c1, frame="ref")
