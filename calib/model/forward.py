@@ -290,9 +290,13 @@ class ForwardModel:
         while len(self._recovered) > _RECOVERIES_KEPT:
             self._recovered.pop(next(iter(self._recovered)))
         if rec.inverted_elements != self.inverted_reference_elements and not self.prestressed:
+            # an inverted straight stress-free element keeps det F > 0 only with its loaded
+            # quadratic element folded too (fem.unload's module notes): say so
             log.warning(
-                "recovered reference at c1=%.1f Pa: %d vertex tetrahedra inverted "
-                "(clamped rim; the loaded quadratic elements stay valid)",
+                "recovered reference at c1=%.1f Pa: %d vertex tetrahedra inverted at the "
+                "clamped rim, and their loaded quadratic elements folded with them (the "
+                "model is wrong there, locally; --reference-state prestress has curved "
+                "stress-free elements and none)",
                 np.exp(theta),
                 rec.inverted_elements,
             )
