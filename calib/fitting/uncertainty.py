@@ -57,6 +57,8 @@ class Uncertainty:
     n_residuals, n_effective : float
         Residual count and effective independent samples.
     correlation_length_mm : float
+        ``series``: the noise kernel's length scale; ``gauss-newton``: the distance at
+        which the residuals' correlation falls below 1/e (0 when treated as independent).
     method : str
         ``series`` (the surface objective: :func:`series_uncertainty`), ``gauss-newton``
         (noise estimated from the residuals, effective sample count) or ``profile`` (the
