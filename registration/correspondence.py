@@ -139,6 +139,13 @@ class ConstellationMatch:
     hypothesis : str
         The initial map the chosen solution started from (``+ local search`` for each
         time a better rival was adopted).
+    field_checked : bool
+        True when the chosen assignment, and each rival that drops one of its matches,
+        holds enough matches to fit a deformation field (with the anchors, at least two
+        more sites than the field's mean has coefficients). False for a constellation of
+        one or two points: a match is then rated by size and the initial maps alone (a
+        missed point against an extra detection is not weighed by position), and the
+        confidences do not mean what they say.
     """
 
     reference_index: np.ndarray
@@ -152,6 +159,7 @@ class ConstellationMatch:
     predicted_sd_mm: np.ndarray
     cost: float
     hypothesis: str
+    field_checked: bool = True
 
     def __post_init__(self) -> None:
         for name in self.__dataclass_fields__:
@@ -598,6 +606,20 @@ def _refine(md: _Model, field: _Field, iterations: int, forbid=None):
     return ref_of, field, cost
 
 
+def _field_checked(md: _Model, ref_of: np.ndarray) -> bool:
+    """Whether ``ref_of`` with any one match dropped still admits a field (N - q >= 2).
+
+    The field's sites are the matches and the anchors; the mean's size ``q`` depends on
+    the constellation only (:func:`_design`), so the count decides.
+    """
+    pairs = _pairs(ref_of)
+    if not pairs:
+        return False
+    _, _, Xd, _, _, basis = _design(md.X, pairs[1:], md.Y, md.anchors, md.spread)
+    N, q = basis(Xd).shape
+    return N - q >= 2
+
+
 def _score(md: _Model, ref_of: np.ndarray, lsa_cost: float) -> float:
     """Negative log-likelihood of a whole assignment (what assignments are compared by).
 
@@ -866,4 +888,5 @@ def _with_confidence(md: _Model, ref_of, cost, field, name, refinements, pool, *
         predicted_sd_mm=field.sd,
         cost=cost,
         hypothesis=name,
+        field_checked=_field_checked(md, ref_of),
     )

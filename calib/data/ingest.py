@@ -119,6 +119,10 @@ class InclusionTracking:
         The inclusion the tumour would be in the best competing assignment (None: none).
     hypothesis : str
         The initial map the matching started from (``reference`` for the reference scan).
+    field_checked : bool
+        Whether the match was weighed against a deformation field
+        (:attr:`registration.ConstellationMatch.field_checked`; False for one or two
+        inclusions: the confidences then do not mean what they say).
     """
 
     reference_index: tuple
@@ -127,6 +131,7 @@ class InclusionTracking:
     tumour_confidence: float | None
     runner_up_index: int | None
     hypothesis: str
+    field_checked: bool = True
 
     def to_json(self) -> dict:
         """JSON-ready summary (``tracking`` of ``ingest.json``, without the per-inclusion lists)."""
@@ -135,6 +140,7 @@ class InclusionTracking:
             "tumour_confidence": self.tumour_confidence,
             "tumour_runner_up_index": self.runner_up_index,
             "hypothesis": self.hypothesis,
+            "field_checked": self.field_checked,
         }
 
 
@@ -256,6 +262,20 @@ def _track_inclusions(session: Session, scans: dict, fiducial_regs: dict, choice
                     TumourNotFoundWarning,
                     stacklevel=3,
                 )
+            elif not m.field_checked:
+                moved = float(np.linalg.norm(Y[j] - X[t]))
+                nipple_moved = float(np.linalg.norm(nipple[0] - r.nipple_lps_mm))
+                warnings.warn(
+                    f"scan {name!r}: {tumour} tracked as {_describe(res, j, T)}, "
+                    f"{moved:.1f} mm from its reference position (the nipple moved "
+                    f"{nipple_moved:.1f} mm), by size and the nipple alone: "
+                    f"{int((m.reference_index >= 0).sum())} inclusion(s) matched are too few "
+                    "to fit a deformation field, so a missed tumour is not weighed against "
+                    f"another inclusion and its confidence ({tc:.2f}) does not mean what it "
+                    "says. Check this scan's tumour",
+                    AmbiguousMatchWarning,
+                    stacklevel=3,
+                )
             elif tc < TUMOUR_MIN_CONFIDENCE:
                 rivals = [(k, p) for k, p in m.reference_alternatives[t] if p >= 0.01] or [
                     (-1 if alt is None else alt, 1.0 - tc)
@@ -278,7 +298,7 @@ def _track_inclusions(session: Session, scans: dict, fiducial_regs: dict, choice
                 low,
                 TUMOUR_MIN_CONFIDENCE,
             )
-        out[name] = InclusionTracking(ident, conf, j, tc, alt, m.hypothesis)
+        out[name] = InclusionTracking(ident, conf, j, tc, alt, m.hypothesis, m.field_checked)
     return out
 
 
