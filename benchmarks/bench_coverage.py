@@ -13,7 +13,9 @@ Tables (``--table``):
 
 - ``coverage``: empirical coverage of nominal 95 % intervals of theta: ``today`` (the
   formula of ``calib/fitting/uncertainty.py``: sd of r, 1/e length from 40 000 random
-  pairs, ``n_eff = A / (pi l^2)``, z = 1.96, re-implemented here), ``sandwich-z``
+  pairs, ``n_eff = A / (pi l^2)``, z = 1.96, re-implemented here as it was when these
+  tables were made; since then the Gauss-Newton interval, which only the landmarks
+  objective and small surface samples keep, takes Student's t on ``n_eff - 1``), ``sandwich-z``
   (plug-in sandwich with the fitted model, z), ``series`` (the series estimator with its
   Imhof quantile, chosen kernel), ``series+alt`` (the widest over the plausible
   kernels: the default of :func:`calib.stats.intervals.parameter_intervals` when given

@@ -68,6 +68,8 @@ class Calibrator:
         self.states: dict = {}
         self._cache = None
         self.gauss_newton_curvature = 1.0
+        #: True once :meth:`first_estimate` fell back to the guess (no nipple moved enough)
+        self.first_estimate_from_guess = False
 
     def _tumour(self, tumour_mm: np.ndarray) -> MaterialPoint:
         """The tumour's material point; one outside the model mesh at the nearest inside."""
@@ -171,13 +173,15 @@ class Calibrator:
             d_meas = np.linalg.norm(s.nipple_mm - ref_n)
             if d_meas > MIN_NIPPLE_DISPLACEMENT_MM:
                 ratios.append(d_sim / d_meas)
+        est = self.options.c1_guess_pa * (float(np.median(ratios)) if ratios else 1.0)
+        est = float(np.clip(est, 20.0, 1e5))
+        self.first_estimate_from_guess = not ratios
         if not ratios:
             log.warning(
                 "the nipple moved less than %.1f mm in every calibration scan: the first "
-                "estimate is the guess, c1 = %.0f Pa (--c1-guess), and the search spans "
+                "estimate is the guess (--c1-guess), c1 = %.0f Pa, and the search spans "
                 "x/÷ 4 around it",
                 MIN_NIPPLE_DISPLACEMENT_MM,
-                self.options.c1_guess_pa,
+                est,
             )
-        est = self.options.c1_guess_pa * (float(np.median(ratios)) if ratios else 1.0)
-        return float(np.clip(est, 20.0, 1e5))
+        return est

@@ -109,6 +109,10 @@ def prepare(
         ref = measurements.reference
         for note in model_mesh_notes(ref, cal.mesh, size):  # the calibration's, not checks'
             log.warning("reference scan %r: %s", ref.name, note)
+        if options.objective == "nipple":
+            from .profile import nipple_patches
+
+            nipple_patches(cal)  # its interval's noise level, from measured points: no FE yet
         return cal, _start(cal, say), attempts
 
     sizes = (options.mesh_size_mm, *options.mesh_retry_mm)
@@ -289,9 +293,10 @@ def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, Op
             side = name
             success = False
             around = np.exp(theta0)
+            hint = "; the first estimate was --c1-guess" if cal.first_estimate_from_guess else ""
             message = (
-                f"c1 reached the {name} bound of its search range (x/÷ 4 around {around:.0f} Pa;"
-                " --c1-guess moves it)"
+                f"c1 reached the {name} bound of its search range (x/÷ 4 around "
+                f"{around:.0f} Pa{hint})"
             )
             log.warning(
                 "c1 ended on the %s bound (%.0f Pa): the estimate may be poor", name, np.exp(theta)

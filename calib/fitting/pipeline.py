@@ -24,7 +24,7 @@ from .meshcheck import MeshCheck, combined_ci95, describe_mesh_check, mesh_check
 from .objective import Calibrator
 from .optimise import optimise, prepare
 from .options import CalibrationOptions, mesh_check_ratios
-from .profile import likelihood_profile, nipple_interval, nipple_patches, profile_rows
+from .profile import likelihood_profile, nipple_interval, profile_rows
 from .result import Calibration, phantom_frame
 from .uncertainty import Uncertainty, gauss_newton_uncertainty, series_uncertainty
 
@@ -170,7 +170,7 @@ def fit(
         No scan with role ``calibration``; no scan whose gravity defines the phantom
         frame's axes (:func:`calib.fitting.result.phantom_frame`), said before any FE work;
         for the ``nipple`` objective, a calibration scan with too few measured points near
-        its nipple for the interval's noise level, said before the optimisation.
+        its nipple for the interval's noise level, said before any FE work.
     fem.ConvergenceError
         No stress-free reference on any model mesh tried.
     """
@@ -179,9 +179,8 @@ def fit(
     t0 = time.perf_counter()
     phantom_frame(measurements.reference, measurements.scans.values())  # fails before the FE
     cal, theta0, failed_sizes = prepare(measurements, options, density_kg_m3, say)
-    if options.objective == "nipple":
-        nipple_patches(cal)  # its interval's noise level: refused now, not after the fit
     theta, value, status = optimise(cal, say, theta0)
+    cal.fm.keep_recovery(theta)  # solved again after the profile (below): keep it
     c1 = float(np.exp(theta))
     say(f"c1 = {c1:.1f} Pa after {status.iterations} iterations ({cal.fm.solves} FE solves)")
     unc, check, ci95, profile, model_fit = _uncertainty(cal, theta, say)

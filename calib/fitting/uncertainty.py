@@ -285,13 +285,20 @@ def _bound(root, side: float, step: float, limit: float, tol: float) -> float | 
 
 
 def _false_position(root, a, fa, b, fb, tol: float) -> float:
-    """Illinois false position for the root in ``[a, b]`` (``fa < 0 <= fb``)."""
+    """Illinois false position for the root in ``[a, b]`` (``fa < 0 <= fb``).
+
+    A failed evaluation inside the bracket (``root`` not finite) says nothing of the side
+    the root lies on: the known outside end ``b`` is returned (the wider, conservative
+    bound) instead of taking the failed point for an outside one.
+    """
     keep = 0
     while abs(b - a) > tol:
         c = b - fb * (b - a) / (fb - fa)
         fc = root(c)
-        if not np.isfinite(fc) or fc >= 0:
-            b, fb = c, (fc if np.isfinite(fc) else fb)
+        if not np.isfinite(fc):
+            return b
+        if fc >= 0:
+            b, fb = c, fc
             fa, keep = (fa / 2.0 if keep == 1 else fa), 1
         else:
             a, fa = c, fc

@@ -116,6 +116,7 @@ class ForwardModel:
     _states: dict = field(default_factory=dict)
     # (effects, theta) -> (X, u0, inverted elements, prestress)
     _recovered: dict = field(default_factory=dict)
+    _kept: set = field(default_factory=set)  # keys of _recovered never dropped (keep_recovery)
     _du0: tuple | None = None  # (theta, d u0 / d theta) of the last gradient
     _ps: object = None  # fem.prestress.Prestress of the last spatial recovery
     _dF0: tuple | None = None  # (theta, d F0 / d theta) of the last spatial gradient
@@ -239,6 +240,7 @@ class ForwardModel:
             return self._X
         key = (self.effects, theta)
         if key in self._recovered:  # e.g. the calibrated c1 again after the profile
+            self._recovered[key] = self._recovered.pop(key)  # the least recently used goes
             self._X, self._u0, self.inverted_reference_elements, self._ps = self._recovered[key]
             self._X_theta = theta
             return self._X
@@ -287,9 +289,15 @@ class ForwardModel:
         self._u0 = rec.prestress.inverse_state if rec.prestress is not None else rec.solution.state
         self._X_theta = theta
         self._recovered[key] = (self._X, self._u0, rec.inverted_elements, self._ps)
-        while len(self._recovered) > _RECOVERIES_KEPT:
-            self._recovered.pop(next(iter(self._recovered)))
-        if rec.inverted_elements != self.inverted_reference_elements and not self.prestressed:
+        for old in [k for k in self._recovered if k not in self._kept]:
+            if len(self._recovered) <= _RECOVERIES_KEPT:
+                break
+            self._recovered.pop(old)
+        if (
+            rec.inverted_elements > 0
+            and rec.inverted_elements != self.inverted_reference_elements
+            and not self.prestressed
+        ):
             # an inverted straight stress-free element keeps det F > 0 only with its loaded
             # quadratic element folded too (fem.unload's module notes): say so
             log.warning(
@@ -323,10 +331,19 @@ class ForwardModel:
             )
         return recover_stress_free(start, x0_state=None, options=opts, **kw)
 
+    def keep_recovery(self, theta: float) -> None:
+        """Never drop the recovery at ``theta`` (the calibrated c1) from the kept ones.
+
+        After the fit, the interval's and the profile's recoveries at other c1 would push
+        it out; solving it again from another start can fail where the fit's got through.
+        """
+        self._kept.add((self.effects, theta))
+
     def use_spatial(self) -> None:
         """Switch to the prestressed formulation: recoveries and warm starts start over."""
         self.unload_method = "spatial"
         self._u0, self._X_theta, self._recovered, self._du0 = None, None, {}, None
+        self._kept = set()
         self._states = {}
 
     def evaluate(

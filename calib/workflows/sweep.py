@@ -144,16 +144,20 @@ def _create_store(out: Path, model, plan, cont, n_dofs: int, opts: SweepOptions,
 
     stage = out.parent / f".{out.name}.staging-{os.getpid()}"
     shutil.rmtree(stage, ignore_errors=True)
-    SweepStore.create(
-        stage,
-        model,
-        plan,
-        cont,
-        n_dofs=n_dofs,
-        chunk_size=opts.chunk_size,
-        max_angle_deg=opts.max_angle_deg,
-        provenance=prov,
-    )
+    try:
+        SweepStore.create(
+            stage,
+            model,
+            plan,
+            cont,
+            n_dofs=n_dofs,
+            chunk_size=opts.chunk_size,
+            max_angle_deg=opts.max_angle_deg,
+            provenance=prov,
+        )
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)  # a half-written store goes with it
+        raise
     if out.exists() and any(out.iterdir()):  # --overwrite: the old store goes only now
         old = out.parent / f".{out.name}.old-{os.getpid()}"
         os.replace(out, old)
@@ -239,8 +243,9 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
         ``out`` is not a store, a store of another model or plan, or locked.
     RuntimeError
         The dask backend without dask.distributed installed (checked first), or a
-        backend that cannot start (no scheduler at ``options.dask``): a store this
-        call created is removed again.
+        backend that cannot start (no scheduler at ``options.dask``): started before a
+        store or folder is made, so nothing is created and an old store under
+        ``overwrite`` stays.
 
     Notes
     -----

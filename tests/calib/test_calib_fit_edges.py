@@ -120,14 +120,15 @@ def test_a_scan_of_the_reference_posture_is_left_out_of_the_posture_test(measure
     assert all(math.isfinite(s.theta) for s in test.estimates)
 
 
-def test_a_nipple_patch_too_small_is_refused_before_the_optimisation(measurements, monkeypatch):
+def test_a_nipple_patch_too_small_is_refused_before_any_fe_work(measurements, monkeypatch):
     # the nipple objective's interval needs the surface noise near each nipple: a patch
     # with too few points raised after the whole fit and lost it (audit E, item 5)
+    import calib.fitting.optimise as optimise
     import calib.fitting.pipeline as pipeline
     import calib.fitting.profile as profile
 
     monkeypatch.setattr(profile, "MIN_PATCH_POINTS", 10**6)
-    monkeypatch.setattr(pipeline, "optimise", lambda *a, **k: pytest.fail("optimised first"))
+    monkeypatch.setattr(optimise, "_start", lambda *a, **k: pytest.fail("FE work first"))
     opts = CalibrationOptions(
         objective="nipple", mesh_size_mm=16.0, mesh_retry_mm=(), mesh_check_ratio=0.0
     )
@@ -147,7 +148,8 @@ def test_a_phantom_whose_nipple_barely_moves_starts_at_the_guess_and_says_so(
     cal = objective.Calibrator(measurements, opts, density_kg_m3=1000.0)
     with caplog.at_level("WARNING"):
         assert cal.first_estimate() == 2500.0
-    assert "the first estimate is the guess, c1 = 2500 Pa (--c1-guess)" in caplog.text
+    assert "the first estimate is the guess (--c1-guess), c1 = 2500 Pa" in caplog.text
+    assert cal.first_estimate_from_guess
 
 
 @pytest.mark.parametrize("guess", ["0", "-5", "nan", "inf"])

@@ -68,3 +68,20 @@ def test_failed_solve_opens_that_side_only():
 def test_rejects_non_positive_noise():
     with pytest.raises(ValueError, match="noise standard deviation"):
         profile_ci95(lambda t: t**2, 0.0, 0.0, 0.0)
+
+
+def test_a_failed_solve_inside_the_bracket_keeps_the_known_outside_end():
+    # S = (5 t)^2 with sd 0.5: the upper bound is at 1.96 * 0.5 / 5 = 0.196. The bracket
+    # doubles 0.05 -> 0.1 -> 0.2, outside at 0.2 (5 * 0.2 / 0.5 = 2 > 1.96), and false
+    # position refines inside (0.1, 0.2); a solve that failed there was taken for an
+    # outside point and the bound came out below the failed point, too narrow. Now the
+    # known outside end 0.2 is returned.
+    true_hi = Z95 * 0.5 / 5.0
+
+    def sum_sq(t):
+        if 0.15 < t < 0.2:  # the refinement's trial points fail
+            raise fem.ConvergenceError("erratic straight recovery")
+        return (5.0 * t) ** 2
+
+    hi = profile_ci95(sum_sq, 0.0, 0.0, 0.5).ln_c1_bounds[1]
+    assert hi >= true_hi and hi == pytest.approx(0.2, abs=1e-12)

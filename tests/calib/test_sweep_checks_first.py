@@ -133,10 +133,15 @@ def test_overwrite_keeps_the_old_store_when_the_backend_cannot_start(tmp_path, m
 def test_parent_folders_made_for_out_go_when_the_creation_fails(tmp_path, monkeypatch):
     work = make_box_work(tmp_path / "work")
 
-    def broken(*args, **kw):
+    from calib.sweep.store import SweepStore
+
+    real_create = SweepStore.create
+
+    def broken(path, *args, **kw):
+        real_create(path, *args, **kw)  # a store half written, then the disk is full
         raise OSError("disk full")
 
-    monkeypatch.setattr(wsweep, "_create_store", broken)
+    monkeypatch.setattr(SweepStore, "create", staticmethod(broken))
     with pytest.raises(OSError, match="disk full"):
         run_sweep(work, tmp_path / "a" / "b" / "SWEEP", SweepOptions(plan="sphere:6"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["work"]
