@@ -209,6 +209,33 @@ class RigidFit:
             return float("nan")
         return self.fre_mm * math.sqrt(n / (n - 2))
 
+    def rotation_sd_deg(self, *, fle_mm: float | None = None) -> float:
+        """Standard deviation of the fitted rotation about its weakest principal axis, degrees.
+
+        The rotation part of Fitzpatrick, West & Maurer's TRE: a rotation ``dtheta_k`` about
+        the k-th principal axis moves a point at distance ``d_k`` by ``d_k dtheta_k``, so
+        ``var(dtheta_k) = FLE^2 / (3 N f_k^2)`` (``f_k`` the markers' RMS distance from
+        that axis); the largest over the axes. Markers nearly on one line leave the
+        rotation about it, and with it a scan's gravity direction, uncertain.
+
+        Parameters
+        ----------
+        fle_mm : float, optional
+            Fiducial localisation error (RMS, 3D); default :attr:`fle_estimate_mm`.
+
+        Returns
+        -------
+        float
+            Degrees; NaN with fewer than three markers.
+        """
+        fle = self.fle_estimate_mm if fle_mm is None else float(fle_mm)
+        m = self.source_points_mm
+        if len(m) < 3 or not np.isfinite(fle):
+            return float("nan")
+        x = (m - m.mean(axis=0)) @ np.linalg.svd(m - m.mean(axis=0))[2].T
+        f2 = np.mean(np.sum(x**2, axis=1, keepdims=True) - x**2, axis=0)  # (3,)
+        return float(np.degrees(fle / np.sqrt(3.0 * len(m) * f2.min())))  # Eq. of tre_mm
+
     def tre_mm(self, points_mm: np.ndarray, *, fle_mm: float | None = None) -> np.ndarray | float:
         """Return the expected target registration error (Fitzpatrick, West & Maurer 1998).
 

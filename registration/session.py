@@ -16,6 +16,9 @@ from registration.rigid import fit_rigid
 __all__ = ["ScanRegistration", "format_registration_table", "register_scans"]
 
 log = logging.getLogger(__name__)
+#: A registration whose rotation is this uncertain (1 sd, degrees) is warned about: a
+#: degree of gravity direction turns sin(1 deg) = 1.7 % of the load across the phantom.
+ROTATION_SD_WARN_DEG = 1.0
 
 
 def _frozen(a) -> np.ndarray:
@@ -53,6 +56,10 @@ class ScanRegistration:
         Scan marker i corresponds to reference marker ``permutation[i]``.
     fle_mm : float
         Fiducial localisation error used for the TRE (given or estimated from the FRE).
+    rotation_sd_deg : float
+        Standard deviation of the registration's rotation about its weakest axis, degrees
+        (:meth:`registration.RigidFit.rotation_sd_deg`; 0 for the reference): the
+        uncertainty of the scan's gravity direction that the markers leave.
     """
 
     scan: str
@@ -65,6 +72,7 @@ class ScanRegistration:
     residuals_mm: np.ndarray
     permutation: tuple[int, ...]
     fle_mm: float
+    rotation_sd_deg: float = 0.0
 
     def __post_init__(self) -> None:
         for f in ("T_ref_from_scan", "gravity_ref", "residuals_mm"):
@@ -78,7 +86,7 @@ class ScanRegistration:
         dict
             Keys ``T_ref_from_scan``, ``fre_mm``, ``tre_nipple_mm``, ``tre_tumour_mm``,
             ``gravity_ref``, plus ``residuals_mm``, ``marker_permutation``, ``fle_mm``,
-            ``is_reference``, ``frame`` and ``tre_method``.
+            ``rotation_sd_deg``, ``is_reference``, ``frame`` and ``tre_method``.
         """
         return {
             "T_ref_from_scan": self.T_ref_from_scan.tolist(),
@@ -89,6 +97,7 @@ class ScanRegistration:
             "residuals_mm": self.residuals_mm.tolist(),
             "marker_permutation": list(self.permutation),
             "fle_mm": _opt(self.fle_mm),
+            "rotation_sd_deg": _opt(self.rotation_sd_deg),
             "is_reference": bool(self.is_reference),
             "frame": "fiducial",
             "tre_method": "Fitzpatrick, West & Maurer 1998 (expected RMS)",
@@ -202,8 +211,17 @@ def register_scans(
             residuals_mm=np.zeros(len(markers)) if is_ref else fit.residuals_mm,
             permutation=tuple(range(len(markers))) if is_ref else fit.permutation,
             fle_mm=fle,
+            rotation_sd_deg=0.0 if is_ref else fit.rotation_sd_deg(fle_mm=fle),
         )
         log.info("registered %s: FRE %.3f mm", scan, out[scan].fre_mm)
+        if out[scan].rotation_sd_deg > ROTATION_SD_WARN_DEG:
+            log.warning(
+                "scan %r: the fiducials leave the registration's rotation about their "
+                "weakest axis uncertain by %.1f degrees (1 sd; markers nearly on one line?): "
+                "the scan's gravity direction, and the posture, are uncertain by as much",
+                scan,
+                out[scan].rotation_sd_deg,
+            )
     if nominal_angles_deg or nominal_gravity:
         check_posture(
             {s: r.gravity_ref for s, r in out.items()},
