@@ -36,7 +36,7 @@ from registration.gravity import (
     check_posture,
     gravity_in_reference,
 )
-from registration.icp import IcpLevel, IcpResult, icp_refine
+from registration.icp import IcpLevel, IcpResult, icp_refine, sample_triangles
 from registration.rigid import RigidFit, apply_transform, fit_rigid
 from registration.session import ScanRegistration, format_registration_table, register_scans
 
@@ -73,6 +73,7 @@ __all__ = [
     "nipple_error",
     "point_to_surface_distances",
     "register_scans",
+    "sample_triangles",
     "summarise",
     "surface_errors",
 ]
