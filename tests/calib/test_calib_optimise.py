@@ -26,6 +26,7 @@ class Quadratic:
         self.history: list[dict] = []
         self.options = SimpleNamespace(max_iterations=30)
         self.gauss_newton_curvature = 1.0
+        self.first_estimate_from_guess = False  # as Calibrator after its first estimate
 
     def objective(self, theta_arr):
         theta = float(theta_arr[0])
