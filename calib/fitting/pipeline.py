@@ -99,13 +99,26 @@ def _uncertainty(cal: Calibrator, theta: float, say):
         return _nipple_uncertainty(cal, theta, r, say)
     dr = np.concatenate([v.dr for v in final.values()])
     pts = np.concatenate([v.points_mm for v in final.values()])
-    c1, model_fit = float(np.exp(theta)), None
+    c1, model_fit, unc = float(np.exp(theta)), None, None
     if cal.options.objective == "surface" and len(r) >= MIN_SERIES_POINTS:
+        from ..stats.intervals import IntervalError
+        from ..stats.noise import NoiseModelError
+
         labels = np.concatenate([np.full(len(v.r), i) for i, v in enumerate(final.values())])
-        unc, fit_test = series_uncertainty(c1, r, dr, pts, labels, seed=cal.options.seed)
-        model_fit = fit_test.as_json()
-        say(_model_fit_line(fit_test))
-    else:
+        try:
+            unc, fit_test = series_uncertainty(c1, r, dr, pts, labels, seed=cal.options.seed)
+        except (NoiseModelError, IntervalError) as exc:
+            # after the whole fit: say it and keep the run, with the interval that needs
+            # no noise model (no misfit test then)
+            log.warning(
+                "the series interval failed (%s): the Gauss-Newton interval with an effective "
+                "sample count instead (uncertainty.method), and no model-misfit test",
+                exc,
+            )
+        else:
+            model_fit = fit_test.as_json()
+            say(_model_fit_line(fit_test))
+    if unc is None:
         area = _measured_area_mm2(cal) if cal.options.objective == "surface" else None
         unc = gauss_newton_uncertainty(c1, r, dr, pts, area_mm2=area)
     check, ci95 = _mesh_check(cal, theta, unc, say)
