@@ -70,10 +70,10 @@ class MaterialPoint:
         from skfem import Basis, ElementTetP1
 
         R = disc.R_solver_from_model
+        p1 = Basis(_skfem_mesh(disc.mesh, R), ElementTetP1(), intorder=1)
 
         def at(point: np.ndarray) -> MaterialPoint:
             pts = mm_to_m(np.asarray(point, float).reshape(1, 3)) @ R.T
-            p1 = Basis(_skfem_mesh(disc.mesh, R), ElementTetP1(), intorder=1)
             return cls(
                 sp.csr_matrix(p1.probes(pts.T)), sp.csr_matrix(disc.basis().probes(pts.T)), R
             )

@@ -91,6 +91,11 @@ class Prediction:
     nipple_mm: np.ndarray | None
 
 
+def _chord_deg(chord: np.ndarray) -> np.ndarray:
+    """The angle (degrees) between unit vectors a chord ``|a - b|`` apart."""
+    return np.degrees(2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0)))
+
+
 def _directions(gravity_ref: np.ndarray) -> tuple[list, float]:
     """The distinct unit directions of the training gravities and their median spacing.
 
@@ -105,8 +110,7 @@ def _directions(gravity_ref: np.ndarray) -> tuple[list, float]:
     d = np.unique(np.round(d, 9), axis=0)
     if len(d) < 2:
         return d.tolist(), 0.0
-    chord = cKDTree(d).query(d, k=2)[0][:, 1]
-    spacing = np.degrees(2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0)))
+    spacing = _chord_deg(cKDTree(d).query(d, k=2)[0][:, 1])
     return d.tolist(), float(np.median(spacing))
 
 
@@ -247,8 +251,7 @@ class Surrogate:
         if dirs is None or not len(g) or not len(dirs):
             return
         u = g / np.linalg.norm(g, axis=1, keepdims=True)
-        chord = cKDTree(np.asarray(dirs, float)).query(u)[0]
-        angle = np.degrees(2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0)))
+        angle = _chord_deg(cKDTree(np.asarray(dirs, float)).query(u)[0])
         limit = max(DIRECTION_SLACK_DEG, 2.0 * float(trained["direction_spacing_deg"]))
         if np.any(angle > limit):
             k = int(np.argmax(angle))

@@ -229,12 +229,21 @@ class RigidFit:
             Degrees; NaN with fewer than three markers.
         """
         fle = self.fle_estimate_mm if fle_mm is None else float(fle_mm)
-        m = self.source_points_mm
-        if len(m) < 3 or not np.isfinite(fle):
+        if self.n_markers < 3 or not np.isfinite(fle):
             return float("nan")
-        x = (m - m.mean(axis=0)) @ np.linalg.svd(m - m.mean(axis=0))[2].T
-        f2 = np.mean(np.sum(x**2, axis=1, keepdims=True) - x**2, axis=0)  # (3,)
-        return float(np.degrees(fle / np.sqrt(3.0 * len(m) * f2.min())))  # Eq. of tre_mm
+        _, _, f2 = self._principal_axes()
+        return float(np.degrees(fle / np.sqrt(3.0 * self.n_markers * f2.min())))
+
+    def _principal_axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Centroid (3,), principal axes (rows of Vt, (3, 3)) and each axis's f_k^2 (3,).
+
+        ``f_k`` is the markers' RMS distance from the k-th principal axis (the TRE's).
+        """
+        m = self.source_points_mm
+        c = m.mean(axis=0)
+        _, _, Vt = np.linalg.svd(m - c)
+        x = (m - c) @ Vt.T  # markers in principal-axis coordinates, (N, 3)
+        return c, Vt, np.mean(np.sum(x**2, axis=1, keepdims=True) - x**2, axis=0)
 
     def tre_mm(self, points_mm: np.ndarray, *, fle_mm: float | None = None) -> np.ndarray | float:
         """Return the expected target registration error (Fitzpatrick, West & Maurer 1998).
@@ -261,12 +270,8 @@ class RigidFit:
         r = np.atleast_2d(r)
         if r.shape[1] != 3:
             raise RegistrationError(f"tre_mm: expected (m, 3) points, got shape {r.shape}")
-        m = self.source_points_mm
-        c = m.mean(axis=0)
-        _, _, Vt = np.linalg.svd(m - c)
-        x = (m - c) @ Vt.T  # markers in principal-axis coordinates, (N, 3)
+        c, Vt, f2 = self._principal_axes()
         y = (r - c) @ Vt.T  # targets in principal-axis coordinates, (m, 3)
-        f2 = np.mean(np.sum(x**2, axis=1, keepdims=True) - x**2, axis=0)  # (3,)
         d2 = np.sum(y**2, axis=1, keepdims=True) - y**2  # (m, 3)
         tre = np.sqrt(fle**2 / self.n_markers * (1.0 + np.sum(d2 / f2, axis=1) / 3.0))
         return float(tre[0]) if single else tre

@@ -287,6 +287,12 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
         old = SweepStore.open(out)
         old.lock()  # refuses a store that a live sweep is writing
     store, backend = None, None
+
+    def start_backend():
+        return make_backend(
+            opts.backend, workers=opts.workers, dask=opts.dask, threads=opts.threads
+        )
+
     try:
         if out.exists() and any(out.iterdir()) and not replacing:
             store = SweepStore.open(out)
@@ -296,9 +302,7 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
         else:
             # the backend first: one that cannot start (no scheduler at --dask) leaves the
             # old store and the file system as they were
-            backend = make_backend(
-                opts.backend, workers=opts.workers, dask=opts.dask, threads=opts.threads
-            )
+            backend = start_backend()
             store = _create_new_store(out, model, plan, cont, opts)
             old = None  # replaced, lock and all
         store.lock()
@@ -314,9 +318,7 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
         run = {"solved": 0, "failed": 0, "retried": 0}
         if pending:
             if backend is None:
-                backend = make_backend(
-                    opts.backend, workers=opts.workers, dask=opts.dask, threads=opts.threads
-                )
+                backend = start_backend()
             info = backend.describe()
             run = run_scenarios(
                 model, store, backend, retry_failed=opts.retry_failed, progress=progress

@@ -159,31 +159,14 @@ def test_baseline_cli_writes_surface_only(box_sweep, tmp_path, monkeypatch):
     assert res.exit_code == 0, res.output
     assert "dissertation surrogate: trained on 37 scenarios" in res.output
     assert "test (9)" in res.output
+
+    def predict(name):
+        args = ["surrogate", "predict", str(out), "--gravity", "9.81,0,0"]
+        return runner.invoke(app, [*args, "--out", str(tmp_path / name)])
+
     with monkeypatch.context() as m:  # a .vtu is refused before predicting
         m.setattr(nn.Surrogate, "predict", lambda *a, **k: pytest.fail("predicted first"))
-        res = runner.invoke(
-            app,
-            [
-                "surrogate",
-                "predict",
-                str(out),
-                "--gravity",
-                "9.81,0,0",
-                "--out",
-                str(tmp_path / "r.vtu"),
-            ],
-        )
+        res = predict("r.vtu")
     assert res.exit_code == 2 and "surface nodes only" in res.output
-    res = runner.invoke(
-        app,
-        [
-            "surrogate",
-            "predict",
-            str(out),
-            "--gravity",
-            "9.81,0,0",
-            "--out",
-            str(tmp_path / "r.ply"),
-        ],
-    )
+    res = predict("r.ply")
     assert res.exit_code == 0, res.output
