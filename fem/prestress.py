@@ -89,6 +89,7 @@ from .solver import (
     merit_weights,
     newton_step,
     solve,
+    stall_note,
 )
 from .units import MM_PER_M
 
@@ -338,16 +339,17 @@ def solve_prestressed(
     g = np.zeros(3) if gravity is None else gravity_vector(gravity, g_m_s2)
     stats = _Stats()
     prob = _Prestressed(disc, model, prestress.F0, prestress.gravity_m_s2, g, opts, stats)
-    x, steps, cuts, ok = None, 0, 0, False
+    x, lam, steps, cuts, ok = None, 0.0, 0, 0, False
     if x0 is not None:
         x = _newton(prob, np.asarray(x0, float).copy(), 1.0)
         steps, ok = (1, True) if x is not None else (0, False)
     if x is None:
-        x, _, steps, cuts, ok = _stepped(prob, prestress.state.copy(), opts)
+        x, lam, steps, cuts, ok = _stepped(prob, prestress.state.copy(), opts)
     if not ok and raise_on_failure:
+        where = stall_note(disc, model, x, lam, load="the change from the reference load")
         raise ConvergenceError(
             f"prestressed load not applied: Newton failed at a load step below "
-            f"{opts.min_step:g} after {stats.newton} iterations ({cuts} cut-backs)"
+            f"{opts.min_step:g} after {stats.newton} iterations ({cuts} cut-backs); {where}"
         )
     return _solution(disc, x, ok, stats, steps, cuts, t_start)
 

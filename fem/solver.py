@@ -12,7 +12,7 @@ from .assemble import assemble, external_force, scatter
 from .discretize import Discretization, Formulation, discretize
 from .fields import _point_forces, displacement_at, gravity_vector, vertex_displacement_mm
 from .linalg import LinearSolver, factorize, solve_preconditioned
-from .model import Model
+from .model import Model, as_supports
 from .units import M_PER_MM
 
 __all__ = [
@@ -258,8 +258,60 @@ def _apply_dirichlet(disc: Discretization, x, prescribed, lam):
     return x
 
 
+def stall_note(
+    disc: Discretization, model: Model, x: np.ndarray, lam: float, *, load: str = "the load"
+) -> str:
+    """Where a failed load stepping stopped, for its error message.
+
+    The load factor reached and, at the last converged state ``x``, the vertex
+    tetrahedron (the straight element through the vertices) that lost the most volume:
+    whether it turned inside out and how far it lies from the support's nodes. A body
+    that fails at its clamped rim (a thin wedge of material pressed onto the back) and
+    one that fails in its bulk read differently.
+
+    Parameters
+    ----------
+    disc : Discretization
+    model : Model
+        On ``disc.mesh``.
+    x : ndarray, shape (n_dofs,)
+        The last converged state (displacement from ``disc.mesh``).
+    lam : float
+        Its load factor, in [0, 1).
+    load : str
+        What ``lam`` is a share of, in words.
+
+    Returns
+    -------
+    str
+    """
+    if lam <= 0.0:
+        return f"no step of {load} converged"
+    mesh = disc.mesh
+    u_mm = vertex_displacement_mm(disc, x)
+    moved = mesh.nodes_mm[mesh.tets] + u_mm[mesh.tets]
+    ratio = (np.linalg.det(moved[:, 1:] - moved[:, :1]) / 6.0) / mesh.volumes_mm3()
+    e = int(np.argmin(ratio))
+    held = np.unique(
+        np.concatenate([mesh.node_set(s.node_set) for s in as_supports(model.support)])
+    )
+    d_mm = np.linalg.norm(
+        mesh.nodes_mm[mesh.tets[e]][:, None] - mesh.nodes_mm[held][None], axis=2
+    ).min()
+    r, n_inv = float(ratio[e]), int((ratio <= 0).sum())
+    state = (
+        f"had turned inside out (volume ratio {r:.2f}; {n_inv} inverted)"
+        if r <= 0
+        else f"kept {r:.0%} of its volume"
+    )
+    return (
+        f"it reached {lam:.1%} of {load}; there the most squeezed vertex tetrahedron "
+        f"(element {e}, {d_mm:.1f} mm from the support's nodes) {state}"
+    )
+
+
 def _load_steps(prob: _Problem, x, prescribed, opts: SolverOptions):
-    """Adaptive load stepping from ``lam = 0`` to 1; returns (x, steps, cutbacks, ok)."""
+    """Adaptive load stepping from ``lam = 0`` to 1; returns (x, lam, steps, cutbacks, ok)."""
     lam, dlam, steps, cuts = 0.0, opts.initial_step, 0, 0
     x_prev, dlam_prev = None, opts.initial_step
     for _ in range(opts.max_steps):
@@ -276,14 +328,14 @@ def _load_steps(prob: _Problem, x, prescribed, opts: SolverOptions):
             cuts += 1
             dlam *= 0.25
             if dlam < opts.min_step:
-                return x, steps, cuts, False
+                return x, lam, steps, cuts, False
             continue
         x_prev, dlam_prev, x, lam, steps = x, trial - lam, x_new, trial, steps + 1
         if lam >= 1.0:
-            return x, steps, cuts, True
+            return x, lam, steps, cuts, True
         iters = prob.stats.newton - n0
         dlam = min(dlam * (2.0 if iters <= 5 else 1.0), 1.0 - lam)
-    return x, steps, cuts, False
+    return x, lam, steps, cuts, False
 
 
 def _prescribed_dofs(disc: Discretization, prescribed: dict | None):
@@ -359,11 +411,12 @@ def solve(
     prob = _Problem(disc, model, f_ext, opts, stats)
     if pres is not None:
         prob.f_scale = max(prob.f_scale, _reaction_scale(prob, pres))
-    x, steps, cuts, ok = _warm_or_stepped(prob, x0, pres, opts)
+    x, lam, steps, cuts, ok = _warm_or_stepped(prob, x0, pres, opts)
     if not ok and raise_on_failure:
         raise ConvergenceError(
             f"load not applied: Newton failed at a load step below {opts.min_step:g} "
-            f"after {stats.newton} iterations ({cuts} cut-backs); the load may be too large "
+            f"after {stats.newton} iterations ({cuts} cut-backs); "
+            f"{stall_note(disc, model, x, lam)}; the load may be too large "
             "for the material (elements invert) or the support leaves the body free"
         )
     total = time.perf_counter() - t_start
@@ -388,7 +441,7 @@ def _warm_or_stepped(prob: _Problem, x0, pres, opts: SolverOptions):
             raise ValueError(f"x0 has shape {x0.shape}, expected ({prob.disc.n_dofs},)")
         x = _newton(prob, _apply_dirichlet(prob.disc, x0, pres, 1.0), 1.0)
         if x is not None:
-            return x, 1, 0, True
+            return x, 1.0, 1, 0, True
     return _load_steps(prob, np.zeros(prob.disc.n_dofs), pres, opts)
 
 

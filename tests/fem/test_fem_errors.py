@@ -110,3 +110,41 @@ def test_load_that_cannot_converge_raises():
         raise_on_failure=False,
     )
     assert not sol.converged
+
+
+def test_a_failed_solve_says_how_far_it_got_and_where_the_mesh_gave():
+    # a 40 mm column clamped at its top under sideways gravity: at 1e6 m/s^2 no step
+    # converges; at 100 m/s^2 load stepping stalls part way (about 39 %). The message's
+    # element and volume ratio are checked against a solve of that share of the load
+    import re
+
+    from fem.fields import vertex_displacement_mm
+
+    mesh = box_mesh((10.0, 10.0, 40.0), (2, 2, 5))
+    soft = Model.homogeneous(mesh, NeoHookean(1e-3, nu=0.45), support=Clamped("z1"))
+    with pytest.raises(ConvergenceError, match="no step of the load converged"):
+        solve(soft, gravity=[1.0, 0.0, 0.0], g_m_s2=1e6, formulation="p1")
+    model = Model.homogeneous(mesh, NeoHookean(100.0, nu=0.45), support=Clamped("z1"))
+    with pytest.raises(ConvergenceError) as err:
+        solve(model, gravity=[1.0, 0.0, 0.0], g_m_s2=100.0, formulation="p1")
+    found = re.search(
+        r"reached (\d+\.\d)% of the load; there the most squeezed vertex tetrahedron "
+        r"\(element (\d+), (\d+\.\d) mm from the support's nodes\) kept (\d+)% of its volume",
+        str(err.value),
+    )
+    assert found, str(err.value)
+    share, element, d_mm, kept = (float(v) for v in found.groups())
+    assert 0.0 < share < 100.0
+    # the converged state at that share (rounded to 0.1 % of the load)
+    disc = discretize(mesh, Clamped("z1"), formulation="p1")
+    sol = solve(model, gravity=[1.0, 0.0, 0.0], g_m_s2=share, formulation="p1", disc=disc)
+    moved = mesh.with_nodes(mesh.nodes_mm + vertex_displacement_mm(disc, sol.state))
+    ratio = moved.volumes_mm3() / mesh.volumes_mm3()
+    assert int(np.argmin(ratio)) == element
+    # the printed percentage: whole percent, plus the 0.1 % rounding of the share
+    assert 100 * ratio.min() == pytest.approx(kept, abs=1.0)
+    held = mesh.nodes_mm[mesh.node_set("z1")]
+    corners = mesh.nodes_mm[mesh.tets[int(element)]]
+    assert np.linalg.norm(corners[:, None] - held[None], axis=2).min() == pytest.approx(
+        d_mm, abs=0.05
+    )
