@@ -91,7 +91,7 @@ from .solver import (
     solve,
     stall_note,
 )
-from .units import MM_PER_M
+from .units import MM_PER_M, STANDARD_GRAVITY_M_S2
 
 __all__ = [
     "Prestress",
@@ -300,7 +300,7 @@ def solve_prestressed(
     prestress: Prestress,
     *,
     gravity: np.ndarray | None,
-    g_m_s2: float = 9.81,
+    g_m_s2: float = STANDARD_GRAVITY_M_S2,
     disc: Discretization | None = None,
     options: SolverOptions | None = None,
     x0: np.ndarray | None = None,
@@ -685,7 +685,7 @@ def compute_prestress(
     model: Model,
     *,
     gravity: np.ndarray,
-    g_m_s2: float = 9.81,
+    g_m_s2: float = STANDARD_GRAVITY_M_S2,
     formulation: Formulation = "taylor-hood",
     method: PrestressMethod = "inverse",
     disc: Discretization | None = None,
@@ -955,7 +955,7 @@ def solve_prestressed_sensitivity(
     solution: Solution,
     *,
     gravity: np.ndarray | None,
-    g_m_s2: float = 9.81,
+    g_m_s2: float = STANDARD_GRAVITY_M_S2,
     disc: Discretization | None = None,
 ) -> np.ndarray:
     """``du/dp`` of a converged posture of :func:`solve_prestressed` (full vector).

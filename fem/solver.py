@@ -13,7 +13,7 @@ from .discretize import Discretization, Formulation, discretize
 from .fields import _point_forces, displacement_at, gravity_vector, vertex_displacement_mm
 from .linalg import LinearSolver, factorize, solve_preconditioned
 from .model import Model, as_supports
-from .units import M_PER_MM
+from .units import M_PER_MM, STANDARD_GRAVITY_M_S2
 
 __all__ = [
     "ConvergenceError",
@@ -362,7 +362,7 @@ def solve(
     model: Model,
     *,
     gravity: np.ndarray | None = None,
-    g_m_s2: float = 9.81,
+    g_m_s2: float = STANDARD_GRAVITY_M_S2,
     prescribed: dict | None = None,
     point_forces_n: dict | None = None,
     disc: Discretization | None = None,

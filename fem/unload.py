@@ -104,6 +104,7 @@ from .solver import (
     solve,
     vertex_displacement_mm,
 )
+from .units import STANDARD_GRAVITY_M_S2
 
 __all__ = ["ReferenceRecovery", "recover_stress_free", "shortcut_gravity"]
 
@@ -166,7 +167,7 @@ def recover_stress_free(
     model: Model,
     *,
     gravity: np.ndarray,
-    g_m_s2: float = 9.81,
+    g_m_s2: float = STANDARD_GRAVITY_M_S2,
     formulation: Formulation = "taylor-hood",
     tol_mm: float = 0.01,
     max_iter: int = 60,
@@ -253,7 +254,9 @@ def _recovery(model: Model, X: np.ndarray, *args) -> ReferenceRecovery:
     return ReferenceRecovery(X, *args, inverted_elements=inverted)
 
 
-def shortcut_gravity(g_target, g_reference, *, g_m_s2: float = 9.81) -> tuple[np.ndarray, float]:
+def shortcut_gravity(
+    g_target, g_reference, *, g_m_s2: float = STANDARD_GRAVITY_M_S2
+) -> tuple[np.ndarray, float]:
     """The dissertation's shortcut load: the loaded scan taken as stress-free, load ``g - g0``.
 
     Parameters
