@@ -8,7 +8,8 @@ alone (so saved deformed states can be re-measured without FE, :mod:`calib.valid
 
 Frames (as in the dissertation, ch. 3.4): ``fiducial`` maps the scan by the fiducial
 registration only; ``icp`` adds a rigid ICP of the measured surface onto the simulated
-one, which absorbs part of the model error and so is biased low.
+one, which absorbs part of the model error: its surface error is biased low, while the
+nipple and tumour errors may rise or fall.
 """
 
 from __future__ import annotations

@@ -15,6 +15,7 @@ told from registration error.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,6 +24,8 @@ from fem.postures import PLANES
 
 from .data.work import WorkFolder, ingest_record
 from .evaluation import ScanMetrics, scan_metrics
+
+log = logging.getLogger(__name__)
 
 __all__ = ["DISSERTATION", "ScanValidation", "Validation", "validate_work"]
 
@@ -148,11 +151,15 @@ class Validation:
     c1_ci95_pa : tuple of float or None
     scans : dict of str to ScanValidation
         Every scan but the reference (``role`` says which were validation scans).
+    failed : dict of str to str
+        Scans without a saved state because their FE solve failed at the calibration
+        (name to the calibration's message): not validated, and said so.
     """
 
     c1_pa: float
     c1_ci95_pa: tuple[float, float] | None
     scans: dict
+    failed: dict = field(default_factory=dict)
 
     @property
     def validation_scans(self) -> list[ScanValidation]:
@@ -171,6 +178,7 @@ class Validation:
                 "by_posture_angle_deg": {str(k): v for k, v in DISSERTATION.items()},
             },
             "scans": {n: s.to_json() for n, s in self.scans.items()},
+            "failed": dict(self.failed),
         }
 
 
@@ -260,7 +268,9 @@ def _scan_validation(work: WorkFolder, name: str, faces: np.ndarray) -> ScanVali
     nipple_b = {f: _band([r.nipple_error_mm[f] for r in runs]) for f in m.nipple_error_mm}
     tumour_b = None
     if m.tumour_error_mm is not None:
-        tumour_b = {f: _band([r.tumour_error_mm[f] for r in runs]) for f in m.tumour_error_mm}
+        # without its derivative the tumour does not move with c1: no band, not [v, v]
+        moved = runs if st.dtumour_mm is not None else runs[:1]
+        tumour_b = {f: _band([r.tumour_error_mm[f] for r in moved]) for f in m.tumour_error_mm}
     ing = ingest_record(work, name)
     angle, plane = _posture(work, scan)
     return ScanValidation(
@@ -281,6 +291,9 @@ def _scan_validation(work: WorkFolder, name: str, faces: np.ndarray) -> ScanVali
 def validate_work(work: WorkFolder, *, scans: list[str] | None = None) -> Validation:
     """Validation figures of every scan with a saved state (default: all but the reference).
 
+    Scans whose FE solve failed at the calibration have no state: by default they are
+    listed in ``Validation.failed`` with a warning; asked for by name, they raise.
+
     Parameters
     ----------
     work : WorkFolder
@@ -299,9 +312,17 @@ def validate_work(work: WorkFolder, *, scans: list[str] | None = None) -> Valida
     missing = sorted(set(names) - set(work.states))
     if missing:
         raise KeyError(f"{work.path}: no saved state for scan(s) {missing} (failed or unknown)")
+    failed = {}
+    if scans is None:
+        failed = {n: str(s["failed"]) for n, s in work.record["scans"].items() if s.get("failed")}
+        for n, why in failed.items():
+            log.warning(
+                "%s: scan %s not validated: no FE solution at calibration (%s)", work.path, n, why
+            )
     ci = work.record.get("c1_ci95_pa")
     return Validation(
         c1_pa=work.c1_pa,
         c1_ci95_pa=None if ci is None else (float(ci[0]), float(ci[1])),
         scans={n: _scan_validation(work, n, faces) for n in names},
+        failed=failed,
     )

@@ -156,4 +156,6 @@ def format_validation(doc: dict) -> str:
             f"{_band(surf['mean']):<26}{surf['sd']['value']:>6.2f}  "
             f"{_band(nipple):<22}{_band(tumour):<22}{_reference(s.get('dissertation') or {}):<20}"
         )
+    for name, why in (doc.get("failed") or {}).items():
+        lines.append(f"{name:<16}not validated: no FE solution at calibration ({why})")
     return "\n".join(lines)

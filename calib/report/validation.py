@@ -318,12 +318,17 @@ def _intro(v: Validation) -> str:
         if ci
         else "no c1 interval: figures without bands"
     )
+    failed = "".join(
+        f" Not validated: {n}, no FE solution at calibration ({why})."
+        for n, why in v.failed.items()
+    )
     return (
         f"c1 = {v.c1_pa:.1f} Pa ({band}). All distances in mm. Fiducial frame: the scan "
         "mapped by its fiducial registration only; ICP: after a rigid ICP of the measured "
-        "onto the simulated surface (biased low). FRE/TRE: the scan's fiducial registration "
-        "error and expected target registration error (a model error below the TRE cannot "
-        "be told from registration error)."
+        "onto the simulated surface (which minimises the surface error: biased low; the "
+        "nipple and tumour errors may rise or fall). FRE/TRE: the scan's fiducial "
+        "registration error and expected target registration error (a model error below "
+        "the TRE cannot be told from registration error)." + failed
     )
 
 

@@ -157,6 +157,54 @@ def test_work_folder_api(nipple_run):
         w.plot_error_map("left_lateral")  # the reference has no simulated state
 
 
+def test_a_scan_without_fe_solution_is_listed_not_dropped_by_validate(nipple_run, tmp_path):
+    # calibrate writes `failed` for a scan with no FE solution at the calibrated c1 and
+    # saves no state for it; validate listed the other scans only, without a word
+    import shutil
+
+    _, _, work = nipple_run
+    assert json.loads((work / "validation.json").read_text())["failed"] == {}
+    copy = tmp_path / "work"
+    shutil.copytree(work, copy)
+    rec = json.loads((copy / "calibration.json").read_text())
+    tilt = rec["scans"]["tilt_50"]
+    why = "load not applied: no step of the load converged (test)"
+    rec["scans"]["tilt_50"] = {k: tilt[k] for k in ("role", "gravity_ref")} | {"failed": why}
+    (copy / "calibration.json").write_text(json.dumps(rec))
+    res = CliRunner().invoke(app, ["validate", str(copy)])
+    assert res.exit_code == 0, res.output
+    val = json.loads((copy / "validation.json").read_text())
+    assert "tilt_50" not in val["scans"] and val["failed"] == {"tilt_50": why}
+    assert "tilt_50" in res.output and "not validated" in res.output
+    assert (
+        f"Not validated: tilt_50, no FE solution at calibration ({why})"
+        in (copy / "validation" / "report.html").read_text()
+    )
+
+
+def test_a_tumour_without_its_c1_derivative_gets_no_band(nipple_run, tmp_path):
+    # the band of a figure is its range over the c1 interval; a tumour whose derivative
+    # was not saved does not move with c1 and got the zero-width band [v, v]
+    import shutil
+
+    _, _, work = nipple_run
+    before = json.loads((work / "validation.json").read_text())["scans"]["tilt_50"]
+    lo, hi = before["tumour_error_mm"]["fiducial"]["ci95"]
+    assert hi > lo
+    copy = tmp_path / "work"
+    shutil.copytree(work, copy)
+    rec = json.loads((copy / "calibration.json").read_text())
+    rec["scans"]["tilt_50"]["model"]["dtumour_dlnc1_mm"] = None
+    (copy / "calibration.json").write_text(json.dumps(rec))
+    res = CliRunner().invoke(app, ["validate", str(copy)])
+    assert res.exit_code == 0, res.output
+    tilt = json.loads((copy / "validation.json").read_text())["scans"]["tilt_50"]
+    tumour = tilt["tumour_error_mm"]["fiducial"]
+    assert tumour["ci95"] is None
+    assert tumour["value"] == before["tumour_error_mm"]["fiducial"]["value"]
+    assert tilt["nipple_error_mm"]["fiducial"]["ci95"] is not None
+
+
 def test_unrecoverable_reference_stops_early_with_remedies(twin_scans, tmp_path, monkeypatch):
     # An explicit --mesh-size is not retried; the error names the scan, the mesh and what
     # to change, before any optimisation.
