@@ -124,7 +124,7 @@ def scan_metrics(
     import registration
 
     pos = np.asarray(positions_mm, float)
-    pts = scan.vertices_mm[~scan.back_plate]
+    pts = scan.vertices_mm[scan.scored]
     # the simulated surface where it is, not at its vertices alone (a coarse model's are
     # ~12 mm apart: the 2 and 1 mm gates found 3-4 % of the scan, and ICP never settled)
     target, normals = registration.sample_triangles(pos, faces, spacing_mm=ICP_TARGET_SPACING_MM)
@@ -151,7 +151,7 @@ def scan_metrics(
             ),
         }
     vertex_error = np.zeros(len(scan.vertices_mm))
-    vertex_error[~scan.back_plate] = surf["fiducial"].distances_mm
+    vertex_error[scan.scored] = surf["fiducial"].distances_mm
     return ScanMetrics(
         nipple_error_mm={f: e.error_mm for f, e in nipple.items()},
         nipple_landmark_error_mm=float(np.linalg.norm(pos[nipple_node] - scan.nipple_mm)),

@@ -113,6 +113,35 @@ def fov_cut_height_mm(mask: Volume, plane: BackPlane) -> float:
     return float(max(0.0, h.max()))
 
 
+def mark_fov_edge(
+    vertices_lps_mm: np.ndarray, *, mask: Volume, plane: BackPlane, min_height_mm: float
+) -> np.ndarray:
+    """Flag the surface vertices where the field of view cuts the body, (n,) bool.
+
+    A vertex within one voxel of one of the volume's six faces and more than
+    ``min_height_mm`` above ``plane`` lies on the cut: the surface there is the volume's
+    edge, not the phantom's. Lower vertices on an edge are the back face resting on a
+    field of view that starts at the plate (the back-plate flag's).
+
+    Parameters
+    ----------
+    vertices_lps_mm : ndarray, shape (n, 3)
+    mask : Volume
+        The volume's grid (the body mask).
+    plane : BackPlane
+    min_height_mm : float
+
+    Returns
+    -------
+    ndarray of bool, shape (n,)
+    """
+    v = np.asarray(vertices_lps_mm, float)
+    ijk = mask.lps_to_index(v)
+    top = np.asarray(mask.array.shape, float) - 1.0
+    on_edge = ((ijk < 1.0) | (ijk > top - 1.0)).any(axis=1)
+    return on_edge & ((v - plane.point_lps_mm) @ plane.normal > min_height_mm)
+
+
 def process_scan(
     volume: Volume,
     *,
@@ -175,13 +204,22 @@ def process_scan(
     )
     nipple = find_nipple(surf.vertices_lps_mm, plane)
     cut = fov_cut_height_mm(seg.mask, plane)
+    edge = None
     if cut > FOV_CUT_TOL_MM + float(volume.spacing_mm.max()):
+        edge = mark_fov_edge(
+            surf.vertices_lps_mm,
+            mask=seg.mask,
+            plane=plane,
+            min_height_mm=FOV_CUT_TOL_MM + float(volume.spacing_mm.max()),
+        )
         log.warning(
             "%s: the field of view cuts the body: body voxels on the volume's edge lie up to "
             "%.0f mm above the back plate, where the surface is the volume's edge, not the "
-            "phantom's",
+            "phantom's: its %d vertices there are flagged fov_edge and left out of the fit "
+            "and the errors",
             volume.source,
             cut,
+            int(edge.sum()),
         )
     tumour = None
     if len(inc.diameters_mm):
@@ -198,9 +236,10 @@ def process_scan(
         nipple_height_mm=nipple.height_mm,
         nipple_refined=bool(nipple.quality["refined"]),
         fov_cut_height_mm=cut,
+        fov_edge_vertices=0 if edge is None else int(edge.sum()),
         **times,
     )
-    surface = SurfaceMesh(surf.vertices_lps_mm, surf.faces, flags, surf.quality)
+    surface = SurfaceMesh(surf.vertices_lps_mm, surf.faces, flags, surf.quality, fov_edge=edge)
     return ScanResult(
         surface=surface,
         mask=seg.mask,

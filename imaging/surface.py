@@ -45,6 +45,9 @@ class SurfaceMesh:
     faces : (m, 3) int64, counter-clockwise seen from outside (outward normals)
     back_plate : (n,) bool or None
         True for vertices on the back-plate part of the surface.
+    fov_edge : (n,) bool or None
+        True for vertices where the field of view cuts the body (the surface there is
+        the volume's edge, not the phantom's); None where it cuts nothing.
     quality : dict
         ``watertight``, ``winding_consistent``, ``n_components`` (before keeping the
         largest), ``volume_ml``, ``n_faces`` and others set by the producing stage.
@@ -54,6 +57,7 @@ class SurfaceMesh:
     faces: np.ndarray
     back_plate: np.ndarray | None = None
     quality: dict = field(default_factory=dict)
+    fov_edge: np.ndarray | None = None
 
 
 def _adjacency(n: int, faces: np.ndarray) -> sparse.csr_matrix:
@@ -250,9 +254,9 @@ def write_ply(
 ) -> Path:
     """Write a surface as binary little-endian PLY, atomically.
 
-    Vertices as double x, y, z in LPS mm, with an optional uchar ``back_plate`` property
-    and optional float per-vertex properties (e.g. ``{"error_mm": e}``, shown as a colour
-    map by MeshLab and ParaView).
+    Vertices as double x, y, z in LPS mm, with optional uchar ``back_plate`` and
+    ``fov_edge`` properties and optional float per-vertex properties (e.g.
+    ``{"error_mm": e}``, shown as a colour map by MeshLab and ParaView).
 
     Parameters
     ----------
@@ -269,13 +273,14 @@ def write_ply(
             raise ValueError(f"{path}: vertex property {name!r} needs one value per vertex "
                              f"({len(v)}), got {len(a)}")  # fmt: skip
     props = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
-    if surface.back_plate is not None:
-        props.append(("back_plate", "u1"))
+    flags = {k: getattr(surface, k) for k in ("back_plate", "fov_edge")}
+    flags = {k: np.asarray(a, bool) for k, a in flags.items() if a is not None}
+    props += [(k, "u1") for k in flags]
     props += [(k, "<f4") for k in extra]
     vert = np.empty(len(v), dtype=props)
     vert["x"], vert["y"], vert["z"] = v[:, 0], v[:, 1], v[:, 2]
-    if surface.back_plate is not None:
-        vert["back_plate"] = np.asarray(surface.back_plate, bool)
+    for k, a in flags.items():
+        vert[k] = a
     for k, a in extra.items():
         vert[k] = a
     face = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
@@ -283,8 +288,7 @@ def write_ply(
     header = ["ply", "format binary_little_endian 1.0", "comment phantom-calib surface, LPS mm",
               f"element vertex {len(v)}", "property double x", "property double y",
               "property double z"]  # fmt: skip
-    if surface.back_plate is not None:
-        header.append("property uchar back_plate")
+    header += [f"property uchar {k}" for k in flags]
     header += [f"property float {k}" for k in extra]
     header += [f"element face {len(f)}", "property list uchar int vertex_indices", "end_header"]
 
@@ -338,4 +342,5 @@ def read_ply(path: str | os.PathLike) -> SurfaceMesh:
         raise SurfaceError(f"{path}: PLY has no vertex or face element")
     v = np.stack([vert["x"], vert["y"], vert["z"]], 1).astype(float)
     bp = vert["back_plate"].astype(bool) if "back_plate" in vert.dtype.names else None
-    return SurfaceMesh(v, out["face"], bp, {})
+    edge = vert["fov_edge"].astype(bool) if "fov_edge" in vert.dtype.names else None
+    return SurfaceMesh(v, out["face"], bp, {}, fov_edge=edge)

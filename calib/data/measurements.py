@@ -35,6 +35,9 @@ class ScanMeasurement:
         The session's nominal posture plane (``posture.plane``), if given.
     posture_angle_deg : float or None
         The session's nominal posture angle (``posture.angle_deg``), if given.
+    fov_edge : ndarray of bool or None
+        Vertices where the field of view cuts the body (``surface_ref.ply``'s
+        ``fov_edge``; None: it cuts nothing).
     """
 
     name: str
@@ -50,6 +53,17 @@ class ScanMeasurement:
     T_ref_from_scan: np.ndarray
     posture_plane: str | None = None
     posture_angle_deg: float | None = None
+    fov_edge: np.ndarray | None = None
+
+    @property
+    def scored(self) -> np.ndarray:
+        """Vertices measured on the phantom's surface, (n,) bool.
+
+        Off the back plate and off the field of view's edge: what the fit and the errors use.
+        """
+        if self.fov_edge is None:
+            return ~self.back_plate
+        return ~(self.back_plate | self.fov_edge)
 
     @property
     def nominal_posture(self) -> dict | None:
@@ -59,8 +73,8 @@ class ScanMeasurement:
         return {"plane": self.posture_plane, "angle_deg": self.posture_angle_deg}
 
     def surface_points(self, *, max_points: int = 4000, seed: int = 0) -> np.ndarray:
-        """Measured surface vertices off the back plate, a seeded subsample, (k, 3)."""
-        pts = self.vertices_mm[~self.back_plate]
+        """Measured surface vertices (:attr:`scored`), a seeded subsample, (k, 3)."""
+        pts = self.vertices_mm[self.scored]
         if len(pts) > max_points:
             rng = np.random.default_rng(seed)
             pts = pts[np.sort(rng.choice(len(pts), max_points, replace=False))]
@@ -118,6 +132,7 @@ def read_scan(work: Path, entry: ScanEntry) -> ScanMeasurement:
         T_ref_from_scan=T,
         posture_plane=entry.posture_plane,
         posture_angle_deg=entry.posture_angle_deg,
+        fov_edge=surf.fov_edge,
     )
 
 

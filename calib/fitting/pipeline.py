@@ -87,7 +87,7 @@ def _measured_area_mm2(cal: Calibrator) -> float:
     """Area of the calibration scans' measured surfaces off the back plate, mm^2."""
     total = 0.0
     for s in cal.calibration_scans:
-        total += surface_area_mm2(s.vertices_mm, s.faces[~s.back_plate[s.faces].all(axis=1)])
+        total += surface_area_mm2(s.vertices_mm, s.faces[s.scored[s.faces].any(axis=1)])
     return total
 
 

@@ -34,7 +34,7 @@ Z_LIMIT = 4.0
 
 def _surface(scan, R):
     v = np.asarray(scan.vertices_mm, float) @ np.asarray(R, float)
-    keep = ~scan.back_plate[scan.faces].all(axis=1)
+    keep = scan.scored[scan.faces].any(axis=1)
     faces = scan.faces[keep]
     tri = v[faces]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -97,7 +97,7 @@ def residual_maps_figure(name: str, role: str, scan, before_mm, after_mm, R, *, 
     fig = Figure(figsize=(10, 4.4 * len(rows)), layout="constrained")
     for i, (label, err) in enumerate(rows):
         e = np.abs(np.asarray(err, float))[faces].mean(axis=1)
-        mean = float(np.abs(err)[~scan.back_plate].mean())
+        mean = float(np.abs(err)[scan.scored].mean())
         _draw(fig, (len(rows), 2, 2 * i + 1), v, faces, shade, e, mapper,
               f"{label}, mean {mean:.3f} mm")  # fmt: skip
     fig.colorbar(mapper, ax=fig.axes, shrink=0.6, label="distance to the model surface (mm)")

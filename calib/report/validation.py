@@ -82,7 +82,7 @@ def error_surface_figure(
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     v = _phantom_coordinates(scan.vertices_mm, R_ref_from_phantom)
-    keep = ~scan.back_plate[scan.faces].all(axis=1)
+    keep = scan.scored[scan.faces].any(axis=1)
     faces = scan.faces[keep]
     e = np.abs(sv.metrics.vertex_error_mm)[faces].mean(axis=1)
     top = vmax or max(float(np.percentile(e, 99)), 1e-3)

@@ -50,7 +50,7 @@ def _scan_files(run: RunOutputs, cal: Calibration, ev: ScanEvaluation) -> list[s
     write_error_ply(
         run.path(f"{ev.name}_error.ply"), scan.vertices_mm, scan.faces, m.vertex_error_mm
     )
-    off = ~scan.back_plate
+    off = scan.scored
     err = m.vertex_error_mm[off]
     fig = error_map_figure(
         scan.vertices_mm[off],

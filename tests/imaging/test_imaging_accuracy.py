@@ -184,7 +184,7 @@ def test_a_visible_skin_layer_keeps_the_accuracy_bars(skin):
         assert res.inclusions.quality["n_surface_layer"] > 0  # the fragments were there
 
 
-def test_a_field_of_view_that_cuts_the_body_is_said(oblique_scan, oblique_result, caplog):
+def test_a_field_of_view_that_cuts_the_body_is_said(oblique_scan, oblique_result, caplog, tmp_path):
     # the surface where the volume's edge cuts the body is the edge, not the phantom's:
     # a silent wrong answer before. The whole scan: no body voxel on the edge.
     assert oblique_result.quality["fov_cut_height_mm"] == 0.0
@@ -196,6 +196,29 @@ def test_a_field_of_view_that_cuts_the_body_is_said(oblique_scan, oblique_result
         res = process_scan(cut, expected_fiducials=None)
     assert res.quality["fov_cut_height_mm"] > 10.0
     assert "cut.nii.gz: the field of view cuts the body" in caplog.text
+    # its vertices there are flagged (and left out of the fit and the errors, see
+    # tests/calib/test_calib_fov_edge.py): on the cut face, within a voxel of index
+    # keep - 1 along the cut axis, and above the plate; the whole scan flags none
+    assert oblique_result.surface.fov_edge is None
+    assert oblique_result.quality["fov_edge_vertices"] == 0
+    edge = res.surface.fov_edge
+    assert edge.sum() == res.quality["fov_edge_vertices"] > 50
+    assert f"its {int(edge.sum())} vertices there are flagged fov_edge" in caplog.text
+    ijk = res.mask.lps_to_index(res.surface.vertices_lps_mm)
+    assert (ijk[edge, 0] > keep - 2.0).all()
+    # every vertex on the cut face above the plate is flagged (the rest of the surface
+    # lies more than a voxel inside)
+    plane = res.back_plane
+    high = (res.surface.vertices_lps_mm - plane.point_lps_mm) @ plane.normal > 2.0 + 2 * max(
+        vol.spacing_mm
+    )
+    assert edge[(ijk[:, 0] > keep - 1.5) & high].all()
+    # and they survive the PLY round trip of WORK/scans/<name>/surface_ref.ply
+    from imaging.surface import read_ply, write_ply
+
+    back = read_ply(write_ply(tmp_path / "s.ply", res.surface))
+    assert (back.fov_edge == edge).all() and (back.back_plate == res.surface.back_plate).all()
+    assert read_ply(write_ply(tmp_path / "w.ply", oblique_result.surface)).fov_edge is None
 
 
 @pytest.mark.parametrize("offset", [0.3, -0.5])
