@@ -88,8 +88,18 @@ def reference_mesh(
     Raises
     ------
     fem.MeshError
-        No usable surface, or a sphere that reaches the surface or another sphere.
+        No usable surface (a field of view that cuts the body among them), or a sphere
+        that reaches the surface or another sphere.
     """
+    cut = getattr(ref, "fov_edge", None)
+    if cut is not None and cut.any():
+        raise fem.MeshError(
+            f"reference scan {ref.name!r}: the field of view cuts the body ({int(cut.sum())} "
+            "surface vertices on the volume's edge, flagged fov_edge by ingest): a model "
+            "meshed from it would take the volume's edge for the phantom's surface; rescan "
+            "the reference posture with the whole phantom in view, or make a scan that holds "
+            "it the reference"
+        )
     if spheres:
         h = size_mm / 2.0 if sphere_size_mm is None else sphere_size_mm
         mesh = _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, spheres, h)

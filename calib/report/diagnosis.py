@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from .maps import ERROR_CMAP
+from .maps import ERROR_CMAP, face_error_mm
 
 __all__ = [
     "diagnosis_html",
@@ -96,7 +96,7 @@ def residual_maps_figure(name: str, role: str, scan, before_mm, after_mm, R, *, 
         rows.append(("after (final model)", after_mm))
     fig = Figure(figsize=(10, 4.4 * len(rows)), layout="constrained")
     for i, (label, err) in enumerate(rows):
-        e = np.abs(np.asarray(err, float))[faces].mean(axis=1)
+        e = face_error_mm(err, faces, scan.scored)
         mean = float(np.abs(err)[scan.scored].mean())
         _draw(fig, (len(rows), 2, 2 * i + 1), v, faces, shade, e, mapper,
               f"{label}, mean {mean:.3f} mm")  # fmt: skip

@@ -12,10 +12,28 @@ import numpy as np
 
 from ..io import atomic_write
 
-__all__ = ["error_map_figure", "save_figure", "write_error_ply"]
+__all__ = ["error_map_figure", "face_error_mm", "save_figure", "write_error_ply"]
 
 #: Colour map of error magnitudes (perceptually uniform, colour-vision-deficiency safe).
 ERROR_CMAP = "cividis"
+
+
+def face_error_mm(error_mm: np.ndarray, faces: np.ndarray, scored: np.ndarray) -> np.ndarray:
+    """|error| of each face: the mean over its scored vertices, (f,) mm.
+
+    A face at the rim holds back-plate vertices, whose error is not measured (0 in the
+    per-vertex arrays); averaging them in would pale the rim. Every face needs a scored
+    vertex.
+
+    Parameters
+    ----------
+    error_mm : ndarray, shape (n,)
+    faces : ndarray, shape (f, 3)
+    scored : ndarray of bool, shape (n,)
+        :attr:`calib.data.measurements.ScanMeasurement.scored`.
+    """
+    w = np.asarray(scored, bool)[faces]
+    return (np.abs(np.asarray(error_mm, float))[faces] * w).sum(axis=1) / w.sum(axis=1)
 
 
 def write_error_ply(path: Path, vertices_mm: np.ndarray, faces: np.ndarray, error_mm) -> Path:

@@ -135,7 +135,8 @@ def _plane(scan: dict) -> str:
 
 def _reference(ref: dict) -> str:
     if ref.get("surface_mean_mm") is not None:
-        return f"{ref['surface_mean_mm']} ± {ref['surface_sd_mm']}"
+        tumour = "" if ref.get("tumour_mm") is None else f", tumour {ref['tumour_mm']:.2f}"
+        return f"{ref['surface_mean_mm']} ± {ref['surface_sd_mm']}{tumour}"
     if ref.get("nipple_mm") is not None:
         return f"nipple {ref['nipple_mm']}"
     return ""

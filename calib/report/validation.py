@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..validation import ScanValidation, Validation
-from .maps import ERROR_CMAP
+from .maps import ERROR_CMAP, face_error_mm
 
 __all__ = [
     "error_by_displacement_figure",
@@ -84,7 +84,7 @@ def error_surface_figure(
     v = _phantom_coordinates(scan.vertices_mm, R_ref_from_phantom)
     keep = scan.scored[scan.faces].any(axis=1)
     faces = scan.faces[keep]
-    e = np.abs(sv.metrics.vertex_error_mm)[faces].mean(axis=1)
+    e = face_error_mm(sv.metrics.vertex_error_mm, faces, scan.scored)
     top = vmax or max(float(np.percentile(e, 99)), 1e-3)
     mapper = cm.ScalarMappable(norm=colors.Normalize(0.0, top), cmap=colormaps[ERROR_CMAP])
     tri = v[faces]

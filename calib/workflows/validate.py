@@ -54,7 +54,11 @@ def _outline(run: RunOutputs, work: WorkFolder, v: Validation, name: str) -> str
 def _figures(run: RunOutputs, work: WorkFolder, v: Validation) -> dict[str, list[str]]:
     R = np.asarray(work.record["model"]["R_ref_from_phantom"], float)
     shown = v.validation_scans or list(v.scans.values())
-    vmax = max(float(np.percentile(np.abs(s.metrics.vertex_error_mm), 99)) for s in shown)
+    scans = work.measurements.scans
+    vmax = max(
+        float(np.percentile(np.abs(s.metrics.vertex_error_mm)[scans[s.name].scored], 99))
+        for s in shown
+    )
     figures: dict[str, list[str]] = {}
     for sv in v.scans.values():
         files = []

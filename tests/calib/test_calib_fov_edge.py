@@ -12,6 +12,7 @@ icosphere of 50 mm: under 0.1 mm).
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from calib.data.measurements import ScanMeasurement
 from calib.evaluation import scan_metrics
@@ -71,3 +72,14 @@ def test_an_uncut_scan_scores_every_vertex_off_the_plate():
     assert scan.fov_edge is None and (scan.scored == ~scan.back_plate).all()
     err = scan_metrics(scan, v, model_faces, top, None).surface_error_mm["fiducial"]
     assert err["n"] == int((~scan.back_plate).sum()) and err["max"] < 0.1
+
+
+def test_a_cut_reference_scan_is_refused_before_meshing():
+    # the model's geometry is the reference scan's surface: a cut one would mesh the
+    # volume's edge as the phantom (the other scans only lose the edge's points)
+    import fem
+    from calib.model.reference import reference_mesh
+
+    v, f, _, top = _dome()
+    with pytest.raises(fem.MeshError, match=r"reference scan 'cut': the field of view cuts"):
+        reference_mesh(_measured(v, f, top, 30.0, flag=True), size_mm=12.0)

@@ -32,3 +32,16 @@ def test_nothing_known_or_nothing_moved_is_one_bin():
     assert displacement_bins_mm(np.zeros(10)) == (0.0, np.inf)
     assert displacement_bins_mm(np.array([])) == (0.0, np.inf)
     assert displacement_bins_mm(np.array([np.nan, 3.0, 4.0]))[1] == pytest.approx(1.0)
+
+
+def test_a_rim_face_is_coloured_by_its_scored_vertices_only():
+    # back-plate vertices carry 0 (unmeasured) in the per-vertex error arrays: averaged
+    # in, a rim face with two of them showed a third of its error
+    from calib.report.maps import face_error_mm
+
+    faces = np.array([[0, 1, 2], [1, 2, 3]])
+    error = np.array([3.0, 0.0, 0.0, -1.0])
+    scored = np.array([True, False, False, True])
+    assert face_error_mm(error, faces, scored) == pytest.approx([3.0, 1.0], rel=1e-15)
+    everything = np.ones(4, bool)
+    assert face_error_mm(error, faces, everything) == pytest.approx([1.0, 1.0 / 3.0])
