@@ -90,7 +90,11 @@ class ScanValidation:
     surface : dict
         ``{frame: {stat: Band}}`` with stats mean, sd, median, p95, max (mm).
     nipple : dict
-        ``{frame: Band}``, the dissertation's nipple error (mm).
+        ``{frame: Band}``, the dissertation's nipple error (mm): the simulated nipple
+        node to the nearest measured vertex.
+    nipple_landmark : Band
+        The simulated nipple node to the scan's measured nipple tip, fiducial frame (mm):
+        unlike ``nipple``, it sees a slide along the surface.
     tumour : dict or None
         ``{frame: Band}``, the tumour-centre error (mm).
     registration : dict
@@ -111,6 +115,7 @@ class ScanValidation:
     posture_plane: str
     surface: dict
     nipple: dict
+    nipple_landmark: Band
     tumour: dict | None
     registration: dict
     reference: dict | None
@@ -133,6 +138,7 @@ class ScanValidation:
                 f: {k: b.to_json() for k, b in s.items()} for f, s in self.surface.items()
             },
             "nipple_error_mm": {f: b.to_json() for f, b in self.nipple.items()},
+            "nipple_landmark_error_mm": {"fiducial": self.nipple_landmark.to_json()},
             "tumour_error_mm": None
             if self.tumour is None
             else {f: b.to_json() for f, b in self.tumour.items()},
@@ -266,6 +272,7 @@ def _scan_validation(work: WorkFolder, name: str, faces: np.ndarray) -> ScanVali
         for f in m.surface_error_mm
     }
     nipple_b = {f: _band([r.nipple_error_mm[f] for r in runs]) for f in m.nipple_error_mm}
+    landmark_b = _band([r.nipple_landmark_error_mm for r in runs])
     tumour_b = None
     if m.tumour_error_mm is not None:
         # without its derivative the tumour does not move with c1: no band, not [v, v]
@@ -280,6 +287,7 @@ def _scan_validation(work: WorkFolder, name: str, faces: np.ndarray) -> ScanVali
         posture_plane=plane,
         surface=surface,
         nipple=nipple_b,
+        nipple_landmark=landmark_b,
         tumour=tumour_b,
         registration={k: ing.get(k) for k in ("fre_mm", "tre_nipple_mm", "tre_tumour_mm")},
         reference=_reference_figures(scan, angle, plane),

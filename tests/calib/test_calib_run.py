@@ -139,6 +139,12 @@ def test_calibrate_ends_with_the_validation_report(nipple_run):
     lo, hi = mean["ci95"]
     assert lo <= mean["value"] <= hi and hi > lo  # a c1 interval of non-zero width moves it
     assert tilt["dissertation"]["surface_mean_mm"] == 2.69  # the 50 deg row of Table 4.1
+    # the landmark distance, as calibration.json has it (the same saved state)
+    landmark = tilt["nipple_landmark_error_mm"]["fiducial"]
+    assert landmark["value"] == pytest.approx(
+        doc["scans"]["tilt_50"]["nipple_landmark_error_mm"]["fiducial"], rel=1e-9
+    )
+    assert landmark["ci95"][0] <= landmark["value"] <= landmark["ci95"][1]
     for rel in val["files"]:
         assert (work / rel).is_file(), rel
     assert "tilt_50" in (work / "validation" / "report.html").read_text()
