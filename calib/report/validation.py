@@ -281,6 +281,7 @@ def _row(sv: ScanValidation) -> list[str]:
         f"{icp['mean'].text()} ± {icp['sd'].value:.2f}",
         sv.nipple["fiducial"].text(),
         sv.nipple["icp"].text(),
+        sv.nipple_landmark.text(),
         t["fiducial"].text() if "fiducial" in t else "–",
         t["icp"].text() if "icp" in t else "–",
         num(reg.get("fre_mm")),
@@ -301,6 +302,7 @@ HEADER = [
     "surface mean ± sd (ICP)",
     "nipple (fiducial)",
     "nipple (ICP)",
+    "nipple tip (fiducial)",
     "tumour (fiducial)",
     "tumour (ICP)",
     "FRE",
@@ -326,7 +328,9 @@ def _intro(v: Validation) -> str:
         f"c1 = {v.c1_pa:.1f} Pa ({band}). All distances in mm. Fiducial frame: the scan "
         "mapped by its fiducial registration only; ICP: after a rigid ICP of the measured "
         "onto the simulated surface (which minimises the surface error: biased low; the "
-        "nipple and tumour errors may rise or fall). FRE/TRE: the scan's fiducial "
+        "nipple and tumour errors may rise or fall). Nipple: the dissertation's distance from "
+        "the simulated nipple to the nearest measured vertex (blind to a slide along the "
+        "surface); nipple tip: to the measured nipple tip. FRE/TRE: the scan's fiducial "
         "registration error and expected target registration error (a model error below "
         "the TRE cannot be told from registration error)." + failed
     )
