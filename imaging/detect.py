@@ -274,6 +274,7 @@ def detect_inclusions(
     signs = {"bright": [1.0], "dark": [-1.0], "both": [1.0, -1.0]}[polarity]
     offset = np.array([s.start for s in crop], float)
     centres, diams, contrasts = [], [], []
+    too_large = []  # (diameter, centre) of candidates past the upper diameter
     for sgn in signs:
         dev_s, dev = sgn * (ns - level), sgn * (n - level)
         lab, nlab = ndimage.label((dev_s > threshold) & inner)
@@ -290,6 +291,10 @@ def detect_inclusions(
             f = np.where(reg, dev[sl] / max(c, 1e-6), 0.0)
             d_eq = float((6.0 * f.sum() * vv / np.pi) ** (1.0 / 3.0)) if f.sum() > 0 else 0.0
             if not diameter_range_mm[0] <= d_eq <= diameter_range_mm[1]:
+                if d_eq > diameter_range_mm[1]:
+                    i0 = offset + np.array([s.start for s in sl], float)
+                    centre = seg.mask.index_to_lps(_weighted_centroid(np.clip(f, 0, 1), i0)[None])
+                    too_large.append((d_eq, centre[0]))
                 continue
             w = np.clip(f, 0.0, 1.0)
             idx = _weighted_centroid(w, offset + np.array([s.start for s in sl], float))
@@ -303,7 +308,19 @@ def detect_inclusions(
         "threshold": threshold,
         "n_found": len(diams),
         "n_surface_layer": n_layer,
+        "n_too_large": len(too_large),
     }
+    if too_large:
+        log.warning(
+            "%s: %d region(s) of inclusion contrast larger than the %g mm the detection "
+            "accepts were left out (volume-equivalent diameters %s mm, centres LPS %s): an "
+            "inclusion or tumour that large is not detected, nor tracked",
+            seg.mask.source,
+            len(too_large),
+            diameter_range_mm[1],
+            ", ".join(f"{d:.1f}" for d, _ in too_large[:_LISTED]),
+            " ".join(_at(c) for _, c in too_large[:_LISTED]),
+        )
     return InclusionDetection(
         np.array(centres, float).reshape(-1, 3), np.array(diams), np.array(contrasts), quality
     )
