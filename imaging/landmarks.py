@@ -199,6 +199,14 @@ def find_nipple(
         pts = v[tree.query_ball_point(tip, tip_radius_mm)] - tip
         pos, q = _quadratic_peak(tip, pts, frames[j][1], tip_radius_mm)
         quality |= q | {"method": "protrusion"}
+        if not q["refined"]:
+            log.warning(
+                "the nipple bump's tip fit found %d surface vertices within %g mm of its "
+                "top (it needs 10): the nipple is that vertex, good to the surface's vertex "
+                "spacing (a coarse surface for this body)",
+                len(pts),
+                tip_radius_mm,
+            )
     else:
         e1, e2 = _plane_basis(n)
         lateral = np.linalg.norm(v - v[k] - np.outer(h - h[k], n), axis=1)

@@ -258,3 +258,19 @@ def test_the_nipple_of_a_flat_topped_dome_is_its_apex_not_the_highest_noise():
     assert nip.quality["refined"] and nip.quality["cap_radius_mm"] == 32.0
     # the fit's own scatter: 0.15 mm noise over ~400 cap vertices of a flat cap
     np.testing.assert_allclose(nip.position_lps_mm, [0.0, 0.0, 20.0], atol=0.5)
+
+
+def test_a_nipple_bump_too_coarse_for_its_tip_fit_is_said(caplog):
+    # the bump's tip is refined by a quadratic fit of the vertices within 3 mm; with
+    # fewer than 10 (a surface coarse for its body: audit I, a 2x phantom at 20,000
+    # faces had a median of 4) the top vertex was kept without a word
+    v, _ = dome_surface((40.0, 40.0, 30.0), subdivisions=5)
+    r2 = (v[:, 0] ** 2 + v[:, 1] ** 2) * (v[:, 2] > 0)
+    v[:, 2] += 4.0 * np.exp(-r2 / (2 * 3.0**2)) * (v[:, 2] > 0)  # a 4 mm bump
+    plane = BackPlane(np.zeros(3), np.array([0.0, 0.0, 1.0]), "fiducials")
+    nip = find_nipple(v, plane)
+    assert nip.quality["method"] == "protrusion" and nip.quality["refined"]
+    with caplog.at_level("WARNING", logger="imaging.landmarks"):
+        coarse = find_nipple(v, plane, tip_radius_mm=0.5)
+    assert coarse.quality["method"] == "protrusion" and not coarse.quality["refined"]
+    assert "the nipple bump's tip fit found" in caplog.text
