@@ -52,6 +52,11 @@ TINY_SHORTCUT = replace(
         Posture("tilt_25", 25, "validation"),
     ),
 )
+#: On the quick twin's default 12 mm model the flip has no FE solution at the first
+#: estimate (455 Pa: the load stepping stalls at 74.5 % with the clamped rim's vertex
+#: tetrahedra inverted; fatal by design), so its shortcut is calibrated on the 14 mm mesh
+#: of the README's shortcut row (428.2 Pa, surface 0.60 / 0.18 / 0.25 mm).
+SHORTCUT_OPTIONS = {"quick": {"mesh_size_mm": 14.0, "mesh_retry_mm": ()}}
 CASES = {
     "tiny": (TINY, {"mesh_size_mm": 14.0, "mesh_retry_mm": (), "profile_points": 0}),
     "quick": (PRESETS["quick"], {}),
@@ -64,6 +69,7 @@ def _chain(tmp: Path, case: str, seed: int, reference_state: str = "unload") -> 
     preset, opts = CASES[case]
     if reference_state == "shortcut":
         preset = SHORTCUT_PRESETS.get(case, preset)
+        opts = {**opts, **SHORTCUT_OPTIONS.get(case, {})}
     truth = synthesize(tmp / "twin", preset=preset, seed=seed, effects=TruthEffects())
     work = tmp / f"work-{reference_state}"
     options = CalibrationOptions(reference_state=reference_state, **opts)
