@@ -139,8 +139,11 @@ def scan_metrics(
         )
     T_inv = np.linalg.inv(T)
     surf = registration.surface_errors(pts, pos, faces, frames=("fiducial", "icp"), T_icp=T)
+    # the measured surface without a cut field of view's edge (the back plate stays:
+    # it is surface, though far from the nipple)
+    seen = scan.vertices_mm if scan.fov_edge is None else scan.vertices_mm[~scan.fov_edge]
     nipple = registration.nipple_error(
-        pos[nipple_node], scan.vertices_mm, frames=("fiducial", "icp"), T_icp=T_inv
+        pos[nipple_node], seen, frames=("fiducial", "icp"), T_icp=T_inv
     )
     tumour = None
     if tumour_mm is not None and scan.tumour_mm is not None:

@@ -276,8 +276,12 @@ def _scan_validation(work: WorkFolder, name: str, faces: np.ndarray) -> ScanVali
     tumour_b = None
     if m.tumour_error_mm is not None:
         # without its derivative the tumour does not move with c1: no band, not [v, v]
-        moved = runs if st.dtumour_mm is not None else runs[:1]
-        tumour_b = {f: _band([r.tumour_error_mm[f] for r in moved]) for f in m.tumour_error_mm}
+        # (in the ICP frame it still moves, with the surface the ICP follows)
+        moved = {
+            f: runs if st.dtumour_mm is not None or f == "icp" else runs[:1]
+            for f in m.tumour_error_mm
+        }
+        tumour_b = {f: _band([r.tumour_error_mm[f] for r in moved[f]]) for f in m.tumour_error_mm}
     ing = ingest_record(work, name)
     angle, plane = _posture(work, scan)
     return ScanValidation(

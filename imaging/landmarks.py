@@ -200,12 +200,17 @@ def find_nipple(
         pos, q = _quadratic_peak(tip, pts, frames[j][1], tip_radius_mm)
         quality |= q | {"method": "protrusion"}
         if not q["refined"]:
+            why = (
+                f"found {len(pts)} surface vertices within {tip_radius_mm:g} mm of its top "
+                "(it needs 10: a surface coarse for this body)"
+                if len(pts) < 10
+                else f"is no peak within {tip_radius_mm:g} mm of its top (not concave, or "
+                "its peak off the fit)"
+            )
             log.warning(
-                "the nipple bump's tip fit found %d surface vertices within %g mm of its "
-                "top (it needs 10): the nipple is that vertex, good to the surface's vertex "
-                "spacing (a coarse surface for this body)",
-                len(pts),
-                tip_radius_mm,
+                "the nipple bump's tip fit %s: the nipple is that top vertex, good to the "
+                "surface's vertex spacing",
+                why,
             )
     else:
         e1, e2 = _plane_basis(n)

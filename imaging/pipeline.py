@@ -119,9 +119,9 @@ def mark_fov_edge(
     """Flag the surface vertices where the field of view cuts the body, (n,) bool.
 
     A vertex within one voxel of one of the volume's six faces and more than
-    ``min_height_mm`` above ``plane`` lies on the cut: the surface there is the volume's
-    edge, not the phantom's. Lower vertices on an edge are the back face resting on a
-    field of view that starts at the plate (the back-plate flag's).
+    ``min_height_mm`` above ``plane`` (the back-plate flag's tolerance, so that the two
+    flags meet) lies on the cut: the surface there is the volume's edge, not the
+    phantom's. Lower vertices on an edge are the back plate's.
 
     Parameters
     ----------
@@ -210,7 +210,7 @@ def process_scan(
             surf.vertices_lps_mm,
             mask=seg.mask,
             plane=plane,
-            min_height_mm=FOV_CUT_TOL_MM + float(volume.spacing_mm.max()),
+            min_height_mm=back_plate_tol_mm,
         )
         log.warning(
             "%s: the field of view cuts the body: body voxels on the volume's edge lie up to "
@@ -221,6 +221,13 @@ def process_scan(
             cut,
             int(edge.sum()),
         )
+        at = int(np.argmin(np.linalg.norm(surf.vertices_lps_mm - nipple.position_lps_mm, axis=1)))
+        if edge[at]:
+            log.warning(
+                "%s: the nipple found lies on the field of view's cut: the scan misses the "
+                "nipple, and its nipple figures and the nipple objective mean nothing",
+                volume.source,
+            )
     tumour = None
     if len(inc.diameters_mm):
         k = select_tumour(inc.centres_lps_mm, inc.diameters_mm, hint_lps_mm=tumour_hint_lps_mm)

@@ -176,7 +176,10 @@ def _surface(meas: ScanMeasurement, sim: SimulatedSurface, pos, dpos, points) ->
 
 def _nipple(meas: ScanMeasurement, nipple_node: int, pos, dpos) -> Residuals:
     p = pos[nipple_node][None]
-    c, _, _, n = closest_on_surface(meas.vertices_mm, meas.faces, p)
+    faces = meas.faces  # without a cut field of view's edge
+    if meas.fov_edge is not None:
+        faces = faces[~meas.fov_edge[faces].all(axis=1)]
+    c, _, _, n = closest_on_surface(meas.vertices_mm, faces, p)
     r, u = _signed(p - c, n)
     dr = None if dpos is None else np.einsum("kj,kj->k", u, dpos[nipple_node][None])
     return Residuals(r, dr, p)

@@ -178,7 +178,10 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
 def _figures(run: RunOutputs, d: Diagnosis, doc: dict) -> dict[str, list[str]]:
     prob = d.problem
     R = np.asarray(prob.work.record["model"]["R_ref_from_phantom"], float)
-    vmax = max(float(np.percentile(np.abs(g.before.vertex_error_mm), 99)) for g in d.gaps.values())
+    vmax = max(
+        float(np.percentile(np.abs(g.before.vertex_error_mm)[prob.measurement(n).scored], 99))
+        for n, g in d.gaps.items()
+    )
     figures: dict[str, list[str]] = {}
     gap = gap_figure(doc["gap"], doc["noise"]["floor_mean_abs_mm"], tuple(doc["named"]))
     save_figure(gap, run.path("gap.png"))
