@@ -141,9 +141,8 @@ def scan_metrics(
     surf = registration.surface_errors(pts, pos, faces, frames=("fiducial", "icp"), T_icp=T)
     # the measured surface without a cut field of view's edge (the back plate stays:
     # it is surface, though far from the nipple)
-    seen = scan.vertices_mm if scan.fov_edge is None else scan.vertices_mm[~scan.fov_edge]
     nipple = registration.nipple_error(
-        pos[nipple_node], seen, frames=("fiducial", "icp"), T_icp=T_inv
+        pos[nipple_node], scan.vertices_mm[scan.in_view], frames=("fiducial", "icp"), T_icp=T_inv
     )
     tumour = None
     if tumour_mm is not None and scan.tumour_mm is not None:

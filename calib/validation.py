@@ -275,13 +275,13 @@ def _scan_validation(work: WorkFolder, name: str, faces: np.ndarray) -> ScanVali
     landmark_b = _band([r.nipple_landmark_error_mm for r in runs])
     tumour_b = None
     if m.tumour_error_mm is not None:
-        # without its derivative the tumour does not move with c1: no band, not [v, v]
-        # (in the ICP frame it still moves, with the surface the ICP follows)
-        moved = {
-            f: runs if st.dtumour_mm is not None or f == "icp" else runs[:1]
+        # without its derivative the tumour does not move with c1 in the fiducial frame: no
+        # band, not [v, v] (in the ICP frame it moves, with the surface the ICP follows)
+        fixed = st.dtumour_mm is None
+        tumour_b = {
+            f: _band([r.tumour_error_mm[f] for r in (runs[:1] if fixed and f != "icp" else runs)])
             for f in m.tumour_error_mm
         }
-        tumour_b = {f: _band([r.tumour_error_mm[f] for r in moved[f]]) for f in m.tumour_error_mm}
     ing = ingest_record(work, name)
     angle, plane = _posture(work, scan)
     return ScanValidation(

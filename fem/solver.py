@@ -288,9 +288,8 @@ def stall_note(
     if lam <= 0.0:
         return f"no step of {load} converged"
     mesh = disc.mesh
-    u_mm = vertex_displacement_mm(disc, x)
-    moved = mesh.nodes_mm[mesh.tets] + u_mm[mesh.tets]
-    ratio = (np.linalg.det(moved[:, 1:] - moved[:, :1]) / 6.0) / mesh.volumes_mm3()
+    moved = mesh.with_nodes(mesh.nodes_mm + vertex_displacement_mm(disc, x))
+    ratio = moved.volumes_mm3() / mesh.volumes_mm3()
     e = int(np.argmin(ratio))
     held = np.unique(
         np.concatenate([mesh.node_set(s.node_set) for s in as_supports(model.support)])

@@ -290,15 +290,15 @@ def detect_inclusions(
             c = float(np.median(dev[sl][comp & (dev_s[sl] >= 0.9 * top)]))
             f = np.where(reg, dev[sl] / max(c, 1e-6), 0.0)
             d_eq = float((6.0 * f.sum() * vv / np.pi) ** (1.0 / 3.0)) if f.sum() > 0 else 0.0
-            if not diameter_range_mm[0] <= d_eq <= diameter_range_mm[1]:
-                if d_eq > diameter_range_mm[1]:
-                    i0 = offset + np.array([s.start for s in sl], float)
-                    centre = seg.mask.index_to_lps(_weighted_centroid(np.clip(f, 0, 1), i0)[None])
-                    too_large.append((d_eq, centre[0]))
+            if d_eq < diameter_range_mm[0]:
                 continue
             w = np.clip(f, 0.0, 1.0)
             idx = _weighted_centroid(w, offset + np.array([s.start for s in sl], float))
-            centres.append(seg.mask.index_to_lps(idx[None])[0])
+            centre = seg.mask.index_to_lps(idx[None])[0]
+            if d_eq > diameter_range_mm[1]:
+                too_large.append((d_eq, centre))
+                continue
+            centres.append(centre)
             diams.append(d_eq)
             contrasts.append(sgn * c)
     quality = {

@@ -56,14 +56,19 @@ class ScanMeasurement:
     fov_edge: np.ndarray | None = None
 
     @property
+    def in_view(self) -> np.ndarray:
+        """Vertices off a cut field of view's edge (all where nothing is cut), (n,) bool."""
+        if self.fov_edge is None:
+            return np.ones(len(self.vertices_mm), bool)
+        return ~self.fov_edge
+
+    @property
     def scored(self) -> np.ndarray:
         """Vertices measured on the phantom's surface, (n,) bool.
 
         Off the back plate and off the field of view's edge: what the fit and the errors use.
         """
-        if self.fov_edge is None:
-            return ~self.back_plate
-        return ~(self.back_plate | self.fov_edge)
+        return ~self.back_plate & self.in_view
 
     @property
     def nominal_posture(self) -> dict | None:

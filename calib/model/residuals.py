@@ -176,9 +176,7 @@ def _surface(meas: ScanMeasurement, sim: SimulatedSurface, pos, dpos, points) ->
 
 def _nipple(meas: ScanMeasurement, nipple_node: int, pos, dpos) -> Residuals:
     p = pos[nipple_node][None]
-    faces = meas.faces  # without a cut field of view's edge
-    if meas.fov_edge is not None:
-        faces = faces[~meas.fov_edge[faces].all(axis=1)]
+    faces = meas.faces[meas.in_view[meas.faces].any(axis=1)]  # not a cut field of view's
     c, _, _, n = closest_on_surface(meas.vertices_mm, faces, p)
     r, u = _signed(p - c, n)
     dr = None if dpos is None else np.einsum("kj,kj->k", u, dpos[nipple_node][None])
