@@ -73,10 +73,19 @@ def _largest_plane(v: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray, fl
     return normal / np.linalg.norm(normal), origin, len(inliers) / max(len(v), 1)
 
 
-def _face_height(h: np.ndarray) -> float | None:
-    """Height of the densest thin slab near the bottom (the flat back face), or None."""
+def _face_height(h: np.ndarray, plane_h: float | None = None) -> float | None:
+    """Height of the densest thin slab near the bottom (the flat back face), or None.
+
+    The slab is searched within :data:`FACE_WINDOW_MM` above the lowest vertex, and up to
+    half that window above ``plane_h`` (the height of the surface's largest plane, where it
+    is parallel to the plate and in the body's lower half): tissue can hang further than
+    the window past the plate's edge (a 12 mm lip put the plane 8.1 mm below the face).
+    """
     lo = float(h.min())
-    counts, edges = np.histogram(h, np.arange(lo, lo + FACE_WINDOW_MM + FACE_BIN_MM, FACE_BIN_MM))
+    hi = lo + FACE_WINDOW_MM
+    if plane_h is not None and plane_h - lo < 0.5 * (float(h.max()) - lo):
+        hi = max(hi, plane_h + 0.5 * FACE_WINDOW_MM)
+    counts, edges = np.histogram(h, np.arange(lo, hi + FACE_BIN_MM, FACE_BIN_MM))
     k = int(np.argmax(counts))
     if counts[k] < FACE_CONTRAST * max(float(np.median(counts)), 1.0):
         return None  # no flat face stands out (an open or face-less surface)
@@ -128,7 +137,11 @@ def estimate_back_plane(
     h = (v - origin) @ normal
     if h.mean() < 0:  # the body lies on the positive side of the plate
         normal, h = -normal, -h
-    face = _face_height(h)
+    parallel = abs(float(face_normal @ normal)) >= np.cos(np.radians(FIDUCIALS_OFF_FACE_DEG))
+    plane_h = None
+    if parallel and share >= FACE_MIN_SHARE:
+        plane_h = float((face_origin - origin) @ normal)
+    face = _face_height(h, plane_h)
     beyond = h < face - face_tol_mm if face is not None else np.zeros(len(h), bool)
     if beyond.any():
         log.warning(

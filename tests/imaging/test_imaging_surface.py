@@ -123,9 +123,16 @@ def test_back_plane_stays_on_the_face_when_tissue_bulges_past_the_plate():
     plane = estimate_back_plane(np.vstack([v, lip]))
     assert plane.normal[2] > 0.999
     assert abs(plane.point_lps_mm[2]) < 1e-6 and plane.beyond_face == len(lip)
+    # a lip hanging further than the 10 mm search window (a softer or larger body): the
+    # face is found by the surface's largest plane (was 8.1 mm below it, beyond_face 0)
+    rows = np.arange(-12.0, -0.9, 1.0)
+    deep = np.c_[np.tile(lip[:, :2], (len(rows), 1)), np.repeat(rows, len(lip))]
+    fid = np.array([[50.0, 0.0, 0.0], [-50.0, 10.0, 0.0], [0.0, -45.0, 0.0]])
+    for fiducials in (None, fid):
+        plane = estimate_back_plane(np.vstack([v, deep]), fiducials_lps_mm=fiducials)
+        assert abs(plane.point_lps_mm[2]) < 1e-6 and plane.beyond_face == len(deep)
     # a dome open at its base has no flat face: the 1st percentile of all the heights,
     # as before, with the normal from three fiducials on the plate
-    fid = np.array([[50.0, 0.0, 0.0], [-50.0, 10.0, 0.0], [0.0, -45.0, 0.0]])
     side = v[v[:, 2] > 0.0]
     open_plane = estimate_back_plane(side, fiducials_lps_mm=fid)
     assert open_plane.beyond_face == 0
