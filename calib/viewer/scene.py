@@ -13,7 +13,10 @@ predict --frame phantom``):
   the reference frame by ``ingest``) and its per-vertex error (``calibration/<scan>_error.ply``,
   ``error_mm``, signed, shown as its magnitude as the project's PNG maps do); after
   ``diagnose``, the same error of its refitted model (``diagnosis/refit/``, a work folder
-  of saved states);
+  of saved states). The faces whose vertices are all scored
+  (:attr:`calib.data.measurements.ScanMeasurement.scored`) come first, their number in
+  ``n_scored_faces``: the others touch the back plate or a cut field of view, whose
+  error is not measured (0 in the maps), and are shown grey, not as 0 mm;
 * what is missing, as sentences naming the file and the command that makes it.
 
 :class:`Predictor` evaluates the surrogate (:meth:`nn.Surrogate.predict`) for a gravity
@@ -329,9 +332,12 @@ def _add_work(scene: Scene, folder, info: dict, vnodes: np.ndarray, hint: dict) 
     for name, scan in folder.measurements.scans.items():
         g_ph = (np.asarray(scan.gravity_ref, float) @ R) * g
         entry = {"name": name, "role": scan.role, "gravity_phantom_m_s2": g_ph.tolist()}
+        faces = np.asarray(scan.faces, np.int64)
+        whole = scan.scored[faces].all(axis=1)
         overlay = {
             "vertices_mm": scene.to_phantom(scan.vertices_mm).astype(np.float32),
-            "faces": np.asarray(scan.faces, np.int64),
+            "faces": np.concatenate([faces[whole], faces[~whole]]),
+            "n_scored_faces": int(whole.sum()),
         }
         err = _error_ply(work / "calibration" / f"{name}_error.ply")
         if err is not None and len(err) == len(scan.vertices_mm):

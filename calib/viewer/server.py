@@ -14,8 +14,8 @@ states, landmarks, what is missing); ``/api/surface`` (float32 rest positions + 
 triangles); ``/api/predict?g=X,Y,Z&c1=C1`` (float32: the surface vertices, then nipple
 and tumour, NaN where absent; header ``X-Extrapolating``); ``/api/state/<scan>``
 (float32 vertices of a saved FE state, then its nipple and tumour);
-``/api/overlay/<scan>`` (float32 vertices, uint32 triangles, float32 error maps; layout
-in the ``X-Layout`` header).
+``/api/overlay/<scan>`` (float32 vertices, uint32 triangles, the ``n_scored_faces``
+whose error is measured first, float32 error maps; layout in the ``X-Layout`` header).
 """
 
 from __future__ import annotations
@@ -170,7 +170,12 @@ class _Handler(BaseHTTPRequestHandler):
             + np.ascontiguousarray(ov["faces"], dtype="<u4").tobytes()
             + _f32(*(ov[k] for k in maps))
         )
-        layout = {"n_vertices": len(ov["vertices_mm"]), "n_faces": len(ov["faces"]), "maps": maps}
+        layout = {
+            "n_vertices": len(ov["vertices_mm"]),
+            "n_faces": len(ov["faces"]),
+            "n_scored_faces": ov.get("n_scored_faces", len(ov["faces"])),
+            "maps": maps,
+        }
         return self._send(
             body, "application/octet-stream", headers={"X-Layout": json.dumps(layout)}
         )

@@ -282,7 +282,7 @@ def _work_with_scans(root: Path, model: Path) -> tuple[Path, dict]:
         )
         run.commit(doc | {"diagnosis": {"calibration_run_id": run_id}})
     planted = {
-        "R": R, "g_ph": g_ph, "measured": measured, "error": error, "back": back,
+        "R": R, "g_ph": g_ph, "measured": measured, "error": error, "back": back, "faces": faces,
         "state": (mesh.nodes_mm + u)[nodes], "fiducials": fid,
     }  # fmt: skip
     return work, planted
@@ -301,6 +301,12 @@ def test_scene_reads_scans_states_and_maps_into_the_phantom_frame(scans_work, bo
     ov = scene.overlays["tilt_50"]
     np.testing.assert_allclose(ov["vertices_mm"], p["measured"] @ R, atol=1e-5, rtol=0)
     np.testing.assert_array_equal(ov["error_mm"], p["error"].astype(np.float32))  # <f4 on disk
+    # the faces whose error is measured first (the back plate's are drawn grey, not 0 mm)
+    whole = ~p["back"][p["faces"]].any(axis=1)
+    n = ov["n_scored_faces"]
+    assert n == whole.sum() and 0 < n < len(whole)
+    assert not p["back"][ov["faces"][:n]].any() and p["back"][ov["faces"][n:]].any(axis=1).all()
+    assert {tuple(f) for f in ov["faces"]} == {tuple(f) for f in p["faces"]}
     # after diagnose: its refitted state is the measured surface, so the error measured
     # as calibrate measures it is 0 (float32 storage of <= 100 mm coordinates: 1e-5 mm)
     np.testing.assert_allclose(ov["error_after_mm"], 0.0, atol=1e-5)
@@ -351,10 +357,14 @@ def test_page_at_a_scan_posture_shows_its_error_map(scans_work, box, browser, tm
         np.testing.assert_allclose(got, expect[5], atol=1e-3, rtol=0)  # as in the first test
         assert browser.evaluate("document.getElementById('overlay').value") == "error_mm"
         label = browser.evaluate("document.getElementById('barlabel').innerText")
-        # the colour scale: 99th percentile of |error| over the nonzero (compared) vertices
-        e = np.sort(np.abs(p["error"].astype(np.float32)))
-        e = e[e > 0]
+        # the colour scale: 99th percentile of |error| over the vertices of the scored
+        # faces (off the back plate; the planted errors there are not 0, and counted, gave
+        # another scale)
+        scored = np.unique(p["faces"][~p["back"][p["faces"]].any(axis=1)])
+        e = np.sort(np.abs(p["error"].astype(np.float32)[scored]))
         p99 = e[int(0.99 * (len(e) - 1))]
+        e_all = np.sort(np.abs(p["error"].astype(np.float32)))
+        assert f"{e_all[int(0.99 * (len(e_all) - 1))]:.2f}" != f"{p99:.2f}"
         assert f"|error| {p99:.2f} mm" in label
         browser.evaluate(
             "document.getElementById('overlay').value = 'error_after_mm';"

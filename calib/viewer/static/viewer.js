@@ -171,7 +171,12 @@
       gl.uniform1i(loc.mode, isMap ? 1 : 0);
       gl.uniform4f(loc.color, 0.3, 0.5, 0.95, isMap ? 1 : 0.45);
       if (!isMap) { gl.enable(gl.BLEND); gl.blendFunc(gl.SRC_ALPHA, gl.ONE_MINUS_SRC_ALPHA); gl.depthMask(false); }
-      gl.bindVertexArray(overlay.vao); gl.drawElements(gl.TRIANGLES, overlay.count, gl.UNSIGNED_INT, 0);
+      const nc = isMap ? 3 * overlay.nScored : overlay.count;
+      gl.bindVertexArray(overlay.vao); gl.drawElements(gl.TRIANGLES, nc, gl.UNSIGNED_INT, 0);
+      if (nc < overlay.count) {  // faces on the back plate or a cut field of view: not scored, grey
+        gl.uniform1i(loc.mode, 0); gl.uniform4f(loc.color, 0.72, 0.72, 0.72, 1);
+        gl.drawElements(gl.TRIANGLES, overlay.count - nc, gl.UNSIGNED_INT, 4 * nc);
+      }
       gl.disable(gl.BLEND); gl.depthMask(true);
     }
     // markers and the gravity arrow, on top
@@ -306,6 +311,9 @@
     const maps = {};
     lay.maps.forEach((k, j) => { maps[k] = new Float32Array(buf, 12 * nv + 12 * nf + 4 * nv * j, nv); });
     overlay = makeMesh(pos, idx, null); overlay.maps = maps;
+    overlay.nScored = lay.n_scored_faces ?? nf;
+    overlay.scored = new Uint8Array(nv);  // the vertices of the scored faces (listed first)
+    for (let i = 0; i < 3 * overlay.nScored; i++) overlay.scored[idx[i]] = 1;
     applyOverlayMode();
   }
   function applyOverlayMode() {
@@ -316,9 +324,9 @@
       if (!m) { $("warn").textContent = k === "error_after_mm" ? "no diagnose refit maps for this scan (run `phantom-calib diagnose`)" : "no error map for this scan"; setValues(overlay, new Float32Array(overlay.n)); }
       else {
         // one scale for before and after (as diagnose's figures): the 99th percentile of
-        // |error| before, over the compared vertices (the back plate's are 0, not compared)
+        // |error| before, over the vertices of the scored faces (the rest are 0, not compared)
         const ref = overlay.maps.error_mm || m;
-        const s = Array.from(ref).map(Math.abs).filter((x) => x > 0).sort((x, y) => x - y);
+        const s = Array.from(ref).filter((x, i) => overlay.scored[i]).map(Math.abs).sort((x, y) => x - y);
         vmax = s.length ? Math.max(s[Math.floor(0.99 * (s.length - 1))], 1e-6) : 1;
         setValues(overlay, m); showBar(vmax, k);
       }
@@ -330,7 +338,7 @@
     const c = $("barc"), x = c.getContext("2d"), stops = ["#002250", "#35456c", "#7c7b78", "#bcaf6f", "#fee838"];
     const gr = x.createLinearGradient(0, c.height, 0, 0); stops.forEach((s, i) => gr.addColorStop(i / 4, s));
     x.fillStyle = gr; x.fillRect(0, 0, c.width, c.height);
-    $("barlabel").innerHTML = `|error| ${vmax.toFixed(2)} mm (p99)<br>…<br>0 mm<br>${k === "error_mm" ? "model vs measured" : "after diagnose's refit"}`;
+    $("barlabel").innerHTML = `|error| ${vmax.toFixed(2)} mm (p99)<br>…<br>0 mm<br>${k === "error_mm" ? "model vs measured" : "after diagnose's refit"}<br>grey: not scored`;
     $("bar").style.display = "block";
   }
 
