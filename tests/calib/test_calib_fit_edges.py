@@ -136,6 +136,28 @@ def test_a_nipple_patch_too_small_is_refused_before_any_fe_work(measurements, mo
         pipeline.fit(measurements, opts, density_kg_m3=1000.0, progress=lambda m: None)
 
 
+def test_a_sparse_nipple_patch_reaches_its_tenth_point_up_to_twice_its_radius():
+    # calibrate's subsample has a fixed count: a body 2.5 times the twin's has a median of
+    # 16 points within 15 mm of its nipple, and some seeds fewer than 10 (audit I)
+    from types import SimpleNamespace
+
+    import calib.fitting.profile as profile
+
+    scan = SimpleNamespace(name="tilt_25", nipple_mm=np.zeros(3))
+    d = np.r_[np.linspace(1.0, 14.0, 7), 18.0, 19.0, 21.0, 25.0, 40.0]
+    pts = np.c_[d, np.zeros((len(d), 2))]
+    cal = SimpleNamespace(calibration_scans=[scan], points={"tilt_25": pts})
+    [(_, near)] = profile.nipple_patches(cal)
+    np.testing.assert_array_equal(near, pts[:10])  # 7 within 15 mm, grown to the 10th at 21 mm
+    cal.points["tilt_25"] = np.r_[pts[:7], pts[10:]]  # the 10th nearest at 40 mm: refused
+    with pytest.raises(
+        ValueError,
+        match=r"7 measured surface points within 15.0 mm of the "
+        r"nipple, 8 within 30 mm \(at least 10",
+    ):
+        profile.nipple_patches(cal)
+
+
 def test_a_phantom_whose_nipple_barely_moves_starts_at_the_guess_and_says_so(
     measurements, monkeypatch, caplog
 ):
