@@ -180,6 +180,10 @@ NIPPLE_NODE_OFFSET_MM = 2.5
 #: Fewer elements than this through the body's height (height / mesh size), the mesh is
 #: said to be coarse for the body. The twins: 6.3 at 12 mm, 5.4 at 14 mm (75 mm tall).
 MIN_ELEMENTS_IN_HEIGHT = 4.0
+#: More elements than this through the body's height, the mesh is said to be fine for the
+#: body (slow to solve): a body twice the twins' size gets 12.6 elements of the default 12
+#: mm, 30,089 tetrahedra and 81 s per FE solve against the twins' 4 s.
+MAX_ELEMENTS_IN_HEIGHT = 12.0
 
 
 def model_mesh_notes(ref, mesh, size_mm: float) -> list[str]:
@@ -188,7 +192,8 @@ def model_mesh_notes(ref, mesh, size_mm: float) -> list[str]:
     The model's nipple is the surface node nearest the measured nipple: on a coarse mesh
     of a smooth dome it can lie several mm away (:data:`NIPPLE_NODE_OFFSET_MM`). A body
     only a few elements tall (:data:`MIN_ELEMENTS_IN_HEIGHT`) is meshed far more coarsely
-    than the twins the README's figures come from.
+    than the twins the README's figures come from; one many elements tall
+    (:data:`MAX_ELEMENTS_IN_HEIGHT`) far more finely, and solves far more slowly.
 
     Parameters
     ----------
@@ -218,6 +223,13 @@ def model_mesh_notes(ref, mesh, size_mm: float) -> list[str]:
             f"the body is {height:.0f} mm tall: {height / size_mm:.1f} elements of "
             f"{size_mm:g} mm through its height, fewer than {MIN_ELEMENTS_IN_HEIGHT:g}; "
             f"consider --mesh-size {height / 6:.0f}"
+        )
+    elif height > MAX_ELEMENTS_IN_HEIGHT * size_mm:
+        notes.append(
+            f"the body is {height:.0f} mm tall: {height / size_mm:.1f} elements of "
+            f"{size_mm:g} mm through its height ({mesh.n_tets} tetrahedra), more than "
+            f"{MAX_ELEMENTS_IN_HEIGHT:g}: each FE solve is slow (the twins have about 6); "
+            f"--mesh-size {height / 6:.0f} is about as fine as theirs"
         )
     return notes
 

@@ -197,7 +197,7 @@ def test_calibrate_follows_a_tumour_outside_the_model_mesh_and_says_so(caplog):
     np.testing.assert_allclose(inside.place_mm(box.nodes_mm), [5.0, 7.0, 11.0], atol=1e-12)
 
 
-def test_a_far_nipple_node_and_a_coarse_mesh_for_the_body_are_said():
+def test_a_far_nipple_node_and_a_coarse_or_fine_mesh_for_the_body_are_said():
     # a smooth dome without a nipple bump put the nearest surface node 3.5-6.3 mm from the
     # measured nipple on 12 mm meshes (the twins: 0.75-1.56 mm), and a 40 mm tall phantom
     # gets about 3 elements of 12 mm through its height (the twins: 6): both silent before
@@ -220,3 +220,8 @@ def test_a_far_nipple_node_and_a_coarse_mesh_for_the_body_are_said():
     assert note.startswith("the model's nipple node lies 3.0 mm from the measured nipple")
     (note,) = model_mesh_notes(ref, mesh, 12.0)
     assert note.startswith("the body is 20 mm tall: 1.7 elements of 12 mm")
+    # a body twice the twins' size gets 12.6 elements of the default 12 mm: 30,089
+    # tetrahedra, 81 s per solve against 4 s (audit I), which was not said
+    (note,) = model_mesh_notes(ref, mesh, 1.5)
+    assert note.startswith("the body is 20 mm tall: 13.3 elements of 1.5 mm through its ")
+    assert f"({mesh.n_tets} tetrahedra)" in note and "--mesh-size 3 " in note
