@@ -17,6 +17,7 @@ __all__ = [
     "RunOutputs",
     "StaleOutputError",
     "atomic_write",
+    "check_out_file",
     "check_run",
     "clean_stale",
     "file_sha256",
@@ -32,6 +33,24 @@ def write_json_atomic(path: str | os.PathLike, data: dict) -> Path:
     """Write ``data`` as indented JSON, atomically."""
     text = json.dumps(data, indent=2, sort_keys=False, allow_nan=False)
     return atomic_write(path, lambda p: p.write_text(text + "\n"))
+
+
+def check_out_file(out: str | os.PathLike) -> None:
+    """Refuse an ``--out`` file that cannot be written, before any work.
+
+    Raises
+    ------
+    IsADirectoryError
+        ``out`` is a folder.
+    PermissionError
+        Its nearest existing parent folder is not writable.
+    """
+    out = Path(out)
+    if out.is_dir():
+        raise IsADirectoryError(f"--out {out}: is a folder; name the file to write")
+    parent = next((p for p in (out.parent, *out.parent.parents) if p.exists()), Path("."))
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise PermissionError(f"--out {out}: {parent} is not writable")
 
 
 def file_sha256(path: str | os.PathLike) -> str:

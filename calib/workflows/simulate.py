@@ -144,9 +144,9 @@ def check_mesh(mesh: fem.TetMesh, path: Path) -> None:
 
 def check_output(out_path: Path) -> None:
     """Fail before any work when ``out_path`` cannot be written as a mesh."""
-    import os
-
     from fem.io import _format_for
+
+    from ..io import check_out_file
 
     if out_path.suffix.lower() not in (".node", ".ele"):
         try:
@@ -155,11 +155,7 @@ def check_output(out_path: Path) -> None:
             raise ValueError(
                 f"--out {out_path}: not a mesh format (use .vtu, .vtk, .xdmf, .inp, .msh, ...)"
             ) from None
-    if out_path.exists() and out_path.is_dir():
-        raise IsADirectoryError(f"--out {out_path}: is a folder")
-    parent = next((p for p in (out_path.parent, *out_path.parent.parents) if p.exists()), Path("."))
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise PermissionError(f"--out {out_path}: {parent} is not writable")
+    check_out_file(out_path)
 
 
 def _in_file_numbering(mesh: fem.TetMesh, points, u_mm: np.ndarray):

@@ -360,12 +360,6 @@ def _create_new_store(out: Path, model, plan, cont, opts: SweepOptions):
         raise
 
 
-def _check_out(out) -> None:
-    """Refuse an ``--out`` that is a folder before any work (a file is replaced)."""
-    if Path(out).is_dir():
-        raise IsADirectoryError(f"--out {out}: is a folder; name the file to write")
-
-
 def run_surrogate_train(
     sweep,
     out,
@@ -409,14 +403,14 @@ def run_surrogate_train(
     """
     import nn
 
-    from ..io import atomic_write
+    from ..io import atomic_write, check_out_file
 
     if kind not in _KINDS:
         raise ValueError(f"unknown surrogate kind {kind!r}; choose ours or dissertation")
     nn.select_device(device)  # an unknown name, or cuda without a GPU, before any reading
     if iterations is not None and iterations < 1:
         raise ValueError(f"--iterations must be >= 1, got {iterations}")
-    _check_out(out)
+    check_out_file(out)
     data = nn.load_sweep(sweep)
     if kind == "ours":
         fit = nn.fit_reduced_kernel(data, device=device, progress=progress)
@@ -474,13 +468,15 @@ def run_surrogate_predict(
     """
     import nn
 
+    from ..io import check_out_file
+
     out = Path(out)
     suffix = out.suffix.lower()
     if suffix not in _PREDICT_SUFFIXES:
         raise ValueError(f"--out {out}: write .vtu or .ply, got suffix {out.suffix!r}")
     if frame not in ("phantom", "ref"):
         raise ValueError(f"--frame must be 'phantom' or 'ref', got {frame!r}")
-    _check_out(out)
+    check_out_file(out)
     sur = nn.load_surrogate(model_path)
     if suffix == ".vtu" and sur.surface_only:  # checked before predicting
         raise ValueError(f"{model_path}: this surrogate predicts surface nodes only; write a .ply")

@@ -6,6 +6,8 @@ sweep store had been read, or after the model had been loaded and queried (audit
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from typer.testing import CliRunner
 
@@ -57,6 +59,21 @@ def test_train_refuses_a_folder_as_out_before_reading(tmp_path, no_reading):
     (tmp_path / "m.pt").mkdir()
     with pytest.raises(IsADirectoryError, match=r"--out .*m\.pt: is a folder"):
         run_surrogate_train(tmp_path / "SWEEP", tmp_path / "m.pt", device="cpu")
+
+
+def test_train_refuses_an_unwritable_out_before_reading(tmp_path, no_reading, monkeypatch):
+    # the check simulate made; train found out after minutes of fitting (os.access is
+    # replaced: the suite may run as root, for whom every folder is writable)
+    import calib.io
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    real = calib.io.os.access
+    monkeypatch.setattr(calib.io.os, "access", lambda p, m: Path(p) != locked and real(p, m))
+    with pytest.raises(PermissionError, match=r"--out .*m\.pt: .*locked is not writable"):
+        run_surrogate_train(tmp_path / "SWEEP", locked / "sub" / "m.pt", device="cpu")
+    with pytest.raises(PermissionError, match="locked is not writable"):
+        run_surrogate_predict(tmp_path / "m.pt", locked / "R.vtu", gravity=[0, 0, 9.81])
 
 
 def test_cli_train_bad_kind_reads_nothing(tmp_path, no_reading):
