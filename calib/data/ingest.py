@@ -7,6 +7,7 @@ inclusion across them (:func:`registration.match_constellation`);
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -426,8 +427,6 @@ def ingest_scans(session: Session, *, progress=None) -> IngestResult:
 
 def load_ingest(work: str | Path, name: str) -> dict:
     """Read ``work/scans/<name>/ingest.json``."""
-    import json
-
     path = Path(work) / "scans" / name / "ingest.json"
     if not path.is_file():
         raise FileNotFoundError(f"{path} not found: run `phantom-calib ingest` first")
@@ -486,4 +485,21 @@ def stale_reasons(work: str | Path, session: Session) -> list[str]:
     ]
     if missing:
         reasons.append(f"no ingest results for {missing}")
+    older = [
+        s.name
+        for s in session.scans
+        if s.name not in missing and "fov_edge_vertices" not in _quality(work, s.name)
+    ]
+    if older:
+        reasons.append(
+            f"the ingest results of {older} predate the flags of a cut field of view (an "
+            "older phantom-calib): their cut edges would be scored as surface"
+        )
     return reasons
+
+
+def _quality(work: Path, name: str) -> dict:
+    try:
+        return json.loads((work / "scans" / name / "ingest.json").read_text()).get("quality", {})
+    except (OSError, ValueError, AttributeError):
+        return {}
