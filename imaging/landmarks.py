@@ -79,7 +79,8 @@ def _face_height(h: np.ndarray, plane_h: float | None = None) -> float | None:
     The slab is searched within :data:`FACE_WINDOW_MM` above the lowest vertex, and up to
     half that window above ``plane_h`` (the height of the surface's largest plane, where it
     is parallel to the plate and in the body's lower half): tissue can hang further than
-    the window past the plate's edge (a 12 mm lip put the plane 8.1 mm below the face).
+    the window past the plate's edge (a 12 mm lip put the plane 8.1 mm below the face of a
+    120 x 80 mm dome, 12.0 mm below that of an 80 x 60 mm one).
     """
     lo = float(h.min())
     hi = lo + FACE_WINDOW_MM
@@ -109,10 +110,12 @@ def estimate_back_plane(
     taken, with a warning. The normal is oriented towards the body and the
     plane is moved onto the body's back face: the 1st percentile of the vertex heights,
     leaving out the vertices more than ``face_tol_mm`` below the densest 0.25 mm slab of
-    heights near the bottom (the face). A soft body in a lateral posture can bulge past
-    the plate's edge, below the face (2.9-3.9 mm on a 200 Pa quick twin's lateral
-    scans); counted in, those vertices moved the plane 1.7-2.1 mm off the face, left most
-    of the face unflagged and the model mesh without a support.
+    heights near the bottom (the face; searched within 10 mm of the lowest vertex and,
+    where the surface's largest plane is parallel to the plate, up to 5 mm above that
+    plane's height under the body: :func:`_face_height`). A soft body in a lateral
+    posture can bulge past the plate's edge, below the face (2.9-3.9 mm on a 200 Pa quick
+    twin's lateral scans); counted in, those vertices moved the plane 1.7-2.1 mm off the
+    face, left most of the face unflagged and the model mesh without a support.
     """
     v = np.asarray(vertices_lps_mm, float)
     method, off = "ransac", None
@@ -139,8 +142,9 @@ def estimate_back_plane(
         normal, h = -normal, -h
     parallel = abs(float(face_normal @ normal)) >= np.cos(np.radians(FIDUCIALS_OFF_FACE_DEG))
     plane_h = None
-    if parallel and share >= FACE_MIN_SHARE:
-        plane_h = float((face_origin - origin) @ normal)
+    if parallel and share >= FACE_MIN_SHARE:  # the largest plane's height under the body
+        m = v.mean(axis=0)
+        plane_h = float((m - ((m - face_origin) @ face_normal) * face_normal - origin) @ normal)
     face = _face_height(h, plane_h)
     beyond = h < face - face_tol_mm if face is not None else np.zeros(len(h), bool)
     if beyond.any():

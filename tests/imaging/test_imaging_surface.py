@@ -143,13 +143,25 @@ def test_back_plane_stays_on_the_face_when_tissue_bulges_past_the_plate():
     assert plane.normal[2] > 0.999
     assert abs(plane.point_lps_mm[2]) < 1e-6 and plane.beyond_face == len(lip)
     # a lip hanging further than the 10 mm search window (a softer or larger body): the
-    # face is found by the surface's largest plane (was 8.1 mm below it, beyond_face 0)
+    # face is found by the surface's largest plane (was 12.0 mm below it, beyond_face 0)
     rows = np.arange(-12.0, -0.9, 1.0)
     deep = np.c_[np.tile(lip[:, :2], (len(rows), 1)), np.repeat(rows, len(lip))]
     fid = np.array([[50.0, 0.0, 0.0], [-50.0, 10.0, 0.0], [0.0, -45.0, 0.0]])
     for fiducials in (None, fid):
         plane = estimate_back_plane(np.vstack([v, deep]), fiducials_lps_mm=fiducials)
         assert abs(plane.point_lps_mm[2]) < 1e-6 and plane.beyond_face == len(deep)
+    # ... also far from the scanner's origin, with the fiducials' plane 1 degree off the
+    # face (within the 3 degrees it is trusted): the largest plane's height is taken under
+    # the body, not at the foot of the origin's perpendicular (250 mm away, it missed the face)
+    t = np.radians(1.0)
+    tilt = np.array([[np.cos(t), 0.0, np.sin(t)], [0.0, 1.0, 0.0], [-np.sin(t), 0.0, np.cos(t)]])
+    shift = np.array([250.0, 0.0, -80.0])
+    plane = estimate_back_plane(np.vstack([v, deep]) + shift, fiducials_lps_mm=fid @ tilt.T + shift)
+    # (tilted, the lip's top row, 1 mm under the face, lies within face_tol_mm in part)
+    assert plane.method == "fiducials" and plane.beyond_face >= len(deep) - len(lip)
+    face = v[np.abs(v[:, 2]) < 1e-9] + shift
+    # the face's heights over the tilted plane span its 80 mm width x sin(1 degree)
+    assert np.abs(np.median((face - plane.point_lps_mm) @ plane.normal)) < 1.5
     # a dome open at its base has no flat face: the 1st percentile of all the heights,
     # as before, with the normal from three fiducials on the plate
     side = v[v[:, 2] > 0.0]
