@@ -437,8 +437,15 @@ class StaleIngestError(RuntimeError):
     """The ingest results in a work folder are not those of the current scans."""
 
 
+#: Revision of what ingest makes of the same scans; results of another revision are stale.
+#: 1 (no ``ingest_revision`` recorded): before the flags of a cut field of view. 2: those
+#: flags (``fov_edge``), at most 1.5 mm^2 per surface face, the back face found below a
+#: lip hanging more than 10 mm past the plate's edge.
+INGEST_REVISION = 2
+
+
 def ingest_inputs(session: Session) -> dict:
-    """Fingerprints of what ingest reads.
+    """Fingerprints of what ingest reads, and its :data:`INGEST_REVISION`.
 
     The session (:meth:`Session.ingest_fingerprint`) and every scan's source
     (:func:`calib.io.source_sha256`).
@@ -448,6 +455,7 @@ def ingest_inputs(session: Session) -> dict:
     return {
         "session_sha256": session.ingest_fingerprint(),
         "sources_sha256": {s.name: source_sha256(s.path) for s in session.scans},
+        "ingest_revision": INGEST_REVISION,
     }
 
 
@@ -471,6 +479,12 @@ def stale_reasons(work: str | Path, session: Session) -> list[str]:
         return ["the ingest results carry no fingerprints (an older phantom-calib)"]
     now = ingest_inputs(session)
     reasons = []
+    revision = recorded.get("ingest_revision", 1)
+    if revision != INGEST_REVISION:
+        reasons.append(
+            f"the ingest results are of an older phantom-calib (ingest revision {revision}, "
+            f"now {INGEST_REVISION}: the scans may give other surfaces and flags)"
+        )
     if recorded["session_sha256"] != now["session_sha256"]:
         reasons.append(
             "session.toml changed (its reference scan, postures, landmarks, "
@@ -485,21 +499,4 @@ def stale_reasons(work: str | Path, session: Session) -> list[str]:
     ]
     if missing:
         reasons.append(f"no ingest results for {missing}")
-    older = [
-        s.name
-        for s in session.scans
-        if s.name not in missing and "fov_edge_vertices" not in _quality(work, s.name)
-    ]
-    if older:
-        reasons.append(
-            f"the ingest results of {older} predate the flags of a cut field of view (an "
-            "older phantom-calib): their cut edges would be scored as surface"
-        )
     return reasons
-
-
-def _quality(work: Path, name: str) -> dict:
-    try:
-        return json.loads((work / "scans" / name / "ingest.json").read_text()).get("quality", {})
-    except (OSError, ValueError, AttributeError):
-        return {}

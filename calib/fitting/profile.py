@@ -12,7 +12,8 @@ profile bounds c1 (:func:`calib.fitting.uncertainty.profile_ci95`).
 
 The noise level is measured apart from the nipple residual: the root mean square of the
 surface residuals (measured points to the simulated surface, fiducial frame) within
-``radius_mm`` of each scan's measured nipple, at the calibrated c1. It holds the surface's
+``radius_mm`` of each scan's measured nipple (or its 10th nearest point, see
+:func:`nipple_patches`), at the calibrated c1. It holds the surface's
 localisation noise and whatever the model misses near the nipple, so the interval is
 conservative rather than optimistic.
 """
@@ -77,8 +78,9 @@ def nipple_patches(cal, *, radius_mm: float = PATCH_RADIUS_MM) -> list:
             if reach < PATCH_GROWTH * radius_mm:
                 r = np.nextafter(reach, np.inf)
                 n_in = np.count_nonzero(d < radius_mm)
-                log.info(
-                    "scan %r: the nipple's noise patch reaches %.1f mm (%d points within %g mm)",
+                log.warning(
+                    "scan %r: the nipple's noise patch reaches %.1f mm (%d subsampled points "
+                    "within %g mm): its noise level takes in more of the model's misfit",
                     s.name,
                     r,
                     n_in,

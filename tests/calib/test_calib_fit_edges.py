@@ -136,7 +136,7 @@ def test_a_nipple_patch_too_small_is_refused_before_any_fe_work(measurements, mo
         pipeline.fit(measurements, opts, density_kg_m3=1000.0, progress=lambda m: None)
 
 
-def test_a_sparse_nipple_patch_reaches_its_tenth_point_up_to_twice_its_radius():
+def test_a_sparse_nipple_patch_reaches_its_tenth_point_up_to_twice_its_radius(caplog):
     # calibrate's subsample has a fixed count: a body 2.5 times the twin's has a median of
     # 16 points within 15 mm of its nipple, and some seeds fewer than 10 (audit I)
     from types import SimpleNamespace
@@ -147,8 +147,10 @@ def test_a_sparse_nipple_patch_reaches_its_tenth_point_up_to_twice_its_radius():
     d = np.r_[np.linspace(1.0, 14.0, 7), 18.0, 19.0, 21.0, 25.0, 40.0]
     pts = np.c_[d, np.zeros((len(d), 2))]
     cal = SimpleNamespace(calibration_scans=[scan], points={"tilt_25": pts})
-    [(_, near)] = profile.nipple_patches(cal)
+    with caplog.at_level("WARNING", logger="calib.fitting.profile"):
+        [(_, near)] = profile.nipple_patches(cal)
     np.testing.assert_array_equal(near, pts[:10])  # 7 within 15 mm, grown to the 10th at 21 mm
+    assert "scan 'tilt_25': the nipple's noise patch reaches 21.0 mm (7 subsampled" in caplog.text
     cal.points["tilt_25"] = np.r_[pts[:7], pts[10:]]  # the 10th nearest at 40 mm: refused
     with pytest.raises(
         ValueError,

@@ -71,15 +71,15 @@ def test_roles_come_from_the_current_session(scans, tmp_path):
     assert doc["scans"]["tilt_50"]["role"] == "calibration"
     assert doc["scans"]["right_lateral"]["role"] == "validation"
     assert "ingesting" not in result.output  # nothing ingest depends on changed
-    # an ingest from before the cut field-of-view flags would score a cut edge as surface
-    # (stop 46): it is stale, and calibrate ingests again
-    record = work / "scans" / "tilt_50" / "ingest.json"
+    # results of an older ingest (before the cut field-of-view flags, which scored a cut
+    # edge as surface; or the face-area cap) are stale, and calibrate ingests again
+    record = work / "ingest_summary.json"
     doc = json.loads(record.read_text())
-    del doc["quality"]["fov_edge_vertices"]
+    del doc["inputs"]["ingest_revision"]
     record.write_text(json.dumps(doc))
     (reason,) = stale_reasons(work, session)
-    assert reason.startswith("the ingest results of ['tilt_50'] predate the flags of a cut")
-    with pytest.raises(StaleIngestError, match="predate the flags"):
+    assert reason.startswith("the ingest results are of an older phantom-calib (ingest revision 1")
+    with pytest.raises(StaleIngestError, match="ingest revision 1, now 2"):
         load_measurements(work, session)
 
 
