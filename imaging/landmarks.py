@@ -56,13 +56,19 @@ FACE_BIN_MM, FACE_WINDOW_MM, FACE_CONTRAST = 0.25, 10.0, 10.0
 #: scan the two agree to 0.01-0.07 degrees; markers not on the plate (posts, a tilted
 #: frame) tilt the fiducials' plane, and the face's height then finds no face.
 FIDUCIALS_OFF_FACE_DEG = 3.0
+#: ... and while the face, tilted by that angle, rises less than this across its width
+#: (mm) over the fiducials' plane: half the back-plate flag's 1.5 mm. An 80 mm face 2
+#: degrees off rose 2.7 mm, and 44 % of it was left unflagged, scored as measured surface;
+#: the twins' faces (0.01-0.07 degrees) rise at most 0.15 mm.
+FACE_RISE_MM = 0.75
 #: ... and while that largest plane holds at least this share of the surface's vertices
 #: (the quick twin's back face: 16-21 %); a smaller one may not be the face.
 FACE_MIN_SHARE = 0.05
 
 
-def _largest_plane(v: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """RANSAC's largest plane of points ``v``: unit normal, a point on it, inlier share."""
+def _largest_plane(v: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """RANSAC's largest plane of points ``v``: unit normal, a point on it, inlier share and
+    width (twice the largest distance of an inlier from the inliers' centre, mm)."""
     import open3d as o3d
 
     o3d.utility.random.seed(seed)
@@ -70,7 +76,9 @@ def _largest_plane(v: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray, fl
     (a, b, c, d), inliers = pc.segment_plane(0.5, 3, 1000)
     normal = np.array([a, b, c], float)
     origin = -d * normal / float(normal @ normal)
-    return normal / np.linalg.norm(normal), origin, len(inliers) / max(len(v), 1)
+    p = v[np.asarray(inliers, dtype=int)]
+    width = 2.0 * float(np.linalg.norm(p - p.mean(axis=0), axis=1).max()) if len(p) else 0.0
+    return normal / np.linalg.norm(normal), origin, len(inliers) / max(len(v), 1), width
 
 
 def _face_height(h: np.ndarray, plane_h: float | None = None) -> float | None:
@@ -106,8 +114,9 @@ def estimate_back_plane(
     normal of their best-fit plane; otherwise it is the largest plane found by RANSAC on the
     surface vertices (the flat back face). Where that largest plane holds at least
     :data:`FACE_MIN_SHARE` of the vertices and the fiducials' plane lies more than
-    :data:`FIDUCIALS_OFF_FACE_DEG` off it (markers not on the plate), the face's plane is
-    taken, with a warning. The normal is oriented towards the body and the
+    :data:`FIDUCIALS_OFF_FACE_DEG` off it, or tilted enough that the face rises more than
+    :data:`FACE_RISE_MM` over it (markers not on the plate), the face's plane is taken,
+    with a warning. The normal is oriented towards the body and the
     plane is moved onto the body's back face: the 1st percentile of the vertex heights,
     leaving out the vertices more than ``face_tol_mm`` below the densest 0.25 mm slab of
     heights near the bottom (the face; searched within 10 mm of the lowest vertex and,
@@ -119,22 +128,25 @@ def estimate_back_plane(
     """
     v = np.asarray(vertices_lps_mm, float)
     method, off = "ransac", None
-    face_normal, face_origin, share = _largest_plane(v, seed)
+    face_normal, face_origin, share, width = _largest_plane(v, seed)
     normal, origin = face_normal, face_origin
     if fiducials_lps_mm is not None and len(fiducials_lps_mm) >= 3:
         f = np.asarray(fiducials_lps_mm, float)
         _, s, vt = np.linalg.svd(f - f.mean(0))
         if s[1] > 1e-3 * max(s[0], 1e-9):
             off = float(np.degrees(np.arccos(min(1.0, abs(float(vt[2] @ face_normal))))))
-            if off <= FIDUCIALS_OFF_FACE_DEG or share < FACE_MIN_SHARE:
+            rise = width * np.tan(np.radians(off))
+            if share < FACE_MIN_SHARE or (off <= FIDUCIALS_OFF_FACE_DEG and rise <= FACE_RISE_MM):
                 normal, method, origin = vt[2], "fiducials", f.mean(0)
             else:
                 log.warning(
-                    "back plane: the fiducials' plane lies %.1f degrees off the surface's flat "
-                    "back face (%.0f %% of the vertices): markers not on the plate? The plane "
-                    "follows the face",
+                    "back plane: the fiducials' plane lies %.2f degrees off the surface's flat "
+                    "back face (%.0f %% of the vertices, %.0f mm wide: it rises %.1f mm over "
+                    "the fiducials' plane): markers not on the plate? The plane follows the face",
                     off,
                     100.0 * share,
+                    width,
+                    rise,
                 )
     normal = normal / np.linalg.norm(normal)
     h = (v - origin) @ normal
