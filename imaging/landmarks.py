@@ -67,8 +67,10 @@ FACE_MIN_SHARE = 0.05
 
 
 def _largest_plane(v: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """RANSAC's largest plane of points ``v``: unit normal, a point on it, inlier share and
-    width (twice the largest distance of an inlier from the inliers' centre, mm)."""
+    """RANSAC's largest plane of points ``v``: normal, point, inlier share and width.
+
+    The width is twice the largest distance of an inlier from the inliers' centre (mm).
+    """
     import open3d as o3d
 
     o3d.utility.random.seed(seed)
