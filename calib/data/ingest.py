@@ -440,7 +440,8 @@ class StaleIngestError(RuntimeError):
 #: Revision of what ingest makes of the same scans; results of another revision are stale.
 #: 1 (no ``ingest_revision`` recorded): before the flags of a cut field of view. 2: those
 #: flags (``fov_edge``), at most 1.5 mm^2 per surface face, the back face found below a
-#: lip hanging more than 10 mm past the plate's edge.
+#: lip hanging more than 10 mm past the plate's edge, the fiducials' plane given way to a
+#: face that rises more than 0.75 mm over it.
 INGEST_REVISION = 2
 
 
