@@ -277,6 +277,32 @@ class RigidFit:
         return float(tre[0]) if single else tre
 
 
+#: A side point closer than this to the target markers' plane (mm) tells no side.
+SIDE_MIN_MM = 5.0
+
+
+def _same_side(fits: list, q: np.ndarray, side_points, name: str) -> list:
+    """The fits that keep the body on the target point's side of the markers' plane."""
+    src, tgt = (np.reshape(np.asarray(x, dtype=float), 3) for x in side_points)
+    normal = np.linalg.svd(q - q.mean(axis=0))[2][2]
+    h_tgt = float((tgt - q.mean(axis=0)) @ normal)
+    if abs(h_tgt) < SIDE_MIN_MM:
+        return fits
+    kept = [f for f in fits if float((f[2] @ src + f[3] - q.mean(axis=0)) @ normal) * h_tgt > 0]
+    if not kept:
+        raise RegistrationError(
+            f"{name}: no marker ordering keeps the body on its side of the markers' plane "
+            "(markers not on one plate?)"
+        )
+    if kept[0] is not fits[0]:
+        log.info(
+            "%s: the best-fitting ordering flips the body through the markers' plane; the "
+            "best on the body's side is taken",
+            name,
+        )
+    return kept
+
+
 def fit_rigid(
     source_points: np.ndarray,
     target_points: np.ndarray,
@@ -287,6 +313,7 @@ def fit_rigid(
     max_fre_mm: float | None = None,
     min_separation_mm: float = 1.0,
     min_line_offset_mm: float = 1.0,
+    side_points: tuple[np.ndarray, np.ndarray] | None = None,
     name: str = "markers",
 ) -> RigidFit:
     """Least-squares rigid transform between two marker sets.
@@ -309,6 +336,15 @@ def fit_rigid(
         Raise if the final FRE exceeds this (a missing or spurious marker).
     min_separation_mm, min_line_offset_mm : float
         Degeneracy thresholds, see :func:`check_marker_geometry`.
+    side_points : (array_like of shape (3,), array_like of shape (3,)), optional
+        With ``"auto"``, a point of the body in the source frame and one in the target
+        frame (e.g. the body's centroid in each scan). Markers on a plate with the body
+        on one side: an ordering whose transform takes the source point to the other side
+        of the target markers' best-fit plane is no candidate. A layout with a mirror
+        line (an isosceles triangle or trapezoid) fits a 180-degree turn about that line
+        as well as the true ordering, a flip of the body through the plate; this tells
+        them apart (a turn in the plate, of a rectangle say, stays ambiguous). Ignored
+        where the target point lies within :data:`SIDE_MIN_MM` of that plane.
     name : str
         Name used in error messages (e.g. the scan name).
 
@@ -359,6 +395,8 @@ def fit_rigid(
         res = np.linalg.norm(p @ R.T + t - qp, axis=1)
         fits.append((float(np.sqrt(np.mean(res**2))), perm, R, t, res))
     fits.sort(key=lambda f: f[0])
+    if side_points is not None and len(fits) > 1:
+        fits = _same_side(fits, q, side_points, name)
     fre, perm, R, t, res = fits[0]
     second = fits[1][0] if len(fits) > 1 else None
     if second is not None and second - fre < ambiguity_margin_mm:

@@ -120,6 +120,7 @@ def register_scans(
     nominal_angles_deg: dict[str, float] | None = None,
     nominal_gravity: dict[str, Sequence[float]] | None = None,
     landmarks_by_scan: dict[str, dict[str, np.ndarray]] | None = None,
+    body_points_by_scan: dict[str, np.ndarray] | None = None,
     correspondence: str = "auto",
     fle_mm: float | None = None,
     max_fre_mm: float | None = 2.0,
@@ -147,6 +148,10 @@ def register_scans(
     landmarks_by_scan : dict of str to dict of str to array_like, shape (3,), optional
         Per scan, ``"nipple"`` and/or ``"tumour"`` in the scan's LPS frame, millimetres; the
         TRE is evaluated there.
+    body_points_by_scan : dict of str to array_like, shape (3,), optional
+        Per scan, a point of the body in the scan's LPS frame (its centroid): orderings
+        that flip the body through the markers' plane are no candidates (``side_points``
+        of :func:`registration.rigid.fit_rigid`).
     correspondence : {"auto", "given"}
         Marker correspondence, see :func:`registration.rigid.fit_rigid`.
     fle_mm : float, optional
@@ -182,12 +187,16 @@ def register_scans(
                 f"scan {scan!r}: markers have shape {markers.shape}, the reference scan "
                 f"{reference!r} has {ref_markers.shape}"
             )
+        side = None
+        if body_points_by_scan and scan in body_points_by_scan:
+            side = (body_points_by_scan[scan], body_points_by_scan[reference])
         fit = fit_rigid(
             markers,
             ref_markers,
             correspondence="given" if scan == reference else correspondence,
             max_fre_mm=max_fre_mm,
             ambiguity_margin_mm=ambiguity_margin_mm,
+            side_points=side,
             name=f"scan {scan!r}",
         )
         is_ref = scan == reference

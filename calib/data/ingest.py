@@ -369,6 +369,7 @@ def _register(session: Session, scans: dict, landmarks: bool):
         gravity_scanner=session.gravity_scanner,
         nominal_gravity=nominal if len(nominal) >= 2 else None,
         landmarks_by_scan=marks,
+        body_points_by_scan={n: r.surface.vertices_lps_mm.mean(axis=0) for n, r in scans.items()},
     )
 
 

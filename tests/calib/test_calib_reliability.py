@@ -83,6 +83,29 @@ def test_roles_come_from_the_current_session(scans, tmp_path):
         load_measurements(work, session)
 
 
+def test_fiducials_in_an_isosceles_triangle_are_matched_by_the_body_side(tmp_path, monkeypatch):
+    # a mirror line in the layout: its mirror ordering fits as well as the truth (a flip
+    # of the body through the plate), and ingest refused the scans as ambiguous
+    import fem.geometry
+
+    def isosceles(spec, rng):
+        a, b, _ = spec.semi_axes_mm
+        return np.array([[-1.25 * a, -0.9 * b, 0.0], [1.25 * a, -0.9 * b, 0.0], [0, 1.3 * b, 0]])
+
+    monkeypatch.setattr(fem.geometry, "_fiducials", isosceles)
+    out = tmp_path / "twin"
+    truth = synthesize(out, preset=SMALL_VALIDATION_PRESET, seed=3)
+    run_ingest(out / "scans", tmp_path / "work")
+    ref = "left_lateral"
+    R_ref = np.asarray(truth["scans"][ref]["T_scanner_from_phantom"])[:3, :3]
+    for name, scan in truth["scans"].items():
+        doc = json.loads((tmp_path / "work" / "scans" / name / "ingest.json").read_text())
+        g_true = R_ref @ np.asarray(scan["gravity_phantom"])
+        # within test_calib_ingest_twin's 0.5 degrees, which the flip misses by ~180
+        cos = float(np.dot(doc["gravity_ref"], g_true))
+        assert np.degrees(np.arccos(min(1.0, cos))) < 0.5, name
+
+
 def test_a_swapped_reference_is_re_ingested_and_said(scans, tmp_path):
     work = tmp_path / "work"
     run_ingest(scans, work)

@@ -118,6 +118,33 @@ def test_symmetric_layout_is_ambiguous():
         fit_rigid(isosceles, isosceles + 5.0, correspondence="auto")
 
 
+def test_the_body_side_tells_a_flip_from_the_true_ordering():
+    # a layout with a mirror line (an isosceles triangle or trapezoid) on the plate: a
+    # 180-degree turn about that line fits as well as the truth, and flips the body
+    # through the plate; the body's side rules it out (refused as ambiguous before). A
+    # rectangle's turn in the plate keeps the body's side: still ambiguous.
+    rng = np.random.default_rng(7)
+    body = np.array([5.0, 30.0, 40.0])  # above the plate z = 0
+    for layout in (
+        np.array([[-50.0, 0, 0], [50, 0, 0], [0, 90, 0]]),  # isosceles
+        np.array([[-60.0, -40, 0], [60, -40, 0], [30, 40, 0], [-30, 40, 0]]),  # trapezoid
+    ):
+        for _ in range(5):
+            T = random_rigid(rng)
+            perm = tuple(rng.permutation(len(layout)))
+            tgt = np.empty_like(layout)
+            tgt[list(perm)] = apply_transform(T, layout)
+            with pytest.raises(AmbiguousCorrespondenceError):
+                fit_rigid(layout, tgt, correspondence="auto")
+            fit = fit_rigid(
+                layout, tgt, correspondence="auto", side_points=(body, apply_transform(T, body))
+            )
+            np.testing.assert_allclose(fit.T_target_from_source, T, atol=1e-9)
+    rectangle = np.array([[-60.0, -40, 0], [60, -40, 0], [60, 40, 0], [-60, 40, 0]])
+    with pytest.raises(AmbiguousCorrespondenceError):
+        fit_rigid(rectangle, rectangle, correspondence="auto", side_points=(body, body))
+
+
 @pytest.mark.parametrize(
     ("source", "target", "error", "match"),
     [
