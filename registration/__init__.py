@@ -38,7 +38,12 @@ from registration.gravity import (
 )
 from registration.icp import IcpLevel, IcpResult, icp_refine, sample_triangles
 from registration.rigid import RigidFit, apply_transform, fit_rigid
-from registration.session import ScanRegistration, format_registration_table, register_scans
+from registration.session import (
+    ScanRegistration,
+    footprint_mismatch_mm,
+    format_registration_table,
+    register_scans,
+)
 
 __all__ = [
     "CONFIDENCE_DEFINITION",
@@ -64,6 +69,7 @@ __all__ = [
     "check_posture",
     "closest_point_distances",
     "fit_rigid",
+    "footprint_mismatch_mm",
     "format_registration_table",
     "gravity_in_reference",
     "hausdorff_mm",

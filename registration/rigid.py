@@ -12,6 +12,7 @@ from __future__ import annotations
 import itertools
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -303,6 +304,33 @@ def _same_side(fits: list, q: np.ndarray, side_points, name: str) -> list:
     return kept
 
 
+def _break_tie(fits: list, below: float, tie_break, margin: float, said: str) -> tuple:
+    """The fit among those with an FRE below ``below`` whose ``tie_break`` is clearly least."""
+    close = [f for f in fits if f[0] < below]
+    scores = []
+    for f in close:
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = f[2], f[3]
+        scores.append(float(tie_break(T)))
+    order = np.argsort(scores)
+    best, rival = scores[order[0]], scores[order[1]]
+    if rival - best < margin or rival < 2.0 * best:
+        raise AmbiguousCorrespondenceError(
+            f"{said}, and the other data tell them apart by {best:.2f} against {rival:.2f} "
+            f"mm (needed: {margin} mm and twice); use markers with distinct pairwise "
+            "distances or give the order"
+        )
+    chosen = close[order[0]]
+    log.info(
+        "%s; taken: ordering %s, the other data's mismatch %.2f mm (next %.2f mm)",
+        said,
+        chosen[1],
+        best,
+        rival,
+    )
+    return chosen
+
+
 def fit_rigid(
     source_points: np.ndarray,
     target_points: np.ndarray,
@@ -314,6 +342,7 @@ def fit_rigid(
     min_separation_mm: float = 1.0,
     min_line_offset_mm: float = 1.0,
     side_points: tuple[np.ndarray, np.ndarray] | None = None,
+    tie_break: Callable[[np.ndarray], float] | None = None,
     name: str = "markers",
 ) -> RigidFit:
     """Least-squares rigid transform between two marker sets.
@@ -345,6 +374,13 @@ def fit_rigid(
         as well as the true ordering, a flip of the body through the plate; this tells
         them apart (a turn in the plate, of a rectangle say, stays ambiguous). Ignored
         where the target point lies within :data:`SIDE_MIN_MM` of that plane.
+    tie_break : callable, optional
+        With ``"auto"``, where orderings fit within ``ambiguity_margin_mm`` of the best,
+        a mismatch in mm of the transform ``T_target_from_source`` (4, 4) by other data
+        (e.g. the body's footprint on the plate, which a turn of a square layout moves):
+        the ordering of the lowest mismatch is taken where every other's is at least
+        ``ambiguity_margin_mm`` and twice larger; otherwise the correspondence stays
+        ambiguous.
     name : str
         Name used in error messages (e.g. the scan name).
 
@@ -400,10 +436,16 @@ def fit_rigid(
     fre, perm, R, t, res = fits[0]
     second = fits[1][0] if len(fits) > 1 else None
     if second is not None and second - fre < ambiguity_margin_mm:
-        raise AmbiguousCorrespondenceError(
+        said = (
             f"{name}: marker correspondence is ambiguous: orderings {perm} and {fits[1][1]} "
-            f"give FRE {fre:.3f} and {second:.3f} mm (margin {ambiguity_margin_mm} mm); "
-            "use markers with distinct pairwise distances or give the order"
+            f"give FRE {fre:.3f} and {second:.3f} mm (margin {ambiguity_margin_mm} mm)"
+        )
+        if tie_break is None:
+            raise AmbiguousCorrespondenceError(
+                f"{said}; use markers with distinct pairwise distances or give the order"
+            )
+        fre, perm, R, t, res = _break_tie(
+            fits, fre + ambiguity_margin_mm, tie_break, ambiguity_margin_mm, said
         )
     if max_fre_mm is not None and fre > max_fre_mm:
         raise RegistrationError(

@@ -11,9 +11,14 @@ import numpy as np
 
 from registration.errors import MarkerCountError, RegistrationError
 from registration.gravity import angle_between_deg, check_posture, gravity_in_reference
-from registration.rigid import fit_rigid
+from registration.rigid import apply_transform, fit_rigid
 
-__all__ = ["ScanRegistration", "format_registration_table", "register_scans"]
+__all__ = [
+    "ScanRegistration",
+    "footprint_mismatch_mm",
+    "format_registration_table",
+    "register_scans",
+]
 
 log = logging.getLogger(__name__)
 #: A registration whose rotation is this uncertain (1 sd, degrees) is warned about: a
@@ -112,6 +117,31 @@ def _gravity_for(scan: str, gravity_scanner) -> np.ndarray:
     return np.asarray(gravity_scanner, dtype=float)
 
 
+def footprint_mismatch_mm(a_mm: np.ndarray, b_mm: np.ndarray) -> float:
+    """Symmetric mean nearest-point distance between two point sets (mm).
+
+    Parameters
+    ----------
+    a_mm, b_mm : array_like, shape (k, 3) and (m, 3)
+
+    Returns
+    -------
+    float
+        The mean of each set's mean distance to the other's nearest point.
+    """
+    from scipy.spatial import cKDTree
+
+    a, b = np.asarray(a_mm, float), np.asarray(b_mm, float)
+    return 0.5 * float(cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
+
+
+def _footprint_tie(scan_mm: np.ndarray, ref_mm: np.ndarray):
+    def mismatch(T: np.ndarray) -> float:
+        return footprint_mismatch_mm(apply_transform(T, scan_mm), ref_mm)
+
+    return mismatch
+
+
 def register_scans(
     fiducials_by_scan: dict[str, np.ndarray],
     *,
@@ -121,6 +151,7 @@ def register_scans(
     nominal_gravity: dict[str, Sequence[float]] | None = None,
     landmarks_by_scan: dict[str, dict[str, np.ndarray]] | None = None,
     body_points_by_scan: dict[str, np.ndarray] | None = None,
+    footprints_by_scan: dict[str, np.ndarray] | None = None,
     correspondence: str = "auto",
     fle_mm: float | None = None,
     max_fre_mm: float | None = 2.0,
@@ -152,6 +183,11 @@ def register_scans(
         Per scan, a point of the body in the scan's LPS frame (its centroid): orderings
         that flip the body through the markers' plane are no candidates (``side_points``
         of :func:`registration.rigid.fit_rigid`).
+    footprints_by_scan : dict of str to array_like, shape (k, 3), optional
+        Per scan, points of the body's back face on the plate in the scan's LPS frame
+        (it does not move between postures). Where orderings of a symmetric layout fit
+        alike, the one that lays the scan's footprint onto the reference's is taken
+        (:func:`footprint_mismatch_mm`, the ``tie_break`` of ``fit_rigid``).
     correspondence : {"auto", "given"}
         Marker correspondence, see :func:`registration.rigid.fit_rigid`.
     fle_mm : float, optional
@@ -190,6 +226,9 @@ def register_scans(
         side = None
         if body_points_by_scan and scan in body_points_by_scan:
             side = (body_points_by_scan[scan], body_points_by_scan[reference])
+        tie = None
+        if footprints_by_scan and scan in footprints_by_scan and scan != reference:
+            tie = _footprint_tie(footprints_by_scan[scan], footprints_by_scan[reference])
         fit = fit_rigid(
             markers,
             ref_markers,
@@ -197,6 +236,7 @@ def register_scans(
             max_fre_mm=max_fre_mm,
             ambiguity_margin_mm=ambiguity_margin_mm,
             side_points=side,
+            tie_break=tie,
             name=f"scan {scan!r}",
         )
         is_ref = scan == reference

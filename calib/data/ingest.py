@@ -370,7 +370,23 @@ def _register(session: Session, scans: dict, landmarks: bool):
         nominal_gravity=nominal if len(nominal) >= 2 else None,
         landmarks_by_scan=marks,
         body_points_by_scan={n: r.surface.vertices_lps_mm.mean(axis=0) for n, r in scans.items()},
+        footprints_by_scan=_footprints(scans),
     )
+
+
+def _footprints(scans: dict) -> dict:
+    """Per scan up to 2000 of its back-plate vertices (every k-th), (k, 3) LPS mm.
+
+    Scans with fewer than 10 (no flags, no flat face) have none, nor then any scan.
+    """
+    out = {}
+    for name, r in scans.items():
+        flags = r.surface.back_plate
+        v = r.surface.vertices_lps_mm[np.asarray(flags, bool)] if flags is not None else []
+        if len(v) < 10:
+            return {}
+        out[name] = v[:: max(1, len(v) // 2000)]
+    return out
 
 
 def _check_patient_positions(session: Session) -> None:

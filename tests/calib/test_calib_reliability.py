@@ -83,16 +83,25 @@ def test_roles_come_from_the_current_session(scans, tmp_path):
         load_measurements(work, session)
 
 
-def test_fiducials_in_an_isosceles_triangle_are_matched_by_the_body_side(tmp_path, monkeypatch):
-    # a mirror line in the layout: its mirror ordering fits as well as the truth (a flip
-    # of the body through the plate), and ingest refused the scans as ambiguous
+def _isosceles(spec, rng):
+    a, b, _ = spec.semi_axes_mm
+    return np.array([[-1.25 * a, -0.9 * b, 0.0], [1.25 * a, -0.9 * b, 0.0], [0, 1.3 * b, 0]])
+
+
+def _equilateral(spec, rng):
+    ang = np.radians([90.0, 210.0, 330.0])  # about the base's centre, outside it
+    return 1.3 * spec.semi_axes_mm[0] * np.c_[np.cos(ang), np.sin(ang), np.zeros(3)]
+
+
+@pytest.mark.parametrize("layout", [_isosceles, _equilateral])
+def test_fiducials_in_a_symmetric_layout_are_matched_by_the_body(tmp_path, monkeypatch, layout):
+    # an isosceles triangle's mirror ordering fits as well as the truth (a flip of the
+    # body through the plate: the body's side tells them apart); an equilateral one's
+    # turns in the plate too (the body's back face on the plate, which turns with them,
+    # tells them apart). Ingest refused both as ambiguous
     import fem.geometry
 
-    def isosceles(spec, rng):
-        a, b, _ = spec.semi_axes_mm
-        return np.array([[-1.25 * a, -0.9 * b, 0.0], [1.25 * a, -0.9 * b, 0.0], [0, 1.3 * b, 0]])
-
-    monkeypatch.setattr(fem.geometry, "_fiducials", isosceles)
+    monkeypatch.setattr(fem.geometry, "_fiducials", layout)
     out = tmp_path / "twin"
     truth = synthesize(out, preset=SMALL_VALIDATION_PRESET, seed=3)
     run_ingest(out / "scans", tmp_path / "work")

@@ -231,3 +231,43 @@ def test_result_is_frozen():
         fit.T_target_from_source[0, 0] = 2.0
     with pytest.raises(AttributeError):
         fit.fre_mm = 0.0
+
+
+def test_the_footprint_tells_the_turns_of_a_square_layout_apart():
+    # four markers at the corners of a square plate: its 90-degree turns in the plate fit
+    # alike, and keep the body's side; the body's back face on the plate does not move
+    # between postures, and a turn moves it unless it shares the layout's symmetry
+    from registration import register_scans
+    from registration.errors import AmbiguousCorrespondenceError as Ambiguous
+
+    square = np.array([[-50.0, -50, 0], [50, -50, 0], [50, 50, 0], [-50, 50, 0]])
+    t = np.linspace(0.0, 2.0 * np.pi, 400, endpoint=False)
+    r = np.linspace(0.0, 1.0, 8)[:, None]
+    # an egg-shaped back face 80 x 55 mm, 6 mm off the square's centre
+    egg = np.c_[
+        (6.0 + r * 40.0 * np.cos(t)).ravel(),
+        (r * 27.5 * np.sin(t) * (1.0 + 0.15 * np.cos(t))).ravel(),
+        np.zeros(t.size * r.size),
+    ]
+    disc = np.c_[(r * 35.0 * np.cos(t)).ravel(), (r * 35.0 * np.sin(t)).ravel(), 0 * egg[:, 2]]
+    body = np.array([6.0, 0.0, 30.0])
+    rng = np.random.default_rng(11)
+    for _ in range(4):
+        T = random_rigid(rng)
+        perm = rng.permutation(4)
+        scan = {"ref": square, "other": apply_transform(T, square)[perm]}
+        sides = {"ref": body, "other": apply_transform(T, body)}
+        with pytest.raises(Ambiguous):
+            register_scans(scan, reference="ref", body_points_by_scan=sides)
+        feet = {"ref": egg, "other": apply_transform(T, egg)}
+        reg = register_scans(
+            scan, reference="ref", body_points_by_scan=sides, footprints_by_scan=feet
+        )
+        np.testing.assert_allclose(reg["other"].T_ref_from_scan, np.linalg.inv(T), atol=1e-9)
+        # a round back face on the square's centre turns into itself: still ambiguous,
+        # the message says by how little the footprint tells the orderings apart
+        feet = {"ref": disc, "other": apply_transform(T, disc)}
+        with pytest.raises(Ambiguous, match=r"the other data tell them apart by 0\.00"):
+            register_scans(
+                scan, reference="ref", body_points_by_scan=sides, footprints_by_scan=feet
+            )
