@@ -278,28 +278,20 @@ class RigidFit:
         return float(tre[0]) if single else tre
 
 
-#: A side point closer than this to the target markers' plane (mm) tells no side.
-SIDE_MIN_MM = 5.0
-
-
-def _same_side(fits: list, q: np.ndarray, side_points, name: str) -> list:
-    """The fits that keep the body on the target point's side of the markers' plane."""
-    src, tgt = (np.reshape(np.asarray(x, dtype=float), 3) for x in side_points)
-    normal = np.linalg.svd(q - q.mean(axis=0))[2][2]
-    h_tgt = float((tgt - q.mean(axis=0)) @ normal)
-    if abs(h_tgt) < SIDE_MIN_MM:
-        return fits
-    kept = [f for f in fits if float((f[2] @ src + f[3] - q.mean(axis=0)) @ normal) * h_tgt > 0]
+def _plate_side(fits: list, normals, margin: float, name: str) -> list:
+    """The fits that turn the source plate's normal onto the target's side (not a flip)."""
+    n_src, n_tgt = (np.reshape(np.asarray(x, dtype=float), 3) for x in normals)
+    kept = [f for f in fits if float((f[2] @ n_src) @ n_tgt) > 0.0]
     if not kept:
         raise RegistrationError(
-            f"{name}: no marker ordering keeps the body on its side of the markers' plane "
-            "(markers not on one plate?)"
+            f"{name}: every marker ordering flips the body through the plate (the plates' "
+            "normals point the other way after every fit): check the back planes"
         )
-    if kept[0] is not fits[0]:
-        log.info(
-            "%s: the best-fitting ordering flips the body through the markers' plane; the "
-            "best on the body's side is taken",
-            name,
+    if kept[0][0] > fits[0][0] + margin:
+        raise RegistrationError(
+            f"{name}: the best-fitting marker ordering {fits[0][1]} (FRE {fits[0][0]:.3f} mm) "
+            f"flips the body through the plate, and the best that does not, {kept[0][1]}, "
+            f"fits worse (FRE {kept[0][0]:.3f} mm): the markers and the back plane disagree"
         )
     return kept
 
@@ -312,6 +304,8 @@ def _break_tie(fits: list, below: float, tie_break, margin: float, said: str) ->
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = f[2], f[3]
         scores.append(float(tie_break(T)))
+    if not np.all(np.isfinite(scores)):
+        raise AmbiguousCorrespondenceError(f"{said}, and the other data's mismatch is {scores}")
     order = np.argsort(scores)
     best, rival = scores[order[0]], scores[order[1]]
     if rival - best < margin or rival < 2.0 * best:
@@ -321,7 +315,7 @@ def _break_tie(fits: list, below: float, tie_break, margin: float, said: str) ->
             "distances or give the order"
         )
     chosen = close[order[0]]
-    log.info(
+    log.warning(
         "%s; taken: ordering %s, the other data's mismatch %.2f mm (next %.2f mm)",
         said,
         chosen[1],
@@ -341,7 +335,7 @@ def fit_rigid(
     max_fre_mm: float | None = None,
     min_separation_mm: float = 1.0,
     min_line_offset_mm: float = 1.0,
-    side_points: tuple[np.ndarray, np.ndarray] | None = None,
+    plate_normals: tuple[np.ndarray, np.ndarray] | None = None,
     tie_break: Callable[[np.ndarray], float] | None = None,
     name: str = "markers",
 ) -> RigidFit:
@@ -365,15 +359,15 @@ def fit_rigid(
         Raise if the final FRE exceeds this (a missing or spurious marker).
     min_separation_mm, min_line_offset_mm : float
         Degeneracy thresholds, see :func:`check_marker_geometry`.
-    side_points : (array_like of shape (3,), array_like of shape (3,)), optional
-        With ``"auto"``, a point of the body in the source frame and one in the target
-        frame (e.g. the body's centroid in each scan). Markers on a plate with the body
-        on one side: an ordering whose transform takes the source point to the other side
-        of the target markers' best-fit plane is no candidate. A layout with a mirror
-        line (an isosceles triangle or trapezoid) fits a 180-degree turn about that line
-        as well as the true ordering, a flip of the body through the plate; this tells
-        them apart (a turn in the plate, of a rectangle say, stays ambiguous). Ignored
-        where the target point lies within :data:`SIDE_MIN_MM` of that plane.
+    plate_normals : (array_like of shape (3,), array_like of shape (3,)), optional
+        With ``"auto"``, the back plate's unit normal pointing into the body in the source
+        and in the target frame (:class:`imaging.BackPlane` ``normal``). An ordering
+        whose rotation turns the source normal away from the target's flips the body
+        through the plate and is no candidate: a layout with a mirror line (an isosceles
+        triangle or trapezoid) fits that flip as well as the true ordering. Where the best
+        fit is such a flip by more than ``ambiguity_margin_mm``, markers and planes
+        disagree: :class:`RegistrationError`. A turn in the plate (of a rectangle, say)
+        keeps the normal: see ``tie_break``.
     tie_break : callable, optional
         With ``"auto"``, where orderings fit within ``ambiguity_margin_mm`` of the best,
         a mismatch in mm of the transform ``T_target_from_source`` (4, 4) by other data
@@ -431,8 +425,8 @@ def fit_rigid(
         res = np.linalg.norm(p @ R.T + t - qp, axis=1)
         fits.append((float(np.sqrt(np.mean(res**2))), perm, R, t, res))
     fits.sort(key=lambda f: f[0])
-    if side_points is not None and len(fits) > 1:
-        fits = _same_side(fits, q, side_points, name)
+    if plate_normals is not None and len(fits) > 1:
+        fits = _plate_side(fits, plate_normals, ambiguity_margin_mm, name)
     fre, perm, R, t, res = fits[0]
     second = fits[1][0] if len(fits) > 1 else None
     if second is not None and second - fre < ambiguity_margin_mm:
@@ -447,6 +441,7 @@ def fit_rigid(
         fre, perm, R, t, res = _break_tie(
             fits, fre + ambiguity_margin_mm, tie_break, ambiguity_margin_mm, said
         )
+        second = min(f[0] for f in fits if f[1] != perm)
     if max_fre_mm is not None and fre > max_fre_mm:
         raise RegistrationError(
             f"{name}: fiducial registration error {fre:.3f} mm exceeds {max_fre_mm} mm "

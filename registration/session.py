@@ -135,6 +135,10 @@ def footprint_mismatch_mm(a_mm: np.ndarray, b_mm: np.ndarray) -> float:
     return 0.5 * float(cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
 
 
+def _both(by_scan: dict | None, scan: str, reference: str) -> bool:
+    return bool(by_scan) and scan in by_scan and reference in by_scan
+
+
 def _footprint_tie(scan_mm: np.ndarray, ref_mm: np.ndarray):
     def mismatch(T: np.ndarray) -> float:
         return footprint_mismatch_mm(apply_transform(T, scan_mm), ref_mm)
@@ -150,7 +154,7 @@ def register_scans(
     nominal_angles_deg: dict[str, float] | None = None,
     nominal_gravity: dict[str, Sequence[float]] | None = None,
     landmarks_by_scan: dict[str, dict[str, np.ndarray]] | None = None,
-    body_points_by_scan: dict[str, np.ndarray] | None = None,
+    plate_normals_by_scan: dict[str, np.ndarray] | None = None,
     footprints_by_scan: dict[str, np.ndarray] | None = None,
     correspondence: str = "auto",
     fle_mm: float | None = None,
@@ -179,10 +183,10 @@ def register_scans(
     landmarks_by_scan : dict of str to dict of str to array_like, shape (3,), optional
         Per scan, ``"nipple"`` and/or ``"tumour"`` in the scan's LPS frame, millimetres; the
         TRE is evaluated there.
-    body_points_by_scan : dict of str to array_like, shape (3,), optional
-        Per scan, a point of the body in the scan's LPS frame (its centroid): orderings
-        that flip the body through the markers' plane are no candidates (``side_points``
-        of :func:`registration.rigid.fit_rigid`).
+    plate_normals_by_scan : dict of str to array_like, shape (3,), optional
+        Per scan, the back plate's unit normal pointing into the body in the scan's LPS
+        frame: orderings that flip the body through the plate are no candidates
+        (``plate_normals`` of :func:`registration.rigid.fit_rigid`).
     footprints_by_scan : dict of str to array_like, shape (k, 3), optional
         Per scan, points of the body's back face on the plate in the scan's LPS frame
         (it does not move between postures). Where orderings of a symmetric layout fit
@@ -223,11 +227,10 @@ def register_scans(
                 f"scan {scan!r}: markers have shape {markers.shape}, the reference scan "
                 f"{reference!r} has {ref_markers.shape}"
             )
-        side = None
-        if body_points_by_scan and scan in body_points_by_scan:
-            side = (body_points_by_scan[scan], body_points_by_scan[reference])
-        tie = None
-        if footprints_by_scan and scan in footprints_by_scan and scan != reference:
+        normals = tie = None
+        if _both(plate_normals_by_scan, scan, reference):
+            normals = (plate_normals_by_scan[scan], plate_normals_by_scan[reference])
+        if _both(footprints_by_scan, scan, reference) and scan != reference:
             tie = _footprint_tie(footprints_by_scan[scan], footprints_by_scan[reference])
         fit = fit_rigid(
             markers,
@@ -235,7 +238,7 @@ def register_scans(
             correspondence="given" if scan == reference else correspondence,
             max_fre_mm=max_fre_mm,
             ambiguity_margin_mm=ambiguity_margin_mm,
-            side_points=side,
+            plate_normals=normals,
             tie_break=tie,
             name=f"scan {scan!r}",
         )

@@ -369,7 +369,7 @@ def _register(session: Session, scans: dict, landmarks: bool):
         gravity_scanner=session.gravity_scanner,
         nominal_gravity=nominal if len(nominal) >= 2 else None,
         landmarks_by_scan=marks,
-        body_points_by_scan={n: r.surface.vertices_lps_mm.mean(axis=0) for n, r in scans.items()},
+        plate_normals_by_scan={n: r.back_plane.normal for n, r in scans.items()},
         footprints_by_scan=_footprints(scans),
     )
 
@@ -385,7 +385,7 @@ def _footprints(scans: dict) -> dict:
         v = r.surface.vertices_lps_mm[np.asarray(flags, bool)] if flags is not None else []
         if len(v) < 10:
             return {}
-        out[name] = v[:: max(1, len(v) // 2000)]
+        out[name] = v[:: -(-len(v) // 2000)]
     return out
 
 

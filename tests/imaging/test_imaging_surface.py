@@ -189,6 +189,7 @@ def test_fiducials_off_the_plate_give_way_to_the_flat_face(caplog):
     assert off.method == "ransac" and off.fiducials_off_face_deg == pytest.approx(5.71, abs=0.1)
     assert off.normal[2] > 0.9999 and abs(off.point_lps_mm[2]) < 0.1
     assert "5.71 degrees off the surface's flat back face" in caplog.text
+    assert "markers not on the plate?" in caplog.text
     # 2 degrees off: the 80 mm face rose 2.7 mm over the fiducials' plane, and 44 % of it
     # lay more than the back-plate flag's 1.5 mm above the plane, scored as surface
     caplog.clear()
@@ -196,7 +197,9 @@ def test_fiducials_off_the_plate_give_way_to_the_flat_face(caplog):
         two = estimate_back_plane(v, fiducials_lps_mm=np.c_[xy, np.tan(np.radians(2.0)) * xy[:, 0]])
     assert two.method == "ransac" and two.fiducials_off_face_deg == pytest.approx(2.0, abs=0.1)
     assert two.normal[2] > 0.9999 and abs(two.point_lps_mm[2]) < 0.1
-    assert "80 mm wide: it rises 2.8 mm over the fiducials' plane" in caplog.text
+    # (width: twice the 95th percentile of the face's distances from its centre)
+    assert "77 mm wide: it rises 2.7 mm over the fiducials' plane). The plane" in caplog.text
+    assert "markers not on the plate?" not in caplog.text  # within 3 degrees: localisation
     # 0.3 degrees off (0.42 mm over 80 mm): within the bar, the fiducials' plane stays
     kept = estimate_back_plane(v, fiducials_lps_mm=np.c_[xy, np.tan(np.radians(0.3)) * xy[:, 0]])
     assert kept.method == "fiducials" and kept.fiducials_off_face_deg == pytest.approx(

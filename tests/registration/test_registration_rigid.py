@@ -118,13 +118,14 @@ def test_symmetric_layout_is_ambiguous():
         fit_rigid(isosceles, isosceles + 5.0, correspondence="auto")
 
 
-def test_the_body_side_tells_a_flip_from_the_true_ordering():
+def test_the_plate_normal_tells_a_flip_from_the_true_ordering():
     # a layout with a mirror line (an isosceles triangle or trapezoid) on the plate: a
     # 180-degree turn about that line fits as well as the truth, and flips the body
-    # through the plate; the body's side rules it out (refused as ambiguous before). A
-    # rectangle's turn in the plate keeps the body's side: still ambiguous.
+    # through the plate; the plate's normal rules it out (refused as ambiguous before).
+    # A rectangle's turn in the plate keeps the normal: still ambiguous. The normal, not
+    # a body point: markers on posts put a body point on either side of their plane
     rng = np.random.default_rng(7)
-    body = np.array([5.0, 30.0, 40.0])  # above the plate z = 0
+    up = np.array([0.0, 0.0, 1.0])  # the plate z = 0, the body above
     for layout in (
         np.array([[-50.0, 0, 0], [50, 0, 0], [0, 90, 0]]),  # isosceles
         np.array([[-60.0, -40, 0], [60, -40, 0], [30, 40, 0], [-30, 40, 0]]),  # trapezoid
@@ -136,13 +137,20 @@ def test_the_body_side_tells_a_flip_from_the_true_ordering():
             tgt[list(perm)] = apply_transform(T, layout)
             with pytest.raises(AmbiguousCorrespondenceError):
                 fit_rigid(layout, tgt, correspondence="auto")
-            fit = fit_rigid(
-                layout, tgt, correspondence="auto", side_points=(body, apply_transform(T, body))
-            )
+            normals = (up, T[:3, :3] @ up)
+            fit = fit_rigid(layout, tgt, correspondence="auto", plate_normals=normals)
             np.testing.assert_allclose(fit.T_target_from_source, T, atol=1e-9)
     rectangle = np.array([[-60.0, -40, 0], [60, -40, 0], [60, 40, 0], [-60, 40, 0]])
     with pytest.raises(AmbiguousCorrespondenceError):
-        fit_rigid(rectangle, rectangle, correspondence="auto", side_points=(body, body))
+        fit_rigid(rectangle, rectangle, correspondence="auto", plate_normals=(up, up))
+    # a tie-break that cannot score (an empty footprint) decides nothing (NaN compared
+    # false both ways, and the first ordering was taken)
+    with pytest.raises(AmbiguousCorrespondenceError, match=r"mismatch is \[nan"):
+        fit_rigid(rectangle, rectangle, correspondence="auto", tie_break=lambda T: np.nan)
+    # a scalene layout whose best fit flips the body: markers and planes disagree
+    scalene = np.array([[-60.0, -40, 0], [70, -30, 0], [-10, 65, 0]])
+    with pytest.raises(RegistrationError, match="flips the body through the plate, and the"):
+        fit_rigid(scalene, scalene, correspondence="auto", plate_normals=(up, -up))
 
 
 @pytest.mark.parametrize(
@@ -250,18 +258,18 @@ def test_the_footprint_tells_the_turns_of_a_square_layout_apart():
         np.zeros(t.size * r.size),
     ]
     disc = np.c_[(r * 35.0 * np.cos(t)).ravel(), (r * 35.0 * np.sin(t)).ravel(), 0 * egg[:, 2]]
-    body = np.array([6.0, 0.0, 30.0])
+    up = np.array([0.0, 0.0, 1.0])
     rng = np.random.default_rng(11)
     for _ in range(4):
         T = random_rigid(rng)
         perm = rng.permutation(4)
         scan = {"ref": square, "other": apply_transform(T, square)[perm]}
-        sides = {"ref": body, "other": apply_transform(T, body)}
+        sides = {"ref": up, "other": T[:3, :3] @ up}
         with pytest.raises(Ambiguous):
-            register_scans(scan, reference="ref", body_points_by_scan=sides)
+            register_scans(scan, reference="ref", plate_normals_by_scan=sides)
         feet = {"ref": egg, "other": apply_transform(T, egg)}
         reg = register_scans(
-            scan, reference="ref", body_points_by_scan=sides, footprints_by_scan=feet
+            scan, reference="ref", plate_normals_by_scan=sides, footprints_by_scan=feet
         )
         np.testing.assert_allclose(reg["other"].T_ref_from_scan, np.linalg.inv(T), atol=1e-9)
         # a round back face on the square's centre turns into itself: still ambiguous,
@@ -269,5 +277,5 @@ def test_the_footprint_tells_the_turns_of_a_square_layout_apart():
         feet = {"ref": disc, "other": apply_transform(T, disc)}
         with pytest.raises(Ambiguous, match=r"the other data tell them apart by 0\.00"):
             register_scans(
-                scan, reference="ref", body_points_by_scan=sides, footprints_by_scan=feet
+                scan, reference="ref", plate_normals_by_scan=sides, footprints_by_scan=feet
             )
