@@ -77,6 +77,7 @@ def test_ingest_checks_postures_in_two_planes_by_their_directions():
     postures = {"left": (0.0, "transverse"), "right": (180.0, "transverse"),
                 "s30": (30.0, "sagittal"), "s60": (60.0, "sagittal")}  # fmt: skip
     markers_ref = np.array([[0.0, 0, 0], [80, 0, 0], [0, 60, 0], [30, 20, 5]])
+    up = np.array([0.0, 0.0, 1.0])  # the plate's normal into the body, reference frame
     scans = {}
     for name, (a, plane) in postures.items():
         g_ref = R_TRUE @ gravity_for_angle(a, plane=plane)  # gravity, reference frame
@@ -85,7 +86,9 @@ def test_ingest_checks_postures_in_two_planes_by_their_directions():
         # rotation into the reference frame takes the scanner gravity to its own
         R_ref_from_scan = rotation_between(g_scanner, rotation_between(g_ref0, g_scanner) @ g_ref)
         scans[name] = SimpleNamespace(fiducials_lps_mm=markers_ref @ R_ref_from_scan,
-                                      nipple_lps_mm=None, tumour_lps_mm=None)  # fmt: skip
+                                      nipple_lps_mm=None, tumour_lps_mm=None,
+                                      back_plane=SimpleNamespace(normal=up @ R_ref_from_scan),
+                                      surface=SimpleNamespace(back_plate=None))  # fmt: skip
     entries = tuple(
         ScanEntry(n, Path(n), "reference" if n == "left" else "calibration", plane, a)
         for n, (a, plane) in postures.items()
