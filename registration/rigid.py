@@ -278,6 +278,13 @@ class RigidFit:
         return float(tre[0]) if single else tre
 
 
+def _homogeneous(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The 4 x 4 transform of rotation ``R`` (3, 3) and translation ``t`` (3,)."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
 def _plate_side(fits: list, normals, margin: float, name: str) -> list:
     """The fits that turn the source plate's normal onto the target's side (not a flip)."""
     n_src, n_tgt = (np.reshape(np.asarray(x, dtype=float), 3) for x in normals)
@@ -299,11 +306,7 @@ def _plate_side(fits: list, normals, margin: float, name: str) -> list:
 def _break_tie(fits: list, below: float, tie_break, margin: float, said: str) -> tuple:
     """The fit among those with an FRE below ``below`` whose ``tie_break`` is clearly least."""
     close = [f for f in fits if f[0] < below]
-    scores = []
-    for f in close:
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = f[2], f[3]
-        scores.append(float(tie_break(T)))
+    scores = [float(tie_break(_homogeneous(f[2], f[3]))) for f in close]
     if not np.all(np.isfinite(scores)):
         raise AmbiguousCorrespondenceError(f"{said}, and the other data's mismatch is {scores}")
     order = np.argsort(scores)
@@ -448,12 +451,9 @@ def fit_rigid(
             f"(per-marker residuals {np.round(res, 3).tolist()} mm); a marker may be missing "
             "or spurious"
         )
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = t
     log.debug("%s: FRE %.3f mm, permutation %s", name, fre, perm)
     return RigidFit(
-        T_target_from_source=T,
+        T_target_from_source=_homogeneous(R, t),
         fre_mm=fre,
         residuals_mm=res,
         permutation=tuple(int(i) for i in perm),

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from registration.distance_metrics import closest_point_distances
 from registration.errors import MarkerCountError, RegistrationError
 from registration.gravity import angle_between_deg, check_posture, gravity_in_reference
 from registration.rigid import apply_transform, fit_rigid
@@ -127,12 +128,11 @@ def footprint_mismatch_mm(a_mm: np.ndarray, b_mm: np.ndarray) -> float:
     Returns
     -------
     float
-        The mean of each set's mean distance to the other's nearest point.
+        The mean of each set's mean distance to the other's nearest point
+        (:func:`registration.distance_metrics.closest_point_distances` both ways).
     """
-    from scipy.spatial import cKDTree
-
-    a, b = np.asarray(a_mm, float), np.asarray(b_mm, float)
-    return 0.5 * float(cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
+    ab = closest_point_distances(a_mm, b_mm).mean()
+    return 0.5 * float(ab + closest_point_distances(b_mm, a_mm).mean())
 
 
 def _both(by_scan: dict | None, scan: str, reference: str) -> bool:

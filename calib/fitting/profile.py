@@ -72,12 +72,11 @@ def nipple_patches(cal, *, radius_mm: float = PATCH_RADIUS_MM) -> list:
     out = []
     for s in cal.calibration_scans:
         d = np.linalg.norm(cal.points[s.name] - s.nipple_mm, axis=1)
-        r = radius_mm
-        if np.count_nonzero(d < r) < MIN_PATCH_POINTS and len(d) >= MIN_PATCH_POINTS:
+        r, n_in = radius_mm, int(np.count_nonzero(d < radius_mm))
+        if n_in < MIN_PATCH_POINTS and len(d) >= MIN_PATCH_POINTS:
             reach = float(np.partition(d, MIN_PATCH_POINTS - 1)[MIN_PATCH_POINTS - 1])
             if reach < PATCH_GROWTH * radius_mm:
                 r = np.nextafter(reach, np.inf)
-                n_in = np.count_nonzero(d < radius_mm)
                 log.warning(
                     "scan %r: the nipple's noise patch reaches %.1f mm (%d subsampled points "
                     "within %g mm): its noise level takes in more of the model's misfit",
@@ -89,7 +88,7 @@ def nipple_patches(cal, *, radius_mm: float = PATCH_RADIUS_MM) -> list:
         near = cal.points[s.name][d < r]
         if len(near) < MIN_PATCH_POINTS:
             raise ValueError(
-                f"scan {s.name!r}: {len(near)} measured surface points within {radius_mm} mm "
+                f"scan {s.name!r}: {n_in} measured surface points within {radius_mm} mm "
                 f"of the nipple, {np.count_nonzero(d < PATCH_GROWTH * radius_mm)} within "
                 f"{PATCH_GROWTH * radius_mm:g} mm (at least {MIN_PATCH_POINTS} needed for "
                 "its noise level)"

@@ -173,7 +173,7 @@ class _Handler(BaseHTTPRequestHandler):
         layout = {
             "n_vertices": len(ov["vertices_mm"]),
             "n_faces": len(ov["faces"]),
-            "n_scored_faces": ov.get("n_scored_faces", len(ov["faces"])),
+            "n_scored_faces": ov["n_scored_faces"],
             "maps": maps,
         }
         return self._send(

@@ -311,7 +311,7 @@
     const maps = {};
     lay.maps.forEach((k, j) => { maps[k] = new Float32Array(buf, 12 * nv + 12 * nf + 4 * nv * j, nv); });
     overlay = makeMesh(pos, idx, null); overlay.maps = maps;
-    overlay.nScored = lay.n_scored_faces ?? nf;
+    overlay.nScored = lay.n_scored_faces;
     overlay.scored = new Uint8Array(nv);  // the vertices of the scored faces (listed first)
     for (let i = 0; i < 3 * overlay.nScored; i++) overlay.scored[idx[i]] = 1;
     applyOverlayMode();
