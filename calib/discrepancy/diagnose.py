@@ -68,7 +68,7 @@ from ..data.work import WorkFolder
 from ..evaluation import ScanMetrics, scan_metrics
 from ..model.effects import ADMISSIBLE, LIBRARY, SKIN_THICKNESS_MM
 from ..stats import NoiseFit, height_profile, parameter_intervals
-from .fields import SLIDING_PROBE_PA_PER_MM, FieldSet
+from .fields import FieldSet
 from .limits import parameter_limits
 from .localise import region_labels, significance_map
 from .problem import (
@@ -277,10 +277,13 @@ class Candidate:
         return out
 
 
-def _screen_unit(effect: str) -> str:
+def _screen_unit(effect: str, prob: Problem) -> str:
     """What one unit of the effect's screening column (its one-step estimate) is."""
     if effect == "sliding":
-        return f"probe amplitude, 1 = tangential springs of {SLIDING_PROBE_PA_PER_MM:g} Pa/mm"
+        return (
+            f"probe amplitude, 1 = tangential springs of {prob.sliding_probe_pa_per_mm:g} "
+            f"Pa/mm, sized by c1 and the body's {prob.body_height_mm:.1f} mm height"
+        )
     if effect == "poisson":
         return "change of nu from the model's"
     return LIBRARY[effect].unit
@@ -458,9 +461,12 @@ class Diagnosis:
                     "estimate": _num(best.estimate) if rows and len(rows) == 1 else None,
                     "detectable": _num(best.detectable) if len(rows) == 1 else None,
                     "parameter_limit": self.limits[name].as_json() if name in self.limits else None,
-                    "screen_unit": _screen_unit(name),
+                    "screen_unit": _screen_unit(name, self.problem),
                     "retained_fraction": _num(max(e.retained_fraction for e in rows)),
                 }
+                if name == "sliding":
+                    entry["probe_pa_per_mm"] = self.problem.sliding_probe_pa_per_mm
+                    entry["body_height_mm"] = self.problem.body_height_mm
                 if name == "density":
                     entry["note"] = (
                         "at fixed nu the solution depends on rho g / c1 only: its field is "

@@ -20,7 +20,7 @@ to the simulated surface) to each effect parameter ``p``:
   unit direction from the simulated surface to the measured point;
 - sliding, at a clamped model (the screen): one FE solve per scan and one of the
   reference posture with the plate on stiff tangential springs
-  (``SLIDING_PROBE_PA_PER_MM``) at the same c1 and stress-free geometry, the reference
+  (:attr:`Problem.sliding_probe_pa_per_mm`) at the same c1 and stress-free geometry, the reference
   posture's slip taken off to first order; the field is the secant per unit of the
   probe's amplitude ``a`` (a = 1: springs of the probe's stiffness; for stiff springs the
   slip goes as 1 / k);
@@ -231,13 +231,6 @@ def _load(fm, g: np.ndarray) -> tuple[np.ndarray, float]:
     return np.asarray(g, float), fm.g_m_s2
 
 
-#: Tangential spring stiffness of the sliding probe (Pa/mm): about 70 times the tissue's
-#: own scale 2 c1 / height (840 Pa over 60 mm), so the plate slips by a fraction of a
-#: millimetre (0.5 mm in the reference posture of the quick twin) and the response is in
-#: its linear range; the free plate itself does not converge on calibration meshes.
-SLIDING_PROBE_PA_PER_MM = 1000.0
-
-
 def _sliding_secant(prob: Problem, theta: float, values: EffectValues, names: Sequence[str],
                     base: dict, states: dict, nuisance: dict) -> dict:  # fmt: skip
     """Residual change when the plate may slip on stiff tangential springs (per probe).
@@ -251,7 +244,8 @@ def _sliding_secant(prob: Problem, theta: float, values: EffectValues, names: Se
     """
     fm = prob.fm
     X = fm.stress_free_nodes_mm
-    probe = replace(values, support_stiffness_pa_per_mm=SLIDING_PROBE_PA_PER_MM)
+    # stiff springs (the free plate itself does not converge on calibration meshes)
+    probe = replace(values, support_stiffness_pa_per_mm=prob.sliding_probe_pa_per_mm)
     disc = fem.discretize(prob.mesh, effect_support(probe), formulation=fm.formulation)
     disc = disc.with_nodes(X)
     model = effect_model(disc.mesh, float(np.exp(theta)), probe)

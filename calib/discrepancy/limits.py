@@ -61,9 +61,8 @@ import numpy as np
 import fem
 
 from ..model.effects import LIBRARY, EffectValues
-from .fields import SLIDING_PROBE_PA_PER_MM
 from .problem import Problem
-from .refit import SLIDING_LN_K_BOUNDS, Refit, unpack_parameters
+from .refit import SLIDING_PROBE_MULTIPLES, Refit, unpack_parameters
 from .screen import Screen, influence
 
 __all__ = [
@@ -211,7 +210,7 @@ def visible_side(effect: str) -> Literal["above", "below"]:
     """
     if effect not in LIMITED_EFFECTS:
         raise ValueError(f"no parameter limit for {effect!r}; it is for {LIMITED_EFFECTS}")
-    return "below" if _value(effect, 2.0, 0.5) < _value(effect, 1.0, 0.5) else "above"
+    return "below" if _value(effect, 2.0, 0.5, 1.0) < _value(effect, 1.0, 0.5, 1.0) else "above"
 
 
 def _quantity(effect: str) -> str:
@@ -227,33 +226,36 @@ def _quantity(effect: str) -> str:
 def _s_max(effect: str, nu0: float) -> float:
     """The physical range's end along the effect's side, in one-step units.
 
-    ``nu0`` is the model's nu (poisson's neutral).
+    ``nu0`` is the model's nu (poisson's neutral); sliding's softest springs are the
+    refit's lower bound, a fixed fraction of the probe.
     """
     if effect == "poisson":
         return nu0 - LIBRARY["poisson"].bounds[0]
     if effect == "sliding":
-        return SLIDING_PROBE_PA_PER_MM / math.exp(SLIDING_LN_K_BOUNDS[0])
+        return 1.0 / SLIDING_PROBE_MULTIPLES[0]
     return LIBRARY[effect].bounds[1]
 
 
-def _value(effect: str, s: float, nu0: float) -> float:
+def _value(effect: str, s: float, nu0: float, probe_pa_per_mm: float | None) -> float:
     """The quantity :func:`_quantity` names at distance ``s`` from neutral."""
     if effect in ("skin", "inclusions"):
         return 1.0 + s
     if effect == "poisson":
         return nu0 - s
     if effect == "sliding":
-        return SLIDING_PROBE_PA_PER_MM / s
+        return probe_pa_per_mm / s
     return s
 
 
-def _values_at(effect: str, base: EffectValues, s: float) -> EffectValues:
+def _values_at(
+    effect: str, base: EffectValues, s: float, probe_pa_per_mm: float | None
+) -> EffectValues:
     """``base`` with the effect at distance ``s`` from neutral on its physical side."""
     lib = LIBRARY[effect]
     if effect == "poisson":
         return lib.set(base, base.nu - s)
     if effect == "sliding":
-        return lib.set(base, math.log(SLIDING_PROBE_PA_PER_MM / s))
+        return lib.set(base, math.log(probe_pa_per_mm / s))
     return lib.set(base, s)
 
 
@@ -315,6 +317,7 @@ def parameter_limit(
     base_r = fit.fields.stack(fit.fields.residual)
     names = list(fit.fields.scans)
     nu0 = fit.values.nu
+    probe = prob.sliding_probe_pa_per_mm if effect == "sliding" else None
     s_max = _s_max(effect, nu0)
     quantity = _quantity(effect)
 
@@ -328,7 +331,7 @@ def parameter_limit(
         for _ in range(C1_STEPS):
             x_solved = x
             theta, values, nz = unpack_parameters(prob, fit.names, x, fit.values)
-            values = _values_at(effect, values, s)
+            values = _values_at(effect, values, s, probe)
             states = prob.solve(theta, values, names, gradient=False, nuisance=nz)
             res = [prob.residuals(n, states[n].positions_mm, None, nz.get(n)).r for n in names]
             delta = base_r - np.concatenate(res)
@@ -352,7 +355,7 @@ def parameter_limit(
         try:
             e, c1_ratio = estimate(s)
         except fem.ConvergenceError as exc:
-            note = f"no FE solution at {quantity} {_value(effect, s, nu0):.4g} ({exc})"
+            note = f"no FE solution at {quantity} {_value(effect, s, nu0, probe):.4g} ({exc})"
             say(f"  {effect}: {note}")
             status = "no FE solution"
             if steps or s >= s_max or failed_at:
@@ -362,7 +365,7 @@ def parameter_limit(
             failed_at, s = s, min(FAILED_GROWTH * s, s_max)
             continue
         steps.append((s, e, c1_ratio))
-        at = _value(effect, s, nu0)
+        at = _value(effect, s, nu0, probe)
         c1 = f"planted bulk c1 x{c1_ratio:.3f} of the fit's"
         say(f"  {effect} at {quantity} {at:.4g}: estimate {e:.3g} (detectable {d:.3g}), {c1}")
         if e > 0 and abs(e / d - 1.0) <= rtol:
@@ -390,7 +393,7 @@ def parameter_limit(
     reached = [si for si, ei, _ in steps if ei >= d * (1.0 - rtol)]
     if reached:
         s = min(reached)
-        value = _value(effect, s, nu0)
+        value = _value(effect, s, nu0, probe)
         if failed_at:
             note += "; the limit found above it is an upper bound"
         return ParameterLimit(

@@ -51,6 +51,7 @@ __all__ = [
     "plate_height_mm",
     "rim_margin_of",
     "rotate_gravity",
+    "sliding_probe_pa_per_mm",
 ]
 
 #: Measured points this near the back plate are not diagnosed by default (mm): there the
@@ -60,6 +61,11 @@ RIM_MARGIN_MM = 5.0
 #: Fewest fitted scans for leave-one-posture-out (:func:`calib.discrepancy.refit.lopo`),
 #: without which no effect is named.
 MIN_FITTED_SCANS = 2
+#: The sliding probe's springs: this multiple of the tissue's own shear stiffness per area
+#: of plate, ``2 c1 / H`` (:func:`sliding_probe_pa_per_mm`), so the plate slips by a
+#: fraction of a millimetre and the response is in its linear range (0.5 mm in the
+#: reference posture of the quick twin: 70 x 840 Pa / 74.5 mm = 790 Pa/mm, the probe 1000).
+SLIDING_PROBE_TISSUE_MULTIPLE = 70.0
 
 log = logging.getLogger(__name__)
 
@@ -153,6 +159,9 @@ class Problem:
     rim_points : dict of str to ndarray (j, 3)
         Each scan's measured points within the rim margin: mapped by the localisation,
         never fitted nor tested.
+    body_height_mm : float
+        The reference scan's surface's greatest height above its back plate (mm); it sizes
+        the sliding probe (:attr:`sliding_probe_pa_per_mm`). 0: not measured.
     profile : HeightProfile or None
         The residual's relative spread by height above the back plate (``--noise-profile
         plate``, :func:`calib.stats.height_profile`): every residual and its derivatives
@@ -176,6 +185,7 @@ class Problem:
     rim_margin_mm: float = RIM_MARGIN_MM
     mesh_size_mm: float = 0.0
     rim_points: dict = field(default_factory=dict)
+    body_height_mm: float = 0.0
     profile: HeightProfile | None = None
 
     @property
@@ -187,6 +197,16 @@ class Problem:
         is then c1 alone solved on the diagnosis model, not the calibration's states.
         """
         return self.mesh.n_nodes == self.work.mesh.n_nodes and not self.mesh_note
+
+    @property
+    def sliding_probe_pa_per_mm(self) -> float:
+        """Tangential springs of the sliding screen's probe (Pa/mm).
+
+        Sized by the calibrated c1 and :attr:`body_height_mm`
+        (:func:`sliding_probe_pa_per_mm`); the sliding refit's bounds follow it
+        (:func:`calib.discrepancy.refit.sliding_ln_k_bounds`).
+        """
+        return sliding_probe_pa_per_mm(float(np.exp(self.theta_calibrated)), self.body_height_mm)
 
     @property
     def nipple_node(self) -> int:
@@ -579,6 +599,36 @@ def parse_rim_margin(text: str, flag: str = "--rim-margin") -> float | Literal["
         raise DiagnosisError(f"{flag} must be a width in mm or 'element', got {text!r}") from None
 
 
+def sliding_probe_pa_per_mm(c1_pa: float, height_mm: float) -> float:
+    """Tangential spring stiffness of the sliding probe for a body (Pa/mm).
+
+    :data:`SLIDING_PROBE_TISSUE_MULTIPLE` times the tissue's own shear stiffness per area
+    of plate, ``2 c1 / H`` (initial shear modulus over the body's height above the
+    plate), rounded to the nearest power of ten: the probe needs the right order of
+    magnitude only, and a rounded one keeps its amplitude's unit the same for bodies
+    alike (the twins' 750-1200 Pa/mm all give 1000).
+
+    Parameters
+    ----------
+    c1_pa : float
+        The calibrated c1 (Pa).
+    height_mm : float
+        The body's height above the back plate (mm).
+
+    Returns
+    -------
+    float
+        A power of ten, Pa/mm.
+    """
+    if not (np.isfinite(c1_pa) and np.isfinite(height_mm) and c1_pa > 0 and height_mm > 0):
+        raise DiagnosisError(
+            f"the sliding probe needs a positive c1 and body height, got c1 {c1_pa!r} Pa "
+            f"and height {height_mm!r} mm"
+        )
+    tissue = 2.0 * float(c1_pa) / float(height_mm)
+    return float(10.0 ** round(np.log10(SLIDING_PROBE_TISSUE_MULTIPLE * tissue)))
+
+
 def plate_height_mm(scan, points_mm: np.ndarray) -> np.ndarray:
     """Distance of points (reference frame, mm) from a scan's back plate, shape (n,)."""
     return np.abs((points_mm - scan.back_point_mm) @ scan.back_normal)
@@ -727,4 +777,5 @@ def build_problem(
         skin_thickness_mm=float(skin_thickness_mm), registration_tolerance_mm=tolerance,
         mesh_note=note, rim_margin_mm=margin, mesh_size_mm=float(size),
         rim_points={n: within for n, (_, within) in split.items()},
+        body_height_mm=float(plate_height_mm(ref, ref.vertices_mm).max()),
     )  # fmt: skip

@@ -10,7 +10,7 @@ recovery) fails halves the step and is recorded, never replaced by a made-up val
 search whose shortest trial has no FE solution ends unsuccessful: it cannot tell a
 minimum from a neighbourhood the model cannot solve.
 ``sliding`` is fitted as ``ln k`` of the plate's tangential springs within
-:data:`SLIDING_LN_K_BOUNDS`, from the screen's probe stiffness.
+:func:`sliding_ln_k_bounds` of the screen's probe stiffness, from the probe.
 
 Leave-one-posture-out prediction (:func:`lopo`) is the first-order one at the fit: for
 each scan ``k``, the parameters refitted on the other scans by one Gauss-Newton step
@@ -33,18 +33,36 @@ import numpy as np
 import fem
 
 from ..model.effects import LIBRARY, EffectValues
-from .fields import MATERIAL_EFFECTS, SLIDING_PROBE_PA_PER_MM, FieldSet, effect_fields
+from .fields import MATERIAL_EFFECTS, FieldSet, effect_fields
 from .problem import Nuisance, Problem
 
-__all__ = ["PHYSICAL", "PhysicalParameter", "Refit", "lopo", "refit"]
+__all__ = ["PHYSICAL", "PhysicalParameter", "Refit", "lopo", "refit", "sliding_ln_k_bounds"]
 
 log = logging.getLogger(__name__)
 
 GLOBAL = (*MATERIAL_EFFECTS, "sliding")  # continuous global effect parameters
-#: Range of ``ln k`` (k: the plate's tangential springs, Pa/mm) in a refit: the twin's
-#: (``--effect sliding=K``). Above 1e6 Pa/mm a plate is clamped for every purpose here
-#: (slip below 1e-3 mm); below 10 the quick twin's plate has no FE solution.
-SLIDING_LN_K_BOUNDS = (math.log(10.0), math.log(1e6))
+#: Range of the plate's tangential springs in a refit, as multiples of the screen's probe
+#: (:func:`sliding_ln_k_bounds`): on the quick twins (probe 1000 Pa/mm) springs of 1e6
+#: Pa/mm clamp the plate for every purpose here (slip below 1e-3 mm), and below 10 Pa/mm
+#: the plate has no FE solution.
+SLIDING_PROBE_MULTIPLES = (1e-2, 1e3)
+
+
+def sliding_ln_k_bounds(probe_pa_per_mm: float) -> tuple[float, float]:
+    """Range of ``ln k`` (k: the plate's tangential springs, Pa/mm) in a refit.
+
+    Parameters
+    ----------
+    probe_pa_per_mm : float
+        The sliding screen's probe (:attr:`Problem.sliding_probe_pa_per_mm`).
+
+    Returns
+    -------
+    tuple of float
+        ``ln`` of :data:`SLIDING_PROBE_MULTIPLES` times the probe.
+    """
+    lo, hi = SLIDING_PROBE_MULTIPLES
+    return math.log(lo * probe_pa_per_mm), math.log(hi * probe_pa_per_mm)
 
 
 @dataclass(frozen=True)
@@ -172,7 +190,11 @@ def _layout(prob: Problem, effects: Sequence[str], theta0: float):
     names, lo, hi = ["theta"], [theta0 - math.log(4.0)], [theta0 + math.log(4.0)]
     for e in effects:
         if e in GLOBAL:
-            b = SLIDING_LN_K_BOUNDS if e == "sliding" else LIBRARY[e].bounds
+            b = (
+                sliding_ln_k_bounds(prob.sliding_probe_pa_per_mm)
+                if e == "sliding"
+                else LIBRARY[e].bounds
+            )
             names.append(e)
             lo.append(b[0])
             hi.append(b[1])
@@ -271,7 +293,9 @@ def refit(
     names, lo, hi = _layout(prob, effects, theta0)
     # the model's own nu is poisson's neutral value; a sliding plate starts on the
     # screen's probe springs (its amplitude 1)
-    neutral = {"poisson": prob.base.nu, "sliding": math.log(SLIDING_PROBE_PA_PER_MM)}
+    neutral = {"poisson": prob.base.nu}
+    if "sliding" in effects:
+        neutral["sliding"] = math.log(prob.sliding_probe_pa_per_mm)
     x = np.array([theta0] + [neutral.get(n, LIBRARY[n].neutral) if n in GLOBAL else 0.0
                              for n in names[1:]])  # fmt: skip
     for k, v in (x0 or {}).items():

@@ -34,7 +34,7 @@ skin         skin/bulk stiffness ratio - 1 (band   0            [-0.9, 99]
 sliding      back-plate support: clamped, tangential springs (``fem.Sliding`` with
              ``tangent_stiffness_pa_per_mm``, rim held) or frictionless; the
              diagnosis screens it with a stiff-spring probe (one FE solve per scan) and
-             refits ``ln k`` (``calib.discrepancy.refit.SLIDING_LN_K_BOUNDS``)
+             refits ``ln k`` (``calib.discrepancy.refit.sliding_ln_k_bounds``)
 inclusions   inclusion/bulk stiffness ratio - 1    0            [-0.9, 99]
 mooney       c2 / c1 (Mooney-Rivlin, strain        0            [0, 4]
              stiffening of the I2 term)

@@ -21,7 +21,7 @@ from calib.discrepancy import DiagnosisError, DiagnosisOptions
 from calib.discrepancy.diagnose import _verdict
 from calib.discrepancy.fields import Column, FieldSet
 from calib.discrepancy.localise import region_labels, significance_map
-from calib.discrepancy.refit import PHYSICAL, SLIDING_LN_K_BOUNDS, Refit, lopo
+from calib.discrepancy.refit import PHYSICAL, Refit, lopo, sliding_ln_k_bounds
 from calib.discrepancy.screen import screen
 from calib.model.effects import LIBRARY, EffectValues
 from calib.stats.coverage import NoiseSampler, misfit_pattern, phantom_sample, sag_sensitivity
@@ -644,18 +644,63 @@ def test_the_summary_says_what_size_the_effects_not_found_would_need():
     assert detection_limits({"effects": effects}) == ""
 
 
-def test_a_sliding_plate_is_refitted_as_ln_k_of_its_springs():
-    # the refit's parameter layout: ln k within the twin's spring range, and the model it
-    # unpacks holds the plate on springs of that stiffness (fem.Sliding, rim held)
+def test_the_sliding_probe_is_sized_by_the_body():
+    # closed form: 70 x 2 c1 / H rounded to a power of ten. The demo's calibration (551.9
+    # Pa, its reference surface 74.5 mm above the plate) and the twin's truth (420 Pa)
+    # keep the 1000 Pa/mm every README figure was measured with; a soft tall body and a
+    # stiff flat one get probes a decade softer and stiffer, and the sliding limit's
+    # quantity and its refit's bounds follow (the probe was 1000 Pa/mm for every body)
     import math
 
-    from calib.discrepancy.refit import SLIDING_LN_K_BOUNDS, _layout, unpack_parameters
+    from calib.discrepancy.limits import _s_max, _value, _values_at
+    from calib.discrepancy.problem import Problem, sliding_probe_pa_per_mm
+
+    cases = {(551.9, 74.5): 1000.0, (420.0, 74.5): 1000.0, (100.0, 150.0): 100.0}
+    cases[(2000.0, 40.0)] = 10000.0
+    for (c1, height), probe in cases.items():
+        assert sliding_probe_pa_per_mm(c1, height) == pytest.approx(probe, rel=1e-12)
+        prob = Problem(
+            work=None,
+            fm=None,
+            base=None,
+            sim=None,
+            points={},
+            centres={},
+            scans=[],
+            holdout=None,
+            theta_calibrated=math.log(c1),
+            inclusions=[],
+            skin_thickness_mm=1.5,
+            body_height_mm=height,
+        )
+        assert prob.sliding_probe_pa_per_mm == pytest.approx(probe, rel=1e-12)
+        # one probe amplitude is the probe's springs; the softest end is the refit's bound
+        assert _value("sliding", 1.0, 0.499, probe) == probe
+        soft = _values_at("sliding", EffectValues(), _s_max("sliding", 0.499), probe)
+        assert math.log(soft.support_stiffness_pa_per_mm) == pytest.approx(
+            sliding_ln_k_bounds(probe)[0], rel=1e-12
+        )
+    for c1, height in ((420.0, 0.0), (0.0, 74.5), (math.nan, 74.5)):
+        with pytest.raises(DiagnosisError, match="sliding probe needs a positive c1"):
+            sliding_probe_pa_per_mm(c1, height)
+
+
+def test_a_sliding_plate_is_refitted_as_ln_k_of_its_springs():
+    # the refit's parameter layout: ln k from 1/100 to 1000 times the screen's probe (the
+    # twins' 10 to 1e6 Pa/mm with their 1000 Pa/mm probe; a softer body's range moves
+    # with its probe), and the model it unpacks holds the plate on springs of that
+    # stiffness (fem.Sliding, rim held)
+    import math
+
+    from calib.discrepancy.refit import _layout, unpack_parameters
     from calib.model.effects import effect_support
 
-    prob = SimpleNamespace(scans=SCANS)
-    names, lo, hi = _layout(prob, ("sliding",), math.log(420.0))
-    assert names == ("theta", "sliding")
-    assert (lo[1], hi[1]) == SLIDING_LN_K_BOUNDS == (math.log(10.0), math.log(1e6))
+    for probe, (k_lo, k_hi) in ((1000.0, (10.0, 1e6)), (100.0, (1.0, 1e5))):
+        prob = SimpleNamespace(scans=SCANS, sliding_probe_pa_per_mm=probe)
+        names, lo, hi = _layout(prob, ("sliding",), math.log(420.0))
+        assert names == ("theta", "sliding")
+        assert (lo[1], hi[1]) == sliding_ln_k_bounds(probe)
+        assert (lo[1], hi[1]) == pytest.approx((math.log(k_lo), math.log(k_hi)), rel=1e-12)
     x = np.array([math.log(420.0), math.log(250.0)])
     theta, values, _ = unpack_parameters(prob, names, x, EffectValues())
     assert values.support == "springs"
@@ -1435,14 +1480,14 @@ def test_an_interval_cut_to_the_admissible_values_keeps_its_coverage():
 
 def test_the_refit_parameters_read_as_the_quantities_the_library_names():
     # skin and inclusions are refitted as ratio - 1 (admissible above -1: a positive
-    # ratio), sliding as ln k within SLIDING_LN_K_BOUNDS (10 to 1e6 Pa/mm, refit.py);
-    # exact up to the exponential's round-off
+    # ratio), sliding as ln k within sliding_ln_k_bounds (10 to 1e6 Pa/mm for the twins'
+    # 1000 Pa/mm probe, refit.py); exact up to the exponential's round-off
     from calib.model.effects import ADMISSIBLE
 
     for name in ("skin", "inclusions"):
         assert PHYSICAL[name].convert(ADMISSIBLE[name][0]) == 0.0
         assert PHYSICAL[name].convert(7.0) == 8.0
-    springs = [PHYSICAL["sliding"].convert(b) for b in SLIDING_LN_K_BOUNDS]
+    springs = [PHYSICAL["sliding"].convert(b) for b in sliding_ln_k_bounds(1000.0)]
     assert springs == pytest.approx([10.0, 1e6], rel=1e-12)
     assert set(PHYSICAL) <= set(LIBRARY)
 

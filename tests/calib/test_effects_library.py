@@ -355,7 +355,7 @@ def test_the_sliding_probe_under_the_shortcut_takes_no_reference_slip(phantom):
     # reference solve applied the whole g0 and took its sag off as a "slip" (mm).
     from types import SimpleNamespace
 
-    from calib.discrepancy.fields import SLIDING_PROBE_PA_PER_MM, _sliding_secant
+    from calib.discrepancy.fields import _sliding_secant
     from calib.model.effects import effect_model, effect_support
     from fem.unload import shortcut_gravity
 
@@ -363,11 +363,14 @@ def test_the_sliding_probe_under_the_shortcut_takes_no_reference_slip(phantom):
     fm = ForwardModel(phantom, _G0, reference_state="shortcut", effects=EffectValues())
     states = fm.evaluate(theta, {"s": _G}, gradient=False)
     identity = SimpleNamespace  # residuals: the positions themselves
-    prob = SimpleNamespace(fm=fm, mesh=phantom, gravity=lambda n, nuis=None: _G)
+    probe = 1000.0
+    prob = SimpleNamespace(
+        fm=fm, mesh=phantom, gravity=lambda n, nuis=None: _G, sliding_probe_pa_per_mm=probe
+    )
     prob.residuals = lambda n, pos, m, nuis: identity(r=pos)
     base = {"s": states["s"].positions_mm}
     col = _sliding_secant(prob, theta, EffectValues(), ["s"], base, states, {})["s"]
-    springs = EffectValues(support_stiffness_pa_per_mm=SLIDING_PROBE_PA_PER_MM)
+    springs = EffectValues(support_stiffness_pa_per_mm=probe)
     disc = fem.discretize(phantom, effect_support(springs), formulation=fm.formulation)
     g, mag = shortcut_gravity(_G, _G0, g_m_s2=fm.g_m_s2)  # the load g - g0
     sol = fem.solve(effect_model(phantom, 420.0, springs), gravity=g, g_m_s2=mag, disc=disc)
