@@ -18,6 +18,7 @@ __all__ = [
     "StaleOutputError",
     "atomic_write",
     "check_out_file",
+    "check_out_folder",
     "check_run",
     "clean_stale",
     "file_sha256",
@@ -35,6 +36,19 @@ def write_json_atomic(path: str | os.PathLike, data: dict) -> Path:
     return atomic_write(path, lambda p: p.write_text(text + "\n"))
 
 
+def _check_writable(out: Path, folder: Path) -> None:
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise PermissionError(f"--out {out}: {folder} is not writable")
+
+
+def _check_parents(out: Path) -> None:
+    """The nearest existing path above ``out`` must be a writable folder."""
+    parent = next((p for p in out.parents if p.exists()), Path("."))
+    if not parent.is_dir():
+        raise NotADirectoryError(f"--out {out}: {parent} is a file, not a folder")
+    _check_writable(out, parent)
+
+
 def check_out_file(out: str | os.PathLike) -> None:
     """Refuse an ``--out`` file that cannot be written, before any work.
 
@@ -42,15 +56,34 @@ def check_out_file(out: str | os.PathLike) -> None:
     ------
     IsADirectoryError
         ``out`` is a folder.
+    NotADirectoryError
+        Its nearest existing parent is a file.
     PermissionError
         Its nearest existing parent folder is not writable.
     """
     out = Path(out)
     if out.is_dir():
         raise IsADirectoryError(f"--out {out}: is a folder; name the file to write")
-    parent = next((p for p in (out.parent, *out.parent.parents) if p.exists()), Path("."))
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise PermissionError(f"--out {out}: {parent} is not writable")
+    _check_parents(out)
+
+
+def check_out_folder(out: str | os.PathLike) -> None:
+    """Refuse an output folder that cannot be written, before any work.
+
+    Raises
+    ------
+    NotADirectoryError
+        ``out``, or its nearest existing parent, is a file.
+    PermissionError
+        ``out``, or where it does not exist its nearest existing parent, is not writable.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"--out {out}: exists and is not a folder")
+    if out.exists():
+        _check_writable(out, out)
+    else:
+        _check_parents(out)
 
 
 def file_sha256(path: str | os.PathLike) -> str:

@@ -24,7 +24,7 @@ from fem.geometry import PhantomSpec, build_phantom, sphere_surface
 from fem.meshing import mesh_phantom
 from fem.postures import random_scanner_pose
 
-from ..io import clean_stale, provenance, write_json_atomic
+from ..io import check_out_folder, clean_stale, provenance, write_json_atomic
 from ..model.effects import TruthEffects, truth_model
 
 __all__ = ["PRESETS", "Posture", "TwinPreset", "scanner_poses", "synthesize"]
@@ -235,6 +235,7 @@ def synthesize(
     out = Path(out)
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out} exists; choose another folder or pass --overwrite")
+    check_out_folder(out)  # before the truth solves, not after them
     eff = p.effects if effects is None else effects
     clean_stale(out.parent, (out.name,))  # partial folders of killed runs
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"

@@ -10,7 +10,6 @@ and the measured surface with a per-vertex error (PLY).
 from __future__ import annotations
 
 import logging
-import os
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -22,23 +21,14 @@ from ..data.measurements import load_measurements
 from ..data.session import SessionError, load_session
 from ..evaluation import ScanEvaluation, check_postures, evaluate, model_fit_with_postures
 from ..fitting import Calibration, CalibrationOptions, fit
-from ..io import RunOutputs, provenance
+from ..io import RunOutputs, check_out_folder, provenance
 from ..report.maps import error_map_figure, save_figure, write_error_ply
 
-__all__ = ["check_work_folder", "run_calibration", "write_calibration"]
+__all__ = ["run_calibration", "write_calibration"]
 
 log = logging.getLogger(__name__)
 
 FOLDER, RECORD = "calibration", "calibration.json"
-
-
-def check_work_folder(work: Path) -> None:
-    """Fail early when ``work`` cannot hold results (a file, or not writable)."""
-    if work.exists() and not work.is_dir():
-        raise NotADirectoryError(f"--out {work}: exists and is not a folder")
-    probe = work if work.exists() else next((p for p in work.parents if p.exists()), Path("."))
-    if not os.access(probe, os.W_OK | os.X_OK):
-        raise PermissionError(f"--out {work}: {probe} is not writable")
 
 
 def _scan_files(run: RunOutputs, cal: Calibration, ev: ScanEvaluation) -> list[str]:
@@ -202,7 +192,7 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     say = progress or log.info
     t0 = time.perf_counter()
     work = Path(work)
-    check_work_folder(work)
+    check_out_folder(work)
     session = load_session(scans_dir)
     if not session.by_role("calibration"):
         raise SessionError(

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..data.ingest import IngestResult, ingest_inputs, ingest_scans
 from ..data.session import Session, load_session
-from ..io import RunOutputs, provenance, write_json_atomic
+from ..io import RunOutputs, check_out_folder, provenance, write_json_atomic
 
 __all__ = ["run_ingest", "write_ingest"]
 
@@ -132,6 +132,7 @@ def run_ingest(scans_dir: str | Path, work: str | Path, *, progress=None) -> Ing
     -------
     IngestResult
     """
+    check_out_folder(work)  # before the work, not after it
     result = ingest_scans(load_session(scans_dir), progress=progress)
     write_ingest(work, result)
     return result

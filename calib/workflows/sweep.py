@@ -252,7 +252,7 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     The options themselves are checked when :class:`SweepOptions` is built, before
     anything is read or written.
     """
-    from ..io import clean_stale
+    from ..io import check_out_folder, clean_stale
     from ..sweep import load_sweep_model, make_plan, plan_continuation
     from ..sweep.engine import make_backend, run_scenarios
     from ..sweep.store import StoreError, SweepStore
@@ -262,6 +262,7 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise StoreError(f"--out {out}: exists and is not a folder")
+    check_out_folder(out)
     if opts.backend == "dask" and not _has_distributed():
         raise RuntimeError(
             "the dask backend needs dask.distributed: pip install 'phantom-calib[sweep]'"

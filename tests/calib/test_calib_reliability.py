@@ -182,6 +182,25 @@ def test_calibrate_out_that_is_a_file_fails_before_any_work(tmp_path):
     assert result.exit_code == 2 and "results.txt: exists and is not a folder" in result.stderr
 
 
+@pytest.mark.parametrize("command", ["ingest", "calibrate", "sweep", "synth"])
+def test_an_out_below_a_file_fails_before_any_work(tmp_path, command):
+    # the nearest existing path above --out is a file: said as such, before reading the
+    # placeholder scans or building a twin (ingest and sweep said "[Errno 20] Not a
+    # directory" / "[Errno 17] File exists" after their work, synth after its truth mesh)
+    scans = make_scan_folder(tmp_path / "scans")
+    (tmp_path / "results.txt").write_text("x")
+    out = str(tmp_path / "results.txt" / "w")
+    args = {
+        "ingest": ["ingest", str(scans), "--out", out],
+        "calibrate": ["calibrate", str(scans), "--out", out],
+        "sweep": ["sweep", str(tmp_path), "--out", out],
+        "synth": ["synth", out, "--preset", "quick"],
+    }[command]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2, result.output
+    assert "results.txt is a file, not a folder" in result.stderr, result.stderr
+
+
 # -- run-level atomicity ----------------------------------------------------------------
 
 
