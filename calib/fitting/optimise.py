@@ -107,7 +107,9 @@ def prepare(
             f"{[s.name for s in cal.calibration_scans]}"
         )
         ref = measurements.reference
-        for note in model_mesh_notes(ref, cal.mesh, size):  # the calibration's, not checks'
+        # the calibration's mesh, not the checks'; a fine mesh asked for is meant
+        asked = size != CalibrationOptions.mesh_size_mm
+        for note in model_mesh_notes(ref, cal.mesh, size, asked=asked):
             log.warning("reference scan %r: %s", ref.name, note)
         if options.objective == "nipple":
             from .profile import nipple_patches

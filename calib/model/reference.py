@@ -186,14 +186,15 @@ MIN_ELEMENTS_IN_HEIGHT = 4.0
 MAX_ELEMENTS_IN_HEIGHT = 12.0
 
 
-def model_mesh_notes(ref, mesh, size_mm: float) -> list[str]:
+def model_mesh_notes(ref, mesh, size_mm: float, *, asked: bool = False) -> list[str]:
     """What a user should know about a calibration's model mesh of ``ref`` (may be empty).
 
     The model's nipple is the surface node nearest the measured nipple: on a coarse mesh
     of a smooth dome it can lie several mm away (:data:`NIPPLE_NODE_OFFSET_MM`). A body
     only a few elements tall (:data:`MIN_ELEMENTS_IN_HEIGHT`) is meshed far more coarsely
     than the twins the README's figures come from; one many elements tall
-    (:data:`MAX_ELEMENTS_IN_HEIGHT`) far more finely, and solves far more slowly.
+    (:data:`MAX_ELEMENTS_IN_HEIGHT`) far more finely, and solves far more slowly: said
+    only of a size the user did not ask for (the default's).
 
     Parameters
     ----------
@@ -203,6 +204,8 @@ def model_mesh_notes(ref, mesh, size_mm: float) -> list[str]:
         Its model mesh (:func:`reference_mesh`).
     size_mm : float
         The mesh size asked for.
+    asked : bool
+        Whether the user chose ``size_mm`` (``--mesh-size``): a fine mesh is then meant.
 
     Returns
     -------
@@ -224,7 +227,7 @@ def model_mesh_notes(ref, mesh, size_mm: float) -> list[str]:
             f"{size_mm:g} mm through its height, fewer than {MIN_ELEMENTS_IN_HEIGHT:g}; "
             f"consider --mesh-size {height / 6:.0f}"
         )
-    elif height > MAX_ELEMENTS_IN_HEIGHT * size_mm:
+    elif height > MAX_ELEMENTS_IN_HEIGHT * size_mm and not asked:
         notes.append(
             f"the body is {height:.0f} mm tall: {height / size_mm:.1f} elements of "
             f"{size_mm:g} mm through its height ({mesh.n_tets} tetrahedra), more than "
