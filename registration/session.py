@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from registration.distance_metrics import closest_point_distances
+from registration.distance_metrics import closest_point_distances, point_to_surface_distances
 from registration.errors import MarkerCountError, RegistrationError
 from registration.gravity import angle_between_deg, check_posture, gravity_in_reference
 from registration.rigid import apply_transform, fit_rigid
@@ -118,30 +118,41 @@ def _gravity_for(scan: str, gravity_scanner) -> np.ndarray:
     return np.asarray(gravity_scanner, dtype=float)
 
 
-def footprint_mismatch_mm(a_mm: np.ndarray, b_mm: np.ndarray) -> float:
-    """Symmetric mean nearest-point distance between two point sets (mm).
+def footprint_mismatch_mm(a, b) -> float:
+    """Symmetric mean distance between two footprints (mm).
 
     Parameters
     ----------
-    a_mm, b_mm : array_like, shape (k, 3) and (m, 3)
+    a, b : array_like, shape (k, 3), or tuple of (array_like (v, 3), array_like (f, 3))
+        Points, millimetres, or triangle patches ``(vertices_mm, faces)``.
 
     Returns
     -------
     float
-        The mean of each set's mean distance to the other's nearest point
-        (:func:`registration.distance_metrics.closest_point_distances` both ways).
+        The mean of each footprint's mean distance to the other: of its points to the
+        other's nearest point
+        (:func:`registration.distance_metrics.closest_point_distances`), or, where both
+        are patches, of its vertices to the other's triangles
+        (:func:`registration.distance_metrics.point_to_surface_distances`), which does not
+        take two samplings of one surface for a distance.
     """
-    ab = closest_point_distances(a_mm, b_mm).mean()
-    return 0.5 * float(ab + closest_point_distances(b_mm, a_mm).mean())
+    if isinstance(a, tuple) and isinstance(b, tuple):
+        ab = point_to_surface_distances(a[0], *b, signed=False).mean()
+        return 0.5 * float(ab + point_to_surface_distances(b[0], *a, signed=False).mean())
+    a, b = (x[0] if isinstance(x, tuple) else x for x in (a, b))
+    ab = closest_point_distances(a, b).mean()
+    return 0.5 * float(ab + closest_point_distances(b, a).mean())
 
 
 def _both(by_scan: dict | None, scan: str, reference: str) -> bool:
     return bool(by_scan) and scan in by_scan and reference in by_scan
 
 
-def _footprint_tie(scan_mm: np.ndarray, ref_mm: np.ndarray):
+def _footprint_tie(scan, ref):
     def mismatch(T: np.ndarray) -> float:
-        return footprint_mismatch_mm(apply_transform(T, scan_mm), ref_mm)
+        if isinstance(scan, tuple):
+            return footprint_mismatch_mm((apply_transform(T, scan[0]), scan[1]), ref)
+        return footprint_mismatch_mm(apply_transform(T, scan), ref)
 
     return mismatch
 
@@ -155,7 +166,7 @@ def register_scans(
     nominal_gravity: dict[str, Sequence[float]] | None = None,
     landmarks_by_scan: dict[str, dict[str, np.ndarray]] | None = None,
     plate_normals_by_scan: dict[str, np.ndarray] | None = None,
-    footprints_by_scan: dict[str, np.ndarray] | None = None,
+    footprints_by_scan: dict[str, np.ndarray | tuple] | None = None,
     correspondence: str = "auto",
     fle_mm: float | None = None,
     max_fre_mm: float | None = 2.0,
@@ -187,10 +198,11 @@ def register_scans(
         Per scan, the back plate's unit normal pointing into the body in the scan's LPS
         frame: orderings that flip the body through the plate are no candidates
         (``plate_normals`` of :func:`registration.rigid.fit_rigid`).
-    footprints_by_scan : dict of str to array_like, shape (k, 3), optional
+    footprints_by_scan : dict of str to array_like (k, 3) or tuple, optional
         Per scan, points of the body's back face on the plate in the scan's LPS frame
-        (it does not move between postures). Where orderings of a symmetric layout fit
-        alike, the one that lays the scan's footprint onto the reference's is taken
+        (it does not move between postures), or its triangles ``(vertices_mm, faces)``.
+        Where orderings of a symmetric layout fit alike, the one that lays the scan's
+        footprint onto the reference's is taken
         (:func:`footprint_mismatch_mm`, the ``tie_break`` of ``fit_rigid``).
     correspondence : {"auto", "given"}
         Marker correspondence, see :func:`registration.rigid.fit_rigid`.

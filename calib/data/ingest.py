@@ -375,17 +375,22 @@ def _register(session: Session, scans: dict, landmarks: bool):
 
 
 def _footprints(scans: dict) -> dict:
-    """Per scan up to 2000 of its back-plate vertices (every k-th), (k, 3) LPS mm.
+    """Per scan its back-plate patch: ``(vertices (k, 3) LPS mm, faces (f, 3))``.
 
-    Scans with fewer than 10 (no flags, no flat face) have none, nor then any scan.
+    The faces whose three vertices are flagged ``back_plate``. Scans with fewer than 10
+    such faces (no flags, no flat face) have none, nor then any scan.
     """
     out = {}
     for name, r in scans.items():
         flags = r.surface.back_plate
-        v = r.surface.vertices_lps_mm[np.asarray(flags, bool)] if flags is not None else []
-        if len(v) < 10:
+        if flags is None:
             return {}
-        out[name] = v[:: -(-len(v) // 2000)]
+        flags = np.asarray(flags, bool)
+        faces = r.surface.faces[flags[r.surface.faces].all(axis=1)]
+        if len(faces) < 10:
+            return {}
+        used, faces = np.unique(faces, return_inverse=True)
+        out[name] = (r.surface.vertices_lps_mm[used], faces.reshape(-1, 3))
     return out
 
 

@@ -241,6 +241,42 @@ def test_result_is_frozen():
         fit.fre_mm = 0.0
 
 
+def _egg_patch(rng, n: int):
+    """A flat egg-shaped face 80 x 55 mm, 6 mm off the origin, triangulated from n points."""
+    from scipy.spatial import Delaunay
+
+    t = np.linspace(0.0, 2.0 * np.pi, 200, endpoint=False) + rng.uniform(0.0, np.pi / 100)
+    rim = np.c_[6.0 + 40.0 * np.cos(t), 27.5 * np.sin(t) * (1.0 + 0.15 * np.cos(t))]
+    inner = rng.uniform(-1.0, 1.0, (4 * n, 2)) * [40.0, 32.0] + [6.0, 0.0]
+    u = (inner[:, 0] - 6.0) / 40.0
+    inside = inner[:, 1] ** 2 < (27.5 * (1.0 + 0.15 * u)) ** 2 * (1.0 - u**2) * 0.95
+    xy = np.vstack([rim, inner[inside][:n]])
+    return np.c_[xy, np.zeros(len(xy))], Delaunay(xy).simplices
+
+
+def test_two_samplings_of_one_face_lie_apart_as_points_not_as_patches():
+    # the same face triangulated from two random samplings (about 2 mm apart, as a
+    # decimated scan surface): their vertices lie 0.9 mm from each other's nearest vertex
+    # on average, a floor the tie-break's bar (1 mm and twice) had to clear on top of a
+    # true misfit (the small equilateral twin: true ordering 1.13 mm, next 2.51); vertex
+    # to triangle, only the outlines differ: chords of one curve through 200 points at
+    # other phases, a sagitta of 40 mm x (1 - cos(pi / 200)) = 0.005 mm at most. A 3 mm
+    # shift, a true misfit, adds 0.2 mm to the floor as points and is 200 times the
+    # floor as patches (the rim's vertices on the far side lie up to 3 mm out).
+    from registration import footprint_mismatch_mm
+
+    rng = np.random.default_rng(5)
+    a, b = _egg_patch(rng, 700), _egg_patch(rng, 700)
+    as_points = footprint_mismatch_mm(a[0], b[0])
+    as_patches = footprint_mismatch_mm(a, b)
+    assert 0.5 < as_points < 1.5, as_points
+    assert as_patches < 0.005, as_patches
+    shifted = (a[0] + [3.0, 0.0, 0.0], a[1])
+    assert footprint_mismatch_mm(shifted[0], b[0]) < as_points + 0.5
+    assert footprint_mismatch_mm(shifted, b) > 0.15
+    assert footprint_mismatch_mm(shifted, b) > 20.0 * as_patches
+
+
 def test_the_footprint_tells_the_turns_of_a_square_layout_apart():
     # four markers at the corners of a square plate: its 90-degree turns in the plate fit
     # alike, and keep the body's side; the body's back face on the plate does not move
