@@ -268,6 +268,69 @@ def test_a_mesh_without_a_straight_reference_is_replaced_and_the_note_says_why(m
         )
 
 
+def test_meshes_with_fewer_slivers_are_tried_before_a_diagnosis_is_refused(monkeypatch):
+    # a twin 1.4 times the usual size (c1 507 Pa): its 12, 14 and 16 mm meshes admit no
+    # straight stress-free reference (the inverse Newton stops at load factor 0.96, 0.70,
+    # 0.77: rim slivers) and the diagnosis was refused; meshed with TetGen's 165 deg
+    # dihedral bound, the 12 mm one recovers (8 vertex tetrahedra inverted, 364 s). The
+    # sizes are tried again with that bound, the calibration's own first, and the note
+    # says so; a calibration meshed with a bound as tight is not retried
+    import calib.model.reference as reference
+    import fem
+    from calib.discrepancy.problem import STRAIGHT_RETRY_DIHEDRAL_DEG, _straight_model
+
+    built = []
+
+    def mesh(ref, size_mm, max_dihedral_deg):
+        built.append((size_mm, max_dihedral_deg))
+        return size_mm, max_dihedral_deg
+
+    monkeypatch.setattr(reference, "reference_mesh", mesh)
+
+    class Model:
+        def __init__(self, loaded):
+            self.size, self.bound = loaded
+
+        def stress_free(self, theta):
+            if self.bound is None or self.bound > 165.0:
+                raise fem.ConvergenceError("inverse Newton stopped at load factor 0.96")
+
+    work = SimpleNamespace(
+        path="WORK", measurements=SimpleNamespace(reference=None), record={"c1_pa": 507.0}
+    )
+    params = {"mesh_size_mm": 12.0, "mesh_retry_mm": []}
+    fm, note, size = _straight_model(work, params, Model, own_size=False)
+    assert STRAIGHT_RETRY_DIHEDRAL_DEG == 165.0
+    assert (fm.size, fm.bound, size) == (12.0, 165.0, 12.0)
+    assert built == [(14.0, None), (16.0, None), (12.0, 165.0)]
+    assert note.startswith("no straight stress-free reference on the calibration's mesh (its ")
+    assert "14 mm: inverse Newton stopped at load factor 0.96; 16 mm: " in note
+    assert note.endswith(
+        "diagnosed on the 12 mm mesh with TetGen's dihedral bound 165 deg (the calibration's: none)"
+    )
+    built.clear()
+    tight = {**params, "mesh_max_dihedral_deg": 160.0}
+
+    class Stuck(Model):
+        def stress_free(self, theta):
+            raise fem.ConvergenceError("inverse Newton stopped at load factor 0.7")
+
+    with pytest.raises(DiagnosisError, match=r"nor on other meshes \(14 mm: .*16 mm: "):
+        _straight_model(
+            SimpleNamespace(
+                **{**vars(work), "record": {"c1_pa": 507.0, "provenance": {"parameters": tight}}}
+            ),
+            tight,
+            Stuck,
+            own_size=False,
+        )
+    assert built == [(14.0, 160.0), (16.0, 160.0)]
+    built.clear()
+    with pytest.raises(DiagnosisError, match=r"12 mm: with a 165 deg dihedral bound: inverse"):
+        _straight_model(work, params, Stuck, own_size=False)
+    assert built == [(14.0, None), (16.0, None), (12.0, 165.0), (14.0, 165.0), (16.0, 165.0)]
+
+
 def test_a_mesh_size_asked_for_is_built_from_the_reference_scan_and_said(monkeypatch):
     import calib.model.reference as reference
     import fem
