@@ -680,6 +680,7 @@ def diagnose(
         rim_margin_mm=o.rim_margin_mm,
         mesh_size_mm=o.mesh_size_mm,
         inclusion_mesh_mm=o.inclusion_mesh_mm,
+        say=say,
     )
     say(f"diagnosis scans {prob.scans}, held out: {prob.holdout or 'none'}; model mesh "
         f"{prob.mesh.n_tets} tets, {len(prob.inclusions)} inclusions tagged; points within "

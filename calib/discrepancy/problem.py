@@ -357,16 +357,22 @@ def _first_recovered(
     spheres=None,
     *,
     bound: float | None = None,
+    say=None,
 ):
     """The model on the first of ``sizes`` whose recovery at the calibrated c1 succeeds.
 
     Each size is built by :func:`_recovered_model`. Returns the model and its size (both
     None where every size failed) and the sizes that failed before it, each with its
     ``fem.ConvergenceError``. A mesh that cannot be built is a :class:`DiagnosisError`
-    naming it.
+    naming it. ``say`` (progress lines) is told of each size before it is tried: on a
+    large body a try takes minutes.
     """
+    say = say or log.info
     failed = []
     for s in sizes:
+        with_bound = "" if bound is None else f" with a {bound:g} deg dihedral bound"
+        mesh = f"a {s:g} mm model mesh{_spheres_said(spheres)}{with_bound}"
+        say(f"  recovering a straight stress-free reference at the calibrated c1 on {mesh}")
         try:
             return _recovered_model(work, model_on, s, spheres, bound=bound), s, failed
         except fem.MeshError as exc:
@@ -397,6 +403,7 @@ def _sized_model(
     spheres=None,
     *,
     then: Sequence[float] = (),
+    say=None,
 ):
     """The model on a mesh of ``size_mm`` (asked for), its stress-free reference recovered.
 
@@ -408,7 +415,7 @@ def _sized_model(
     diagnosis mesh is not the calibration's, and the size.
     """
     inner, own = _spheres_said(spheres), _asked_mesh_mm(params)
-    fm, s, failed = _first_recovered(work, model_on, [size_mm, *then], spheres)
+    fm, s, failed = _first_recovered(work, model_on, [size_mm, *then], spheres, say=say)
     if fm is None:
         raise DiagnosisError(
             f"{work.path}: no straight stress-free reference on a {_tried(failed, inner)}; "
@@ -458,6 +465,7 @@ def _straight_model(
     *,
     own_size: bool,
     why: str = "its reference is prestressed",
+    say=None,
 ):
     """A model of the reference scan whose stress-free reference has straight elements.
 
@@ -475,12 +483,12 @@ def _straight_model(
     """
     size = _asked_mesh_mm(params)
     sizes = ([size] if own_size else []) + next_mesh_sizes(params)
-    fm, s, failed = _first_recovered(work, model_on, sizes)
+    fm, s, failed = _first_recovered(work, model_on, sizes, say=say)
     own_bound = params.get("mesh_max_dihedral_deg")
     if fm is None and (own_bound is None or own_bound > STRAIGHT_RETRY_DIHEDRAL_DEG):
         bound = STRAIGHT_RETRY_DIHEDRAL_DEG
         again = [size, *next_mesh_sizes(params)]
-        fm, s, failed_bound = _first_recovered(work, model_on, again, bound=bound)
+        fm, s, failed_bound = _first_recovered(work, model_on, again, bound=bound, say=say)
         failed += [(t, f"with a {bound:g} deg dihedral bound: {exc}") for t, exc in failed_bound]
         if fm is not None:
             tried = "; ".join(f"{t:g} mm: {exc}" for t, exc in failed)
@@ -693,6 +701,7 @@ def build_problem(
     rim_margin_mm: float | Literal["element"] = RIM_MARGIN_MM,
     mesh_size_mm: float | None = None,
     inclusion_mesh_mm: float | None = None,
+    say=None,
 ) -> Problem:
     """The diagnosis problem of a calibrated work folder, its stress-free reference recovered.
 
@@ -720,6 +729,9 @@ def build_problem(
         recovery fails on the calibration's size, the next sizes
         (:func:`next_mesh_sizes`) are tried, as for a prestressed calibration, and the
         mesh note says so; a size asked for is never replaced.
+    say : callable, optional
+        Progress lines (default: the log at INFO): each model mesh tried, where the
+        calibration's own is not used as it is.
 
     Raises
     ------
@@ -776,13 +788,13 @@ def build_problem(
         # a size asked for stays; the calibration's gives way to its next sizes
         then = next_mesh_sizes(params) if mesh_size_mm is None else []
         spheres = (inclusions, inclusion_mesh_mm)
-        fm, note, size = _sized_model(work, params, model_on, size, spheres, then=then)
+        fm, note, size = _sized_model(work, params, model_on, size, spheres, then=then, say=say)
     elif mesh_size_mm is not None:
-        fm, note, size = _sized_model(work, params, model_on, mesh_size_mm)
+        fm, note, size = _sized_model(work, params, model_on, mesh_size_mm, say=say)
     elif prestressed:
         # --reference-state prestress: its own mesh may admit one; a switched unload: not
         own = record.get("reference_state") == "prestress"
-        fm, note, size = _straight_model(work, params, model_on, own_size=own)
+        fm, note, size = _straight_model(work, params, model_on, own_size=own, say=say)
     else:
         fm, note = model_on(work.mesh.with_nodes(_loaded_nodes(work))), ""
         size = calibration_mesh_mm(record)
@@ -791,7 +803,9 @@ def build_problem(
         except fem.ConvergenceError as exc:
             # a cold recovery can fail where the calibration's own did not (see the README)
             why = f"its recovery fails at the calibrated c1: {exc}"
-            fm, note, size = _straight_model(work, params, model_on, own_size=False, why=why)
+            fm, note, size = _straight_model(
+                work, params, model_on, own_size=False, why=why, say=say
+            )
     margin = rim_margin_of(size, rim_margin_mm)
     mesh = fm.mesh
     n_pts = int(max_points or params.get("max_points", 3000))
