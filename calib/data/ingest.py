@@ -377,18 +377,20 @@ def _register(session: Session, scans: dict, landmarks: bool):
 def _footprints(scans: dict) -> dict:
     """Per scan its back-plate patch: ``(vertices (k, 3) LPS mm, faces (f, 3))``.
 
-    The faces whose three vertices are flagged ``back_plate``. Scans with fewer than 10
-    such faces (no flags, no flat face) have none, nor then any scan.
+    The faces whose three vertices are flagged ``back_plate``; a scan with fewer than 10
+    such faces, its flagged vertices alone ((k, 3): compared point to point). Scans with
+    fewer than 10 flagged vertices (no flags, no flat face) have none, nor then any scan.
     """
     out = {}
     for name, r in scans.items():
         flags = r.surface.back_plate
-        if flags is None:
+        if flags is None or np.count_nonzero(flags) < 10:
             return {}
         flags = np.asarray(flags, bool)
         faces = r.surface.faces[flags[r.surface.faces].all(axis=1)]
         if len(faces) < 10:
-            return {}
+            out[name] = r.surface.vertices_lps_mm[flags]
+            continue
         used, faces = np.unique(faces, return_inverse=True)
         out[name] = (r.surface.vertices_lps_mm[used], faces.reshape(-1, 3))
     return out

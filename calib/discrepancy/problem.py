@@ -364,8 +364,9 @@ def _first_recovered(
     Each size is built by :func:`_recovered_model`. Returns the model and its size (both
     None where every size failed) and the sizes that failed before it, each with its
     ``fem.ConvergenceError``. A mesh that cannot be built is a :class:`DiagnosisError`
-    naming it. ``say`` (progress lines) is told of each size before it is tried: on a
-    large body a try takes minutes.
+    naming it, except with a ``bound`` of the diagnosis' own (a last try): there it is
+    one more failed size. ``say`` (progress lines) is told of each size before it is
+    tried: on a large body a try takes minutes.
     """
     say = say or log.info
     failed = []
@@ -376,6 +377,9 @@ def _first_recovered(
         try:
             return _recovered_model(work, model_on, s, spheres, bound=bound), s, failed
         except fem.MeshError as exc:
+            if bound is not None:
+                failed.append((s, f"TetGen built no mesh: {exc}"))
+                continue
             raise DiagnosisError(
                 f"{work.path}: no {s:g} mm model mesh{_spheres_said(spheres)}: {exc}"
             ) from exc
@@ -489,16 +493,17 @@ def _straight_model(
         bound = STRAIGHT_RETRY_DIHEDRAL_DEG
         again = [size, *next_mesh_sizes(params)]
         fm, s, failed_bound = _first_recovered(work, model_on, again, bound=bound, say=say)
-        failed += [(t, f"with a {bound:g} deg dihedral bound: {exc}") for t, exc in failed_bound]
         if fm is not None:
             tried = "; ".join(f"{t:g} mm: {exc}" for t, exc in failed)
+            bounded = "".join(f"; with the bound, {t:g} mm: {exc}" for t, exc in failed_bound)
             said = "none" if own_bound is None else f"{own_bound:g} deg"
             note = (
                 f"no straight stress-free reference on the calibration's mesh ({why}) nor on "
-                f"others meshed as it was ({tried}); diagnosed on the {s:g} mm mesh with "
-                f"TetGen's dihedral bound {bound:g} deg (the calibration's: {said})"
+                f"others meshed as it was ({tried}){bounded}; diagnosed on the {s:g} mm mesh "
+                f"with TetGen's dihedral bound {bound:g} deg (the calibration's: {said})"
             )
             return fm, note, s
+        failed += [(t, f"with a {bound:g} deg dihedral bound: {exc}") for t, exc in failed_bound]
     if fm is None:
         tried = "; ".join(f"{t:g} mm: {exc}" for t, exc in failed)
         raise DiagnosisError(
@@ -727,8 +732,9 @@ def build_problem(
         of this size (:func:`calib.model.reference.reference_mesh`); its stress-free
         reference is recovered at the calibrated c1. Without ``mesh_size_mm``, where that
         recovery fails on the calibration's size, the next sizes
-        (:func:`next_mesh_sizes`) are tried, as for a prestressed calibration, and the
-        mesh note says so; a size asked for is never replaced.
+        (:func:`next_mesh_sizes`) are tried (not, as for a prestressed calibration, again
+        with a dihedral bound), and the mesh note says so; a size asked for is never
+        replaced.
     say : callable, optional
         Progress lines (default: the log at INFO): each model mesh tried, where the
         calibration's own is not used as it is.

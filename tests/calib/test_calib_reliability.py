@@ -93,6 +93,35 @@ def _equilateral(spec, rng):
     return 1.3 * spec.semi_axes_mm[0] * np.c_[np.cos(ang), np.sin(ang), np.zeros(3)]
 
 
+def test_a_back_plate_with_few_whole_faces_is_compared_by_its_points():
+    # the tie-break's footprints: a scan's back-plate patch (faces whose three vertices
+    # are flagged), or, with fewer than 10 such faces, its flagged vertices (review N: the
+    # tie-break was dropped for every scan); none for any scan under 10 flagged vertices
+    from types import SimpleNamespace
+
+    from calib.data.ingest import _footprints
+
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(40, 3))
+    faces = np.array([[i, i + 1, i + 2] for i in range(0, 36)])
+    whole = np.zeros(40, bool)
+    whole[:20] = True  # faces 0..17 whole
+    scattered = np.zeros(40, bool)
+    scattered[::3] = True  # 14 vertices, no face whole
+
+    def scan(flags):
+        surface = SimpleNamespace(vertices_lps_mm=v, faces=faces, back_plate=flags)
+        return SimpleNamespace(surface=surface)
+
+    feet = _footprints({"a": scan(whole), "b": scan(scattered)})
+    (va, fa), vb = feet["a"], feet["b"]
+    assert len(fa) == 18 and np.array_equal(va[fa], v[faces[:18]])
+    assert np.array_equal(vb, v[scattered])
+    few = np.zeros(40, bool)
+    few[:9] = True
+    assert _footprints({"a": scan(whole), "b": scan(few)}) == {}
+
+
 @pytest.mark.parametrize("layout", [_isosceles, _equilateral])
 def test_fiducials_in_a_symmetric_layout_are_matched_by_the_body(tmp_path, monkeypatch, layout):
     # an isosceles triangle's mirror ordering fits as well as the truth (a flip of the

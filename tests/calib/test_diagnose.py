@@ -336,6 +336,23 @@ def test_meshes_with_fewer_slivers_are_tried_before_a_diagnosis_is_refused(monke
     with pytest.raises(DiagnosisError, match=r"12 mm: with a 165 deg dihedral bound: inverse"):
         _straight_model(work, params, Stuck, own_size=False)
     assert built == [(14.0, None), (16.0, None), (12.0, 165.0), (14.0, 165.0), (16.0, 165.0)]
+    # TetGen failing with the bound on one size is one more failed try (review N: it
+    # stopped the retry and said the calibration's own mesh could not be built), and the
+    # note keeps the bounded failures apart from the meshes built as the calibration's
+    built.clear()
+
+    def mesh_or_none(ref, size_mm, max_dihedral_deg):
+        if (size_mm, max_dihedral_deg) == (12.0, 165.0):
+            raise fem.MeshError("tetgen: failed")
+        return mesh(ref, size_mm, max_dihedral_deg)
+
+    monkeypatch.setattr(reference, "reference_mesh", mesh_or_none)
+    fm, note, size = _straight_model(work, params, Model, own_size=False)
+    assert (fm.size, fm.bound, size) == (14.0, 165.0, 14.0)
+    assert (
+        "0.96; 16 mm: inverse Newton stopped at load factor 0.96); with the bound, 12 mm: "
+        "TetGen built no mesh: tetgen: failed; diagnosed on the 14 mm mesh with TetGen's " in note
+    )
 
 
 def test_a_mesh_size_asked_for_is_built_from_the_reference_scan_and_said(monkeypatch):
