@@ -70,7 +70,7 @@ from ..model.effects import ADMISSIBLE, LIBRARY, SKIN_THICKNESS_MM
 from ..stats import NoiseFit, height_profile, parameter_intervals
 from .fields import FieldSet
 from .limits import parameter_limits
-from .localise import region_labels, significance_map
+from .localise import region_labels, region_scale, significance_map
 from .problem import (
     RIM_MARGIN_MM,
     DiagnosisError,
@@ -493,6 +493,7 @@ class Diagnosis:
                 "diagnosis": list(prob.scans),
                 "holdout": prob.holdout,
                 "rim_margin_mm": prob.rim_margin_mm,
+                "region_scale": region_scale(prob.body_height_mm),
                 "explained_margin_mm": self.explained_margin_mm,
             },
             "null_fit": _fit_json(self.null),
@@ -1061,7 +1062,9 @@ def _scan_regions(prob: Problem, name: str, points_mm: np.ndarray) -> np.ndarray
 
     Over inclusions: those ingest segmented in that scan, and its tumour landmark as a
     10 mm sphere; the rim: the band the diagnosis leaves out, or 10 mm where the margin
-    is narrower (:func:`calib.discrepancy.localise.region_labels`). Shape (n,) of str.
+    is narrower (:func:`calib.discrepancy.localise.region_labels`). Every length but the
+    margin and the inclusions' own diameters is scaled by the body's height
+    (:func:`calib.discrepancy.localise.region_scale`). Shape (n,) of str.
     """
     import json
     from pathlib import Path
@@ -1073,15 +1076,18 @@ def _scan_regions(prob: Problem, name: str, points_mm: np.ndarray) -> np.ndarray
         (T[:3, :3] @ np.asarray(i["centre_lps_mm"], float) + T[:3, 3], float(i["diameter_mm"]))
         for i in doc.get("inclusions") or []
     ]
+    k = region_scale(prob.body_height_mm)
     if s.tumour_mm is not None:
-        spheres.append((s.tumour_mm, 10.0))
+        spheres.append((s.tumour_mm, 10.0 * k))
     return region_labels(
         points_mm,
         nipple_mm=s.nipple_mm,
         back_point_mm=s.back_point_mm,
         back_normal=s.back_normal,
         spheres=spheres,
-        rim_mm=max(10.0, prob.rim_margin_mm),
+        apex_mm=20.0 * k,
+        rim_mm=max(10.0 * k, prob.rim_margin_mm),
+        over_mm=15.0 * k,
     )
 
 

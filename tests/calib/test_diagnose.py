@@ -98,6 +98,39 @@ def test_screening_finds_a_planted_effect_and_its_size(linear):
         assert by["tilt"].estimate == pytest.approx(0.15, abs=3 * by["tilt"].standard_error)
 
 
+def test_the_regions_scale_with_the_body_s_height(monkeypatch):
+    # audit M: on a body 0.7 times the twin's (52.3 mm tall) the 20 / 10 / 15 mm radii put
+    # 61 % of the diagnosed points "over inclusions" (22 % on the twin). Closed form: the
+    # height over 75 mm to one decimal, 1 for the twins' 71-78 mm (their regions as
+    # before), 0.7 and 1.4 for the 0.7x and 1.4x twins (52.3 and 103.7 mm)
+    import importlib
+
+    from calib.discrepancy.localise import region_scale
+
+    dg = importlib.import_module("calib.discrepancy.diagnose")
+
+    assert [region_scale(h) for h in (71.3, 74.5, 78.7, 52.3, 103.7)] == [1, 1, 1, 0.7, 1.4]
+    with pytest.raises(ValueError, match="body height must be positive"):
+        region_scale(0.0)
+    seen = {}
+    monkeypatch.setattr(dg, "region_labels", lambda p, **kw: seen.update(kw))
+    scan = SimpleNamespace(
+        T_ref_from_scan=np.eye(4),
+        tumour_mm=np.zeros(3),
+        nipple_mm=np.ones(3),
+        back_point_mm=np.zeros(3),
+        back_normal=np.array([0.0, 0.0, -1.0]),
+    )
+    work = SimpleNamespace(path="WORK")
+    prob = SimpleNamespace(
+        measurement=lambda n: scan, work=work, body_height_mm=52.3, rim_margin_mm=5.0
+    )
+    monkeypatch.setattr("pathlib.Path.read_text", lambda self: "{}")
+    dg._scan_regions(prob, "s", np.zeros((1, 3)))
+    assert seen["apex_mm"] == pytest.approx(14.0) and seen["over_mm"] == pytest.approx(10.5)
+    assert seen["rim_mm"] == pytest.approx(7.0) and seen["spheres"][0][1] == pytest.approx(7.0)
+
+
 def test_local_z_map_is_calibrated_and_finds_a_bump_at_the_rim():
     # null: the share of points with |z| > 1.96 is 5 % in expectation under the true
     # model; over 10 draws of 1500 correlated points it lies within 2-10 % (the z's of one
