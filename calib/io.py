@@ -74,10 +74,14 @@ def check_out_folder(out: str | os.PathLike) -> None:
     ------
     NotADirectoryError
         ``out``, or its nearest existing parent, is a file.
+    FileExistsError
+        ``out`` is a link to nothing.
     PermissionError
         ``out``, or where it does not exist its nearest existing parent, is not writable.
     """
     out = Path(out)
+    if out.is_symlink() and not out.exists():
+        raise FileExistsError(f"--out {out}: a link to nothing ({os.readlink(out)})")
     if out.exists() and not out.is_dir():
         raise NotADirectoryError(f"--out {out}: exists and is not a folder")
     if out.exists():

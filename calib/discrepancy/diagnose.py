@@ -444,6 +444,9 @@ class Diagnosis:
             rows = [e for e in (scr.effects if scr else ()) if e.effect == name]
             entry = {"kind": lib.kind, "parameter": lib.parameter, "unit": lib.unit,
                      "columns": len(rows)}  # fmt: skip
+            if name == "sliding":
+                entry["probe_pa_per_mm"] = self.problem.sliding_probe_pa_per_mm
+                entry["body_height_mm"] = self.problem.body_height_mm
             if name in self.unavailable:
                 entry["status"] = "unavailable"
                 entry["reason"] = self.unavailable[name]
@@ -464,9 +467,6 @@ class Diagnosis:
                     "screen_unit": _screen_unit(name, self.problem),
                     "retained_fraction": _num(max(e.retained_fraction for e in rows)),
                 }
-                if name == "sliding":
-                    entry["probe_pa_per_mm"] = self.problem.sliding_probe_pa_per_mm
-                    entry["body_height_mm"] = self.problem.body_height_mm
                 if name == "density":
                     entry["note"] = (
                         "at fixed nu the solution depends on rho g / c1 only: its field is "

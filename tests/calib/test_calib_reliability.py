@@ -228,6 +228,14 @@ def test_an_out_below_a_file_fails_before_any_work(tmp_path, command):
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 2, result.output
     assert "results.txt is a file, not a folder" in result.stderr, result.stderr
+    # a link to nothing as --out (review N: passed the check, then "[Errno 17]" after
+    # the work)
+    dangling = tmp_path / "gone"
+    dangling.symlink_to(tmp_path / "nowhere" / "w")
+    args[args.index(out)] = str(dangling)
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2, result.output
+    assert "gone: a link to nothing" in result.stderr, result.stderr
 
 
 # -- run-level atomicity ----------------------------------------------------------------

@@ -805,6 +805,25 @@ def test_the_sliding_probe_is_sized_by_the_body():
             sliding_probe_pa_per_mm(c1, height)
 
 
+def test_the_sliding_entry_records_its_probe_also_where_it_could_not_run():
+    # the 1.4x twin: the probe had no FE solution, and diagnosis.json did not say which
+    # probe (its entry records it only where the screen ran)
+    import importlib
+
+    dg = importlib.import_module("calib.discrepancy.diagnose")
+    fake = SimpleNamespace(
+        options=SimpleNamespace(effects=("sliding", "skin")),
+        screen=SimpleNamespace(screening=None),
+        unavailable={"sliding": "no FE solution with the sliding probe"},
+        problem=SimpleNamespace(sliding_probe_pa_per_mm=1000.0, body_height_mm=103.7),
+        limits={},
+    )
+    out = dg.Diagnosis.effect_summary(fake)
+    assert out["sliding"]["status"] == "unavailable"
+    assert (out["sliding"]["probe_pa_per_mm"], out["sliding"]["body_height_mm"]) == (1000.0, 103.7)
+    assert "probe_pa_per_mm" not in out["skin"]
+
+
 def test_a_sliding_plate_is_refitted_as_ln_k_of_its_springs():
     # the refit's parameter layout: ln k from 1/100 to 1000 times the screen's probe (the
     # twins' 10 to 1e6 Pa/mm with their 1000 Pa/mm probe; a softer body's range moves
