@@ -489,6 +489,11 @@ class Diagnosis:
                 "run_id": prob.work.record.get("run_id"),
                 "mesh_note": prob.mesh_note or None,
             },
+            "model_mesh": {
+                "size_mm": prob.mesh_size_mm,
+                "max_dihedral_deg": prob.mesh_max_dihedral_deg,
+                "n_tets": prob.mesh.n_tets,
+            },
             "scans": {
                 "diagnosis": list(prob.scans),
                 "holdout": prob.holdout,

@@ -174,6 +174,9 @@ class Problem:
         plate``, :func:`calib.stats.height_profile`): every residual and its derivatives
         are divided by it (:meth:`residuals`), so the far band keeps its units (mm).
         None: a noise level the same at every height (the default).
+    mesh_max_dihedral_deg : float or None
+        TetGen's bound on the largest dihedral angle the model mesh was built with (None:
+        none, or the calibration's own mesh, built as its record says).
     """
 
     work: WorkFolder
@@ -194,6 +197,7 @@ class Problem:
     rim_points: dict = field(default_factory=dict)
     body_height_mm: float = 0.0
     profile: HeightProfile | None = None
+    mesh_max_dihedral_deg: float | None = None
 
     @property
     def same_mesh(self) -> bool:
@@ -483,7 +487,8 @@ def _straight_model(
     calibrated c1 fails there (``why`` says which). Where every one fails, the same
     sizes, the calibration's own first, are meshed again with TetGen's dihedral bound
     :data:`STRAIGHT_RETRY_DIHEDRAL_DEG` (fewer slivers), unless the calibration's bound
-    is as tight. Returns the model, a note and the mesh size.
+    is as tight. Returns the model, a note, the mesh size and the dihedral bound it was
+    meshed with.
     """
     size = _asked_mesh_mm(params)
     sizes = ([size] if own_size else []) + next_mesh_sizes(params)
@@ -502,7 +507,7 @@ def _straight_model(
                 f"others meshed as it was ({tried}){bounded}; diagnosed on the {s:g} mm mesh "
                 f"with TetGen's dihedral bound {bound:g} deg (the calibration's: {said})"
             )
-            return fm, note, s
+            return fm, note, s, bound
         failed += [(t, f"with a {bound:g} deg dihedral bound: {exc}") for t, exc in failed_bound]
     if fm is None:
         tried = "; ".join(f"{t:g} mm: {exc}" for t, exc in failed)
@@ -515,12 +520,12 @@ def _straight_model(
             f"the calibration's reference is prestressed (curved stress-free elements); "
             f"diagnosed with a straight stress-free reference on its own {s:g} mm mesh"
         )
-        return fm, note, s
+        return fm, note, s, own_bound
     note = (
         f"the calibration's {size:g} mm mesh admits no straight stress-free reference "
         f"({why}); diagnosed on the {s:g} mm mesh"
     )
-    return fm, note, s
+    return fm, note, s, own_bound
 
 
 def _loaded_nodes(work: WorkFolder) -> np.ndarray:
@@ -784,6 +789,7 @@ def build_problem(
             fixed_point_fallback=False, effects=base,
         )  # fmt: skip
 
+    bound = params.get("mesh_max_dihedral_deg")  # as the calibration meshed, unless retried
     if inclusion_mesh_mm is not None:
         if not inclusions:
             raise DiagnosisError(
@@ -800,7 +806,7 @@ def build_problem(
     elif prestressed:
         # --reference-state prestress: its own mesh may admit one; a switched unload: not
         own = record.get("reference_state") == "prestress"
-        fm, note, size = _straight_model(work, params, model_on, own_size=own, say=say)
+        fm, note, size, bound = _straight_model(work, params, model_on, own_size=own, say=say)
     else:
         fm, note = model_on(work.mesh.with_nodes(_loaded_nodes(work))), ""
         size = calibration_mesh_mm(record)
@@ -809,7 +815,7 @@ def build_problem(
         except fem.ConvergenceError as exc:
             # a cold recovery can fail where the calibration's own did not (see the README)
             why = f"its recovery fails at the calibrated c1: {exc}"
-            fm, note, size = _straight_model(
+            fm, note, size, bound = _straight_model(
                 work, params, model_on, own_size=False, why=why, say=say
             )
     margin = rim_margin_of(size, rim_margin_mm)
@@ -833,4 +839,5 @@ def build_problem(
         mesh_note=note, rim_margin_mm=margin, mesh_size_mm=float(size),
         rim_points={n: within for n, (_, within) in split.items()},
         body_height_mm=float(plate_height_mm(ref, ref.vertices_mm).max()),
+        mesh_max_dihedral_deg=None if bound is None else float(bound),
     )  # fmt: skip

@@ -137,8 +137,14 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
                 "method": fm.unload_method if fm.reference_state == "unload" else "none (shortcut)",
                 "inverted_elements": fm.inverted_reference_elements,
             },
-            "mesh": dict(record.get("mesh") or {})
-            | {"n_tets": prob.mesh.n_tets, "n_nodes": prob.mesh.n_nodes},
+            "mesh": {  # the diagnosis' model mesh, which may not be the calibration's
+                "n_tets": prob.mesh.n_tets,
+                "n_nodes": prob.mesh.n_nodes,
+                "size_mm": prob.mesh_size_mm,
+                "max_dihedral_deg": prob.mesh_max_dihedral_deg,
+                "formulation": (record.get("mesh") or {}).get("formulation"),
+                "note": prob.mesh_note,
+            },
             "diagnosis": {
                 "verdict": d.verdict,
                 "named": list(d.named),
@@ -170,7 +176,11 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
         record["model"] = model
         record["provenance"] = provenance(
             inputs={"calibration": Path(work.path) / "calibration.json"},
-            parameters=(work.record.get("provenance") or {}).get("parameters", {}),
+            parameters=(work.record.get("provenance") or {}).get("parameters", {})
+            | {
+                "mesh_size_mm": prob.mesh_size_mm,
+                "mesh_max_dihedral_deg": prob.mesh_max_dihedral_deg,
+            },
         )
         return run.commit(record)
 

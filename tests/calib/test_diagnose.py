@@ -289,8 +289,8 @@ def test_a_mesh_without_a_straight_reference_is_replaced_and_the_note_says_why(m
     )
     why = "its recovery fails at the calibrated c1: load factor 0.93"
     params = {"mesh_size_mm": 14.0, "mesh_retry_mm": [16.0]}
-    fm, note, size = _straight_model(work, params, Model, own_size=False, why=why)
-    assert fm.size == size == 16.0
+    fm, note, size, bound = _straight_model(work, params, Model, own_size=False, why=why)
+    assert fm.size == size == 16.0 and bound is None  # meshed as the calibration's
     assert note == (
         f"the calibration's 14 mm mesh admits no straight stress-free reference ({why}); "
         "diagnosed on the 16 mm mesh"
@@ -333,7 +333,7 @@ def test_meshes_with_fewer_slivers_are_tried_before_a_diagnosis_is_refused(monke
     )
     params = {"mesh_size_mm": 12.0, "mesh_retry_mm": []}
     lines = []  # each try is said before it starts: on a large body each takes minutes
-    fm, note, size = _straight_model(work, params, Model, own_size=False, say=lines.append)
+    fm, note, size, bound = _straight_model(work, params, Model, own_size=False, say=lines.append)
     assert lines == [
         "  recovering a straight stress-free reference at the calibrated c1 on a 14 mm model mesh",
         "  recovering a straight stress-free reference at the calibrated c1 on a 16 mm model mesh",
@@ -342,6 +342,7 @@ def test_meshes_with_fewer_slivers_are_tried_before_a_diagnosis_is_refused(monke
     ]
     assert STRAIGHT_RETRY_DIHEDRAL_DEG == 165.0
     assert (fm.size, fm.bound, size) == (12.0, 165.0, 12.0)
+    assert bound == 165.0  # the refit's record says it (review N: it said the calibration's)
     assert built == [(14.0, None), (16.0, None), (12.0, 165.0)]
     assert note.startswith("no straight stress-free reference on the calibration's mesh (its ")
     assert "14 mm: inverse Newton stopped at load factor 0.96; 16 mm: " in note
@@ -380,8 +381,8 @@ def test_meshes_with_fewer_slivers_are_tried_before_a_diagnosis_is_refused(monke
         return mesh(ref, size_mm, max_dihedral_deg)
 
     monkeypatch.setattr(reference, "reference_mesh", mesh_or_none)
-    fm, note, size = _straight_model(work, params, Model, own_size=False)
-    assert (fm.size, fm.bound, size) == (14.0, 165.0, 14.0)
+    fm, note, size, bound = _straight_model(work, params, Model, own_size=False)
+    assert (fm.size, fm.bound, size, bound) == (14.0, 165.0, 14.0, 165.0)
     assert (
         "0.96; 16 mm: inverse Newton stopped at load factor 0.96); with the bound, 12 mm: "
         "TetGen built no mesh: tetgen: failed; diagnosed on the 14 mm mesh with TetGen's " in note

@@ -111,6 +111,14 @@ def test_the_refitted_model_is_a_calibration_validate_accepts(skin):
     assert wf.c1_pa == pytest.approx(doc["c1_pa"])
     assert wf.record["model"]["effects"]["named"] == ["skin"]
     assert "skin" in {n.split(":")[0] for n in wf.mesh.region_names}
+    # its mesh record is the diagnosis' model mesh (was the calibration's, whatever ran)
+    mesh = wf.record["mesh"]
+    assert (mesh["size_mm"], mesh["n_tets"]) == (
+        doc["model_mesh"]["size_mm"],
+        doc["model_mesh"]["n_tets"],
+    )
+    assert mesh["n_tets"] == wf.mesh.n_tets
+    assert wf.record["provenance"]["parameters"]["mesh_size_mm"] == mesh["size_mm"]
     val = run_validation(refit)
     assert set(val["scans"]) == set(doc["gap"])
     roles = {n: s["role"] for n, s in val["scans"].items()}
