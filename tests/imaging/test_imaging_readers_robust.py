@@ -49,6 +49,52 @@ def _rewrite(folder: Path, change) -> None:
         ds.save_as(f, enforce_file_format=True)
 
 
+# ---- 0. compressed pixel data ----------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "syntax", ["JPEGLosslessProcess14_1", "JPEGLSLossless", "JPEG2000Lossless", "RLELossless"]
+)
+def test_losslessly_compressed_series_read_to_the_same_volume(oblique, series, syntax):
+    # a scanner or another renderer may write compressed slices; pydicom alone decodes
+    # only RLE, the JPEG family through python-gdcm. Lossless: the same stored values,
+    # so the same volume to the last bit (the uncompressed series reads exactly so)
+    import gdcm  # a dependency (pyproject): without it the JPEG family is not decoded
+
+    expected = read_volume(series)
+    for f in sorted(series.glob("IM*.dcm")):
+        reader = gdcm.ImageReader()
+        reader.SetFileName(str(f))
+        assert reader.Read()
+        change = gdcm.ImageChangeTransferSyntax()
+        change.SetTransferSyntax(gdcm.TransferSyntax(getattr(gdcm.TransferSyntax, syntax)))
+        change.SetInput(reader.GetImage())
+        assert change.Change()
+        writer = gdcm.ImageWriter()
+        writer.SetFileName(str(f))
+        writer.SetFile(reader.GetFile())
+        writer.SetImage(change.GetOutput())
+        assert writer.Write()
+    uid = pydicom.dcmread(next(series.glob("IM*.dcm"))).file_meta.TransferSyntaxUID
+    assert uid.is_compressed
+    v = read_volume(series)
+    np.testing.assert_array_equal(v.array, expected.array)
+    np.testing.assert_array_equal(v.affine_lps_from_index, expected.affine_lps_from_index)
+
+
+def test_pixel_data_no_decoder_reads_is_named(series):
+    # a compressed syntax without a decoder: the file and pydicom's reason, not a crash
+    from pydicom.encaps import encapsulate
+
+    def change(k, ds):
+        ds.file_meta.TransferSyntaxUID = "1.2.840.10008.1.2.4.100"  # MPEG2: no decoder
+        ds.PixelData = encapsulate([ds.PixelData])
+
+    _rewrite(series, change)
+    with pytest.raises(DicomSeriesError, match=r"IM\w*\.dcm: cannot decode pixel data"):
+        read_volume(series)
+
+
 # ---- 1. files without the preamble and "DICM" prefix ----------------------------------
 
 
