@@ -25,7 +25,7 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 
@@ -175,8 +175,11 @@ class Problem:
         are divided by it (:meth:`residuals`), so the far band keeps its units (mm).
         None: a noise level the same at every height (the default).
     mesh_max_dihedral_deg : float or None
-        TetGen's bound on the largest dihedral angle the model mesh was built with (None:
-        none, or the calibration's own mesh, built as its record says).
+        TetGen's bound on the largest dihedral angle the model mesh was built with (the
+        calibration's own mesh: the calibration's; None: TetGen's default).
+    mesh_failed : list of (float, str)
+        The model meshes tried before this one (size mm, why each failed); empty where the
+        calibration's mesh or the size asked for is used as it is.
     """
 
     work: WorkFolder
@@ -198,6 +201,7 @@ class Problem:
     body_height_mm: float = 0.0
     profile: HeightProfile | None = None
     mesh_max_dihedral_deg: float | None = None
+    mesh_failed: list = field(default_factory=list)
 
     @property
     def same_mesh(self) -> bool:
@@ -325,8 +329,13 @@ def calibration_mesh_mm(record: dict) -> float:
         The size of the mesh it ran on (``mesh.size_mm``), else the size asked for
         (``provenance.parameters.mesh_size_mm``, calibrate's default where absent).
     """
+    return _ran_mesh_mm(record, _parameters(record))
+
+
+def _ran_mesh_mm(record: dict, params: dict) -> float:
+    """The size the calibration ran on (``mesh.size_mm``), else the one ``params`` ask for."""
     ran = (record.get("mesh") or {}).get("size_mm")
-    return float(ran) if ran else _asked_mesh_mm(_parameters(record))
+    return float(ran) if ran else _asked_mesh_mm(params)
 
 
 def _recovered_model(
@@ -403,6 +412,22 @@ def _spheres_said(spheres) -> str:
     return f" with its {n} {them} {h:g} mm or wider meshed as spheres of {h:g} mm"
 
 
+class _ModelMesh(NamedTuple):
+    """The diagnosis' model and how its mesh was chosen (:func:`build_problem`)."""
+
+    fm: ForwardModel
+    note: str  # why the mesh is not the calibration's as it was ("" where it is)
+    size_mm: float
+    max_dihedral_deg: float | None  # TetGen's bound it was built with (None: TetGen's default)
+    failed: list  # (size mm, why) of each mesh tried before it
+
+
+def _failures(failed: list, bound: float | None = None) -> list:
+    """``(size mm, why)`` of each failed try, for the refit's record."""
+    with_bound = "" if bound is None else f"with a {bound:g} deg dihedral bound: "
+    return [(float(t), f"{with_bound}{exc}") for t, exc in failed]
+
+
 def _sized_model(
     work: WorkFolder,
     params: dict,
@@ -418,12 +443,21 @@ def _sized_model(
     Built from the reference scan as the calibration builds its own
     (:func:`_recovered_model`), with ``spheres`` ``(inclusions, element size mm)`` meshed
     inside. Where the recovery at the calibrated c1 fails on ``size_mm``, the sizes
-    ``then`` are tried in turn (empty: a size asked for is not replaced) and the note
-    says why the diagnosis runs on another. Returns the model, the note that says the
-    diagnosis mesh is not the calibration's, and the size.
+    ``then`` are tried in turn (empty: a size asked for is not replaced), and where all
+    fail, the same sizes again with TetGen's dihedral bound
+    :data:`STRAIGHT_RETRY_DIHEDRAL_DEG` (unless the calibration's is as tight); the note
+    says why the diagnosis runs on another mesh. Returns a :class:`_ModelMesh` whose note says
+    the diagnosis mesh is not the calibration's.
     """
-    inner, own = _spheres_said(spheres), _asked_mesh_mm(params)
-    fm, s, failed = _first_recovered(work, model_on, [size_mm, *then], spheres, say=say)
+    inner, own = _spheres_said(spheres), _ran_mesh_mm(work.record, params)
+    bound = used = _parameters(work.record).get("mesh_max_dihedral_deg")  # as it is meshed
+    sizes = [size_mm, *then]
+    fm, s, failed = _first_recovered(work, model_on, sizes, spheres, say=say)
+    if fm is None and (bound is None or bound > STRAIGHT_RETRY_DIHEDRAL_DEG):
+        # the same sizes with fewer slivers (a 1.4x twin's 12 mm mesh, a twin's 9 mm one)
+        used = STRAIGHT_RETRY_DIHEDRAL_DEG
+        fm, s, bounded = _first_recovered(work, model_on, sizes, spheres, bound=used, say=say)
+        failed = failed + _failures(bounded, used)
     if fm is None:
         raise DiagnosisError(
             f"{work.path}: no straight stress-free reference on a {_tried(failed, inner)}; "
@@ -431,12 +465,13 @@ def _sized_model(
         )
     if not failed:
         note = f"diagnosed on a {s:g} mm mesh{inner}, as asked (the calibration's: {own:g} mm)"
-        return fm, note, s
+        return _ModelMesh(fm, note, s, bound, [])
+    with_bound = "" if used == bound else f" with TetGen's dihedral bound {used:g} deg"
     note = (
         f"no straight stress-free reference on a {_tried(failed, inner)}; diagnosed on "
-        f"the {s:g} mm mesh{inner} (the calibration's: {own:g} mm)"
+        f"the {s:g} mm mesh{inner}{with_bound} (the calibration's: {own:g} mm)"
     )
-    return fm, note, s
+    return _ModelMesh(fm, note, s, used, _failures(failed))
 
 
 def _tried(failed: list, inner: str) -> str:
@@ -487,16 +522,16 @@ def _straight_model(
     calibrated c1 fails there (``why`` says which). Where every one fails, the same
     sizes, the calibration's own first, are meshed again with TetGen's dihedral bound
     :data:`STRAIGHT_RETRY_DIHEDRAL_DEG` (fewer slivers), unless the calibration's bound
-    is as tight. Returns the model, a note, the mesh size and the dihedral bound it was
-    meshed with.
+    is as tight. The calibration's own size is the one it ran on (a calibration that
+    fell back to a retry size ran there). Returns a :class:`_ModelMesh`.
     """
-    size = _asked_mesh_mm(params)
-    sizes = ([size] if own_size else []) + next_mesh_sizes(params)
-    fm, s, failed = _first_recovered(work, model_on, sizes, say=say)
+    size = _ran_mesh_mm(work.record, params)
+    others = [s for s in next_mesh_sizes(params) if s != size]
+    fm, s, failed = _first_recovered(work, model_on, ([size] if own_size else []) + others, say=say)
     own_bound = params.get("mesh_max_dihedral_deg")
     if fm is None and (own_bound is None or own_bound > STRAIGHT_RETRY_DIHEDRAL_DEG):
         bound = STRAIGHT_RETRY_DIHEDRAL_DEG
-        again = [size, *next_mesh_sizes(params)]
+        again = [size, *others]
         fm, s, failed_bound = _first_recovered(work, model_on, again, bound=bound, say=say)
         if fm is not None:
             tried = "; ".join(f"{t:g} mm: {exc}" for t, exc in failed)
@@ -507,7 +542,9 @@ def _straight_model(
                 f"others meshed as it was ({tried}){bounded}; diagnosed on the {s:g} mm mesh "
                 f"with TetGen's dihedral bound {bound:g} deg (the calibration's: {said})"
             )
-            return fm, note, s, bound
+            return _ModelMesh(
+                fm, note, s, bound, _failures(failed) + _failures(failed_bound, bound)
+            )
         failed += [(t, f"with a {bound:g} deg dihedral bound: {exc}") for t, exc in failed_bound]
     if fm is None:
         tried = "; ".join(f"{t:g} mm: {exc}" for t, exc in failed)
@@ -520,12 +557,12 @@ def _straight_model(
             f"the calibration's reference is prestressed (curved stress-free elements); "
             f"diagnosed with a straight stress-free reference on its own {s:g} mm mesh"
         )
-        return fm, note, s, own_bound
+        return _ModelMesh(fm, note, s, own_bound, [])
     note = (
         f"the calibration's {size:g} mm mesh admits no straight stress-free reference "
         f"({why}); diagnosed on the {s:g} mm mesh"
     )
-    return fm, note, s, own_bound
+    return _ModelMesh(fm, note, s, own_bound, _failures(failed))
 
 
 def _loaded_nodes(work: WorkFolder) -> np.ndarray:
@@ -737,9 +774,9 @@ def build_problem(
         of this size (:func:`calib.model.reference.reference_mesh`); its stress-free
         reference is recovered at the calibrated c1. Without ``mesh_size_mm``, where that
         recovery fails on the calibration's size, the next sizes
-        (:func:`next_mesh_sizes`) are tried (not, as for a prestressed calibration, again
-        with a dihedral bound), and the mesh note says so; a size asked for is never
-        replaced.
+        (:func:`next_mesh_sizes`) are tried, then the same sizes again with TetGen's
+        dihedral bound :data:`STRAIGHT_RETRY_DIHEDRAL_DEG`, and the mesh note says so; a
+        size asked for is never replaced (it is meshed again with the bound).
     say : callable, optional
         Progress lines (default: the log at INFO): each model mesh tried, where the
         calibration's own is not used as it is.
@@ -789,7 +826,6 @@ def build_problem(
             fixed_point_fallback=False, effects=base,
         )  # fmt: skip
 
-    bound = params.get("mesh_max_dihedral_deg")  # as the calibration meshed, unless retried
     if inclusion_mesh_mm is not None:
         if not inclusions:
             raise DiagnosisError(
@@ -800,24 +836,24 @@ def build_problem(
         # a size asked for stays; the calibration's gives way to its next sizes
         then = next_mesh_sizes(params) if mesh_size_mm is None else []
         spheres = (inclusions, inclusion_mesh_mm)
-        fm, note, size = _sized_model(work, params, model_on, size, spheres, then=then, say=say)
+        chosen = _sized_model(work, params, model_on, size, spheres, then=then, say=say)
     elif mesh_size_mm is not None:
-        fm, note, size = _sized_model(work, params, model_on, mesh_size_mm, say=say)
+        chosen = _sized_model(work, params, model_on, mesh_size_mm, say=say)
     elif prestressed:
         # --reference-state prestress: its own mesh may admit one; a switched unload: not
         own = record.get("reference_state") == "prestress"
-        fm, note, size, bound = _straight_model(work, params, model_on, own_size=own, say=say)
+        chosen = _straight_model(work, params, model_on, own_size=own, say=say)
     else:
-        fm, note = model_on(work.mesh.with_nodes(_loaded_nodes(work))), ""
-        size = calibration_mesh_mm(record)
+        fm = model_on(work.mesh.with_nodes(_loaded_nodes(work)))
+        bound = params.get("mesh_max_dihedral_deg")
+        chosen = _ModelMesh(fm, "", calibration_mesh_mm(record), bound, [])
         try:
             fm.stress_free(float(np.log(record["c1_pa"])))
         except fem.ConvergenceError as exc:
             # a cold recovery can fail where the calibration's own did not (see the README)
             why = f"its recovery fails at the calibrated c1: {exc}"
-            fm, note, size, bound = _straight_model(
-                work, params, model_on, own_size=False, why=why, say=say
-            )
+            chosen = _straight_model(work, params, model_on, own_size=False, why=why, say=say)
+    fm, note, size = chosen.fm, chosen.note, chosen.size_mm
     margin = rim_margin_of(size, rim_margin_mm)
     mesh = fm.mesh
     n_pts = int(max_points or params.get("max_points", 3000))
@@ -839,5 +875,7 @@ def build_problem(
         mesh_note=note, rim_margin_mm=margin, mesh_size_mm=float(size),
         rim_points={n: within for n, (_, within) in split.items()},
         body_height_mm=float(plate_height_mm(ref, ref.vertices_mm).max()),
-        mesh_max_dihedral_deg=None if bound is None else float(bound),
+        mesh_max_dihedral_deg=None if chosen.max_dihedral_deg is None
+        else float(chosen.max_dihedral_deg),
+        mesh_failed=chosen.failed,
     )  # fmt: skip

@@ -20,7 +20,7 @@ from ..model.reference import model_mesh_notes
 from .objective import Calibrator, EvaluationFailed
 from .options import CalibrationOptions
 
-__all__ = ["OptimiserStatus", "optimise", "prepare"]
+__all__ = ["OptimiserStatus", "optimise", "prepare", "size_asked"]
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +78,26 @@ def _start(cal: Calibrator, progress) -> float:
     return theta0
 
 
+def size_asked(options: CalibrationOptions, size_mm: float) -> bool:
+    """Whether the user chose the model mesh size ``size_mm`` (a fine mesh is then meant).
+
+    A size other than the default, or the default without retry sizes: ``--mesh-size``
+    sets none, so an explicit ``--mesh-size 12`` is asked for (review N: it was warned
+    about as the default's).
+
+    Parameters
+    ----------
+    options : CalibrationOptions
+    size_mm : float
+        The size a calibration attempt meshes with.
+
+    Returns
+    -------
+    bool
+    """
+    return size_mm != CalibrationOptions.mesh_size_mm or not options.mesh_retry_mm
+
+
 def prepare(
     measurements: Measurements, options: CalibrationOptions, density_kg_m3: float, say
 ) -> tuple[Calibrator, float, list[dict]]:
@@ -108,7 +128,7 @@ def prepare(
         )
         ref = measurements.reference
         # the calibration's mesh, not the checks'; a fine mesh asked for is meant
-        asked = size != CalibrationOptions.mesh_size_mm
+        asked = size_asked(options, size)
         for note in model_mesh_notes(ref, cal.mesh, size, asked=asked):
             log.warning("reference scan %r: %s", ref.name, note)
         if options.objective == "nipple":

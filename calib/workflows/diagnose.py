@@ -141,15 +141,19 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
                 "n_tets": prob.mesh.n_tets,
                 "n_nodes": prob.mesh.n_nodes,
                 "size_mm": prob.mesh_size_mm,
+                "failed_sizes": [
+                    {"mesh_size_mm": s, "failure": why} for s, why in prob.mesh_failed
+                ],
+                "formulation": record["model"].get("formulation", "taylor-hood"),
                 "max_dihedral_deg": prob.mesh_max_dihedral_deg,
-                "formulation": (record.get("mesh") or {}).get("formulation"),
-                "note": prob.mesh_note,
+                "note": prob.mesh_note or None,
             },
             "diagnosis": {
                 "verdict": d.verdict,
                 "named": list(d.named),
                 "source_work": str(work.path),
                 "calibration_run_id": work.record.get("run_id"),
+                "calibration_mesh": work.record.get("mesh"),
             },  # fmt: skip
         }
         model = dict(record["model"])
@@ -176,11 +180,7 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
         record["model"] = model
         record["provenance"] = provenance(
             inputs={"calibration": Path(work.path) / "calibration.json"},
-            parameters=(work.record.get("provenance") or {}).get("parameters", {})
-            | {
-                "mesh_size_mm": prob.mesh_size_mm,
-                "mesh_max_dihedral_deg": prob.mesh_max_dihedral_deg,
-            },
+            parameters=(work.record.get("provenance") or {}).get("parameters", {}),
         )
         return run.commit(record)
 

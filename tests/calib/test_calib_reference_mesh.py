@@ -228,5 +228,13 @@ def test_a_far_nipple_node_and_a_coarse_or_fine_mesh_for_the_body_are_said():
     # but a fine mesh the user asked for (--mesh-size) is meant: not warned about (review
     # K: it was); a coarse one asked for still is, since it costs accuracy
     assert model_mesh_notes(ref, mesh, 1.5, asked=True) == []
+    # asked: another size than the default, or the default without retries (the CLI's
+    # --mesh-size gives none: an explicit --mesh-size 12 was warned about, review N)
+    from calib.fitting import CalibrationOptions
+    from calib.fitting.optimise import size_asked
+
+    assert not size_asked(CalibrationOptions(), 12.0)
+    assert size_asked(CalibrationOptions(mesh_size_mm=12.0, mesh_retry_mm=()), 12.0)
+    assert size_asked(CalibrationOptions(mesh_size_mm=8.0), 8.0)
     (note,) = model_mesh_notes(ref, mesh, 12.0, asked=True)
     assert note.startswith("the body is 20 mm tall: 1.7 elements of 12 mm")

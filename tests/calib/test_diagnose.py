@@ -289,8 +289,9 @@ def test_a_mesh_without_a_straight_reference_is_replaced_and_the_note_says_why(m
     )
     why = "its recovery fails at the calibrated c1: load factor 0.93"
     params = {"mesh_size_mm": 14.0, "mesh_retry_mm": [16.0]}
-    fm, note, size, bound = _straight_model(work, params, Model, own_size=False, why=why)
+    fm, note, size, bound, failed = _straight_model(work, params, Model, own_size=False, why=why)
     assert fm.size == size == 16.0 and bound is None  # meshed as the calibration's
+    assert failed == []  # the calibration's own mesh is not tried again
     assert note == (
         f"the calibration's 14 mm mesh admits no straight stress-free reference ({why}); "
         "diagnosed on the 16 mm mesh"
@@ -333,7 +334,9 @@ def test_meshes_with_fewer_slivers_are_tried_before_a_diagnosis_is_refused(monke
     )
     params = {"mesh_size_mm": 12.0, "mesh_retry_mm": []}
     lines = []  # each try is said before it starts: on a large body each takes minutes
-    fm, note, size, bound = _straight_model(work, params, Model, own_size=False, say=lines.append)
+    fm, note, size, bound, failed = _straight_model(
+        work, params, Model, own_size=False, say=lines.append
+    )
     assert lines == [
         "  recovering a straight stress-free reference at the calibrated c1 on a 14 mm model mesh",
         "  recovering a straight stress-free reference at the calibrated c1 on a 16 mm model mesh",
@@ -343,6 +346,7 @@ def test_meshes_with_fewer_slivers_are_tried_before_a_diagnosis_is_refused(monke
     assert STRAIGHT_RETRY_DIHEDRAL_DEG == 165.0
     assert (fm.size, fm.bound, size) == (12.0, 165.0, 12.0)
     assert bound == 165.0  # the refit's record says it (review N: it said the calibration's)
+    assert [s for s, _ in failed] == [14.0, 16.0]  # and the meshes tried before
     assert built == [(14.0, None), (16.0, None), (12.0, 165.0)]
     assert note.startswith("no straight stress-free reference on the calibration's mesh (its ")
     assert "14 mm: inverse Newton stopped at load factor 0.96; 16 mm: " in note
@@ -381,12 +385,48 @@ def test_meshes_with_fewer_slivers_are_tried_before_a_diagnosis_is_refused(monke
         return mesh(ref, size_mm, max_dihedral_deg)
 
     monkeypatch.setattr(reference, "reference_mesh", mesh_or_none)
-    fm, note, size, bound = _straight_model(work, params, Model, own_size=False)
+    fm, note, size, bound, failed = _straight_model(work, params, Model, own_size=False)
     assert (fm.size, fm.bound, size, bound) == (14.0, 165.0, 14.0, 165.0)
+    assert failed[2] == (
+        12.0,
+        "with a 165 deg dihedral bound: TetGen built no mesh: tetgen: failed",
+    )
     assert (
         "0.96; 16 mm: inverse Newton stopped at load factor 0.96); with the bound, 12 mm: "
         "TetGen built no mesh: tetgen: failed; diagnosed on the 14 mm mesh with TetGen's " in note
     )
+
+
+def test_a_prestressed_calibration_s_own_mesh_is_the_size_it_ran_on(monkeypatch):
+    # review O: a calibration asked for 12 mm that fell back to 14 mm ran on 14 mm; the
+    # diagnosis tried 12 mm as "its own" and said so. Its own is the size it ran on
+    import calib.model.reference as reference
+    from calib.discrepancy.problem import _straight_model
+
+    built = []
+
+    def mesh(ref, size_mm, max_dihedral_deg):
+        built.append(size_mm)
+        return size_mm
+
+    monkeypatch.setattr(reference, "reference_mesh", mesh)
+
+    class Model:
+        def __init__(self, size):
+            self.size = size
+
+        def stress_free(self, theta):
+            pass
+
+    record = {"c1_pa": 420.0, "mesh": {"size_mm": 14.0}}
+    work = SimpleNamespace(path="WORK", measurements=SimpleNamespace(reference=None), record=record)
+    params = {"mesh_size_mm": 12.0, "mesh_retry_mm": [14.0, 16.0]}
+    chosen = _straight_model(work, params, Model, own_size=True)
+    assert built == [14.0] and chosen.size_mm == 14.0
+    assert chosen.note.endswith("on its own 14 mm mesh")
+    built.clear()
+    _straight_model(work, params, Model, own_size=False)  # its own failed: the next one
+    assert built == [16.0]
 
 
 def test_a_mesh_size_asked_for_is_built_from_the_reference_scan_and_said(monkeypatch):
@@ -414,14 +454,32 @@ def test_a_mesh_size_asked_for_is_built_from_the_reference_scan_and_said(monkeyp
     work = SimpleNamespace(
         path="WORK", measurements=SimpleNamespace(reference="ref"), record=record
     )
-    fm, note, size = _sized_model(work, {"mesh_size_mm": 14.0}, Model, 10.0)
+    fm, note, size, _, _ = _sized_model(work, {"mesh_size_mm": 14.0}, Model, 10.0)
     assert size == 10.0
     # the reference scan's mesh of that size, meshed as the calibration's, recovered at
     # the calibrated c1
     assert fm.mesh == ("ref", 10.0, 165.0) and fm.theta == pytest.approx(np.log(423.4))
     assert note == "diagnosed on a 10 mm mesh, as asked (the calibration's: 14 mm)"
     with pytest.raises(DiagnosisError, match=r"32 mm model mesh.*load factor 0.5.*--mesh-size"):
-        _sized_model(work, {"mesh_size_mm": 14.0}, Model, 32.0)
+        _sized_model(work, {"mesh_size_mm": 14.0}, Model, 32.0)  # bound as tight: no retry
+    # a calibration without the bound: the size asked for is meshed again with it before
+    # it is refused (the quick twin's 9 mm mesh stops at load factor 0.695 without it)
+    record = {"c1_pa": 423.4, "provenance": {"parameters": {}}}
+    work = SimpleNamespace(path="WORK", measurements=SimpleNamespace(reference="r"), record=record)
+
+    class Slivers(Model):
+        def stress_free(self, theta):
+            if self.mesh[2] is None:
+                raise fem.ConvergenceError("inverse Newton stopped at load factor 0.695")
+
+    fm, note, size, bound, failed = _sized_model(work, {"mesh_size_mm": 12.0}, Slivers, 9.0)
+    assert fm.mesh == ("r", 9.0, 165.0) and (size, bound) == (9.0, 165.0)
+    assert failed == [(9.0, "inverse Newton stopped at load factor 0.695")]
+    assert note == (
+        "no straight stress-free reference on a 9 mm model mesh at the calibrated c1 (inverse "
+        "Newton stopped at load factor 0.695); diagnosed on the 9 mm mesh with TetGen's "
+        "dihedral bound 165 deg (the calibration's: 12 mm)"
+    )
     with pytest.raises(DiagnosisError, match="mesh_size_mm"):
         DiagnosisOptions(mesh_size_mm=0.5)
 
@@ -451,7 +509,7 @@ def test_inclusions_meshed_as_spheres_are_passed_on_and_said(monkeypatch):
     ref = SimpleNamespace(reference="ref")
     work = SimpleNamespace(path="WORK", measurements=ref, record={"c1_pa": 423.4})
     spheres = [((0.0, 0.0, 20.0), 12.0), ((10.0, 0.0, 30.0), 8.0), ((0.0, 9.0, 9.0), 4.0)]
-    fm, note, size = _sized_model(work, {"mesh_size_mm": 14.0}, Model, 14.0, (spheres, 5.0))
+    fm, note, size, _, _ = _sized_model(work, {"mesh_size_mm": 14.0}, Model, 14.0, (spheres, 5.0))
     assert fm.mesh == (14.0, 3, 5.0)
     said = "with its 2 inclusions 5 mm or wider meshed as spheres of 5 mm, as asked"
     assert note == f"diagnosed on a 14 mm mesh {said} (the calibration's: 14 mm)"
@@ -491,7 +549,8 @@ def test_inclusions_meshed_on_the_calibrations_size_fall_back_as_the_plain_mesh_
     spheres = ([((0.0, 0.0, 20.0), 12.0)], 4.0)
     then = next_mesh_sizes(params)
     assert then == [16.0, 18.0]
-    fm, note, size = _sized_model(work, params, Model, 14.0, spheres, then=then)
+    fm, note, size, _, failed = _sized_model(work, params, Model, 14.0, spheres, then=then)
+    assert failed == [(14.0, "load factor 0.14")]  # the refit's mesh.failed_sizes
     inner = "with its 1 inclusion 4 mm or wider meshed as spheres of 4 mm"
     assert fm.mesh == size == 16.0
     assert note == (
@@ -500,7 +559,11 @@ def test_inclusions_meshed_on_the_calibrations_size_fall_back_as_the_plain_mesh_
         "calibration's: 14 mm)"
     )
     both = r"on a 12 mm model mesh .*\(load factor 0.12\) nor on a 14 mm one \(load factor 0.14\)"
-    with pytest.raises(DiagnosisError, match=both + "; choose another --mesh-size"):
+    bounded = (
+        r" nor on a 12 mm one \(with a 165 deg dihedral bound: load factor 0.12\) nor on a 14 mm"
+        r" one \(with a 165 deg dihedral bound: load factor 0.14\); choose another --mesh-size"
+    )  # the same sizes again with fewer slivers
+    with pytest.raises(DiagnosisError, match=both + bounded):
         _sized_model(work, params, Model, 12.0, spheres, then=[14.0])
     with pytest.raises(DiagnosisError, match=r"on a 12 mm model mesh .*0.12\); choose"):
         _sized_model(work, params, Model, 12.0, spheres)  # asked for: never replaced

@@ -118,7 +118,10 @@ def test_the_refitted_model_is_a_calibration_validate_accepts(skin):
         doc["model_mesh"]["n_tets"],
     )
     assert mesh["n_tets"] == wf.mesh.n_tets
-    assert wf.record["provenance"]["parameters"]["mesh_size_mm"] == mesh["size_mm"]
+    assert mesh["max_dihedral_deg"] is doc["model_mesh"]["max_dihedral_deg"] is None
+    assert mesh["failed_sizes"] == [] and mesh["formulation"] == "taylor-hood"
+    calibration = json.loads((out / "work" / "calibration.json").read_text())
+    assert wf.record["diagnosis"]["calibration_mesh"] == calibration["mesh"]
     val = run_validation(refit)
     assert set(val["scans"]) == set(doc["gap"])
     roles = {n: s["role"] for n, s in val["scans"].items()}

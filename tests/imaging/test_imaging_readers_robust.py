@@ -57,7 +57,8 @@ def _rewrite(folder: Path, change) -> None:
 )
 def test_losslessly_compressed_series_read_to_the_same_volume(oblique, series, syntax):
     # a scanner or another renderer may write compressed slices; pydicom alone decodes
-    # only RLE, the JPEG family through python-gdcm. Lossless: the same stored values,
+    # RLE, Pillow JPEG 2000, python-gdcm JPEG Lossless and JPEG-LS (without it those two
+    # are 'cannot decode pixel data', checked by hand). Lossless: the same stored values,
     # so the same volume to the last bit (the uncompressed series reads exactly so)
     import gdcm  # a dependency (pyproject): without it the JPEG family is not decoded
 
