@@ -535,12 +535,13 @@ def _straight_model(
         fm, s, failed_bound = _first_recovered(work, model_on, again, bound=bound, say=say)
         if fm is not None:
             tried = "; ".join(f"{t:g} mm: {exc}" for t, exc in failed)
+            tried = f" nor on others meshed as it was ({tried})" if failed else ""
             bounded = "".join(f"; with the bound, {t:g} mm: {exc}" for t, exc in failed_bound)
             said = "none" if own_bound is None else f"{own_bound:g} deg"
             note = (
-                f"no straight stress-free reference on the calibration's mesh ({why}) nor on "
-                f"others meshed as it was ({tried}){bounded}; diagnosed on the {s:g} mm mesh "
-                f"with TetGen's dihedral bound {bound:g} deg (the calibration's: {said})"
+                f"no straight stress-free reference on the calibration's mesh ({why}){tried}"
+                f"{bounded}; diagnosed on the {s:g} mm mesh with TetGen's dihedral bound "
+                f"{bound:g} deg (the calibration's: {said})"
             )
             return _ModelMesh(
                 fm, note, s, bound, _failures(failed) + _failures(failed_bound, bound)
@@ -548,9 +549,10 @@ def _straight_model(
         failed += [(t, f"with a {bound:g} deg dihedral bound: {exc}") for t, exc in failed_bound]
     if fm is None:
         tried = "; ".join(f"{t:g} mm: {exc}" for t, exc in failed)
+        tried = f"nor on other meshes ({tried})" if failed else "and no other size to try"
         raise DiagnosisError(
             f"{work.path}: no straight stress-free reference on the calibration's mesh ({why}) "
-            f"nor on other meshes ({tried}); recalibrate with another --mesh-size"
+            f"{tried}; recalibrate with another --mesh-size"
         )
     if s == size:  # the calibration's mesh size, rebuilt from the same scan
         note = (
@@ -832,9 +834,10 @@ def build_problem(
                 f"{work.path}: inclusion_mesh_mm={inclusion_mesh_mm:g} asks for the inclusions "
                 "to be meshed, but ingest segmented none in the reference scan"
             )
-        size = _asked_mesh_mm(params) if mesh_size_mm is None else mesh_size_mm
-        # a size asked for stays; the calibration's gives way to its next sizes
-        then = next_mesh_sizes(params) if mesh_size_mm is None else []
+        size = calibration_mesh_mm(record) if mesh_size_mm is None else mesh_size_mm
+        # a size asked for stays; the calibration's (the one it ran on) gives way to its
+        # next sizes
+        then = [s for s in next_mesh_sizes(params) if s != size] if mesh_size_mm is None else []
         spheres = (inclusions, inclusion_mesh_mm)
         chosen = _sized_model(work, params, model_on, size, spheres, then=then, say=say)
     elif mesh_size_mm is not None:

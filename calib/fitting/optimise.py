@@ -81,9 +81,10 @@ def _start(cal: Calibrator, progress) -> float:
 def size_asked(options: CalibrationOptions, size_mm: float) -> bool:
     """Whether the user chose the model mesh size ``size_mm`` (a fine mesh is then meant).
 
-    A size other than the default, or the default without retry sizes: ``--mesh-size``
-    sets none, so an explicit ``--mesh-size 12`` is asked for (review N: it was warned
-    about as the default's).
+    The size the options ask for (not a retry size the calibration fell back to), when
+    it is not the default or comes without retry sizes: ``--mesh-size`` sets none, so an
+    explicit ``--mesh-size 12`` is asked for (review N: it was warned about as the
+    default's).
 
     Parameters
     ----------
@@ -95,7 +96,8 @@ def size_asked(options: CalibrationOptions, size_mm: float) -> bool:
     -------
     bool
     """
-    return size_mm != CalibrationOptions.mesh_size_mm or not options.mesh_retry_mm
+    default = CalibrationOptions.mesh_size_mm
+    return size_mm == options.mesh_size_mm and (size_mm != default or not options.mesh_retry_mm)
 
 
 def prepare(

@@ -236,5 +236,6 @@ def test_a_far_nipple_node_and_a_coarse_or_fine_mesh_for_the_body_are_said():
     assert not size_asked(CalibrationOptions(), 12.0)
     assert size_asked(CalibrationOptions(mesh_size_mm=12.0, mesh_retry_mm=()), 12.0)
     assert size_asked(CalibrationOptions(mesh_size_mm=8.0), 8.0)
+    assert not size_asked(CalibrationOptions(), 14.0)  # the default's fallback (review P)
     (note,) = model_mesh_notes(ref, mesh, 12.0, asked=True)
     assert note.startswith("the body is 20 mm tall: 1.7 elements of 12 mm")

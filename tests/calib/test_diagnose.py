@@ -420,6 +420,10 @@ def test_a_prestressed_calibration_s_own_mesh_is_the_size_it_ran_on(monkeypatch)
     built.clear()
     _straight_model(work, params, Model, own_size=False)  # its own failed: the next one
     assert built == [16.0]
+    # no other size to try: straight to the bound, and the note lists no empty tries
+    chosen = _straight_model(work, {**params, "mesh_retry_mm": [14.0]}, Model, own_size=False)
+    assert (chosen.size_mm, chosen.max_dihedral_deg, chosen.failed) == (14.0, 165.0, [])
+    assert "()" not in chosen.note and "nor on others" not in chosen.note
 
 
 def test_a_mesh_size_asked_for_is_built_from_the_reference_scan_and_said(monkeypatch):
