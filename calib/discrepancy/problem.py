@@ -338,6 +338,11 @@ def _ran_mesh_mm(record: dict, params: dict) -> float:
     return float(ran) if ran else _asked_mesh_mm(params)
 
 
+def _own_bound(work: WorkFolder) -> float | None:
+    """TetGen's dihedral bound the calibration meshed with (None: TetGen's default)."""
+    return _parameters(work.record).get("mesh_max_dihedral_deg")
+
+
 def _recovered_model(
     work: WorkFolder, model_on, size_mm: float, spheres=None, *, bound: float | None = None
 ):
@@ -353,7 +358,7 @@ def _recovered_model(
     from ..model.reference import reference_mesh
 
     if bound is None:
-        bound = _parameters(work.record).get("mesh_max_dihedral_deg")
+        bound = _own_bound(work)
     inner = {} if spheres is None else {"spheres": spheres[0], "sphere_size_mm": spheres[1]}
     loaded = reference_mesh(
         work.measurements.reference, size_mm=size_mm, max_dihedral_deg=bound, **inner
@@ -450,7 +455,7 @@ def _sized_model(
     the diagnosis mesh is not the calibration's.
     """
     inner, own = _spheres_said(spheres), _ran_mesh_mm(work.record, params)
-    bound = used = _parameters(work.record).get("mesh_max_dihedral_deg")  # as it is meshed
+    bound = used = _own_bound(work)
     sizes = [size_mm, *then]
     fm, s, failed = _first_recovered(work, model_on, sizes, spheres, say=say)
     if fm is None and (bound is None or bound > STRAIGHT_RETRY_DIHEDRAL_DEG):
@@ -481,16 +486,19 @@ def _tried(failed: list, inner: str) -> str:
     return said + "".join(f" nor on a {t:g} mm one ({e})" for t, e in rest)
 
 
-def next_mesh_sizes(params: dict) -> list[float]:
+def next_mesh_sizes(params: dict, *, ran_mm: float | None = None) -> list[float]:
     """The model mesh sizes a diagnosis tries after the calibration's own (mm).
 
-    The calibration's retry sizes (``mesh_retry_mm``) other than its own size, else the
-    own size + 2 and + 4 mm.
+    The calibration's retry sizes (``mesh_retry_mm``) other than the size it asked for,
+    else that size + 2 and + 4 mm; the size it ran on (``ran_mm``) left out.
 
     Parameters
     ----------
     params : dict
         The calibration's parameters (``calibration.json``'s ``provenance.parameters``).
+    ran_mm : float, optional
+        The size the calibration ran on (:func:`calibration_mesh_mm`), where it fell back
+        to a retry size.
 
     Returns
     -------
@@ -498,7 +506,7 @@ def next_mesh_sizes(params: dict) -> list[float]:
     """
     size = _asked_mesh_mm(params)
     sizes = [float(s) for s in params.get("mesh_retry_mm") or () if float(s) != size]
-    return sizes or [size + 2.0, size + 4.0]
+    return [s for s in sizes or [size + 2.0, size + 4.0] if s != ran_mm]
 
 
 def _straight_model(
@@ -526,9 +534,9 @@ def _straight_model(
     fell back to a retry size ran there). Returns a :class:`_ModelMesh`.
     """
     size = _ran_mesh_mm(work.record, params)
-    others = [s for s in next_mesh_sizes(params) if s != size]
+    others = next_mesh_sizes(params, ran_mm=size)
     fm, s, failed = _first_recovered(work, model_on, ([size] if own_size else []) + others, say=say)
-    own_bound = params.get("mesh_max_dihedral_deg")
+    own_bound = _own_bound(work)
     if fm is None and (own_bound is None or own_bound > STRAIGHT_RETRY_DIHEDRAL_DEG):
         bound = STRAIGHT_RETRY_DIHEDRAL_DEG
         again = [size, *others]
@@ -546,7 +554,7 @@ def _straight_model(
             return _ModelMesh(
                 fm, note, s, bound, _failures(failed) + _failures(failed_bound, bound)
             )
-        failed += [(t, f"with a {bound:g} deg dihedral bound: {exc}") for t, exc in failed_bound]
+        failed += _failures(failed_bound, bound)
     if fm is None:
         tried = "; ".join(f"{t:g} mm: {exc}" for t, exc in failed)
         tried = f"nor on other meshes ({tried})" if failed else "and no other size to try"
@@ -837,7 +845,7 @@ def build_problem(
         size = calibration_mesh_mm(record) if mesh_size_mm is None else mesh_size_mm
         # a size asked for stays; the calibration's (the one it ran on) gives way to its
         # next sizes
-        then = [s for s in next_mesh_sizes(params) if s != size] if mesh_size_mm is None else []
+        then = next_mesh_sizes(params, ran_mm=size) if mesh_size_mm is None else []
         spheres = (inclusions, inclusion_mesh_mm)
         chosen = _sized_model(work, params, model_on, size, spheres, then=then, say=say)
     elif mesh_size_mm is not None:
@@ -848,8 +856,7 @@ def build_problem(
         chosen = _straight_model(work, params, model_on, own_size=own, say=say)
     else:
         fm = model_on(work.mesh.with_nodes(_loaded_nodes(work)))
-        bound = params.get("mesh_max_dihedral_deg")
-        chosen = _ModelMesh(fm, "", calibration_mesh_mm(record), bound, [])
+        chosen = _ModelMesh(fm, "", calibration_mesh_mm(record), _own_bound(work), [])
         try:
             fm.stress_free(float(np.log(record["c1_pa"])))
         except fem.ConvergenceError as exc:
