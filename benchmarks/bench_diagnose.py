@@ -28,7 +28,8 @@ apart and shown in the table.
 
     python benchmarks/bench_diagnose.py --out DIR [--cases skin,none,curve] [--seeds 0,1,2]
         [--null-seeds 0,1,2,3,4] [--ratios 2,4,8] [--only NAME,...] [--table]
-        [--rim-margin MM|element] [--noise-profile flat|plate] [--rim-profile] [--model-error]
+        [--rim-margin MM|element] [--noise-profile flat|plate] [--mesh-error ignored|absorbed]
+        [--rim-profile] [--model-error]
         [--mesh-series MM,...]
         [--mesh-size MM] [--mesh-max-dihedral DEG] [--parameter-limits]
         [--sliding-springs PA_PER_MM] [--inclusion-ratio R]
@@ -36,10 +37,10 @@ apart and shown in the table.
 ``--mesh-size MM`` calibrates on that model mesh (default 14 mm, MM + 2 the retry);
 ``--mesh-max-dihedral DEG`` calibrates with TetGen's bound on the largest dihedral angle
 (``calibrate --mesh-max-dihedral``; the diagnosis rebuilds its meshes with it).
-``--rim-margin`` and ``--noise-profile`` diagnose with that option (``diagnose
---rim-margin``, ``--noise-profile``; use a fresh ``--out``, the cases already there are
-skipped). ``--rim-profile`` prints, for each
-finished null case, the residual of its c1-only fit with every measured point kept (rim
+``--rim-margin``, ``--noise-profile`` and ``--mesh-error`` diagnose with that option
+(``diagnose --rim-margin``, ``--noise-profile``, ``--mesh-error``; use a fresh ``--out``,
+the cases already there are skipped). ``--rim-profile`` prints, for each finished null
+case, the residual of its c1-only fit with every measured point kept (rim
 margin 0) by height above the back plate: the measurement behind ``--rim-margin
 element`` (:func:`calib.discrepancy.problem.rim_margin_of`). ``--model-error`` prints,
 for each finished effect case whose diagnosis refitted its hidden effect and whose seed
@@ -133,6 +134,7 @@ def run_case(
     mesh_size_mm: float = 14.0,
     parameter_limits: bool = False,
     inclusion_mesh_mm: float | None = None,
+    mesh_error: str = "ignored",
 ) -> dict:
     import fem
     from calib.discrepancy import DiagnosisError, DiagnosisOptions
@@ -173,6 +175,7 @@ def run_case(
         noise_profile=noise_profile,
         parameter_limits=parameter_limits,
         inclusion_mesh_mm=inclusion_mesh_mm,
+        mesh_error=mesh_error,
     )
     try:
         doc = run_diagnosis(work, opts)
@@ -204,6 +207,8 @@ def run_case(
         "rim_margin_mm": doc["scans"]["rim_margin_mm"],
         "explained_margin_mm": doc["scans"]["explained_margin_mm"],
         "noise_profile": doc["options"].get("noise_profile", "flat"),
+        # as it ran: "absorbed", "unavailable" (asked for, not built) or "ignored"
+        "mesh_error": ((doc.get("model_mesh") or {}).get("error") or {}).get("status", "ignored"),
         # the calibration's own (a reused one may differ from the options asked for)
         "mesh_max_dihedral_deg": used.get("mesh_max_dihedral_deg"),
         "mesh_size_mm": used.get("mesh_size_mm", mesh_size_mm),
@@ -229,6 +234,10 @@ def run_case(
         "diagnose_s": t3 - t2,
         "diagnose_fe_solves": doc["fe_solves"],
     }
+
+
+#: The profile cell's tag of a diagnosis run with ``--mesh-error absorbed``, as it ran.
+_MESH_ERROR_TAG = {"absorbed": "+mesh", "unavailable": "+mesh(n/a)"}
 
 
 def _expected(row: dict) -> str | None:
@@ -420,7 +429,7 @@ def _table(rows: list[dict]) -> None:
             f"{r['diagnose_s']:.0f}",
             f"{r.get('rim_margin_mm', 5.0):g}",
             "-" if judged is None else f"{judged:.3g}",
-            r.get("noise_profile", "flat"),
+            r.get("noise_profile", "flat") + _MESH_ERROR_TAG.get(r.get("mesh_error"), ""),
             _mesh_cell(r),
             _hidden_cell(r),
         )
@@ -851,6 +860,12 @@ def main() -> None:
         help="diagnose with this noise profile (diagnose --noise-profile)",
     )
     ap.add_argument(
+        "--mesh-error",
+        choices=("ignored", "absorbed"),
+        default="ignored",
+        help="diagnose with the model mesh's own error ignored or absorbed (diagnose --mesh-error)",
+    )
+    ap.add_argument(
         "--rim-margin",
         default=None,
         help="diagnose with this rim margin (mm, or 'element'; default: diagnose's)",
@@ -979,6 +994,7 @@ def main() -> None:
                 args.mesh_size,
                 args.parameter_limits,
                 args.inclusion_mesh,
+                args.mesh_error,
             )
             path.write_text(json.dumps(row, indent=1))
             if row.get("failed"):

@@ -19,7 +19,11 @@ Steps (the issue's; no files are written here, see :mod:`calib.workflows.diagnos
 4. *Screen:* each requested effect's sensitivity field (:mod:`calib.discrepancy.fields`)
    with what ``ln c1`` and the per-scan offsets absorb projected out, a score test, Holm
    across effects (a nuisance's per-scan columns tested jointly as one effect);
-   identifiability and confounding (:mod:`calib.discrepancy.screen`).
+   identifiability and confounding (:mod:`calib.discrepancy.screen`). With
+   ``mesh_error="absorbed"`` the model mesh's own discretisation error joins what is
+   projected out: the null fit's c1 solved on a mesh
+   :data:`calib.discrepancy.fields.COARSER_FACTOR` times coarser gives its shape
+   (:func:`calib.discrepancy.fields.discretisation_field`).
 5. *Confirm and name* by forward selection with backward pruning: the significant
    physical effects, strongest first (``max_candidates`` per round), are refitted jointly
    with ``ln c1`` by the full nonlinear FE model (:mod:`calib.discrepancy.refit`); the
@@ -68,7 +72,7 @@ from ..data.work import WorkFolder
 from ..evaluation import ScanMetrics, scan_metrics
 from ..model.effects import ADMISSIBLE, LIBRARY, SKIN_THICKNESS_MM
 from ..stats import NoiseFit, height_profile, parameter_intervals
-from .fields import FieldSet
+from .fields import COARSER_FACTOR, FieldSet, discretisation_column, discretisation_field
 from .limits import parameter_limits
 from .localise import region_labels, region_scale, significance_map
 from .problem import (
@@ -80,7 +84,14 @@ from .problem import (
     rim_margin_of,
 )
 from .refit import PHYSICAL, Refit, lopo, refit
-from .screen import Screen, offset_columns, sample_of, screen, session_noise
+from .screen import (
+    Screen,
+    mesh_error_check,
+    offset_columns,
+    sample_of,
+    screen,
+    session_noise,
+)
 
 __all__ = ["DEFAULT_EFFECTS", "Candidate", "Diagnosis", "DiagnosisOptions", "diagnose"]
 
@@ -93,6 +104,8 @@ DEFAULT_EFFECTS = (
 FLOOR_LAG_MM = 20.0
 #: ``DiagnosisOptions.noise_profile``'s choices.
 NOISE_PROFILES = ("flat", "plate")
+#: ``DiagnosisOptions.mesh_error``'s choices.
+MESH_ERRORS = ("ignored", "absorbed")
 MAP_KERNEL_MM = 10.0  # the significance map's smoothing (a pad's print, a rim band)
 
 
@@ -134,6 +147,17 @@ class DiagnosisOptions:
         ``"flat"``: one noise level at every height (the default). ``"plate"``: the
         noise level by height above the back plate, measured on the null fit's residual
         (:func:`calib.stats.height_profile`); residuals and fields are weighted by it.
+    mesh_error : {"ignored", "absorbed"}
+        ``"ignored"`` (the default): the tests condition on ``ln c1``, the per-scan
+        offsets and the named effects. ``"absorbed"``: the score tests, the misfit test
+        and the parameter limits also condition on one direction of the model mesh's own
+        discretisation error, the residual change from the model mesh to one
+        :data:`calib.discrepancy.fields.COARSER_FACTOR` times coarser at the null fit's c1
+        (:mod:`calib.discrepancy.fields`; one more mesh, two stress-free recoveries and
+        one FE solve per diagnosis scan). The refits, their intervals, the share
+        explained, leave-one-posture-out, the noise model, the maps and the gap do not.
+        Where that mesh cannot be built or solved the diagnosis goes on without it and
+        says so (``model_mesh.error`` in ``diagnosis.json``).
     max_candidates : int
         Significant effects refitted by FE per forward-selection round (physical effects
         first; nuisances only when no physical candidate passes).
@@ -179,6 +203,7 @@ class DiagnosisOptions:
     mesh_size_mm: float | None = None
     inclusion_mesh_mm: float | None = None
     noise_profile: Literal["flat", "plate"] = "flat"
+    mesh_error: Literal["ignored", "absorbed"] = "ignored"
     max_candidates: int = 2
     max_named: int = 2
     min_explained: float = 0.5
@@ -215,6 +240,10 @@ class DiagnosisOptions:
         if self.noise_profile not in NOISE_PROFILES:
             raise DiagnosisError(
                 f"noise_profile must be one of {NOISE_PROFILES}, got {self.noise_profile!r}"
+            )
+        if self.mesh_error not in MESH_ERRORS:
+            raise DiagnosisError(
+                f"mesh_error must be one of {MESH_ERRORS}, got {self.mesh_error!r}"
             )
         if self.max_candidates < 1 or self.max_named < 1:
             raise DiagnosisError("max_candidates and max_named must be >= 1")
@@ -398,6 +427,13 @@ class Diagnosis:
     limits : dict of str to ParameterLimit
         Per physical effect not found, its detectable size in its own parameter
         (``parameter_limits``; empty without it).
+    mesh_error_record : dict
+        ``mesh_error="absorbed"``: ``status`` ("absorbed" or "unavailable"), the coarser
+        mesh's ``size_mm``, and either its ``n_tets``, ``factor``, ``effective_factor``,
+        ``elements_tall``, ``max_dihedral_deg``, ``note``, the change's ``rms_mm`` per scan
+        and the residual's ``amplitude``, ``standard_error``, ``statistic`` and ``shared``
+        along it (:class:`calib.discrepancy.screen.MeshErrorCheck`), or the ``reason``;
+        empty with ``"ignored"``.
     """
 
     verdict: str
@@ -421,6 +457,7 @@ class Diagnosis:
     explained_margin_mm: float = 0.0
     explained_floor_mm2: float = 0.0
     limits: dict = field(default_factory=dict)
+    mesh_error_record: dict = field(default_factory=dict)
 
     @property
     def c1_pa(self) -> float:
@@ -493,6 +530,7 @@ class Diagnosis:
                 "size_mm": prob.mesh_size_mm,
                 "max_dihedral_deg": prob.mesh_max_dihedral_deg,
                 "n_tets": prob.mesh.n_tets,
+                "error": self.mesh_error_record or None,
             },
             "scans": {
                 "diagnosis": list(prob.scans),
@@ -715,6 +753,9 @@ def diagnose(
             say=say,
         )
         unavailable = dict(null.fields.unavailable)
+    mesh_error: dict = {}
+    if o.mesh_error == "absorbed":
+        prob, null, mesh_error = _absorb_mesh_error(work, prob, null, o, say)
     if not null.success:
         say(f"  the null fit did not converge: {null.message}")
     if none_tested := _none_testable(o.effects, unavailable):
@@ -724,6 +765,9 @@ def diagnose(
     nb = scr0.noise.best
     say(f"noise: {nb.kernel}, sd {nb.sigma_mm:.3f} mm, length {nb.length_mm:.1f} mm; misfit "
         f"test p = {scr0.misfit.p_value:.3g} ({scr0.misfit.verdict})")  # fmt: skip
+    if check := mesh_error_check(null.fields, prob.points, scr0.noise):
+        mesh_error |= check.as_json()
+        _say_mesh_error(check, say)
     maps = _localise(prob, null, scr0.noise)
     floor = _noise_var(null.fields, prob.points)
     judged_beyond, judged = _judged_points(prob, o.explained_margin_mm)
@@ -818,7 +862,92 @@ def diagnose(
         floor_mm2=floor, unavailable=unavailable, options=o,
         wall_s=time.perf_counter() - t0, fe_solves=int(prob.fm.solves), final_states=states,
         explained_margin_mm=judged_beyond, explained_floor_mm2=floor_judged, limits=limits,
+        mesh_error_record=mesh_error,
     )  # fmt: skip
+
+
+def _absorb_mesh_error(
+    work: WorkFolder, prob: Problem, null: Refit, o: DiagnosisOptions, say
+) -> tuple[Problem, Refit, dict]:
+    """The model mesh's discretisation column on the problem and the null fit's fields.
+
+    Returns ``(prob, null, record)``; where the coarser mesh cannot be built or solved,
+    ``prob`` and ``null`` unchanged and the record says why (a warning too).
+    """
+    size = round(COARSER_FACTOR * prob.mesh_size_mm, 1)
+    say(f"the model mesh's own error: the null fit's c1 on a {size:g} mm mesh")
+    try:
+        coarse = build_problem(
+            work,
+            holdout=o.holdout,
+            skin_thickness_mm=o.skin_thickness_mm,
+            max_points=o.max_points,
+            rim_margin_mm=prob.rim_margin_mm,  # the model's band (its points are used)
+            mesh_size_mm=size,
+            inclusion_mesh_mm=o.inclusion_mesh_mm,
+            say=say,
+        )
+        d = discretisation_field(prob, coarse, null.theta, null.fields.residual)
+    except (ValueError, fem.ConvergenceError, np.linalg.LinAlgError) as exc:
+        why = f"no model on a {size:g} mm mesh: {exc}"
+        say(f"  not absorbed: {why}")
+        log.warning("the model mesh's error is not absorbed: %s", why)
+        return prob, null, {"status": "unavailable", "size_mm": size, "reason": why}
+    prob = replace(prob, discretisation=d)
+    fields = null.fields
+    col = discretisation_column(prob, fields.scans)
+    null = replace(null, fields=replace(fields, columns=(*fields.columns, col)))
+    rms = {n: float(np.sqrt(np.mean(v**2))) for n, v in d.items()}
+    effective = float((prob.mesh.n_tets / coarse.mesh.n_tets) ** (1.0 / 3.0))
+    tall = float(prob.body_height_mm / size) if prob.body_height_mm else None
+    say(
+        f"  {coarse.mesh.n_tets} tets (effective factor {effective:.2f}); the residual "
+        "change, rms: " + ", ".join(f"{n} {v:.3f} mm" for n, v in rms.items())
+    )
+    if tall is not None and tall < 2.0:
+        say(f"  the coarser mesh is {tall:.1f} elements tall: its change is a rough direction")
+    return (
+        prob,
+        null,
+        {
+            "status": "absorbed",
+            "size_mm": size,
+            "n_tets": int(coarse.mesh.n_tets),
+            "factor": COARSER_FACTOR,
+            "effective_factor": effective,
+            "elements_tall": tall,
+            "max_dihedral_deg": coarse.mesh_max_dihedral_deg,
+            "note": coarse.mesh_note or None,
+            "rms_mm": rms,
+        },
+    )
+
+
+#: A residual along the discretisation column below this |t| does not carry it.
+MESH_ERROR_MIN_T = 2.0
+#: From this |cos| an effect's signature is said to be shared with the column.
+MESH_ERROR_SHARED = 0.5
+
+
+def _say_mesh_error(check, say) -> None:
+    """The residual's amplitude along the discretisation column, and what it shares."""
+    say(
+        f"  the residual along it: amplitude {check.amplitude:.2f} +- "
+        f"{check.standard_error:.2f} (t {check.statistic:.1f}; the model mesh's error of "
+        f"order p gives 1 / ({COARSER_FACTOR:g}^p - 1): 1.04 for p = 2, 2.5 for p = 1)"
+    )
+    if check.amplitude <= 0 or abs(check.statistic) < MESH_ERROR_MIN_T:
+        say(
+            "  the residual does not carry the coarser mesh's change as the model mesh's "
+            "error would (amplitude not positive or |t| < 2): the column removes little"
+        )
+    shared = {k: v for k, v in check.shared.items() if v >= MESH_ERROR_SHARED}
+    if shared:
+        say(
+            "  it shares its direction with "
+            + ", ".join(f"{k} (|cos| {v:.2f})" for k, v in shared.items())
+            + ": what it absorbs of these is not tested"
+        )
 
 
 def _height_profile(prob: Problem, fields: FieldSet):

@@ -180,6 +180,12 @@ class Problem:
     mesh_failed : list of (float, str)
         The model meshes tried before this one (size mm, why each failed); empty where the
         calibration's mesh or the size asked for is used as it is.
+    discretisation : dict of str to ndarray (k,)
+        Per diagnosis scan, the residual change from the model mesh to one
+        :data:`calib.discrepancy.fields.COARSER_FACTOR` times coarser at the null fit's c1
+        (mm; ``mesh_error="absorbed"``, :func:`calib.discrepancy.fields.discretisation_field`):
+        the shape of the model mesh's own discretisation error, projected out of every
+        test. Empty: not used (the default).
     """
 
     work: WorkFolder
@@ -202,6 +208,7 @@ class Problem:
     profile: HeightProfile | None = None
     mesh_max_dihedral_deg: float | None = None
     mesh_failed: list = field(default_factory=list)
+    discretisation: dict = field(default_factory=dict)
 
     @property
     def same_mesh(self) -> bool:

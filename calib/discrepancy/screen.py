@@ -14,7 +14,9 @@ Per-scan offsets: a constant normal offset of a scan's whole measured surface (a
 segmentation threshold; the model mesh's faceting, +0.1 mm on the twins' straight facets,
 is removed by the curved surface of :mod:`calib.discrepancy.problem`) is no
 mechanical effect; one indicator column per scan joins what is projected out, so every
-test asks for structure beyond ``ln c1``, the fitted effects and these offsets.
+test asks for structure beyond ``ln c1``, the fitted effects and these offsets. The
+model mesh's discretisation column (:data:`calib.discrepancy.fields.DISCRETISATION`,
+``mesh_error="absorbed"``), where the fields carry one, joins them the same way.
 
 The session's noise. Imaging and the model mesh are the same for every scan of a
 session, so the noise process is too; a missing effect only adds to a scan's residual,
@@ -51,9 +53,19 @@ from ..stats import misfit_test as _misfit_test
 from ..stats import screen_effects as _screen_effects
 from ..stats.intervals import series_design
 from ..stats.noise import session_noise
-from .fields import FieldSet
+from ..stats.scores import signature_geometry
+from .fields import DISCRETISATION, FieldSet
 
-__all__ = ["Screen", "influence", "offset_columns", "sample_of", "screen", "session_noise"]
+__all__ = [
+    "MeshErrorCheck",
+    "Screen",
+    "influence",
+    "mesh_error_check",
+    "offset_columns",
+    "sample_of",
+    "screen",
+    "session_noise",
+]
 
 
 @dataclass(frozen=True)
@@ -101,10 +113,19 @@ def sample_of(fields: FieldSet, points: dict) -> SurfaceSample:
 SERIES_DEGREE = 2
 
 
+def _always(fields: FieldSet) -> tuple[str, ...]:
+    """Nuisance columns every test conditions on and none screens (the discretisation)."""
+    return tuple(c.name for c in fields.columns if c.effect == DISCRETISATION)
+
+
 def _conditioned_on(fields: FieldSet, sample: SurfaceSample, absorbed: tuple = ()) -> np.ndarray:
-    """What every test projects out: ``dr/d ln c1``, the scans' offsets, ``absorbed``."""
+    """What every test projects out: ``dr/d ln c1``, the scans' offsets, ``absorbed``.
+
+    And the model mesh's discretisation column where the fields have one.
+    """
     J = np.column_stack([fields.stack(fields.jacobian), offset_columns(sample)])
-    return np.column_stack([J, fields.matrix(absorbed)]) if absorbed else J
+    more = (*absorbed, *_always(fields))
+    return np.column_stack([J, fields.matrix(more)]) if more else J
 
 
 def influence(
@@ -114,8 +135,8 @@ def influence(
 
     :func:`screen`'s ``estimate`` of the column is ``influence @ r`` for the stacked
     residual ``r`` (over ``fields.scans``); the vector is orthogonal to ``dr/d ln c1``,
-    the per-scan offsets and the ``absorbed`` columns, so what those absorb of a residual
-    never reaches the estimate.
+    the per-scan offsets, the ``absorbed`` columns and the discretisation column where the
+    fields have one, so what those absorb of a residual never reaches the estimate.
 
     Parameters
     ----------
@@ -180,7 +201,8 @@ def screen(
     fit = noise or session_noise(sample, r - offset_columns(sample) @ _scan_means(sample, r))
     alt = tuple(fit.plausible[1:])
     misfit = _misfit_test(r, J, sample, fit.best, alpha=misfit_alpha, alternatives=alt)
-    names = tuple(c.name for c in fields.columns if c.name not in absorbed) if columns is None \
+    skip = (*absorbed, *_always(fields))
+    names = tuple(c.name for c in fields.columns if c.name not in skip) if columns is None \
         else tuple(columns)  # fmt: skip
     if not names:
         return Screen(sample, fit, misfit, None, ())
@@ -191,3 +213,75 @@ def screen(
                           confounded_above=confounded_above, alternatives=alt,
                           directions=directions, effects=[effect[n] for n in names])  # fmt: skip
     return Screen(sample, fit, misfit, res, names)
+
+
+@dataclass(frozen=True)
+class MeshErrorCheck:
+    """How the residual carries the discretisation column (``mesh_error="absorbed"``).
+
+    Attributes
+    ----------
+    amplitude : float
+        One-step estimate of ``beta`` in ``r ~ beta d`` (``d`` the residual change to the
+        coarser mesh), with what ``ln c1`` and the per-scan offsets absorb projected out.
+        Where the model mesh's error goes as ``C h^p`` it is ``1 / (f^p - 1)`` (``f`` the
+        coarsening factor; 1.04 for p = 2, 2.5 for p = 1 at f = 1.4): positive.
+    standard_error : float
+        Its series standard error (:func:`calib.stats.screen_effects`).
+    statistic : float
+        ``amplitude / standard_error``.
+    shared : dict of str to float
+        Per screened one-column effect, ``|cos|`` between its signature and the column's,
+        both projected off ``ln c1`` and the offsets in the noise model's metric: near 1,
+        what the column absorbs of that effect is no longer tested.
+    """
+
+    amplitude: float
+    standard_error: float
+    statistic: float
+    shared: dict
+
+    def as_json(self) -> dict:
+        """Plain JSON."""
+        return {
+            "amplitude": float(self.amplitude),
+            "standard_error": float(self.standard_error),
+            "statistic": float(self.statistic),
+            "shared": {k: float(v) for k, v in self.shared.items()},
+        }
+
+
+def mesh_error_check(fields: FieldSet, points: dict, noise: NoiseFit) -> MeshErrorCheck | None:
+    """The discretisation column's amplitude in the residual and its overlap with effects.
+
+    Parameters
+    ----------
+    fields : FieldSet
+        At the null fit, with the discretisation column.
+    points : dict of str to ndarray (k, 3)
+    noise : NoiseFit
+        The screen's noise model.
+
+    Returns
+    -------
+    MeshErrorCheck or None
+        None where the fields have no discretisation column.
+    """
+    names = _always(fields)
+    if not names:
+        return None
+    sample = sample_of(fields, points)
+    r = fields.stack(fields.residual)
+    J = np.column_stack([fields.stack(fields.jacobian), offset_columns(sample)])
+    d = fields.matrix(names)
+    alt = tuple(noise.plausible[1:])
+    est = _screen_effects(
+        r, J, d, names, sample, noise.best, degree=SERIES_DEGREE, alternatives=alt
+    ).effects[0]
+    others = [c.name for c in fields.columns if c.scan is None and c.effect != DISCRETISATION]
+    shared = {}
+    if others:
+        S = np.column_stack([fields.matrix(others), d])
+        _, cosine, _ = signature_geometry(sample, J, S, noise.best)
+        shared = {n: abs(float(cosine[i, -1])) for i, n in enumerate(others)}
+    return MeshErrorCheck(est.estimate, est.standard_error, est.statistic, shared)

@@ -380,6 +380,7 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
         "<h2>Screening (score tests, what c1 absorbs projected out, Holm across effects)</h2>"
         "<p>An effect with several columns (per-scan nuisances) is one test: its smallest "
         "p times its number of columns; Holm runs over the effects.</p>"
+        f"{'<p>' + esc(_mesh_error(doc)) + '</p>' if _mesh_error(doc) else ''}"
         f"{effects}"
         f"<details><summary>every column</summary>{columns}</details>"
         f"<h2>Confirmation (full FE refits)</h2>{cands}"
@@ -430,6 +431,8 @@ def format_diagnosis(doc: dict) -> str:
     lines.append(f"noise floor (mean |e|) {doc['noise']['floor_mean_abs_mm']:.3f} mm")
     if profile := _profile(doc):
         lines.append(profile)
+    if mesh_error := _mesh_error(doc):
+        lines.append(mesh_error)
     note, own = _calibration_errors(doc)
     if note is not None:
         lines.append(f"{note}: before is c1 alone on that mesh; the calibration's own mean "
@@ -511,6 +514,31 @@ def _profile(doc: dict) -> str:
         f"from it): {bands}; every residual is divided by it, so residuals, the "
         "localisation and the floor are in the far band's mm (surface errors in mm)"
     )
+
+
+def _mesh_error(doc: dict) -> str:
+    """What ``--mesh-error absorbed`` projected out, or why it could not ('' without)."""
+    rec = (doc.get("model_mesh") or {}).get("error")
+    if not rec:
+        return ""
+    if rec["status"] != "absorbed":
+        return f"the model mesh's own error is not absorbed: {rec['reason']}"
+    rms = ", ".join(f"{n} {v:.3f} mm" for n, v in rec["rms_mm"].items())
+    out = (
+        f"the model mesh's own error absorbed: the tests condition on the residual change "
+        f"to a {rec['size_mm']:g} mm mesh ({rec['n_tets']} tets) at the null fit's c1 "
+        f"(rms {rms})"
+    )
+    if "amplitude" in rec:
+        out += (
+            f"; the residual along it: amplitude {rec['amplitude']:.2f} +- "
+            f"{rec['standard_error']:.2f} (t {rec['statistic']:.1f}; 1.04 for an error of "
+            "order 2, 2.5 of order 1)"
+        )
+        shared = [f"{k} (|cos| {v:.2f})" for k, v in rec.get("shared", {}).items() if v >= 0.5]
+        if shared:
+            out += "; it shares its direction with " + ", ".join(shared)
+    return out
 
 
 def _rim(doc: dict) -> str:

@@ -239,3 +239,42 @@ def test_a_far_nipple_node_and_a_coarse_or_fine_mesh_for_the_body_are_said():
     assert not size_asked(CalibrationOptions(), 14.0)  # the default's fallback (review P)
     (note,) = model_mesh_notes(ref, mesh, 12.0, asked=True)
     assert note.startswith("the body is 20 mm tall: 1.7 elements of 12 mm")
+
+
+def test_the_calibration_warns_of_its_mesh_as_asked_for_or_not(monkeypatch):
+    # prepare passes size_asked to model_mesh_notes for every size it meshes: the
+    # default's 12 mm and its 14 mm fallback are not asked for, an explicit --mesh-size
+    # (no retries) is (nothing tested the call before; review P checked it by reading)
+    import importlib
+
+    from calib.fitting import CalibrationOptions
+
+    optimise = importlib.import_module("calib.fitting.optimise")
+    told = []
+
+    class Calibrator:
+        def __init__(self, measurements, options, density_kg_m3):
+            self.options = options
+            self.mesh = types.SimpleNamespace(n_tets=100)
+            self.calibration_scans = []
+
+    def start(cal, say):  # the default's 12 mm has no reference; an explicit 12 mm has
+        if cal.options.mesh_size_mm == 12.0 and told[-1][1] is False:
+            raise fem.ConvergenceError("the clamped rim degenerates")
+        return 6.0
+
+    def notes(ref, mesh, size, *, asked):
+        told.append((size, asked))
+        return []
+
+    monkeypatch.setattr(optimise, "Calibrator", Calibrator)
+    monkeypatch.setattr(optimise, "_start", start)
+    monkeypatch.setattr(optimise, "model_mesh_notes", notes)
+    ms = types.SimpleNamespace(reference=types.SimpleNamespace(name="ref"))
+    for opts in (
+        CalibrationOptions(profile_points=0),  # 12 mm fails, 14 mm is the fallback
+        CalibrationOptions(mesh_size_mm=12.0, mesh_retry_mm=(), profile_points=0),
+        CalibrationOptions(mesh_size_mm=8.0, profile_points=0),
+    ):
+        optimise.prepare(ms, opts, 1000.0, lambda m: None)
+    assert told == [(12.0, False), (14.0, False), (12.0, True), (8.0, True)]
