@@ -224,8 +224,10 @@ class MeshErrorCheck:
     amplitude : float
         One-step estimate of ``beta`` in ``r ~ beta d`` (``d`` the residual change to the
         coarser mesh), with what ``ln c1`` and the per-scan offsets absorb projected out.
-        Where the model mesh's error goes as ``C h^p`` it is ``1 / (f^p - 1)`` (``f`` the
-        coarsening factor; 1.04 for p = 2, 2.5 for p = 1 at f = 1.4): positive.
+        Where the model mesh's error goes as ``C h^p`` with one order everywhere it is
+        ``1 / (f^p - 1)`` (``f`` the coarsening factor; 1.04 for p = 2, 2.5 for p = 1 at
+        f = 1.4): positive. Negative: the coarser mesh fits better along ``d`` (a mesh
+        dependence that is not monotone).
     standard_error : float
         Its series standard error (:func:`calib.stats.screen_effects`).
     statistic : float

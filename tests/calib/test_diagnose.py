@@ -1464,6 +1464,17 @@ def test_the_summary_says_whether_the_model_mesh_s_error_was_absorbed():
     }
     said = _mesh_error({"model_mesh": {"error": rec}})
     assert "16.8 mm mesh (1570 tets)" in said and "right_lateral 0.247 mm" in said
+    # the residual's amplitude along it, read (the dissertation null seed 1's: -0.60 +- 0.09)
+    rec |= {"amplitude": -0.60, "standard_error": 0.09, "statistic": -6.7, "shared": {"skin": 0.6}}
+    said = _mesh_error({"model_mesh": {"error": rec}})
+    assert "amplitude -0.60 +- 0.09 (t -6.7): the coarser mesh fits better" in said
+    assert said.endswith("shares its direction with skin (|cos| 0.60)")
+    rec |= {"amplitude": 1.1, "statistic": 5.0}
+    assert "as the model mesh's error of a converging order" in _mesh_error(
+        {"model_mesh": {"error": rec}}
+    )
+    rec |= {"statistic": 1.2}
+    assert "little along it" in _mesh_error({"model_mesh": {"error": rec}})
     rec = {"status": "unavailable", "size_mm": 16.8, "reason": "no model on a 16.8 mm mesh: x"}
     assert _mesh_error({"model_mesh": {"error": rec}}).endswith("not absorbed: " + rec["reason"])
 
