@@ -115,6 +115,11 @@ class Calibrator:
         dp = self.tumour.position_mm(self.fm.current_dX, st.dstate) if gradient else None
         return p, dp
 
+    def reset_history(self) -> None:
+        """Forget the evaluations so far (the fit starts over with another formulation)."""
+        self.history.clear()
+        self._cache = None
+
     def objective(self, theta_arr: np.ndarray) -> tuple[float, np.ndarray]:
         """``J(theta)`` and its gradient in ``theta = ln c1``.
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 
@@ -22,7 +22,7 @@ from ..data.measurements import Measurements
 from ..model.residuals import surface_area_mm2
 from .meshcheck import MeshCheck, combined_ci95, describe_mesh_check, mesh_check
 from .objective import Calibrator
-from .optimise import optimise, prepare
+from .optimise import OptimiserStatus, optimise, prepare
 from .options import CalibrationOptions, mesh_check_ratios
 from .profile import likelihood_profile, nipple_interval, profile_rows
 from .result import Calibration, phantom_frame
@@ -89,6 +89,48 @@ def _measured_area_mm2(cal: Calibrator) -> float:
     for s in cal.calibration_scans:
         total += surface_area_mm2(s.vertices_mm, s.faces[s.scored[s.faces].any(axis=1)])
     return total
+
+
+def _curved_may_go_further(cal: Calibrator, status: OptimiserStatus) -> bool:
+    """Whether the fit stopped where straight stress-free elements have no solution.
+
+    ``--reference-state unload`` chooses its formulation at the first estimate (straight
+    where that c1 admits them); where the objective still decreased towards a c1 whose
+    straight recovery fails, the curved elements of the prestressed loaded mesh may
+    solve it (the quick skin twin of seed 1: straight elements stopped at 602 Pa, its
+    calibration of 2026-12-01 switched and found 544.6 Pa).
+    """
+    return (
+        status.unsolved_c1_pa is not None
+        and cal.options.reference_state == "unload"
+        and cal.fm.unload_method == "newton"
+    )
+
+
+def _again_curved(cal: Calibrator, theta0: float, straight: OptimiserStatus, say):
+    """The whole fit again with curved stress-free elements from the first estimate.
+
+    One formulation for c1, its interval and every saved state: the straight fit's
+    evaluations leave the history, its end is kept in the status message.
+    """
+    say(
+        f"straight stress-free elements have no solution at c1 = "
+        f"{straight.unsolved_c1_pa:.1f} Pa, where the objective still decreases: the fit "
+        "again with curved ones (the prestressed loaded mesh) from the first estimate"
+    )
+    log.warning(
+        "calibrating again with curved stress-free elements: the straight ones stopped at "
+        "c1 = %.1f Pa",
+        straight.unsolved_c1_pa,
+    )
+    cal.fm.use_spatial()
+    cal.reset_history()
+    theta, value, status = optimise(cal, say, theta0)
+    why = (
+        f"curved stress-free elements, after straight ones stopped at "
+        f"{straight.unsolved_c1_pa:.1f} Pa ({straight.evaluations} evaluations)"
+    )
+    return theta, value, replace(status, message=f"{status.message} ({why})")
 
 
 def _uncertainty(cal: Calibrator, theta: float, say):
@@ -193,6 +235,8 @@ def fit(
     phantom_frame(measurements.reference, measurements.scans.values())  # fails before the FE
     cal, theta0, failed_sizes = prepare(measurements, options, density_kg_m3, say)
     theta, value, status = optimise(cal, say, theta0)
+    if _curved_may_go_further(cal, status):
+        theta, value, status = _again_curved(cal, theta0, status, say)
     cal.fm.keep_recovery(theta)  # solved again after the profile (below): keep it
     c1 = float(np.exp(theta))
     say(f"c1 = {c1:.1f} Pa after {status.iterations} iterations ({cal.fm.solves} FE solves)")
