@@ -767,7 +767,7 @@ def diagnose(
         f"test p = {scr0.misfit.p_value:.3g} ({scr0.misfit.verdict})")  # fmt: skip
     if check := mesh_error_check(null.fields, prob.points, scr0.noise):
         mesh_error |= check.as_json()
-        _say_mesh_error(check, say)
+        say(f"  the residual along it: {mesh_error_reading(mesh_error)}")
     maps = _localise(prob, null, scr0.noise)
     floor = _noise_var(null.fields, prob.points)
     judged_beyond, judged = _judged_points(prob, o.explained_margin_mm)
@@ -929,35 +929,33 @@ MESH_ERROR_MIN_T = 2.0
 MESH_ERROR_SHARED = 0.5
 
 
-def mesh_error_reading(amplitude: float, statistic: float) -> str:
-    """What the residual's amplitude along the discretisation column says (a phrase)."""
-    if abs(statistic) < MESH_ERROR_MIN_T:
-        return "the residual has little along it (|t| < 2): absorbing it changes little"
-    if amplitude > 0:
-        return (
+def mesh_error_reading(check: dict) -> str:
+    """The residual's amplitude along the discretisation column, read, and what it shares.
+
+    ``check``: :meth:`calib.discrepancy.screen.MeshErrorCheck.as_json` (as in
+    ``diagnosis.json``'s ``model_mesh.error``). The one phrase of the progress and the
+    summary.
+    """
+    a, t = check["amplitude"], check["statistic"]
+    said = f"amplitude {a:.2f} +- {check['standard_error']:.2f} (t {t:.1f}): "
+    if abs(t) < MESH_ERROR_MIN_T:
+        said += (
+            f"the residual has little along it (|t| < {MESH_ERROR_MIN_T:g}): absorbing it "
+            "changes little"
+        )
+    elif a > 0:
+        said += (
             f"as the model mesh's error of a converging order p would carry it (1 / "
             f"({COARSER_FACTOR:g}^p - 1): 1.04 for p = 2, 2.5 for p = 1)"
         )
-    return (
-        "the coarser mesh fits better along it: the mesh dependence is not monotone here, "
-        "so the column is a direction of mesh dependence, not an estimate of the error"
-    )
-
-
-def _say_mesh_error(check, say) -> None:
-    """The residual's amplitude along the discretisation column, and what it shares."""
-    say(
-        f"  the residual along it: amplitude {check.amplitude:.2f} +- "
-        f"{check.standard_error:.2f} (t {check.statistic:.1f}): "
-        + mesh_error_reading(check.amplitude, check.statistic)
-    )
-    shared = {k: v for k, v in check.shared.items() if v >= MESH_ERROR_SHARED}
-    if shared:
-        say(
-            "  it shares its direction with "
-            + ", ".join(f"{k} (|cos| {v:.2f})" for k, v in shared.items())
-            + ": what it absorbs of these is not tested"
+    else:
+        said += (
+            "the coarser mesh fits better along it: the mesh dependence is not monotone "
+            "here, so the column is a direction of mesh dependence, not an estimate of the "
+            "error"
         )
+    shared = [f"{k} (|cos| {v:.2f})" for k, v in check["shared"].items() if v >= MESH_ERROR_SHARED]
+    return said + ("; it shares its direction with " + ", ".join(shared) if shared else "")
 
 
 def _height_profile(prob: Problem, fields: FieldSet):

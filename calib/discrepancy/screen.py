@@ -118,12 +118,17 @@ def _always(fields: FieldSet) -> tuple[str, ...]:
     return tuple(c.name for c in fields.columns if c.effect == DISCRETISATION)
 
 
+def _c1_and_offsets(fields: FieldSet, sample: SurfaceSample) -> np.ndarray:
+    """``dr/d ln c1`` and the scans' offset columns, shape (n, 1 + scans)."""
+    return np.column_stack([fields.stack(fields.jacobian), offset_columns(sample)])
+
+
 def _conditioned_on(fields: FieldSet, sample: SurfaceSample, absorbed: tuple = ()) -> np.ndarray:
     """What every test projects out: ``dr/d ln c1``, the scans' offsets, ``absorbed``.
 
     And the model mesh's discretisation column where the fields have one.
     """
-    J = np.column_stack([fields.stack(fields.jacobian), offset_columns(sample)])
+    J = _c1_and_offsets(fields, sample)
     more = (*absorbed, *_always(fields))
     return np.column_stack([J, fields.matrix(more)]) if more else J
 
@@ -274,7 +279,7 @@ def mesh_error_check(fields: FieldSet, points: dict, noise: NoiseFit) -> MeshErr
         return None
     sample = sample_of(fields, points)
     r = fields.stack(fields.residual)
-    J = np.column_stack([fields.stack(fields.jacobian), offset_columns(sample)])
+    J = _c1_and_offsets(fields, sample)
     d = fields.matrix(names)
     alt = tuple(noise.plausible[1:])
     est = _screen_effects(

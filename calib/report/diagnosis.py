@@ -532,14 +532,7 @@ def _mesh_error(doc: dict) -> str:
     if "amplitude" in rec:
         from ..discrepancy.diagnose import mesh_error_reading
 
-        out += (
-            f"; the residual along it: amplitude {rec['amplitude']:.2f} +- "
-            f"{rec['standard_error']:.2f} (t {rec['statistic']:.1f}): "
-            + mesh_error_reading(rec["amplitude"], rec["statistic"])
-        )
-        shared = [f"{k} (|cos| {v:.2f})" for k, v in rec.get("shared", {}).items() if v >= 0.5]
-        if shared:
-            out += "; it shares its direction with " + ", ".join(shared)
+        out += f"; the residual along it: {mesh_error_reading(rec)}"
     return out
 
 
