@@ -20,7 +20,12 @@ from calib_helpers import SMALL_VALIDATION_PRESET, make_scan_folder
 from typer.testing import CliRunner
 
 from calib.cli import app
-from calib.data.ingest import StaleIngestError, TumourHintWarning, stale_reasons
+from calib.data.ingest import (
+    INGEST_REVISION,
+    StaleIngestError,
+    TumourHintWarning,
+    stale_reasons,
+)
 from calib.data.measurements import load_measurements
 from calib.data.session import load_session
 from calib.io import RunOutputs, StaleOutputError, check_run, write_json_atomic
@@ -79,7 +84,7 @@ def test_roles_come_from_the_current_session(scans, tmp_path):
     record.write_text(json.dumps(doc))
     (reason,) = stale_reasons(work, session)
     assert reason.startswith("the ingest results are of an older phantom-calib (ingest revision 1")
-    with pytest.raises(StaleIngestError, match="ingest revision 1, now 2"):
+    with pytest.raises(StaleIngestError, match=f"ingest revision 1, now {INGEST_REVISION}"):
         load_measurements(work, session)
 
 
