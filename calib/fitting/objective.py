@@ -7,9 +7,11 @@ residuals over the calibration scans, with the analytic gradient of
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -17,7 +19,7 @@ import fem
 from fem.probe import MaterialPoint
 
 from ..data.measurements import Measurements, ScanMeasurement
-from ..model.forward import ForwardModel
+from ..model.forward import ForwardModel, ReferenceRecoveryFailed
 from ..model.reference import reference_mesh
 from ..model.residuals import Residuals, SimulatedSurface, scan_residuals
 from .options import CalibrationOptions
@@ -26,7 +28,18 @@ __all__ = ["Calibrator", "EvaluationFailed"]
 
 
 class EvaluationFailed(fem.ConvergenceError):
-    """The objective could not be evaluated at a c1 (its FE solve failed)."""
+    """The objective could not be evaluated at a c1 (its FE solve failed).
+
+    Attributes
+    ----------
+    stage : {"stress-free reference", "posture"}
+        What failed: the stress-free reference's recovery
+        (:class:`calib.model.forward.ReferenceRecoveryFailed`) or a posture's solve.
+    """
+
+    def __init__(self, message: str, *, stage: Literal["stress-free reference", "posture"]):
+        super().__init__(message)
+        self.stage = stage
 
 
 log = logging.getLogger(__name__)
@@ -53,13 +66,9 @@ class Calibrator:
         self.mesh = reference_mesh(
             ref, size_mm=o.mesh_size_mm, max_dihedral_deg=o.mesh_max_dihedral_deg
         )
-        self.fm = ForwardModel(
-            self.mesh, ref.gravity_ref, nu=o.nu, density_kg_m3=self.density_kg_m3,
-            reference_state=o.reference_state, formulation=o.formulation,
-            # a failed recovery is a failed evaluation, except that a mesh admitting no
-            # straight stress-free elements is solved with curved ones (and says so)
-            fixed_point_fallback=False, spatial_fallback=o.reference_state == "unload",
-        )  # fmt: skip
+        # a failed recovery is a failed evaluation, except that a mesh admitting no
+        # straight stress-free elements is solved with curved ones (and says so)
+        self.fm = self._forward_model(spatial_fallback=o.reference_state == "unload")
         self.sim = SimulatedSurface.of(self.mesh)
         self.points = {s.name: s.surface_points(max_points=o.max_points, seed=o.seed)
                        for s in self.measurements.scans.values()}  # fmt: skip
@@ -70,6 +79,35 @@ class Calibrator:
         self.gauss_newton_curvature = 1.0
         #: True once :meth:`first_estimate` fell back to the guess (no nipple moved enough)
         self.first_estimate_from_guess = False
+
+    def _forward_model(self, *, spatial_fallback: bool) -> ForwardModel:
+        """The homogeneous clamped model of :attr:`mesh` with the options' material."""
+        o = self.options
+        return ForwardModel(
+            self.mesh, self.measurements.reference.gravity_ref, nu=o.nu,
+            density_kg_m3=self.density_kg_m3, reference_state=o.reference_state,
+            formulation=o.formulation, fixed_point_fallback=False,
+            spatial_fallback=spatial_fallback,
+        )  # fmt: skip
+
+    def curved(self) -> Calibrator:
+        """A new calibrator of this mesh and these points on curved stress-free elements.
+
+        Its model recovers the reference with curved elements (the prestressed loaded
+        mesh, ``unload_method="spatial"``) at every c1, with no fallback; its history is
+        empty, and this calibrator, its recoveries and its history are left as they are
+        (:func:`calib.fitting.pipeline.fit` keeps them where the curved fit fails).
+
+        Returns
+        -------
+        Calibrator
+        """
+        new = copy.copy(self)
+        new.history = []
+        new.fm = self._forward_model(spatial_fallback=False)
+        new.fm.use_spatial()
+        new.states, new._cache, new.gauss_newton_curvature = {}, None, 1.0
+        return new
 
     def _tumour(self, tumour_mm: np.ndarray) -> MaterialPoint:
         """The tumour's material point; one outside the model mesh at the nearest inside."""
@@ -115,11 +153,6 @@ class Calibrator:
         dp = self.tumour.position_mm(self.fm.current_dX, st.dstate) if gradient else None
         return p, dp
 
-    def reset_history(self) -> None:
-        """Forget the evaluations so far (the fit starts over with another formulation)."""
-        self.history.clear()
-        self._cache = None
-
     def objective(self, theta_arr: np.ndarray) -> tuple[float, np.ndarray]:
         """``J(theta)`` and its gradient in ``theta = ln c1``.
 
@@ -127,7 +160,8 @@ class Calibrator:
         ------
         EvaluationFailed
             The FE solve (or the stress-free recovery) failed at this theta; the failure
-            is recorded in :attr:`history`. The optimiser backtracks from it.
+            is recorded in :attr:`history` with its ``stage``. The optimiser backtracks
+            from it.
         """
         theta = float(theta_arr[0])
         if self._cache is not None and self._cache[0] == theta:
@@ -137,9 +171,14 @@ class Calibrator:
             res = self.residuals(theta, self.calibration_scans, gradient=True)
         except fem.ConvergenceError as exc:
             log.warning("FE failed at c1=%.1f Pa (%s)", np.exp(theta), exc)
+            stage = (
+                "stress-free reference" if isinstance(exc, ReferenceRecoveryFailed) else "posture"
+            )
             self.history.append({"c1_pa": float(np.exp(theta)), "objective": None,
-                                 "failed": True, "reason": str(exc)})  # fmt: skip
-            raise EvaluationFailed(f"no FE solution at c1 = {np.exp(theta):.1f} Pa: {exc}") from exc
+                                 "failed": True, "stage": stage, "reason": str(exc)})  # fmt: skip
+            raise EvaluationFailed(
+                f"no FE solution at c1 = {np.exp(theta):.1f} Pa: {exc}", stage=stage
+            ) from exc
         r = np.concatenate([v.r for v in res.values()])
         dr = np.concatenate([v.dr for v in res.values()])
         J, g = 0.5 * float(np.mean(r**2)), float(np.mean(r * dr))

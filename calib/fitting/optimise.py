@@ -43,9 +43,19 @@ class OptimiserStatus:
         The bound (x/÷ 4 around the first estimate) c1 ended on, if any.
     unsolved_c1_pa : float or None
         When the iteration stopped against a c1 that has no FE solution while the
-        objective still decreased towards it (within ``EDGE_TOLERANCE``): that c1. The
-        minimum of the model lies where it cannot be solved (a model that misses an
-        effect of the scans, or a mesh too coarse for their deformation).
+        objective still decreased towards it (within ``EDGE_TOLERANCE``, or every trial
+        of the last line search failed): that c1. The minimum of the model lies where it
+        cannot be solved (a model that misses an effect of the scans, or a mesh too
+        coarse for their deformation).
+    unsolved_stage : {"stress-free reference", "posture"} or None
+        What failed at ``unsolved_c1_pa``: the stress-free reference's recovery or a
+        posture's solve (:class:`calib.fitting.objective.EvaluationFailed`).
+    replaced : dict or None
+        Where this fit replaced another of the same calibration (the straight
+        stress-free elements' fit that stopped at such a c1, run again on curved ones,
+        :func:`calib.fitting.pipeline.fit`): that fit's ``formulation``, ``c1_pa``,
+        ``unsolved_c1_pa``, ``iterations``, ``evaluations``, ``failed_evaluations`` and
+        ``fe_solves``; the other attributes are this fit's.
     """
 
     success: bool
@@ -55,6 +65,8 @@ class OptimiserStatus:
     failed_evaluations: int
     bound: str | None = None
     unsolved_c1_pa: float | None = None
+    unsolved_stage: str | None = None
+    replaced: dict | None = None
 
     def to_json(self) -> dict:
         """The ``optimiser`` block of ``calibration.json``."""
@@ -66,6 +78,8 @@ class OptimiserStatus:
             "failed_evaluations": self.failed_evaluations,
             "bound": self.bound,
             "unsolved_c1_pa": self.unsolved_c1_pa,
+            "unsolved_stage": self.unsolved_stage,
+            "replaced": self.replaced,
         }
 
 
@@ -214,6 +228,15 @@ def _nearest_failure(failed: list[float], theta: float, step: float) -> float | 
     return min(ahead, key=lambda f: abs(f - theta)) if ahead else None
 
 
+def _edge_message(unsolved_c1_pa: float) -> str:
+    """Why the iteration stopped next to a c1 without an FE solution."""
+    return (
+        f"the objective still decreases towards c1 = {unsolved_c1_pa:.1f} Pa, where the FE "
+        "model has no solution: c1 stopped at the edge of what it solves (a model that "
+        "misses an effect of the scans, or a mesh too coarse for their deformation)"
+    )
+
+
 def _backtrack(t: float, slope: float, rise: float) -> float:
     """The next step fraction after a trial ``t`` that failed Armijo's condition.
 
@@ -248,8 +271,11 @@ def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, Op
     the Newton step falls below ``1e-3 / sqrt(H)`` (a change of J far below the noise:
     the criterion of the previous L-BFGS-B, ``gtol = 1e-3`` in the scaled variable), or
     ``max_iterations`` is reached, or the line search finds no acceptable point, or the
-    step is held within ``EDGE_TOLERANCE`` of a failed c1 (unconverged:
-    ``OptimiserStatus.unsolved_c1_pa``).
+    step is held within ``EDGE_TOLERANCE`` of a failed c1 or every trial of the line
+    search failed (unconverged: ``OptimiserStatus.unsolved_c1_pa``). A step shortened by
+    a failed trial is never taken for convergence, however short (the full step pointed
+    beyond the failure): the iteration goes on until the Gauss-Newton step itself is
+    short or the edge stops it.
 
     Returns
     -------
@@ -264,8 +290,8 @@ def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, Op
     J, g = _evaluate(cal, theta, progress)  # the first estimate: its failure is fatal
     g = float(g[0])
     message, success, iterations, secant = "iteration limit reached", False, 0, 0.0
-    failed: list[float] = []  # ln c1 of the trials whose FE solve failed
-    unsolved = None
+    failed: dict[float, str] = {}  # ln c1 of the trials whose FE solve failed: the stage
+    unsolved = stage = None
     while iterations < cal.options.max_iterations:
         iterations += 1
         # the Gauss-Newton curvature, or the secant one of the last step where larger (a
@@ -276,39 +302,41 @@ def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, Op
         if abs(step) < tol:
             message, success = "the Gauss-Newton step is below the tolerance", True
             break
-        wall, capped = _nearest_failure(failed, theta, step), False
+        wall, capped = _nearest_failure(list(failed), theta, step), False
         if wall is not None and abs(step) > 0.5 * abs(wall - theta):
             if 0.5 * abs(wall - theta) < EDGE_TOLERANCE:
-                unsolved = float(np.exp(wall))
-                message = (
-                    f"the objective still decreases towards c1 = {unsolved:.1f} Pa, where "
-                    "the FE model has no solution: c1 stopped at the edge of what it "
-                    "solves (a model that misses an effect of the scans, or a mesh too "
-                    "coarse for their deformation)"
-                )
+                unsolved, stage = float(np.exp(wall)), failed[wall]
+                message = _edge_message(unsolved)
                 log.warning("c1 stopped at %.1f Pa, next to an unsolvable c1", np.exp(theta))
                 break
             step, capped = 0.5 * (wall - theta), True
-        accepted, t = None, 1.0
+        accepted, t, last_failed, any_failed = None, 1.0, None, False
         while t >= MIN_STEP_FRACTION:
             trial = theta + t * step
             try:
                 Jt, gt = _evaluate(cal, trial, progress)
-            except EvaluationFailed:
-                failed.append(trial)
+            except EvaluationFailed as exc:
+                failed[trial], last_failed, any_failed = exc.stage, trial, True
                 progress(f"  no FE solution at c1 = {np.exp(trial):.1f} Pa: step halved")
                 t /= 2.0
                 continue
+            last_failed = None
             if Jt <= J + ARMIJO_C * t * step * g:
                 accepted = (trial, Jt, float(gt[0]))
                 break
             t = _backtrack(t, step * g, Jt - J)
         if accepted is None:
-            message = "the line search found no point that decreases J along the step"
+            if last_failed is not None:  # down to the shortest trial: the edge is that close
+                unsolved, stage = float(np.exp(last_failed)), failed[last_failed]
+                message = _edge_message(unsolved)
+                log.warning("c1 stopped at %.1f Pa, next to an unsolvable c1", np.exp(theta))
+            else:
+                message = "the line search found no point that decreases J along the step"
             break
         secant = (accepted[2] - g) / (accepted[0] - theta)  # dg/dtheta along the step
         theta, J, g = accepted
-        if abs(t * step) < tol and not capped:  # a capped step says nothing of a minimum
+        # a capped step, or one a failed trial shortened, says nothing of a minimum
+        if abs(t * step) < tol and not capped and not any_failed:
             message, success = "the step taken is below the tolerance", True
             break
     side = None
@@ -333,5 +361,6 @@ def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, Op
         failed_evaluations=sum(1 for h in cal.history if h.get("failed")),
         bound=side,
         unsolved_c1_pa=unsolved,
+        unsolved_stage=stage,
     )
     return theta, J, status

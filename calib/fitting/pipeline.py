@@ -21,7 +21,7 @@ import numpy as np
 from ..data.measurements import Measurements
 from ..model.residuals import surface_area_mm2
 from .meshcheck import MeshCheck, combined_ci95, describe_mesh_check, mesh_check
-from .objective import Calibrator
+from .objective import Calibrator, EvaluationFailed
 from .optimise import OptimiserStatus, optimise, prepare
 from .options import CalibrationOptions, mesh_check_ratios
 from .profile import likelihood_profile, nipple_interval, profile_rows
@@ -96,41 +96,72 @@ def _curved_may_go_further(cal: Calibrator, status: OptimiserStatus) -> bool:
 
     ``--reference-state unload`` chooses its formulation at the first estimate (straight
     where that c1 admits them); where the objective still decreased towards a c1 whose
-    straight recovery fails, the curved elements of the prestressed loaded mesh may
-    solve it (the quick skin twin of seed 1: straight elements stopped at 602 Pa, its
-    calibration of 2026-12-01 switched and found 544.6 Pa).
+    straight recovery failed (not a posture's solve), the curved elements of the
+    prestressed loaded mesh may solve it (the quick skin twin of seed 1: straight
+    elements stopped at 602 Pa, its calibration of 2026-12-01 switched and found
+    544.6 Pa).
     """
     return (
         status.unsolved_c1_pa is not None
+        and status.unsolved_stage == "stress-free reference"
         and cal.options.reference_state == "unload"
         and cal.fm.unload_method == "newton"
     )
 
 
-def _again_curved(cal: Calibrator, theta0: float, straight: OptimiserStatus, say):
+def _again_curved(cal: Calibrator, theta0: float, straight: tuple, say):
     """The whole fit again with curved stress-free elements from the first estimate.
 
-    One formulation for c1, its interval and every saved state: the straight fit's
-    evaluations leave the history, its end is kept in the status message.
+    On a new calibrator (:meth:`Calibrator.curved`): one formulation for c1, its
+    interval and every saved state; the straight fit is recorded in the status
+    (``replaced``, and its end in the message). Where the curved elements have no
+    solution at the first estimate either, the straight fit stands, said.
+
+    Returns
+    -------
+    cal, theta, value, status
+        The calibrator and the fit that stand.
     """
+    theta_s, value_s, status_s = straight
+    edge = status_s.unsolved_c1_pa
     say(
-        f"straight stress-free elements have no solution at c1 = "
-        f"{straight.unsolved_c1_pa:.1f} Pa, where the objective still decreases: the fit "
-        "again with curved ones (the prestressed loaded mesh) from the first estimate"
+        f"straight stress-free elements have no solution at c1 = {edge:.1f} Pa, where the "
+        "objective still decreases: the fit again with curved ones (the prestressed loaded "
+        "mesh) from the first estimate"
     )
     log.warning(
         "calibrating again with curved stress-free elements: the straight ones stopped at "
         "c1 = %.1f Pa",
-        straight.unsolved_c1_pa,
+        edge,
     )
-    cal.fm.use_spatial()
-    cal.reset_history()
-    theta, value, status = optimise(cal, say, theta0)
+    replaced = {
+        "formulation": "straight stress-free elements",
+        "c1_pa": float(np.exp(theta_s)),
+        "unsolved_c1_pa": edge,
+        "iterations": status_s.iterations,
+        "evaluations": status_s.evaluations,
+        "failed_evaluations": status_s.failed_evaluations,
+        "fe_solves": int(cal.fm.solves),
+    }
+    curved = cal.curved()
+    try:
+        theta, value, status = optimise(curved, say, theta0)
+    except EvaluationFailed as exc:  # at the first estimate, its failure fatal there
+        say(
+            f"curved stress-free elements failed at the first estimate too ({exc}): the "
+            f"straight fit stands, stopped at c1 = {np.exp(theta_s):.1f} Pa"
+        )
+        log.warning(
+            "the curved fit failed at the first estimate (%s): the straight one stands", exc
+        )
+        why = f"curved stress-free elements tried again from the first estimate: {exc}"
+        return cal, theta_s, value_s, replace(status_s, message=f"{status_s.message} ({why})")
     why = (
-        f"curved stress-free elements, after straight ones stopped at "
-        f"{straight.unsolved_c1_pa:.1f} Pa ({straight.evaluations} evaluations)"
+        f"curved stress-free elements, after straight ones stopped at {edge:.1f} Pa "
+        f"({status_s.evaluations} evaluations)"
     )
-    return theta, value, replace(status, message=f"{status.message} ({why})")
+    status = replace(status, message=f"{status.message} ({why})", replaced=replaced)
+    return curved, theta, value, status
 
 
 def _uncertainty(cal: Calibrator, theta: float, say):
@@ -152,11 +183,12 @@ def _uncertainty(cal: Calibrator, theta: float, say):
         except (NoiseModelError, IntervalError) as exc:
             # after the whole fit: say it and keep the run, with the interval that needs
             # no noise model (no misfit test then)
-            log.warning(
-                "the series interval failed (%s): the Gauss-Newton interval with an effective "
-                "sample count instead (uncertainty.method), and no model-misfit test",
-                exc,
+            why = (
+                f"the series interval failed ({exc}): the Gauss-Newton interval with an "
+                "effective sample count instead (uncertainty.method), and no model-misfit test"
             )
+            say(why)
+            log.warning(why)
         else:
             model_fit = fit_test.as_json()
             say(_model_fit_line(fit_test))
@@ -236,10 +268,15 @@ def fit(
     cal, theta0, failed_sizes = prepare(measurements, options, density_kg_m3, say)
     theta, value, status = optimise(cal, say, theta0)
     if _curved_may_go_further(cal, status):
-        theta, value, status = _again_curved(cal, theta0, status, say)
+        cal, theta, value, status = _again_curved(cal, theta0, (theta, value, status), say)
+    before = (status.replaced or {}).get("fe_solves", 0)  # the straight fit's, replaced
     cal.fm.keep_recovery(theta)  # solved again after the profile (below): keep it
     c1 = float(np.exp(theta))
-    say(f"c1 = {c1:.1f} Pa after {status.iterations} iterations ({cal.fm.solves} FE solves)")
+    also = f", {before} of them in the straight fit" if before else ""
+    say(
+        f"c1 = {c1:.1f} Pa after {status.iterations} iterations "
+        f"({before + cal.fm.solves} FE solves{also})"
+    )
     unc, check, ci95, profile, model_fit = _uncertainty(cal, theta, say)
     cal.fm.stress_free(theta)  # the calibrated c1's geometry again (the profile moved it)
     o = cal.options
@@ -268,7 +305,7 @@ def fit(
             else cal.fm.unload_method,
             "inverted_elements": cal.fm.inverted_reference_elements,
         },
-        fe_solves=int(cal.fm.solves),
+        fe_solves=int(before + cal.fm.solves),
         wall_s=time.perf_counter() - t0,
         options=o,
         density_kg_m3=density_kg_m3,

@@ -39,7 +39,7 @@ from fem.unload import recover_stress_free
 
 from .effects import EffectValues, effect_model, effect_support
 
-__all__ = ["ForwardModel", "ScanState"]
+__all__ = ["ForwardModel", "ReferenceRecoveryFailed", "ScanState"]
 
 # Inverse Newton inside the loop: 10 load steps at most (a sagging scan on a coarse mesh
 # can leave no valid stress-free state, where cut-backs would go on for many minutes).
@@ -52,6 +52,21 @@ _UNLOAD_NEWTON = fem.SolverOptions(max_steps=10)
 _UNLOAD_NEWTON_SPRINGS = fem.SolverOptions(max_steps=30)
 _RECOVERIES_KEPT = 32  # converged recoveries kept by (effects, theta) (a few MB each at most)
 log = logging.getLogger(__name__)
+
+
+class ReferenceRecoveryFailed(fem.ConvergenceError):
+    """No stress-free reference was recovered at a c1 (the postures were never solved).
+
+    Attributes
+    ----------
+    method : str
+        The recovery that failed: ``"newton"`` (straight stress-free elements, the
+        inverse Newton), ``"spatial"`` (curved ones) or ``"fixed-point"``.
+    """
+
+    def __init__(self, message: str, *, method: str) -> None:
+        super().__init__(message)
+        self.method = method
 
 
 @dataclass
@@ -232,7 +247,14 @@ class ForwardModel:
         return model, sol, direction, mag
 
     def stress_free(self, theta: float) -> np.ndarray:
-        """Stress-free vertex positions at theta (mm); the loaded scan for the shortcut."""
+        """Stress-free vertex positions at theta (mm); the loaded scan for the shortcut.
+
+        Raises
+        ------
+        ReferenceRecoveryFailed
+            No stress-free reference at this theta (a :class:`fem.ConvergenceError`, told
+            apart from a failed posture solve).
+        """
         if self.reference_state == "shortcut":
             self._X = self.mesh.nodes_mm
             return self._X
@@ -244,6 +266,41 @@ class ForwardModel:
             self._X, self._u0, self.inverted_reference_elements, self._ps = self._recovered[key]
             self._X_theta = theta
             return self._X
+        try:
+            rec = self._recover(theta)
+        except ReferenceRecoveryFailed:
+            raise
+        except fem.ConvergenceError as exc:
+            raise ReferenceRecoveryFailed(str(exc), method=self.unload_method) from exc
+        self._X, self._ps = rec.nodes_mm, rec.prestress
+        # the warm start of the next recovery: the inverse's own unknown
+        self._u0 = rec.prestress.inverse_state if rec.prestress is not None else rec.solution.state
+        self._X_theta = theta
+        self._recovered[key] = (self._X, self._u0, rec.inverted_elements, self._ps)
+        for old in [k for k in self._recovered if k not in self._kept]:
+            if len(self._recovered) <= _RECOVERIES_KEPT:
+                break
+            self._recovered.pop(old)
+        if (
+            rec.inverted_elements > 0
+            and rec.inverted_elements != self.inverted_reference_elements
+            and not self.prestressed
+        ):
+            # an inverted straight stress-free element keeps det F > 0 only with its loaded
+            # quadratic element folded too (fem.unload's module notes): say so
+            log.warning(
+                "recovered reference at c1=%.1f Pa: %d vertex tetrahedra inverted at the "
+                "clamped rim, and their loaded quadratic elements folded with them (the "
+                "model is wrong there, locally; --reference-state prestress has curved "
+                "stress-free elements and none)",
+                np.exp(theta),
+                rec.inverted_elements,
+            )
+        self.inverted_reference_elements = rec.inverted_elements
+        return self._X
+
+    def _recover(self, theta: float):
+        """The stress-free reference at ``theta`` by the current method (its fallbacks)."""
         start = self.model(theta)
         kw = {"gravity": self.gravity_ref, "g_m_s2": self.g_m_s2, "formulation": self.formulation}
         rec = None
@@ -279,37 +336,13 @@ class ForwardModel:
             )
         self.solves += rec.iterations
         if not rec.converged:  # a geometry off the scan would bias every residual: fail
-            raise fem.ConvergenceError(
+            raise ReferenceRecoveryFailed(
                 f"stress-free reference missed its tolerance at c1 = {np.exp(theta):.1f} Pa: "
                 f"the loaded geometry is {rec.max_error_mm:.3g} mm off the scan after "
-                f"{rec.iterations} solves"
+                f"{rec.iterations} solves",
+                method=self.unload_method,
             )
-        self._X, self._ps = rec.nodes_mm, rec.prestress
-        # the warm start of the next recovery: the inverse's own unknown
-        self._u0 = rec.prestress.inverse_state if rec.prestress is not None else rec.solution.state
-        self._X_theta = theta
-        self._recovered[key] = (self._X, self._u0, rec.inverted_elements, self._ps)
-        for old in [k for k in self._recovered if k not in self._kept]:
-            if len(self._recovered) <= _RECOVERIES_KEPT:
-                break
-            self._recovered.pop(old)
-        if (
-            rec.inverted_elements > 0
-            and rec.inverted_elements != self.inverted_reference_elements
-            and not self.prestressed
-        ):
-            # an inverted straight stress-free element keeps det F > 0 only with its loaded
-            # quadratic element folded too (fem.unload's module notes): say so
-            log.warning(
-                "recovered reference at c1=%.1f Pa: %d vertex tetrahedra inverted at the "
-                "clamped rim, and their loaded quadratic elements folded with them (the "
-                "model is wrong there, locally; --reference-state prestress has curved "
-                "stress-free elements and none)",
-                np.exp(theta),
-                rec.inverted_elements,
-            )
-        self.inverted_reference_elements = rec.inverted_elements
-        return self._X
+        return rec
 
     def _inverse_newton(self, start: fem.Model, theta: float, kw: dict):
         """Inverse Newton from the last recovery's state; once more from rest if that fails.

@@ -17,8 +17,11 @@ from calib.fitting.optimise import EDGE_TOLERANCE, optimise
 
 
 class Quadratic:
-    def __init__(self, theta_star, *, fail=lambda theta: False, curvature_scale=1.0):
+    def __init__(
+        self, theta_star, *, fail=lambda theta: False, curvature_scale=1.0, stage="posture"
+    ):
         rng = np.random.default_rng(0)
+        self.stage = stage  # what a failed evaluation says failed
         self.a = rng.uniform(5.0, 15.0, 200)  # mm per unit ln c1, like surface sensitivities
         self.e = rng.normal(0.0, 0.1, 200)
         self.theta_star, self.fail = theta_star, fail
@@ -32,7 +35,7 @@ class Quadratic:
         theta = float(theta_arr[0])
         if self.fail(theta):
             self.history.append({"c1_pa": float(np.exp(theta)), "objective": None, "failed": True})
-            raise EvaluationFailed("test")
+            raise EvaluationFailed("test", stage=self.stage)
         r = self.a * (theta - self.theta_star) + self.e
         J, g = 0.5 * float(np.mean(r**2)), float(np.mean(r * self.a))
         self.gauss_newton_curvature = self.k * float(np.mean(self.a**2))
@@ -105,11 +108,37 @@ def test_a_minimum_beyond_the_bounds_is_not_called_a_success():
     assert "upper bound" in status.message
 
 
-def test_no_solution_along_the_whole_step_stops_with_a_message():
-    cal = Quadratic(np.log(300.0), fail=lambda t: t < np.log(499.0))
+def test_no_solution_along_the_whole_step_stops_at_the_edge_it_found():
+    # the edge (499 Pa) lies within 1/64 of the first step from 500 Pa: every trial of
+    # the line search fails, and the stop reports the nearest failed c1 and what failed
+    # there (review R: it reported "no point that decreases J" and no edge, so a
+    # calibration could not tell where its model stopped solving)
+    edge = np.log(499.0)
+    cal = Quadratic(np.log(300.0), fail=lambda t: t < edge, stage="stress-free reference")
     theta, _, status = optimise(cal, lambda msg: None, np.log(500.0))
     assert theta == pytest.approx(np.log(500.0)) and not status.success
-    assert "line search" in status.message and status.failed_evaluations >= 6
+    assert "no solution" in status.message and status.failed_evaluations >= 6
+    tried = [np.log(h["c1_pa"]) for h in cal.history if h.get("failed")]
+    assert np.log(status.unsolved_c1_pa) == pytest.approx(max(tried), abs=1e-12)  # nearest
+    assert np.log(status.unsolved_c1_pa) < edge
+    assert status.unsolved_stage == "stress-free reference"
+    assert status.to_json()["unsolved_stage"] == "stress-free reference"
+
+
+def test_a_step_a_failed_trial_shortened_is_not_taken_for_convergence():
+    # the minimum (497.5 Pa) lies beyond an edge at 499.95 Pa, 0.01 % from the start:
+    # the line search halves down to a step shorter than the tolerance that lands
+    # between the two; that says nothing of a minimum (review R: it was reported as
+    # converged at 499.96 Pa with 6 of 8 evaluations failed)
+    edge = np.log(499.95)
+    cal = Quadratic(np.log(497.5), fail=lambda t: t < edge)
+    theta, _, status = optimise(cal, lambda msg: None, np.log(500.0))
+    assert theta >= edge and status.failed_evaluations >= 1
+    assert not status.success, status
+    assert np.log(status.unsolved_c1_pa) < edge and status.unsolved_stage == "posture"
+    # the premise: a solved trial closer to the start than the tolerance (a short step)
+    near = [np.log(h["c1_pa"]) for h in cal.history[1:] if not h.get("failed")]
+    assert min(np.log(500.0) - t for t in near) < 1e-3 / np.sqrt(float(np.mean(cal.a**2)))
 
 
 def test_an_overshooting_step_is_shortened_by_interpolation():
