@@ -12,7 +12,7 @@ from .optimise import OptimiserStatus
 from .options import CalibrationOptions
 from .uncertainty import Uncertainty
 
-__all__ = ["SCHEMA_VERSION", "Calibration", "phantom_frame"]
+__all__ = ["SCHEMA_VERSION", "Calibration", "phantom_frame", "reference_state_said"]
 
 #: Version of ``calibration.json``. 1: the keys of phantom-calib 0.1 plus
 #: ``schema_version``, ``optimiser`` and ``model``.
@@ -29,6 +29,27 @@ FRAMES = {
 # posture) leaves the in-plane axes to the registration's gravity error (about a degree,
 # README): it does not define them.
 _MIN_IN_PLANE = float(np.sin(np.radians(10.0)))
+
+
+def reference_state_said(reference_state: str, recovery: dict | None) -> str:
+    """``reference state X``, with the elements an ``unload`` calibration solved.
+
+    Parameters
+    ----------
+    reference_state : str
+        ``calibration.json``'s ``reference_state``.
+    recovery : dict or None
+        Its ``reference_recovery`` (``method``: ``spatial`` where the stress-free
+        elements were curved).
+
+    Returns
+    -------
+    str
+    """
+    curved = reference_state == "unload" and (recovery or {}).get("method") == "spatial"
+    return f"reference state {reference_state}" + (
+        " (curved stress-free elements)" if curved else ""
+    )
 
 
 def phantom_frame(reference, others: Iterable = ()) -> np.ndarray:
@@ -220,10 +241,8 @@ class Calibration:
             if ci is not None
             else "no 95 % interval: the data do not bound c1"
         )
-        return (
-            f"c1 = {self.c1_pa:.1f} Pa ({interval}), objective {self.objective}, "
-            f"reference state {self.reference_state}"
-        )
+        state = reference_state_said(self.reference_state, self.reference_recovery)
+        return f"c1 = {self.c1_pa:.1f} Pa ({interval}), objective {self.objective}, {state}"
 
     def __repr__(self) -> str:
         return (

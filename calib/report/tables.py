@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 from ..fitting.meshcheck import describe_mesh_check
+from ..fitting.result import reference_state_said
 
 __all__ = ["format_calibration", "format_validation"]
 
@@ -47,6 +48,13 @@ def _optimiser_lines(opt: dict | None) -> list[str]:
     if opt.get("failed_evaluations"):
         lines.append(
             f"  {opt['failed_evaluations']} of {opt['evaluations']} evaluations had no FE solution"
+        )
+    if opt.get("replaced"):
+        r = opt["replaced"]
+        lines.append(
+            f"  fitted again on curved stress-free elements: the straight ones had no solution "
+            f"at c1 = {r['unsolved_c1_pa']:.1f} Pa (their fit stopped at {r['c1_pa']:.1f} Pa "
+            f"after {r['evaluations']} evaluations)"
         )
     return lines
 
@@ -98,8 +106,8 @@ def format_calibration(doc: dict) -> str:
         else "no 95 % interval: the data do not bound c1"
     )
     lines = [
-        f"c1 = {doc['c1_pa']:.1f} Pa  ({interval}), objective "
-        f"{doc['objective']}, reference state {doc['reference_state']}",
+        f"c1 = {doc['c1_pa']:.1f} Pa  ({interval}), objective {doc['objective']}, "
+        + reference_state_said(doc["reference_state"], doc.get("reference_recovery")),
         f"{doc['iterations']} iterations, {doc['fe_solves']} FE solves, {doc['wall_s']:.0f} s",
         *_uncertainty_lines(doc.get("uncertainty", {})),
         *_optimiser_lines(doc.get("optimiser")),

@@ -144,6 +144,13 @@ def test_a_fit_stopped_where_straight_elements_fail_runs_again_on_curved_ones(
     # leave a noise-only interval unnoticed)
     meshes = doc["uncertainty"]["mesh_check"]["meshes"]
     assert meshes and not any(m.get("failure") for m in meshes), meshes
+    # the summaries say which elements the calibration solved, and the straight fit
+    from calib.report.tables import format_calibration
+
+    assert "reference state unload (curved stress-free elements)" in cal.summary()
+    table = format_calibration(doc)
+    assert "reference state unload (curved stress-free elements)" in table
+    assert f"the straight ones had no solution at c1 = {done['unsolved_c1_pa']:.1f} Pa" in table
 
 
 def test_a_posture_that_fails_where_the_objective_decreases_is_no_reason_for_curved_elements(
@@ -180,6 +187,7 @@ def test_a_posture_that_fails_where_the_objective_decreases_is_no_reason_for_cur
     assert doc["reference_recovery"]["method"] == "newton"
     assert not opt["success"] and opt["replaced"] is None
     assert opt["unsolved_stage"] == "posture"
+    assert cal.summary().endswith("reference state unload")  # straight elements
     assert opt["unsolved_c1_pa"] < np.exp(state["first"]) * 0.9 <= cal.c1_pa
     assert not any(m.startswith("straight stress-free elements") for m in said)
     failed = [h for h in doc["history"] if h.get("failed")]
