@@ -78,11 +78,11 @@ def _refined(v: np.ndarray, inside: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     RANSAC's plane passes through three of the points and takes any tilt whose band of
     :data:`PLANE_BAND_MM` holds the most: on a face whose vertices scatter across the band
     (a voxel staircase, noise) tilts up to 2 x 0.5 mm across its width do alike (the quick
-    twin's 112 mm face, poisson seed 1: 0.41 degrees off the truth, 0.9 mm across it, and
-    the fiducials' plane set aside for it). The total least-squares plane of the band
-    (PCA) and the band about it, again, settle within 0.03 degrees of the truth on that
-    twin's four scans from six RANSAC seeds (``tests/imaging/test_imaging_surface.py``
-    has a face of that kind).
+    twin's face, poisson seed 1: RANSAC's band 127 mm wide, 0.41 degrees off the truth,
+    0.9 mm across it, and the fiducials' plane set aside for it). The total least-squares
+    plane of the band (PCA) and the band about it, again, settle within 0.03 degrees of
+    the truth on that twin's four scans from six RANSAC seeds
+    (``tests/imaging/test_imaging_surface.py`` has a face of that kind).
 
     Returns
     -------

@@ -32,12 +32,16 @@ class EvaluationFailed(fem.ConvergenceError):
 
     Attributes
     ----------
-    stage : {"stress-free reference", "posture"}
-        What failed: the stress-free reference's recovery
+    stage : {"stress-free reference", "posture"} or None
+        What failed (None where not said): the stress-free reference's recovery
         (:class:`calib.model.forward.ReferenceRecoveryFailed`) or a posture's solve.
     """
 
-    def __init__(self, message: str, *, stage: Literal["stress-free reference", "posture"]):
+    # (a default, so that a process pool's worker can pickle it: the attribute travels
+    # in the exception's __dict__)
+    def __init__(
+        self, message: str, *, stage: Literal["stress-free reference", "posture"] | None = None
+    ):
         super().__init__(message)
         self.stage = stage
 

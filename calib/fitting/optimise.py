@@ -310,7 +310,7 @@ def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, Op
                 log.warning("c1 stopped at %.1f Pa, next to an unsolvable c1", np.exp(theta))
                 break
             step, capped = 0.5 * (wall - theta), True
-        accepted, t, last_failed, any_failed = None, 1.0, None, False
+        accepted, t, last_failed, any_failed, any_solved = None, 1.0, None, False, False
         while t >= MIN_STEP_FRACTION:
             trial = theta + t * step
             try:
@@ -320,13 +320,13 @@ def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, Op
                 progress(f"  no FE solution at c1 = {np.exp(trial):.1f} Pa: step halved")
                 t /= 2.0
                 continue
-            last_failed = None
+            any_solved = True
             if Jt <= J + ARMIJO_C * t * step * g:
                 accepted = (trial, Jt, float(gt[0]))
                 break
             t = _backtrack(t, step * g, Jt - J)
         if accepted is None:
-            if last_failed is not None:  # down to the shortest trial: the edge is that close
+            if not any_solved:  # every trial failed: the edge lies within the shortest
                 unsolved, stage = float(np.exp(last_failed)), failed[last_failed]
                 message = _edge_message(unsolved)
                 log.warning("c1 stopped at %.1f Pa, next to an unsolvable c1", np.exp(theta))

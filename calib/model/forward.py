@@ -59,12 +59,15 @@ class ReferenceRecoveryFailed(fem.ConvergenceError):
 
     Attributes
     ----------
-    method : str
+    method : str or None
         The recovery that failed: ``"newton"`` (straight stress-free elements, the
-        inverse Newton), ``"spatial"`` (curved ones) or ``"fixed-point"``.
+        inverse Newton), ``"spatial"`` (curved ones) or ``"fixed-point"``; None where
+        not said.
     """
 
-    def __init__(self, message: str, *, method: str) -> None:
+    # (a default, so that a process pool's worker can pickle it: the attribute travels
+    # in the exception's __dict__)
+    def __init__(self, message: str, *, method: str | None = None) -> None:
         super().__init__(message)
         self.method = method
 

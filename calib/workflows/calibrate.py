@@ -134,7 +134,9 @@ def write_calibration(
             c.fm.stress_free(calibration.theta)  # the prestress at the calibrated c1 (cached)
             prestress = _write_prestress(run, c)
         doc["model"]["prestress"] = prestress
-        doc["fe_solves"] = int(c.fm.solves)  # with the final states of every scan
+        # with the final states of every scan, and a straight fit the curved one replaced
+        replaced = calibration.optimiser.replaced or {}
+        doc["fe_solves"] = int(replaced.get("fe_solves", 0) + c.fm.solves)
         doc["wall_s"] = wall_s
         return run.commit(doc)
 

@@ -125,6 +125,38 @@ def test_no_solution_along_the_whole_step_stops_at_the_edge_it_found():
     assert status.to_json()["unsolved_stage"] == "stress-free reference"
 
 
+def test_a_line_search_that_solved_a_trial_reports_no_edge():
+    # a Gauss-Newton curvature 10x too flat overshoots to ~220 Pa, which solves but does
+    # not decrease J; the shorter trials back towards 500 Pa fail (300-499.5 Pa here):
+    # that is no edge next to the start (review S: an edge was reported, and with the
+    # stress-free stage it would have run the whole fit again on curved elements)
+    cal = Quadratic(
+        np.log(460.0),
+        curvature_scale=0.1,
+        fail=lambda t: np.log(300.0) < t < np.log(499.5),
+        stage="stress-free reference",
+    )
+    theta, _, status = optimise(cal, lambda msg: None, np.log(500.0))
+    solved = [h["c1_pa"] for h in cal.history[1:] if not h.get("failed")]
+    assert solved and min(solved) < 300.0  # the premise: the long trial solved
+    assert status.failed_evaluations >= 1 and not status.success
+    assert "line search" in status.message
+    assert status.unsolved_c1_pa is None and status.unsolved_stage is None
+
+
+def test_the_evaluation_failures_survive_a_process_pool():
+    # a worker's exception is pickled back to the parent
+    import pickle
+
+    from calib.model.forward import ReferenceRecoveryFailed
+
+    exc = pickle.loads(pickle.dumps(EvaluationFailed("no FE solution", stage="posture")))
+    assert isinstance(exc, EvaluationFailed) and exc.stage == "posture"
+    assert str(exc) == "no FE solution"
+    exc = pickle.loads(pickle.dumps(ReferenceRecoveryFailed("not recovered", method="newton")))
+    assert isinstance(exc, ReferenceRecoveryFailed) and exc.method == "newton"
+
+
 def test_a_step_a_failed_trial_shortened_is_not_taken_for_convergence():
     # the minimum (497.5 Pa) lies beyond an edge at 499.95 Pa, 0.01 % from the start:
     # the line search halves down to a step shorter than the tolerance that lands
