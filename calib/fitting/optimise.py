@@ -68,6 +68,11 @@ class OptimiserStatus:
     unsolved_stage: str | None = None
     replaced: dict | None = None
 
+    @property
+    def replaced_fe_solves(self) -> int:
+        """FE solves of the fit this one replaced (``replaced``; 0 where none)."""
+        return int((self.replaced or {}).get("fe_solves", 0))
+
     def to_json(self) -> dict:
         """The ``optimiser`` block of ``calibration.json``."""
         return {
@@ -310,13 +315,13 @@ def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, Op
                 log.warning("c1 stopped at %.1f Pa, next to an unsolvable c1", np.exp(theta))
                 break
             step, capped = 0.5 * (wall - theta), True
-        accepted, t, last_failed, any_failed, any_solved = None, 1.0, None, False, False
+        accepted, t, any_failed, any_solved = None, 1.0, False, False
         while t >= MIN_STEP_FRACTION:
             trial = theta + t * step
             try:
                 Jt, gt = _evaluate(cal, trial, progress)
             except EvaluationFailed as exc:
-                failed[trial], last_failed, any_failed = exc.stage, trial, True
+                failed[trial], any_failed = exc.stage, True
                 progress(f"  no FE solution at c1 = {np.exp(trial):.1f} Pa: step halved")
                 t /= 2.0
                 continue
@@ -326,8 +331,8 @@ def optimise(cal: Calibrator, progress, theta0: float) -> tuple[float, float, Op
                 break
             t = _backtrack(t, step * g, Jt - J)
         if accepted is None:
-            if not any_solved:  # every trial failed: the edge lies within the shortest
-                unsolved, stage = float(np.exp(last_failed)), failed[last_failed]
+            if not any_solved:  # every trial failed: the edge lies within the last one
+                unsolved, stage = float(np.exp(trial)), failed[trial]
                 message = _edge_message(unsolved)
                 log.warning("c1 stopped at %.1f Pa, next to an unsolvable c1", np.exp(theta))
             else:

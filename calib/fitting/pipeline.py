@@ -124,16 +124,13 @@ def _again_curved(cal: Calibrator, theta0: float, straight: tuple, say):
     """
     theta_s, value_s, status_s = straight
     edge = status_s.unsolved_c1_pa
-    say(
+    why = (
         f"straight stress-free elements have no solution at c1 = {edge:.1f} Pa, where the "
         "objective still decreases: the fit again with curved ones (the prestressed loaded "
         "mesh) from the first estimate"
     )
-    log.warning(
-        "calibrating again with curved stress-free elements: the straight ones stopped at "
-        "c1 = %.1f Pa",
-        edge,
-    )
+    say(why)
+    log.warning(why)
     replaced = {
         "formulation": "straight stress-free elements",
         "c1_pa": float(np.exp(theta_s)),
@@ -147,13 +144,12 @@ def _again_curved(cal: Calibrator, theta0: float, straight: tuple, say):
     try:
         theta, value, status = optimise(curved, say, theta0)
     except EvaluationFailed as exc:  # at the first estimate, its failure fatal there
-        say(
+        stands = (
             f"curved stress-free elements failed at the first estimate too ({exc}): the "
             f"straight fit stands, stopped at c1 = {np.exp(theta_s):.1f} Pa"
         )
-        log.warning(
-            "the curved fit failed at the first estimate (%s): the straight one stands", exc
-        )
+        say(stands)
+        log.warning(stands)
         why = f"curved stress-free elements tried again from the first estimate: {exc}"
         return cal, theta_s, value_s, replace(status_s, message=f"{status_s.message} ({why})")
     why = (
@@ -269,7 +265,7 @@ def fit(
     theta, value, status = optimise(cal, say, theta0)
     if _curved_may_go_further(cal, status):
         cal, theta, value, status = _again_curved(cal, theta0, (theta, value, status), say)
-    before = (status.replaced or {}).get("fe_solves", 0)  # the straight fit's, replaced
+    before = status.replaced_fe_solves  # the straight fit's, replaced
     cal.fm.keep_recovery(theta)  # solved again after the profile (below): keep it
     c1 = float(np.exp(theta))
     also = f", {before} of them in the straight fit" if before else ""

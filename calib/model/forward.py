@@ -271,8 +271,6 @@ class ForwardModel:
             return self._X
         try:
             rec = self._recover(theta)
-        except ReferenceRecoveryFailed:
-            raise
         except fem.ConvergenceError as exc:
             raise ReferenceRecoveryFailed(str(exc), method=self.unload_method) from exc
         self._X, self._ps = rec.nodes_mm, rec.prestress
@@ -339,11 +337,10 @@ class ForwardModel:
             )
         self.solves += rec.iterations
         if not rec.converged:  # a geometry off the scan would bias every residual: fail
-            raise ReferenceRecoveryFailed(
+            raise fem.ConvergenceError(
                 f"stress-free reference missed its tolerance at c1 = {np.exp(theta):.1f} Pa: "
                 f"the loaded geometry is {rec.max_error_mm:.3g} mm off the scan after "
-                f"{rec.iterations} solves",
-                method=self.unload_method,
+                f"{rec.iterations} solves"
             )
         return rec
 
