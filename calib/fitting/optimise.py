@@ -56,6 +56,9 @@ class OptimiserStatus:
         :func:`calib.fitting.pipeline.fit`): that fit's ``formulation``, ``c1_pa``,
         ``unsolved_c1_pa``, ``iterations``, ``evaluations``, ``failed_evaluations`` and
         ``fe_solves``; the other attributes are this fit's.
+    abandoned : dict or None
+        Where such a re-run on curved elements failed at its first estimate and this
+        (straight) fit stands: the re-run's ``formulation``, ``reason`` and ``fe_solves``.
     """
 
     success: bool
@@ -67,11 +70,12 @@ class OptimiserStatus:
     unsolved_c1_pa: float | None = None
     unsolved_stage: str | None = None
     replaced: dict | None = None
+    abandoned: dict | None = None
 
     @property
-    def replaced_fe_solves(self) -> int:
-        """FE solves of the fit this one replaced (``replaced``; 0 where none)."""
-        return int((self.replaced or {}).get("fe_solves", 0))
+    def set_aside_fe_solves(self) -> int:
+        """FE solves of the fits set aside: ``replaced`` and ``abandoned`` (0 where none)."""
+        return sum(int((d or {}).get("fe_solves", 0)) for d in (self.replaced, self.abandoned))
 
     def to_json(self) -> dict:
         """The ``optimiser`` block of ``calibration.json``."""
@@ -85,6 +89,7 @@ class OptimiserStatus:
             "unsolved_c1_pa": self.unsolved_c1_pa,
             "unsolved_stage": self.unsolved_stage,
             "replaced": self.replaced,
+            "abandoned": self.abandoned,
         }
 
 

@@ -151,7 +151,13 @@ def _again_curved(cal: Calibrator, theta0: float, straight: tuple, say):
         say(stands)
         log.warning(stands)
         why = f"curved stress-free elements tried again from the first estimate: {exc}"
-        return cal, theta_s, value_s, replace(status_s, message=f"{status_s.message} ({why})")
+        abandoned = {
+            "formulation": "curved stress-free elements",
+            "reason": str(exc),
+            "fe_solves": int(curved.fm.solves),
+        }
+        message = f"{status_s.message} ({why})"
+        return cal, theta_s, value_s, replace(status_s, message=message, abandoned=abandoned)
     why = (
         f"curved stress-free elements, after straight ones stopped at {edge:.1f} Pa "
         f"({status_s.evaluations} evaluations)"
@@ -265,10 +271,11 @@ def fit(
     theta, value, status = optimise(cal, say, theta0)
     if _curved_may_go_further(cal, status):
         cal, theta, value, status = _again_curved(cal, theta0, (theta, value, status), say)
-    before = status.replaced_fe_solves  # the straight fit's, replaced
+    before = status.set_aside_fe_solves  # the replaced or abandoned fit's
     cal.fm.keep_recovery(theta)  # solved again after the profile (below): keep it
     c1 = float(np.exp(theta))
-    also = f", {before} of them in the straight fit" if before else ""
+    aside = "the straight fit" if status.replaced else "the curved attempt"
+    also = f", {before} of them in {aside}" if before else ""
     say(
         f"c1 = {c1:.1f} Pa after {status.iterations} iterations "
         f"({before + cal.fm.solves} FE solves{also})"

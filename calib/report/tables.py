@@ -56,6 +56,12 @@ def _optimiser_lines(opt: dict | None) -> list[str]:
             f"at c1 = {r['unsolved_c1_pa']:.1f} Pa (their fit stopped at {r['c1_pa']:.1f} Pa "
             f"after {r['evaluations']} evaluations)"
         )
+    if opt.get("abandoned"):
+        a = opt["abandoned"]
+        lines.append(
+            f"  tried again on curved stress-free elements, no solution at the first estimate "
+            f"({a['fe_solves']} FE solves): the straight fit stands"
+        )
     return lines
 
 

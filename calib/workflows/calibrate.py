@@ -135,7 +135,7 @@ def write_calibration(
             prestress = _write_prestress(run, c)
         doc["model"]["prestress"] = prestress
         # with the final states of every scan, and a straight fit the curved one replaced
-        doc["fe_solves"] = calibration.optimiser.replaced_fe_solves + int(c.fm.solves)
+        doc["fe_solves"] = calibration.optimiser.set_aside_fe_solves + int(c.fm.solves)
         doc["wall_s"] = wall_s
         return run.commit(doc)
 

@@ -227,7 +227,7 @@ def test_a_curved_fit_that_fails_at_the_first_estimate_leaves_the_straight_fit_s
         raise EvaluationFailed("no FE solution at c1 = 600.0 Pa: simulated", stage="posture")
 
     monkeypatch.setattr(pipeline, "optimise", optimise)
-    curved = SimpleNamespace(fm=SimpleNamespace(solves=0))
+    curved = SimpleNamespace(fm=SimpleNamespace(solves=3))
     straight = SimpleNamespace(fm=SimpleNamespace(solves=42), curved=lambda: curved)
     status = OptimiserStatus(
         success=False,
@@ -247,6 +247,13 @@ def test_a_curved_fit_that_fails_at_the_first_estimate_leaves_the_straight_fit_s
     assert out.unsolved_c1_pa == 540.0 and not out.success and out.replaced is None
     assert "curved stress-free elements tried again" in out.message
     assert any("the straight fit stands" in m for m in said)
+    # the curved attempt's solves are counted (review S: they were counted nowhere)
+    assert out.abandoned["fe_solves"] == 3 and out.set_aside_fe_solves == 3
+    assert "600.0 Pa" in out.abandoned["reason"]
+    assert out.to_json()["abandoned"] == out.abandoned
+    from calib.report.tables import _optimiser_lines
+
+    assert any("the straight fit stands" in line for line in _optimiser_lines(out.to_json()))
 
 
 def test_a_scan_of_the_reference_posture_is_left_out_of_the_posture_test(measurements, caplog):
