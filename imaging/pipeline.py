@@ -237,6 +237,7 @@ def process_scan(
     quality.update(
         n_fiducials=len(fid.centres_lps_mm),
         fiducials_dropped=int(fid.quality["n_dropped"]),
+        fiducial_threshold=float(fid.quality["threshold"]),
         n_inclusions=len(inc.diameters_mm),
         inclusion_threshold=float(inc.quality["threshold"]),
         back_plate_fraction=float(flags.mean()),

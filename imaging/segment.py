@@ -58,14 +58,55 @@ def robust_sd(values: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(values - np.median(values))))
 
 
-def _poly_basis(coords: list[np.ndarray], degree: int) -> list[tuple[int, int, int]]:
+#: Distinct slices of the fitted voxels an axis needs beyond a polynomial's degree along
+#: it: a cubic along an axis the eroded body crosses in 2 slices (a 30 mm dome in 5 mm
+#: slices) is determined by nothing but the least-squares minimum norm there, and its
+#: extrapolation to the body's edge swung the field from 0.3 to 2.5 (review T).
+BIAS_SLICES_BEYOND_DEGREE = 2
+
+
+#: How far the bias fit's voxels lie inside the body: 2 voxels, but at most this (mm)
+#: and at least 1 voxel along an axis of coarser voxels (5 mm slices: 1 slice, not 10 mm).
+BIAS_EROSION_MM = 3.0
+#: The bias field over the body may span at most this ratio (max over min); beyond it the
+#: fit is taken for a failure, not for the scanner's: the twin's renderer spans 1.5
+#: (+-0.2), and the fits review T saw swung by too few slices spanned 6.6-9.8.
+BIAS_RANGE_MAX = 4.0
+
+
+def _eroded(mask: np.ndarray, spacing_mm: np.ndarray) -> np.ndarray:
+    """``mask`` eroded by 2 voxels (the L1 ball), or 1 along axes coarser than 2 mm."""
+    r = [int(max(1, min(2, round(BIAS_EROSION_MM / s)))) for s in spacing_mm]
+    grid = np.indices([2 * k + 1 for k in r]) - np.array(r)[:, None, None, None]
+    ball = sum(np.abs(g) / k for g, k in zip(grid, r, strict=True)) <= 1.0 + 1e-9
+    return ndimage.binary_erosion(mask, structure=ball)
+
+
+def _poly_basis(degree: int, per_axis: tuple[int, int, int]) -> list[tuple[int, int, int]]:
+    """Exponents of total degree ``degree`` at most, and at most ``per_axis[i]`` along axis i."""
     return [
         (a, b, c)
-        for a in range(degree + 1)
-        for b in range(degree + 1)
-        for c in range(degree + 1)
+        for a in range(per_axis[0] + 1)
+        for b in range(per_axis[1] + 1)
+        for c in range(per_axis[2] + 1)
         if a + b + c <= degree
     ]
+
+
+def _slices_text(mask: np.ndarray) -> str:
+    return "/".join(str(n) for n in _slices(mask))
+
+
+def _slices(mask: np.ndarray) -> list[int]:
+    """How many slices along each axis hold some of ``mask``."""
+    return [
+        int(np.count_nonzero(mask.any(axis=tuple(j for j in range(3) if j != i)))) for i in range(3)
+    ]
+
+
+def _axis_degrees(mask: np.ndarray, degree: int) -> tuple[int, int, int]:
+    """The polynomial's degree along each axis: ``degree``, or less where few slices hold mask."""
+    return tuple(int(min(degree, max(n - BIAS_SLICES_BEYOND_DEGREE, 0))) for n in _slices(mask))
 
 
 def fit_bias_field(
@@ -77,6 +118,11 @@ def fit_bias_field(
     coordinates scaled to [-1, 1]; three robust passes drop voxels more than 2.5 robust
     sigmas off (inclusions, markers). Returns ``exp(P)`` (same shape as ``image``, float32),
     which carries the body level as well as the bias.
+
+    Along an axis on which the mask spans few slices (thick slices, a flat body) the
+    degree drops to the slices less :data:`BIAS_SLICES_BEYOND_DEGREE` (0: constant), and
+    the field along that axis is held at its value at the mask's first and last slice
+    beyond them: a polynomial is not extrapolated along an axis it was not fitted on.
     """
     idx = np.flatnonzero(mask)
     if idx.size < 50:
@@ -87,7 +133,8 @@ def fit_bias_field(
     ijk = np.array(np.unravel_index(idx, image.shape), float).T
     scale = np.maximum(np.array(image.shape, float) - 1.0, 1.0)
     u = 2.0 * ijk / scale - 1.0
-    exps = _poly_basis([], degree)
+    per_axis = _axis_degrees(mask, degree)
+    exps = _poly_basis(degree, per_axis)
     X = np.stack([u[:, 0] ** a * u[:, 1] ** b * u[:, 2] ** c for a, b, c in exps], 1)
     y = np.log(np.maximum(image.ravel()[idx].astype(float), 1e-6))
     keep = np.ones(len(y), bool)
@@ -97,6 +144,9 @@ def fit_bias_field(
         sigma = robust_sd(r[keep])
         keep = np.abs(r) < 2.5 * max(sigma, 1e-6)
     axes = [np.linspace(-1.0, 1.0, n) for n in image.shape]
+    for i, d in enumerate(per_axis):
+        if d < degree:  # a reduced axis: held at the mask's end slices beyond them
+            axes[i] = np.clip(axes[i], u[:, i].min(), u[:, i].max())
     logf = np.zeros(image.shape, np.float32)
     for (a, b, c), w in zip(exps, coef, strict=True):
         logf += np.float32(w) * (
@@ -273,11 +323,21 @@ def segment_body(
     )
     a = arr[crop]
     g = ndimage.gaussian_filter(a, sigma)
-    inner = ndimage.binary_erosion(coarse[crop], iterations=2)
+    inner = _eroded(coarse[crop], sp)
     if inner.sum() < 50:
         inner = coarse[crop]
     if bias_degree > 0:
         field_ = fit_bias_field(g, inner, degree=bias_degree, seed=seed)
+        inside = field_[coarse[crop]]
+        spread = float(inside.max() / inside.min()) if inside.min() > 0 else float("inf")
+        if not np.isfinite(spread) or spread > BIAS_RANGE_MAX:
+            raise SegmentationError(
+                f"{src}: the intensity-bias field fitted inside the body spans a ratio of "
+                f"{spread:.3g} (at most {BIAS_RANGE_MAX:g} expected); the body spans "
+                f"{_slices_text(inner)} slices of its interior along the volume's axes "
+                f"(voxels {', '.join(f'{s:g}' for s in sp)} mm): too few to fit the field "
+                "on, or a coil bias stronger than the segmentation corrects"
+            )
     else:
         field_ = np.full(a.shape, np.median(g[inner]), np.float32)
     n = a / field_

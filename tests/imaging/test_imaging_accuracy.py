@@ -112,26 +112,48 @@ def test_a_faint_surplus_blob_is_left_out_and_a_bright_one_is_an_error(oblique_s
 
 
 def test_missed_markers_are_explained(oblique_scan):
-    # Markers dimmed under the threshold (as thick slices average them with the plate's
-    # background) or a bright blob that is no marker: the error says what was seen, not
-    # only "found 0". Markers peak at 3.43-3.53 times the body level on this scan;
-    # clipped at 1.8 times the body's median they stay under the 2.0 threshold.
+    # Markers dimmed under both thresholds (2 times the body; 1.3 apart from it) or a
+    # bright blob that is no marker: the error says what was seen, not only "found 0".
+    # Markers peak at 3.43-3.53 times the body level on this scan; clipped at 1.2 times
+    # the body's median they stay under both.
+    import re
+
     vol = oblique_scan.volume
     arr = np.array(vol.array, np.float32)
     body = float(np.median(arr[arr > 0.5 * arr.max() / 3.5]))
-    dim = Volume(np.minimum(arr, 1.8 * body), vol.affine_lps_from_index, "dim.nii.gz")
+    dim = Volume(np.minimum(arr, 1.2 * body), vol.affine_lps_from_index, "dim.nii.gz")
     with pytest.raises(FiducialError) as exc:
         process_scan(dim)
     text = str(exc.value)
     assert "dim.nii.gz: found 0 fiducial markers, expected 3" in text
-    peak = float(text.split("body level) reaches ")[1])
+    peak = float(re.search(r"body level\) reaches ([0-9.]+)", text)[1])
     assert 1.0 < peak < 2.0, text  # the dimmed markers (and the body) lie under it
+    assert "apart from the body, 0 compact blobs over 1.3 times" in text
     # one marker too many asked for: the three found and why nothing else counted
     said = r"found 3 fiducial markers, expected 4: .*; away from those, the brightest point"
     with pytest.raises(FiducialError, match=said) as exc:
         process_scan(vol, expected_fiducials=4)
     # the inclusions (1.6 times the body), not the markers' rims just under the threshold
-    assert 1.3 < float(str(exc.value).split("body level) reaches ")[1]) < 1.9
+    text = str(exc.value)
+    assert 1.3 < float(re.search(r"body level\) reaches ([0-9.]+)", text)[1]) < 1.9
+    assert "apart from the body, 3 compact blobs" in text  # the same three, lower
+
+
+def test_dim_markers_apart_from_the_body_are_found_and_said(oblique_scan, caplog):
+    # review T: markers under twice the body level (thick slices, another contrast) could
+    # not be ingested at all; clipped at 1.8 times the body they are found apart from it,
+    # within the 0.2 mm bar of issue 3, with a warning
+    vol = oblique_scan.volume
+    arr = np.array(vol.array, np.float32)
+    body = float(np.median(arr[arr > 0.5 * arr.max() / 3.5]))
+    dim = Volume(np.minimum(arr, 1.8 * body), vol.affine_lps_from_index, "dim.nii.gz")
+    with caplog.at_level("WARNING"):
+        res = process_scan(dim)
+    assert res.quality["fiducial_threshold"] == 1.3
+    assert "0 of 3 fiducial markers over 2 times the body level" in caplog.text
+    true_fid = oblique_scan.to_scanner(oblique_scan.phantom.fiducial_centres_mm)
+    err = np.linalg.norm(res.fiducials_lps_mm[:, None] - true_fid[None], axis=2).min(1)
+    assert err.max() <= 0.2, err
 
 
 def test_a_marker_beyond_the_crop_margin_is_found_and_a_vial_stays_out():
@@ -298,6 +320,47 @@ def test_empty_segmentation():
     v = Volume(np.full((30, 30, 20), 7.0, np.float32), np.eye(4), "empty.nii.gz")
     with pytest.raises(SegmentationError, match="empty.nii.gz.*constant"):
         process_scan(v)
+
+
+def test_a_body_in_few_thick_slices_keeps_a_flat_bias_field_and_its_volume():
+    # review T: a 30 mm dome in 5 mm slices leaves the eroded body 2 slices along them;
+    # the cubic bias field, undetermined along that axis, swung 0.31-2.06 over the body of
+    # an unbiased image and halved its volume (46.7 ml of 99), then the markers drowned
+    from imaging.segment import segment_body
+    from imaging.synthetic import render_mr_volume, scan_grid_covering
+    from imaging.testing import make_test_phantom
+
+    ph = make_test_phantom(seed=0)
+    pts = np.vstack([ph.body[0], ph.fiducial_centres_mm])
+    grid = scan_grid_covering(pts, spacing_mm=(0.8, 0.8, 5.0), margin_mm=12.0)
+    vol = render_mr_volume(
+        ph.body,
+        T_scanner_from_phantom=np.eye(4),
+        grid=grid,
+        inclusions=ph.inclusions,
+        fiducial_centres_mm=ph.fiducial_centres_mm,
+        fiducial_radius_mm=ph.fiducial_radius_mm,
+        bias_amplitude=0.0,
+        seed=0,
+    )
+    q = segment_body(vol).quality
+    # no bias rendered: the fitted field is flat to the noise's few per cent (SNR 30)
+    assert 0.9 <= q["bias_min"] and q["bias_max"] <= 1.1, q
+    true_ml = 2.0 / 3.0 * np.pi * 45.0 * 35.0 * 30.0 / 1000.0
+    # half a 5 mm slice of partial volume at the 30 mm dome's top: up to 8 % of its volume
+    assert abs(q["volume_ml"] / true_ml - 1.0) <= 0.12, (q["volume_ml"], true_ml)
+
+
+def test_a_bias_field_that_swings_beyond_the_range_is_refused_not_used():
+    # a body whose intensity rises 30-fold across it: no segmentation threshold is right
+    i, j, k = np.indices((60, 60, 40), float)
+    body = ((i - 30) / 24) ** 2 + ((j - 30) / 24) ** 2 + ((k - 20) / 15) ** 2 <= 1.0
+    arr = np.where(body, 1000.0 * np.exp(np.log(30.0) * (i - 6) / 48), 0.0)
+    arr += np.random.default_rng(0).normal(0.0, 5.0, arr.shape) ** 2  # a positive floor
+    with pytest.raises(SegmentationError, match=r"ramp.nii.gz.*bias field.*spans a ratio"):
+        from imaging.segment import segment_body
+
+        segment_body(Volume(arr.astype(np.float32), np.eye(4), "ramp.nii.gz"))
 
 
 def test_surface_is_a_surface_mesh(oblique_result):
