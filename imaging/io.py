@@ -29,6 +29,20 @@ _DICOM_FILE_SUFFIXES = (".dcm", ".dicom", ".ima")
 _HEADER_BYTES = 1 << 20
 #: NRRD ``space units`` read as millimetres; "" is NRRD's unknown unit, read as mm as NIfTI's.
 _MM_UNITS = {"", "mm", "millimeter", "millimeters", "millimetre", "millimetres"}
+#: NRRD ``space`` values that name patient axes (with or without time); the others
+#: (``scanner-xyz``, ``3D-right-handed``, ...) are read as LPS, with a warning.
+_ANATOMICAL_SPACES = {
+    f"{name}{time}"
+    for name in (
+        "right-anterior-superior",
+        "left-anterior-superior",
+        "left-posterior-superior",
+        "ras",
+        "las",
+        "lps",
+    )
+    for time in ("", "-time")
+}
 
 
 def _suffix(path: Path) -> str:
@@ -174,6 +188,14 @@ def _check_nrrd_geometry(path: Path) -> None:
             f"{path}: the NRRD header has no {' or '.join(missing)} field, so its orientation "
             "in the scanner is unknown; write it with its scanner geometry (`space`, "
             "`space directions`, `space origin`)"
+        )
+    if fields["space"].lower() not in _ANATOMICAL_SPACES:
+        log.warning(
+            "%s: the NRRD space is %r, which names no patient axes: its axes are read as "
+            "LPS (as DICOM's); session.toml's gravity is in them, so every scan of the "
+            "session should be written in the same space",
+            path,
+            fields["space"],
         )
     if "space units" in fields:
         raw = fields["space units"]

@@ -222,6 +222,13 @@ class Calibrator:
             if d_meas > MIN_NIPPLE_DISPLACEMENT_MM:
                 ratios.append(d_sim / d_meas)
         est = self.options.c1_guess_pa * (float(np.median(ratios)) if ratios else 1.0)
+        if not 20.0 <= est <= 1e5:
+            log.warning(
+                "the first estimate c1 = %.3g Pa lies outside 20 Pa-100 kPa: clipped to that "
+                "range (the nipple's simulated over measured displacement, %s, is implausible)",
+                est,
+                ", ".join(f"{r:.3g}" for r in ratios) or "none",
+            )
         est = float(np.clip(est, 20.0, 1e5))
         self.first_estimate_from_guess = not ratios
         if not ratios:

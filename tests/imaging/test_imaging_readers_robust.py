@@ -306,6 +306,22 @@ def test_nrrd_without_scanner_orientation_is_refused(tmp_path, extra):
         read_volume(_nrrd(tmp_path / "v.nrrd", extra))
 
 
+def test_an_nrrd_space_without_patient_axes_is_read_as_lps_and_said(tmp_path, caplog):
+    # review T: `scanner-xyz` or `3D-right-handed` was read as LPS without a word; the
+    # session's gravity is in the files' axes, so a session mixing them is wrong silently
+    for space in ("scanner-xyz", "3D-right-handed"):
+        extra = _NRRD_SPACE.replace("left-posterior-superior", space)
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="imaging.io"):
+            v = read_volume(_nrrd(tmp_path / f"{space}.nrrd", extra))
+        np.testing.assert_allclose(v.origin_lps_mm, [1, 2, 3])  # as written
+        assert f"the NRRD space is '{space}', which names no patient axes" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="imaging.io"):
+        read_volume(_nrrd(tmp_path / "lps.nrrd", _NRRD_SPACE))
+    assert "names no patient axes" not in caplog.text
+
+
 def test_nrrd_in_metres_is_refused(tmp_path):
     path = _nrrd(tmp_path / "m.nrrd", _NRRD_SPACE + 'space units: "m" "m" "m"\n')
     with pytest.raises(
