@@ -23,7 +23,9 @@ class BackPlane:
     ``beyond_face``: surface vertices more than ``face_tol_mm`` past the flat face (tissue
     that bulges past the plate's edge), left out of the face's height;
     ``fiducials_off_face_deg``: with fiducials, the angle between their plane and the
-    surface's largest plane (the flat back face), or None where none was checked.
+    surface's largest plane (the flat back face), or None where none was checked;
+    ``voxel_depth_mm``: a voxel's extent along the normal (the scan's resolution across
+    the plate; None where the volume is not known).
     """
 
     point_lps_mm: np.ndarray
@@ -31,6 +33,7 @@ class BackPlane:
     method: str
     beyond_face: int = 0
     fiducials_off_face_deg: float | None = None
+    voxel_depth_mm: float | None = None
 
 
 @dataclass(frozen=True, eq=False)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -73,6 +73,7 @@ class ScanResult:
                 "method": self.back_plane.method,
                 "beyond_face": self.back_plane.beyond_face,
                 "fiducials_off_face_deg": self.back_plane.fiducials_off_face_deg,
+                "voxel_depth_mm": self.back_plane.voxel_depth_mm,
             },
             "quality": {
                 k: (v if isinstance(v, (bool, int, str)) else float(v))
@@ -196,6 +197,9 @@ def process_scan(
     plane = estimate_back_plane(
         surf.vertices_lps_mm, fiducials_lps_mm=fid.centres_lps_mm, seed=seed
     )
+    # a voxel's extent across the plate: the resolution of the back face's height
+    depth = float(np.abs(volume.affine_lps_from_index[:3, :3].T @ plane.normal).sum())
+    plane = replace(plane, voxel_depth_mm=depth)
     flags = mark_back_plate(
         surf.vertices_lps_mm,
         plane_point_lps_mm=plane.point_lps_mm,

@@ -467,8 +467,11 @@ class StaleIngestError(RuntimeError):
 #: lip hanging more than 10 mm past the plate's edge, the fiducials' plane given way to a
 #: face that rises more than 0.75 mm over it. 3: the surface's largest plane refined by
 #: least squares on its band (RANSAC's plane tilted within it: the fiducials' plane was set
-#: aside for a face 0.41 degrees off the truth).
-INGEST_REVISION = 3
+#: aside for a face 0.41 degrees off the truth). 4: the bias field's degree along an axis
+#: the body spans in few slices, markers apart from the body down to 1.3 times its level,
+#: the back plane's voxel depth (``back_plane.voxel_depth_mm``, the clamped face's
+#: tolerance on thick slices).
+INGEST_REVISION = 4
 
 
 def ingest_inputs(session: Session) -> dict:

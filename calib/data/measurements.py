@@ -38,6 +38,9 @@ class ScanMeasurement:
     fov_edge : ndarray of bool or None
         Vertices where the field of view cuts the body (``surface_ref.ply``'s
         ``fov_edge``; None: it cuts nothing).
+    back_voxel_depth_mm : float or None
+        A voxel's extent along the back plane's normal (``ingest.json``
+        ``back_plane.voxel_depth_mm``; None where not recorded).
     """
 
     name: str
@@ -54,6 +57,7 @@ class ScanMeasurement:
     posture_plane: str | None = None
     posture_angle_deg: float | None = None
     fov_edge: np.ndarray | None = None
+    back_voxel_depth_mm: float | None = None
 
     @property
     def in_view(self) -> np.ndarray:
@@ -138,6 +142,7 @@ def read_scan(work: Path, entry: ScanEntry) -> ScanMeasurement:
         posture_plane=entry.posture_plane,
         posture_angle_deg=entry.posture_angle_deg,
         fov_edge=surf.fov_edge,
+        back_voxel_depth_mm=plane.get("voxel_depth_mm"),
     )
 
 

@@ -73,6 +73,7 @@ SCAN_KEYS_0_1 = {"role", "gravity_ref", "nipple_error_mm", "nipple_landmark_erro
 UNCERTAINTY_KEYS_0_1 = {"se_ln_c1", "c1_ci95_pa", "residual_sd_mm", "n_residuals",
                         "n_effective", "correlation_length_mm", "method", "mesh_check"}  # fmt: skip
 MESH_KEYS_0_1 = {"n_tets", "n_nodes", "size_mm", "failed_sizes", "formulation"}
+MESH_KEYS_ADDED = {"support"}  # the clamped back face (review U)
 
 
 def test_calibration_json_keys_are_those_of_0_1_plus_the_documented_additions(nipple_run):
@@ -85,7 +86,10 @@ def test_calibration_json_keys_are_those_of_0_1_plus_the_documented_additions(ni
     assert doc["model"]["reference_posture"] == {"plane": "transverse", "angle_deg": 0.0}
     assert set(doc["uncertainty"]) == UNCERTAINTY_KEYS_0_1 | {"interval"}
     assert doc["model_fit"] is None  # the misfit test is the surface objective's
-    assert set(doc["mesh"]) == MESH_KEYS_0_1
+    assert set(doc["mesh"]) == MESH_KEYS_0_1 | MESH_KEYS_ADDED
+    support = doc["mesh"]["support"]
+    assert support["back_tol_mm"] == 1.0  # the twin's flat face: the default tolerance
+    assert 0.8 * support["plate_mm2"] <= support["clamped_mm2"]  # SUPPORT_AREA_SHARE
     assert {"success", "message", "iterations", "bound"} <= set(doc["optimiser"])
 
 
