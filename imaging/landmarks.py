@@ -163,7 +163,8 @@ def estimate_back_plane(
     :data:`FACE_MIN_SHARE` of the vertices and the fiducials' plane lies more than
     :data:`FIDUCIALS_OFF_FACE_DEG` off it, or tilted enough that the face rises more than
     :data:`FACE_RISE_MM` over it (markers not on the plate), the face's plane is taken,
-    with a warning. The normal is oriented towards the body and the
+    with a warning. The normal is oriented towards the body (the side of the flat back
+    face where the surface has one, else of the markers' plane) and the
     plane is moved onto the body's back face: the 1st percentile of the vertex heights,
     leaving out the vertices more than ``face_tol_mm`` below the densest 0.25 mm slab of
     heights near the bottom (the face; searched within 10 mm of the lowest vertex and,
@@ -198,9 +199,13 @@ def estimate_back_plane(
                 )
     normal = normal / np.linalg.norm(normal)
     h = (v - origin) @ normal
-    if h.mean() < 0:  # the body lies on the positive side of the plate
-        normal, h = -normal, -h
     parallel = abs(float(face_normal @ normal)) >= np.cos(np.radians(FIDUCIALS_OFF_FACE_DEG))
+    # the body lies on the positive side of the plate: of the flat back face where there
+    # is one (markers on posts above the body's mean height turned the normal away from
+    # the body, the plane onto its apex: review U), else of the markers' plane
+    side = (v - face_origin) @ normal if parallel and share >= FACE_MIN_SHARE else h
+    if side.mean() < 0:
+        normal, h = -normal, -h
     plane_h = None
     if parallel and share >= FACE_MIN_SHARE:  # the largest plane's height under the body
         m = v.mean(axis=0)

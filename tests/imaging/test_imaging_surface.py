@@ -353,3 +353,19 @@ def test_a_nipple_bump_too_coarse_for_its_tip_fit_is_said(caplog):
         coarse = find_nipple(v, plane, tip_radius_mm=0.5)
     assert coarse.quality["method"] == "protrusion" and not coarse.quality["refined"]
     assert "the nipple bump's tip fit found" in caplog.text
+
+
+def test_markers_above_the_body_s_mean_height_leave_the_plate_under_the_body():
+    # review U: the normal was turned towards the side holding most vertices as seen from
+    # the markers' plane; markers on posts above the body's mean height (10 mm on this
+    # dome) turned it away from the body, and the plane went onto the apex. The flat back
+    # face (half the vertices here) now decides the side
+    from imaging.landmarks import estimate_back_plane
+    from imaging.testing import dome_surface
+
+    v, _ = dome_surface((60.0, 45.0, 40.0), subdivisions=5)
+    for z in (-2.5, 30.0):  # on the plate; on posts, parallel to it
+        fid = np.array([[70.0, 0.0, z], [-65.0, 10.0, z], [0.0, -55.0, z]])
+        bp = estimate_back_plane(v, fiducials_lps_mm=fid)
+        np.testing.assert_allclose(bp.normal, [0.0, 0.0, 1.0], atol=1e-9)
+        assert abs(bp.point_lps_mm[2]) < 1e-6, bp.point_lps_mm  # the dome's base, z = 0
