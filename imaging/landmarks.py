@@ -67,6 +67,13 @@ FACE_RISE_MM = 0.75
 #: ... and while that largest plane holds at least this share of the surface's vertices
 #: (the quick twin's back face: 16-21 %); a smaller one may not be the face.
 FACE_MIN_SHARE = 0.05
+#: ... or while the fiducials' plane, moved onto the face, holds at least this share of
+#: the vertices the face's own plane holds in its band: a face that rises over it by its
+#: own roughness (terraces of thick slices along a tilted plate: its plane 0.44-0.52
+#: degrees off, review U) or a plane RANSAC found on a face thinned by decimation (0.4-0.7
+#: degrees off on one seed in ten) fits the vertices no better than the markers' plane;
+#: markers tilted 2 degrees hold a strip of an 80 mm face.
+FIDUCIALS_BAND_SHARE = 0.8
 #: Half-thickness of the largest plane's band (mm): RANSAC's inlier distance, and the band
 #: its least-squares refinement re-selects.
 PLANE_BAND_MM = 0.5
@@ -128,6 +135,18 @@ def _largest_plane(v: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray, fl
     return normal, origin, float(inside.mean()), width
 
 
+def _band_share(v: np.ndarray, normal, face_normal, face_origin) -> float:
+    """Share of ``v`` within the band of the plane of ``normal`` through the face's band.
+
+    The face: the points within :data:`PLANE_BAND_MM` of the plane ``(face_origin,
+    face_normal)``; the plane of ``normal`` passes through their median height along it.
+    """
+    face = np.abs((v - face_origin) @ face_normal) <= PLANE_BAND_MM
+    h = v @ normal
+    centre = float(np.median(h[face]))
+    return float((np.abs(h - centre) <= PLANE_BAND_MM).mean())
+
+
 def _face_height(h: np.ndarray, plane_h: float | None = None) -> float | None:
     """Height of the densest thin slab near the bottom (the flat back face), or None.
 
@@ -184,7 +203,14 @@ def estimate_back_plane(
         if s[1] > 1e-3 * max(s[0], 1e-9):
             off = float(np.degrees(np.arccos(min(1.0, abs(float(vt[2] @ face_normal))))))
             rise = width * np.tan(np.radians(off))
-            if share < FACE_MIN_SHARE or (off <= FIDUCIALS_OFF_FACE_DEG and rise <= FACE_RISE_MM):
+            if share < FACE_MIN_SHARE or (
+                off <= FIDUCIALS_OFF_FACE_DEG
+                and (
+                    rise <= FACE_RISE_MM
+                    or _band_share(v, vt[2], face_normal, face_origin)
+                    >= FIDUCIALS_BAND_SHARE * share
+                )
+            ):
                 normal, method, origin = vt[2], "fiducials", f.mean(0)
             else:
                 log.warning(

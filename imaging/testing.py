@@ -11,7 +11,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["TestPhantom", "dome_surface", "make_test_phantom", "sphere_surface"]
+__all__ = [
+    "TestPhantom",
+    "dome_in_thick_slices",
+    "dome_surface",
+    "make_test_phantom",
+    "sphere_surface",
+]
 
 
 def sphere_surface(
@@ -108,3 +114,53 @@ def make_test_phantom(
         nipple_mm=np.array([0.0, 0.0, a[2]]),
         semi_axes_mm=tuple(a),
     )
+
+
+def dome_in_thick_slices(
+    semi_axes_mm: tuple[float, float, float] = (60.0, 40.0, 70.0),
+    *,
+    slice_mm: int = 5,
+    tilt_deg: float = 4.0,
+    noise: float = 0.02,
+    seed: int = 0,
+):
+    """A half-ellipsoid on a plate tilted ``tilt_deg`` about x, scanned in thick slices.
+
+    Voxelised on a 1 mm grid, averaged over ``slice_mm`` along z (partial volume) and
+    smoothed; its surface (:func:`imaging.surface.extract_surface`) has a terraced back
+    face. Seeded Gaussian noise of ``noise`` (body = 1).
+
+    Returns
+    -------
+    vertices : (n, 3) ndarray
+        Surface vertices, mm (the plate through the origin).
+    faces : (m, 3) ndarray
+    affine_lps_from_index : (4, 4) ndarray
+        The volume's.
+    plate_normal : (3,) ndarray
+        The plate's true normal, into the body.
+    fiducials_mm : (3, 3) ndarray
+        Three points on the plate beside the footprint (the markers' centres).
+    """
+    from scipy import ndimage
+
+    from imaging.surface import extract_surface
+    from imaging.volume import Volume, affine_from_geometry
+
+    a, b, c = semi_axes_mm
+    pad, k, t = 12.0, int(slice_mm), np.radians(tilt_deg)
+    xs, ys = np.arange(-a - pad, a + pad), np.arange(-b - pad - 10, b + pad + 10)
+    zs = np.arange(-pad - 10, c + pad)
+    zs = zs[: (len(zs) // k) * k]
+    X, Y, Z = np.meshgrid(xs, ys, zs, indexing="ij")
+    Yr, Zr = np.cos(t) * Y + np.sin(t) * Z, -np.sin(t) * Y + np.cos(t) * Z
+    inside = ((X / a) ** 2 + (Yr / b) ** 2 + (Zr / c) ** 2 <= 1) & (Zr >= 0)
+    img = inside.astype(np.float32).reshape(len(xs), len(ys), -1, k).mean(-1)
+    img += np.random.default_rng(seed).normal(0, noise, img.shape).astype(np.float32)
+    smooth = ndimage.gaussian_filter(img, (0.5, 0.5, 0.5 / k))
+    origin = np.array([xs[0], ys[0], zs[0] + (k - 1) / 2])
+    A = affine_from_geometry(origin, np.array([1.0, 1.0, float(k)]), np.eye(3))
+    s = extract_surface(Volume(smooth, A), mask=Volume(ndimage.binary_opening(smooth > 0.5), A))
+    R = np.array([[1, 0, 0], [0, np.cos(t), -np.sin(t)], [0, np.sin(t), np.cos(t)]])
+    fid = np.array([[a + 8, 0, -2.5], [-a - 5, 10, -2.5], [0, -b - 8, -2.5]]) @ R.T
+    return s.vertices_lps_mm, s.faces, A, R @ np.array([0.0, 0.0, 1.0]), fid

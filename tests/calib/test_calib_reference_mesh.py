@@ -281,36 +281,18 @@ def test_the_calibration_warns_of_its_mesh_as_asked_for_or_not(monkeypatch):
     assert told == [(12.0, False), (14.0, False), (12.0, True), (8.0, True)]
 
 
-def _terraced_reference(slice_mm: float, tilt_deg: float):
-    """A half-ellipsoid on a plate tilted ``tilt_deg`` about x, in ``slice_mm`` slices.
+def _terraced_reference(slice_mm: int, tilt_deg: float):
+    """A half-ellipsoid on a tilted plate in thick slices, as ingest would measure it.
 
-    Voxelised on a 1 mm grid and averaged over ``slice_mm`` along z (partial volume), so
-    a tilted base is extracted as terraces (review U's scenario; its true base 7540 mm^2).
+    :func:`imaging.testing.dome_in_thick_slices` (review U's scenario; its true base
+    7540 mm^2), its back plane, flags, nipple and voxel depth.
     """
-    from scipy import ndimage
-
     from calib.data.measurements import ScanMeasurement
     from imaging.landmarks import estimate_back_plane, find_nipple
-    from imaging.surface import extract_surface, mark_back_plate
-    from imaging.volume import Volume, affine_from_geometry
+    from imaging.surface import mark_back_plate
+    from imaging.testing import dome_in_thick_slices
 
-    a, b, c, pad, k = 60.0, 40.0, 70.0, 12.0, int(slice_mm)
-    t = np.radians(tilt_deg)
-    xs, ys = np.arange(-a - pad, a + pad), np.arange(-b - pad - 10, b + pad + 10)
-    zs = np.arange(-pad - 10, c + pad)
-    zs = zs[: (len(zs) // k) * k]
-    X, Y, Z = np.meshgrid(xs, ys, zs, indexing="ij")
-    Yr, Zr = np.cos(t) * Y + np.sin(t) * Z, -np.sin(t) * Y + np.cos(t) * Z
-    inside = ((X / a) ** 2 + (Yr / b) ** 2 + (Zr / c) ** 2 <= 1) & (Zr >= 0)
-    img = inside.astype(np.float32).reshape(len(xs), len(ys), -1, k).mean(-1)
-    img += np.random.default_rng(0).normal(0, 0.02, img.shape).astype(np.float32)
-    smooth = ndimage.gaussian_filter(img, (0.5, 0.5, 0.5 / slice_mm))
-    origin = np.array([xs[0], ys[0], zs[0] + (k - 1) / 2])
-    A = affine_from_geometry(origin, np.array([1.0, 1.0, slice_mm]), np.eye(3))
-    s = extract_surface(Volume(smooth, A), mask=Volume(ndimage.binary_opening(smooth > 0.5), A))
-    v, f = s.vertices_lps_mm, s.faces
-    R = np.array([[1, 0, 0], [0, np.cos(t), -np.sin(t)], [0, np.sin(t), np.cos(t)]])
-    fid = np.array([[a + 8, 0, -2.5], [-a - 5, 10, -2.5], [0, -b - 8, -2.5]]) @ R.T
+    v, f, A, _, fid = dome_in_thick_slices(slice_mm=slice_mm, tilt_deg=tilt_deg)
     plane = estimate_back_plane(v, fiducials_lps_mm=fid)
     flags = mark_back_plate(v, plane_point_lps_mm=plane.point_lps_mm, plane_normal=plane.normal)
     depth = float(np.abs(A[:3, :3].T @ plane.normal).sum())  # as ingest records it
@@ -329,7 +311,7 @@ def test_a_base_terraced_by_thick_slices_along_a_tilted_plate_is_clamped_whole(c
     # sets the tolerance: 96 % (0.9: the flat-plate case of the same body clamps 97 %)
     from calib.model.reference import back_tolerance_mm, support_mm2
 
-    ref = _terraced_reference(5.0, 4.0)
+    ref = _terraced_reference(5, 4.0)
     tol = back_tolerance_mm(ref, 1.0, 12.0)
     assert 1.5 < tol <= 2.4, tol  # the terraces' 2 mm, at most size/5
     with caplog.at_level("WARNING", logger="calib.model.reference"):
