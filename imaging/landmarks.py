@@ -67,13 +67,13 @@ FACE_RISE_MM = 0.75
 #: ... and while that largest plane holds at least this share of the surface's vertices
 #: (the quick twin's back face: 16-21 %); a smaller one may not be the face.
 FACE_MIN_SHARE = 0.05
-#: ... or while the fiducials' plane, moved onto the face, holds at least this share of
-#: the vertices the face's own plane holds in its band: a face that rises over it by its
-#: own roughness (terraces of thick slices along a tilted plate: its plane 0.44-0.52
-#: degrees off, review U) or a plane RANSAC found on a face thinned by decimation (0.4-0.7
-#: degrees off on one seed in ten) fits the vertices no better than the markers' plane;
-#: markers tilted 2 degrees hold a strip of an 80 mm face.
-FIDUCIALS_BAND_SHARE = 0.8
+#: ... or while the fiducials' plane, moved onto the face, holds this share of the
+#: vertices the face's own plane holds in its band: a plane RANSAC found on a face thinned
+#: by decimation (0.4-0.7 degrees off on one seed in ten, review U) fits the face no better
+#: than the markers' plane. Markers tilted off a flat 80 mm face: 1.0 at 0.6 degrees (the
+#: band holds the 0.8 mm rise), 0.90 at 0.8, 0.72 at 1.0, 0.38 at 2 degrees: kept up to
+#: about 0.8 degrees (a 1.1 mm rise, within the back-plate flag's 1.5 mm).
+FIDUCIALS_BAND_SHARE = 0.9
 #: Half-thickness of the largest plane's band (mm): RANSAC's inlier distance, and the band
 #: its least-squares refinement re-selects.
 PLANE_BAND_MM = 0.5
@@ -173,6 +173,7 @@ def estimate_back_plane(
     fiducials_lps_mm: np.ndarray | None = None,
     seed: int = 0,
     face_tol_mm: float = 1.0,
+    voxel_mm: np.ndarray | None = None,
 ) -> BackPlane:
     """Estimate the back-plate plane of a body surface.
 
@@ -182,8 +183,11 @@ def estimate_back_plane(
     :data:`FACE_MIN_SHARE` of the vertices and the fiducials' plane lies more than
     :data:`FIDUCIALS_OFF_FACE_DEG` off it, or tilted enough that the face rises more than
     :data:`FACE_RISE_MM` over it (markers not on the plate), the face's plane is taken,
-    with a warning. The normal is oriented towards the body (the side of the flat back
-    face where the surface has one, else of the markers' plane) and the
+    with a warning; ``voxel_mm`` (3, 3), the scan's index-to-LPS matrix, raises that
+    rise's bar to half a voxel's extent across the face (thick slices), and the markers'
+    plane is kept where, moved onto the face, it holds :data:`FIDUCIALS_BAND_SHARE` times
+    the vertices of the face's band. The normal is oriented towards the body (the side
+    of the flat back face where the surface has one, else of the markers' plane) and the
     plane is moved onto the body's back face: the 1st percentile of the vertex heights,
     leaving out the vertices more than ``face_tol_mm`` below the densest 0.25 mm slab of
     heights near the bottom (the face; searched within 10 mm of the lowest vertex and,
@@ -203,10 +207,17 @@ def estimate_back_plane(
         if s[1] > 1e-3 * max(s[0], 1e-9):
             off = float(np.degrees(np.arccos(min(1.0, abs(float(vt[2] @ face_normal))))))
             rise = width * np.tan(np.radians(off))
+            # the face's height is resolved to half a voxel across it: thick slices along
+            # a tilted plate terrace the face, whose plane (0.44-0.52 degrees off on 5 mm
+            # slices, review U) then rose 0.8-1.0 mm over exact markers
+            bar = FACE_RISE_MM
+            if voxel_mm is not None:
+                depth = float(np.abs(np.asarray(voxel_mm, float).T @ face_normal).sum())
+                bar = max(bar, 0.5 * depth)
             if share < FACE_MIN_SHARE or (
                 off <= FIDUCIALS_OFF_FACE_DEG
                 and (
-                    rise <= FACE_RISE_MM
+                    rise <= bar
                     or _band_share(v, vt[2], face_normal, face_origin)
                     >= FIDUCIALS_BAND_SHARE * share
                 )

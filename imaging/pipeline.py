@@ -195,7 +195,10 @@ def process_scan(
     )
     times["time_surface_s"] = time.perf_counter() - t0
     plane = estimate_back_plane(
-        surf.vertices_lps_mm, fiducials_lps_mm=fid.centres_lps_mm, seed=seed
+        surf.vertices_lps_mm,
+        fiducials_lps_mm=fid.centres_lps_mm,
+        seed=seed,
+        voxel_mm=volume.affine_lps_from_index[:3, :3],
     )
     # a voxel's extent across the plate: the resolution of the back face's height
     depth = float(np.abs(volume.affine_lps_from_index[:3, :3].T @ plane.normal).sum())
