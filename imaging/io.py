@@ -33,16 +33,9 @@ _MM_UNITS = {"", "mm", "millimeter", "millimeters", "millimetre", "millimetres"}
 #: (``scanner-xyz``, ``3D-right-handed``, ...) are read as LPS, with a warning.
 _ANATOMICAL_SPACES = {
     f"{name}{time}"
-    for name in (
-        "right-anterior-superior",
-        "left-anterior-superior",
-        "left-posterior-superior",
-        "ras",
-        "las",
-        "lps",
-    )
+    for name in ("right-anterior-superior", "left-anterior-superior", "left-posterior-superior")
     for time in ("", "-time")
-}
+} | {"ras", "las", "lps", "rast", "last", "lpst"}
 
 
 def _suffix(path: Path) -> str:

@@ -9,7 +9,14 @@ import numpy as np
 
 from imaging.errors import SegmentationError
 
-__all__ = ["BackPlane", "Nipple", "estimate_back_plane", "find_nipple", "select_tumour"]
+__all__ = [
+    "BackPlane",
+    "Nipple",
+    "estimate_back_plane",
+    "find_nipple",
+    "select_tumour",
+    "voxel_depth_mm",
+]
 
 log = logging.getLogger(__name__)
 
@@ -24,8 +31,8 @@ class BackPlane:
     that bulges past the plate's edge), left out of the face's height;
     ``fiducials_off_face_deg``: with fiducials, the angle between their plane and the
     surface's largest plane (the flat back face), or None where none was checked;
-    ``voxel_depth_mm``: a voxel's extent along the normal (the scan's resolution across
-    the plate; None where the volume is not known).
+    ``voxel_depth_mm``: the scan's slice thickness across the plate
+    (:func:`voxel_depth_mm`; None where the volume is not known).
     """
 
     point_lps_mm: np.ndarray
@@ -74,6 +81,10 @@ FACE_MIN_SHARE = 0.05
 #: band holds the 0.8 mm rise), 0.90 at 0.8, 0.72 at 1.0, 0.38 at 2 degrees: kept up to
 #: about 0.8 degrees (a 1.1 mm rise, within the back-plate flag's 1.5 mm).
 FIDUCIALS_BAND_SHARE = 0.9
+#: Markers' plane with at most this share of the vertices on its far side lies at one end
+#: of the body (on the plate) and says which side the body is on; otherwise the flat back
+#: face does (markers on posts within the body's height).
+MARKERS_AT_END = 0.05
 #: Half-thickness of the largest plane's band (mm): RANSAC's inlier distance, and the band
 #: its least-squares refinement re-selects.
 PLANE_BAND_MM = 0.5
@@ -133,6 +144,18 @@ def _largest_plane(v: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray, fl
     r = np.linalg.norm(p - p.mean(axis=0), axis=1)
     width = 2.0 * float(np.percentile(r, 95.0))
     return normal, origin, float(inside.mean()), width
+
+
+def voxel_depth_mm(voxel_mm: np.ndarray, normal: np.ndarray) -> float:
+    """A scan's slice thickness across a plane: the longest voxel edge along its normal.
+
+    ``voxel_mm`` (3, 3): the index-to-LPS matrix (columns: one voxel step along i, j, k,
+    mm). ``max_i |a_i . n|``: 5 mm slices along the normal give about 5 mm; isotropic
+    1.5 mm voxels at most 1.5 mm at any tilt (the box's projected diagonal, the sum, would
+    give 2.4-2.5 mm on the twin's tilted scans, review V).
+    """
+    a = np.asarray(voxel_mm, float)
+    return float(np.abs(a.T @ np.asarray(normal, float)).max())
 
 
 def _band_share(v: np.ndarray, normal, face_normal, face_origin) -> float:
@@ -212,8 +235,7 @@ def estimate_back_plane(
             # slices, review U) then rose 0.8-1.0 mm over exact markers
             bar = FACE_RISE_MM
             if voxel_mm is not None:
-                depth = float(np.abs(np.asarray(voxel_mm, float).T @ face_normal).sum())
-                bar = max(bar, 0.5 * depth)
+                bar = max(bar, 0.5 * voxel_depth_mm(voxel_mm, face_normal))
             if share < FACE_MIN_SHARE or (
                 off <= FIDUCIALS_OFF_FACE_DEG
                 and (
@@ -237,10 +259,15 @@ def estimate_back_plane(
     normal = normal / np.linalg.norm(normal)
     h = (v - origin) @ normal
     parallel = abs(float(face_normal @ normal)) >= np.cos(np.radians(FIDUCIALS_OFF_FACE_DEG))
-    # the body lies on the positive side of the plate: of the flat back face where there
-    # is one (markers on posts above the body's mean height turned the normal away from
-    # the body, the plane onto its apex: review U), else of the markers' plane
-    side = (v - face_origin) @ normal if parallel and share >= FACE_MIN_SHARE else h
+    # the body lies on the positive side of the plate. Markers at one end of the body (on
+    # the plate) say which side; markers within its extent (on posts above the body's mean
+    # height turned the normal away from it, the plane onto its apex: review U) leave it to
+    # the flat back face where there is one (not always: a body wider at its top has a
+    # larger top face, review V)
+    above = float(np.mean(h > 0.0))
+    at_end = min(above, 1.0 - above) <= MARKERS_AT_END
+    face_side = parallel and share >= FACE_MIN_SHARE
+    side = h if at_end or not face_side else (v - face_origin) @ normal
     if side.mean() < 0:
         normal, h = -normal, -h
     plane_h = None

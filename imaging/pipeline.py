@@ -9,7 +9,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from imaging.detect import InclusionDetection, detect_fiducials, detect_inclusions
-from imaging.landmarks import BackPlane, estimate_back_plane, find_nipple, select_tumour
+from imaging.landmarks import (
+    BackPlane,
+    estimate_back_plane,
+    find_nipple,
+    select_tumour,
+    voxel_depth_mm,
+)
 from imaging.segment import segment_body
 from imaging.surface import SurfaceMesh, extract_surface, mark_back_plate
 from imaging.volume import Volume
@@ -200,8 +206,8 @@ def process_scan(
         seed=seed,
         voxel_mm=volume.affine_lps_from_index[:3, :3],
     )
-    # a voxel's extent across the plate: the resolution of the back face's height
-    depth = float(np.abs(volume.affine_lps_from_index[:3, :3].T @ plane.normal).sum())
+    # the slice thickness across the plate: the resolution of the back face's height
+    depth = voxel_depth_mm(volume.affine_lps_from_index[:3, :3], plane.normal)
     plane = replace(plane, voxel_depth_mm=depth)
     flags = mark_back_plate(
         surf.vertices_lps_mm,

@@ -65,13 +65,14 @@ def robust_sd(values: np.ndarray) -> float:
 BIAS_SLICES_BEYOND_DEGREE = 2
 
 
-#: How far the bias fit's voxels lie inside the body: 2 voxels, but at most this (mm)
-#: and at least 1 voxel along an axis of coarser voxels (5 mm slices: 1 slice, not 10 mm).
+#: How far the bias fit's voxels lie inside the body: 2 voxels along an axis whose voxels
+#: are at most 2 mm (this over 2 rounds to 2 voxels or more there), 1 along a coarser one
+#: (5 mm slices: 1 slice, not 10 mm).
 BIAS_EROSION_MM = 3.0
-#: The bias field over the body may span at most this ratio (max over min); beyond it the
-#: fit is taken for a failure, not for the scanner's: the twin's renderer spans 1.5
-#: (+-0.2), and the fits review T saw swung by too few slices spanned 6.6-9.8.
-BIAS_RANGE_MAX = 4.0
+#: The bias field over the body (max over min): beyond BIAS_RANGE_WARN a warning, beyond
+#: BIAS_RANGE_MAX the fit is taken for a failure, not for the scanner's. The twin's renderer
+#: spans 1.5 (+-0.2); the fits review T saw swung by too few slices spanned 6.6-9.8.
+BIAS_RANGE_WARN, BIAS_RANGE_MAX = 4.0, 8.0
 
 
 def _eroded(mask: np.ndarray, spacing_mm: np.ndarray) -> np.ndarray:
@@ -330,6 +331,15 @@ def segment_body(
         field_ = fit_bias_field(g, inner, degree=bias_degree, seed=seed)
         inside = field_[coarse[crop]]
         spread = float(inside.max() / inside.min()) if inside.min() > 0 else float("inf")
+        if np.isfinite(spread) and BIAS_RANGE_WARN < spread <= BIAS_RANGE_MAX:
+            log.warning(
+                "%s: the intensity-bias field fitted inside the body spans a ratio of %.3g "
+                "(a strong coil bias, or a fit on few slices: %s of the interior along the "
+                "volume's axes); check the segmentation (ingest.json quality.seg_bias_*)",
+                src,
+                spread,
+                _slices_text(inner),
+            )
         if not np.isfinite(spread) or spread > BIAS_RANGE_MAX:
             raise SegmentationError(
                 f"{src}: the intensity-bias field fitted inside the body spans a ratio of "

@@ -39,7 +39,7 @@ class ScanMeasurement:
         Vertices where the field of view cuts the body (``surface_ref.ply``'s
         ``fov_edge``; None: it cuts nothing).
     back_voxel_depth_mm : float or None
-        A voxel's extent along the back plane's normal (``ingest.json``
+        The slice thickness across the back plane (``ingest.json``
         ``back_plane.voxel_depth_mm``; None where not recorded).
     """
 

@@ -223,11 +223,18 @@ class Calibrator:
                 ratios.append(d_sim / d_meas)
         est = self.options.c1_guess_pa * (float(np.median(ratios)) if ratios else 1.0)
         if not 20.0 <= est <= 1e5:
+            listed = ", ".join(f"{r:.3g}" for r in ratios)
+            why = (
+                f"the guess {self.options.c1_guess_pa:.3g} Pa times the median of the "
+                f"nipple's simulated over measured displacements ({listed})"
+                if ratios
+                else f"the guess (--c1-guess {self.options.c1_guess_pa:.3g})"
+            )
             log.warning(
-                "the first estimate c1 = %.3g Pa lies outside 20 Pa-100 kPa: clipped to that "
-                "range (the nipple's simulated over measured displacement, %s, is implausible)",
+                "the first estimate c1 = %.3g Pa (%s) lies outside 20 Pa-100 kPa: clipped to "
+                "that range",
                 est,
-                ", ".join(f"{r:.3g}" for r in ratios) or "none",
+                why,
             )
         est = float(np.clip(est, 20.0, 1e5))
         self.first_estimate_from_guess = not ratios

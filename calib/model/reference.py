@@ -116,7 +116,7 @@ def reference_mesh(
     v, on = _onto_plane(v, (p0, n, back_tol_mm))
     if on < 3:
         raise fem.MeshError(
-            f"reference scan {ref.name!r}: no surface vertices within {back_tol_mm} mm of the "
+            f"reference scan {ref.name!r}: no surface vertices within {back_tol_mm:.2g} mm of the "
             "back plane; check the fiducials and the back-plate segmentation"
         )
     vol = size_mm**3 / (6.0 * np.sqrt(2.0))
@@ -161,7 +161,7 @@ def back_tolerance_mm(ref, back_tol_mm: float, size_mm: float) -> float:
     :data:`FACE_MEDIAN_FACTOR` times the median height above the plane of the vertices
     of faces that face the plate (outward normal within :data:`FACE_NORMAL_DEG` of the
     plane's; a flared wall faces away from it) and lie at most ``cap`` above it; the
-    result at most ``cap``: half a voxel's extent along the normal (what the scan cannot
+    result at most ``cap``: half the slice thickness across the plate (what the scan cannot
     resolve of the face's height; ``ref.back_voxel_depth_mm``) and at most ``size_mm /
     5`` (the remeshed fallback's tolerance). Thick slices along a tilted plate terrace the
     face: 5 mm slices, the plate 4 degrees off them, spread it over 2 mm, and within 1 mm

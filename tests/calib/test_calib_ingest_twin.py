@@ -65,6 +65,17 @@ def test_every_scan_reads_back(twin):
         assert (work / "scans" / name / "surface_ref.ply").stat().st_size > 0
     assert _reference(truth) == twin["result"].session.reference.name
     assert not list(work.rglob(".*"))  # no temporary files left behind
+    # the slice thickness across the plate reaches the model (its back face's tolerance):
+    # the quick twin's 1.5 mm voxels: the longest voxel edge along the plate's normal lies
+    # between 1.5 / sqrt(3) (a normal along the voxel's diagonal) and 1.5
+    from calib.data.measurements import load_measurements
+    from calib.data.session import load_session
+
+    meas = load_measurements(work, load_session(twin["out"] / "scans"))
+    for name, doc in twin["ingest"].items():
+        depth = doc["back_plane"]["voxel_depth_mm"]
+        assert 1.5 / np.sqrt(3.0) <= depth <= 1.5 + 1e-9, (name, depth)
+        assert meas.scans[name].back_voxel_depth_mm == depth
 
 
 def test_fiducials(twin):

@@ -288,14 +288,14 @@ def _terraced_reference(slice_mm: int, tilt_deg: float):
     7540 mm^2), its back plane, flags, nipple and voxel depth.
     """
     from calib.data.measurements import ScanMeasurement
-    from imaging.landmarks import estimate_back_plane, find_nipple
+    from imaging.landmarks import estimate_back_plane, find_nipple, voxel_depth_mm
     from imaging.surface import mark_back_plate
     from imaging.testing import dome_in_thick_slices
 
     v, f, A, _, fid = dome_in_thick_slices(slice_mm=slice_mm, tilt_deg=tilt_deg)
     plane = estimate_back_plane(v, fiducials_lps_mm=fid)
     flags = mark_back_plate(v, plane_point_lps_mm=plane.point_lps_mm, plane_normal=plane.normal)
-    depth = float(np.abs(A[:3, :3].T @ plane.normal).sum())  # as ingest records it
+    depth = voxel_depth_mm(A[:3, :3], plane.normal)  # as ingest records it
     return ScanMeasurement(
         "reference", "reference", np.array([1.0, 0, 0]), v, f, flags,
         find_nipple(v, plane).position_lps_mm, None, plane.point_lps_mm, -plane.normal,
