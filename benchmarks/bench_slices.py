@@ -57,8 +57,9 @@ def run_one(out: Path, spacing, seed: int, size_mm: float) -> dict:
     lo, hi = doc["c1_ci95_pa"]
     support = doc["mesh"]["support"]
     planes = []
-    for scan in sorted((folder / "work" / "scans").iterdir()):
-        plane = json.loads((scan / "ingest.json").read_text())["back_plane"]
+    for record in sorted((folder / "work" / "scans").glob("*/ingest.json")):
+        scan = record.parent
+        plane = json.loads(record.read_text())["back_plane"]
         planes.append(f"{scan.name} {plane['method']} {plane['voxel_depth_mm']:.1f}")
     return {
         "spacing": name,
