@@ -81,10 +81,6 @@ FACE_MIN_SHARE = 0.05
 #: band holds the 0.8 mm rise), 0.90 at 0.8, 0.72 at 1.0, 0.38 at 2 degrees: kept up to
 #: about 0.8 degrees (a 1.1 mm rise, within the back-plate flag's 1.5 mm).
 FIDUCIALS_BAND_SHARE = 0.9
-#: Markers' plane with at most this share of the vertices on its far side lies at one end
-#: of the body (on the plate) and says which side the body is on; otherwise the flat back
-#: face does (markers on posts within the body's height).
-MARKERS_AT_END = 0.05
 #: Half-thickness of the largest plane's band (mm): RANSAC's inlier distance, and the band
 #: its least-squares refinement re-selects.
 PLANE_BAND_MM = 0.5
@@ -210,7 +206,8 @@ def estimate_back_plane(
     rise's bar to half a voxel's extent across the face (thick slices), and the markers'
     plane is kept where, moved onto the face, it holds :data:`FIDUCIALS_BAND_SHARE` times
     the vertices of the face's band. The normal is oriented towards the body (the side
-    of the flat back face where the surface has one, else of the markers' plane) and the
+    whose low end is a flat face, where only one end is; else the side holding most
+    vertices, seen from the markers' plane) and the
     plane is moved onto the body's back face: the 1st percentile of the vertex heights,
     leaving out the vertices more than ``face_tol_mm`` below the densest 0.25 mm slab of
     heights near the bottom (the face; searched within 10 mm of the lowest vertex and,
@@ -259,16 +256,13 @@ def estimate_back_plane(
     normal = normal / np.linalg.norm(normal)
     h = (v - origin) @ normal
     parallel = abs(float(face_normal @ normal)) >= np.cos(np.radians(FIDUCIALS_OFF_FACE_DEG))
-    # the body lies on the positive side of the plate. Markers at one end of the body (on
-    # the plate) say which side; markers within its extent (on posts above the body's mean
-    # height turned the normal away from it, the plane onto its apex: review U) leave it to
-    # the flat back face where there is one (not always: a body wider at its top has a
-    # larger top face, review V)
-    above = float(np.mean(h > 0.0))
-    at_end = min(above, 1.0 - above) <= MARKERS_AT_END
-    face_side = parallel and share >= FACE_MIN_SHARE
-    side = h if at_end or not face_side else (v - face_origin) @ normal
-    if side.mean() < 0:
+    # the body lies on the positive side of the plate: the side whose low end is a flat
+    # face (the back face), where only one end is; else the side of most vertices seen from
+    # the markers' plane (markers on posts above the body's mean height turned that away
+    # from the body, the plane onto its apex: review U; a body wider at its top has the
+    # larger flat face there, review V: its base is flat too, and the markers decide)
+    flat = [_face_height(s * h) is not None for s in (1.0, -1.0)]
+    if (not flat[0] and flat[1]) or (flat[0] == flat[1] and h.mean() < 0):
         normal, h = -normal, -h
     plane_h = None
     if parallel and share >= FACE_MIN_SHARE:  # the largest plane's height under the body

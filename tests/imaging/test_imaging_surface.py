@@ -375,18 +375,19 @@ def test_markers_above_the_body_s_mean_height_leave_the_plate_under_the_body():
         np.testing.assert_allclose(bp.normal, [0.0, 0.0, 1.0], atol=1e-9)
         assert abs(bp.point_lps_mm[2]) < 1e-6, bp.point_lps_mm  # the dome's base, z = 0
     # review V: a body wider at its top (a frustum, radius 40 mm on the plate, 45 mm at
-    # z = 30 mm) has a larger top face; markers on the plate, at one end of the body, say
-    # the side (the face alone put the plane on the top)
+    # z = 30 mm) has a larger top face; both ends are flat, and the markers on the plate
+    # say the side (the largest face alone put the plane on the top)
     import trimesh
 
     m = trimesh.creation.cylinder(radius=1.0, height=1.0, sections=128).subdivide_to_size(0.02)
     w = np.asarray(m.vertices)
     z = w[:, 2] + 0.5
     w = np.c_[w[:, :2] * (40.0 + 5.0 * z)[:, None], 30.0 * z]
-    fid = np.array([[55.0, 0.0, -2.5], [-55.0, 10.0, -2.5], [0.0, -55.0, -2.5]])
-    bp = estimate_back_plane(w, fiducials_lps_mm=fid)
-    np.testing.assert_allclose(bp.normal, [0.0, 0.0, 1.0], atol=1e-9)
-    assert abs(bp.point_lps_mm[2]) < 1e-6, bp.point_lps_mm
+    for z in (-2.5, 2.5, 6.0):  # behind the plate, resting on it (radius 2.5 or 6 mm)
+        fid = np.array([[55.0, 0.0, z], [-55.0, 10.0, z], [0.0, -55.0, z]])
+        bp = estimate_back_plane(w, fiducials_lps_mm=fid)
+        np.testing.assert_allclose(bp.normal, [0.0, 0.0, 1.0], atol=1e-9)
+        assert abs(bp.point_lps_mm[2]) < 1e-6, (z, bp.point_lps_mm)
 
 
 @pytest.mark.parametrize("tilt_deg", [4.0, 10.0])
