@@ -297,10 +297,19 @@ def _terraced_reference(slice_mm: int, tilt_deg: float):
     flags = mark_back_plate(v, plane_point_lps_mm=plane.point_lps_mm, plane_normal=plane.normal)
     depth = voxel_depth_mm(A[:3, :3], plane.normal)  # as ingest records it
     return ScanMeasurement(
-        "reference", "reference", np.array([1.0, 0, 0]), v, f, flags,
-        find_nipple(v, plane).position_lps_mm, None, plane.point_lps_mm, -plane.normal,
-        np.eye(4), back_voxel_depth_mm=depth,
-    )  # fmt: skip
+        name="reference",
+        role="reference",
+        gravity_ref=np.array([1.0, 0.0, 0.0]),
+        vertices_mm=v,
+        faces=f,
+        back_plate=flags,
+        nipple_mm=find_nipple(v, plane).position_lps_mm,
+        tumour_mm=None,
+        back_point_mm=plane.point_lps_mm,
+        back_normal=-plane.normal,
+        T_ref_from_scan=np.eye(4),
+        back_voxel_depth_mm=depth,
+    )
 
 
 def test_a_base_terraced_by_thick_slices_along_a_tilted_plate_is_clamped_whole(caplog):
