@@ -203,9 +203,10 @@ def estimate_back_plane(
     :data:`FIDUCIALS_OFF_FACE_DEG` off it, or tilted enough that the face rises more than
     :data:`FACE_RISE_MM` over it (markers not on the plate), the face's plane is taken,
     with a warning; ``voxel_mm`` (3, 3), the scan's index-to-LPS matrix, raises that
-    rise's bar to half a voxel's extent across the face (thick slices), and the markers'
-    plane is kept where, moved onto the face, it holds :data:`FIDUCIALS_BAND_SHARE` times
-    the vertices of the face's band. The normal is oriented towards the body (the side
+    rise's bar to half the slice thickness across the face (:func:`voxel_depth_mm`: thick
+    slices) and gives the plane's ``voxel_depth_mm``, and the markers' plane is kept where,
+    moved onto the face, it holds :data:`FIDUCIALS_BAND_SHARE` times the vertices of the
+    face's band. The normal is oriented towards the body (the side
     whose low end is a flat face, where only one end is; else the side holding most
     vertices, seen from the markers' plane) and the
     plane is moved onto the body's back face: the 1st percentile of the vertex heights,
@@ -278,7 +279,8 @@ def estimate_back_plane(
             face - float(h.min()),
         )
     base = float(np.percentile(h[~beyond], 1.0))
-    return BackPlane(origin + base * normal, normal, method, int(beyond.sum()), off)
+    depth = None if voxel_mm is None else voxel_depth_mm(voxel_mm, normal)
+    return BackPlane(origin + base * normal, normal, method, int(beyond.sum()), off, depth)
 
 
 def _plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

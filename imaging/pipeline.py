@@ -4,18 +4,12 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from imaging.detect import InclusionDetection, detect_fiducials, detect_inclusions
-from imaging.landmarks import (
-    BackPlane,
-    estimate_back_plane,
-    find_nipple,
-    select_tumour,
-    voxel_depth_mm,
-)
+from imaging.landmarks import BackPlane, estimate_back_plane, find_nipple, select_tumour
 from imaging.segment import segment_body
 from imaging.surface import SurfaceMesh, extract_surface, mark_back_plate
 from imaging.volume import Volume
@@ -206,9 +200,6 @@ def process_scan(
         seed=seed,
         voxel_mm=volume.affine_lps_from_index[:3, :3],
     )
-    # the slice thickness across the plate: the resolution of the back face's height
-    depth = voxel_depth_mm(volume.affine_lps_from_index[:3, :3], plane.normal)
-    plane = replace(plane, voxel_depth_mm=depth)
     flags = mark_back_plate(
         surf.vertices_lps_mm,
         plane_point_lps_mm=plane.point_lps_mm,

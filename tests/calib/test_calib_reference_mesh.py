@@ -288,14 +288,13 @@ def _terraced_reference(slice_mm: int, tilt_deg: float):
     7540 mm^2), its back plane, flags, nipple and voxel depth.
     """
     from calib.data.measurements import ScanMeasurement
-    from imaging.landmarks import estimate_back_plane, find_nipple, voxel_depth_mm
+    from imaging.landmarks import estimate_back_plane, find_nipple
     from imaging.surface import mark_back_plate
     from imaging.testing import dome_in_thick_slices
 
     v, f, A, _, fid = dome_in_thick_slices(slice_mm=slice_mm, tilt_deg=tilt_deg)
-    plane = estimate_back_plane(v, fiducials_lps_mm=fid)
+    plane = estimate_back_plane(v, fiducials_lps_mm=fid, voxel_mm=A[:3, :3])  # as ingest
     flags = mark_back_plate(v, plane_point_lps_mm=plane.point_lps_mm, plane_normal=plane.normal)
-    depth = voxel_depth_mm(A[:3, :3], plane.normal)  # as ingest records it
     return ScanMeasurement(
         name="reference",
         role="reference",
@@ -308,7 +307,7 @@ def _terraced_reference(slice_mm: int, tilt_deg: float):
         back_point_mm=plane.point_lps_mm,
         back_normal=-plane.normal,
         T_ref_from_scan=np.eye(4),
-        back_voxel_depth_mm=depth,
+        back_voxel_depth_mm=plane.voxel_depth_mm,
     )
 
 
