@@ -32,11 +32,15 @@ from calib.workflows.calibrate import run_calibration
 
 
 def _spacings(text: str) -> list[tuple[float, float, float]]:
+    """``"a,b,c;d,e,f"`` as voxel sizes (mm); argparse says a bad one (exit 2)."""
     out = []
     for item in text.split(";"):
-        values = tuple(float(x) for x in item.split(","))
+        try:
+            values = tuple(float(x) for x in item.split(","))
+        except ValueError:
+            values = ()
         if len(values) != 3 or min(values) <= 0:
-            raise SystemExit(f"--spacings: {item!r} is not three positive mm values")
+            raise argparse.ArgumentTypeError(f"{item!r} is not three positive mm values")
         out.append(values)
     return out
 
@@ -78,11 +82,11 @@ def run_one(out: Path, spacing, seed: int, size_mm: float) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True, help="folder for the twins and works")
-    ap.add_argument("--spacings", default="1.5,1.5,1.5;1.5,1.5,4;4,1.5,1.5")
+    ap.add_argument("--spacings", type=_spacings, default="1.5,1.5,1.5;1.5,1.5,4;4,1.5,1.5")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--mesh-size", type=float, default=14.0)
     args = ap.parse_args()
-    rows = [run_one(args.out, sp, args.seed, args.mesh_size) for sp in _spacings(args.spacings)]
+    rows = [run_one(args.out, sp, args.seed, args.mesh_size) for sp in args.spacings]
     print(f"null twin, seed {args.seed}, truth c1 420 Pa, {args.mesh_size:g} mm model mesh")
     print("spacing mm     c1 Pa   95 % interval      error  holds  sd mm  support  tol mm")
     for r in rows:
