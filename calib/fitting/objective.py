@@ -20,7 +20,7 @@ from fem.probe import MaterialPoint
 
 from ..data.measurements import Measurements, ScanMeasurement
 from ..model.forward import ForwardModel, ReferenceRecoveryFailed
-from ..model.reference import reference_mesh
+from ..model.reference import reference_mesh_with_support
 from ..model.residuals import Residuals, SimulatedSurface, scan_residuals
 from .options import CalibrationOptions
 
@@ -67,7 +67,7 @@ class Calibrator:
         if not self.calibration_scans:
             raise ValueError("the session has no scan with role 'calibration'")
         ref = self.measurements.reference
-        self.mesh = reference_mesh(
+        self.mesh, self.support = reference_mesh_with_support(
             ref, size_mm=o.mesh_size_mm, max_dihedral_deg=o.mesh_max_dihedral_deg
         )
         # a failed recovery is a failed evaluation, except that a mesh admitting no

@@ -19,7 +19,6 @@ from dataclasses import asdict, replace
 import numpy as np
 
 from ..data.measurements import Measurements
-from ..model.reference import BACK_TOL_MM, back_tolerance_mm, support_mm2
 from ..model.residuals import surface_area_mm2
 from .meshcheck import MeshCheck, combined_ci95, describe_mesh_check, mesh_check
 from .objective import Calibrator, EvaluationFailed
@@ -284,13 +283,6 @@ def fit(
     unc, check, ci95, profile, model_fit = _uncertainty(cal, theta, say)
     cal.fm.stress_free(theta)  # the calibrated c1's geometry again (the profile moved it)
     o = cal.options
-    ref = cal.measurements.reference
-    clamped, plate = support_mm2(ref, cal.mesh)
-    support = {
-        "back_tol_mm": back_tolerance_mm(ref, BACK_TOL_MM, o.mesh_size_mm),
-        "clamped_mm2": clamped,
-        "plate_mm2": plate,
-    }
     return Calibration(
         c1_pa=c1,
         c1_ci95_pa=None if ci95 is None else (float(ci95[0]), float(ci95[1])),
@@ -309,7 +301,7 @@ def fit(
             "size_mm": o.mesh_size_mm,
             "failed_sizes": failed_sizes,
             "formulation": o.formulation,
-            "support": support,
+            "support": cal.support.as_dict(),
         },
         reference_recovery={
             "method": "none (shortcut)"

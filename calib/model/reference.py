@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -20,7 +22,13 @@ from fem.meshing import (
 from ..data.measurements import ScanMeasurement
 from .residuals import surface_area_mm2
 
-__all__ = ["meshed_spheres", "model_mesh_notes", "reference_mesh"]
+__all__ = [
+    "MeshSupport",
+    "meshed_spheres",
+    "model_mesh_notes",
+    "reference_mesh",
+    "reference_mesh_with_support",
+]
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +53,52 @@ def _decimate(vertices: np.ndarray, faces: np.ndarray, size_mm: float):
 BACK_TOL_MM = 1.0
 
 
-def reference_mesh(
+@dataclass(frozen=True)
+class MeshSupport:
+    """How a model mesh's back face was put on the back plane and clamped.
+
+    Attributes
+    ----------
+    surface : {"decimated", "remeshed", "repaired"}
+        The surface TetGen meshed: the scan's decimated; the scan's remeshed on a
+        :data:`REMESH_GRID_MM` grid (the decimated rejected); or the decimated repaired or
+        remeshed coarsely by :func:`fem.meshing.tetrahedralize` (both rejected).
+    back_tol_mm : float
+        How far off the back plane the surface's vertices were put onto it (and so
+        clamped): :func:`back_tolerance_mm` on the decimated surface, at least ``size_mm
+        / 5`` on the others.
+    clamped_mm2, plate_mm2 : float, float or None
+        The clamped area and the scan's back-plate area (:func:`support_mm2`).
+    """
+
+    surface: Literal["decimated", "remeshed", "repaired"]
+    back_tol_mm: float
+    clamped_mm2: float
+    plate_mm2: float | None
+
+    def as_dict(self) -> dict:
+        """The record ``calibration.json`` keeps under ``mesh.support``."""
+        return {
+            "surface": self.surface,
+            "back_tol_mm": self.back_tol_mm,
+            "clamped_mm2": self.clamped_mm2,
+            "plate_mm2": self.plate_mm2,
+        }
+
+
+def reference_mesh(ref: ScanMeasurement, **options):
+    """Tetrahedral mesh of the reference scan's surface with node sets.
+
+    :func:`reference_mesh_with_support` without the support's record; the same options.
+
+    Returns
+    -------
+    TetMesh
+    """
+    return reference_mesh_with_support(ref, **options)[0]
+
+
+def reference_mesh_with_support(
     ref: ScanMeasurement,
     *,
     size_mm: float = 8.0,
@@ -54,7 +107,7 @@ def reference_mesh(
     spheres: Sequence[tuple[Sequence[float], float]] = (),
     sphere_size_mm: float | None = None,
 ):
-    """Tetrahedral mesh of the reference scan's surface with node sets.
+    """Tetrahedral mesh of the reference scan's surface with node sets, and its support.
 
     Boundary nodes within ``back_tol_mm`` of the measured back plane (or the back face's
     own roughness, :func:`back_tolerance_mm`) form the ``back`` set and are projected
@@ -87,9 +140,12 @@ def reference_mesh(
 
     Returns
     -------
-    TetMesh
+    mesh : TetMesh
         Nodes in the reference frame (mm); node sets ``back``, ``surface``, ``nipple`` (the
         surface node nearest the scan's measured nipple).
+    support : MeshSupport
+        Which surface was meshed, how far off the plane its vertices were clamped, and the
+        clamped and back-plate areas (a warning below :data:`SUPPORT_AREA_SHARE`).
 
     Raises
     ------
@@ -107,12 +163,18 @@ def reference_mesh(
             "it the reference"
         )
     back_tol_mm = back_tolerance_mm(ref, back_tol_mm, size_mm)
+    # a surface TetGen rejects is repaired or remeshed (fem.meshing.tetrahedralize); the
+    # remeshed one comes from marching cubes on a size/3 grid, which leaves the back up to
+    # half a grid step (size/6) off its plane: vertices that near it go back onto it, so
+    # the support keeps its faces
+    n, p0 = ref.back_normal, ref.back_point_mm
+    plane = (p0, n, max(back_tol_mm, size_mm / 5.0))
     if spheres:
         h = size_mm / 2.0 if sphere_size_mm is None else sphere_size_mm
-        mesh = _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, spheres, h)
-        return _support_checked(ref, mesh, back_tol_mm)
+        mesh, surface = _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, spheres, h)
+        tol = back_tol_mm if surface == "decimated" else plane[2]
+        return mesh, _support_checked(ref, mesh, surface, tol)
     v, f = _decimate(ref.vertices_mm, ref.faces, size_mm)
-    n, p0 = ref.back_normal, ref.back_point_mm
     v, on = _onto_plane(v, (p0, n, back_tol_mm))
     if on < 3:
         raise fem.MeshError(
@@ -120,25 +182,22 @@ def reference_mesh(
             "back plane; check the fiducials and the back-plate segmentation"
         )
     vol = size_mm**3 / (6.0 * np.sqrt(2.0))
-    # a surface TetGen rejects is repaired or remeshed (fem.meshing.tetrahedralize); the
-    # remeshed one comes from marching cubes on a size/3 grid, which leaves the back up to
-    # half a grid step (size/6) off its plane: vertices that near it go back onto it, so
-    # the support keeps its faces
-    plane = (p0, n, max(back_tol_mm, size_mm / 5.0))
     sizing = {"max_volume_mm3": vol, "size_mm": size_mm, "max_dihedral_deg": max_dihedral_deg}
     try:
-        mesh = tetrahedralize(v, f, repair=False, **sizing)
+        mesh, surface = tetrahedralize(v, f, repair=False, **sizing), "decimated"
     except fem.MeshError as exc:
         log.info("TetGen rejected the decimated reference surface (%s)", exc)
-        mesh = _remeshed(ref, plane, sizing)
+        mesh, surface = _remeshed(ref, plane, sizing), "remeshed"
     if mesh is None:  # repaired, or remeshed on the coarse grid (fem.meshing says which)
         mesh = tetrahedralize(v, f, keep_planes=[plane], **sizing)
+        surface = "repaired"
     mesh = _with_back(mesh, p0, n, size_mm, ref.nipple_mm)
     back = len(mesh.node_set("back"))
     log.info(
         "reference mesh: %d tets, %d nodes, %d on the back plane", mesh.n_tets, mesh.n_nodes, back
     )
-    return _support_checked(ref, mesh, back_tol_mm)
+    tol = back_tol_mm if surface == "decimated" else plane[2]
+    return mesh, _support_checked(ref, mesh, surface, tol)
 
 
 #: Scan faces whose normal lies within this angle of the back plane's (degrees) make up
@@ -214,8 +273,8 @@ def support_mm2(ref, mesh) -> tuple[float, float | None]:
     return clamped, plate
 
 
-def _support_checked(ref, mesh, back_tol_mm: float):
-    """``mesh``, with a warning where its clamped back covers little of the scan's plate.
+def _support_checked(ref, mesh, surface: str, back_tol_mm: float) -> MeshSupport:
+    """``mesh``'s support, with a warning where it clamps little of the scan's plate.
 
     Only the scan's vertices within ``back_tol_mm`` of the back plane are put on it and
     clamped; a back face rougher than that (thick slices, a tilted plate) or a plane off
@@ -235,7 +294,7 @@ def _support_checked(ref, mesh, back_tol_mm: float):
             100.0 * clamped / plate,
             back_tol_mm,
         )
-    return mesh
+    return MeshSupport(surface, back_tol_mm, clamped, plate)
 
 
 #: Farther than this (mm) from the measured nipple, the model's nipple node is said: its
@@ -381,7 +440,7 @@ def _sphere_plc(spheres, outer_v, outer_f, h: float):
 
 
 def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, spheres, h):
-    """:func:`reference_mesh` with internal spheres.
+    """:func:`reference_mesh` with internal spheres, and the outer surface's kind.
 
     The outer surface is tried as the plain mesh tries it (decimated, then the scan's
     surface remeshed on a fine grid), with the spheres inside; TetGen's repair fallbacks
@@ -434,7 +493,7 @@ def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, spheres, h):
             mesh.n_tets,
             mesh.n_nodes,
         )
-        return _with_back(mesh, p0, n, size_mm, ref.nipple_mm)
+        return _with_back(mesh, p0, n, size_mm, ref.nipple_mm), label
     raise fem.MeshError(
         "TetGen could not mesh the reference surface with its inclusions: " + "; ".join(errors)
     )

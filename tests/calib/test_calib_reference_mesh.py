@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import fem
-from calib.model.reference import reference_mesh
+from calib.model.reference import reference_mesh, reference_mesh_with_support
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "fem"))
 from test_fem_reference_robust import _plane, _self_intersecting, load_fixture  # noqa: E402
@@ -120,8 +120,10 @@ def test_a_rejected_decimation_is_remeshed_from_the_full_surface_on_a_fine_grid(
     monkeypatch.setattr(reference, "tetrahedralize", tetgen)
     ref = _dome_reference()
     with caplog.at_level("INFO"):
-        fine = reference_mesh(ref, size_mm=12.0)
+        fine, support = reference_mesh_with_support(ref, size_mm=12.0)
     assert "remeshed on a 1 mm grid" in caplog.text
+    # the record says which surface and tolerance clamped the back: size/5, not 1 mm
+    assert (support.surface, support.back_tol_mm) == ("remeshed", 12.0 / 5.0)
     back = fine.node_set("back")
     assert len(back) >= 20
     np.testing.assert_allclose(fine.nodes_mm[back, 2], 0.0, atol=1e-9)

@@ -89,6 +89,7 @@ def test_calibration_json_keys_are_those_of_0_1_plus_the_documented_additions(ni
     assert set(doc["mesh"]) == MESH_KEYS_0_1 | MESH_KEYS_ADDED
     support = doc["mesh"]["support"]
     assert support["back_tol_mm"] == 1.0  # the twin's flat face: the default tolerance
+    assert support["surface"] == "decimated"  # and TetGen takes its decimated surface
     assert 0.8 * support["plate_mm2"] <= support["clamped_mm2"]  # SUPPORT_AREA_SHARE
     assert {"success", "message", "iterations", "bound"} <= set(doc["optimiser"])
 
