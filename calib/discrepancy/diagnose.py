@@ -71,7 +71,7 @@ import fem
 from ..data.work import WorkFolder
 from ..evaluation import ScanMetrics, scan_metrics
 from ..model.effects import ADMISSIBLE, LIBRARY, SKIN_THICKNESS_MM
-from ..stats import NoiseFit, height_profile, parameter_intervals
+from ..stats import NoiseFit, NoiseModel, height_profile, parameter_intervals
 from .fields import COARSER_FACTOR, FieldSet, discretisation_column, discretisation_field
 from .limits import parameter_limits
 from .localise import region_labels, region_scale, significance_map
@@ -546,6 +546,8 @@ class Diagnosis:
             "noise": {
                 "model": self.screen.noise.best.as_json(),
                 "plausible": [m.as_json() for m in self.screen.noise.plausible],
+                "scan_sd_mm": _scan_levels(self.screen.noise, self.null.fields.scans),
+                "by_scan": self.screen.noise.by_scan,
                 "floor_rms_mm": float(np.sqrt(max(self.floor_mm2, 0.0))),
                 "floor_mean_abs_mm": floor,
                 "floor_max_lag_mm": FLOOR_LAG_MM,
@@ -637,8 +639,16 @@ def _judged_points(prob: Problem, margin: float | Literal["element"]) -> tuple[f
     return mm, {n: h >= mm for n, h in heights.items()}
 
 
+def _scan_levels(noise: NoiseFit, scans) -> dict:
+    """Each scan's short-lag noise sd (mm) by name (the screen's labels: ``scans``' order)."""
+    return {n: float(noise.scan_sd_mm[k]) for k, n in enumerate(scans)}
+
+
 def _noise_var(fields: FieldSet, points: dict, keep: dict | None = None) -> float:
     """The session's short-range noise variance (FLOOR_LAG_MM variogram), centred residual.
+
+    Averaged over the points, each scan's at its own level where the levels differ
+    (:meth:`calib.stats.NoiseFit.variance_mm2`).
 
     ``keep``: per scan, a boolean mask of the points to use (default all).
     """
@@ -648,7 +658,7 @@ def _noise_var(fields: FieldSet, points: dict, keep: dict | None = None) -> floa
         fields = replace(fields, residual=kept)
     sample = sample_of(fields, points)
     r = np.concatenate([fields.residual[n] - fields.residual[n].mean() for n in fields.scans])
-    return float(session_noise(sample, r, max_lag_mm=FLOOR_LAG_MM).best.sigma_mm ** 2)
+    return session_noise(sample, r, max_lag_mm=FLOOR_LAG_MM).variance_mm2(sample)
 
 
 def _effect_of(column: str) -> str:
@@ -765,6 +775,13 @@ def diagnose(
     nb = scr0.noise.best
     say(f"noise: {nb.kernel}, sd {nb.sigma_mm:.3f} mm, length {nb.length_mm:.1f} mm; misfit "
         f"test p = {scr0.misfit.p_value:.3g} ({scr0.misfit.verdict})")  # fmt: skip
+    if scr0.noise.by_scan:
+        levels = _scan_levels(scr0.noise, null.fields.scans)
+        log.warning(
+            "the scans' noise levels differ (sd at short lags: %s): each scan is tested "
+            "and its floor taken at its own level, the correlation the quietest's",
+            ", ".join(f"{n} {v:.3f} mm" for n, v in levels.items()),
+        )
     if check := mesh_error_check(null.fields, prob.points, scr0.noise):
         mesh_error |= check.as_json()
         say(f"  the residual along it: {mesh_error_reading(mesh_error)}")
@@ -1185,7 +1202,9 @@ def _localise(prob: Problem, null: Refit, noise: NoiseFit) -> dict:
         states = prob.solve(null.theta, null.values, list(rim), gradient=False,
                             nuisance=null.nuisance)  # fmt: skip
     out = {}
-    for n in null.fields.scans:
+    arg = noise.best_arg
+    for label, n in enumerate(null.fields.scans):  # the screen's labels (sample_of)
+        model = arg if isinstance(arg, NoiseModel) else arg[label]
         r = null.fields.residual[n]
         centre = r.mean()
         pts = prob.points[n]
@@ -1194,7 +1213,7 @@ def _localise(prob: Problem, null: Refit, noise: NoiseFit) -> dict:
             r_rim = prob.residuals(n, pos, None, null.nuisance.get(n), points_mm=rim[n]).r
             pts, r = np.vstack([pts, rim[n]]), np.concatenate([r, r_rim])
         labels = _scan_regions(prob, n, pts)
-        out[n] = significance_map(n, pts, r - centre, labels, noise.best,
+        out[n] = significance_map(n, pts, r - centre, labels, model,
                                   bandwidth_mm=MAP_KERNEL_MM)  # fmt: skip
     return out
 
@@ -1341,7 +1360,8 @@ def _intervals(fit: Refit, prob: Problem) -> dict:
     noise = session_noise(sample, r_c)
     x = np.concatenate([fit.x, np.zeros(A.shape[1] - len(fit.x))])
     try:
-        ivs = parameter_intervals(x, A, r_c, sample, noise.best, alternatives=noise.plausible[1:])
+        alt = noise.alternatives
+        ivs = parameter_intervals(x, A, r_c, sample, noise.best_arg, alternatives=alt)
     except ValueError as exc:
         return {"failed": str(exc)}
     out = {}

@@ -25,6 +25,12 @@ pressing one posture's flank made the pooled fit 0.69 mm over 43 mm, and then no
 was significant against it). The noise model is therefore the variogram fit of the
 least-disturbed scan, the one with the smallest standard deviation, applied to every
 scan (:func:`calib.stats.noise.session_noise`). With one scan it is that scan's fit.
+Scans imaged unlike (another slice thickness, coil or SNR) keep that fit's correlation
+at their own short-lag level where the levels differ by more than
+:data:`calib.stats.noise.NOISE_LEVEL_RATIO` (:meth:`calib.stats.NoiseFit.scaled`):
+with one level for all, a scan three times noisier than the others made its gravity
+nuisance significant on null residuals (3 of 16 draws, review W) and left a correct
+refit short of explaining half the residual above the quiet scans' floor.
 The tests stay ratio statistics (band F, series variances): the model supplies shapes,
 the data the scale.
 
@@ -204,8 +210,8 @@ def screen(
     r = fields.stack(fields.residual)
     J = _conditioned_on(fields, sample, absorbed)
     fit = noise or session_noise(sample, r - offset_columns(sample) @ _scan_means(sample, r))
-    alt = tuple(fit.plausible[1:])
-    misfit = _misfit_test(r, J, sample, fit.best, alpha=misfit_alpha, alternatives=alt)
+    alt = fit.alternatives
+    misfit = _misfit_test(r, J, sample, fit.best_arg, alpha=misfit_alpha, alternatives=alt)
     skip = (*absorbed, *_always(fields))
     names = tuple(c.name for c in fields.columns if c.name not in skip) if columns is None \
         else tuple(columns)  # fmt: skip
@@ -214,7 +220,7 @@ def screen(
     S = -fields.matrix(names)  # the prediction's derivative: estimates are parameter steps
     effect = {c.name: c.effect for c in fields.columns}
     directions = [LIBRARY[effect[n]].direction if effect[n] in LIBRARY else 0 for n in names]
-    res = _screen_effects(r, J, S, names, sample, fit.best, alpha=alpha, degree=SERIES_DEGREE,
+    res = _screen_effects(r, J, S, names, sample, fit.best_arg, alpha=alpha, degree=SERIES_DEGREE,
                           confounded_above=confounded_above, alternatives=alt,
                           directions=directions, effects=[effect[n] for n in names])  # fmt: skip
     return Screen(sample, fit, misfit, res, names)
@@ -281,14 +287,14 @@ def mesh_error_check(fields: FieldSet, points: dict, noise: NoiseFit) -> MeshErr
     r = fields.stack(fields.residual)
     J = _c1_and_offsets(fields, sample)
     d = fields.matrix(names)
-    alt = tuple(noise.plausible[1:])
+    alt = noise.alternatives
     est = _screen_effects(
-        r, J, d, names, sample, noise.best, degree=SERIES_DEGREE, alternatives=alt
+        r, J, d, names, sample, noise.best_arg, degree=SERIES_DEGREE, alternatives=alt
     ).effects[0]
     others = [c.name for c in fields.columns if c.scan is None and c.effect != DISCRETISATION]
     shared = {}
     if others:
         S = np.column_stack([fields.matrix(others), d])
-        _, cosine, _ = signature_geometry(sample, J, S, noise.best)
+        _, cosine, _ = signature_geometry(sample, J, S, noise.best_arg)
         shared = {n: abs(float(cosine[i, -1])) for i, n in enumerate(others)}
     return MeshErrorCheck(est.estimate, est.standard_error, est.statistic, shared)

@@ -295,3 +295,37 @@ def test_local_count_approximation_against_exact_whitening(kernel):
         exact = float(np.sum(w.apply(x) ** 2))
         approx = float(np.sum(x * x / (0.09 * counts)))
         assert approx == pytest.approx(exact, rel=0.08)
+
+
+def test_session_noise_measures_each_scan_s_level_and_says_when_they_differ():
+    # three scans of one correlation (exponential 3 mm, nugget 0.3), sds 0.05, 0.05 and
+    # 0.15 mm (one scan imaged coarser or noisier: review W). The levels come from the
+    # shortest lags with the quietest scan's shape: over 40 draws their spread was 5-7 %
+    # of the level, so 20 % is 3 spreads; equal levels (0.08 each) gave a largest ratio of
+    # 1.17 over 40 draws, under NOISE_LEVEL_RATIO (1.5)
+    from calib.stats.coverage import NoiseSampler
+    from calib.stats.noise import NOISE_LEVEL_RATIO, session_noise, with_sigma
+
+    sample = phantom_sample(500, 3, seed=5)
+    shape = NoiseModel("exponential", 1.0, 0.3, 3.0)
+    rng = np.random.default_rng(1)
+    for sds in ((0.05, 0.05, 0.15), (0.08, 0.08, 0.08)):
+        draw = NoiseSampler.of(sample, {k: with_sigma(shape, s) for k, s in enumerate(sds)})
+        for _ in range(3):
+            r = draw.draw(rng)[:, 0]
+            fit = session_noise(sample, r)
+            levels = np.array([fit.scan_sd_mm[k] for k in range(3)])
+            np.testing.assert_allclose(levels, sds, rtol=0.2)
+            assert fit.by_scan == (max(sds) > NOISE_LEVEL_RATIO * min(sds))
+            arg = fit.best_arg
+            if not fit.by_scan:
+                assert arg is fit.best and fit.alternatives == tuple(fit.plausible[1:])
+                continue
+            # each scan: the session's correlation at its own level
+            ref = fit.scan_sd_mm[fit.reference_scan]
+            for k in range(3):
+                assert arg[k].length_mm == fit.best.length_mm
+                assert arg[k].sigma_mm == pytest.approx(fit.best.sigma_mm * levels[k] / ref)
+            # the floor: the points' mean variance (equal scans here: the mean of squares)
+            mean_var = np.mean([arg[k].sigma_mm ** 2 for k in range(3)])
+            assert fit.variance_mm2(sample) == pytest.approx(mean_var)
