@@ -41,6 +41,15 @@ def diagnose(
             "mesh size; 0 keeps them).",
         ),
     ] = None,
+    skin_thickness: Annotated[
+        float,
+        typer.Option(
+            "--skin-thickness",
+            help="Thickness (mm) of the skin effect's stiffer outer band (default 1.5). The "
+            "surface sees about (ratio - 1) x thickness of a thin layer: the fitted ratio "
+            "stands for that product at this thickness (diagnosis.json: excess_mm).",
+        ),
+    ] = 1.5,
     explained_margin: Annotated[
         str | None,
         typer.Option(
@@ -111,6 +120,7 @@ def diagnose(
             **({} if names is None else {"effects": names}),
             holdout=holdout,
             alpha=alpha,
+            skin_thickness_mm=skin_thickness,
             **({} if rim_margin is None else {"rim_margin_mm": parse_rim_margin(rim_margin)}),
             **(
                 {}

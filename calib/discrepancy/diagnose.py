@@ -80,6 +80,7 @@ from .problem import (
     DiagnosisError,
     Problem,
     build_problem,
+    failed_scans,
     plate_height_mm,
     rim_margin_of,
 )
@@ -125,6 +126,9 @@ class DiagnosisOptions:
     misfit_alpha : float
         Level of the misfit test (see :func:`calib.discrepancy.screen.screen`).
     skin_thickness_mm : float
+        Thickness of the skin effect's band (mm; in (0, 10]). The surface sees about
+        ``(ratio - 1) * thickness`` of a thin layer, so the fitted ratio stands for that
+        product at this thickness; the refit's intervals give it (``excess_mm``).
     max_points : int or None
         Measured points per scan (default: the calibration's).
     rim_margin_mm : float or "element"
@@ -244,6 +248,10 @@ class DiagnosisOptions:
         if self.mesh_error not in MESH_ERRORS:
             raise DiagnosisError(
                 f"mesh_error must be one of {MESH_ERRORS}, got {self.mesh_error!r}"
+            )
+        if not 0.0 < self.skin_thickness_mm <= 10.0:
+            raise DiagnosisError(
+                f"skin_thickness_mm must lie in (0, 10] mm, got {self.skin_thickness_mm}"
             )
         if self.max_candidates < 1 or self.max_named < 1:
             raise DiagnosisError("max_candidates and max_named must be >= 1")
@@ -535,6 +543,7 @@ class Diagnosis:
             "scans": {
                 "diagnosis": list(prob.scans),
                 "holdout": prob.holdout,
+                "excluded": failed_scans(prob.work),
                 "rim_margin_mm": prob.rim_margin_mm,
                 "region_scale": region_scale(prob.body_height_mm),
                 "explained_margin_mm": self.explained_margin_mm,
@@ -1374,16 +1383,24 @@ def _intervals(fit: Refit, prob: Problem) -> dict:
             entry["ci95"] = [lo, hi]
         if name == "theta":
             # the model mesh's own error: the calibration's mesh check (GCI of ln c1 on
-            # this mesh) in quadrature with the noise, as ``calibrate`` does
+            # its mesh) in quadrature with the noise, as ``calibrate`` does; of another
+            # mesh (--mesh-size, --inclusion-mesh, a fallback size) it is not this one's
+            # (review W), and none is added
             check = (prob.work.record.get("uncertainty") or {}).get("mesh_check") or {}
-            gci = check.get("gci_ln_c1") or 0.0
+            own = prob.mesh.n_nodes == prob.work.mesh.n_nodes
+            gci = (check.get("gci_ln_c1") or 0.0) if own else 0.0
             lo, hi = (float(np.hypot(v - b, gci)) for b in (iv.lower, iv.upper))
             entry["c1_ci95_pa"] = [float(np.exp(v - lo)), float(np.exp(v + hi))]
             entry["noise_only_c1_ci95_pa"] = [float(np.exp(iv.lower)), float(np.exp(iv.upper))]
-            entry["gci_ln_c1"] = gci
+            entry["gci_ln_c1"] = gci if own else None
         if name in PHYSICAL:  # the ratio - 1 of skin and inclusions, ln k of sliding
             q = PHYSICAL[name]
             entry[q.key] = float(q.convert(v))
             entry[q.ci_key] = [float(q.convert(b)) for b in entry["ci95"]]
+        if name == "skin":  # (ratio - 1) x thickness: what the surface sees (review W)
+            t = prob.skin_thickness_mm
+            entry["excess_mm"] = float(v * t)
+            entry["excess_ci95_mm"] = [float(b * t) for b in entry["ci95"]]
+            entry["thickness_mm"] = float(t)
         out[name] = entry
     return out

@@ -623,6 +623,12 @@ def _registration_tolerance(work: WorkFolder, name: str) -> float:
     return 3.0 * tre + 0.5 * float(voxel)
 
 
+def failed_scans(work: WorkFolder) -> dict[str, str]:
+    """The calibration's scans with no FE solution at its c1, with the reason (by name)."""
+    scans = work.record["scans"].items()
+    return {n: str(s.get("failed")) for n, s in scans if s.get("failed")}
+
+
 def choose_scans(work: WorkFolder, holdout: str | None) -> tuple[list[str], str | None]:
     """The diagnosis scans and the held-out one.
 
@@ -631,9 +637,17 @@ def choose_scans(work: WorkFolder, holdout: str | None) -> tuple[list[str], str 
     nothing, with a warning); ``"none"`` holds out nothing. Every other scan but the
     reference is fitted. Naming an effect needs leave-one-posture-out over at least two
     fitted scans: a named holdout that leaves fewer is refused, and a session with a
-    single scan to fit is warned about (nothing can be named).
+    single scan to fit is warned about (nothing can be named). Scans whose calibrated
+    state failed (:func:`failed_scans`) are left out, with a warning.
     """
-    names = [n for n, s in work.record["scans"].items() if not s.get("failed")]
+    failed = failed_scans(work)
+    if failed:
+        log.warning(
+            "%s: left out of the diagnosis, no FE solution at the calibrated c1: %s",
+            work.path,
+            "; ".join(f"{n} ({why})" for n, why in failed.items()),
+        )
+    names = [n for n in work.record["scans"] if n not in failed]
     roles = {n: work.record["scans"][n]["role"] for n in names}
     named = holdout is not None and holdout.lower() != "none"
     if holdout is None:
@@ -741,9 +755,30 @@ def plate_height_mm(scan, points_mm: np.ndarray) -> np.ndarray:
     return np.abs((points_mm - scan.back_point_mm) @ scan.back_normal)
 
 
+#: A scan's slice thickness across the plate (``back_plane.voxel_depth_mm``) plus this
+#: (mm) beyond the rim margin, the margin is said to be narrow for it: the terraced,
+#: partial-volume junction with the plate reaches past it (review W).
+RIM_BLUR_MM = 1.5
+
+
 def _off_the_rim(scan, n_pts: int, seed: int, margin_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """The calibration's seeded surface points of a scan: beyond the rim margin, within it."""
+    """The calibration's seeded surface points of a scan: beyond the rim margin, within it.
+
+    A margin narrower than the scan's slice thickness across the plate plus
+    :data:`RIM_BLUR_MM` is warned about (the blurred junction is then diagnosed).
+    """
     p = scan.surface_points(max_points=n_pts, seed=seed)
+    depth = getattr(scan, "back_voxel_depth_mm", None)
+    if depth is not None and 0 < margin_mm < depth + RIM_BLUR_MM:
+        log.warning(
+            "%s: its slices are %.1f mm thick across the back plate, and the rim margin "
+            "(%g mm) leaves part of its blurred junction with the plate in the diagnosis; "
+            "--rim-margin %.0f leaves it out",
+            scan.name,
+            depth,
+            margin_mm,
+            np.ceil(depth + RIM_BLUR_MM),
+        )
     if margin_mm <= 0:
         return p, p[:0]
     keep = plate_height_mm(scan, p) >= margin_mm

@@ -259,6 +259,10 @@ def _summary(doc: dict) -> str:
                 lines.append(f"<p>{html.escape(pname)} = {iv['value']:.4g} "
                              f"(95 % {iv['ci95'][0]:.4g}–{iv['ci95'][1]:.4g})"
                              + (f", stiffness ratio {iv['ratio']:.2f}" if "ratio" in iv else "")
+                             + (f" at an assumed {iv['thickness_mm']:g} mm band: (ratio − 1) × "
+                                f"thickness {iv['excess_mm']:.3g} mm (95 % "
+                                f"{iv['excess_ci95_mm'][0]:.3g}–{iv['excess_ci95_mm'][1]:.3g})"
+                                if "excess_mm" in iv else "")
                              + (f", springs {iv['stiffness_pa_per_mm']:.3g} Pa/mm"
                                 if "stiffness_pa_per_mm" in iv else "")
                              + "</p>")  # fmt: skip
@@ -412,6 +416,14 @@ def format_diagnosis(doc: dict) -> str:
         if name != "theta" and any(name == e or name.startswith(f"{e}[") for e in doc["named"]):
             lines.append(f"{name} = {iv['value']:.4g} (95 % {iv['ci95'][0]:.4g} - "
                          f"{iv['ci95'][1]:.4g})")  # fmt: skip
+            if "excess_mm" in iv:
+                lo, hi = iv["excess_ci95_mm"]
+                excess = f"(ratio - 1) x thickness {iv['excess_mm']:.3g} mm"
+                band = f"at an assumed {iv['thickness_mm']:g} mm band"
+                lines.append(
+                    f"  {excess} (95 % {lo:.3g} - {hi:.3g}) {band}: what the surface "
+                    "sees of a thin layer"
+                )
             if "ci95_unclipped" in iv:
                 lines.append("  " + _cut_note(name, iv))
     lines.append(f"{'scan':15s} {'role':10s} {'mean before':>12s} {'mean after':>11s} "
@@ -537,10 +549,15 @@ def _mesh_error(doc: dict) -> str:
 
 
 def _rim(doc: dict) -> str:
-    """What the rim region holds (diagnoses before the margin was recorded: 5 mm)."""
+    """What the rim region holds (diagnoses before the margin was recorded: 5 mm).
+
+    The band is 10 mm times the localisation radii's factor (``scans.region_scale``, 1
+    where not recorded), or the margin where wider (``calib.discrepancy.diagnose``).
+    """
     margin = float(doc["scans"].get("rim_margin_mm", 5.0))
+    band = max(10.0 * float(doc["scans"].get("region_scale", 1.0)), margin)
     return (
-        f"The rim region is the band within {max(10.0, margin):g} mm of the back plate; its "
+        f"The rim region is the band within {band:.3g} mm of the back plate; its "
         f"points within {margin:g} mm (the clamped edge) are mapped, but neither fitted nor "
         "tested."
     )

@@ -27,6 +27,7 @@ import numpy as np
 import pytest
 
 from calib.model.effects import TruthEffects
+from calib.report.diagnosis import format_diagnosis
 from calib.twin import DISSERTATION_POSTURES, TwinPreset
 
 pytestmark = pytest.mark.slow
@@ -93,6 +94,15 @@ def test_the_hidden_skin_is_named(skin):
     assert doc["c1_pa"] == pytest.approx(c1_true, rel=0.05)
     ratio = doc["refit"]["intervals"]["skin"]["ratio"]
     assert 4.0 < ratio < 16.0  # the 8x skin at the library's 1.5 mm, on a 14 mm mesh
+    # what the surface sees: (ratio - 1) x the band's thickness, said in the summary
+    iv = doc["refit"]["intervals"]["skin"]
+    assert iv["excess_mm"] == pytest.approx((ratio - 1.0) * 1.5)
+    assert iv["excess_ci95_mm"] == pytest.approx([(r - 1.0) * 1.5 for r in iv["ratio_ci95"]])
+    assert "(ratio - 1) x thickness" in format_diagnosis(doc)
+    # the twin renders every posture alike: one noise level (review W's per-scan levels)
+    assert doc["noise"]["by_scan"] is False
+    levels = doc["noise"]["scan_sd_mm"]
+    assert set(levels) == set(doc["scans"]["diagnosis"])
     # the fitted scans' surface error falls
     for name in doc["scans"]["diagnosis"]:
         e = doc["gap"][name]["surface_error_mm"]
@@ -135,8 +145,6 @@ def test_a_homogeneous_truth_has_no_missing_effect(none):
     assert doc["verdict"] == "no missing effect"
     assert doc["named"] == []
     # and it says how large each physical effect would have to be to show
-    from calib.report.diagnosis import format_diagnosis
-
     summary = format_diagnosis(doc)
     for name, e in doc["effects"].items():
         if e["kind"] != "nuisance" and e["status"] == "identifiable":
