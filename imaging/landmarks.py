@@ -295,6 +295,16 @@ def _plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 #: flat top, a cap that falls less places its "peak" by the noise (1.5-9 mm off the axis of
 #: an 80 x 80 x 20 mm dome with 0.15-0.2 mm surface noise, on 8 mm caps).
 CAP_FALL_OVER_NOISE = 4.0
+#: Where no bump stands near the apex, one is looked for over the body's upper part: the
+#: vertices at least this share of the apex's height above the plate (a nipple pointing
+#: sideways, a phantom whose nipple is not on its top).
+FAR_BUMP_HEIGHT_SHARE = 0.5
+#: ... on a grid of this step (mm): one candidate per cell, the fit planes' cost bounded.
+FAR_BUMP_GRID_MM = 2.0
+#: Angular sectors around a far bump's tip: in every one the surface between half and the
+#: whole fit radius must lie ``min_protrusion_mm`` below the tip (a peak), where a ridge
+#: (a flat top's rounded rim, a bulge along the plate) stays level along its length.
+FAR_BUMP_SECTORS = 8
 
 
 def find_nipple(
@@ -315,12 +325,17 @@ def find_nipple(
     height above the plane fitted (PCA) to the surface within ``fit_radius_mm``; when the
     largest protrusion stands ``min_protrusion_mm`` above the median there (a bump), the
     tip is refined by a quadratic fit of the surface within ``tip_radius_mm`` of that
-    vertex in its local frame (``quality["method"] = "protrusion"``). Otherwise (a smooth
-    dome) the apex is refined by a quadratic cap fit of the heights within
-    ``cap_radius_mm`` in the plane coordinates (``"apex"``); where the top is too flat for
-    that cap to fall clear of the noise (:data:`CAP_FALL_OVER_NOISE`), by the fit within
-    twice, then four times the radius (``quality["cap_radius_mm"]``). A top flat even then
-    keeps the highest vertex (``quality["refined"]`` False), with a warning.
+    vertex in its local frame (``quality["method"] = "protrusion"``). Where none does,
+    a bump is looked for over the body's upper part (:data:`FAR_BUMP_HEIGHT_SHARE`, the
+    same protrusion measure on a :data:`FAR_BUMP_GRID_MM` grid) that falls by
+    ``min_protrusion_mm`` all around it (:data:`FAR_BUMP_SECTORS`; a ridge, such as a
+    flat top's rounded rim, does not): a nipple off the top is its tip, with a warning
+    (``quality["method"] = "far protrusion"``). Otherwise (a smooth dome) the apex is
+    refined by a quadratic cap fit of the heights within ``cap_radius_mm`` in the plane
+    coordinates (``"apex"``); where the top is too flat for that cap to fall clear of the
+    noise (:data:`CAP_FALL_OVER_NOISE`), by the fit within twice, then four times the
+    radius (``quality["cap_radius_mm"]``). A top flat even then keeps the highest vertex
+    (``quality["refined"]`` False), with a warning.
     """
     v = np.asarray(vertices_lps_mm, float)
     n = plane.normal
@@ -336,11 +351,25 @@ def find_nipple(
     bump = np.array([(v[i] - c) @ f[2] for i, (c, f) in zip(near, frames, strict=True)])
     j = int(np.argmax(bump))
     quality = {"protrusion_mm": float(bump[j] - np.median(bump)), "method": "apex"}
+    tip_frame = None
     if quality["protrusion_mm"] >= min_protrusion_mm:
-        tip = v[near[j]]
+        tip_frame = v[near[j]], frames[j][1]
+        quality["method"] = "protrusion"
+    elif far := _far_bump(v, h, tree, n, fit_radius_mm, min_protrusion_mm):
+        tip_frame, protrusion = far[:2], far[2]
+        quality |= {"method": "far protrusion", "protrusion_mm": protrusion}
+        log.warning(
+            "no nipple bump within %.0f mm of the highest point; the nipple is a bump %.0f mm "
+            "from it, %.0f mm lower (a nipple off the top of the body)",
+            search_radius_mm,
+            float(np.linalg.norm(far[0] - v[k])),
+            float(h[k] - (far[0] - plane.point_lps_mm) @ n),
+        )
+    if tip_frame is not None:
+        tip, frame = tip_frame
         pts = v[tree.query_ball_point(tip, tip_radius_mm)] - tip
-        pos, q = _quadratic_peak(tip, pts, frames[j][1], tip_radius_mm)
-        quality |= q | {"method": "protrusion"}
+        pos, q = _quadratic_peak(tip, pts, frame, tip_radius_mm)
+        quality |= q
         if not q["refined"]:
             why = (
                 f"found {len(pts)} surface vertices within {tip_radius_mm:g} mm of its top "
@@ -373,6 +402,51 @@ def find_nipple(
             )
     quality["shift_from_apex_mm"] = float(np.linalg.norm(pos - v[k]))
     return Nipple(pos, float((pos - plane.point_lps_mm) @ n), quality)
+
+
+def _far_bump(v, h, tree, normal, fit_radius_mm: float, min_protrusion_mm: float):
+    """A bump over the body's upper part that falls all around: ``(tip, frame, mm)``.
+
+    The candidates are the vertices at least :data:`FAR_BUMP_HEIGHT_SHARE` of the apex's
+    height above the plate, one per :data:`FAR_BUMP_GRID_MM` cell; each one's protrusion
+    is its height above the PCA plane of the surface within ``fit_radius_mm`` (as near the
+    apex). The most protruding ones standing ``min_protrusion_mm`` above the candidates'
+    median are tried in turn; the first whose surround falls in every sector
+    (:func:`_falls_all_around`) is the bump. None where none does.
+    """
+    top = np.flatnonzero(h >= FAR_BUMP_HEIGHT_SHARE * h.max())
+    _, first = np.unique(np.floor(v[top] / FAR_BUMP_GRID_MM), axis=0, return_index=True)
+    cand = top[np.sort(first)]
+    frames = [_local_frame(v[tree.query_ball_point(v[i], fit_radius_mm)], normal) for i in cand]
+    bump = np.array([(v[i] - c) @ f[2] for i, (c, f) in zip(cand, frames, strict=True)])
+    floor = float(np.median(bump)) + min_protrusion_mm
+    for j in np.argsort(bump)[::-1]:
+        if bump[j] < floor:
+            return None
+        tip, frame = v[cand[j]], frames[j][1]
+        ring = v[tree.query_ball_point(tip, fit_radius_mm)] - tip
+        if _falls_all_around(ring, frame, fit_radius_mm, min_protrusion_mm):
+            return tip, frame, float(bump[j] - np.median(bump))
+    return None
+
+
+def _falls_all_around(d: np.ndarray, frame, radius_mm: float, fall_mm: float) -> bool:
+    """Whether the surface falls ``fall_mm`` below a tip in every sector around it.
+
+    ``d``: the surface's offsets from the tip (mm), ``frame`` its ``(e1, e2, normal)``;
+    the sectors (:data:`FAR_BUMP_SECTORS`) span half to the whole ``radius_mm``.
+    """
+    e1, e2, e3 = frame
+    u, w, z = d @ e1, d @ e2, d @ e3
+    r = np.hypot(u, w)
+    ring = (r >= 0.5 * radius_mm) & (r <= radius_mm)
+    sector = np.floor((np.arctan2(w[ring], u[ring]) + np.pi) / (2 * np.pi) * FAR_BUMP_SECTORS)
+    sector = np.minimum(sector.astype(int), FAR_BUMP_SECTORS - 1)
+    highest = np.full(FAR_BUMP_SECTORS, np.inf)  # an empty sector: no fall seen
+    seen = np.unique(sector)
+    highest[seen] = -np.inf
+    np.maximum.at(highest, sector, z[ring])
+    return bool(np.all(highest <= -fall_mm))
 
 
 def _local_frame(points: np.ndarray, outward: np.ndarray):

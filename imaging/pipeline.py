@@ -247,6 +247,7 @@ def process_scan(
         back_plate_fraction=float(flags.mean()),
         nipple_height_mm=nipple.height_mm,
         nipple_refined=bool(nipple.quality["refined"]),
+        nipple_method=str(nipple.quality["method"]),
         fov_cut_height_mm=cut,
         fov_edge_vertices=0 if edge is None else int(edge.sum()),
         **times,

@@ -470,8 +470,9 @@ class StaleIngestError(RuntimeError):
 #: aside for a face 0.41 degrees off the truth). 4: the bias field's degree along an axis
 #: the body spans in few slices, markers apart from the body down to 1.3 times its level,
 #: the back plane's voxel depth (``back_plane.voxel_depth_mm``, the clamped face's
-#: tolerance on thick slices).
-INGEST_REVISION = 4
+#: tolerance on thick slices). 5: a nipple bump looked for over the body's upper half
+#: where none stands within 12 mm of the highest point (``quality.nipple_method``).
+INGEST_REVISION = 5
 
 
 def ingest_inputs(session: Session) -> dict:

@@ -413,3 +413,36 @@ def test_a_terraced_back_face_keeps_the_markers_plane(tilt_deg, caplog, monkeypa
     assert estimate_back_plane(v, fiducials_lps_mm=fid).method == "ransac"
     monkeypatch.setattr(landmarks, "FIDUCIALS_BAND_SHARE", 0.9)
     assert estimate_back_plane(v, fiducials_lps_mm=fid).method == "fiducials"
+
+
+def test_a_nipple_off_the_top_of_the_body_is_found_and_said(caplog):
+    # review T: the nipple was looked for within 12 mm of the highest point only; a nipple
+    # pointing sideways (a 4 mm bump 30 degrees off the axis of a 60 x 60 x 75 mm dome: 32
+    # mm from the apex, 7 mm lower) silently became the apex, 33 mm off. Now a bump that
+    # falls all around is looked for over the body's upper half. Bar: 0.5 mm, the tip fit's
+    # error over 15 such domes (0.22-0.35 mm; 0.15 mm surface noise)
+    axes = np.array([60.0, 60.0, 75.0])
+    v, _ = dome_surface(tuple(axes), subdivisions=6)
+    top = v[:, 2] > 0
+    t = np.radians(30.0)
+    base = np.array([np.sin(t), 0.0, np.cos(t)]) * axes  # the bump's foot on the dome
+    outward = base / axes**2 / np.linalg.norm(base / axes**2)
+    normals = v / axes**2
+    normals /= np.maximum(np.linalg.norm(normals, axis=1), 1e-9)[:, None]
+    bump = 4.0 * np.exp(-np.sum((v - base) ** 2, axis=1) / (2 * 3.0**2)) * top
+    v = v + bump[:, None] * normals
+    v = v + np.random.default_rng(0).normal(0.0, 0.15, v.shape) * top[:, None]
+    plane = BackPlane(np.zeros(3), np.array([0.0, 0.0, 1.0]), "fiducials")
+    with caplog.at_level("WARNING", logger="imaging.landmarks"):
+        nip = find_nipple(v, plane)
+    assert nip.quality["method"] == "far protrusion" and nip.quality["refined"]
+    np.testing.assert_allclose(nip.position_lps_mm, base + 4.0 * outward, atol=0.5)
+    assert "no nipple bump within 12 mm of the highest point" in caplog.text
+    # a flat top's rounded rim is a ridge, not a bump: the top keeps its apex (or its
+    # highest vertex where even a 32 mm cap does not fall clear of the noise)
+    v, _ = dome_surface((60.0, 60.0, 40.0), subdivisions=6)
+    top = v[:, 2] > 0
+    r = np.minimum(np.hypot(v[:, 0], v[:, 1]) / 60.0, 1.0)
+    v[top, 2] = 40.0 * (1.0 - r[top] ** 6) ** (1.0 / 6.0)
+    v = v + np.random.default_rng(1).normal(0.0, 0.15, v.shape) * top[:, None]
+    assert find_nipple(v, plane).quality["method"] == "apex"
