@@ -544,6 +544,7 @@ class Diagnosis:
                 "diagnosis": list(prob.scans),
                 "holdout": prob.holdout,
                 "excluded": failed_scans(prob.work),
+                "imaging_noise_mm": prob.imaging_noise_mm,
                 "rim_margin_mm": prob.rim_margin_mm,
                 "region_scale": region_scale(prob.body_height_mm),
                 "explained_margin_mm": self.explained_margin_mm,
@@ -653,21 +654,23 @@ def _scan_levels(noise: NoiseFit, scans) -> dict:
     return {n: float(noise.scan_sd_mm[k]) for k, n in enumerate(scans)}
 
 
-def _noise_var(fields: FieldSet, points: dict, keep: dict | None = None) -> float:
+def _noise_var(fields: FieldSet, prob: Problem, keep: dict | None = None) -> float:
     """The session's short-range noise variance (FLOOR_LAG_MM variogram), centred residual.
 
-    Averaged over the points, each scan's at its own level where the levels differ
-    (:meth:`calib.stats.NoiseFit.variance_mm2`).
+    Averaged over the points, each scan's at its own level where the scans are imaged
+    unlike (:attr:`Problem.imaged_unlike`, :meth:`calib.stats.NoiseFit.variance_mm2`).
 
     ``keep``: per scan, a boolean mask of the points to use (default all).
     """
+    points = prob.points
     if keep is not None:
         points = {n: points[n][keep[n]] for n in fields.scans}
         kept = {n: fields.residual[n][keep[n]] for n in fields.scans}
         fields = replace(fields, residual=kept)
     sample = sample_of(fields, points)
     r = np.concatenate([fields.residual[n] - fields.residual[n].mean() for n in fields.scans])
-    return session_noise(sample, r, max_lag_mm=FLOOR_LAG_MM).variance_mm2(sample)
+    fit = session_noise(sample, r, max_lag_mm=FLOOR_LAG_MM, by_scan=prob.imaged_unlike)
+    return fit.variance_mm2(sample)
 
 
 def _effect_of(column: str) -> str:
@@ -780,6 +783,7 @@ def diagnose(
     if none_tested := _none_testable(o.effects, unavailable):
         log.warning(none_tested)
     kw = {"alpha": o.alpha, "misfit_alpha": o.misfit_alpha, "confounded_above": o.confounded_above}
+    kw["by_scan"] = prob.imaged_unlike  # each scan at its own noise level
     scr0 = screen(null.fields, prob.points, **kw)
     nb = scr0.noise.best
     say(f"noise: {nb.kernel}, sd {nb.sigma_mm:.3f} mm, length {nb.length_mm:.1f} mm; misfit "
@@ -787,17 +791,19 @@ def diagnose(
     if scr0.noise.by_scan:
         levels = _scan_levels(scr0.noise, null.fields.scans)
         log.warning(
-            "the scans' noise levels differ (sd at short lags: %s): each scan is tested "
-            "and its floor taken at its own level, the correlation the quietest's",
+            "the scans are imaged unlike (voxel size x image noise: %s): each is tested, "
+            "mapped and floored at its own noise level (sd at short lags: %s), with the "
+            "correlation of the quietest",
+            ", ".join(f"{n} {v:.3g}" for n, v in prob.imaging_noise_mm.items()),
             ", ".join(f"{n} {v:.3f} mm" for n, v in levels.items()),
         )
     if check := mesh_error_check(null.fields, prob.points, scr0.noise):
         mesh_error |= check.as_json()
         say(f"  the residual along it: {mesh_error_reading(mesh_error)}")
     maps = _localise(prob, null, scr0.noise)
-    floor = _noise_var(null.fields, prob.points)
+    floor = _noise_var(null.fields, prob)
     judged_beyond, judged = _judged_points(prob, o.explained_margin_mm)
-    floor_judged = _noise_var(null.fields, prob.points, judged)
+    floor_judged = _noise_var(null.fields, prob, judged)
     n_judged = sum(int(m.sum()) for m in judged.values())
     n_all = sum(len(m) for m in judged.values())
     want = rim_margin_of(prob.mesh_size_mm, o.explained_margin_mm)
@@ -837,10 +843,8 @@ def diagnose(
                     say(f"  {eff}: no FE solution at the start ({exc})")
                     continue
                 fits[key] = trials[eff]
-                floor = min(floor, _noise_var(trials[eff].fields, prob.points))
-                floor_judged = min(
-                    floor_judged, _noise_var(trials[eff].fields, prob.points, judged)
-                )
+                floor = min(floor, _noise_var(trials[eff].fields, prob))
+                floor_judged = min(floor_judged, _noise_var(trials[eff].fields, prob, judged))
             floors = (floor, floor_judged, judged)
             round_ = [_judge(prob, eff, rnd, row[eff], current, trials[eff], floors, o)
                       for eff in chosen if eff in trials]  # fmt: skip
@@ -1157,7 +1161,7 @@ def _prune(prob, named, fits, current, cur_scr, o, screened, say):
                         max_iterations=o.refit_iterations, say=say)  # fmt: skip
             fits[rest] = fit
         kw = {"alpha": o.alpha, "misfit_alpha": o.misfit_alpha,
-              "confounded_above": o.confounded_above}  # fmt: skip
+              "confounded_above": o.confounded_above, "by_scan": prob.imaged_unlike}  # fmt: skip
         scr = screen(fit.fields, prob.points, absorbed=_columns_of(fit.fields, rest), **kw)
         if eff not in [s[0] for s in _significant_effects(scr)]:
             say(f"pruned {eff}: not significant once {', '.join(rest)} is in the model")
@@ -1366,7 +1370,7 @@ def _intervals(fit: Refit, prob: Problem) -> dict:
     r = f.stack(f.residual)
     A = np.column_stack([fit.jacobian(), offset_columns(sample)])
     r_c = r - offset_columns(sample) @ np.linalg.lstsq(offset_columns(sample), r, rcond=None)[0]
-    noise = session_noise(sample, r_c)
+    noise = session_noise(sample, r_c, by_scan=prob.imaged_unlike)
     x = np.concatenate([fit.x, np.zeros(A.shape[1] - len(fit.x))])
     try:
         alt = noise.alternatives

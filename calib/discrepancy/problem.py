@@ -186,6 +186,9 @@ class Problem:
         (mm; ``mesh_error="absorbed"``, :func:`calib.discrepancy.fields.discretisation_field`):
         the shape of the model mesh's own discretisation error, projected out of every
         test. Empty: not used (the default).
+    imaging_noise_mm : dict of str to float
+        Per diagnosis scan, its imaging's surface noise in relative terms
+        (:func:`imaging_noise_mm`; scans without the ingest figures left out).
     """
 
     work: WorkFolder
@@ -209,6 +212,17 @@ class Problem:
     mesh_max_dihedral_deg: float | None = None
     mesh_failed: list = field(default_factory=list)
     discretisation: dict = field(default_factory=dict)
+    imaging_noise_mm: dict = field(default_factory=dict)
+
+    @property
+    def imaged_unlike(self) -> bool:
+        """Whether the diagnosis scans' imaging noise differs (:data:`IMAGED_UNLIKE_RATIO`).
+
+        The noise model then gives each scan its own level
+        (:meth:`calib.stats.NoiseFit.scaled`); else one level for every scan.
+        """
+        v = [self.imaging_noise_mm[n] for n in self.scans if n in self.imaging_noise_mm]
+        return len(v) > 1 and max(v) > IMAGED_UNLIKE_RATIO * min(v)
 
     @property
     def same_mesh(self) -> bool:
@@ -623,6 +637,34 @@ def _registration_tolerance(work: WorkFolder, name: str) -> float:
     return 3.0 * tre + 0.5 * float(voxel)
 
 
+#: The diagnosis scans are imaged unlike where one's :func:`imaging_noise_mm` is more than
+#: this many times another's. The quick twins' scans, rendered alike: 1.13 at most (image
+#: noise 0.039-0.044 of the body level, 1.5 mm voxels).
+IMAGED_UNLIKE_RATIO = 1.5
+
+
+def imaging_noise_mm(work: WorkFolder, name: str) -> float | None:
+    """A scan's surface noise from its imaging alone: voxel size times image noise (mm).
+
+    The root mean square of the voxel edges (a voxel's extent along a surface normal in
+    no particular direction) times the image noise relative to the body level
+    (ingest.json ``voxel_size_mm``, ``quality.seg_noise_sigma_rel``): a surface placed by
+    a partial-volume edge moves by about the noise over the edge's slope, the body level
+    over a voxel. The quick twin in 4 mm slices against 1.5 mm voxels: an rms edge 1.74
+    times longer at the same image noise (SNR 24.8 against 22.7-25.6), and a calibration
+    residual's sd 2 times larger (0.53 against 0.26 mm: ``benchmarks/bench_slices.py``).
+    A relative measure, for comparing the scans of one
+    session, and independent of the model (a residual's own short-lag spread is not:
+    :func:`calib.stats.noise.session_noise`). None without those figures.
+    """
+    doc = json.loads((Path(work.path) / "scans" / name / "ingest.json").read_text())
+    voxel = doc.get("voxel_size_mm")
+    noise = (doc.get("quality") or {}).get("seg_noise_sigma_rel")
+    if not voxel or noise is None or not np.isfinite(noise) or noise <= 0:
+        return None
+    return float(np.sqrt(np.mean(np.square(np.asarray(voxel, float)))) * noise)
+
+
 def failed_scans(work: WorkFolder) -> dict[str, str]:
     """The calibration's scans with no FE solution at its c1, with the reason (by name)."""
     scans = work.record["scans"].items()
@@ -919,6 +961,7 @@ def build_problem(
     ref = work.measurements.reference  # facets carry their gap to the scanned surface
     sim = SimulatedSurface.of(mesh).curved(mesh.nodes_mm, ref.vertices_mm, ref.faces)
     tolerance = {n: _registration_tolerance(work, n) for n in points}
+    imaging = {n: v for n in points if (v := imaging_noise_mm(work, n)) is not None}
     return Problem(
         work=work, fm=fm, base=base, sim=sim, points=points,
         centres=centres, scans=scans, holdout=held,
@@ -929,5 +972,5 @@ def build_problem(
         body_height_mm=float(plate_height_mm(ref, ref.vertices_mm).max()),
         mesh_max_dihedral_deg=None if chosen.max_dihedral_deg is None
         else float(chosen.max_dihedral_deg),
-        mesh_failed=chosen.failed,
+        mesh_failed=chosen.failed, imaging_noise_mm=imaging,
     )  # fmt: skip

