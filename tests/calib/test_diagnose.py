@@ -2131,7 +2131,7 @@ def test_the_calibration_s_mesh_bound_widens_c1_only_on_its_own_mesh():
     width = {}
     for nodes in (100, 140):
         mesh = SimpleNamespace(n_nodes=nodes)
-        prob = SimpleNamespace(points=_points(sample), work=work, mesh=mesh)
+        prob = SimpleNamespace(points=_points(sample), work=work, mesh=mesh, imaged_unlike=False)
         theta = _intervals(fit, prob)["theta"]
         assert theta["gci_ln_c1"] == (0.05 if nodes == 100 else None)
         lo, hi = theta["c1_ci95_pa"]
