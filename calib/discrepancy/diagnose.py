@@ -81,6 +81,7 @@ from .problem import (
     Problem,
     build_problem,
     failed_scans,
+    inclusions_left_out,
     plate_height_mm,
     rim_margin_of,
 )
@@ -539,6 +540,8 @@ class Diagnosis:
                 "max_dihedral_deg": prob.mesh_max_dihedral_deg,
                 "n_tets": prob.mesh.n_tets,
                 "error": self.mesh_error_record or None,
+                "inclusions": len(prob.inclusions),
+                "inclusions_left_out": inclusions_left_out(prob.work),
             },
             "scans": {
                 "diagnosis": list(prob.scans),

@@ -613,16 +613,39 @@ def _loaded_nodes(work: WorkFolder) -> np.ndarray:
 
 
 def reference_inclusions(work: WorkFolder) -> list[tuple[np.ndarray, float]]:
-    """Inclusions ingest detected in the reference scan: (centre mm, diameter mm), ref frame."""
+    """Inclusions ingest detected in the reference scan: (centre mm, diameter mm), ref frame.
+
+    The ``inclusions`` effect tags these, all at one stiffness ratio; regions of inclusion
+    contrast larger than ingest accepts (:func:`inclusions_left_out`) are said.
+    """
     ref = work.measurements.reference
     path = Path(work.path) / "scans" / ref.name / "ingest.json"
     doc = json.loads(path.read_text())
+    if left := inclusions_left_out(work):
+        log.warning(
+            "%s: ingest left out %d region(s) of inclusion contrast too large for an "
+            "inclusion (ingest.json quality.inclusions_too_large): the inclusions effect "
+            "tags only the %d it found",
+            path,
+            left,
+            len(doc.get("inclusions") or []),
+        )
     T = ref.T_ref_from_scan
     out = []
     for inc in doc.get("inclusions") or []:
         c = np.asarray(inc["centre_lps_mm"], float)
         out.append((T[:3, :3] @ c + T[:3, 3], float(inc["diameter_mm"])))
     return out
+
+
+def inclusions_left_out(work: WorkFolder) -> int:
+    """Regions of inclusion contrast too large for ingest in the reference scan.
+
+    0 where an older ingest did not count them (``quality.inclusions_too_large``).
+    """
+    path = Path(work.path) / "scans" / work.measurements.reference.name / "ingest.json"
+    quality = json.loads(path.read_text()).get("quality") or {}
+    return int(quality.get("inclusions_too_large") or 0)
 
 
 def _registration_tolerance(work: WorkFolder, name: str) -> float:

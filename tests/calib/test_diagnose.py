@@ -2179,3 +2179,26 @@ def test_scans_imaged_unlike_are_told_from_their_imaging_not_their_residual(tmp_
         prob = SimpleNamespace(scans=scans, imaging_noise_mm=known)
         assert Problem.imaged_unlike.fget(prob) is unlike
     assert 1.13 < IMAGED_UNLIKE_RATIO < noise["thick"] / noise["lat"]
+
+
+def test_inclusions_too_large_for_ingest_are_said_to_be_left_out(tmp_path, caplog):
+    # review W: the inclusions effect tags what ingest found; a region of inclusion
+    # contrast larger than ingest accepts was left out of it without a word in diagnose
+    import json
+
+    from calib.discrepancy.problem import inclusions_left_out, reference_inclusions
+
+    (tmp_path / "scans" / "ref").mkdir(parents=True)
+    inclusion = {"centre_lps_mm": [1.0, 2.0, 3.0], "diameter_mm": 8.0}
+    doc = {"inclusions": [inclusion], "quality": {"inclusions_too_large": 1}}
+    (tmp_path / "scans" / "ref" / "ingest.json").write_text(json.dumps(doc))
+    ref = SimpleNamespace(name="ref", T_ref_from_scan=np.eye(4))
+    work = SimpleNamespace(path=tmp_path, measurements=SimpleNamespace(reference=ref))
+    with caplog.at_level("WARNING", logger="calib.discrepancy.problem"):
+        (inc,) = reference_inclusions(work)
+    assert inc[1] == 8.0 and inclusions_left_out(work) == 1
+    assert "left out 1 region(s) of inclusion contrast too large" in caplog.text
+    assert "tags only the 1 it found" in caplog.text
+    del doc["quality"]  # an older ingest: not counted
+    (tmp_path / "scans" / "ref" / "ingest.json").write_text(json.dumps(doc))
+    assert inclusions_left_out(work) == 0
