@@ -471,7 +471,8 @@ class StaleIngestError(RuntimeError):
 #: the body spans in few slices, markers apart from the body down to 1.3 times its level,
 #: the back plane's voxel depth (``back_plane.voxel_depth_mm``, the clamped face's
 #: tolerance on thick slices). 5: a nipple bump looked for over the body's upper half
-#: where none stands within 12 mm of the highest point (``quality.nipple_method``).
+#: where none stands within 12 mm of the highest point (``quality.nipple_method``), and
+#: the regions too large for an inclusion counted (``quality.inclusions_too_large``).
 INGEST_REVISION = 5
 
 
