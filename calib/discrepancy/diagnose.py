@@ -103,12 +103,26 @@ log = logging.getLogger(__name__)
 DEFAULT_EFFECTS = (
     "skin", "sliding", "inclusions", "mooney", "poisson", "density", "gravity", "registration",
 )  # fmt: skip
+#: The noise model's short range (mm): the tests' variogram reaches to NOISE_LAG_MM, the
+#: noise floor's to FLOOR_LAG_MM, both for the twins' 75 mm tall body and scaled with the
+#: body's height like the regions (:func:`_scale`: 1 for every twin; review W: on a body
+#: half as tall, 40 mm let the noise model absorb a misfit the misfit test then missed
+#: in 5 of 8 draws).
+NOISE_LAG_MM = 40.0
 FLOOR_LAG_MM = 20.0
 #: ``DiagnosisOptions.noise_profile``'s choices.
 NOISE_PROFILES = ("flat", "plate")
 #: ``DiagnosisOptions.mesh_error``'s choices.
 MESH_ERRORS = ("ignored", "absorbed")
-MAP_KERNEL_MM = 10.0  # the significance map's smoothing (a pad's print, a rim band)
+MAP_KERNEL_MM = 10.0  # the significance map's smoothing (a pad's print, a rim band), scaled
+
+
+def _scale(prob: Problem) -> float:
+    """The body's size relative to the twins' (1 where its height is not measured).
+
+    :func:`calib.discrepancy.localise.region_scale` of the body's height.
+    """
+    return region_scale(prob.body_height_mm) if prob.body_height_mm > 0 else 1.0
 
 
 @dataclass(frozen=True)
@@ -563,7 +577,7 @@ class Diagnosis:
                 "by_scan": self.screen.noise.by_scan,
                 "floor_rms_mm": float(np.sqrt(max(self.floor_mm2, 0.0))),
                 "floor_mean_abs_mm": floor,
-                "floor_max_lag_mm": FLOOR_LAG_MM,
+                "floor_max_lag_mm": FLOOR_LAG_MM * _scale(prob),
                 "explained_floor_rms_mm": float(np.sqrt(max(self.explained_floor_mm2, 0.0))),
                 "height_profile": None if prob.profile is None else prob.profile.as_json(),
             },
@@ -672,7 +686,8 @@ def _noise_var(fields: FieldSet, prob: Problem, keep: dict | None = None) -> flo
         fields = replace(fields, residual=kept)
     sample = sample_of(fields, points)
     r = np.concatenate([fields.residual[n] - fields.residual[n].mean() for n in fields.scans])
-    fit = session_noise(sample, r, max_lag_mm=FLOOR_LAG_MM, by_scan=prob.imaged_unlike)
+    lag = FLOOR_LAG_MM * _scale(prob)
+    fit = session_noise(sample, r, max_lag_mm=lag, by_scan=prob.imaged_unlike)
     return fit.variance_mm2(sample)
 
 
@@ -787,6 +802,7 @@ def diagnose(
         log.warning(none_tested)
     kw = {"alpha": o.alpha, "misfit_alpha": o.misfit_alpha, "confounded_above": o.confounded_above}
     kw["by_scan"] = prob.imaged_unlike  # each scan at its own noise level
+    kw["max_lag_mm"] = NOISE_LAG_MM * _scale(prob)
     scr0 = screen(null.fields, prob.points, **kw)
     nb = scr0.noise.best
     say(f"noise: {nb.kernel}, sd {nb.sigma_mm:.3f} mm, length {nb.length_mm:.1f} mm; misfit "
@@ -1164,7 +1180,8 @@ def _prune(prob, named, fits, current, cur_scr, o, screened, say):
                         max_iterations=o.refit_iterations, say=say)  # fmt: skip
             fits[rest] = fit
         kw = {"alpha": o.alpha, "misfit_alpha": o.misfit_alpha,
-              "confounded_above": o.confounded_above, "by_scan": prob.imaged_unlike}  # fmt: skip
+              "confounded_above": o.confounded_above, "by_scan": prob.imaged_unlike,
+              "max_lag_mm": NOISE_LAG_MM * _scale(prob)}  # fmt: skip
         scr = screen(fit.fields, prob.points, absorbed=_columns_of(fit.fields, rest), **kw)
         if eff not in [s[0] for s in _significant_effects(scr)]:
             say(f"pruned {eff}: not significant once {', '.join(rest)} is in the model")
@@ -1230,7 +1247,7 @@ def _localise(prob: Problem, null: Refit, noise: NoiseFit) -> dict:
             pts, r = np.vstack([pts, rim[n]]), np.concatenate([r, r_rim])
         labels = _scan_regions(prob, n, pts)
         out[n] = significance_map(n, pts, r - centre, labels, model,
-                                  bandwidth_mm=MAP_KERNEL_MM)  # fmt: skip
+                                  bandwidth_mm=MAP_KERNEL_MM * _scale(prob))  # fmt: skip
     return out
 
 
@@ -1373,7 +1390,9 @@ def _intervals(fit: Refit, prob: Problem) -> dict:
     r = f.stack(f.residual)
     A = np.column_stack([fit.jacobian(), offset_columns(sample)])
     r_c = r - offset_columns(sample) @ np.linalg.lstsq(offset_columns(sample), r, rcond=None)[0]
-    noise = session_noise(sample, r_c, by_scan=prob.imaged_unlike)
+    noise = session_noise(
+        sample, r_c, by_scan=prob.imaged_unlike, max_lag_mm=NOISE_LAG_MM * _scale(prob)
+    )
     x = np.concatenate([fit.x, np.zeros(A.shape[1] - len(fit.x))])
     try:
         alt = noise.alternatives

@@ -54,7 +54,7 @@ def region_scale(body_height_mm: float) -> float:
     -------
     float
         ``body_height_mm / REGION_BODY_HEIGHT_MM`` rounded to one decimal (at least 0.1):
-        1 for every twin (heights 71-78 mm), so their regions are as before.
+        1 for every twin (heights 71.3-78.7 mm), so their regions are as before.
     """
     if not (np.isfinite(body_height_mm) and body_height_mm > 0):
         raise ValueError(f"body height must be positive, got {body_height_mm!r} mm")

@@ -180,6 +180,7 @@ def screen(
     confounded_above: float = 0.9,
     noise: NoiseFit | None = None,
     by_scan: bool = False,
+    max_lag_mm: float = 40.0,
 ) -> Screen:
     """Screen the columns of ``fields`` (default all) at its fit.
 
@@ -205,6 +206,8 @@ def screen(
     by_scan : bool
         The scans are imaged unlike: each gets its own noise level
         (:func:`calib.stats.noise.session_noise`).
+    max_lag_mm : float
+        The noise model's variogram reaches this far (mm).
 
     Returns
     -------
@@ -214,7 +217,7 @@ def screen(
     r = fields.stack(fields.residual)
     J = _conditioned_on(fields, sample, absorbed)
     r_c = r - offset_columns(sample) @ _scan_means(sample, r)
-    fit = noise or session_noise(sample, r_c, by_scan=by_scan)
+    fit = noise or session_noise(sample, r_c, by_scan=by_scan, max_lag_mm=max_lag_mm)
     alt = fit.alternatives
     misfit = _misfit_test(r, J, sample, fit.best_arg, alpha=misfit_alpha, alternatives=alt)
     skip = (*absorbed, *_always(fields))
