@@ -2206,8 +2206,9 @@ def test_inclusions_too_large_for_ingest_are_said_to_be_left_out(tmp_path, caplo
 
 def test_the_noise_model_s_range_follows_the_body_s_size():
     # review W: the variograms reached 40 mm (tests) and 20 mm (floor) on any body; on one
-    # half the twins' height the noise model absorbed a misfit the misfit test then
-    # missed in 5 of 8 draws. They scale like the regions: 1 for every twin (72-78 mm)
+    # half the twins' height the noise model took part of a misfit for noise (its length
+    # 5.4 mm for a truth of 3; 3.0 with 20 mm lags). They scale like the regions: 1 for
+    # every twin (72-78 mm)
     from calib.discrepancy.diagnose import FLOOR_LAG_MM, NOISE_LAG_MM, _scale
 
     for height, k in ((75.0, 1.0), (72.0, 1.0), (78.0, 1.0), (37.5, 0.5), (150.0, 2.0)):
