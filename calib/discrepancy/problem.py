@@ -826,6 +826,29 @@ def plate_height_mm(scan, points_mm: np.ndarray) -> np.ndarray:
 RIM_BLUR_MM = 1.5
 
 
+def _say_coarse(where, size_mm: float, height_mm: float) -> bool:
+    """Warn where a model mesh leaves the body few elements tall; whether it did.
+
+    :data:`calib.model.reference.MIN_ELEMENTS_IN_HEIGHT`, as ``calibrate`` says of its
+    own mesh (review W: a fallback size of the diagnosis was not said).
+    """
+    from ..model.reference import MIN_ELEMENTS_IN_HEIGHT
+
+    if height_mm >= MIN_ELEMENTS_IN_HEIGHT * size_mm:
+        return False
+    log.warning(
+        "%s: the diagnosis' model mesh of %g mm leaves the %.0f mm tall body %.1f elements "
+        "tall, fewer than %g; --mesh-size %.0f is about as fine as the twins'",
+        where,
+        size_mm,
+        height_mm,
+        height_mm / size_mm,
+        MIN_ELEMENTS_IN_HEIGHT,
+        height_mm / 6.0,
+    )
+    return True
+
+
 def _off_the_rim(scan, n_pts: int, seed: int, margin_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """The calibration's seeded surface points of a scan: beyond the rim margin, within it.
 
@@ -985,6 +1008,9 @@ def build_problem(
     sim = SimulatedSurface.of(mesh).curved(mesh.nodes_mm, ref.vertices_mm, ref.faces)
     tolerance = {n: _registration_tolerance(work, n) for n in points}
     imaging = {n: v for n in points if (v := imaging_noise_mm(work, n)) is not None}
+    height = float(plate_height_mm(ref, ref.vertices_mm).max())
+    if note:  # another mesh than calibrate's, which said so of its own
+        _say_coarse(work.path, size, height)
     return Problem(
         work=work, fm=fm, base=base, sim=sim, points=points,
         centres=centres, scans=scans, holdout=held,
@@ -992,7 +1018,7 @@ def build_problem(
         skin_thickness_mm=float(skin_thickness_mm), registration_tolerance_mm=tolerance,
         mesh_note=note, rim_margin_mm=margin, mesh_size_mm=float(size),
         rim_points={n: within for n, (_, within) in split.items()},
-        body_height_mm=float(plate_height_mm(ref, ref.vertices_mm).max()),
+        body_height_mm=height,
         mesh_max_dihedral_deg=None if chosen.max_dihedral_deg is None
         else float(chosen.max_dihedral_deg),
         mesh_failed=chosen.failed, imaging_noise_mm=imaging,

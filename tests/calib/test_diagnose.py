@@ -2215,3 +2215,15 @@ def test_the_noise_model_s_range_follows_the_body_s_size():
         assert _scale(SimpleNamespace(body_height_mm=height)) == k
     assert _scale(SimpleNamespace(body_height_mm=0.0)) == 1.0  # not measured
     assert (NOISE_LAG_MM, FLOOR_LAG_MM) == (40.0, 20.0)
+
+
+def test_a_diagnosis_mesh_few_elements_tall_is_said(caplog):
+    # review W: a fallback or asked size of the diagnosis' model mesh that leaves the body
+    # fewer than 4 elements tall was not said (calibrate says so of its own)
+    from calib.discrepancy.problem import _say_coarse
+
+    with caplog.at_level("WARNING", logger="calib.discrepancy.problem"):
+        assert not _say_coarse("W", 14.0, 75.0)  # the quick twins: 5.4 elements
+        assert _say_coarse("W", 16.0, 40.0)  # a small body on a fallback size: 2.5
+    assert "leaves the 40 mm tall body 2.5 elements tall, fewer than 4" in caplog.text
+    assert "--mesh-size 7" in caplog.text
