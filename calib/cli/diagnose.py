@@ -7,6 +7,7 @@ from typing import Annotated
 
 import typer
 
+from ..model.effects import SKIN_THICKNESS_MM
 from .app import app, fail
 
 
@@ -45,11 +46,12 @@ def diagnose(
         float,
         typer.Option(
             "--skin-thickness",
-            help="Thickness (mm) of the skin effect's stiffer outer band (default 1.5). The "
+            help=f"Thickness (mm) of the skin effect's stiffer outer band (default "
+            f"{SKIN_THICKNESS_MM:g}). The "
             "surface sees about (ratio - 1) x thickness of a thin layer: the fitted ratio "
             "stands for that product at this thickness (diagnosis.json: excess_mm).",
         ),
-    ] = 1.5,
+    ] = SKIN_THICKNESS_MM,
     explained_margin: Annotated[
         str | None,
         typer.Option(

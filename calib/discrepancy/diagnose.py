@@ -564,7 +564,7 @@ class Diagnosis:
                 "excluded": failed_scans(prob.work),
                 "imaging_noise_mm": prob.imaging_noise_mm,
                 "rim_margin_mm": prob.rim_margin_mm,
-                "region_scale": region_scale(prob.body_height_mm),
+                "region_scale": _scale(prob),
                 "explained_margin_mm": self.explained_margin_mm,
             },
             "null_fit": _fit_json(self.null),
@@ -1271,7 +1271,7 @@ def _scan_regions(prob: Problem, name: str, points_mm: np.ndarray) -> np.ndarray
         (T[:3, :3] @ np.asarray(i["centre_lps_mm"], float) + T[:3, 3], float(i["diameter_mm"]))
         for i in doc.get("inclusions") or []
     ]
-    k = region_scale(prob.body_height_mm)
+    k = _scale(prob)
     if s.tumour_mm is not None:
         spheres.append((s.tumour_mm, 10.0 * k))
     return region_labels(
@@ -1391,9 +1391,11 @@ def _intervals(fit: Refit, prob: Problem) -> dict:
     r = f.stack(f.residual)
     A = np.column_stack([fit.jacobian(), offset_columns(sample)])
     r_c = r - offset_columns(sample) @ np.linalg.lstsq(offset_columns(sample), r, rcond=None)[0]
-    noise = session_noise(
-        sample, r_c, by_scan=prob.imaged_unlike, max_lag_mm=NOISE_LAG_MM * _scale(prob)
-    )
+    # one level even for scans imaged unlike: the refit is unweighted least squares, and
+    # the series estimator takes each scan's scale from its residual (two scans of white
+    # noise at 0.1 and 0.3 mm: the sandwich's 0.0272 to three digits; per-scan levels
+    # gave 0.0259)
+    noise = session_noise(sample, r_c, max_lag_mm=NOISE_LAG_MM * _scale(prob))
     x = np.concatenate([fit.x, np.zeros(A.shape[1] - len(fit.x))])
     try:
         alt = noise.alternatives
@@ -1414,7 +1416,7 @@ def _intervals(fit: Refit, prob: Problem) -> dict:
             # mesh (--mesh-size, --inclusion-mesh, a fallback size) it is not this one's
             # (review W), and none is added
             check = (prob.work.record.get("uncertainty") or {}).get("mesh_check") or {}
-            own = prob.mesh.n_nodes == prob.work.mesh.n_nodes
+            own = prob.own_mesh
             gci = (check.get("gci_ln_c1") or 0.0) if own else 0.0
             lo, hi = (float(np.hypot(v - b, gci)) for b in (iv.lower, iv.upper))
             entry["c1_ci95_pa"] = [float(np.exp(v - lo)), float(np.exp(v + hi))]

@@ -225,6 +225,14 @@ class Problem:
         return len(v) > 1 and max(v) > IMAGED_UNLIKE_RATIO * min(v)
 
     @property
+    def own_mesh(self) -> bool:
+        """Whether the diagnosis' model mesh is the calibration's (its reference may not be).
+
+        What the calibration measured of its mesh (the mesh check's GCI) holds for it.
+        """
+        return self.mesh.n_nodes == self.work.mesh.n_nodes
+
+    @property
     def same_mesh(self) -> bool:
         """Whether the diagnosis runs on the calibration's model (mesh and reference).
 
@@ -232,7 +240,7 @@ class Problem:
         calibration diagnosed with a straight stress-free reference): the gap's before
         is then c1 alone solved on the diagnosis model, not the calibration's states.
         """
-        return self.mesh.n_nodes == self.work.mesh.n_nodes and not self.mesh_note
+        return self.own_mesh and not self.mesh_note
 
     @property
     def sliding_probe_pa_per_mm(self) -> float:
@@ -1007,9 +1015,9 @@ def build_problem(
     ref = work.measurements.reference  # facets carry their gap to the scanned surface
     sim = SimulatedSurface.of(mesh).curved(mesh.nodes_mm, ref.vertices_mm, ref.faces)
     tolerance = {n: _registration_tolerance(work, n) for n in points}
-    imaging = {n: v for n in points if (v := imaging_noise_mm(work, n)) is not None}
+    imaging = {n: v for n in scans if (v := imaging_noise_mm(work, n)) is not None}
     height = float(plate_height_mm(ref, ref.vertices_mm).max())
-    if note:  # another mesh than calibrate's, which said so of its own
+    if size != calibration_mesh_mm(record):  # calibrate said so of its own size
         _say_coarse(work.path, size, height)
     return Problem(
         work=work, fm=fm, base=base, sim=sim, points=points,

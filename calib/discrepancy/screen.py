@@ -217,6 +217,8 @@ def screen(
     r = fields.stack(fields.residual)
     J = _conditioned_on(fields, sample, absorbed)
     r_c = r - offset_columns(sample) @ _scan_means(sample, r)
+    if noise is not None and noise.by_scan != by_scan:
+        raise ValueError(f"a reused noise model has by_scan={noise.by_scan}, asked {by_scan}")
     fit = noise or session_noise(sample, r_c, by_scan=by_scan, max_lag_mm=max_lag_mm)
     alt = fit.alternatives
     misfit = _misfit_test(r, J, sample, fit.best_arg, alpha=misfit_alpha, alternatives=alt)

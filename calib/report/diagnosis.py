@@ -441,6 +441,7 @@ def format_diagnosis(doc: dict) -> str:
         if g.get("failed"):
             lines.append(f"{name} ({g['role']}): {g['failed']}")
     lines.append(f"noise floor (mean |e|) {doc['noise']['floor_mean_abs_mm']:.3f} mm")
+    lines.extend(_caveats(doc))
     if profile := _profile(doc):
         lines.append(profile)
     if mesh_error := _mesh_error(doc):
@@ -561,6 +562,24 @@ def _rim(doc: dict) -> str:
         f"points within {margin:g} mm (the clamped edge) are mapped, but neither fitted nor "
         "tested."
     )
+
+
+def _caveats(doc: dict) -> list[str]:
+    """What the diagnosis left out or weighted apart (keys of newer diagnoses only)."""
+    out = []
+    if excluded := doc["scans"].get("excluded"):
+        why = "; ".join(f"{n} ({reason})" for n, reason in excluded.items())
+        out.append(f"left out, no FE solution at the calibrated c1: {why}")
+    if doc["noise"].get("by_scan"):
+        levels = doc["scans"].get("imaging_noise_mm") or {}
+        each = ", ".join(f"{n} {v:.3g}" for n, v in levels.items())
+        out.append(f"scans imaged unlike (voxel x image noise {each}): each tested at its level")
+    if left := doc["model_mesh"].get("inclusions_left_out"):
+        out.append(
+            f"the inclusions effect leaves out {left} region(s) of inclusion contrast too large "
+            "for ingest (more than 15 mm)"
+        )
+    return out
 
 
 def nuisance_only_hint(doc: dict) -> str:

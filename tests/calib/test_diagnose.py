@@ -2028,12 +2028,15 @@ def test_a_diagnosis_model_said_to_differ_is_not_the_calibrations_own():
     from calib.discrepancy.problem import Problem
 
     mesh = SimpleNamespace(n_nodes=100)
-    same = Problem.same_mesh.fget
-    assert same(SimpleNamespace(mesh=mesh, work=SimpleNamespace(mesh=mesh), mesh_note=""))
-    noted = SimpleNamespace(mesh=mesh, work=SimpleNamespace(mesh=mesh), mesh_note="prestressed")
-    assert not same(noted)
-    other = SimpleNamespace(mesh=SimpleNamespace(n_nodes=90), work=SimpleNamespace(mesh=mesh))
-    assert not same(SimpleNamespace(**vars(other), mesh_note=""))
+
+    def same(diagnosis_mesh, note):
+        prob = SimpleNamespace(mesh=diagnosis_mesh, work=SimpleNamespace(mesh=mesh), mesh_note=note)
+        prob.own_mesh = Problem.own_mesh.fget(prob)
+        return prob.own_mesh, Problem.same_mesh.fget(prob)
+
+    assert same(mesh, "") == (True, True)
+    assert same(mesh, "prestressed") == (True, False)  # its own mesh, another reference
+    assert same(SimpleNamespace(n_nodes=90), "") == (False, False)
 
 
 def test_a_diagnosis_refit_is_not_diagnosed_as_a_calibration():
@@ -2131,7 +2134,8 @@ def test_the_calibration_s_mesh_bound_widens_c1_only_on_its_own_mesh():
     width = {}
     for nodes in (100, 140):
         mesh = SimpleNamespace(n_nodes=nodes)
-        prob = SimpleNamespace(points=_points(sample), work=work, mesh=mesh, imaged_unlike=False)
+        prob = SimpleNamespace(points=_points(sample), work=work, mesh=mesh, imaged_unlike=False,
+                               body_height_mm=75.0, own_mesh=nodes == 100)  # fmt: skip
         theta = _intervals(fit, prob)["theta"]
         assert theta["gci_ln_c1"] == (0.05 if nodes == 100 else None)
         lo, hi = theta["c1_ci95_pa"]
@@ -2227,3 +2231,85 @@ def test_a_diagnosis_mesh_few_elements_tall_is_said(caplog):
         assert _say_coarse("W", 16.0, 40.0)  # a small body on a fallback size: 2.5
     assert "leaves the 40 mm tall body 2.5 elements tall, fewer than 4" in caplog.text
     assert "--mesh-size 7" in caplog.text
+
+
+def test_scans_imaged_unlike_reach_the_floor_intervals_and_screen_at_their_levels(monkeypatch):
+    # review X: the per-scan levels and the scaled lags were tested in calib.stats only.
+    # Two scans, 0.1 and 0.3 mm of white noise, imaged unlike, a body half the twins'
+    # height: the floor is the points' mean of the two levels (not the quiet scan's), the
+    # variograms reach 20 and 10 mm, and the screen asks for the same; the intervals keep
+    # one level (the series estimator takes each scan's scale from its residual)
+    import importlib
+
+    from calib.discrepancy.diagnose import _intervals, _noise_var
+
+    diagnose_mod = importlib.import_module("calib.discrepancy.diagnose")  # not the function
+    screen_mod = importlib.import_module("calib.discrepancy.screen")
+
+    sample = phantom_sample(400, 2, seed=3)
+    J = sag_sensitivity(sample)
+    rng = np.random.default_rng(0)
+    r = rng.normal(0.0, 1.0, sample.n) * np.where(sample.scan == 0, 0.1, 0.3)
+    fields = _fields(sample, r, J, {})
+    work = SimpleNamespace(record={}, mesh=SimpleNamespace(n_nodes=1))
+    lags = []
+    real = diagnose_mod.session_noise
+
+    calls = []
+
+    def spy(*args, **kw):
+        lags.append(kw.get("max_lag_mm"))
+        calls.append(SimpleNamespace(kwargs=kw))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(diagnose_mod, "session_noise", spy)
+    floor, se = {}, {}
+    fit = SimpleNamespace(fields=fields, jacobian=lambda: J[:, None], x=np.zeros(1))
+    fit.names = ("theta",)
+    for unlike in (False, True):
+        prob = SimpleNamespace(points=_points(sample), imaged_unlike=unlike, work=work)
+        prob.body_height_mm, prob.mesh, prob.own_mesh = 37.5, SimpleNamespace(n_nodes=1), True
+        floor[unlike] = _noise_var(fields, prob)
+        se[unlike] = _intervals(fit, prob)["theta"]["standard_error"]
+    assert lags == [10.0, 20.0, 10.0, 20.0]  # FLOOR_LAG_MM and NOISE_LAG_MM, times 0.5
+    assert [c.kwargs.get("by_scan", False) for c in calls] == [False, False, True, False]
+    # one level: the quiet scan's variance; each scan at its own: their mean (0.05)
+    assert floor[False] == pytest.approx(0.01, rel=0.3)
+    assert floor[True] == pytest.approx(0.5 * (0.01 + 0.09), rel=0.3)
+    # the intervals: of the refit's unweighted estimate, the sandwich's standard error
+    # (white noise here, J less each scan's mean: the offsets), imaged alike or not
+    sigma = np.where(sample.scan == 0, 0.1, 0.3)
+    Jc = J - np.array([J[sample.scan == k].mean() for k in (0, 1)])[sample.scan]
+    sandwich = np.sqrt(np.sum(Jc**2 * sigma**2)) / np.sum(Jc**2)
+    assert se[False] == se[True] == pytest.approx(sandwich, rel=0.1)
+    seen = {}
+    real_screen_noise = screen_mod.session_noise
+
+    def screen_spy(*args, **kw):
+        seen.update(kw)
+        return real_screen_noise(*args, **kw)
+
+    monkeypatch.setattr(screen_mod, "session_noise", screen_spy)
+    screen_mod.screen(fields, _points(sample), by_scan=True, max_lag_mm=20.0)
+    assert (seen["by_scan"], seen["max_lag_mm"]) == (True, 20.0)
+    reused = screen_mod.screen(fields, _points(sample)).noise
+    with pytest.raises(ValueError, match="by_scan=False, asked True"):
+        screen_mod.screen(fields, _points(sample), noise=reused, by_scan=True)
+
+
+def test_the_summary_says_what_the_diagnosis_left_out_or_weighted_apart():
+    # review X: excluded scans, scans imaged unlike and inclusions left out were in the
+    # log and diagnosis.json only
+    from calib.report.diagnosis import _caveats
+
+    doc = {"scans": {}, "noise": {}, "model_mesh": {}}  # an older diagnosis: nothing said
+    assert _caveats(doc) == []
+    doc = {
+        "scans": {"excluded": {"flip": "Newton failed"}, "imaging_noise_mm": {"a": 0.066}},
+        "noise": {"by_scan": True},
+        "model_mesh": {"inclusions_left_out": 1},
+    }
+    said = "\n".join(_caveats(doc))
+    assert "no FE solution at the calibrated c1: flip (Newton failed)" in said
+    assert "scans imaged unlike (voxel x image noise a 0.066)" in said
+    assert "leaves out 1 region(s) of inclusion contrast" in said
