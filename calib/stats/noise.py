@@ -575,8 +575,8 @@ def session_noise(
     scan's mean semivariance over the quietest's, at the lags up to its
     :data:`LEVEL_BINS` shortest bins. They tell imaging noise from model misfit only in
     part: a misfit that varies over a model element adds to them too (the quick skin
-    twin, whose scans are imaged alike: 1.7 times the sd on its right lateral scan as on
-    its 50 degree one at lags under 2 mm). So they are used only where the caller knows
+    twin of seed 0, whose scans are imaged alike: 0.33 mm on its right lateral scan,
+    0.20 on its 50 degree one). So they are used only where the caller knows
     the scans are imaged unlike (another slice thickness, coil or SNR: ``by_scan``);
     then :meth:`NoiseFit.scaled` gives each scan the fit's correlation at its own level,
     and each scan's own fit is one more alternative (:attr:`NoiseFit.alternatives`).

@@ -2157,7 +2157,7 @@ def test_the_report_s_rim_band_is_the_one_the_maps_use():
 def test_scans_imaged_unlike_are_told_from_their_imaging_not_their_residual(tmp_path):
     # review W: one noise level for every scan made a noisier scan's columns screen
     # significant on noise. The residual's own short-lag spread cannot say so (on the
-    # quick skin twin, imaged alike, it was 0.52 mm on the right lateral scan and 0.20
+    # quick skin twin, imaged alike, it was 0.33 mm on the right lateral scan and 0.20
     # on the 50 degree one: element-scale misfit), so the imaging says: voxel size x
     # image noise (the quick twins: 1.13 at most between scans, under 1.5)
     import json
