@@ -684,9 +684,9 @@ def imaging_noise_mm(work: WorkFolder, name: str) -> float | None:
     over a voxel. The quick twin in 4 mm slices against 1.5 mm voxels: an rms edge 1.74
     times longer at the same image noise (SNR 24.8 against 22.7-25.6), and a calibration
     residual's sd 2 times larger (0.53 against 0.26 mm: ``benchmarks/bench_slices.py``).
-    A relative measure, for comparing the scans of one
-    session, and independent of the model (a residual's own short-lag spread is not:
-    :func:`calib.stats.noise.session_noise`). None without those figures.
+    A relative measure, for comparing the scans of one session, and independent of the
+    model (a residual's own short-lag spread is not: :func:`calib.stats.noise.session_noise`).
+    None without those figures.
     """
     doc = json.loads((Path(work.path) / "scans" / name / "ingest.json").read_text())
     voxel = doc.get("voxel_size_mm")

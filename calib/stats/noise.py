@@ -229,7 +229,7 @@ class NoiseFit:
     variogram : Variogram
     scan_sd_mm : mapping of int to float, optional
         Per scan label, its noise level in this fit's terms: the fit's sd times the
-        square root of the scan's semivariance over this scan's at the shortest lags
+        square root of the scan's semivariance over the fit's scan's at the shortest lags
         (:func:`session_noise`; None for a fit of its own).
     scan_fits : mapping of int to NoiseModel, optional
         Each scan's own best fit (:func:`session_noise`): with :attr:`by_scan`, one more
@@ -251,7 +251,7 @@ class NoiseFit:
     by_scan: bool = False
 
     def scaled(self, model: NoiseModel) -> NoiseArg:
-        """``model`` for every scan, or one per scan at its level where levels differ.
+        """``model`` for every scan, or one per scan at its level (:attr:`by_scan`).
 
         Parameters
         ----------
@@ -271,7 +271,7 @@ class NoiseFit:
 
     @property
     def best_arg(self) -> NoiseArg:
-        """:meth:`scaled` of :attr:`best`: what the tests, maps and intervals use."""
+        """:meth:`scaled` of :attr:`best`: what diagnose's tests, maps and floor use."""
         return self.scaled(self.best)
 
     @property
