@@ -126,6 +126,7 @@ def detect_fiducials(
         low, _ = ndimage.label(ns > MARKER_RATIO_APART)
         touching = np.unique(low[body])
         low[np.isin(low, touching[touching > 0])] = 0
+        n_low = len(np.unique(low[low > 0]))  # candidate blobs apart from the body
         apart = _blobs(seg, low, radius_range_mm)
         apart_found = len(apart[0])
         if apart_found == expected:
@@ -144,6 +145,7 @@ def detect_fiducials(
             centres, radii, peaks, rejected = apart
             found = expected
             quality |= {"threshold": MARKER_RATIO_APART, "n_found": found, "apart": True}
+            quality["n_candidates"] = n_low
     if expected is not None and found > expected:
         keep = _clear_markers(np.array(peaks), expected)
         if keep is not None:

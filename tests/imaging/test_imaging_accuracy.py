@@ -154,6 +154,12 @@ def test_dim_markers_apart_from_the_body_are_found_and_said(oblique_scan, caplog
     true_fid = oblique_scan.to_scanner(oblique_scan.phantom.fiducial_centres_mm)
     err = np.linalg.norm(res.fiducials_lps_mm[:, None] - true_fid[None], axis=2).min(1)
     assert err.max() <= 0.2, err
+    # the detection's candidate count is the search's that found them (was the 2.0 one's)
+    from imaging.detect import detect_fiducials
+    from imaging.segment import segment_body
+
+    det = detect_fiducials(segment_body(dim))
+    assert det.quality["n_candidates"] == det.quality["n_found"] == 3
 
 
 def test_a_marker_beyond_the_crop_margin_is_found_and_a_vial_stays_out():
