@@ -189,7 +189,14 @@ def reference_mesh_with_support(
         log.info("TetGen rejected the decimated reference surface (%s)", exc)
         mesh, surface = _remeshed(ref, plane, sizing), "remeshed"
     if mesh is None:  # repaired, or remeshed on the coarse grid (fem.meshing says which)
-        mesh = tetrahedralize(v, f, keep_planes=[plane], **sizing)
+        try:
+            mesh = tetrahedralize(v, f, keep_planes=[plane], **sizing)
+        except fem.MeshError as exc:  # which scan, which size: TetGen's words say neither
+            raise fem.MeshError(
+                f"reference scan {ref.name!r} at {size_mm:g} mm: its surface decimated to "
+                f"{len(f)} faces, and remeshed on a {REMESH_GRID_MM:g} mm grid, were both "
+                f"rejected; {exc}"
+            ) from exc
         surface = "repaired"
     mesh = _with_back(mesh, p0, n, size_mm, ref.nipple_mm)
     back = len(mesh.node_set("back"))

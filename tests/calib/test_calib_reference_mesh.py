@@ -332,3 +332,16 @@ def test_a_base_terraced_by_thick_slices_along_a_tilted_plate_is_clamped_whole(c
     # the same face, its voxel depth unknown (or 1.5 mm): the tolerance stays 1 mm
     assert back_tolerance_mm(replace(ref, back_voxel_depth_mm=None), 1.0, 12.0) == 1.0
     assert back_tolerance_mm(replace(ref, back_voxel_depth_mm=1.5), 1.0, 12.0) == 1.0
+
+
+def test_a_surface_tetgen_rejects_every_way_names_the_scan_and_size(monkeypatch):
+    # review U: TetGen's failure messages named no scan and no size
+    import calib.model.reference as reference
+
+    def tetgen(v, f, **kw):
+        raise fem.MeshError("TetGen could not mesh the surface: as given: folded")
+
+    monkeypatch.setattr(reference, "tetrahedralize", tetgen)
+    ref = _dome_reference()
+    with pytest.raises(fem.MeshError, match=rf"reference scan {ref.name!r} at 12 mm: its surface"):
+        reference_mesh(ref, size_mm=12.0)
