@@ -668,7 +668,7 @@ def _judged_points(prob: Problem, margin: float | Literal["element"]) -> tuple[f
 
 
 def _scan_levels(noise: NoiseFit, scans) -> dict:
-    """Each scan's short-lag noise sd (mm) by name (the screen's labels: ``scans``' order)."""
+    """Each scan's noise level (mm, ``NoiseFit.scan_sd_mm``) by name (``scans``' order)."""
     return {n: float(noise.scan_sd_mm[k]) for k, n in enumerate(scans)}
 
 
@@ -812,8 +812,8 @@ def diagnose(
         levels = _scan_levels(scr0.noise, null.fields.scans)
         log.warning(
             "the scans are imaged unlike (voxel size x image noise: %s): each is tested, "
-            "mapped and floored at its own noise level (sd at short lags: %s), with the "
-            "correlation of the quietest",
+            "mapped and floored at its own noise level (%s, from its shortest lags), with "
+            "the correlation of the quietest, or its own where that is more conservative",
             ", ".join(f"{n} {v:.3g}" for n, v in prob.imaging_noise_mm.items()),
             ", ".join(f"{n} {v:.3f} mm" for n, v in levels.items()),
         )
