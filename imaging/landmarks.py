@@ -347,8 +347,7 @@ def find_nipple(
 
     tree = cKDTree(v)
     near = np.asarray(tree.query_ball_point(v[k], search_radius_mm), dtype=int)
-    frames = [_local_frame(v[tree.query_ball_point(v[i], fit_radius_mm)], n) for i in near]
-    bump = np.array([(v[i] - c) @ f[2] for i, (c, f) in zip(near, frames, strict=True)])
+    frames, bump = _protrusions(v, tree, near, n, fit_radius_mm)
     j = int(np.argmax(bump))
     quality = {"protrusion_mm": float(bump[j] - np.median(bump)), "method": "apex"}
     tip_frame = None
@@ -417,8 +416,7 @@ def _far_bump(v, h, tree, normal, fit_radius_mm: float, min_protrusion_mm: float
     top = np.flatnonzero(h >= FAR_BUMP_HEIGHT_SHARE * h.max())
     _, first = np.unique(np.floor(v[top] / FAR_BUMP_GRID_MM), axis=0, return_index=True)
     cand = top[np.sort(first)]
-    frames = [_local_frame(v[tree.query_ball_point(v[i], fit_radius_mm)], normal) for i in cand]
-    bump = np.array([(v[i] - c) @ f[2] for i, (c, f) in zip(cand, frames, strict=True)])
+    frames, bump = _protrusions(v, tree, cand, normal, fit_radius_mm)
     floor = float(np.median(bump)) + min_protrusion_mm
     for j in np.argsort(bump)[::-1]:
         if bump[j] < floor:
@@ -447,6 +445,17 @@ def _falls_all_around(d: np.ndarray, frame, radius_mm: float, fall_mm: float) ->
     highest[seen] = -np.inf
     np.maximum.at(highest, sector, z[ring])
     return bool(np.all(highest <= -fall_mm))
+
+
+def _protrusions(v, tree, idx, outward, fit_radius_mm: float):
+    """Local frames and protrusions (mm) of the vertices ``idx``.
+
+    A vertex's protrusion: its height above the PCA plane of the surface within
+    ``fit_radius_mm`` of it.
+    """
+    frames = [_local_frame(v[tree.query_ball_point(v[i], fit_radius_mm)], outward) for i in idx]
+    bump = np.array([(v[i] - c) @ f[2] for i, (c, f) in zip(idx, frames, strict=True)])
+    return frames, bump
 
 
 def _local_frame(points: np.ndarray, outward: np.ndarray):

@@ -667,6 +667,17 @@ def _judged_points(prob: Problem, margin: float | Literal["element"]) -> tuple[f
     return mm, {n: h >= mm for n, h in heights.items()}
 
 
+def _screen_options(o: DiagnosisOptions, prob: Problem) -> dict:
+    """:func:`calib.discrepancy.screen.screen`'s options of every screen of a diagnosis."""
+    return {
+        "alpha": o.alpha,
+        "misfit_alpha": o.misfit_alpha,
+        "confounded_above": o.confounded_above,
+        "by_scan": prob.imaged_unlike,  # each scan at its own noise level
+        "max_lag_mm": NOISE_LAG_MM * _scale(prob),
+    }
+
+
 def _scan_levels(noise: NoiseFit, scans) -> dict:
     """Each scan's noise level (mm, ``NoiseFit.scan_sd_mm``) by name (``scans``' order)."""
     return {n: float(noise.scan_sd_mm[k]) for k, n in enumerate(scans)}
@@ -801,9 +812,7 @@ def diagnose(
         say(f"  the null fit did not converge: {null.message}")
     if none_tested := _none_testable(o.effects, unavailable):
         log.warning(none_tested)
-    kw = {"alpha": o.alpha, "misfit_alpha": o.misfit_alpha, "confounded_above": o.confounded_above}
-    kw["by_scan"] = prob.imaged_unlike  # each scan at its own noise level
-    kw["max_lag_mm"] = NOISE_LAG_MM * _scale(prob)
+    kw = _screen_options(o, prob)
     scr0 = screen(null.fields, prob.points, **kw)
     nb = scr0.noise.best
     say(f"noise: {nb.kernel}, sd {nb.sigma_mm:.3f} mm, length {nb.length_mm:.1f} mm; misfit "
@@ -1180,9 +1189,7 @@ def _prune(prob, named, fits, current, cur_scr, o, screened, say):
             fit = refit(prob, rest, screened=screened, theta0=current.theta,
                         max_iterations=o.refit_iterations, say=say)  # fmt: skip
             fits[rest] = fit
-        kw = {"alpha": o.alpha, "misfit_alpha": o.misfit_alpha,
-              "confounded_above": o.confounded_above, "by_scan": prob.imaged_unlike,
-              "max_lag_mm": NOISE_LAG_MM * _scale(prob)}  # fmt: skip
+        kw = _screen_options(o, prob)
         scr = screen(fit.fields, prob.points, absorbed=_columns_of(fit.fields, rest), **kw)
         if eff not in [s[0] for s in _significant_effects(scr)]:
             say(f"pruned {eff}: not significant once {', '.join(rest)} is in the model")

@@ -20,11 +20,9 @@ load.
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -32,7 +30,7 @@ import numpy as np
 import fem
 from fem.units import STANDARD_GRAVITY_M_S2
 
-from ..data.work import WorkFolder
+from ..data.work import WorkFolder, ingest_record
 from ..fitting import CalibrationOptions
 from ..model.effects import SKIN_THICKNESS_MM, EffectValues, tag_effect_regions
 from ..model.forward import ForwardModel, ScanState
@@ -627,14 +625,13 @@ def reference_inclusions(work: WorkFolder) -> list[tuple[np.ndarray, float]]:
     contrast larger than ingest accepts (:func:`inclusions_left_out`) are said.
     """
     ref = work.measurements.reference
-    path = Path(work.path) / "scans" / ref.name / "ingest.json"
-    doc = json.loads(path.read_text())
-    if left := inclusions_left_out(work):
+    doc = ingest_record(work, ref.name)
+    if left := _too_large(doc):
         log.warning(
-            "%s: ingest left out %d region(s) of inclusion contrast too large for an "
-            "inclusion (ingest.json quality.inclusions_too_large): the inclusions effect "
-            "tags only the %d it found",
-            path,
+            "reference scan %r: ingest left out %d region(s) of inclusion contrast too large "
+            "for an inclusion (ingest.json quality.inclusions_too_large): the inclusions "
+            "effect tags only the %d it found",
+            ref.name,
             left,
             len(doc.get("inclusions") or []),
         )
@@ -651,9 +648,11 @@ def inclusions_left_out(work: WorkFolder) -> int:
 
     0 where an older ingest did not count them (``quality.inclusions_too_large``).
     """
-    path = Path(work.path) / "scans" / work.measurements.reference.name / "ingest.json"
-    quality = json.loads(path.read_text()).get("quality") or {}
-    return int(quality.get("inclusions_too_large") or 0)
+    return _too_large(ingest_record(work, work.measurements.reference.name))
+
+
+def _too_large(doc: dict) -> int:
+    return int((doc.get("quality") or {}).get("inclusions_too_large") or 0)
 
 
 def _registration_tolerance(work: WorkFolder, name: str) -> float:
@@ -662,7 +661,7 @@ def _registration_tolerance(work: WorkFolder, name: str) -> float:
     The largest edge: on thick slices a surface point is placed to half a slice along
     the slice axis.
     """
-    doc = json.loads((Path(work.path) / "scans" / name / "ingest.json").read_text())
+    doc = ingest_record(work, name)
     tre = max(float(doc.get("tre_nipple_mm") or 0.0), float(doc.get("tre_tumour_mm") or 0.0))
     voxel = max(doc.get("voxel_size_mm") or [1.0])
     return 3.0 * tre + 0.5 * float(voxel)
@@ -688,7 +687,7 @@ def imaging_noise_mm(work: WorkFolder, name: str) -> float | None:
     model (a residual's own short-lag spread is not: :func:`calib.stats.noise.session_noise`).
     None without those figures.
     """
-    doc = json.loads((Path(work.path) / "scans" / name / "ingest.json").read_text())
+    doc = ingest_record(work, name)
     voxel = doc.get("voxel_size_mm")
     noise = (doc.get("quality") or {}).get("seg_noise_sigma_rel")
     if not voxel or noise is None or not np.isfinite(noise) or noise <= 0:

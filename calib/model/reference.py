@@ -167,13 +167,27 @@ def reference_mesh_with_support(
     # remeshed one comes from marching cubes on a size/3 grid, which leaves the back up to
     # half a grid step (size/6) off its plane: vertices that near it go back onto it, so
     # the support keeps its faces
-    n, p0 = ref.back_normal, ref.back_point_mm
-    plane = (p0, n, max(back_tol_mm, size_mm / 5.0))
+    plane = (ref.back_point_mm, ref.back_normal, max(back_tol_mm, size_mm / 5.0))
     if spheres:
         h = size_mm / 2.0 if sphere_size_mm is None else sphere_size_mm
-        mesh, surface = _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, spheres, h)
-        tol = back_tol_mm if surface == "decimated" else plane[2]
-        return mesh, _support_checked(ref, mesh, surface, tol)
+        mesh, surface = _with_spheres(
+            ref, size_mm, back_tol_mm, max_dihedral_deg, plane, spheres, h
+        )
+    else:
+        mesh, surface = _without_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane)
+    tol = back_tol_mm if surface == "decimated" else plane[2]
+    return mesh, _support_checked(ref, mesh, surface, tol)
+
+
+def _without_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane):
+    """:func:`reference_mesh` without internal spheres, and the surface's kind.
+
+    The decimated surface, its back within ``back_tol_mm`` put onto the plane; where
+    TetGen rejects it, the scan's surface remeshed on a fine grid (:func:`_remeshed`), and
+    where that fails too, :func:`fem.meshing.tetrahedralize`'s repair or coarse remesh of
+    the decimated one, each with its back within ``plane``'s tolerance put onto it.
+    """
+    p0, n, _ = plane
     v, f = _decimate(ref.vertices_mm, ref.faces, size_mm)
     v, on = _onto_plane(v, (p0, n, back_tol_mm))
     if on < 3:
@@ -194,8 +208,8 @@ def reference_mesh_with_support(
         except fem.MeshError as exc:  # which scan, which size: TetGen's words say neither
             raise fem.MeshError(
                 f"reference scan {ref.name!r} at {size_mm:g} mm: its surface decimated to "
-                f"{len(f)} faces, and remeshed on a {REMESH_GRID_MM:g} mm grid, were both "
-                f"rejected; {exc}"
+                f"{len(f)} faces was rejected, and remeshed on a {REMESH_GRID_MM:g} mm grid "
+                f"gave no mesh; {exc}"
             ) from exc
         surface = "repaired"
     mesh = _with_back(mesh, p0, n, size_mm, ref.nipple_mm)
@@ -203,8 +217,7 @@ def reference_mesh_with_support(
     log.info(
         "reference mesh: %d tets, %d nodes, %d on the back plane", mesh.n_tets, mesh.n_nodes, back
     )
-    tol = back_tol_mm if surface == "decimated" else plane[2]
-    return mesh, _support_checked(ref, mesh, surface, tol)
+    return mesh, surface
 
 
 #: Scan faces whose normal lies within this angle of the back plane's (degrees) make up
@@ -446,7 +459,7 @@ def _sphere_plc(spheres, outer_v, outer_f, h: float):
     return *append_spheres(outer_v, outer_f, surfaces), regions
 
 
-def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, spheres, h):
+def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane, spheres, h):
     """:func:`reference_mesh` with internal spheres, and the outer surface's kind.
 
     The outer surface is tried as the plain mesh tries it (decimated, then the scan's
@@ -455,7 +468,7 @@ def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, spheres, h):
     """
     if not 0 < h <= size_mm:
         raise fem.MeshError(f"sphere element size must lie in (0, {size_mm:g}] mm, got {h}")
-    n, p0 = ref.back_normal, ref.back_point_mm
+    p0, n, _ = plane
 
     def decimated():
         v, f = _decimate(ref.vertices_mm, ref.faces, size_mm)
@@ -463,7 +476,7 @@ def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, spheres, h):
 
     def remeshed():
         w, g = remesh_surface(ref.vertices_mm, ref.faces, size_mm=size_mm, grid_mm=REMESH_GRID_MM)
-        return _onto_plane(w, (p0, n, max(back_tol_mm, size_mm / 5.0)))[0], g
+        return _onto_plane(w, plane)[0], g
 
     vol = size_mm**3 / (6.0 * np.sqrt(2.0))
     errors = []
