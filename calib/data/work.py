@@ -8,13 +8,13 @@ state (vertex positions and their derivative in ln c1) — with the measurements
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..io import check_run
+from .ingest import load_ingest
 from .measurements import Measurements, ScanMeasurement, read_scan
 from .session import ScanEntry
 
@@ -162,5 +162,5 @@ def scan_of(work: WorkFolder, name: str) -> ScanMeasurement:
 
 
 def ingest_record(work: WorkFolder, name: str) -> dict:
-    """``WORK/scans/<name>/ingest.json``."""
-    return json.loads((work.path / "scans" / name / "ingest.json").read_text())
+    """``WORK/scans/<name>/ingest.json`` (:func:`calib.data.ingest.load_ingest`)."""
+    return load_ingest(work.path, name)

@@ -68,13 +68,13 @@ import numpy as np
 
 import fem
 
-from ..data.work import WorkFolder
+from ..data.work import WorkFolder, ingest_record
 from ..evaluation import ScanMetrics, scan_metrics
 from ..model.effects import ADMISSIBLE, LIBRARY, SKIN_THICKNESS_MM
 from ..stats import NoiseFit, NoiseModel, height_profile, parameter_intervals
 from .fields import COARSER_FACTOR, FieldSet, discretisation_column, discretisation_field
 from .limits import parameter_limits
-from .localise import region_labels, region_scale, significance_map
+from .localise import region_labels, significance_map
 from .problem import (
     RIM_MARGIN_MM,
     DiagnosisError,
@@ -105,10 +105,10 @@ DEFAULT_EFFECTS = (
 )  # fmt: skip
 #: The noise model's short range (mm): the tests' variogram reaches to NOISE_LAG_MM, the
 #: noise floor's to FLOOR_LAG_MM, both for the twins' 75 mm tall body and scaled with the
-#: body's height like the regions (:func:`_scale`: 1 for every twin). Review W's dome
-#: half as tall (8 draws, a smooth misfit over 3 mm correlated noise): the fitted length
-#: 5.4 mm with 40 mm lags (a misfit absorbed), 3.0 with 20; the misfit test caught the
-#: misfit in 3 and 4 of 8 (the smaller body holds fewer independent samples).
+#: body's height like the regions (:attr:`Problem.region_scale`: 1 for every twin).
+#: Review W's dome half as tall (8 draws, a smooth misfit over 3 mm correlated noise): the
+#: fitted length 5.4 mm with 40 mm lags (a misfit absorbed), 3.0 with 20; the misfit test
+#: caught the misfit in 3 and 4 of 8 (the smaller body holds fewer independent samples).
 NOISE_LAG_MM = 40.0
 FLOOR_LAG_MM = 20.0
 #: ``DiagnosisOptions.noise_profile``'s choices.
@@ -116,14 +116,6 @@ NOISE_PROFILES = ("flat", "plate")
 #: ``DiagnosisOptions.mesh_error``'s choices.
 MESH_ERRORS = ("ignored", "absorbed")
 MAP_KERNEL_MM = 10.0  # the significance map's smoothing (a pad's print, a rim band), scaled
-
-
-def _scale(prob: Problem) -> float:
-    """The body's size relative to the twins' (1 where its height is not measured).
-
-    :func:`calib.discrepancy.localise.region_scale` of the body's height.
-    """
-    return region_scale(prob.body_height_mm) if prob.body_height_mm > 0 else 1.0
 
 
 @dataclass(frozen=True)
@@ -564,7 +556,7 @@ class Diagnosis:
                 "excluded": failed_scans(prob.work),
                 "imaging_noise_mm": prob.imaging_noise_mm,
                 "rim_margin_mm": prob.rim_margin_mm,
-                "region_scale": _scale(prob),
+                "region_scale": prob.region_scale,
                 "explained_margin_mm": self.explained_margin_mm,
             },
             "null_fit": _fit_json(self.null),
@@ -578,7 +570,7 @@ class Diagnosis:
                 "by_scan": self.screen.noise.by_scan,
                 "floor_rms_mm": float(np.sqrt(max(self.floor_mm2, 0.0))),
                 "floor_mean_abs_mm": floor,
-                "floor_max_lag_mm": FLOOR_LAG_MM * _scale(prob),
+                "floor_max_lag_mm": FLOOR_LAG_MM * prob.region_scale,
                 "explained_floor_rms_mm": float(np.sqrt(max(self.explained_floor_mm2, 0.0))),
                 "height_profile": None if prob.profile is None else prob.profile.as_json(),
             },
@@ -674,7 +666,7 @@ def _screen_options(o: DiagnosisOptions, prob: Problem) -> dict:
         "misfit_alpha": o.misfit_alpha,
         "confounded_above": o.confounded_above,
         "by_scan": prob.imaged_unlike,  # each scan at its own noise level
-        "max_lag_mm": NOISE_LAG_MM * _scale(prob),
+        "max_lag_mm": NOISE_LAG_MM * prob.region_scale,
     }
 
 
@@ -698,7 +690,7 @@ def _noise_var(fields: FieldSet, prob: Problem, keep: dict | None = None) -> flo
         fields = replace(fields, residual=kept)
     sample = sample_of(fields, points)
     r = np.concatenate([fields.residual[n] - fields.residual[n].mean() for n in fields.scans])
-    lag = FLOOR_LAG_MM * _scale(prob)
+    lag = FLOOR_LAG_MM * prob.region_scale
     fit = session_noise(sample, r, max_lag_mm=lag, by_scan=prob.imaged_unlike)
     return fit.variance_mm2(sample)
 
@@ -1255,7 +1247,7 @@ def _localise(prob: Problem, null: Refit, noise: NoiseFit) -> dict:
             pts, r = np.vstack([pts, rim[n]]), np.concatenate([r, r_rim])
         labels = _scan_regions(prob, n, pts)
         out[n] = significance_map(n, pts, r - centre, labels, model,
-                                  bandwidth_mm=MAP_KERNEL_MM * _scale(prob))  # fmt: skip
+                                  bandwidth_mm=MAP_KERNEL_MM * prob.region_scale)  # fmt: skip
     return out
 
 
@@ -1268,17 +1260,14 @@ def _scan_regions(prob: Problem, name: str, points_mm: np.ndarray) -> np.ndarray
     margin and the inclusions' own diameters is scaled by the body's height
     (:func:`calib.discrepancy.localise.region_scale`). Shape (n,) of str.
     """
-    import json
-    from pathlib import Path
-
     s = prob.measurement(name)
-    doc = json.loads((Path(prob.work.path) / "scans" / name / "ingest.json").read_text())
+    doc = ingest_record(prob.work, name)
     T = s.T_ref_from_scan
     spheres = [
         (T[:3, :3] @ np.asarray(i["centre_lps_mm"], float) + T[:3, 3], float(i["diameter_mm"]))
         for i in doc.get("inclusions") or []
     ]
-    k = _scale(prob)
+    k = prob.region_scale
     if s.tumour_mm is not None:
         spheres.append((s.tumour_mm, 10.0 * k))
     return region_labels(
@@ -1402,7 +1391,7 @@ def _intervals(fit: Refit, prob: Problem) -> dict:
     # the series estimator takes each scan's scale from its residual (two scans of white
     # noise at 0.1 and 0.3 mm: the sandwich's 0.0272 to three digits; per-scan levels
     # gave 0.0259)
-    noise = session_noise(sample, r_c, max_lag_mm=NOISE_LAG_MM * _scale(prob))
+    noise = session_noise(sample, r_c, max_lag_mm=NOISE_LAG_MM * prob.region_scale)
     x = np.concatenate([fit.x, np.zeros(A.shape[1] - len(fit.x))])
     try:
         alt = noise.alternatives

@@ -36,6 +36,7 @@ from ..model.effects import SKIN_THICKNESS_MM, EffectValues, tag_effect_regions
 from ..model.forward import ForwardModel, ScanState
 from ..model.residuals import Residuals, SimulatedSurface, scan_residuals
 from ..stats.profile import HeightProfile
+from .localise import region_scale
 
 __all__ = [
     "RIM_MARGIN_MM",
@@ -239,6 +240,15 @@ class Problem:
         is then c1 alone solved on the diagnosis model, not the calibration's states.
         """
         return self.own_mesh and not self.mesh_note
+
+    @property
+    def region_scale(self) -> float:
+        """The body's size relative to the twins' (1 where its height is not measured).
+
+        :func:`calib.discrepancy.localise.region_scale` of :attr:`body_height_mm`: the
+        factor on the localisation's radii and on the noise model's lags.
+        """
+        return region_scale(self.body_height_mm) if self.body_height_mm > 0 else 1.0
 
     @property
     def sliding_probe_pa_per_mm(self) -> float:

@@ -124,9 +124,9 @@ def test_the_regions_scale_with_the_body_s_height(monkeypatch):
     )
     work = SimpleNamespace(path="WORK")
     prob = SimpleNamespace(
-        measurement=lambda n: scan, work=work, body_height_mm=52.3, rim_margin_mm=5.0
+        measurement=lambda n: scan, work=work, region_scale=region_scale(52.3), rim_margin_mm=5.0
     )
-    monkeypatch.setattr("pathlib.Path.read_text", lambda self: "{}")
+    monkeypatch.setattr(dg, "ingest_record", lambda work, name: {})
     dg._scan_regions(prob, "s", np.zeros((1, 3)))
     assert seen["apex_mm"] == pytest.approx(14.0) and seen["over_mm"] == pytest.approx(10.5)
     assert seen["rim_mm"] == pytest.approx(7.0) and seen["spheres"][0][1] == pytest.approx(7.0)
@@ -2135,7 +2135,7 @@ def test_the_calibration_s_mesh_bound_widens_c1_only_on_its_own_mesh():
     for nodes in (100, 140):
         mesh = SimpleNamespace(n_nodes=nodes)
         prob = SimpleNamespace(points=_points(sample), work=work, mesh=mesh, imaged_unlike=False,
-                               body_height_mm=75.0, own_mesh=nodes == 100)  # fmt: skip
+                               region_scale=1.0, own_mesh=nodes == 100)  # fmt: skip
         theta = _intervals(fit, prob)["theta"]
         assert theta["gci_ln_c1"] == (0.05 if nodes == 100 else None)
         lo, hi = theta["c1_ci95_pa"]
@@ -2213,11 +2213,15 @@ def test_the_noise_model_s_range_follows_the_body_s_size():
     # half the twins' height the noise model took part of a misfit for noise (its length
     # 5.4 mm for a truth of 3; 3.0 with 20 mm lags). They scale like the regions: 1 for
     # every twin (72-78 mm)
-    from calib.discrepancy.diagnose import FLOOR_LAG_MM, NOISE_LAG_MM, _scale
+    from calib.discrepancy.diagnose import FLOOR_LAG_MM, NOISE_LAG_MM
+    from calib.discrepancy.problem import Problem
+
+    def scale(height):
+        return Problem.region_scale.fget(SimpleNamespace(body_height_mm=height))
 
     for height, k in ((75.0, 1.0), (72.0, 1.0), (78.0, 1.0), (37.5, 0.5), (150.0, 2.0)):
-        assert _scale(SimpleNamespace(body_height_mm=height)) == k
-    assert _scale(SimpleNamespace(body_height_mm=0.0)) == 1.0  # not measured
+        assert scale(height) == k
+    assert scale(0.0) == 1.0  # not measured
     assert (NOISE_LAG_MM, FLOOR_LAG_MM) == (40.0, 20.0)
 
 
@@ -2268,7 +2272,7 @@ def test_scans_imaged_unlike_reach_the_floor_intervals_and_screen_at_their_level
     fit.names = ("theta",)
     for unlike in (False, True):
         prob = SimpleNamespace(points=_points(sample), imaged_unlike=unlike, work=work)
-        prob.body_height_mm, prob.mesh, prob.own_mesh = 37.5, SimpleNamespace(n_nodes=1), True
+        prob.region_scale, prob.mesh, prob.own_mesh = 0.5, SimpleNamespace(n_nodes=1), True
         floor[unlike] = _noise_var(fields, prob)
         se[unlike] = _intervals(fit, prob)["theta"]["standard_error"]
     assert lags == [10.0, 20.0, 10.0, 20.0]  # FLOOR_LAG_MM and NOISE_LAG_MM, times 0.5
