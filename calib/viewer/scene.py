@@ -324,6 +324,8 @@ def load_scene(work: str | Path, model: str | Path | None = None) -> Scene:
 
 def _add_work(scene: Scene, folder, info: dict, vnodes: np.ndarray, hint: dict) -> None:
     """FE states, measured surfaces, error maps and fiducials of a read-back work folder."""
+    from ..data.work import ingest_record
+
     work = folder.path
     R = scene.R_ref_from_phantom
     g = info["g_m_s2"]
@@ -359,7 +361,7 @@ def _add_work(scene: Scene, folder, info: dict, vnodes: np.ndarray, hint: dict) 
             scene.states[name] = (pos, nip, tum)
             info["states"].append(name)
     try:
-        ing = json.loads((work / "scans" / ref_name / "ingest.json").read_text())
+        ing = ingest_record(folder, ref_name)
         fid = np.asarray(ing["fiducials_lps_mm"], float)
         T = np.asarray(ing["T_ref_from_scan"], float)
         fid_ref = fid @ T[:3, :3].T + T[:3, 3]
@@ -381,8 +383,6 @@ def _refit_maps(work: Path, missing: list) -> dict:
     another calibration than the folder's current one (``calibrate`` ran since) is left
     out and said.
     """
-    import json
-
     refit = work / "diagnosis" / "refit"
     if not (refit / "calibration.json").is_file():
         return {}
