@@ -59,17 +59,17 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from calib.stats.consistency import posture_consistency  # noqa: E402
-from calib.stats.coverage import (  # noqa: E402
+from calib.stats.consistency import posture_consistency
+from calib.stats.coverage import (
     NoiseSampler,
     misfit_pattern,
     phantom_sample,
     sag_sensitivity,
 )
-from calib.stats.intervals import series_design, series_statistic  # noqa: E402
-from calib.stats.noise import (  # noqa: E402
+from calib.stats.intervals import series_design, series_statistic
+from calib.stats.noise import (
     NoiseModel,
     apply_covariance,
     empirical_variogram,
@@ -77,8 +77,8 @@ from calib.stats.noise import (  # noqa: E402
     local_counts,
     whitener,
 )
-from calib.stats.quadform import ratio_critical_value  # noqa: E402
-from calib.stats.scores import misfit_design, misfit_test, screen_effects  # noqa: E402
+from calib.stats.quadform import ratio_critical_value
+from calib.stats.scores import misfit_design, misfit_test, screen_effects
 
 HALF_ELLIPSOID_AREA_MM2 = 30736.6  # upper half of the (75, 75, 60) mm spheroid
 POWER_DRAWS = 300  # draws with a planted pattern or effect (power needs no 1000)

@@ -16,14 +16,14 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from imaging import (  # noqa: E402
+from imaging import (
     process_scan,
     read_volume,
     render_mr_volume,
     scan_grid_covering,
     write_dicom_series,
 )
-from imaging.testing import make_test_phantom  # noqa: E402
+from imaging.testing import make_test_phantom
 
 
 def main() -> None:

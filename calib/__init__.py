@@ -12,9 +12,9 @@ same functions)::
 and, without files: ``calib.fit(measurements, options) -> Calibration`` and
 ``calib.evaluate(calibration) -> {scan: ScanEvaluation}`` and
 ``calib.check_postures(calibration, evaluations)`` (does every scan alone ask for the
-same c1?). Subpackages: ``data``,
-``model``, ``fitting``, ``report``, ``workflows``, ``twin``, ``cli``. Heavy
-dependencies load on first use, so ``import calib`` stays fast.
+same c1?). Subpackages, one job each (lowest first): ``stats``, ``data``, ``model``,
+``fitting``, ``discrepancy``, ``sweep``, ``report``, ``twin``, ``viewer``, ``workflows``,
+``cli``. Heavy dependencies load on first use, so ``import calib`` stays fast.
 """
 
 from __future__ import annotations

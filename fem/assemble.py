@@ -16,7 +16,7 @@ from .kinematics import invariants, piola
 from .model import Model
 from .stiffness import stiffness_uu
 
-__all__ = ["ElementState", "assemble", "external_force", "min_jacobian"]
+__all__ = ["ElementState", "assemble", "external_force"]
 
 _EYE = np.eye(3)
 
@@ -34,11 +34,6 @@ def deformation_gradient(disc: Discretization, x: np.ndarray) -> np.ndarray:
     """``F`` at every quadrature point, shape (E, Q, 3, 3), from the full vector ``x``."""
     u = x[: 3 * disc.n_scalar_u].reshape(-1, 3)[disc.udofs]  # (E, Au, 3)
     return np.einsum("eai,eqaj->eqij", u, disc.grad_u, optimize=True) + _EYE
-
-
-def min_jacobian(disc: Discretization, x: np.ndarray) -> float:
-    """Smallest ``det F`` over all quadrature points."""
-    return float(np.linalg.det(deformation_gradient(disc, x)).min())
 
 
 def _pressure(disc: Discretization, x: np.ndarray, idx: np.ndarray) -> np.ndarray:

@@ -227,7 +227,7 @@ def _face_dofs(basis, mesh: TetMesh, node_ids: np.ndarray) -> tuple[np.ndarray, 
     return np.unique(basis.get_dofs(facets=facets).flatten()), facets
 
 
-def _rim_nodes(mesh: TetMesh, facets_nodes: np.ndarray) -> np.ndarray:
+def _rim_nodes(facets_nodes: np.ndarray) -> np.ndarray:
     """Nodes on the boundary edges of a set of triangles (edges used by one triangle)."""
     e = np.sort(facets_nodes[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
     uniq, counts = np.unique(e, axis=0, return_counts=True)
@@ -257,7 +257,7 @@ def _support_dofs(basis, mesh: TetMesh, support: Support, fixed: np.ndarray):
     elif isinstance(support, Sliding):
         fixed[3 * sdofs + 2] = True
         if support.hold == "rim":
-            rim = _rim_nodes(mesh, basis.mesh.facets[:, facets].T)
+            rim = _rim_nodes(basis.mesh.facets[:, facets].T)
             rim_dofs = _rim_dofs(basis, rim, sdofs)
             fixed[3 * rim_dofs] = True
             fixed[3 * rim_dofs + 1] = True

@@ -249,7 +249,7 @@ def read_mesh(
         with contextlib.redirect_stderr(said), contextlib.redirect_stdout(said):
             m = meshio.read(path)
     # meshio raises many kinds for bad files, and calls sys.exit when no reader succeeds
-    except (Exception, SystemExit) as exc:  # noqa: BLE001
+    except (Exception, SystemExit) as exc:
         why = " ".join(said.getvalue().split()) or f"{type(exc).__name__}: {exc}"
         raise MeshError(f"{path}: cannot read mesh ({why})") from exc
     mesh, points = _to_tetmesh(m, path, orient=orient)

@@ -50,7 +50,7 @@ def piola(F: np.ndarray, first: tuple[np.ndarray, ...]) -> np.ndarray:
     return W1 * D1 + W2 * D2 + WJ * DJ
 
 
-def _d_cof(F: np.ndarray, J: np.ndarray, cof: np.ndarray) -> np.ndarray:
+def _d_cof(J: np.ndarray, cof: np.ndarray) -> np.ndarray:
     """``d(cof F)_iJ / dF_kL = (cof_iJ cof_kL - cof_iL cof_kJ) / J``."""
     outer = np.einsum("...ij,...kl->...ijkl", cof, cof)
     swap = np.einsum("...il,...kj->...ijkl", cof, cof)
@@ -93,7 +93,7 @@ def piola_and_tangent(
     A += 2.0 * W1[..., None, None, None, None] * np.einsum("ik,jl->ijkl", _EYE, _EYE)
     if np.any(W2 != 0.0):
         A += W2[..., None, None, None, None] * _d_d2(F, I1, C)
-    A += WJ[..., None, None, None, None] * _d_cof(F, J, cof)
+    A += WJ[..., None, None, None, None] * _d_cof(J, cof)
     return P, A
 
 

@@ -122,7 +122,7 @@ def _pardiso():
     _point_pypardiso_at_mkl()
     try:
         import pypardiso
-    except Exception as exc:  # noqa: BLE001 - any import failure means "not available"
+    except Exception as exc:  # any import failure means "not available"
         # once per process (cached), where the user sees it: a solve may be 10-20x slower
         log.warning("MKL PARDISO (pypardiso) is not available (%s): using SuperLU, much "
                     "slower on large meshes (a 4,588-tet simulate: 39 s instead of 2 s). "

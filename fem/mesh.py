@@ -77,12 +77,6 @@ class TetMesh:
         d = x[:, 1:] - x[:, :1]
         return np.linalg.det(d) / 6.0
 
-    def region_mask(self, name: str) -> np.ndarray:
-        """Boolean mask of the elements of the named region."""
-        if name not in self.region_names:
-            raise KeyError(f"unknown region {name!r}; mesh has {sorted(self.region_names)}")
-        return self.region == self.region_names[name]
-
     def node_set(self, name: str) -> np.ndarray:
         """The node indices of a named node set."""
         if name not in self.node_sets:

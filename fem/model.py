@@ -145,14 +145,6 @@ class Model:
         """A copy with the material of one region replaced."""
         return replace(self, materials={**self.materials, region: material})
 
-    def with_materials(self, material_for: Mapping[str, Material]) -> Model:
-        """A copy with several regions' materials replaced."""
-        return replace(self, materials={**self.materials, **material_for})
-
-    def with_density(self, region: str, density_kg_m3: float) -> Model:
-        """A copy with the density of one region replaced."""
-        return replace(self, density_kg_m3={**self.density_kg_m3, region: density_kg_m3})
-
     def with_support(self, support: Support) -> Model:
         """A copy with another support."""
         return replace(self, support=support)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import logging
 import time
 from dataclasses import dataclass, field
 
@@ -24,8 +23,6 @@ __all__ = [
     "solve",
     "vertex_displacement_mm",
 ]
-
-log = logging.getLogger(__name__)
 
 
 class ConvergenceError(RuntimeError):
@@ -251,7 +248,7 @@ def _newton(prob: _Problem, x, lam):
     return x if m <= prob.opts.rtol else None
 
 
-def _apply_dirichlet(disc: Discretization, x, prescribed, lam):
+def _apply_dirichlet(x, prescribed, lam):
     if prescribed is not None:
         x = x.copy()
         x[prescribed[0]] = lam * prescribed[1]
@@ -315,14 +312,14 @@ def _load_steps(prob: _Problem, x, prescribed, opts: SolverOptions):
     x_prev, dlam_prev = None, opts.initial_step
     for _ in range(opts.max_steps):
         trial = min(1.0, lam + dlam)
-        guess = _apply_dirichlet(prob.disc, x, prescribed, trial)
+        guess = _apply_dirichlet(x, prescribed, trial)
         if x_prev is not None and steps > 0:
             pred = guess + (trial - lam) / dlam_prev * (x - x_prev)
-            guess = _apply_dirichlet(prob.disc, pred, prescribed, trial)
+            guess = _apply_dirichlet(pred, prescribed, trial)
         n0 = prob.stats.newton
         x_new = _newton(prob, guess, trial)
         if x_new is None and x_prev is not None:
-            x_new = _newton(prob, _apply_dirichlet(prob.disc, x, prescribed, trial), trial)
+            x_new = _newton(prob, _apply_dirichlet(x, prescribed, trial), trial)
         if x_new is None:
             cuts += 1
             dlam *= 0.25
@@ -438,7 +435,7 @@ def _warm_or_stepped(prob: _Problem, x0, pres, opts: SolverOptions):
     if x0 is not None:
         if x0.shape != (prob.disc.n_dofs,):
             raise ValueError(f"x0 has shape {x0.shape}, expected ({prob.disc.n_dofs},)")
-        x = _newton(prob, _apply_dirichlet(prob.disc, x0, pres, 1.0), 1.0)
+        x = _newton(prob, _apply_dirichlet(x0, pres, 1.0), 1.0)
         if x is not None:
             return x, 1.0, 1, 0, True
     return _load_steps(prob, np.zeros(prob.disc.n_dofs), pres, opts)
@@ -446,7 +443,7 @@ def _warm_or_stepped(prob: _Problem, x0, pres, opts: SolverOptions):
 
 def _reaction_scale(prob: _Problem, pres) -> float:
     """Force scale for displacement-driven problems: the first-iteration reaction."""
-    x = _apply_dirichlet(prob.disc, np.zeros(prob.disc.n_dofs), pres, 1.0)
+    x = _apply_dirichlet(np.zeros(prob.disc.n_dofs), pres, 1.0)
     st = assemble(prob.disc, prob.model, np.zeros_like(x), tangent=True)
     K_full = _full_matrix(prob.disc, st.matrices)
     return float(np.linalg.norm(K_full @ x)) or 1.0

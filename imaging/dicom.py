@@ -53,7 +53,7 @@ def _candidate_files(folder: Path) -> list[Path]:
     )
 
 
-def _sop_class(ds) -> str:  # noqa: ANN001
+def _sop_class(ds) -> str:
     """SOPClassUID as a string, or "" when absent or undecodable (a forced non-DICOM read)."""
     try:
         return str(ds.get("SOPClassUID", "") or "").strip()
@@ -61,7 +61,7 @@ def _sop_class(ds) -> str:  # noqa: ANN001
         return ""
 
 
-def _refuse_multi_frame(path: Path, ds) -> None:  # noqa: ANN001
+def _refuse_multi_frame(path: Path, ds) -> None:
     """Raise for an enhanced multi-frame image: its geometry lives in per-frame groups."""
     sop = _sop_class(ds)
     try:
@@ -77,7 +77,7 @@ def _refuse_multi_frame(path: Path, ds) -> None:  # noqa: ANN001
         )
 
 
-def _set_transfer_syntax(ds) -> None:  # noqa: ANN001
+def _set_transfer_syntax(ds) -> None:
     """Give a file read without file meta the TransferSyntaxUID that pydicom decodes pixels by.
 
     The encoding is the one the dataset was parsed with (implicit or explicit VR, little or
@@ -99,7 +99,7 @@ def _set_transfer_syntax(ds) -> None:  # noqa: ANN001
         ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian if little else ExplicitVRBigEndian
 
 
-def _read_file(path: Path):  # noqa: ANN202 - pydicom Dataset or None
+def _read_file(path: Path):  # pydicom Dataset or None
     """Read one file of the folder; None (and a logged warning) when it is not a DICOM image.
 
     A file without the preamble and ``DICM`` prefix is read again with ``force=True``. Such a
@@ -170,7 +170,7 @@ def patient_position(folder: str | os.PathLike) -> str | None:
     for p in _candidate_files(Path(folder)):
         try:
             ds = pydicom.dcmread(p, stop_before_pixels=True, force=True)
-        except Exception:  # noqa: BLE001 - a stray file: try the next one
+        except Exception:  # a stray file: try the next one
             continue
         value = str(ds.get("PatientPosition", "") or "").strip().upper()
         if "ImagePositionPatient" in ds:
@@ -213,7 +213,7 @@ def _list_series(folder: Path, datasets: dict[Path, object]) -> None:
         )
 
 
-def _slice_pixels(path: Path, ds) -> np.ndarray:  # noqa: ANN001
+def _slice_pixels(path: Path, ds) -> np.ndarray:
     """Decode and rescale a slice; returns it in (i, j) order (columns, rows), float32."""
     try:
         pix = ds.pixel_array
@@ -237,7 +237,7 @@ def _slice_pixels(path: Path, ds) -> np.ndarray:  # noqa: ANN001
     return out.T
 
 
-def _check_header(path: Path, ds, ref) -> None:  # noqa: ANN001
+def _check_header(path: Path, ds, ref) -> None:
     modality = str(getattr(ds, "Modality", "")).strip()
     if modality != "MR":
         raise DicomSeriesError(f"{path}: Modality is {modality or 'missing'!r}, expected 'MR'")

@@ -112,7 +112,7 @@ def taubin_smooth(
     return v
 
 
-def _to_o3d(vertices: np.ndarray, faces: np.ndarray):  # noqa: ANN202
+def _to_o3d(vertices: np.ndarray, faces: np.ndarray):
     import open3d as o3d
 
     return o3d.geometry.TriangleMesh(

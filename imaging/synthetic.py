@@ -15,7 +15,6 @@ flat back face on the plate (z = 0) carries no skin.
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -26,7 +25,6 @@ from imaging.volume import Volume, affine_from_geometry
 
 __all__ = ["MRIntensities", "ScanGrid", "render_mr_volume", "scan_grid_covering"]
 
-log = logging.getLogger(__name__)
 
 Surface = tuple[np.ndarray, np.ndarray]
 
@@ -55,10 +53,6 @@ class ScanGrid:
 
     shape: tuple[int, int, int]
     affine_lps_from_index: np.ndarray
-
-    def empty_volume(self, dtype: type = np.float32) -> Volume:
-        """Return a zero volume on this grid."""
-        return Volume(np.zeros(self.shape, dtype), self.affine_lps_from_index, "<synthetic>")
 
 
 def scan_grid_covering(
@@ -103,7 +97,7 @@ def _ramp(sdf: np.ndarray, width: float) -> np.ndarray:
     return np.clip(0.5 - sdf / width, 0.0, 1.0).astype(np.float32)
 
 
-def _scene(surfaces: Sequence[Surface]):  # noqa: ANN202 - open3d object
+def _scene(surfaces: Sequence[Surface]):  # open3d object
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
@@ -115,7 +109,7 @@ def _scene(surfaces: Sequence[Surface]):  # noqa: ANN202 - open3d object
     return scene
 
 
-def _signed_distance(scene, points: np.ndarray) -> np.ndarray:  # noqa: ANN001
+def _signed_distance(scene, points: np.ndarray) -> np.ndarray:
     import open3d as o3d
 
     out = np.empty(len(points), np.float32)
@@ -138,7 +132,7 @@ class _Sampler:
     def points(self, ijk: np.ndarray) -> np.ndarray:
         return ijk @ self.M.T + self.t
 
-    def coarse_sdf(self, scene, box: tuple[np.ndarray, np.ndarray]):  # noqa: ANN001, ANN201
+    def coarse_sdf(self, scene, box: tuple[np.ndarray, np.ndarray]):
         lo, hi = box
         axes = [np.unique(np.r_[np.arange(lo[a], hi[a], self.stride), hi[a] - 1]) for a in range(3)]
         ijk = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3).astype(float)
@@ -152,7 +146,7 @@ class _Sampler:
         hi = np.ceil(idx.max(axis=0) + pad_mm / sp).astype(int) + 1
         return np.maximum(lo, 0), np.minimum(hi, self.grid.shape)
 
-    def fine_sdf(self, scene, box, band_lo: float, band_hi: float):  # noqa: ANN001, ANN201
+    def fine_sdf(self, scene, box, band_lo: float, band_hi: float):
         """SDF on the box; exact where it may lie in [band_lo, band_hi], else coarse."""
         lo, hi = box
         axes, coarse = self.coarse_sdf(scene, box)
@@ -174,7 +168,7 @@ def _bias_field(
     shape: tuple[int, int, int],
     amplitude: float,
     rng,
-    region: tuple[slice, ...],  # noqa: ANN001
+    region: tuple[slice, ...],
 ) -> np.ndarray:
     """Smooth multiplicative field 1 + amplitude * P.
 

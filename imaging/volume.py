@@ -117,7 +117,7 @@ class Volume:
             raise ValueError(f"shape {array.shape} differs from the grid {self.array.shape}")
         return Volume(array, self.affine_lps_from_index.copy(), source or self.source)
 
-    def to_sitk(self):  # noqa: ANN201 - SimpleITK is imported lazily
+    def to_sitk(self):  # SimpleITK is imported lazily
         """Return a ``SimpleITK.Image`` with the same geometry (array copied)."""
         import SimpleITK as sitk
 
@@ -128,7 +128,7 @@ class Volume:
         return img
 
     @classmethod
-    def from_sitk(cls, image, *, source: str = "<sitk>") -> Volume:  # noqa: ANN001
+    def from_sitk(cls, image, *, source: str = "<sitk>") -> Volume:
         """Build a volume from a 3-D scalar ``SimpleITK.Image`` (LPS, as ITK uses)."""
         if image.GetDimension() != 3 or image.GetNumberOfComponentsPerPixel() != 1:
             raise ValueError(f"{source}: expected a 3-D scalar image")

@@ -164,7 +164,7 @@ def _open_arrays(path: Path) -> dict:
             raise StoreFormatError(f"{meta} not found (truncated store)")
         try:
             out[name] = zarr.open_array(path / name, mode="r")
-        except Exception as exc:  # noqa: BLE001 - zarr raises many kinds on bad metadata
+        except Exception as exc:  # zarr raises many kinds on bad metadata
             raise StoreFormatError(f"{meta}: cannot open ({type(exc).__name__}: {exc})") from exc
     return out
 

@@ -8,7 +8,6 @@ low; report both.
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -40,8 +39,6 @@ __all__ = [
     "summarise",
     "surface_errors",
 ]
-
-log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, eq=False)

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..io import check_run
 from .ingest import load_ingest
-from .measurements import Measurements, ScanMeasurement, read_scan
+from .measurements import Measurements, read_scan
 from .session import ScanEntry
 
 __all__ = ["SavedState", "WorkFolder", "read_work"]
@@ -152,13 +152,6 @@ def _point_data(path: Path) -> dict:
         raise FileNotFoundError(f"{path} not found (named by calibration.json)")
     m = meshio.read(path)
     return {k: np.asarray(v, float) for k, v in m.point_data.items() if not k.startswith("set:")}
-
-
-def scan_of(work: WorkFolder, name: str) -> ScanMeasurement:
-    """A scan of the work folder, by name (a clear error for an unknown one)."""
-    if name not in work.measurements.scans:
-        raise KeyError(f"{work.path}: no scan {name!r}; it has {sorted(work.measurements.scans)}")
-    return work.measurements.scans[name]
 
 
 def ingest_record(work: WorkFolder, name: str) -> dict:

@@ -451,14 +451,3 @@ class ForwardModel:
     def _model_at(self, disc: fem.Discretization):
         """``theta -> Model`` on the nodes of ``disc`` (for :mod:`fem.sensitivity`)."""
         return lambda t: self.model(t, disc.mesh.nodes_mm)
-
-    def set_stress_free(self, theta: float, nodes_mm: np.ndarray) -> None:
-        """Use known stress-free nodes at ``theta`` (a saved calibration) instead of recovering.
-
-        Gradients of the unload reference need the recovery's state and are then not
-        available: evaluate with ``gradient=False``. Not for the prestressed formulation
-        (its stress-free elements are curved: vertex positions do not define them).
-        """
-        if self.prestressed:
-            raise ValueError("a prestressed reference cannot be set from stress-free vertices")
-        self._X, self._X_theta, self._u0 = np.asarray(nodes_mm, float), theta, None

@@ -163,7 +163,7 @@ def _signed(e: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return sign * dist, sign[:, None] * u
 
 
-def _surface(meas: ScanMeasurement, sim: SimulatedSurface, pos, dpos, points) -> Residuals:
+def _surface(sim: SimulatedSurface, pos, dpos, points) -> Residuals:
     c, tri, w, n = closest_on_surface(pos, sim.faces, points)
     r, u = _signed(points - c, n)
     r = r + sim.gap_mm(tri, w)  # the curved surface lies -gap outside the facet
@@ -211,7 +211,7 @@ def scan_residuals(
     """Residuals of one scan for an objective (see the module docstring)."""
     nipple = int(mesh.node_set("nipple")[0])
     if objective == "surface":
-        return _surface(meas, sim, positions_mm, dpositions_mm, surface_points_mm)
+        return _surface(sim, positions_mm, dpositions_mm, surface_points_mm)
     if objective == "nipple":
         return _nipple(meas, nipple, positions_mm, dpositions_mm)
     if objective == "landmarks":

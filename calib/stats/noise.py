@@ -52,7 +52,6 @@ __all__ = [
     "estimate_noise",
     "fit_variogram",
     "local_counts",
-    "model_variogram",
     "session_noise",
     "whitener",
     "with_sigma",
@@ -602,11 +601,6 @@ def session_noise(
     sd = {k: ref.best.sigma_mm * float(np.sqrt(v / short[label])) for k, v in short.items()}
     own = {k: f.best for k, f in fits.items()}
     return replace(ref, scan_sd_mm=sd, scan_fits=own, reference_scan=label, by_scan=bool(by_scan))
-
-
-def model_variogram(model: NoiseModel, lag_mm: np.ndarray) -> np.ndarray:
-    """The model's semivariogram at ``lag_mm`` (mm^2); alias of the method, for plots."""
-    return model.semivariance_mm2(lag_mm)
 
 
 # ------------------------------------------------------------------------ covariances

@@ -155,7 +155,7 @@ def solve_scenario(model: SweepModel, key: str, task: ScenarioTask):
         if out.retried is not None:
             log.info("scenario %d: %s; retried with small load steps", task.index, out.retried)
         sol, newton = out.solution, out.failed_newton
-    except Exception as exc:  # noqa: BLE001 - a failed scenario is recorded, not fatal
+    except Exception as exc:  # a failed scenario is recorded, not fatal
         return ScenarioResult(
             task.index,
             False,
@@ -224,7 +224,7 @@ class Backend:
         fut: Future = Future()
         try:
             fut.set_result(fn(*args))
-        except Exception as exc:  # noqa: BLE001 - delivered through the future
+        except Exception as exc:  # delivered through the future
             fut.set_exception(exc)
         return fut
 
@@ -298,10 +298,6 @@ class PoolBackend(Backend):
         self._start()
         return True
 
-    def worker_pids(self) -> list[int]:
-        """Process ids of the pool's workers (for tests and monitoring)."""
-        return [p.pid for p in (self._pool._processes or {}).values()]  # noqa: SLF001
-
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
 
@@ -360,10 +356,6 @@ class DaskBackend(Backend):
     def describe(self) -> dict:
         n = len(self.client.scheduler_info(n_workers=-1)["workers"])
         return {"backend": "dask", "workers": n, "scheduler": self.address}
-
-    def worker_pids(self) -> list[int]:
-        """Process ids of the workers (for tests and monitoring)."""
-        return list(self.client.run(os.getpid).values())
 
     def close(self) -> None:
         self.client.close()

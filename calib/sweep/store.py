@@ -292,7 +292,7 @@ class SweepStore:
         try:
             g = zarr.open_group(path, mode="r+")
             attrs = dict(g.attrs)
-        except Exception as exc:  # noqa: BLE001 - zarr raises many kinds on bad metadata
+        except Exception as exc:  # zarr raises many kinds on bad metadata
             what = f"{type(exc).__name__}: {exc}"
             raise StoreError(f"{meta}: cannot open the store ({what})") from exc
         if attrs.get("format") != FORMAT:

@@ -76,7 +76,7 @@ class _Handler(BaseHTTPRequestHandler):
         self.scene = scene
         super().__init__(*args, **kw)
 
-    def log_message(self, format, *args):  # noqa: A002 - the stdlib's name
+    def log_message(self, format, *args):  # the stdlib's name
         pass  # quiet: one line per frame would flood the terminal
 
     def _send(self, body: bytes, ctype: str, status: int = 200, headers: dict | None = None):
@@ -92,7 +92,7 @@ class _Handler(BaseHTTPRequestHandler):
     def _error(self, status: int, message: str):
         self._send(json.dumps({"error": message}).encode(), "application/json", status)
 
-    def do_GET(self):  # noqa: N802 - the stdlib's name
+    def do_GET(self):  # the stdlib's name
         url = urlparse(self.path)
         path = unquote(url.path)
         try:

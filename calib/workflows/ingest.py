@@ -7,7 +7,6 @@ README's output contract).
 
 from __future__ import annotations
 
-import logging
 from dataclasses import replace
 from pathlib import Path
 
@@ -16,8 +15,6 @@ from ..data.session import Session, load_session
 from ..io import RunOutputs, check_out_folder, provenance, write_json_atomic
 
 __all__ = ["run_ingest", "write_ingest"]
-
-log = logging.getLogger(__name__)
 
 
 def _write_scan(

@@ -21,7 +21,7 @@ import fem
 from calib.model.reference import reference_mesh, reference_mesh_with_support
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "fem"))
-from test_fem_reference_robust import _plane, _self_intersecting, load_fixture  # noqa: E402
+from test_fem_reference_robust import _plane, _self_intersecting, load_fixture
 
 
 def test_a_remeshed_reference_surface_keeps_its_back_plane(caplog):

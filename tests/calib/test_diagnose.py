@@ -411,7 +411,7 @@ def test_a_prestressed_calibration_s_own_mesh_is_the_size_it_ran_on(monkeypatch)
         reference, "reference_mesh", lambda ref, size_mm, max_dihedral_deg: built.append(size_mm)
     )
 
-    def Model(loaded):  # noqa: N802 - stands in for the model class
+    def Model(loaded):  # stands in for the model class
         return SimpleNamespace(stress_free=lambda theta: None)
 
     record = {"c1_pa": 420.0, "mesh": {"size_mm": 14.0}}

@@ -36,7 +36,7 @@ from calib.model.effects import (
 from calib.model.forward import ForwardModel
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fem"))
-from femtest_meshes import box_mesh  # noqa: E402
+from femtest_meshes import box_mesh
 
 
 def test_every_library_effect_has_a_neutral_value_inside_its_range():

@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "nn"))
-from sweep_helpers import make_box_work  # noqa: E402
+from sweep_helpers import make_box_work
 
-from calib.workflows.sweep import SweepOptions, run_sweep  # noqa: E402
+from calib.workflows.sweep import SweepOptions, run_sweep
 
 PLAN = {"plan": "sphere:12", "c1_axis": "400:700:2", "chunk_size": 4}
 TOL_MM = 1e-9

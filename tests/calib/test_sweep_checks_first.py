@@ -13,13 +13,13 @@ import pytest
 from typer.testing import CliRunner
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "nn"))
-from sweep_helpers import make_box_work  # noqa: E402
+from sweep_helpers import make_box_work
 
-import calib.sweep  # noqa: E402
-import calib.sweep.engine  # noqa: E402
-from calib.cli import app  # noqa: E402
-from calib.workflows import sweep as wsweep  # noqa: E402
-from calib.workflows.sweep import SweepOptions, run_sweep  # noqa: E402
+import calib.sweep
+import calib.sweep.engine
+from calib.cli import app
+from calib.workflows import sweep as wsweep
+from calib.workflows.sweep import SweepOptions, run_sweep
 
 
 @pytest.fixture

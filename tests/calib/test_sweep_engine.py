@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "nn"))
-from sweep_helpers import BOX_C1_PA, make_box_work  # noqa: E402
+from sweep_helpers import BOX_C1_PA, make_box_work
 
-import fem  # noqa: E402
-from calib.sweep import CalibrationMissingError, load_sweep_model  # noqa: E402
-from calib.sweep.store import CONVERGENCE_COLUMNS, StoreMismatchError  # noqa: E402
-from calib.workflows.sweep import SweepOptions, run_sweep  # noqa: E402
+import fem
+from calib.sweep import CalibrationMissingError, load_sweep_model
+from calib.sweep.store import CONVERGENCE_COLUMNS, StoreMismatchError
+from calib.workflows.sweep import SweepOptions, run_sweep
 
 PLAN = SweepOptions(plan="sphere:12", c1_axis="400:700:2", backend="serial", chunk_size=4)
 

@@ -21,16 +21,16 @@ import pytest
 from typer.testing import CliRunner
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "nn"))
-from sweep_helpers import make_box_work  # noqa: E402
+from sweep_helpers import make_box_work
 
-from calib.cli import app  # noqa: E402
-from calib.viewer import (  # noqa: E402
+from calib.cli import app
+from calib.viewer import (
     PortInUseError,
     SurfaceModelMismatchError,
     load_scene,
     make_server,
 )
-from calib.viewer.headless import HeadlessBrowser, find_chromium  # noqa: E402
+from calib.viewer.headless import HeadlessBrowser, find_chromium
 
 C1_AXIS = (400.0, 640.0)
 

@@ -198,7 +198,7 @@ def test_a_single_dicom_file_asks_for_the_series_folder(series):
 # ---- 4. ImagePositionPatient rounded to 0.1 mm ----------------------------------------
 
 
-def _round_positions(k: int, ds) -> None:  # noqa: ANN001
+def _round_positions(k: int, ds) -> None:
     ds.ImagePositionPatient = [f"{float(x):.1f}" for x in ds.ImagePositionPatient]
 
 
@@ -245,7 +245,7 @@ def _one_off(k: int) -> float:
 def test_variable_spacing_is_refused(oblique, series, shift_mm, fmt):
     normal = oblique.direction[:, 2]
 
-    def stretch(k, ds):  # noqa: ANN001
+    def stretch(k, ds):
         shifted = np.array(ds.ImagePositionPatient, float) + shift_mm(k) * normal
         ds.ImagePositionPatient = [format(x, fmt) for x in shifted]
 
