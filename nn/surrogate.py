@@ -305,12 +305,12 @@ class Surrogate:
                 stacklevel=3,
             )
 
-    def predict(self, gravity, *, c1_pa=None, frame: str = "phantom") -> Prediction:
+    def predict(self, gravity_m_s2, *, c1_pa=None, frame: str = "phantom") -> Prediction:
         """Predict displacements for gravity acceleration vectors.
 
         Parameters
         ----------
-        gravity : array_like, shape (3,) or (B, 3)
+        gravity_m_s2 : array_like, shape (3,) or (B, 3)
             Gravity acceleration in m/s^2 (the length is the magnitude; a zero vector is
             no load and gives zero displacement: the stress-free shape, or, for a
             :attr:`prestressed` reference, the loaded reference shape, with a warning),
@@ -340,7 +340,7 @@ class Surrogate:
         """
         import torch
 
-        g, c1 = self._checked(gravity, c1_pa, frame)
+        g, c1 = self._checked(gravity_m_s2, c1_pa, frame)
         with torch.inference_mode():
             out = self.module(torch.as_tensor(g), torch.as_tensor(c1))
         out = {k: v.numpy().astype(np.float64) for k, v in out.items()}
@@ -414,7 +414,7 @@ def load_surrogate(path: str | Path) -> Surrogate:
     try:
         with quiet_jit():
             module = torch.jit.load(str(path), map_location="cpu", _extra_files=extra)
-    except Exception as exc:  # noqa: BLE001 - torch raises RuntimeError and others
+    except Exception as exc:  # torch raises RuntimeError and others
         raise SurrogateFileError(f"{path}: not a TorchScript surrogate ({exc})") from exc
     try:
         meta = json.loads(extra[_EXTRA])

@@ -165,8 +165,9 @@ def calibrate(
         float | None,
         typer.Option(
             "--mesh-size",
-            help="Element edge length of the model, mm. Default: 12, then 14 and 16 if no "
-            "stress-free reference exists on the mesh (each retry is reported).",
+            help="Element edge length of the model, mm. Default: 12; where no stress-free "
+            "reference exists on it, with straight or curved elements, 14 then 16 (each "
+            "retry is reported).",
         ),
     ] = None,
     mesh_max_dihedral: Annotated[
