@@ -22,6 +22,8 @@ import numpy as np
 import fem
 
 from .data.measurements import Measurements, ScanMeasurement
+from .fitting.pipeline import MIN_SERIES_POINTS
+from .stats.consistency import POSTURE_ALPHA
 
 __all__ = [
     "POSTURE_ALPHA",
@@ -271,13 +273,8 @@ def evaluate(
     return out
 
 
-#: False-alarm rate of the posture-consistency test. With the band-F test's 0.01
-#: (:func:`calib.fitting.uncertainty.series_uncertainty`) the ``model_fit`` verdict's
-#: false-alarm rate is at most 0.05 (Bonferroni), ``phantom-calib diagnose``'s default.
-POSTURE_ALPHA = 0.04
-
 #: Fewest surface residuals of a scan for its own estimate (as the series interval).
-MIN_SCAN_POINTS = 200
+MIN_SCAN_POINTS = MIN_SERIES_POINTS
 #: A scan whose residual's c1 derivative (centred: each scan's own fit takes its offset)
 #: is below this share of the strongest scan's, RMS over its points, carries no c1 of its
 #: own (a repeat of the reference posture): its weight in Cochran's Q would be < 1e-4 of

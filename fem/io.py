@@ -38,6 +38,7 @@ from .mesh import REGION_IDS, MeshError, TetMesh
 __all__ = [
     "InputPoints",
     "atomic_write",
+    "mesh_format_for",
     "read_mesh",
     "read_tetgen",
     "read_tetgen_face",
@@ -326,14 +327,32 @@ def write_mesh(
         return path
     import meshio
 
-    fmt = file_format or _format_for(path)
+    fmt = file_format or mesh_format_for(path)
     m = _meshio_mesh(mesh, path, fmt, point_data, cell_data)
     atomic_write(path, lambda tmp: meshio.write(tmp, m, file_format=fmt))
     return path
 
 
-def _format_for(path: Path) -> str:
+def mesh_format_for(path: str | Path) -> str:
+    """The meshio format :func:`write_mesh` writes ``path`` in (by its suffix).
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    str
+        A meshio file format (``.msh`` is ``gmsh22``, whose writer keeps the region tags).
+
+    Raises
+    ------
+    ValueError
+        A suffix meshio does not know.
+    """
     import meshio
+
+    path = Path(path)
 
     suffixes = "".join(path.suffixes[-2:]).lower()
     if path.suffix.lower() == ".msh":

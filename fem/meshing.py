@@ -18,6 +18,7 @@ __all__ = [
     "inclusion_spheres",
     "mesh_phantom",
     "remesh_surface",
+    "subtet_centroids",
     "surface_defects",
     "tag_node_sets",
     "tetrahedralize",
@@ -358,8 +359,19 @@ def skin_fraction(region_name: str) -> float | None:
     return None
 
 
-def _subtet_centroids(levels: int = 2) -> np.ndarray:
-    """Barycentric centroids of the ``8**levels`` equal-volume tets of a red refinement."""
+def subtet_centroids(levels: int = 2) -> np.ndarray:
+    """Barycentric centroids of the ``8**levels`` equal-volume tets of a red refinement.
+
+    Parameters
+    ----------
+    levels : int
+        Red refinements of the reference tetrahedron.
+
+    Returns
+    -------
+    ndarray, shape (8**levels, 4)
+        Barycentric coordinates: a volume fraction sampled in steps of ``8**-levels``.
+    """
     tets = [np.eye(4)]
     for _ in range(levels):
         children = []
@@ -389,7 +401,7 @@ def _band_fraction(mesh: TetMesh, thickness_mm: float, back_nodes) -> np.ndarray
     scene.add_triangles(
         o3d.core.Tensor(mesh.nodes_mm.astype(np.float32)), o3d.core.Tensor(outer.astype(np.uint32))
     )
-    bary = _subtet_centroids()
+    bary = subtet_centroids()
     pts = np.einsum("pk,ekj->epj", bary, mesh.nodes_mm[mesh.tets]).reshape(-1, 3)
     dist = scene.compute_distance(o3d.core.Tensor(pts.astype(np.float32))).numpy()
     return (dist.reshape(mesh.n_tets, len(bary)) < thickness_mm).mean(axis=1)

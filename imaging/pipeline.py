@@ -14,7 +14,7 @@ from imaging.segment import segment_body
 from imaging.surface import SurfaceMesh, extract_surface, mark_back_plate
 from imaging.volume import Volume
 
-__all__ = ["ScanResult", "process_scan"]
+__all__ = ["BACK_PLATE_TOL_MM", "ScanResult", "process_scan"]
 
 log = logging.getLogger(__name__)
 
@@ -82,6 +82,8 @@ class ScanResult:
         }
 
 
+#: Surface vertices within this distance of the back plane (mm) are flagged back plate.
+BACK_PLATE_TOL_MM = 1.5
 #: Body voxels on the volume's edge up to this height above the back plane (mm, plus one
 #: voxel) are the back face resting on a field of view that starts at the plate.
 FOV_CUT_TOL_MM = 2.0
@@ -150,7 +152,7 @@ def process_scan(
     tumour_hint_lps_mm: np.ndarray | None = None,
     target_faces: int = 20000,
     smooth_iterations: int = 10,
-    back_plate_tol_mm: float = 1.5,
+    back_plate_tol_mm: float = BACK_PLATE_TOL_MM,
     marker_ratio: float = 2.0,
     inclusion_min_contrast: float = 0.15,
     seed: int = 0,

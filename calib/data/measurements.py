@@ -102,9 +102,6 @@ class Measurements:
         return [s for s in self.scans.values() if s.role == role]
 
 
-BACK_PLATE_TOL_MM = 1.5  # as imaging.process_scan flags the back plate
-
-
 def read_scan(work: Path, entry: ScanEntry) -> ScanMeasurement:
     """One scan's measurements from ``WORK/scans/<name>/`` (role from ``entry``)."""
     import imaging
@@ -126,6 +123,8 @@ def read_scan(work: Path, entry: ScanEntry) -> ScanMeasurement:
     if surf.back_plate is not None:
         flags = np.asarray(surf.back_plate, bool)
     else:  # a surface written without flags: the vertices on the back plane are the plate
+        from imaging.pipeline import BACK_PLATE_TOL_MM
+
         flags = np.abs((surf.vertices_lps_mm - back_point) @ normal) < BACK_PLATE_TOL_MM
     return ScanMeasurement(
         name=name,

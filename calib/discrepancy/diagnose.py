@@ -72,9 +72,11 @@ from ..data.work import WorkFolder, ingest_record
 from ..evaluation import ScanMetrics, scan_metrics
 from ..model.effects import ADMISSIBLE, LIBRARY, SKIN_THICKNESS_MM
 from ..stats import NoiseFit, NoiseModel, height_profile, parameter_intervals
+from ..stats.noise import MAX_LAG_MM
+from ..stats.scores import MISFIT_ALPHA, SCREEN_ALPHA
 from .fields import COARSER_FACTOR, FieldSet, discretisation_column, discretisation_field
 from .limits import parameter_limits
-from .localise import region_labels, significance_map
+from .localise import APEX_MM, OVER_MM, RIM_MM, TUMOUR_MM, region_labels, significance_map
 from .problem import (
     RIM_MARGIN_MM,
     DiagnosisError,
@@ -109,7 +111,7 @@ DEFAULT_EFFECTS = (
 #: Review W's dome half as tall (8 draws, a smooth misfit over 3 mm correlated noise): the
 #: fitted length 5.4 mm with 40 mm lags (a misfit absorbed), 3.0 with 20; the misfit test
 #: caught the misfit in 3 and 4 of 8 (the smaller body holds fewer independent samples).
-NOISE_LAG_MM = 40.0
+NOISE_LAG_MM = MAX_LAG_MM
 FLOOR_LAG_MM = 20.0
 #: ``DiagnosisOptions.noise_profile``'s choices.
 NOISE_PROFILES = ("flat", "plate")
@@ -207,8 +209,8 @@ class DiagnosisOptions:
 
     effects: tuple[str, ...] = DEFAULT_EFFECTS
     holdout: str | None = None
-    alpha: float = 0.05
-    misfit_alpha: float = 0.01
+    alpha: float = SCREEN_ALPHA
+    misfit_alpha: float = MISFIT_ALPHA
     skin_thickness_mm: float = SKIN_THICKNESS_MM
     max_points: int | None = None
     rim_margin_mm: float | Literal["element"] = RIM_MARGIN_MM
@@ -1269,16 +1271,16 @@ def _scan_regions(prob: Problem, name: str, points_mm: np.ndarray) -> np.ndarray
     ]
     k = prob.region_scale
     if s.tumour_mm is not None:
-        spheres.append((s.tumour_mm, 10.0 * k))
+        spheres.append((s.tumour_mm, TUMOUR_MM * k))
     return region_labels(
         points_mm,
         nipple_mm=s.nipple_mm,
         back_point_mm=s.back_point_mm,
         back_normal=s.back_normal,
         spheres=spheres,
-        apex_mm=20.0 * k,
-        rim_mm=max(10.0 * k, prob.rim_margin_mm),
-        over_mm=15.0 * k,
+        apex_mm=APEX_MM * k,
+        rim_mm=max(RIM_MM * k, prob.rim_margin_mm),
+        over_mm=OVER_MM * k,
     )
 
 

@@ -58,8 +58,8 @@ from ..stats import EffectScreening, ModelFit, NoiseFit, SurfaceSample
 from ..stats import misfit_test as _misfit_test
 from ..stats import screen_effects as _screen_effects
 from ..stats.intervals import series_design
-from ..stats.noise import session_noise
-from ..stats.scores import signature_geometry
+from ..stats.noise import MAX_LAG_MM, session_noise
+from ..stats.scores import MISFIT_ALPHA, SCREEN_ALPHA, signature_geometry
 from .fields import DISCRETISATION, FieldSet
 
 __all__ = [
@@ -175,12 +175,12 @@ def screen(
     *,
     columns: tuple[str, ...] | None = None,
     absorbed: tuple[str, ...] = (),
-    alpha: float = 0.05,
-    misfit_alpha: float = 0.01,
+    alpha: float = SCREEN_ALPHA,
+    misfit_alpha: float = MISFIT_ALPHA,
     confounded_above: float = 0.9,
     noise: NoiseFit | None = None,
     by_scan: bool = False,
-    max_lag_mm: float = 40.0,
+    max_lag_mm: float = MAX_LAG_MM,
 ) -> Screen:
     """Screen the columns of ``fields`` (default all) at its fit.
 

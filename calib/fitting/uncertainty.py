@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..stats.scores import MISFIT_ALPHA
+
 __all__ = [
     "ProfileInterval",
     "Uncertainty",
@@ -134,7 +136,7 @@ def series_uncertainty(
     scan_labels: np.ndarray,
     *,
     seed: int = 0,
-    misfit_alpha: float = 0.01,
+    misfit_alpha: float = MISFIT_ALPHA,
 ):
     """Interval of ln c1 under a spatially correlated noise model, and the misfit test.
 

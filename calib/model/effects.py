@@ -210,9 +210,11 @@ def effect_support(values: EffectValues, node_set: str = "back"):
 
 # ---------------------------------------------------------------------- regions
 
-_PARTIAL_INCLUSION_TAG = 400
+_PARTIAL_SKIN_TAG = 300  # tags 301..363: elements partly in the skin band (k / 64)
+_PARTIAL_INCLUSION_TAG = 400  # 401..463: partly in an inclusion
 _MIX_TAG = 1000
-_SUBTETS = 64  # sub-tetrahedra of two red refinements: fractions in steps of 1/64
+_SUBTET_LEVELS = 2  # two red refinements: volume fractions in steps of 1/64
+_SUBTETS = 8**_SUBTET_LEVELS
 
 
 def region_fractions(name: str) -> tuple[float, float]:
@@ -244,9 +246,9 @@ def region_fractions(name: str) -> tuple[float, float]:
 
 def _subtet_points(mesh: fem.TetMesh) -> np.ndarray:
     """Centroids of the 64 equal sub-tetrahedra of every element, shape (m, 64, 3)."""
-    from fem.meshing import _subtet_centroids  # the twin's sampling of a skin band
+    from fem.meshing import subtet_centroids  # the twin's sampling of a skin band
 
-    bary = _subtet_centroids()
+    bary = subtet_centroids(_SUBTET_LEVELS)
     return np.einsum("pk,ekj->epj", bary, mesh.nodes_mm[mesh.tets])
 
 
@@ -316,7 +318,7 @@ def tag_effect_regions(
         fs, fi = a / _SUBTETS, b / _SUBTETS
         if b == 0:
             name = "skin" if a == _SUBTETS else f"skin:{fs:.6g}"
-            tag = REGION_IDS["skin"] if a == _SUBTETS else 300 + a
+            tag = REGION_IDS["skin"] if a == _SUBTETS else _PARTIAL_SKIN_TAG + a
         elif a == 0:
             name = "inclusion" if b == _SUBTETS else f"inclusion:{fi:.6g}"
             tag = REGION_IDS["inclusion"] if b == _SUBTETS else _PARTIAL_INCLUSION_TAG + b

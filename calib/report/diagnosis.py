@@ -555,8 +555,10 @@ def _rim(doc: dict) -> str:
     The band is 10 mm times the localisation radii's factor (``scans.region_scale``, 1
     where not recorded), or the margin where wider (``calib.discrepancy.diagnose``).
     """
+    from ..discrepancy.localise import RIM_MM
+
     margin = float(doc["scans"].get("rim_margin_mm", 5.0))
-    band = max(10.0 * float(doc["scans"].get("region_scale", 1.0)), margin)
+    band = max(RIM_MM * float(doc["scans"].get("region_scale", 1.0)), margin)
     return (
         f"The rim region is the band within {band:.3g} mm of the back plate; its "
         f"points within {margin:g} mm (the clamped edge) are mapped, but neither fitted nor "

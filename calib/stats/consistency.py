@@ -52,7 +52,18 @@ from .intervals import IntervalError, _json_number, parameter_intervals
 from .noise import NoiseFit, session_noise
 from .sample import SurfaceSample
 
-__all__ = ["ConsistencyError", "PostureConsistency", "ScanEstimate", "posture_consistency"]
+__all__ = [
+    "POSTURE_ALPHA",
+    "ConsistencyError",
+    "PostureConsistency",
+    "ScanEstimate",
+    "posture_consistency",
+]
+
+#: False-alarm rate of the posture-consistency test. With the misfit test's
+#: :data:`calib.stats.scores.MISFIT_ALPHA` (0.01), ``calibrate``'s ``model_fit`` verdict's
+#: false-alarm rate is at most :data:`calib.stats.scores.SCREEN_ALPHA` (Bonferroni).
+POSTURE_ALPHA = 0.04
 
 #: Normal 97.5 % quantile: a 95 % interval's half-width over this is its standard error.
 Z_975 = 1.959963984540054
@@ -169,7 +180,7 @@ def posture_consistency(
     sample: SurfaceSample,
     noise: NoiseFit | None = None,
     *,
-    alpha: float = 0.04,
+    alpha: float = POSTURE_ALPHA,
     seed: int = 0,
 ) -> PostureConsistency:
     """Test whether every scan, fitted alone, asks for the same ``theta``.

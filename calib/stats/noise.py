@@ -37,7 +37,7 @@ import numpy as np
 
 from .kernels import KERNELS, Kernel, correlation
 from .modes import project_out, scan_polynomials
-from .sample import MAX_DENSE_BLOCK, SurfaceSample
+from .sample import MAX_DENSE_BLOCK, MAX_PAIRS, SurfaceSample
 
 __all__ = [
     "NoiseFit",
@@ -59,6 +59,11 @@ __all__ = [
 
 Detrend = Literal["none", "linear", "quadratic"]
 CHUNK = 2048  # rows per block when a covariance is applied without a dense matrix
+#: The variogram's reach (mm, the short-range cutoff) and its equal-width bins: the
+#: calibration's noise model and diagnose's tests (for the twins' 75 mm tall body:
+#: :data:`calib.discrepancy.diagnose.NOISE_LAG_MM`).
+MAX_LAG_MM = 40.0
+N_BINS = 20
 
 
 class NoiseModelError(ValueError):
@@ -325,9 +330,9 @@ def empirical_variogram(
     sample: SurfaceSample,
     residual_mm: np.ndarray,
     *,
-    max_lag_mm: float = 40.0,
-    n_bins: int = 20,
-    max_pairs: int = 400_000,
+    max_lag_mm: float = MAX_LAG_MM,
+    n_bins: int = N_BINS,
+    max_pairs: int = MAX_PAIRS,
     min_pairs: int = 30,
     detrend: Detrend = "none",
     seed: int = 0,
@@ -505,9 +510,9 @@ def estimate_noise(
     sample: SurfaceSample,
     residual_mm: np.ndarray,
     *,
-    max_lag_mm: float = 40.0,
-    n_bins: int = 20,
-    max_pairs: int = 400_000,
+    max_lag_mm: float = MAX_LAG_MM,
+    n_bins: int = N_BINS,
+    max_pairs: int = MAX_PAIRS,
     detrend: Detrend = "none",
     scope: Literal["pooled", "per-scan"] = "pooled",
     kernels: tuple[Kernel, ...] = KERNELS,

@@ -19,6 +19,8 @@ import numpy as np
 __all__ = ["MAX_DENSE_BLOCK", "PairSet", "SampleError", "SurfaceSample"]
 
 MAX_DENSE_BLOCK = 4000  # a 4000 x 4000 float64 matrix is 128 MB
+#: Most point pairs a variogram takes (seeded thinning beyond).
+MAX_PAIRS = 400_000
 
 
 class SampleError(ValueError):
@@ -157,7 +159,7 @@ class SurfaceSample:
             self._pairs[key] = cdist(p, p)
         return self._pairs[key]
 
-    def pairs(self, max_lag_mm: float, *, max_pairs: int = 400_000, seed: int = 0) -> PairSet:
+    def pairs(self, max_lag_mm: float, *, max_pairs: int = MAX_PAIRS, seed: int = 0) -> PairSet:
         """All within-scan pairs closer than ``max_lag_mm``, seeded-thinned to ``max_pairs``.
 
         Parameters

@@ -71,6 +71,8 @@ from .quadform import Quantile, ratio_critical_value, ratio_tail
 from .sample import MAX_DENSE_BLOCK, SurfaceSample
 
 __all__ = [
+    "MISFIT_ALPHA",
+    "SCREEN_ALPHA",
     "EffectScore",
     "EffectScreening",
     "ModelFit",
@@ -81,6 +83,15 @@ __all__ = [
     "screen_effects",
     "signature_geometry",
 ]
+
+
+#: Level of the model-misfit (band-F) test, in calibrate's ``model_fit`` and diagnose's
+#: screens: a model is called misfit only on strong evidence.
+MISFIT_ALPHA = 0.01
+#: Family-wise level of the effect screening (Holm across effects), diagnose's
+#: ``--alpha``; calibrate's two model tests share it (misfit + posture, Bonferroni:
+#: :data:`calib.stats.consistency.POSTURE_ALPHA`).
+SCREEN_ALPHA = 0.05
 
 
 class ScreeningError(ValueError):
@@ -205,7 +216,7 @@ def misfit_test(
     sample: SurfaceSample,
     noise: NoiseArg,
     *,
-    alpha: float = 0.01,
+    alpha: float = MISFIT_ALPHA,
     method: Literal["band-F", "chi2"] = "band-F",
     low_degree: int = 2,
     high_degree: int = 4,
@@ -558,7 +569,7 @@ def screen_effects(
     sample: SurfaceSample,
     noise: NoiseArg,
     *,
-    alpha: float = 0.05,
+    alpha: float = SCREEN_ALPHA,
     degree: int = 2,
     quantile: Quantile = "imhof",
     min_retained: float = 0.05,

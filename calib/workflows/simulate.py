@@ -144,13 +144,13 @@ def check_mesh(mesh: fem.TetMesh, path: Path) -> None:
 
 def check_output(out_path: Path) -> None:
     """Fail before any work when ``out_path`` cannot be written as a mesh."""
-    from fem.io import _format_for
+    from fem.io import mesh_format_for
 
     from ..io import check_out_file
 
     if out_path.suffix.lower() not in (".node", ".ele"):
         try:
-            _format_for(out_path)
+            mesh_format_for(out_path)
         except ValueError:
             raise ValueError(
                 f"--out {out_path}: not a mesh format (use .vtu, .vtk, .xdmf, .inp, .msh, ...)"

@@ -142,3 +142,26 @@ def test_model_fit_verdict_is_misfit_when_either_test_fires(band, postures, verd
     assert out["band_f_verdict"] == band
     assert set(out["postures"]["scans"]) == {"lateral", "tilt"}
     assert model_fit_with_postures(band_fit, None, {}) is band_fit
+
+
+def test_calibrate_s_two_model_tests_share_the_screening_level():
+    # Bonferroni: model_fit says misfit when the band-F test (MISFIT_ALPHA) or the posture
+    # test (POSTURE_ALPHA) fires, so its false-alarm rate is at most their sum, which the
+    # README and diagnose's default --alpha give as 0.05 (review Z: three literals kept
+    # in step by hand); the defaults of the functions are these names
+    import inspect
+
+    from calib.discrepancy.screen import screen
+    from calib.evaluation import check_postures
+    from calib.stats.consistency import POSTURE_ALPHA, posture_consistency
+    from calib.stats.scores import MISFIT_ALPHA, SCREEN_ALPHA, misfit_test
+
+    assert POSTURE_ALPHA + MISFIT_ALPHA == pytest.approx(SCREEN_ALPHA, abs=1e-15)
+    assert (MISFIT_ALPHA, POSTURE_ALPHA, SCREEN_ALPHA) == (0.01, 0.04, 0.05)
+
+    def default(f, name):
+        return inspect.signature(f).parameters[name].default
+
+    assert default(posture_consistency, "alpha") == default(check_postures, "alpha")
+    assert default(misfit_test, "alpha") == default(screen, "misfit_alpha") == MISFIT_ALPHA
+    assert default(screen, "alpha") == SCREEN_ALPHA
