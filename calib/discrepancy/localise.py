@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..stats import NoiseModel, SurfaceSample
-from ..stats.noise import local_counts
+from ..stats.noise import effective_sample_count
 
 __all__ = [
     "APEX_MM",
@@ -221,9 +221,9 @@ def significance_map(
         if n == 0:
             rows.append(RegionSummary(reg, 0, np.nan, np.nan, np.nan, np.nan, np.nan))
             continue
-        # Var(mean) = sigma^2 sum_ij R_ij / n^2, the row sums in chunks (was sigma^2 / n,
+        # Var(mean) = sigma^2 sum_ij R_ij / n^2 = sigma^2 / n_eff (was sigma^2 / n,
         # independent points, on regions over 4000 points: z 2 to 7 times too large)
-        var = noise.sigma_mm**2 * float(local_counts(SurfaceSample(p[sel]), noise).sum()) / n**2
+        var = noise.sigma_mm**2 / effective_sample_count(SurfaceSample(p[sel]), noise)
         mean = float(r[sel].mean())
         zz = mean / np.sqrt(var)
         rows.append(RegionSummary(reg, n, mean, float(np.sqrt(np.mean(r[sel] ** 2))), float(zz),

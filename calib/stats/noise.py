@@ -777,8 +777,9 @@ def effective_sample_count(sample: SurfaceSample, noise: NoiseArg) -> float:
     """Effective number of independent residuals, ``sum_s n_s^2 / sum_ij R^(s)_ij``.
 
     ``Var(mean of scan s) = sigma^2 sum_ij R_ij / n_s^2``: each scan counts as
-    ``n_s^2 / sum_ij R_ij`` independent residuals (exact for the mean; for reports, the
-    interval does not use it).
+    ``n_s^2 / sum_ij R_ij`` independent residuals (exact for the mean: the localisation's
+    region z-scores, :func:`calib.discrepancy.localise.significance_map`; the intervals
+    do not use it). Cost ``O(n^2)`` time, ``O(n)`` memory (:func:`local_counts`).
 
     Parameters
     ----------

@@ -197,7 +197,10 @@ def test_the_printed_summary_names_the_kind_of_bound(convergence, says, warns):
     assert "16.8 mm mesh calibrates to 422.7 Pa" in text
     assert "8.6 mm mesh failed: MeshError: x" in text
     assert f"GCI) 3.1 % {says}" in text
-    assert warns is None or warns in text
+    if warns is None:  # an observed order in range: no warning (review AA: was vacuous)
+        assert "does not converge" not in text and "observes" not in text
+    else:
+        assert warns in text
 
 
 def test_a_calibration_json_of_0_1_still_prints():

@@ -66,7 +66,7 @@ def test_fibonacci_sphere_is_quasi_uniform():
     # no two points closer than 0.8 x the ideal spacing sqrt(4 pi / n) / 1.1
     d = np.linalg.norm(p[:, None] - p[None], axis=2) + 10 * np.eye(n)
     assert d.min() > 0.8 * np.sqrt(4 * np.pi / n) / 1.1
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="at least one point, got 0"):
         fibonacci_sphere(0)
 
 
@@ -141,5 +141,5 @@ def test_continuation_uses_load_magnitude():
     loads = np.array([d, 1.1 * d, 3.0 * d, -d])
     c = plan_continuation(loads, chunk_size=4)
     assert c.parent[1] == 0 and c.parent[3] == -1
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="chunk size must be >= 1, got 0"):
         plan_continuation(loads, chunk_size=0)

@@ -107,7 +107,7 @@ def test_failed_write_leaves_nothing(mesh, tmp_path):
     target = tmp_path / "out.vtu"
     write_mesh(mesh, target)
     before = target.read_bytes()
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"out.vtu: cell data needs \d+ rows, got 3"):
         write_mesh(mesh, target, cell_data={"x": np.zeros(3)})  # wrong length
     assert target.read_bytes() == before
     with pytest.raises(ValueError, match="unknown mesh file suffix"):

@@ -360,8 +360,12 @@ def test_a_body_in_few_thick_slices_keeps_a_flat_bias_field_and_its_volume():
 def test_a_bias_field_that_swings_beyond_the_range_is_said_or_refused(caplog):
     # a body whose intensity rises k-fold across it (the Otsu body, its brighter part, sees
     # less): 30-fold spans 5.09 inside it, over BIAS_RANGE_WARN (4): said; 1000-fold 8.66,
-    # over BIAS_RANGE_MAX (8): no segmentation threshold is right, refused
-    from imaging.segment import segment_body
+    # over BIAS_RANGE_MAX (8): no segmentation threshold is right, refused. The figures are
+    # this fit's (a pin would not tell why); what must hold: said above 4, refused above 8,
+    # and never more than the ramp's own k across the body
+    import re
+
+    from imaging.segment import BIAS_RANGE_MAX, BIAS_RANGE_WARN, segment_body
 
     def ramp(k):
         i, j, m = np.indices((60, 60, 40), float)
@@ -372,11 +376,13 @@ def test_a_bias_field_that_swings_beyond_the_range_is_said_or_refused(caplog):
 
     with caplog.at_level("WARNING", logger="imaging.segment"):
         segment_body(ramp(30.0))
-    assert "ramp.nii.gz: the intensity-bias field fitted inside the body spans a ratio of 5.09" in (
-        caplog.text
-    )
-    with pytest.raises(SegmentationError, match=r"ramp.nii.gz.*bias field.*spans a ratio of 8.66"):
+    pattern = r"ramp.nii.gz: the intensity-bias field fitted inside the body spans a ratio of "
+    said = re.search(pattern + r"([0-9.]+)", caplog.text)
+    assert said and BIAS_RANGE_WARN < float(said.group(1)) <= 30.0, caplog.text
+    with pytest.raises(SegmentationError, match=r"ramp.nii.gz.*bias field.*spans a ratio of") as e:
         segment_body(ramp(1000.0))
+    span = float(re.search(r"spans a ratio of ([0-9.]+)", str(e.value)).group(1))
+    assert BIAS_RANGE_MAX < span <= 1000.0
 
 
 def test_surface_is_a_surface_mesh(oblique_result):

@@ -149,6 +149,11 @@ def test_torchscript_file_round_trip(ours, baseline, tmp_path):
             torch.tensor([float(sur.meta["model"]["c1_pa"])], dtype=torch.float64),
         )
         assert "tumour_mm" in out and ("nodes_mm" in out or "surface_mm" in out)
+        # and answers what the Surrogate does for the same query (one module: same bits;
+        # the query lies off this small sweep's directions, which is not the point here)
+        with pytest.warns(nn.ExtrapolationWarning, match="extrapolates"):
+            ref = sur.predict([0.0, 9.81, 0.0], frame="ref")
+        assert np.array_equal(out["tumour_mm"].detach().numpy(), ref.tumour_mm)
     with pytest.raises(nn.SurrogateFileError, match="not found"):
         nn.load_surrogate(tmp_path / "none.pt")
     (tmp_path / "junk.pt").write_bytes(b"not a model")
