@@ -678,8 +678,9 @@ def _registration_tolerance(work: WorkFolder, name: str) -> float:
 
 
 #: The diagnosis scans are imaged unlike where one's :func:`imaging_noise_mm` is more than
-#: this many times another's. The quick twins' scans, rendered alike: 1.13 at most (image
-#: noise 0.039-0.044 of the body level, 1.5 mm voxels).
+#: this many times another's. The quick twins' scans, rendered alike: 1.06 at most (image
+#: noise 0.032-0.034 of the body level for the renderer's 1/30, 1.5 mm voxels; 1.13
+#: before ingest revision 6, when the markers' squares joined the background's).
 IMAGED_UNLIKE_RATIO = 1.5
 
 
@@ -691,7 +692,7 @@ def imaging_noise_mm(work: WorkFolder, name: str) -> float | None:
     (ingest.json ``voxel_size_mm``, ``quality.seg_noise_sigma_rel``): a surface placed by
     a partial-volume edge moves by about the noise over the edge's slope, the body level
     over a voxel. The quick twin in 4 mm slices against 1.5 mm voxels: an rms edge 1.74
-    times longer at the same image noise (SNR 24.8 against 22.7-25.6), and a calibration
+    times longer at the same image noise (the renderer's SNR of 30), and a calibration
     residual's sd 2 times larger (0.53 against 0.26 mm: ``benchmarks/bench_slices.py``).
     A relative measure, for comparing the scans of one session, and independent of the
     model (a residual's own short-lag spread is not: :func:`calib.stats.noise.session_noise`).

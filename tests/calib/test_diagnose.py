@@ -152,8 +152,9 @@ def test_a_region_of_many_points_counts_their_correlation():
 
 def test_local_z_map_is_calibrated_and_finds_a_bump_at_the_rim():
     # null: the share of points with |z| > 1.96 is 5 % in expectation under the true
-    # model; over 10 draws of 1500 correlated points it lies within 2-10 % (the z's of one
-    # draw are correlated over the kernel, so the share varies more than binomially).
+    # model; the z's of one draw are correlated over the kernel, so the share varies more
+    # than binomially: over 30 other draws its mean was 5.8 %, its sd 4.0 %, so the mean of
+    # 10 has an sd of 1.3 % and 2-10 % is the expectation +- 3 of them.
     sample = phantom_sample(1500, 1, seed=3)
     p = sample.points_mm
     noise = NoiseModel("exponential", 0.1, 0.2, 5.0)
@@ -173,7 +174,10 @@ def test_local_z_map_is_calibrated_and_finds_a_bump_at_the_rim():
     assert 0.02 <= np.mean(shares) <= 0.10
     # a 0.3 mm bump of 12 mm at the apex: the apex's mean is significant, the rim's is not,
     # and the map's largest z lies within 15 mm of the bump; on the flank, the largest z
-    # follows the bump there
+    # follows the bump there. Over 10 other draws: the apex's p at most 5e-5 (1e-3 leaves
+    # a factor 20), the largest z within 5.2 mm of the bump (15 mm: 1.25 of its widths);
+    # the rim lies beyond the bump's reach, its p is the null's (above 0.01 in 99 % of
+    # draws: this seeded one 0.01 < p)
     centre = np.array([0.0, 0.0, 60.0])
     bump = 0.3 * np.exp(-0.5 * np.sum((p - centre) ** 2, axis=1) / 12.0**2)
     m = significance_map("s", p, sampler.draw(rng)[:, 0] + bump, labels, noise)
@@ -2177,7 +2181,7 @@ def test_scans_imaged_unlike_are_told_from_their_imaging_not_their_residual(tmp_
     # significant on noise. The residual's own short-lag spread cannot say so (on the
     # quick skin twin, imaged alike, it was 0.33 mm on the right lateral scan and 0.20
     # on the 50 degree one: element-scale misfit), so the imaging says: voxel size x
-    # image noise (the quick twins: 1.13 at most between scans, under 1.5)
+    # image noise (the quick twins: 1.06 at most between scans, under 1.5)
     import json
 
     from calib.discrepancy.problem import IMAGED_UNLIKE_RATIO, Problem, imaging_noise_mm
@@ -2187,8 +2191,8 @@ def test_scans_imaged_unlike_are_told_from_their_imaging_not_their_residual(tmp_
         doc = {"voxel_size_mm": voxel, "quality": {"seg_noise_sigma_rel": noise}}
         (tmp_path / "scans" / name / "ingest.json").write_text(json.dumps(doc))
 
-    scan("lat", [1.5, 1.5, 1.5], 0.044)  # the quick twin's right lateral scan
-    scan("tilt", [1.5, 1.5, 1.5], 0.039)  # its 50 degree one
+    scan("lat", [1.5, 1.5, 1.5], 0.044)  # a quick twin's right lateral scan before
+    scan("tilt", [1.5, 1.5, 1.5], 0.039)  # ingest revision 6, its 50 degree one (1.13)
     scan("thick", [1.5, 1.5, 5.0], 0.044)  # 5 mm slices: 3.14 mm rms edge
     scan("old", [1.5, 1.5, 1.5], None)  # an ingest without the figure
     work = SimpleNamespace(path=tmp_path)
@@ -2295,11 +2299,16 @@ def test_scans_imaged_unlike_reach_the_floor_intervals_and_screen_at_their_level
         se[unlike] = _intervals(fit, prob)["theta"]["standard_error"]
     assert lags == [10.0, 20.0, 10.0, 20.0]  # FLOOR_LAG_MM and NOISE_LAG_MM, times 0.5
     assert [c.kwargs.get("by_scan", False) for c in calls] == [False, False, True, False]
-    # one level: the quiet scan's variance; each scan at its own: their mean (0.05)
+    # one level: the quiet scan's variance; each scan at its own: their mean (0.05). A
+    # variance from 400 points has a relative sd of sqrt(2 / 400) = 7 %, more from the
+    # variogram's short-lag bins that set the level: 30 % is 4 of those, and keeps the two
+    # answers (a factor 5 apart) well apart
     assert floor[False] == pytest.approx(0.01, rel=0.3)
     assert floor[True] == pytest.approx(0.5 * (0.01 + 0.09), rel=0.3)
     # the intervals: of the refit's unweighted estimate, the sandwich's standard error
-    # (white noise here, J less each scan's mean: the offsets), imaged alike or not
+    # (white noise here, J less each scan's mean: the offsets), imaged alike or not; the
+    # series estimator takes the scale from 800 residuals (a standard error's relative sd
+    # about sqrt(1 / 800) = 3.5 %): 10 % is 3 of those
     sigma = np.where(sample.scan == 0, 0.1, 0.3)
     Jc = J - np.array([J[sample.scan == k].mean() for k in (0, 1)])[sample.scan]
     sandwich = np.sqrt(np.sum(Jc**2 * sigma**2)) / np.sum(Jc**2)

@@ -272,7 +272,11 @@ def test_bias_correction_flattens_the_body():
     assert np.ptp(raw) / np.median(raw) > 0.05
     assert np.ptp(norm) < 0.02
     # Rician background: sqrt(mean(M^2)/2) = sigma; body sigma = 1000 / 20 = 5 % of the body.
-    assert seg.quality["noise_sigma_rel"] == pytest.approx(0.05, rel=0.25)
+    # Without a bias field 0.0500 on seeds 2-5; the level it divides by is the fitted
+    # field's median inside the body, which this +-20 % field moves by 1-3 % (0.0486-0.0509
+    # on seeds 2-5): 5 %. The background excludes the markers too: their squares made it
+    # 0.062 here (review AA's unexplained 25 % bar hid it)
+    assert seg.quality["noise_sigma_rel"] == pytest.approx(0.05, rel=0.05)
 
 
 def test_dicom_and_nifti_give_the_same_surface(tmp_path):
