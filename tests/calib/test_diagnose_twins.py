@@ -93,7 +93,10 @@ def test_the_hidden_skin_is_named(skin):
     assert doc["calibration"]["c1_pa"] > 1.2 * c1_true
     assert doc["c1_pa"] == pytest.approx(c1_true, rel=0.05)
     ratio = doc["refit"]["intervals"]["skin"]["ratio"]
-    assert 4.0 < ratio < 16.0  # the 8x skin at the library's 1.5 mm, on a 14 mm mesh
+    # the 8x skin at the library's 1.5 mm, on a 14 mm mesh: within a factor 2 of the
+    # truth (the README's run of this twin: 7.79, 95 % interval 6.97-8.61; the element's
+    # volume fractions and the band's thickness vary with the mesh, so not its interval)
+    assert 4.0 < ratio < 16.0
     # what the surface sees: (ratio - 1) x the band's thickness, said in the summary
     iv = doc["refit"]["intervals"]["skin"]
     assert iv["excess_mm"] == pytest.approx((ratio - 1.0) * 1.5)

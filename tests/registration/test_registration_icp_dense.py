@@ -63,12 +63,16 @@ def test_icp_onto_a_sampled_coarse_surface_settles_at_the_facets_minimum():
     # the vertices alone: the 1 mm gate finds ~2 % of the scan and ICP does not settle
     assert not icp_refine(scan, coarse_v).converged
     # fitness: the share of scan points within 1 mm of a sample; the coarse mesh's rim
-    # stops short of the fine scan's (grid points inside the same ellipse)
+    # stops short of the fine scan's (grid points inside the same ellipse): measured 0.77,
+    # the rest the rim ring beyond the coarse mesh (up to 16 mm off its facets)
     assert icp.converged and icp.fitness > 0.7
     err = icp.T_target_from_source @ np.linalg.inv(T)
     angle = np.degrees(np.arccos(np.clip((np.trace(err[:3, :3]) - 1) / 2, -1, 1)))
-    assert angle < 0.2  # the rotation is not biased by the facets' chordal gap ...
+    # the rotation is not biased by the facets' chordal gap: 0.087 degrees left of the
+    # 0.71 planted (0.2: under a third of it) ...
+    assert angle < 0.2
     # ... the translation is, by their mean gap below the curved scan (sagitta of this
-    # dome's 17 mm diagonals: up to 1.4 mm): ICP minimises the distances reported
+    # dome's 17 mm diagonals: up to 1.4 mm): ICP minimises the distances reported; 0.53
+    # mm, along the dome's axis, measured: the bar lies between that and the sagitta
     assert np.linalg.norm(err[:3, 3]) < 1.0
     assert mean_gap(icp.T_target_from_source) <= mean_gap(T)
