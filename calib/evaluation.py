@@ -22,8 +22,8 @@ import numpy as np
 import fem
 
 from .data.measurements import Measurements, ScanMeasurement
-from .fitting.pipeline import MIN_SERIES_POINTS
 from .stats.consistency import POSTURE_ALPHA
+from .stats.intervals import MIN_SERIES_POINTS
 
 __all__ = [
     "POSTURE_ALPHA",

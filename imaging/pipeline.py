@@ -11,10 +11,10 @@ import numpy as np
 from imaging.detect import InclusionDetection, detect_fiducials, detect_inclusions
 from imaging.landmarks import BackPlane, estimate_back_plane, find_nipple, select_tumour
 from imaging.segment import segment_body
-from imaging.surface import SurfaceMesh, extract_surface, mark_back_plate
+from imaging.surface import BACK_PLATE_TOL_MM, SurfaceMesh, extract_surface, mark_back_plate
 from imaging.volume import Volume
 
-__all__ = ["BACK_PLATE_TOL_MM", "ScanResult", "process_scan"]
+__all__ = ["ScanResult", "process_scan"]
 
 log = logging.getLogger(__name__)
 
@@ -76,17 +76,21 @@ class ScanResult:
                 "voxel_depth_mm": self.back_plane.voxel_depth_mm,
             },
             "quality": {
-                k: (v if isinstance(v, (bool, int, str)) else float(v))
+                k: (v if v is None or isinstance(v, (bool, int, str)) else _finite_or_none(v))
                 for k, v in self.quality.items()
             },
         }
 
 
-#: Surface vertices within this distance of the back plane (mm) are flagged back plate.
-BACK_PLATE_TOL_MM = 1.5
 #: Body voxels on the volume's edge up to this height above the back plane (mm, plus one
 #: voxel) are the back face resting on a field of view that starts at the plate.
 FOV_CUT_TOL_MM = 2.0
+
+
+def _finite_or_none(v) -> float | None:
+    """A quality figure for JSON: None where it is not finite (strict JSON has no NaN)."""
+    v = float(v)
+    return v if np.isfinite(v) else None
 
 
 def fov_cut_height_mm(mask: Volume, plane: BackPlane) -> float:

@@ -229,6 +229,8 @@ OFFSET_SDS = 3.0
 #: 0.16 of the body at a per-coil SNR of 25 (8 coils), and is not an offset. A negative
 #: one never is a noise floor (magnitudes are >= 0).
 OFFSET_MIN_SHARE = 0.2
+#: A Rayleigh noise floor's median over its sigma, sqrt(2 ln 2).
+RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
 
 
 def background_offset(image: np.ndarray, body: np.ndarray) -> float:
@@ -306,8 +308,7 @@ def segment_body(
     sub = arr[::3, ::3, ::3]
     thr = _otsu(sub.ravel())
     smooth = ndimage.gaussian_filter(arr, sigma)
-    bright = smooth > thr  # the body, the markers, anything else above Otsu's threshold
-    coarse, n_comp = _largest_component(bright)
+    coarse, n_comp = _largest_component(smooth > thr)
     if coarse.sum() < 100:
         raise SegmentationError(f"{src}: empty segmentation (no body above threshold {thr:.3g})")
     offset = background_offset(arr, coarse)
@@ -367,16 +368,15 @@ def segment_body(
     full_s[crop] = ns
     vals = n[ndimage.binary_erosion(body, iterations=2)]
     med = float(np.median(vals)) if vals.size else 1.0
-    # the background is what lies beyond every bright region, the markers' too: their
-    # squares dominated the mean (a test scan's noise read 23 % high, by a share that
-    # changes with the field of view)
-    bg = arr[~ndimage.binary_dilation(bright, iterations=3)]
+    bg = arr[~ndimage.binary_dilation(coarse, iterations=3)]
     if not bg.size:
         noise = float("nan")
     elif offset:  # a magnitude floor shifted by the offset: Rayleigh IQR = 0.907 sigma
         noise = float(np.subtract(*np.percentile(bg, [75.0, 25.0])) / 0.907)
-    else:  # a magnitude floor (Rayleigh): E[bg^2] = 2 sigma^2
-        noise = float(np.sqrt(np.mean(bg.astype(float) ** 2) / 2.0))
+    else:  # a magnitude floor (Rayleigh): its median is sigma sqrt(2 ln 2), whatever else
+        # lies beyond the body (the markers: a mean of squares read the twins' noise 17-32 %
+        # high, by a share that changes with the field of view)
+        noise = float(np.median(bg) / RAYLEIGH_MEDIAN)
     level = float(np.median(field_[inner]))
     quality = {
         "otsu_threshold": thr,
@@ -384,7 +384,7 @@ def segment_body(
         "bias_max": float(field_[body].max() / level),
         "body_cv": float(1.4826 * np.median(np.abs(vals - med)) / med) if vals.size else 0.0,
         "noise_sigma_rel": noise / level,
-        "snr": level / noise if noise > 0 else float("inf"),
+        "snr": level / noise if noise > 0 else None,  # None: no noise (a zero-filled floor)
         "volume_ml": float(body.sum() * volume.voxel_volume_mm3 / 1000.0),
         "n_components": int(n_comp),
         "background_offset": offset,

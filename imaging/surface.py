@@ -21,6 +21,7 @@ from imaging.files import atomic_write
 from imaging.volume import Volume
 
 __all__ = [
+    "BACK_PLATE_TOL_MM",
     "SurfaceMesh",
     "decimate",
     "extract_surface",
@@ -33,6 +34,9 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: Surface vertices within this distance of the back plane (mm) are flagged back plate.
+BACK_PLATE_TOL_MM = 1.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -251,7 +255,7 @@ def mark_back_plate(
     *,
     plane_point_lps_mm: np.ndarray,
     plane_normal: np.ndarray,
-    tol_mm: float = 1.5,
+    tol_mm: float = BACK_PLATE_TOL_MM,
 ) -> np.ndarray:
     """Flag vertices within ``tol_mm`` of (or behind) the back-plate plane.
 

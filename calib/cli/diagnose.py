@@ -8,6 +8,7 @@ from typing import Annotated
 import typer
 
 from ..model.effects import SKIN_THICKNESS_MM
+from ..stats.scores import SCREEN_ALPHA
 from .app import app, fail
 
 
@@ -32,7 +33,7 @@ def diagnose(
     ] = None,
     alpha: Annotated[
         float, typer.Option("--alpha", help="Family-wise error rate of the screening.")
-    ] = 0.05,
+    ] = SCREEN_ALPHA,
     rim_margin: Annotated[
         str | None,
         typer.Option(

@@ -473,8 +473,8 @@ class StaleIngestError(RuntimeError):
 #: tolerance on thick slices). 5: a nipple bump looked for over the body's upper half
 #: where none stands within 12 mm of the highest point (``quality.nipple_method``), and
 #: the regions too large for an inclusion counted (``quality.inclusions_too_large``). 6:
-#: the image noise (``quality.seg_noise_sigma_rel``, ``seg_snr``) from the background
-#: beyond the markers too (their squares had made it up to a quarter too high).
+#: the image noise (``quality.seg_noise_sigma_rel``, ``seg_snr``) from the background's
+#: median (its mean of squares took in the markers: up to a third too high).
 INGEST_REVISION = 6
 
 

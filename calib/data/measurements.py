@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -107,9 +106,11 @@ def read_scan(work: Path, entry: ScanEntry) -> ScanMeasurement:
     import imaging
     from registration import apply_transform
 
+    from .ingest import load_ingest
+
     name = entry.name
     folder = work / "scans" / name
-    doc = json.loads((folder / "ingest.json").read_text())
+    doc = load_ingest(work, name)
     surf = imaging.read_ply(folder / "surface_ref.ply")
     T = np.asarray(doc["T_ref_from_scan"], float)
     tumour = doc.get("tumour_lps_mm")
@@ -123,7 +124,7 @@ def read_scan(work: Path, entry: ScanEntry) -> ScanMeasurement:
     if surf.back_plate is not None:
         flags = np.asarray(surf.back_plate, bool)
     else:  # a surface written without flags: the vertices on the back plane are the plate
-        from imaging.pipeline import BACK_PLATE_TOL_MM
+        from imaging.surface import BACK_PLATE_TOL_MM
 
         flags = np.abs((surf.vertices_lps_mm - back_point) @ normal) < BACK_PLATE_TOL_MM
     return ScanMeasurement(

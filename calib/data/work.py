@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 
 from ..io import check_run
-from .ingest import load_ingest
 from .measurements import Measurements, read_scan
 from .session import ScanEntry
 
@@ -156,4 +155,6 @@ def _point_data(path: Path) -> dict:
 
 def ingest_record(work: WorkFolder, name: str) -> dict:
     """``WORK/scans/<name>/ingest.json`` (:func:`calib.data.ingest.load_ingest`)."""
+    from .ingest import load_ingest  # it imports registration: not on every CLI start
+
     return load_ingest(work.path, name)

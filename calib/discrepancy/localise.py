@@ -32,6 +32,7 @@ __all__ = [
     "REGIONS",
     "REGION_BODY_HEIGHT_MM",
     "RIM_MM",
+    "SIGNIFICANT_Z",
     "TUMOUR_MM",
     "RegionSummary",
     "ScanMap",

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..data.measurements import Measurements
 from ..model.residuals import surface_area_mm2
+from ..stats.intervals import MIN_SERIES_POINTS
 from .meshcheck import MeshCheck, combined_ci95, describe_mesh_check, mesh_check
 from .objective import Calibrator, EvaluationFailed
 from .optimise import OptimiserStatus, optimise, prepare
@@ -204,8 +205,6 @@ def _uncertainty(cal: Calibrator, theta: float, say):
     return unc, check, ci95, profile, model_fit
 
 
-#: Fewest surface residuals for the variogram noise model and the series interval.
-MIN_SERIES_POINTS = 200
 #: Said with a ``fits`` verdict whose noise model's correlation length ended on its bound.
 LENGTH_AT_BOUND_NOTE = (
     "but the noise model's correlation length ended at its search bound (the residual "

@@ -210,7 +210,7 @@ def effect_support(values: EffectValues, node_set: str = "back"):
 
 # ---------------------------------------------------------------------- regions
 
-_PARTIAL_SKIN_TAG = 300  # tags 301..363: elements partly in the skin band (k / 64)
+_SKIN_SUBTETS_TAG = 300  # tags 301..363: elements partly in the skin band (k / 64)
 _PARTIAL_INCLUSION_TAG = 400  # 401..463: partly in an inclusion
 _MIX_TAG = 1000
 _SUBTET_LEVELS = 2  # two red refinements: volume fractions in steps of 1/64
@@ -318,7 +318,7 @@ def tag_effect_regions(
         fs, fi = a / _SUBTETS, b / _SUBTETS
         if b == 0:
             name = "skin" if a == _SUBTETS else f"skin:{fs:.6g}"
-            tag = REGION_IDS["skin"] if a == _SUBTETS else _PARTIAL_SKIN_TAG + a
+            tag = REGION_IDS["skin"] if a == _SUBTETS else _SKIN_SUBTETS_TAG + a
         elif a == 0:
             name = "inclusion" if b == _SUBTETS else f"inclusion:{fi:.6g}"
             tag = REGION_IDS["inclusion"] if b == _SUBTETS else _PARTIAL_INCLUSION_TAG + b

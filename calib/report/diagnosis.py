@@ -357,8 +357,10 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
         for reg, r in m["regions"].items():
             loc_rows.append([scan, reg, r["n"], r["mean_mm"], r["rms_mm"], r["z"], r["p_value"],
                              r["share_significant"]])  # fmt: skip
-    loc = _table(["scan", "region", "points", "mean mm", "rms mm", "z", "p", "share |z|>1.96"],
-                 loc_rows)  # fmt: skip
+    from ..discrepancy.localise import SIGNIFICANT_Z
+
+    share = f"share |z|>{SIGNIFICANT_Z:g}"
+    loc = _table(["scan", "region", "points", "mean mm", "rms mm", "z", "p", share], loc_rows)
     figs = "".join(
         f"<h3>{esc(name)}</h3>"
         + "".join(

@@ -51,6 +51,7 @@ from .quadform import Quantile, ratio_critical_value, satterthwaite
 from .sample import SurfaceSample
 
 __all__ = [
+    "MIN_SERIES_POINTS",
     "IntervalError",
     "ParameterInterval",
     "SeriesDesign",
@@ -62,6 +63,10 @@ __all__ = [
     "series_interval",
     "series_statistic",
 ]
+
+#: Fewest surface residuals for the variogram noise model and the series interval
+#: (calibrate's; fewer, it takes the Gauss-Newton interval).
+MIN_SERIES_POINTS = 200
 
 
 class IntervalError(ValueError):

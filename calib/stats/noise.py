@@ -40,6 +40,8 @@ from .modes import project_out, scan_polynomials
 from .sample import MAX_DENSE_BLOCK, MAX_PAIRS, SurfaceSample
 
 __all__ = [
+    "MAX_LAG_MM",
+    "N_BINS",
     "NoiseFit",
     "NoiseModel",
     "NoiseModelError",
@@ -744,8 +746,8 @@ def local_counts(sample: SurfaceSample, noise: NoiseArg) -> np.ndarray:
     With ``R`` the correlation matrix (within the point's scan), ``Sigma x ~ sigma^2 m x``
     and ``Sigma^{-1} x ~ x / (sigma^2 m)`` for fields ``x`` that are constant over a
     correlation length; ``n^2 / sum(m)`` is the exact effective sample count of the
-    scan mean. Cost ``O(n^2)`` time, ``O(n)`` memory (rows in chunks): usable where a
-    Cholesky factor is not.
+    scan mean. Cost ``O(n^2)`` time, ``O(CHUNK n)`` memory (rows in chunks of
+    :data:`CHUNK`): usable where a Cholesky factor is not.
 
     Parameters
     ----------
@@ -779,7 +781,8 @@ def effective_sample_count(sample: SurfaceSample, noise: NoiseArg) -> float:
     ``Var(mean of scan s) = sigma^2 sum_ij R_ij / n_s^2``: each scan counts as
     ``n_s^2 / sum_ij R_ij`` independent residuals (exact for the mean: the localisation's
     region z-scores, :func:`calib.discrepancy.localise.significance_map`; the intervals
-    do not use it). Cost ``O(n^2)`` time, ``O(n)`` memory (:func:`local_counts`).
+    do not use it). Cost ``O(n^2)`` time, ``O(CHUNK n)`` memory (:func:`local_counts`;
+    20,000 points: 4 s and 0.7 GB).
 
     Parameters
     ----------

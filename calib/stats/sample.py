@@ -16,7 +16,7 @@ from functools import cached_property
 
 import numpy as np
 
-__all__ = ["MAX_DENSE_BLOCK", "PairSet", "SampleError", "SurfaceSample"]
+__all__ = ["MAX_DENSE_BLOCK", "MAX_PAIRS", "PairSet", "SampleError", "SurfaceSample"]
 
 MAX_DENSE_BLOCK = 4000  # a 4000 x 4000 float64 matrix is 128 MB
 #: Most point pairs a variogram takes (seeded thinning beyond).

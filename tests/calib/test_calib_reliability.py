@@ -273,10 +273,11 @@ def _run_and_die(work, n_replace: int) -> int:
     return status
 
 
-#: What a kill at the n-th rename of the second run's commit leaves (the commit renames
-#: a.json, b.json, RUN, the old folder aside, the staging folder in, the record): the first
-#: run's folder and record until the old folder is moved aside, then no record (a run
-#: that must be made again: never a record beside another run's folder), then the second.
+#: What a kill at the n-th rename of the second run leaves (its own writes rename a.json
+#: and b.json into the staging folder; its commit renames RUN, drops the old record, moves
+#: the old folder aside, the staging folder in, writes the record): the first run's
+#: folder and record until the old record goes, then no record (a run that must be made
+#: again: never a record beside another run's folder), then the second.
 _KILLED_LEAVES = {1: 1, 2: 1, 3: 1, 4: None, 5: None, 6: None, 99: 2}
 
 

@@ -274,9 +274,31 @@ def test_bias_correction_flattens_the_body():
     # Rician background: sqrt(mean(M^2)/2) = sigma; body sigma = 1000 / 20 = 5 % of the body.
     # Without a bias field 0.0500 on seeds 2-5; the level it divides by is the fitted
     # field's median inside the body, which this +-20 % field moves by 1-3 % (0.0486-0.0509
-    # on seeds 2-5): 5 %. The background excludes the markers too: their squares made it
-    # 0.062 here (review AA's unexplained 25 % bar hid it)
+    # on seeds 2-5): 5 %. The background's median, not its mean of squares, which took in
+    # the markers: 0.062 here (review AA's unexplained 25 % bar hid it)
     assert seg.quality["noise_sigma_rel"] == pytest.approx(0.05, rel=0.05)
+
+
+@pytest.mark.parametrize("snr", [10.0, 25.0, np.inf])
+def test_the_image_noise_is_the_background_s_whatever_lies_beyond_the_body(snr):
+    # a Rayleigh floor's median is sigma sqrt(2 ln 2) however bright the few voxels of the
+    # markers beyond the body (a mean of squares read 0.054 for 0.040 at SNR 25, and more
+    # where the field of view holds less background); measured 0.996-1.002 of the truth
+    # on seeds 2-3 (the body level's Rician bias at SNR 10: 0.5 %): 2 %. No noise (a
+    # zero-filled floor): no SNR, written as null, not an infinity strict JSON refuses
+    import json
+
+    from imaging.pipeline import _finite_or_none
+
+    scan = make_scan(spacing=(1.5, 1.5, 1.5), seed=2, n_inclusions=0, bias=0.0, snr=snr)
+    q = segment_body(scan.volume).quality
+    if np.isfinite(snr):
+        assert q["noise_sigma_rel"] == pytest.approx(1.0 / snr, rel=0.02)
+    else:
+        assert q["noise_sigma_rel"] == 0.0 and q["snr"] is None
+        assert _finite_or_none(float("nan")) is None and _finite_or_none(2) == 2.0
+    doc = {k: (v if v is None else _finite_or_none(v)) for k, v in q.items()}
+    json.dumps(doc, allow_nan=False)
 
 
 def test_dicom_and_nifti_give_the_same_surface(tmp_path):
