@@ -258,6 +258,8 @@ def test_prestressed_residual_is_the_solved_equilibrium(box):
     g1 = gravity_vector(G1, 9.81)
     r = prestressed_residual(disc, scan, inverse.F0, sol.state, g1)[disc.free]
     scale = np.linalg.norm(external_force(disc, scan, g1))
+    # the solve stops where the free residual force is below 1e-8 of the external load's
+    # norm (SolverOptions.rtol): the public residual, recomputed, within ten times that
     assert np.linalg.norm(r[: (disc.free < 3 * disc.n_scalar_u).sum()]) <= 1e-7 * scale
 
 

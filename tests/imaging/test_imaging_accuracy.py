@@ -70,6 +70,8 @@ def test_back_plate_flags(oblique_scan, oblique_result):
     # the level-set error; vertices well above it are never flagged.
     assert np.all(np.abs(z[s.back_plate]) <= 2.0)
     assert not np.any(s.back_plate[z > 3.0])
+    # the face's own vertices: all flagged here (the largest flagged |z| 1.43 mm); 95 %
+    # leaves room for a voxel-staircase vertex of another pose
     assert s.back_plate[np.abs(z) < 0.3].mean() > 0.95
 
 
@@ -291,7 +293,9 @@ def test_inclusion_threshold_rises_with_the_noise():
         found = detect_inclusions(segment_body(scan.volume))
         true = scan.to_scanner(scan.phantom.inclusion_centres_mm)
         gap = np.linalg.norm(true[:, None] - found.centres_lps_mm[None], axis=2).min(1)
-        assert np.all(gap < 1.5), (snr, gap)  # every inclusion still found
+        # every inclusion still found: a detection within 1.5 mm (under the smallest
+        # inclusion's 2 mm radius: not a neighbour's); measured 0.08, 0.17, 0.48 mm
+        assert np.all(gap < 1.5), (snr, gap)
         assert len(found.diameters_mm) <= most, (snr, found.quality)
         if snr == 25.0:
             assert found.quality["threshold"] == 0.15
