@@ -49,6 +49,16 @@ def _check_parents(out: Path) -> None:
     _check_writable(out, parent)
 
 
+def check_work_writable(work: str | os.PathLike, writes: str) -> None:
+    """Refuse a work folder the command cannot write into, before its work.
+
+    ``writes`` names what it writes there (for the message). A read-only WORK was found
+    only when ``validate`` or ``diagnose`` had done all their work (review AC).
+    """
+    if not os.access(work, os.W_OK | os.X_OK):
+        raise PermissionError(f"{work}: not writable (this command writes {writes} there)")
+
+
 def check_out_file(out: str | os.PathLike) -> None:
     """Refuse an ``--out`` file that cannot be written, before any work.
 
@@ -88,6 +98,39 @@ def check_out_folder(out: str | os.PathLike) -> None:
         _check_writable(out, out)
     else:
         _check_parents(out)
+
+
+def check_out_apart(out: str | os.PathLike, inputs, *, what: str = "the input") -> None:
+    """Refuse an output folder that is, or holds, one of the ``inputs``, before any work.
+
+    A run replaces its folders under ``out`` (``scans/``, ``calibration/``, ...) as a
+    whole: an input inside ``out`` would be deleted (``ingest SCANS --out`` SCANS' parent
+    removed the scan data), and ``out`` equal to an input mixes outputs into it.
+
+    Parameters
+    ----------
+    out : path-like
+        The output folder.
+    inputs : iterable of path-like
+        The folders and files the run reads.
+    what : str
+        What the inputs are, for the message.
+
+    Raises
+    ------
+    ValueError
+        ``out`` is one of the inputs or holds one.
+    """
+    o = Path(out).resolve()
+    for p in inputs:
+        q = Path(p).resolve()
+        if q == o or o in q.parents:
+            where = "is" if q == o else "holds"
+            raise ValueError(
+                f"--out {out} {where} {what} {p}: each run replaces its folders under --out "
+                "as a whole, so it would delete or mix into the input; choose an output "
+                "folder outside it (e.g. next to it)"
+            )
 
 
 def file_sha256(path: str | os.PathLike) -> str:
@@ -270,9 +313,16 @@ def check_run(work: str | os.PathLike, *, folder: str, record: str) -> dict:
         doc = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise StaleOutputError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(doc, dict):
+        raise StaleOutputError(
+            f"{path}: expected a JSON object (the command's record), got {type(doc).__name__}"
+        )
     run = work / folder / "RUN"
     if "run_id" in doc:
-        found = json.loads(run.read_text()).get("run_id") if run.is_file() else None
+        try:
+            found = json.loads(run.read_text()).get("run_id") if run.is_file() else None
+        except (json.JSONDecodeError, AttributeError) as exc:
+            raise StaleOutputError(f"{run}: not a run marker ({exc})") from exc
         if found != doc["run_id"]:
             raise StaleOutputError(
                 f"{work / folder} is not from the run recorded in {path} (an interrupted "

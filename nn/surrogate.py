@@ -222,8 +222,10 @@ class Surrogate:
             g = g[None, :]
         if g.ndim != 2 or g.shape[1] != 3:
             raise ValueError(f"gravity must have shape (3,) or (B, 3), got {np.shape(gravity)}")
-        if not np.all(np.isfinite(g)):
-            raise ValueError("gravity holds NaN or infinite values")
+        with np.errstate(over="ignore"):  # 0,0,1e300 predicted NaN displacements
+            length = np.linalg.norm(g, axis=1)
+        if not (np.all(np.isfinite(g)) and np.all(np.isfinite(length))):
+            raise ValueError("gravity holds NaN or infinite values, or a vector of infinite length")
         if frame == "phantom":
             g = g @ self.R_ref_from_phantom.T
         elif frame != "ref":

@@ -38,6 +38,8 @@ def view(
 
     from ..viewer import PortInUseError, SurfaceModelMismatchError, load_scene, make_server
 
+    if not 0 <= port <= 65535:  # before any work (a bind error was a traceback)
+        fail(ValueError(f"--port must lie in 0-65535, got {port}"))
     expected = (PortInUseError, SurfaceModelMismatchError, nn.SurrogateFileError, OSError)
     try:
         scene = load_scene(work, model)

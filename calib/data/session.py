@@ -9,7 +9,14 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ScanEntry", "Session", "SessionError", "load_session", "scaffold_session"]
+__all__ = [
+    "ScanEntry",
+    "Session",
+    "SessionError",
+    "load_session",
+    "scaffold_session",
+    "session_inputs",
+]
 
 ROLES = ("reference", "calibration", "validation")
 PLANES = ("transverse", "sagittal")  # fem.postures.PLANES
@@ -164,6 +171,11 @@ def _scan(entry, index: int, folder: Path, toml: Path) -> ScanEntry:
     return ScanEntry(entry["name"], path, entry["role"], plane, angle)
 
 
+def session_inputs(session: Session) -> list[Path]:
+    """What a run over ``session`` reads: its folder and every scan's series or file."""
+    return [session.folder, *(s.path for s in session.scans)]
+
+
 def load_session(folder: str | Path) -> Session:
     """Read and validate ``folder/session.toml``.
 
@@ -190,8 +202,10 @@ def load_session(folder: str | Path) -> Session:
     scanner, phantom = _table(doc, "scanner", toml), _table(doc, "phantom", toml)
     landmarks = _table(doc, "landmarks", toml)
     g = _vector(scanner.get("gravity", [0.0, 1.0, 0.0]), f"{toml}: scanner.gravity")
-    if np.linalg.norm(g) == 0:
-        raise SessionError(f"{toml}: scanner.gravity must be non-zero")
+    with np.errstate(over="ignore"):  # [1e308, 1e308, 0] was normalised to zeros
+        length = np.linalg.norm(g)
+    if not 0 < length < np.inf:
+        raise SessionError(f"{toml}: scanner.gravity must be non-zero and of finite length")
     density = phantom.get("density_kg_m3", 1000.0)
     if not _is_number(density) or density <= 0:
         raise SessionError(f"{toml}: phantom.density_kg_m3 must be positive, got {density!r}")

@@ -113,6 +113,7 @@ def read_work(work: str | Path) -> WorkFolder:
         raise FileNotFoundError(
             f"{work}: no calibration.json (run `phantom-calib calibrate` first)"
         ) from exc
+    _check_record(record, work / "calibration.json")
     model = record.get("model") or {}
     ref_name = model.get("reference_scan")
     if ref_name is None or "reference_mesh" not in model:
@@ -144,12 +145,45 @@ def read_work(work: str | Path) -> WorkFolder:
     return WorkFolder(work, record, measurements, mesh, states)
 
 
+def _check_record(record: dict, path: Path) -> None:
+    """Refuse a ``calibration.json`` whose keys the readers use have the wrong shape.
+
+    A hand-edited or foreign file gave tracebacks (``scans`` a list, ``c1_pa`` null, a
+    one-element interval): now a ``ValueError`` naming the key and what was expected.
+    """
+    from .session import ROLES
+
+    def bad(key: str, expected: str, got) -> ValueError:
+        return ValueError(f"{path}: `{key}` must be {expected}, got {got!r}")
+
+    c1 = record.get("c1_pa")
+    if isinstance(c1, bool) or not isinstance(c1, (int, float)) or not (np.isfinite(c1) and c1 > 0):
+        raise bad("c1_pa", "a positive number (Pa)", c1)
+    ci = record.get("c1_ci95_pa")
+    pair = isinstance(ci, list) and len(ci) == 2
+    if ci is not None and not (pair and all(isinstance(v, (int, float)) for v in ci)):
+        raise bad("c1_ci95_pa", "null or [low, high] in Pa", ci)
+    if ci is not None and not 0 < ci[0] <= ci[1]:
+        raise bad("c1_ci95_pa", "0 < low <= high (Pa)", ci)
+    if not isinstance(record.get("model", {}), (dict, type(None))):
+        raise bad("model", "an object", record.get("model"))
+    scans = record.get("scans", {})  # absent: said by the readers that need it
+    if not isinstance(scans, dict):
+        raise bad("scans", "an object of scan name to its record", scans)
+    for name, s in scans.items():
+        if not isinstance(s, dict) or s.get("role") not in ROLES:
+            raise bad(f"scans.{name}", f"an object with a role among {ROLES}", s)
+
+
 def _point_data(path: Path) -> dict:
     import meshio
 
     if not path.is_file():
         raise FileNotFoundError(f"{path} not found (named by calibration.json)")
-    m = meshio.read(path)
+    try:
+        m = meshio.read(path)
+    except Exception as exc:  # meshio raises many kinds on a corrupt file
+        raise ValueError(f"{path}: not a readable mesh ({exc})") from exc
     return {k: np.asarray(v, float) for k, v in m.point_data.items() if not k.startswith("set:")}
 
 

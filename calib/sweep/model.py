@@ -262,6 +262,15 @@ def load_sweep_model(work: str | Path) -> SweepModel:
     missing = [k for k in _REQUIRED if model.get(k) is None]
     if missing or doc.get("c1_pa") is None:
         _fail(record, f"model block lacks {', '.join(missing or ['c1_pa'])}")
+    for key, value, ok in (
+        ("c1_pa", doc["c1_pa"], lambda v: v > 0),
+        ("model.nu", model["nu"], lambda v: 0 < v < 0.5),
+        ("model.density_kg_m3", model["density_kg_m3"], lambda v: v > 0),
+        ("model.g_m_s2", model["g_m_s2"], lambda v: v > 0),
+    ):  # review AC: c1 -5 or NaN swept every scenario to a failure and exited 0
+        number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if not (number and np.isfinite(value) and ok(value)):
+            _fail(record, f"{key} is {value!r}: not a finite number in its physical range")
     if model["support"] not in _SUPPORTS:
         _fail(record, f"model.support {model['support']!r} is not one of {_SUPPORTS}")
     mesh_path = work / model["reference_mesh"]

@@ -18,10 +18,10 @@ import numpy as np
 
 from ..data.ingest import stale_reasons
 from ..data.measurements import load_measurements
-from ..data.session import SessionError, load_session
+from ..data.session import SessionError, load_session, session_inputs
 from ..evaluation import ScanEvaluation, check_postures, evaluate, model_fit_with_postures
 from ..fitting import Calibration, CalibrationOptions, fit
-from ..io import RunOutputs, check_out_folder, provenance
+from ..io import RunOutputs, check_out_apart, check_out_folder, provenance
 from ..report.maps import error_map_figure, save_figure, write_error_ply
 
 __all__ = ["run_calibration", "write_calibration"]
@@ -195,6 +195,7 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     work = Path(work)
     check_out_folder(work)
     session = load_session(scans_dir)
+    check_out_apart(work, session_inputs(session), what="the scan data")
     if not session.by_role("calibration"):
         raise SessionError(
             f"{session.folder / 'session.toml'}: no scan has role 'calibration' (calibrate "

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..data.work import read_work
 from ..discrepancy import Diagnosis, DiagnosisOptions, diagnose
-from ..io import RunOutputs, atomic_write, provenance
+from ..io import RunOutputs, atomic_write, check_work_writable, provenance
 from ..report.diagnosis import (
     diagnosis_html,
     gap_figure,
@@ -232,6 +232,7 @@ def run_diagnosis(work, options: DiagnosisOptions | None = None, *, progress=Non
     say = progress or log.info
     t0 = time.perf_counter()
     wf = read_work(work)
+    check_work_writable(wf.path, f"{FOLDER}/ and {RECORD}")
     d = diagnose(wf, options, progress=say)
     doc = d.to_json()
     with RunOutputs(wf.path, folder=FOLDER, record=RECORD) as run:

@@ -11,8 +11,8 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..data.ingest import IngestResult, ingest_inputs, ingest_scans
-from ..data.session import Session, load_session
-from ..io import RunOutputs, check_out_folder, provenance, write_json_atomic
+from ..data.session import Session, load_session, session_inputs
+from ..io import RunOutputs, check_out_apart, check_out_folder, provenance, write_json_atomic
 
 __all__ = ["run_ingest", "write_ingest"]
 
@@ -130,6 +130,8 @@ def run_ingest(scans_dir: str | Path, work: str | Path, *, progress=None) -> Ing
     IngestResult
     """
     check_out_folder(work)  # before the work, not after it
-    result = ingest_scans(load_session(scans_dir), progress=progress)
+    session = load_session(scans_dir)
+    check_out_apart(work, session_inputs(session), what="the scan data")
+    result = ingest_scans(session, progress=progress)
     write_ingest(work, result)
     return result

@@ -72,8 +72,11 @@ def parse_vector(text: str) -> tuple[float, float, float]:
         vec = tuple(float(p) for p in parts)
     except ValueError:
         vec = ()
-    if len(vec) != 3 or not np.all(np.isfinite(vec)) or not np.any(vec):
-        raise ValueError(f"expected a non-zero vector 'X,Y,Z', got {text!r}")
+    # its length finite too: 0,0,1e300 passed, and a normalised load came out zero
+    with np.errstate(over="ignore"):
+        finite = len(vec) == 3 and np.all(np.isfinite(vec)) and np.isfinite(np.linalg.norm(vec))
+    if not finite or not np.any(vec):
+        raise ValueError(f"expected a non-zero vector 'X,Y,Z' of finite length, got {text!r}")
     return vec  # type: ignore[return-value]
 
 
@@ -189,6 +192,9 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
     from fem.io import read_mesh, write_mesh
 
     check_output(Path(out_path))
+    written = {Path(out_path).resolve(), Path(out_path).with_suffix(".json").resolve()}
+    if Path(mesh_path).resolve() in written:  # review AC: the input was overwritten
+        raise ValueError(f"--out {out_path}: it (or its .json) is the input mesh {mesh_path}")
     t0 = time.perf_counter()
     try:
         mesh, points = read_mesh(mesh_path, return_input_points=True)

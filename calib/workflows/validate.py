@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..data.work import WorkFolder, read_work
-from ..io import RunOutputs, atomic_write, provenance
+from ..io import RunOutputs, atomic_write, check_work_writable, provenance
 from ..report.maps import save_figure
 from ..report.validation import (
     error_by_displacement_figure,
@@ -95,6 +95,7 @@ def run_validation(work: str | Path, *, progress=None) -> dict:
     say = progress or log.info
     t0 = time.perf_counter()
     wf = read_work(work)
+    check_work_writable(wf.path, f"{FOLDER}/ and {RECORD}")
     say(f"validating {len(wf.states)} scans at c1 = {wf.c1_pa:.1f} Pa (saved states, no FE)")
     v = validate_work(wf)
     with RunOutputs(wf.path, folder=FOLDER, record=RECORD) as run:

@@ -141,9 +141,11 @@ BAD = [
     (["--nu", "0.7"], r"0\.7"),
     (["--c1", "0"], r"c1"),
     (["--c1", "-420"], r"c1"),
-    (["--gravity", "1,0"], r"expected a non-zero vector 'X,Y,Z', got '1,0'"),
-    (["--gravity", "x,y,z"], r"expected a non-zero vector 'X,Y,Z', got 'x,y,z'"),
+    (["--gravity", "1,0"], r"expected a non-zero vector 'X,Y,Z' of finite length, got '1,0'"),
+    (["--gravity", "x,y,z"], r"expected a non-zero vector 'X,Y,Z' of finite length, got 'x,y,z'"),
     (["--gravity", "0,0,0"], r"expected a non-zero vector"),
+    # review AC: a length that overflows normalised to a zero load, "converged" at 0 mm
+    (["--gravity", "0,1e300,1e300"], r"of finite length, got '0,1e300,1e300'"),
     (["--back-plane", "y=3"], r"--back-plane must be 'auto' or 'z=VALUE' \(mm\), got 'y=3'"),
     (["--back-plane", "z=abc"], r"--back-plane must be 'auto' or 'z=VALUE'"),
     (["--back-plane", "z=40"], r"no back face found at z=40"),
@@ -204,6 +206,20 @@ def _write(path: Path, nodes, tets) -> Path:
 def _simulate(mesh_path: Path, out: Path):
     args = ["simulate", str(mesh_path), "--c1", "420", "--gravity", "1,0,0", "--out", str(out)]
     return CliRunner().invoke(app, args)
+
+
+def test_simulate_refuses_to_overwrite_its_input_mesh(mesh_file):
+    # review AC: --out the input mesh replaced it by the deformed one, and a second run
+    # answered another displacement
+    before = mesh_file.read_bytes()
+    line = _one_error_line(_simulate(mesh_file, mesh_file))
+    assert "is the input mesh" in line and mesh_file.read_bytes() == before
+
+
+def test_view_refuses_a_port_out_of_range(tmp_path):
+    # review AC: --port 70000 was a bind traceback, after the scene was loaded
+    result = CliRunner().invoke(app, ["view", str(tmp_path), "--port", "70000"])
+    assert "--port must lie in 0-65535, got 70000" in _one_error_line(result)
 
 
 def _one_error_line(result) -> str:

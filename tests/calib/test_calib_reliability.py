@@ -365,3 +365,37 @@ def test_a_missing_fast_solver_is_said_once(monkeypatch, caplog):
         assert len(said) == 1 and "pip install pypardiso" in said[0].getMessage()
     finally:
         fem.linalg._pardiso.cache_clear()
+
+
+@pytest.mark.parametrize(
+    "doc, says",
+    [
+        ([], "expected a JSON object"),
+        (None, "expected a JSON object"),
+        ({"c1_pa": None, "scans": {}}, "`c1_pa` must be a positive number"),
+        ({"c1_pa": "abc", "scans": {}}, "`c1_pa` must be a positive number"),
+        ({"c1_pa": 420.0, "c1_ci95_pa": [1.0], "scans": {}}, "`c1_ci95_pa` must be null or"),
+        ({"c1_pa": 420.0, "scans": []}, "`scans` must be an object"),
+        ({"c1_pa": 420.0, "scans": {"a": {"role": "bogus"}}}, "`scans.a` must be an object"),
+        ({"c1_pa": 420.0, "scans": {}, "model": "x"}, "`model` must be an object"),
+    ],
+)
+@pytest.mark.parametrize("command", ["validate", "diagnose"])
+def test_a_malformed_calibration_record_is_named_not_a_traceback(tmp_path, doc, says, command):
+    # review AC: a calibration.json of the wrong shape (hand-edited, another tool's) gave
+    # tracebacks in validate, diagnose, sweep and view
+    (tmp_path / "calibration.json").write_text(json.dumps(doc))
+    result = CliRunner().invoke(app, [command, str(tmp_path)])
+    assert result.exit_code == 2, result.output
+    assert "calibration.json" in result.stderr and says in result.stderr, result.stderr
+
+
+def test_a_work_folder_that_cannot_be_written_is_said_before_the_work(tmp_path, monkeypatch):
+    # review AC: validate and diagnose found a read-only WORK only after their work (as
+    # root every folder is writable, so the refusal is simulated)
+    import calib.io
+
+    calib.io.check_work_writable(tmp_path, "validation/")  # writable: nothing said
+    monkeypatch.setattr(calib.io.os, "access", lambda path, mode: False)
+    with pytest.raises(PermissionError, match=r"not writable \(this command writes validation/"):
+        calib.io.check_work_writable(tmp_path, "validation/")

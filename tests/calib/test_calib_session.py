@@ -107,6 +107,11 @@ BAD_SESSIONS = [
         r"scanner.gravity must be non-zero",
     ),
     (
+        "gravity-overflows",  # review AC: normalised to zeros
+        VALID_TOML.replace("gravity = [0.0, 2.0, 0.0]", "gravity = [1e308, 1e308, 0.0]"),
+        r"scanner.gravity must be non-zero and of finite length",
+    ),
+    (
         "gravity-nan",
         VALID_TOML.replace("gravity = [0.0, 2.0, 0.0]", "gravity = [0.0, nan, 0.0]"),
         r"scanner.gravity must be a list of 3 numbers",
@@ -333,3 +338,25 @@ def test_calibrate_without_a_calibration_scan_stops_before_ingest(tmp_path):
     with pytest.raises(SessionError, match=r"session.toml: no scan has role 'calibration'"):
         run_calibration(folder, work, CalibrationOptions())
     assert not (work / "scans").exists()  # nothing ingested
+
+
+@pytest.mark.parametrize("command", ["ingest", "calibrate"])
+def test_an_output_folder_holding_the_scans_is_refused_before_it_deletes_them(tmp_path, command):
+    # review AC: `ingest T/scans --out T` ran, then committed T/scans (its results' folder)
+    # over the scan data: session.toml and every series deleted, exit 0
+    scans = make_scan_folder(tmp_path / "T" / "scans")
+    before = sorted(p.relative_to(scans) for p in scans.rglob("*"))
+    for out, says in ((tmp_path / "T", "holds the scan data"), (scans, "is the scan data")):
+        result = CliRunner().invoke(app, [command, str(scans), "--out", str(out)])
+        assert result.exit_code == 2, result.output
+        assert says in result.stderr and "choose an output folder outside it" in result.stderr
+        assert sorted(p.relative_to(scans) for p in scans.rglob("*")) == before
+    # a scan's series inside --out, the session elsewhere: refused as well
+    series = tmp_path / "W" / "left"
+    series.mkdir(parents=True)
+    (series / "IM00001.dcm").write_bytes(b"placeholder")
+    toml = (scans / "session.toml").read_text().replace('path = "left"', f'path = "{series}"')
+    assert toml != (scans / "session.toml").read_text()
+    (scans / "session.toml").write_text(toml)
+    result = CliRunner().invoke(app, [command, str(scans), "--out", str(tmp_path / "W")])
+    assert result.exit_code == 2 and f"holds the scan data {series}" in result.stderr

@@ -145,3 +145,19 @@ def test_parent_folders_made_for_out_go_when_the_creation_fails(tmp_path, monkey
     with pytest.raises(OSError, match="disk full"):
         run_sweep(work, tmp_path / "a" / "b" / "SWEEP", SweepOptions(plan="sphere:6"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["work"]
+
+
+@pytest.mark.parametrize("c1", [-5.0, float("nan"), "abc"])
+def test_a_calibration_without_a_physical_c1_is_refused_before_sweeping(tmp_path, c1):
+    # review AC: c1 -5 or NaN swept every scenario to a failure and exited 0
+    import json
+
+    from calib.sweep import CalibrationMissingError, load_sweep_model
+
+    work = make_box_work(tmp_path / "work")
+    path = work / "calibration.json"
+    doc = json.loads(path.read_text())
+    doc["c1_pa"] = c1
+    path.write_text(json.dumps(doc))
+    with pytest.raises(CalibrationMissingError, match=r"calibration.json: c1_pa is .*physical"):
+        load_sweep_model(work)

@@ -166,6 +166,8 @@ def test_bad_queries(ours, box_data):
         ours.predict([np.nan, 0.0, 9.81])
     with pytest.raises(ValueError, match="NaN or infinite"):
         ours.predict([np.inf, 0.0, 0.0])
+    with pytest.raises(ValueError, match="infinite length"):  # review AC: NaN displacements
+        ours.predict([0.0, 1e300, 1e300])
     with pytest.raises(ValueError, match="c1 must be finite and positive"):
         ours.predict([0.0, 0.0, 9.81], c1_pa=-1.0)
     with pytest.raises(ValueError, match="c1 must be finite"):
