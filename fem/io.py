@@ -181,6 +181,11 @@ def _to_tetmesh(m, path: Path, *, orient: bool) -> tuple[TetMesh, InputPoints]:
     if any(types[i] == "tetra10" for i in tet_blocks):
         log.warning("%s: quadratic tetrahedra read as linear ones (mid-side nodes dropped)", path)
     tets = np.vstack([np.asarray(m.cells[i].data)[:, :4] for i in tet_blocks]).astype(np.int64)
+    if tets.size and (tets.min() < 0 or tets.max() >= len(m.points)):  # was an IndexError
+        raise MeshError(
+            f"{path}: tetrahedra index points {tets.min()}..{tets.max()}, but the file has "
+            f"{len(m.points)} points"
+        )
     tagged = _tags_from_cell_data(m, tet_blocks) or _tags_from_cell_sets(m, tet_blocks, len(tets))
     region, names = tagged or (np.full(len(tets), REGION_IDS["bulk"]), {"bulk": REGION_IDS["bulk"]})
     keep = np.unique(tets)

@@ -127,7 +127,7 @@ def ingest(
 def synth(
     out: Annotated[Path, typer.Argument(help="Folder to create (scans/ and truth/).")],
     preset: Annotated[str, typer.Option("--preset", help="quick or dissertation.")] = "quick",
-    seed: Annotated[int, typer.Option("--seed", help="Seed of every random choice.")] = 0,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of every random choice.")] = 0,
     effect: Annotated[
         list[str] | None,
         typer.Option("--effect", help="Hidden effect NAME[=VALUE]; repeat for several."),

@@ -56,7 +56,7 @@ def sweep(
     holdout: Annotated[
         float, typer.Option("--holdout", help="Fraction of sphere directions held out.")
     ] = 0.0,
-    seed: Annotated[int, typer.Option("--seed", help="Seed of the hold-out.")] = 0,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of the hold-out.")] = 0,
     workers: Annotated[int, typer.Option("--workers", help="Worker processes.")] = 2,
     serial: Annotated[bool, typer.Option("--serial", help="Solve in this process.")] = False,
     dask: Annotated[
@@ -151,7 +151,7 @@ def surrogate_train(
         str, typer.Option("--kind", help="ours (reduced basis + kernel) or dissertation (MLPs).")
     ] = "ours",
     device: Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")] = "auto",
-    seed: Annotated[int, typer.Option("--seed", help="Seed of every random choice.")] = 0,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of every random choice.")] = 0,
     iterations: Annotated[
         int | None,
         typer.Option("--iterations", help="Training iterations of the dissertation MLPs."),

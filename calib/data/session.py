@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import re
 import tomllib
 from dataclasses import dataclass, field
@@ -17,6 +18,8 @@ __all__ = [
     "scaffold_session",
     "session_inputs",
 ]
+
+log = logging.getLogger(__name__)
 
 ROLES = ("reference", "calibration", "validation")
 PLANES = ("transverse", "sagittal")  # fem.postures.PLANES
@@ -230,11 +233,19 @@ def _check_scans(scans: tuple[ScanEntry, ...], toml: Path) -> None:
     refs = [s.name for s in scans if s.role == "reference"]
     if len(refs) != 1:
         raise SessionError(f"{toml}: exactly one scan must have role 'reference', found {refs}")
+    by_path: dict[Path, list[str]] = {}
+    for s in scans:
+        by_path.setdefault(s.path, []).append(s.name)
+    for path, same in by_path.items():
+        if len(same) > 1:  # review AC: accepted without a word (no deformation between them)
+            log.warning("%s: scans %s read the same data %s", toml, same, path)
 
 
 def _find_scans(folder: Path) -> list[Path]:
     found = []
     for p in sorted(folder.iterdir()):
+        if p.name.startswith("."):  # review AC: a hidden folder became the reference
+            continue
         if p.is_dir() and any(f.is_file() and not f.name.startswith(".") for f in p.iterdir()):
             found.append(p)
         elif p.is_file() and p.name.lower().endswith(VOLUME_SUFFIXES):

@@ -283,3 +283,21 @@ def test_short_help_option():
     result = CliRunner().invoke(app, ["calibrate", "-h"])
     assert result.exit_code == 0 and "--objective" in result.output
     assert "<bool>" not in result.output  # flags are shown without a fake value
+
+
+def test_simulate_names_a_mesh_whose_cells_index_missing_points(tmp_path):
+    # review AC: an IndexError traceback
+    cube = [[0, 0, 0], [50, 0, 0], [0, 50, 0], [0, 0, 50]]
+    line = _one_error_line(
+        _simulate(_write(tmp_path / "bad.vtu", cube, [[0, 1, 2, 9]]), tmp_path / "o.vtu")
+    )
+    assert "bad.vtu: tetrahedra index points 0..9, but the file has 4 points" in line
+
+
+@pytest.mark.parametrize(
+    "args", [["synth", "OUT", "--seed", "-1"], ["sweep", "W", "--out", "S", "--seed", "-1"]]
+)
+def test_a_negative_seed_is_refused_by_its_option(args):
+    # review AC: numpy's "expected non-negative integer", naming no option
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2 and "'--seed'" in result.stderr, result.output

@@ -360,3 +360,19 @@ def test_an_output_folder_holding_the_scans_is_refused_before_it_deletes_them(tm
     (scans / "session.toml").write_text(toml)
     result = CliRunner().invoke(app, [command, str(scans), "--out", str(tmp_path / "W")])
     assert result.exit_code == 2 and f"holds the scan data {series}" in result.stderr
+
+
+def test_scaffold_skips_hidden_folders_and_two_scans_of_one_series_are_said(tmp_path, caplog):
+    # review AC: a hidden folder (sorted first) became the reference; two scans reading
+    # one series (no deformation between them) were accepted without a word
+    folder = make_scan_folder(tmp_path / "scans", toml=None)
+    (folder / ".cache").mkdir()
+    (folder / ".cache" / "x.bin").write_bytes(b"placeholder")
+    session = load_session(scaffold_session(folder).parent)
+    assert ".cache" not in [s.name for s in session.scans]
+    toml = VALID_TOML.replace('path = "tilt"', 'path = "left"')
+    assert toml != VALID_TOML
+    (folder / "session.toml").write_text(toml)
+    with caplog.at_level("WARNING", logger="calib.data.session"):
+        load_session(folder)
+    assert "read the same data" in caplog.text and "'left', 'tilt'" in caplog.text
