@@ -17,10 +17,16 @@ __all__ = ["displacement_at", "gravity_vector", "vertex_displacement_mm"]
 def gravity_vector(direction, g_m_s2: float) -> np.ndarray:
     """Gravity acceleration vector (m/s^2) from a direction (any length) and magnitude."""
     d = np.asarray(direction, dtype=float).reshape(3)
-    n = np.linalg.norm(d)
-    if g_m_s2 != 0 and n == 0:
+    if not np.all(np.isfinite(d)):
+        raise ValueError(f"gravity direction must have finite components, got {d.tolist()}")
+    # Scaled by its largest component first: a direction of 1e308s has no finite norm.
+    big = np.max(np.abs(d))
+    if g_m_s2 != 0 and big == 0:
         raise ValueError("gravity direction must be a non-zero vector")
-    return d / n * g_m_s2 if n > 0 else np.zeros(3)
+    if big == 0:
+        return np.zeros(3)
+    d = d / big
+    return d / np.linalg.norm(d) * g_m_s2
 
 
 def vertex_displacement_mm(disc: Discretization, x: np.ndarray) -> np.ndarray:

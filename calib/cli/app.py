@@ -165,6 +165,8 @@ def calibrate(
         float | None,
         typer.Option(
             "--mesh-size",
+            min=1.0,
+            max=50.0,
             help="Element edge length of the model, mm. Default: 12; where no stress-free "
             "reference exists on it, with straight or curved elements, 14 then 16 (each "
             "retry is reported).",
@@ -181,7 +183,7 @@ def calibrate(
     ] = None,
     nu: Annotated[float, typer.Option("--nu", help="Poisson's ratio of the model.")] = 0.499,
     profile: Annotated[
-        int, typer.Option("--profile", help="Points of the likelihood profile (0: none).")
+        int, typer.Option("--profile", min=0, help="Points of the likelihood profile (0: none).")
     ] = 5,
     mesh_check: Annotated[
         str,

@@ -66,6 +66,8 @@ def diagnose(
         float | None,
         typer.Option(
             "--mesh-size",
+            min=2.0,
+            max=40.0,
             help="Diagnose on a model mesh of this size (mm) instead of the calibration's: "
             "a finer one tells discretisation error from a missing effect (slower).",
         ),
@@ -74,6 +76,8 @@ def diagnose(
         float | None,
         typer.Option(
             "--inclusion-mesh",
+            min=1.0,
+            max=40.0,
             help="Diagnose on a model mesh (of --mesh-size, else the calibration's size) "
             "whose segmented inclusions are meshed as spheres with elements of this size "
             "(mm) inside: a stiff inclusion's print is local (slower). Without "

@@ -218,9 +218,12 @@ def surrogate_predict(
     from ..workflows.sweep import run_surrogate_predict
 
     try:
-        parts = [float(p) for p in gravity.split(",")]
+        try:
+            parts = [float(p) for p in gravity.split(",")]
+        except ValueError:
+            parts = []
         if len(parts) != 3:
-            raise ValueError(f"--gravity must be X,Y,Z, got {gravity!r}")
+            raise ValueError(f"--gravity must be three numbers X,Y,Z in m/s^2, got {gravity!r}")
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             res = run_surrogate_predict(model, out, gravity=parts, c1_pa=c1, frame=frame)

@@ -454,7 +454,18 @@ def load_ingest(work: str | Path, name: str) -> dict:
     path = Path(work) / "scans" / name / "ingest.json"
     if not path.is_file():
         raise FileNotFoundError(f"{path} not found: run `phantom-calib ingest` first")
-    return json.loads(path.read_text())
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(
+            f"{path}: not valid JSON ({exc}); run `phantom-calib ingest` again"
+        ) from exc
+    if not isinstance(doc, dict):
+        raise ValueError(
+            f"{path}: expected a JSON object (ingest's record), got {type(doc).__name__}; "
+            "run `phantom-calib ingest` again"
+        )
+    return doc
 
 
 class StaleIngestError(RuntimeError):

@@ -284,6 +284,12 @@ def scaffold_session(folder: str | Path, *, overwrite: bool = False) -> Path:
     target = folder / "session.toml"
     if target.exists() and not overwrite:
         raise SessionError(f"{target} exists; pass overwrite to replace it")
+    if any(folder.glob("scans/*/ingest.json")) or (folder / "calibration.json").is_file():
+        # review AC: its calibration/, scans/ and validation/ were listed as series
+        raise SessionError(
+            f"{folder} is a work folder (ingest's or calibrate's results); point init at "
+            "the folder that holds the scans' series"
+        )
     scans = _find_scans(folder)
     if not scans:
         raise SessionError(f"{folder}: no DICOM series folders or volume files found")

@@ -17,7 +17,7 @@ from ..io import check_run
 from .measurements import Measurements, read_scan
 from .session import ScanEntry
 
-__all__ = ["SavedState", "WorkFolder", "read_work"]
+__all__ = ["SavedState", "WorkFolder", "check_record", "read_work"]
 
 
 @dataclass(frozen=True)
@@ -113,7 +113,7 @@ def read_work(work: str | Path) -> WorkFolder:
         raise FileNotFoundError(
             f"{work}: no calibration.json (run `phantom-calib calibrate` first)"
         ) from exc
-    _check_record(record, work / "calibration.json")
+    check_record(record, work / "calibration.json")
     model = record.get("model") or {}
     ref_name = model.get("reference_scan")
     if ref_name is None or "reference_mesh" not in model:
@@ -145,11 +145,26 @@ def read_work(work: str | Path) -> WorkFolder:
     return WorkFolder(work, record, measurements, mesh, states)
 
 
-def _check_record(record: dict, path: Path) -> None:
+def check_record(record: dict, path: Path) -> None:
     """Refuse a ``calibration.json`` whose keys the readers use have the wrong shape.
 
     A hand-edited or foreign file gave tracebacks (``scans`` a list, ``c1_pa`` null, a
     one-element interval): now a ``ValueError`` naming the key and what was expected.
+    ``read_work`` and the sweep's model reader both check through it.
+
+    Parameters
+    ----------
+    record : dict
+        The parsed ``calibration.json``.
+    path : Path
+        Its file, named in the message.
+
+    Raises
+    ------
+    ValueError
+        ``c1_pa`` not a positive finite number; ``c1_ci95_pa`` neither null nor
+        ``[low, high]`` with ``0 < low <= high``; ``model`` not an object; ``scans`` not
+        an object of records with a known role.
     """
     from .session import ROLES
 

@@ -232,9 +232,13 @@ def load_sweep_model(work: str | Path) -> SweepModel:
     CalibrationMissingError
         No ``calibration.json``, a record without a ``model`` block or one of its keys,
         or no reference mesh beside it.
+    ValueError
+        A record of the wrong shape, or a c1 that is not a positive number
+        (:func:`calib.data.work.check_record`).
     calib.io.StaleOutputError
         ``calibration/`` is not from the run recorded in ``calibration.json``.
     """
+    from ..data.work import check_record
     from ..io import check_run
 
     work = Path(work)
@@ -248,6 +252,7 @@ def load_sweep_model(work: str | Path) -> SweepModel:
             f"{record} not found: {work} holds no calibration (run `phantom-calib calibrate "
             f"SCANS --out {work}` first)"
         ) from None
+    check_record(doc, record)  # c1_pa and the keys every reader uses
     model = doc.get("model")
     if not isinstance(model, dict):
         _fail(record, "no 'model' block (written by phantom-calib calibrate >= 0.1 with schema 1)")
@@ -260,10 +265,9 @@ def load_sweep_model(work: str | Path) -> SweepModel:
             "files (model.prestress): recalibrate with this version"
         )
     missing = [k for k in _REQUIRED if model.get(k) is None]
-    if missing or doc.get("c1_pa") is None:
-        _fail(record, f"model block lacks {', '.join(missing or ['c1_pa'])}")
+    if missing:
+        _fail(record, f"model block lacks {', '.join(missing)}")
     for key, value, ok in (
-        ("c1_pa", doc["c1_pa"], lambda v: v > 0),
         ("model.nu", model["nu"], lambda v: 0 < v < 0.5),
         ("model.density_kg_m3", model["density_kg_m3"], lambda v: v > 0),
         ("model.g_m_s2", model["g_m_s2"], lambda v: v > 0),

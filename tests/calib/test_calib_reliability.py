@@ -194,7 +194,8 @@ def test_a_corrupted_series_is_never_calibrated_on_old_results(scans, tmp_path):
     ("args", "pattern"),
     [
         (["--nu", "0.5"], r"Poisson's ratio must lie in \(0, 0\.5\)"),
-        (["--profile", "-3"], r"profile points must be >= 0"),
+        (["--profile", "-3"], r"'--profile'.*greater than or equal to 0"),
+        (["--mesh-size", "0.5"], r"'--mesh-size'.*greater than or equal to 1"),
         (["--objective", "volume"], r"objective must be one of"),
         (["--mesh-max-dihedral", "180"], r"max dihedral angle must lie in \(90, 180\)"),
     ],
@@ -388,6 +389,21 @@ def test_a_malformed_calibration_record_is_named_not_a_traceback(tmp_path, doc, 
     result = CliRunner().invoke(app, [command, str(tmp_path)])
     assert result.exit_code == 2, result.output
     assert "calibration.json" in result.stderr and says in result.stderr, result.stderr
+
+
+@pytest.mark.parametrize(
+    "text, says", [("{not json", "not valid JSON"), ("[1, 2]", "expected a JSON object")]
+)
+def test_a_corrupt_ingest_record_names_its_file(tmp_path, text, says):
+    # review AC: json's own words only ("Expecting property name ..."), naming no file
+    from calib.data.ingest import load_ingest
+
+    path = tmp_path / "scans" / "left" / "ingest.json"
+    path.parent.mkdir(parents=True)
+    path.write_text(text)
+    with pytest.raises(ValueError, match=says) as err:
+        load_ingest(tmp_path, "left")
+    assert str(path) in str(err.value) and "phantom-calib ingest" in str(err.value)
 
 
 def test_a_work_folder_that_cannot_be_written_is_said_before_the_work(tmp_path, monkeypatch):

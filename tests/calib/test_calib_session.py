@@ -294,6 +294,18 @@ def test_scaffold_empty_folder(tmp_path):
     assert not (tmp_path / "session.toml").exists()
 
 
+def test_scaffold_refuses_a_work_folder(tmp_path):
+    # review AC: pointed at WORK, init listed its calibration/, scans/, validation/ as series
+    for name in ("calibration", "validation"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "RUN").write_text("{}")
+    (tmp_path / "scans" / "left").mkdir(parents=True)
+    (tmp_path / "scans" / "left" / "ingest.json").write_text("{}")
+    with pytest.raises(SessionError, match="is a work folder"):
+        scaffold_session(tmp_path)
+    assert not (tmp_path / "session.toml").exists()
+
+
 def test_cli_init(tmp_path):
     folder = _bare_folder(tmp_path)
     runner = CliRunner()

@@ -152,12 +152,12 @@ def test_a_calibration_without_a_physical_c1_is_refused_before_sweeping(tmp_path
     # review AC: c1 -5 or NaN swept every scenario to a failure and exited 0
     import json
 
-    from calib.sweep import CalibrationMissingError, load_sweep_model
+    from calib.sweep import load_sweep_model
 
     work = make_box_work(tmp_path / "work")
     path = work / "calibration.json"
     doc = json.loads(path.read_text())
     doc["c1_pa"] = c1
     path.write_text(json.dumps(doc))
-    with pytest.raises(CalibrationMissingError, match=r"calibration.json: c1_pa is .*physical"):
+    with pytest.raises(ValueError, match=r"calibration.json: `c1_pa` must be a positive number"):
         load_sweep_model(work)

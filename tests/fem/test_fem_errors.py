@@ -64,6 +64,21 @@ def test_inverted_mesh_rejected_by_discretize():
         flat.oriented()
 
 
+def test_gravity_of_huge_components_keeps_its_direction_and_a_non_finite_one_is_refused():
+    # review AC: a direction of 1e308s has an infinite norm; it was divided into a zero
+    # load that "converged". Scaled by its largest component first, it is [1, 1, 0].
+    from fem.fields import gravity_vector
+
+    expected = np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0) * 9.81
+    np.testing.assert_allclose(gravity_vector([1e308, 1e308, 0.0], 9.81), expected, rtol=1e-15)
+    np.testing.assert_allclose(gravity_vector([2.0, 2.0, 0.0], 9.81), expected, rtol=1e-15)
+    for bad in ([np.inf, 0.0, 0.0], [np.nan, 1.0, 0.0]):
+        with pytest.raises(ValueError, match="finite components"):
+            gravity_vector(bad, 9.81)
+    with pytest.raises(ValueError, match="non-zero vector"):
+        gravity_vector([0.0, 0.0, 0.0], 9.81)
+
+
 @pytest.mark.parametrize("c1", [0.0, -5.0])
 def test_non_positive_c1(c1):
     with pytest.raises(ValueError, match="c1_pa must be positive"):

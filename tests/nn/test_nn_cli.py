@@ -101,6 +101,10 @@ def test_predict_zero_nan_and_extrapolation(model_file, tmp_path):
         ],
     )
     assert res.exit_code == 2 and "X,Y,Z" in res.output
+    # review AC: a part that is no number gave float's words only, naming no option
+    args = ["surrogate", "predict", str(model_file), "--gravity", "a,b,c"]
+    res = runner.invoke(app, [*args, "--out", str(tmp_path / "b.vtu")])
+    assert res.exit_code == 2 and "--gravity must be three numbers" in res.output
     res = runner.invoke(
         app,
         [
