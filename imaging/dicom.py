@@ -38,8 +38,9 @@ _MULTI_FRAME_MR = {
 }
 #: Side files skipped without a word.
 _SKIP_SUFFIXES = {".txt", ".json", ".md", ".toml", ".xml", ".csv", ".log"}
-#: A file named so that cannot be read as DICOM is a broken slice (an error), not a stray file.
-_DICOM_SUFFIXES = {".dcm", ".dicom", ".ima"}
+#: Suffixes (lower case) of a DICOM slice: a file named so that cannot be read as DICOM is a
+#: broken slice (an error), not a stray file; ``imaging.io.read_volume`` reads its folder.
+DICOM_SUFFIXES = (".dcm", ".dicom", ".ima")
 
 
 def _candidate_files(folder: Path) -> list[Path]:
@@ -113,7 +114,7 @@ def _read_file(path: Path):  # pydicom Dataset or None
     from pydicom.errors import InvalidDicomError
 
     def not_dicom(reason: str) -> None:
-        if path.suffix.lower() in _DICOM_SUFFIXES:
+        if path.suffix.lower() in DICOM_SUFFIXES:
             raise DicomSeriesError(f"{path}: not a readable DICOM file ({reason})")
         log.warning("%s: skipped, not a DICOM file (%s)", path, reason)
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from imaging.dicom import DICOM_SUFFIXES
 from imaging.errors import VolumeReadError
 from imaging.files import atomic_write
 from imaging.volume import Volume
@@ -24,7 +25,6 @@ log = logging.getLogger(__name__)
 
 _RAS_FROM_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
 _ITK_SUFFIXES = (".nrrd", ".nhdr", ".mha", ".mhd")
-_DICOM_FILE_SUFFIXES = (".dcm", ".dicom", ".ima")
 #: The most of a file read to find its NRRD or MetaImage text header.
 _HEADER_BYTES = 1 << 20
 #: NRRD ``space units`` read as millimetres; "" is NRRD's unknown unit, read as mm as NIfTI's.
@@ -77,7 +77,7 @@ def read_volume(path: str | os.PathLike) -> Volume:
         return _read_nifti(p)
     if suffix in _ITK_SUFFIXES:
         return _read_itk(p)
-    if suffix in _DICOM_FILE_SUFFIXES:
+    if suffix in DICOM_SUFFIXES:
         raise VolumeReadError(
             f"{p}: a single DICOM file; a DICOM scan is read as a whole series: point `path` "
             f"at the series folder that holds all its slices ({p.parent})"
