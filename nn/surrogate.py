@@ -43,6 +43,14 @@ _REL_TOL = 1e-3  # range checks: 0.1 % slack (rounded user input, e.g. 6.9367,0,
 #: without a word otherwise. 5 degrees: the plans' own rounding and a few degrees of
 #: posture error stay inside (the reduced model's kernel varies smoothly over ~1 degree).
 DIRECTION_SLACK_DEG = 5.0
+#: Training directions that span a plane or a line only (one great circle, one direction)
+#: leave the linear term no response out of their span (least squares' minimum norm): a
+#: query farther out of the span than this is an extrapolation, whatever its nearest
+#: training direction. Review AD, one great circle (``dissertation:transverse``) on the
+#: test box: 0.58 mm off at 5 degrees out of the plane for 3.3 mm of displacement, 3.2 mm
+#: at 29 degrees, where the direction check's 30 degrees said nothing; 1 degree keeps a
+#: typed direction's rounding inside.
+SPAN_SLACK_DEG = 1.0
 
 
 class ExtrapolationWarning(UserWarning):
@@ -94,6 +102,17 @@ class Prediction:
 def _chord_deg(chord: np.ndarray) -> np.ndarray:
     """The angle (degrees) between unit vectors a chord ``|a - b|`` apart."""
     return np.degrees(2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0)))
+
+
+def _span(directions: np.ndarray) -> np.ndarray | None:
+    """An orthonormal basis (rows) of the directions' span where it is a plane or a line.
+
+    ``None`` where they span all three dimensions. The rank is read from the singular
+    values relative to the largest (1e-6: the plans' directions are exact to round-off).
+    """
+    _, sv, vt = np.linalg.svd(directions, full_matrices=False)
+    rank = int(np.sum(sv > 1e-6 * sv[0]))
+    return vt[:rank] if rank < 3 else None
 
 
 def _directions(gravity_ref: np.ndarray) -> tuple[list, float]:
@@ -253,6 +272,21 @@ class Surrogate:
         if dirs is None or not len(g) or not len(dirs):
             return
         u = g / np.linalg.norm(g, axis=1, keepdims=True)
+        span = _span(np.asarray(dirs, float))
+        if span is not None:
+            out = np.linalg.norm(u - (u @ span.T) @ span, axis=1)
+            off = np.degrees(np.arcsin(np.clip(out, 0.0, 1.0)))
+            if np.any(off > SPAN_SLACK_DEG):
+                k = int(np.argmax(off))
+                warnings.warn(
+                    f"gravity direction {np.round(u[k], 3).tolist()} (reference frame) lies "
+                    f"{off[k]:.1f} degrees out of the {'plane' if len(span) == 2 else 'line'} "
+                    f"of the training directions (limit {SPAN_SLACK_DEG:g}): the surrogate "
+                    "extrapolates (nothing out of that span was trained)",
+                    ExtrapolationWarning,
+                    stacklevel=4,
+                )
+                return
         angle = _chord_deg(cKDTree(np.asarray(dirs, float)).query(u)[0])
         limit = max(DIRECTION_SLACK_DEG, 2.0 * float(trained["direction_spacing_deg"]))
         if np.any(angle > limit):

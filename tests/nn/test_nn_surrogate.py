@@ -267,3 +267,31 @@ def test_a_direction_off_the_training_circles_warns(ours, box_data):
     off = (n1 + n2 + np.cross(n1, n2)) / np.sqrt(3.0)
     with pytest.warns(nn.ExtrapolationWarning, match=r"35\.3 degrees from the nearest training"):
         ours.predict(9.81 * off, c1_pa=c1, frame="ref")
+
+
+def test_a_direction_out_of_one_training_circle_warns(ours, box_data):
+    # review AD: trained on one great circle, the linear term has no response out of its
+    # plane (least squares' minimum norm); 5 degrees out it erred by 0.58 mm on 3.3 mm
+    # (29 degrees: 3.2 mm) where the nearest-direction check (limit 2 x 15 degrees) was
+    # silent. The two-circle surrogate erred by 0.084 mm at most there (review AD's FE
+    # comparison), so the two disagree by more than half of the 0.5 mm difference.
+    p0 = np.unique(box_data.plane)[0]
+    one = box_data.subset(box_data.plane == p0)
+    circle = nn.Surrogate.from_fit(nn.fit_reduced_kernel(one, device="cpu"), one)
+    normal = np.linalg.svd(one.gravity_ref)[2][-1]
+    d0 = one.gravity_ref[0] / np.linalg.norm(one.gravity_ref[0])
+    c1 = float(box_data.model["c1_pa"])
+
+    def tilted(deg):
+        e = np.radians(deg)
+        return 9.81 * (np.cos(e) * d0 + np.sin(e) * normal)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # inside the 1 degree slack: silent
+        circle.predict(tilted(0.5), c1_pa=c1, frame="ref")
+    with pytest.warns(nn.ExtrapolationWarning, match=r"5\.0 degrees out of the plane"):
+        off = circle.predict(tilted(5.0), c1_pa=c1, frame="ref").nodes_mm
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # two circles span all three dimensions: no span check
+        both = ours.predict(tilted(5.0), c1_pa=c1, frame="ref").nodes_mm
+    assert np.linalg.norm(off - both, axis=1).max() > 0.25
