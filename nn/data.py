@@ -39,6 +39,11 @@ _ARRAYS = (
 )
 
 
+#: What the surrogates read of the store's ``model`` block.
+MODEL_KEYS = ("c1_pa", "density_kg_m3", "g_m_s2", "R_ref_from_phantom", "nipple_node")
+_SCENARIO_KEYS = ("gravity_ref", "gravity_phantom", "c1_pa", "load_per_m", "role", "plane")
+
+
 class StoreFormatError(ValueError):
     """A sweep store that cannot be used: missing, truncated, or inconsistent (the file)."""
 
@@ -193,14 +198,40 @@ def load_sweep(path: str | Path, *, allow_pending: bool = True) -> SweepData:
     """
     path = Path(path)
     attrs = _read_attrs(path)
+    model = attrs.get("model")
+    lacking = [k for k in MODEL_KEYS if not isinstance(model, dict) or model.get(k) is None]
+    if lacking:
+        raise StoreFormatError(
+            f"{path / 'zarr.json'}: the store's `model` block lacks {', '.join(lacking)} "
+            "(written by `phantom-calib sweep`)"
+        )
     arr = _open_arrays(path)
-    nodes = np.asarray(arr["mesh/nodes_mm"][:])
-    tets = np.asarray(arr["mesh/tets"][:])
+
+    def read(name: str, index=slice(None), chunk: str = "") -> np.ndarray:
+        # review AD: a corrupt chunk gave the codec's words only ("Zstd decompression
+        # error"), naming no file
+        try:
+            return np.asarray(arr[name][index])
+        except Exception as exc:  # zarr and its codecs raise many kinds
+            raise StoreFormatError(
+                f"{path / name}{chunk}: unreadable ({type(exc).__name__}: {exc}); the store "
+                "is damaged: sweep again into a fresh --out"
+            ) from exc
+
+    nodes = read("mesh/nodes_mm")
+    tets = read("mesh/tets")
     if _mesh_sha256(nodes, tets) != attrs.get("mesh_sha256"):
         raise StoreFormatError(
             f"{path / 'mesh'}: mesh arrays do not match the store's "
             "mesh_sha256 (a store mixed from another mesh?)"
         )
+    node_sets = {k: read(f"mesh/{k}") for k in ("surface_nodes", "back_nodes", "boundary_faces")}
+    for k, v in node_sets.items():
+        if v.size and (v.min() < 0 or v.max() >= len(nodes)):
+            raise StoreFormatError(
+                f"{path / 'mesh' / k}: node indices {int(v.min())}..{int(v.max())} outside "
+                f"the store's {len(nodes)} nodes"
+            )
     S = int(attrs.get("n_scenarios", -1))
     disp = arr["results/displacement_mm"]
     if disp.shape != (S, len(nodes), 3):
@@ -213,49 +244,62 @@ def load_sweep(path: str | Path, *, allow_pending: bool = True) -> SweepData:
             raise StoreFormatError(
                 f"{path / name / 'zarr.json'}: {arr[name].shape[0]} scenarios, the store has {S}"
             )
-    status = np.asarray(arr["results/status"][:])
+    status = read("results/status")
     solved = np.flatnonzero(status == 1)
     pending = int(np.sum(status == 0))
+    failed = int(np.sum(status == 2))
     if pending and not allow_pending:
         raise StoreFormatError(f"{path}: {pending} of {S} scenarios pending (sweep not complete)")
-    if pending:
+    if pending or failed:
         log.warning(
-            "%s: %d of %d scenarios pending; using the %d solved", path, pending, S, len(solved)
+            "%s: %d of %d scenarios pending, %d failed (attribute `failures`); using the %d solved",
+            *(path, pending, S, failed, len(solved)),
         )
     if not solved.size:
         raise StoreFormatError(f"{path / 'results/status'}: no solved scenario")
-    u = np.stack([np.asarray(disp[i]) for i in solved])
+    u = np.stack([read("results/displacement_mm", i, f"/c/{i}/0/0") for i in solved])
     bad = [int(i) for i, ui in zip(solved, u, strict=True) if not np.all(np.isfinite(ui))]
     if bad:
         raise StoreFormatError(
             f"{path}/results/displacement_mm/c/{bad[0]}/0/0: missing or not "
             f"finite for {len(bad)} solved scenario(s) (truncated store)"
         )
-    nipple = np.asarray(arr["results/nipple_mm"][:])[solved]
+    nipple = read("results/nipple_mm")[solved]
     if not np.all(np.isfinite(nipple)):
         raise StoreFormatError(f"{path}/results/nipple_mm: missing chunks (truncated store)")
+    tumour = read("results/tumour_mm")[solved]
+    if model.get("tumour_stress_free_mm") is not None:
+        # review AD: one lost chunk turned a model with a tumour into one without
+        lost = solved[~np.all(np.isfinite(tumour), axis=1)]
+        if lost.size:
+            raise StoreFormatError(
+                f"{path}/results/tumour_mm/c/{int(lost[0])}/0: missing or not finite for "
+                f"{lost.size} solved scenario(s) of a model with a tumour (truncated store)"
+            )
     codes = attrs.get("codes", {})
     roles = np.asarray(codes.get("role", ["train", "validation"]))
     planes = np.asarray(codes.get("plane", ["transverse", "sagittal", "sphere"]))
-    sc = {
-        k: np.asarray(arr[f"scenarios/{k}"][:])[solved]
-        for k in (
-            "gravity_ref",
-            "gravity_phantom",
-            "c1_pa",
-            "load_per_m",
-            "role",
-            "plane",
-            "angle_deg",
-        )
-    }
+    sc = {k: read(f"scenarios/{k}")[solved] for k in _SCENARIO_KEYS}
+    for k, v in sc.items():  # all finite (not angle_deg: NaN on a sphere plan)
+        if not np.all(np.isfinite(v)):
+            i = int(solved[np.flatnonzero(~np.isfinite(v).reshape(len(v), -1).all(axis=1))[0]])
+            raise StoreFormatError(f"{path}/scenarios/{k}: not finite at scenario {i}")
+    if np.any(sc["c1_pa"] <= 0):
+        raise StoreFormatError(f"{path}/scenarios/c1_pa: a c1 <= 0 Pa")
+    for k, names in (("role", roles), ("plane", planes)):
+        code = sc[k]
+        if np.any((code < 0) | (code >= len(names)) | (code != np.round(code))):
+            raise StoreFormatError(
+                f"{path}/scenarios/{k}: codes outside 0..{len(names) - 1} (`codes.{k}`: "
+                f"{names.tolist()})"
+            )
     return SweepData(
         path=path,
         nodes_mm=nodes,
         tets=tets,
-        surface_nodes=np.asarray(arr["mesh/surface_nodes"][:]),
-        back_nodes=np.asarray(arr["mesh/back_nodes"][:]),
-        boundary_faces=np.asarray(arr["mesh/boundary_faces"][:]),
+        surface_nodes=node_sets["surface_nodes"],
+        back_nodes=node_sets["back_nodes"],
+        boundary_faces=node_sets["boundary_faces"],
         index=solved,
         gravity_ref=sc["gravity_ref"],
         gravity_phantom=sc["gravity_phantom"],
@@ -263,11 +307,11 @@ def load_sweep(path: str | Path, *, allow_pending: bool = True) -> SweepData:
         load_per_m=sc["load_per_m"],
         role=roles[sc["role"].astype(int)],
         plane=planes[sc["plane"].astype(int)],
-        angle_deg=sc["angle_deg"],
+        angle_deg=read("scenarios/angle_deg")[solved],
         displacement_mm=u,
-        tumour_mm=np.asarray(arr["results/tumour_mm"][:])[solved],
+        tumour_mm=tumour,
         nipple_mm=nipple,
-        model=dict(attrs.get("model", {})),
+        model=dict(model),
         mesh_sha256=attrs["mesh_sha256"],
         attrs=attrs,
     )

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import SweepData
+from .data import MODEL_KEYS, SweepData
 
 __all__ = [
     "ExtrapolationWarning",
@@ -460,6 +460,14 @@ def load_surrogate(path: str | Path) -> Surrogate:
         raise SurrogateFileError(
             f"{path}: no {FORMAT} v{FORMAT_VERSION} metadata ({_EXTRA}) in the archive"
         )
+    # review AD: metadata without these gave a KeyError traceback in predict
+    lacking = [k for k in ("kind", "model", "trained", "report", "mesh_sha256") if k not in meta]
+    lacking += [f"model.{k}" for k in MODEL_KEYS if k not in (meta.get("model") or {})]
+    lacking += [
+        f"trained.{k}" for k in ("c1_pa", "load_per_m") if k not in (meta.get("trained") or {})
+    ]
+    if lacking:
+        raise SurrogateFileError(f"{path}: its metadata ({_EXTRA}) lacks {', '.join(lacking)}")
     return Surrogate(module.eval(), meta, path)
 
 

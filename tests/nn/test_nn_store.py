@@ -67,6 +67,40 @@ def test_truncated_store_names_the_file(box_sweep, tmp_path):
         nn.load_sweep(tmp_path / "nowhere")
 
 
+def test_a_lost_tumour_chunk_or_a_corrupt_chunk_is_named(box_sweep, tmp_path):
+    # review AD: a lost tumour chunk made a model with a tumour one without (train exited
+    # 0 with no tumour output); a corrupt chunk gave the codec's words only
+    s = _copy(box_sweep, tmp_path / "a")
+    (s / "results" / "tumour_mm" / "c" / "7" / "0").unlink()
+    with pytest.raises(StoreFormatError, match=r"results/tumour_mm/c/7/0: missing or not finite"):
+        nn.load_sweep(s)
+    s = _copy(box_sweep, tmp_path / "b")
+    chunk = s / "results" / "displacement_mm" / "c" / "5" / "0" / "0"
+    chunk.write_bytes(chunk.read_bytes()[:17])
+    with pytest.raises(StoreFormatError, match=r"results/displacement_mm/c/5/0/0: unreadable"):
+        nn.load_sweep(s)
+
+
+@pytest.mark.parametrize(
+    "edit, says",
+    [
+        (lambda g: g["scenarios/load_per_m"].__setitem__(4, np.nan), r"load_per_m: not finite at"),
+        (lambda g: g["scenarios/role"].__setitem__(4, -1), r"scenarios/role: codes outside 0\.\.1"),
+        (lambda g: g["mesh/surface_nodes"].__setitem__(0, 10**6), r"surface_nodes: node indices"),
+        (lambda g: g.attrs.__setitem__("model", {"c1_pa": 420.0}), r"`model` block lacks density"),
+    ],
+)
+def test_scenarios_and_mesh_sets_are_checked(box_sweep, tmp_path, edit, says):
+    # review AD: a NaN load gave LAPACK's "SVD did not converge", a role -1 was read as
+    # validation, an out-of-range node set and a store without its model block tracebacks
+    import zarr
+
+    s = _copy(box_sweep, tmp_path)
+    edit(zarr.open_group(s, mode="r+"))
+    with pytest.raises(StoreFormatError, match=says):
+        nn.load_sweep(s)
+
+
 def test_store_of_another_mesh_is_refused(box_sweep, tmp_path):
     import zarr
 

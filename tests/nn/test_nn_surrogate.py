@@ -159,6 +159,12 @@ def test_torchscript_file_round_trip(ours, baseline, tmp_path):
     (tmp_path / "junk.pt").write_bytes(b"not a model")
     with pytest.raises(nn.SurrogateFileError, match="junk.pt: not a TorchScript"):
         nn.load_surrogate(tmp_path / "junk.pt")
+    # review AD: metadata without `trained` (or a model key) gave a KeyError in predict
+    meta = {k: v for k, v in sur.meta.items() if k != "trained"}
+    meta["model"] = {k: v for k, v in meta["model"].items() if k != "density_kg_m3"}
+    nn.save_surrogate(nn.Surrogate(sur.module, meta, None), tmp_path / "bare.pt")
+    with pytest.raises(nn.SurrogateFileError, match=r"lacks trained, model\.density_kg_m3"):
+        nn.load_surrogate(tmp_path / "bare.pt")
 
 
 def test_bad_queries(ours, box_data):
