@@ -17,7 +17,7 @@ from typing import Literal
 
 import numpy as np
 
-from .data import SweepData
+from .data import SweepData, training_scenarios
 
 __all__ = ["DissertationFit", "fit_dissertation_mlps"]
 
@@ -70,10 +70,8 @@ def fit_dissertation_mlps(
 
     say = progress or (lambda _m: None)
     dev = select_device(device)
-    train = data.subset(data.role == "train")
+    train = training_scenarios(data)
     n = len(train)
-    if n < 2:
-        raise ValueError(f"{data.path}: {n} training scenario(s); need at least 2")
     perm = np.random.default_rng(seed).permutation(n)
     n_test = int(round(test_fraction * n))
     test_idx, fit_idx = np.sort(perm[:n_test]), np.sort(perm[n_test:])

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["StoreFormatError", "SweepData", "load_sweep"]
+__all__ = ["StoreFormatError", "SweepData", "load_sweep", "training_scenarios"]
 
 log = logging.getLogger(__name__)
 FORMAT, FORMAT_VERSION = "phantom-calib.sweep", 1
@@ -172,6 +172,34 @@ def _open_arrays(path: Path) -> dict:
         except Exception as exc:  # zarr raises many kinds on bad metadata
             raise StoreFormatError(f"{meta}: cannot open ({type(exc).__name__}: {exc})") from exc
     return out
+
+
+def training_scenarios(data: SweepData) -> SweepData:
+    """The ``role == "train"`` scenarios, refused where too few or where loads repeat.
+
+    Two scenarios of one load ``rho g gravity / c1`` (a store swept with a c1 axis of
+    equal values, or merged from two sweeps) are the same FE solution: a leave-one-out
+    error sees each point's copy (0 at every kernel width: review AD's duplicated store
+    picked a width whose validation error was 11 times the right one), and a held-out
+    split by scenario trains on its test points.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 2 training scenarios, or two of one load (to 1e-12 relative).
+    """
+    train = data.subset(data.role == "train")
+    if len(train) < 2:
+        raise ValueError(f"{data.path}: {len(train)} training scenario(s); need at least 2")
+    q = train.load_per_m / np.linalg.norm(train.load_per_m, axis=1).max()
+    _, first, count = np.unique(np.round(q, 12), axis=0, return_index=True, return_counts=True)
+    if np.any(count > 1):
+        k = int(train.index[first[np.argmax(count)]])
+        raise ValueError(
+            f"{data.path}: {int(np.sum(count - 1))} training scenario(s) repeat another's "
+            f"load rho g gravity / c1 (scenario {k} among them): sweep without repeats"
+        )
+    return train
 
 
 def load_sweep(path: str | Path, *, allow_pending: bool = True) -> SweepData:

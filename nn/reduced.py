@@ -42,7 +42,7 @@ from typing import Literal
 
 import numpy as np
 
-from .data import SweepData
+from .data import SweepData, training_scenarios
 
 __all__ = ["ReducedKernelFit", "fit_reduced_kernel"]
 
@@ -151,9 +151,7 @@ def fit_reduced_kernel(
     say = progress or (lambda _m: None)
     dev = select_device(device)
     t0 = time.perf_counter()
-    train = data.subset(data.role == "train")
-    if len(train) < 2:
-        raise ValueError(f"{data.path}: {len(train)} training scenario(s); need at least 2")
+    train = training_scenarios(data)
     q_ref = float(np.linalg.norm(train.load_per_m, axis=1).max())
     X = train.load_per_m / q_ref
     N = len(data.nodes_mm)

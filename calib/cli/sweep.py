@@ -122,6 +122,17 @@ def sweep(
     ) as exc:
         fail(exc)
     typer.echo(_format_summary(summary))
+    if summary["solved"] == 0 and summary["failed"]:  # review AD: this exited 0
+        import zarr
+
+        failures = dict(zarr.open_group(out, mode="r").attrs.get("failures", {}))
+        first = min(failures.items(), key=lambda kv: int(kv[0]), default=("?", "?"))
+        fail(
+            RuntimeError(
+                f"{out}: no scenario solved ({summary['failed']} failed; scenario {first[0]}: "
+                f"{first[1]}); the store's `failures` attribute lists each"
+            )
+        )
     typer.echo(f"wrote {out}")
 
 

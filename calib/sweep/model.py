@@ -200,6 +200,15 @@ class SweepModel:
         )
 
 
+def _inside(nodes_mm: np.ndarray, tets: np.ndarray, point_mm: np.ndarray) -> bool:
+    """Whether a point lies in a tetrahedron of the mesh (barycentric, 1e-9 slack)."""
+    v = nodes_mm[tets]  # (n, 4, 3)
+    T = np.transpose(v[:, 1:] - v[:, :1], (0, 2, 1))  # columns: the edges from vertex 0
+    ok = np.abs(np.linalg.det(T)) > 0
+    lam = np.linalg.solve(T[ok], (point_mm - v[ok, 0])[:, :, None])[:, :, 0]
+    return bool(np.any((lam >= -1e-9).all(axis=1) & (lam.sum(axis=1) <= 1 + 1e-9)))
+
+
 def _fail(path: Path, what: str) -> None:
     raise CalibrationMissingError(f"{path}: {what}")
 
@@ -282,8 +291,17 @@ def load_sweep_model(work: str | Path) -> SweepModel:
         _fail(mesh_path, "reference mesh named in calibration.json not found")
     mesh = _read_model_mesh(mesh_path)
     R = np.asarray(model["R_ref_from_phantom"], float)
-    if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-9):
-        _fail(record, "model.R_ref_from_phantom is not a 3x3 rotation")
+    rotation = R.shape == (3, 3) and np.allclose(R.T @ R, np.eye(3), atol=1e-9)
+    if not (rotation and np.linalg.det(R) > 0):  # review AD: a mirror passed
+        _fail(record, "model.R_ref_from_phantom is not a 3x3 rotation (orthonormal, det +1)")
+    nipple = model["nipple_node"]
+    if (
+        isinstance(nipple, bool)
+        or not isinstance(nipple, int)
+        or not 0 <= nipple < len(mesh.nodes_mm)
+    ):
+        # review AD: 10**6 failed after the first solve (a traceback), -1 meant the last node
+        _fail(record, f"model.nipple_node {nipple!r} is not a node of {mesh_path.name}")
     tumour = model.get("tumour_stress_free_mm")
     state = g_pre = None
     if pre:
@@ -295,6 +313,15 @@ def load_sweep_model(work: str | Path) -> SweepModel:
         with np.load(state_path) as z:
             state, g_pre = np.asarray(z["inverse_state"], float), np.asarray(z["gravity_m_s2"])
         tumour = pre.get("tumour_reference_mm")
+    if tumour is not None:  # review AD: one outside the mesh failed every scenario, exit 0
+        try:
+            t = np.asarray(tumour, float) if isinstance(tumour, list) else np.full(1, np.nan)
+        except (TypeError, ValueError):
+            t = np.full(1, np.nan)
+        if t.shape != (3,) or not np.all(np.isfinite(t)):
+            _fail(record, f"the tumour centre {tumour!r} is not a finite point (x, y, z mm)")
+        if not _inside(mesh.nodes_mm, mesh.tets, t):
+            _fail(record, f"the tumour centre {t.tolist()} (mm) lies outside the model mesh")
     return SweepModel(
         nodes_mm=mesh.nodes_mm,
         tets=mesh.tets,

@@ -103,7 +103,7 @@ def parse_c1_axis(text: str | None, c1_cal_pa: float) -> np.ndarray:
     Parameters
     ----------
     text : str or None
-        ``"LO:HI:N"`` in Pa, ``LO <= HI``, ``N >= 1`` (``N = 1`` needs ``LO == HI``).
+        ``"LO:HI:N"`` in Pa, ``LO <= HI``, ``N >= 1`` (``N = 1`` if and only if ``LO == HI``).
     c1_cal_pa : float
         The calibrated c1, used when ``text`` is None.
 
@@ -124,6 +124,8 @@ def parse_c1_axis(text: str | None, c1_cal_pa: float) -> np.ndarray:
         raise PlanError(f"--c1 {text!r}: need 0 < LO <= HI and N >= 1")
     if n == 1 and lo != hi:
         raise PlanError(f"--c1 {text!r}: one value needs LO == HI")
+    if n > 1 and lo == hi:  # review AD: each direction swept N times over (duplicates)
+        raise PlanError(f"--c1 {text!r}: LO == HI repeats one c1 {n} times; give N = 1")
     return np.geomspace(lo, hi, n)
 
 
@@ -154,6 +156,11 @@ def _sphere(n: int, holdout: float, seed: int):
     dirs = fibonacci_sphere(n)
     role = np.zeros(n, dtype=int)
     k = int(round(holdout * n))
+    if holdout > 0 and not 1 <= k <= n - 2:  # review AD: 0.04 of 10 held none out, silently
+        raise PlanError(
+            f"--holdout {holdout:g} of {n} directions holds {k} out: need at least 1 held "
+            "out and 2 to train on"
+        )
     if k:
         role[np.random.default_rng(seed).choice(n, size=k, replace=False)] = 1
     return dirs, role, np.full(n, PLANES.index("sphere")), np.full(n, np.nan)

@@ -415,9 +415,12 @@ class SweepStore:
             r["nipple_mm"][i] = result.nipple_mm
         cols = self.group.attrs.get("convergence_columns", CONVERGENCE_COLUMNS)
         r["convergence"][i] = np.array([result.stats.get(c, np.nan) for c in cols], dtype=float)
+        failures = dict(self.group.attrs.get("failures", {}))
         if not result.ok:
-            failures = dict(self.group.attrs.get("failures", {}))
             failures[str(i)] = result.message
+            self.group.attrs["failures"] = failures
+        elif str(i) in failures:  # review AD: a retried scenario's failure stayed listed
+            del failures[str(i)]
             self.group.attrs["failures"] = failures
         r["status"][i] = SOLVED if result.ok else FAILED
 

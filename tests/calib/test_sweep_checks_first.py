@@ -161,3 +161,49 @@ def test_a_calibration_without_a_physical_c1_is_refused_before_sweeping(tmp_path
     path.write_text(json.dumps(doc))
     with pytest.raises(ValueError, match=r"calibration.json: `c1_pa` must be a positive number"):
         load_sweep_model(work)
+
+
+@pytest.mark.parametrize(
+    ("edit", "says"),
+    [
+        (lambda m: m.update(tumour_stress_free_mm=[500.0, 500.0, 500.0]), "lies outside the model"),
+        (lambda m: m.update(tumour_stress_free_mm=[1.0, 2.0]), "is not a finite point"),
+        (lambda m: m.update(nipple_node=10**6), "nipple_node 1000000 is not a node"),
+        (lambda m: m.update(nipple_node=-1), "nipple_node -1 is not a node"),
+        (
+            lambda m: m.update(R_ref_from_phantom=[[-1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]),
+            r"not a 3x3 rotation \(orthonormal, det \+1\)",
+        ),
+    ],
+)
+def test_a_model_block_that_cannot_be_swept_is_refused_before_sweeping(tmp_path, edit, says):
+    # review AD: a tumour outside the mesh failed every scenario (exit 0), a nipple node
+    # past the mesh failed after the first solve (a traceback), -1 meant the last node, a
+    # mirror passed as a rotation
+    import json
+
+    from calib.sweep import CalibrationMissingError, load_sweep_model
+
+    work = make_box_work(tmp_path / "work")
+    path = work / "calibration.json"
+    doc = json.loads(path.read_text())
+    edit(doc["model"])
+    path.write_text(json.dumps(doc))
+    with pytest.raises(CalibrationMissingError, match=says):
+        load_sweep_model(work)
+
+
+def test_a_sweep_that_solves_nothing_exits_2(tmp_path, monkeypatch):
+    # review AD: "0 of 6 scenarios solved, 6 failed" exited 0
+    import fem
+
+    def never(*args, **kw):
+        raise fem.ConvergenceError("simulated failure")
+
+    monkeypatch.setattr(fem, "solve_posture", never)
+    work = make_box_work(tmp_path / "work")
+    args = ["sweep", str(work), "--out", str(tmp_path / "S"), "--plan", "sphere:6", "--serial"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2, res.output
+    assert "0 of 6 scenarios solved, 6 failed" in res.output
+    assert "no scenario solved" in res.stderr and "simulated failure" in res.stderr

@@ -89,6 +89,9 @@ def test_c1_axis():
     for bad in ("300", "a:b:c", "600:300:2", "0:1:2", "300:600:0", "300:600:1", "1:2:3:4"):
         with pytest.raises(PlanError, match="--c1"):
             parse_c1_axis(bad, 500.0)
+    # review AD: 500:500:3 swept every direction three times over (duplicate scenarios)
+    with pytest.raises(PlanError, match="repeats one c1 3 times"):
+        parse_c1_axis("500:500:3", 500.0)
 
 
 @pytest.mark.parametrize(
@@ -99,6 +102,8 @@ def test_c1_axis():
         ("sphere:0", {}, "positive integer"),
         ("dissertation", {"holdout": 0.2}, "own validation"),
         ("sphere:10", {"holdout": 1.0}, "holdout"),
+        ("sphere:10", {"holdout": 0.04}, r"holds 0 out: need at least 1"),
+        ("sphere:10", {"holdout": 0.9}, r"holds 9 out: need at least 1 held out and 2 to train"),
     ],
 )
 def test_bad_plans(spec, kw, match):

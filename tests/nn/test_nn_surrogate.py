@@ -35,6 +35,10 @@ def test_ours_matches_fe_on_validation_directions(ours, baseline):
     assert v["tumour_max_mm"] < 1e-3
     b = baseline.report["errors"]["validation"]
     assert b["surface_mean_mm"] > 10 * v["surface_mean_mm"]
+    # the baseline's `train` errors are of its fitted 80 %, not its held-out test 20 %
+    n_train, n_test = baseline.report["n_train"], baseline.report["n_test"]
+    assert baseline.report["errors"]["train"]["n"] == n_train
+    assert baseline.report["errors"]["test"]["n"] == n_test and n_train + n_test == 46
 
 
 def test_zero_gravity_gives_zero_displacement(ours, baseline):
@@ -301,3 +305,14 @@ def test_a_direction_out_of_one_training_circle_warns(ours, box_data):
         warnings.simplefilter("error")  # two circles span all three dimensions: no span check
         both = ours.predict(tilted(5.0), c1_pa=c1, frame="ref").nodes_mm
     assert np.linalg.norm(off - both, axis=1).max() > 0.25
+
+
+def test_repeated_training_loads_are_refused(box_data):
+    # review AD: a store of repeated scenarios left the leave-one-out error 0 at every
+    # kernel width (each point's copy in the fit) and the baseline's test split trained on
+    # its test points; one repeat is enough to refuse
+    train = np.flatnonzero(box_data.role == "train")
+    twice = box_data.subset(np.r_[np.arange(len(box_data)), train[:1]])
+    for fit in (nn.fit_reduced_kernel, nn.fit_dissertation_mlps):
+        with pytest.raises(ValueError, match=r"1 training scenario\(s\) repeat another's load"):
+            fit(twice, device="cpu")
