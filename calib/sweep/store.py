@@ -382,17 +382,28 @@ class SweepStore:
         return n
 
     # -- scenarios ------------------------------------------------------------------------
+    def _read(self, name: str, index=slice(None)) -> np.ndarray:
+        # review AD: a missing array gave a KeyError traceback, a corrupt chunk the
+        # codec's words only ("Zstd decompression error"), naming no file
+        try:
+            return np.asarray(self.group[name][index])
+        except Exception as exc:  # zarr and its codecs raise many kinds
+            raise StoreError(
+                f"{self.path / name}: unreadable ({type(exc).__name__}: {exc}); the store is "
+                "damaged: sweep again with --overwrite or into a fresh --out"
+            ) from exc
+
     def status(self) -> np.ndarray:
         """Status code of every scenario, (S,) int8 (0 pending, 1 solved, 2 failed)."""
-        return np.asarray(self._results["status"][:])
+        return self._read("results/status")
 
     def scenario_array(self, name: str) -> np.ndarray:
         """A ``scenarios/<name>`` array."""
-        return np.asarray(self.group[f"scenarios/{name}"][:])
+        return self._read(f"scenarios/{name}")
 
     def state(self, i: int) -> np.ndarray:
         """Solver vector of solved scenario ``i`` (for a warm start)."""
-        x = np.asarray(self._results["state"][i])
+        x = self._read("results/state", i)
         if not np.all(np.isfinite(x)):
             raise StoreError(
                 f"{self.path}/results/state/c/{i}/0: missing or not finite (truncated store)"

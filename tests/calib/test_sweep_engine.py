@@ -141,6 +141,29 @@ def test_interrupted_sweep_resumes_to_the_same_numbers(work, reference, tmp_path
     assert run_sweep(work, out, PLAN)["this_run"]["solved"] == 0
 
 
+def test_a_damaged_store_is_named_on_resume(work, reference, tmp_path):
+    # review AD: a corrupt status chunk gave the codec's words only, a missing
+    # scenarios/parent a KeyError traceback
+    import shutil
+
+    import zarr
+
+    from calib.sweep.store import StoreError
+
+    out = tmp_path / "s"
+    shutil.copytree(reference[0], out)
+    chunk = out / "results" / "status" / "c" / "4"
+    chunk.write_bytes(b"junk")
+    with pytest.raises(StoreError, match=r"results/status: unreadable"):
+        run_sweep(work, out, PLAN)
+    shutil.rmtree(out)
+    shutil.copytree(reference[0], out)
+    zarr.open_group(out, mode="r+")["results/status"][3] = 0  # pending: resume reads parent
+    shutil.rmtree(out / "scenarios" / "parent")
+    with pytest.raises(StoreError, match=r"scenarios/parent"):
+        run_sweep(work, out, PLAN)
+
+
 def test_store_of_another_model_or_plan_is_refused(work, reference, tmp_path):
     out = reference[0]
     with pytest.raises(StoreMismatchError, match="another plan.*spec"):

@@ -29,11 +29,14 @@ def test_ours_matches_fe_on_validation_directions(ours, baseline):
     assert v["n"] == 48
     # the block's response is smooth in the load: 46 directions 15 deg apart pin it down.
     # The POD basis alone is held to 1e-4 mm per vertex (pod_tol_mm) and the float32
-    # expansion adds ~1e-6 mm, so the error stays near that floor, far below the
-    # issue's 0.02 mm mean / 0.2 mm max on the phantom
-    assert v["surface_mean_mm"] < 1e-3 and v["surface_max_mm"] < 1e-2
-    assert v["tumour_max_mm"] < 1e-3
+    # expansion adds ~1e-6 mm, so the error stays under that floor (measured: mean
+    # 1.5e-5, max 5.3e-5 mm), far below the issue's 0.02 mm mean / 0.2 mm max on the
+    # phantom. The tumour is fitted outside the basis: float32's ~1e-6 mm (measured 5e-10)
+    assert v["surface_mean_mm"] < 1e-4 and v["surface_max_mm"] < 1e-4
+    assert v["tumour_max_mm"] < 1e-6
     b = baseline.report["errors"]["validation"]
+    # the MLPs after 1000 iterations: 3.7 mm mean (2.5e5 times ours); an order of
+    # magnitude is what the comparison must show
     assert b["surface_mean_mm"] > 10 * v["surface_mean_mm"]
     # the baseline's `train` errors are of its fitted 80 %, not its held-out test 20 %
     n_train, n_test = baseline.report["n_train"], baseline.report["n_test"]
@@ -60,8 +63,12 @@ def test_no_seam_on_the_transverse_circle(ours):
     u = ours.predict(g).nodes_mm
     steps = np.linalg.norm(np.diff(u, axis=0), axis=2).max(axis=1)
     second = np.linalg.norm(np.diff(u, 2, axis=0), axis=2).max(axis=1)
+    # (measured: the largest step 1.15 times the median, the response's own variation
+    # over 20 degrees; deterministic, so the 1.2 bar does not flake)
     assert steps.max() < 1.2 * np.median(steps)
-    # no kink either: a seam would spike the second differences (O(h^2), h = 0.5 deg)
+    # no kink either: a seam would spike the second differences (O(h^2), h = 0.5 deg =
+    # 0.0087 rad, so about h times the steps: measured 1.09 times their median and 0.011
+    # of the largest step)
     assert second.max() < 1.2 * np.median(second) and second.max() < 0.05 * steps.max()
     full = ours.predict(9.81 * np.array([[1.0, 0, 0], [np.cos(2 * np.pi), 0, np.sin(2 * np.pi)]]))
     assert np.abs(full.nodes_mm[0] - full.nodes_mm[1]).max() < 1e-9
@@ -127,9 +134,10 @@ def test_kernel_recovers_a_smooth_field_with_a_c1_axis():
     pred, tumour = fit.predict_numpy(b[250:])
     scale = np.abs(u).max()
     # a quadratic in b lies in the kernel's span (its degree-1 and 2 terms): recovered
-    # to ~1e-5 of the field with 250 samples (LOO picks a flat kernel)
-    assert np.abs(pred - u[250:]).max() < 1e-5 * scale
-    assert np.abs(tumour - u[250:, 0]).max() < 1e-5 * scale
+    # to round-off with 250 samples (LOO picks a flat kernel): the kernel matrix's
+    # condition (~1e7) times 1e-16, 1e-9 of the field (measured 8e-13)
+    assert np.abs(pred - u[250:]).max() < 1e-9 * scale
+    assert np.abs(tumour - u[250:, 0]).max() < 1e-9 * scale
     assert np.all(fit.predict_numpy(np.zeros((1, 3)))[0] == 0.0)
 
 
@@ -246,10 +254,14 @@ def test_device_choice():
 
 @pytest.mark.skipif("not __import__('torch').cuda.is_available()", reason="no CUDA device")
 def test_gpu_training_agrees_with_cpu(box_data):
+    # skipped under the pinned CPU build of torch (constraints.txt): it runs only where a
+    # CUDA build of torch is installed by hand beside a GPU
     cpu = nn.fit_reduced_kernel(box_data, device="cpu")
     gpu = nn.fit_reduced_kernel(box_data, device="cuda")
     assert gpu.report["device"].startswith("cuda")
-    # the same float64 algebra on another device: equal to round-off of the solve
+    # the same float64 algebra on another device: equal to round-off of the solve (the
+    # kernel matrix's condition number reaches ~1e7 here, see the leave-one-out test:
+    # 1e7 x 1e-16 relative on displacements of ~1 mm, 1e-9 mm, with a factor 10 margin)
     x = box_data.load_per_m[:5]
     assert np.abs(cpu.predict_numpy(x)[0] - gpu.predict_numpy(x)[0]).max() < 1e-8
     fit = nn.fit_dissertation_mlps(box_data, device="cuda", iterations=200)
