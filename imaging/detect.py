@@ -15,7 +15,7 @@ import numpy as np
 from scipy import ndimage
 
 from imaging.errors import FiducialError, SegmentationError
-from imaging.segment import BodySegmentation, robust_sd
+from imaging.segment import BodySegmentation, enclosed_blobs, robust_sd
 from imaging.volume import Volume
 
 __all__ = [
@@ -109,7 +109,9 @@ def detect_fiducials(
     """
     crop = seg.crop
     ns = seg.smoothed.array[crop]
-    lab, nlab = ndimage.label(ns > marker_ratio)
+    bright = ns > marker_ratio
+    # blobs that tissue encloses are inclusions brighter than the threshold, not markers
+    lab, nlab = ndimage.label(bright & ~enclosed_blobs(seg.normalised.array[crop], bright))
     centres, radii, peaks, rejected = _blobs(seg, lab, radius_range_mm)
     found = len(centres)
     quality = {

@@ -485,8 +485,10 @@ class StaleIngestError(RuntimeError):
 #: where none stands within 12 mm of the highest point (``quality.nipple_method``), and
 #: the regions too large for an inclusion counted (``quality.inclusions_too_large``). 6:
 #: the image noise (``quality.seg_noise_sigma_rel``, ``seg_snr``) from the background's
-#: median (its mean of squares took in the markers: up to a third too high).
-INGEST_REVISION = 6
+#: median (its mean of squares took in the markers: up to a third too high). 7: a bright
+#: blob that tissue encloses is an inclusion, never a marker, and stays in the body mask
+#: (inclusions over twice the body's level were counted as markers and cut from the body).
+INGEST_REVISION = 7
 
 
 def ingest_inputs(session: Session) -> dict:
