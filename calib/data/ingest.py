@@ -487,7 +487,9 @@ class StaleIngestError(RuntimeError):
 #: the image noise (``quality.seg_noise_sigma_rel``, ``seg_snr``) from the background's
 #: median (its mean of squares took in the markers: up to a third too high). 7: a bright
 #: blob that tissue encloses is an inclusion, never a marker, and stays in the body mask
-#: (inclusions over twice the body's level were counted as markers and cut from the body).
+#: (inclusions over twice the body's level were counted as markers and cut from the body);
+#: the image noise from the body's interior where the background is no Rayleigh floor
+#: (``quality.seg_noise_method``).
 INGEST_REVISION = 7
 
 
