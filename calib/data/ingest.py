@@ -417,6 +417,59 @@ def _check_patient_positions(session: Session) -> None:
         )
 
 
+#: A scan's nipple must move this far (mm) from the reference scan's, and its gravity turn
+#: this far (degrees) from the reference's, for the direction of the move to count.
+SAG_CHECK_MM, SAG_CHECK_DEG = 2.0, 10.0
+
+
+def check_gravity_sign(session: Session, scans: dict, regs: dict) -> dict[str, float]:
+    """Warn where the nipple moved against the change of gravity in every posture.
+
+    A soft body sags with gravity: between two postures its nipple moves along the
+    change of the gravity vector (the quick twin: cosines +1.00, +0.87, +0.82). A
+    ``scanner.gravity`` of the wrong sign (the default ``[0, 1, 0]``, +P, is down for a
+    supine image; breast MR is often written prone, where down is -P) turns every cosine
+    negative, which no other check sees (the posture check compares angles between
+    scans, which a sign flip keeps; review AE).
+
+    Parameters
+    ----------
+    session : Session
+    scans : dict of str to imaging.ScanResult
+    regs : dict of str to registration.ScanRegistration
+
+    Returns
+    -------
+    dict of str to float
+        Per scan whose nipple moved over :data:`SAG_CHECK_MM` and whose gravity turned
+        over :data:`SAG_CHECK_DEG` from the reference's, the cosine between the two moves.
+    """
+    ref = session.reference.name
+    nipple_ref = scans[ref].nipple_lps_mm
+    cosines = {}
+    for name, reg in regs.items():
+        if name == ref:
+            continue
+        move = apply_transform(reg.T_ref_from_scan, scans[name].nipple_lps_mm) - nipple_ref
+        turn = reg.gravity_ref - regs[ref].gravity_ref
+        if np.linalg.norm(move) < SAG_CHECK_MM:
+            continue
+        if np.linalg.norm(turn) < 2.0 * np.sin(np.radians(SAG_CHECK_DEG) / 2.0):
+            continue
+        cosines[name] = float(move @ turn / np.linalg.norm(move) / np.linalg.norm(turn))
+    if cosines and all(c < 0 for c in cosines.values()):
+        log.warning(
+            "%s: in every posture the nipple moved against the change of gravity (cosines "
+            "%s between its move and gravity's, from the reference scan): a body sags with "
+            "gravity, so scanner.gravity %s likely points up; an image written prone has "
+            "down at -P ([0, -1, 0] where a supine one has [0, 1, 0])",
+            session.folder / "session.toml",
+            ", ".join(f"{n} {c:+.2f}" for n, c in cosines.items()),
+            np.round(session.gravity_scanner, 3).tolist(),
+        )
+    return cosines
+
+
 def ingest_scans(session: Session, *, progress=None) -> IngestResult:
     """Process every scan of a session and register them to the reference scan.
 
@@ -444,6 +497,7 @@ def ingest_scans(session: Session, *, progress=None) -> IngestResult:
     tumour = {n: tr.tumour_index for n, tr in tracking.items()}
     scans = {n: _with_tumour(r, tumour[n]) for n, r in scans.items()}
     regs = _register(session, scans, landmarks=True)
+    check_gravity_sign(session, scans, regs)
     table = registration.format_registration_table(regs)
     table += "\n\n" + _tracking_table(choice, tracking)
     return IngestResult(session, scans, regs, tumour, table, tracking, choice)

@@ -183,6 +183,27 @@ def test_gravity_in_reference_frame(twin):
     assert max(errors.values()) <= 0.5, errors
 
 
+def test_the_nipple_sags_with_gravity_and_a_flipped_gravity_is_said(twin, caplog):
+    # review AE: a scanner.gravity of the wrong sign (an image written prone, read with
+    # the supine default) turned every posture's load around and no check saw it. On the
+    # twin the nipple moves along the change of gravity (review AE: cosines +1.00, +0.87,
+    # +0.82); with gravity turned round every cosine changes sign, and that is said.
+    from dataclasses import replace
+
+    from calib.data.ingest import check_gravity_sign
+
+    res = twin["result"]
+    with caplog.at_level("WARNING", logger="calib.data.ingest"):
+        cos = check_gravity_sign(res.session, res.scans, res.registrations)
+    assert len(cos) == 3 and min(cos.values()) > 0.5, cos
+    assert "against the change of gravity" not in caplog.text
+    up = {n: replace(r, gravity_ref=-r.gravity_ref) for n, r in res.registrations.items()}
+    with caplog.at_level("WARNING", logger="calib.data.ingest"):
+        flipped = check_gravity_sign(res.session, res.scans, up)
+    assert flipped == pytest.approx({n: -c for n, c in cos.items()}, abs=1e-12)
+    assert "in every posture the nipple moved against the change of gravity" in caplog.text
+
+
 def test_registration_maps_fiducials_and_pose(twin):
     # Issue 4: translation within 0.3 mm, rotation within 0.3 deg. The truth fiducials
     # are listed in the same (phantom) order for every scan.
