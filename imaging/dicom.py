@@ -100,7 +100,7 @@ def _set_transfer_syntax(ds) -> None:
         ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian if little else ExplicitVRBigEndian
 
 
-def _read_file(path: Path):  # pydicom Dataset or None
+def _read_file(path: Path, skipped: list | None = None):  # pydicom Dataset or None
     """Read one file of the folder; None (and a logged warning) when it is not a DICOM image.
 
     A file without the preamble and ``DICM`` prefix is read again with ``force=True``. Such a
@@ -108,7 +108,7 @@ def _read_file(path: Path):  # pydicom Dataset or None
     with pixel data and ImagePositionPatient. A non-DICOM file named ``.dcm``/``.dicom``/
     ``.ima`` is an error (a broken slice); otherwise it is skipped, as is a DICOM object
     without pixel data (a report) or a non-MR image without ImagePositionPatient (a
-    secondary capture).
+    secondary capture; its SOP class appended to ``skipped``).
     """
     import pydicom
     from pydicom.errors import InvalidDicomError
@@ -145,6 +145,8 @@ def _read_file(path: Path):  # pydicom Dataset or None
         log.warning(
             "%s: skipped, a DICOM image without ImagePositionPatient (SOP class %s)", path, sop
         )
+        if skipped is not None:
+            skipped.append(sop)
         return None
     _set_transfer_syntax(ds)
     return ds
@@ -179,7 +181,13 @@ def patient_position(folder: str | os.PathLike) -> str | None:
     return None
 
 
-def _no_dicom_error(folder: Path) -> DicomSeriesError:
+def _no_dicom_error(folder: Path, skipped: list) -> DicomSeriesError:
+    if skipped:  # review AE: SimpleITK/GDCM's defaults write such images ("no DICOM files")
+        return DicomSeriesError(
+            f"{folder}: {len(skipped)} DICOM images, none with ImagePositionPatient (SOP "
+            f"class {sorted(set(skipped))[0]}: a secondary capture?); a series is read from "
+            "MR image slices with their position and orientation"
+        )
     subfolders = sorted(p.name for p in folder.iterdir() if p.is_dir() and p.name[:1] != ".")
     if not subfolders:
         return DicomSeriesError(f"{folder}: folder holds no DICOM files")
@@ -354,13 +362,13 @@ def read_dicom_series(folder: str | os.PathLike) -> Volume:
         duplicated or missing slice, non-uniform spacing.
     """
     folder = Path(folder)
-    datasets = {}
+    datasets, skipped = {}, []
     for p in _candidate_files(folder):
-        ds = _read_file(p)
+        ds = _read_file(p, skipped)
         if ds is not None:
             datasets[p] = ds
     if not datasets:
-        raise _no_dicom_error(folder)
+        raise _no_dicom_error(folder, skipped)
     files = list(datasets)
     _list_series(folder, datasets)
     ref = None

@@ -100,21 +100,27 @@ def _read_nifti(path: Path) -> Volume:
         arr = arr[..., 0]
     if arr.ndim != 3:
         raise VolumeReadError(f"{path}: expected a 3-D volume, got shape {arr.shape}")
-    _check_nifti_geometry(path, img.header)
-    affine = _RAS_FROM_LPS @ np.asarray(img.affine, float)
+    affine = _RAS_FROM_LPS @ _nifti_scanner_affine(path, img.header)
     if not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < 1e-12:
         raise VolumeReadError(f"{path}: NIfTI affine is missing or singular")
     return Volume(np.array(arr), affine, str(path))
 
 
-def _check_nifti_geometry(path: Path, header) -> None:
-    """Refuse a NIfTI whose placement in the scanner is unknown or not in millimetres.
+#: NIfTI's xform code of scanner coordinates (NIFTI_XFORM_SCANNER_ANAT); 2-4 are aligned,
+#: Talairach and MNI spaces.
+_NIFTI_SCANNER = 1
 
-    Without an sform or a qform (both codes 0) nibabel places the voxels by their sizes
-    alone, and the session's gravity would land in an arbitrary frame; spatial units
-    other than mm (``unknown`` is read as mm, as scanners' converters write it) would
-    scale every length. An sform and a qform that disagree are logged; the sform is used,
-    as nibabel does.
+
+def _nifti_scanner_affine(path: Path, header) -> np.ndarray:
+    """A NIfTI's voxel-to-RAS affine in the scanner's frame, checked.
+
+    Refused: no sform nor qform (both codes 0: nibabel places the voxels by their sizes
+    alone, and the session's gravity would land in an arbitrary frame); spatial units
+    other than mm (``unknown`` is read as mm, as scanners' converters write it). The form
+    whose code says scanner coordinates (1) is used, the sform where both do, as nibabel
+    does (an sform and a qform that disagree are logged); where neither does (codes 2-4:
+    an aligned, Talairach or MNI space) the sform, with a warning: ``scanner.gravity`` is
+    read in the scanner's frame (review AE).
     """
     s_code, q_code = int(header["sform_code"]), int(header["qform_code"])
     if s_code == 0 and q_code == 0:
@@ -132,8 +138,21 @@ def _check_nifti_geometry(path: Path, header) -> None:
         gap = np.abs(header.get_sform() - header.get_qform()).max()
         if gap > 1e-3:
             log.warning(
-                "%s: NIfTI sform and qform differ by up to %.3g; the sform is used", path, gap
+                "%s: NIfTI sform and qform differ by up to %.3g; the %s is used",
+                path,
+                gap,
+                "qform" if q_code == _NIFTI_SCANNER != s_code else "sform",
             )
+    if q_code == _NIFTI_SCANNER != s_code:
+        return np.asarray(header.get_qform(), float)
+    if s_code != _NIFTI_SCANNER:
+        log.warning(
+            "%s: the NIfTI's placement is in space code %d, not the scanner's (1): "
+            "scanner.gravity is read in it as if it were",
+            path,
+            s_code or q_code,
+        )
+    return np.asarray(header.get_sform() if s_code else header.get_qform(), float)
 
 
 def _read_itk(path: Path) -> Volume:
@@ -150,7 +169,43 @@ def _read_itk(path: Path) -> Volume:
         _check_nrrd_geometry(path)
     else:
         _check_metaimage_geometry(path)
+        _check_metaimage_orientation(path, np.array(img.GetDirection(), float).reshape(3, 3))
     return Volume.from_sitk(img, source=str(path))
+
+
+def _check_metaimage_orientation(path: Path, direction: np.ndarray) -> None:
+    """Warn where a MetaImage's ``AnatomicalOrientation`` disagrees with its matrix.
+
+    ITK reads a MetaImage's ``TransformMatrix`` and ``Offset`` as LPS and ignores
+    ``AnatomicalOrientation`` (review AE: ``RAI`` and ``LPI`` headers read alike); the
+    field names, per axis, the side its coordinate grows from (``RAI``: the identity in
+    LPS). A file whose field disagrees may come from a writer that meant another space
+    (RAS: x and y flipped).
+    """
+    given = ""
+    for line in _header_lines(path):
+        name, sep, value = line.partition("=")
+        if sep and name.strip().lower() == "anatomicalorientation":
+            given = value.strip().upper()
+        if sep and name.strip().lower() == "elementdatafile":
+            break
+    if len(given) != 3 or given == "???":
+        return
+    # the side each image axis grows from: the opposite of where its LPS direction points
+    sides = ("RL", "AP", "IS")  # LPS +x points to L (grows from R), +y to P, +z to S
+    read = "".join(
+        sides[int(np.argmax(np.abs(c)))][0 if c[int(np.argmax(np.abs(c)))] > 0 else 1]
+        for c in direction.T
+    )
+    if read != given:
+        log.warning(
+            "%s: AnatomicalOrientation %s, but its TransformMatrix read as LPS (as ITK reads "
+            "it, ignoring that field) says %s: check the coordinates (a writer that meant "
+            "RAS flips x and y)",
+            path,
+            given,
+            read,
+        )
 
 
 def _header_lines(path: Path) -> list[str]:

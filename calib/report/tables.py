@@ -173,4 +173,9 @@ def format_validation(doc: dict) -> str:
         )
     for name, why in (doc.get("failed") or {}).items():
         lines.append(f"{name:<16}not validated: no FE solution at calibration ({why})")
+    if any(s.get("dissertation") for s in doc["scans"].values()):
+        lines.append(
+            "dissertation: its published figures for the original CIRS phantom's scans (a "
+            "baseline to compare with, not figures of this phantom)"
+        )
     return "\n".join(lines)

@@ -332,7 +332,9 @@ def _intro(v: Validation) -> str:
         "the simulated nipple to the nearest measured vertex (blind to a slide along the "
         "surface); nipple tip: to the measured nipple tip. FRE/TRE: the scan's fiducial "
         "registration error and expected target registration error (a model error below "
-        "the TRE cannot be told from registration error)." + failed
+        "the TRE cannot be told from registration error). The dissertation's column: its "
+        "published figures for the original CIRS phantom's scans at the nearest posture, "
+        "a baseline to compare with, not figures of this phantom." + failed
     )
 
 

@@ -220,6 +220,32 @@ def test_a_nifti_without_scanner_placement_or_in_other_units_is_refused(small_vo
         )
 
 
+def test_a_nifti_s_scanner_form_is_read_and_another_space_said(small_volume, tmp_path, caplog):
+    # review AE: an sform of code 2-4 (aligned, Talairach, MNI) was read as the scanner's
+    # frame, where scanner.gravity is given, even beside a qform of code 1
+    import logging
+
+    import nibabel as nib
+
+    p = write_nifti(small_volume, tmp_path / "v.nii.gz")
+    img = nib.load(p)
+    moved = img.header.get_sform()
+    moved[:3, 3] += [40.0, 0.0, 0.0]  # an aligned space 40 mm off the scanner's
+    other = nib.Nifti1Image(np.asanyarray(img.dataobj), None, img.header)
+    other.header.set_sform(moved, code=2)
+    nib.save(other, tmp_path / "aligned.nii.gz")
+    with caplog.at_level(logging.WARNING, logger="imaging.io"):
+        v = read_volume(tmp_path / "aligned.nii.gz")  # the qform, code 1: the scanner's
+    np.testing.assert_allclose(
+        v.affine_lps_from_index, small_volume.affine_lps_from_index, atol=1e-4
+    )
+    assert "the qform is used" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="imaging.io"):
+        read_volume(_renifti(tmp_path / "aligned.nii.gz", qform_code=0))
+    assert "space code 2, not the scanner's (1)" in caplog.text
+
+
 def test_writer_refuses_to_overwrite(series, small_volume):
     with pytest.raises(FileExistsError):
         write_dicom_series(small_volume, series)

@@ -156,6 +156,22 @@ def test_a_folder_of_stray_files_only_holds_no_dicom(tmp_path, caplog):
     assert "thumb.png: skipped" in caplog.text
 
 
+def test_a_series_of_images_without_geometry_says_so(series):
+    # review AE: SimpleITK/GDCM's defaults write secondary captures without
+    # ImagePositionPatient; every slice was skipped and the error said "no DICOM files"
+    for f in sorted(series.glob("*.dcm")):
+        ds = pydicom.dcmread(f)
+        del ds.ImagePositionPatient
+        ds.SOPClassUID = "1.2.840.10008.5.1.4.1.1.7"  # Secondary Capture Image Storage
+        ds.save_as(f, enforce_file_format=True)
+    n = len(list(series.glob("*.dcm")))
+    said = (
+        rf"{n} DICOM images, none with ImagePositionPatient \(SOP class 1.2.840.10008.5.1.4.1.1.7"
+    )
+    with pytest.raises(DicomSeriesError, match=said):
+        read_volume(series)
+
+
 def test_a_parent_folder_names_its_subfolders(oblique, tmp_path):
     write_dicom_series(oblique, tmp_path / "exam" / "DICOM")
     (tmp_path / "exam" / "notes.txt").write_text("exam notes\n")
@@ -353,3 +369,24 @@ def test_metaimage_without_placement_is_refused(tmp_path):
     (tmp_path / "d.mhd").write_text(_MHA + _MHA_TAIL + "ElementDataFile = d.raw\n")
     with pytest.raises(VolumeReadError, match="d.mhd: the MetaImage header has neither"):
         read_volume(tmp_path / "d.mhd")
+
+
+@pytest.mark.parametrize(
+    ("matrix", "field", "warned"),
+    [
+        ("1 0 0 0 1 0 0 0 1", "RAI", False),  # the identity in LPS, as ITK writes it
+        ("0 1 0 1 0 0 0 0 -1", "ARS", False),  # axes permuted, z flipped: still agreed
+        ("1 0 0 0 1 0 0 0 1", "LPI", True),  # a writer that meant RAS: x and y flipped
+    ],
+)
+def test_metaimage_orientation_that_disagrees_is_said(tmp_path, caplog, matrix, field, warned):
+    # review AE: ITK ignores AnatomicalOrientation, so a RAS-space file from another
+    # writer was read with x and y flipped without a word
+    path = tmp_path / "o.mha"
+    geometry = f"TransformMatrix = {matrix}\nOffset = 1 2 3\nAnatomicalOrientation = {field}\n"
+    path.write_bytes(
+        (_MHA + geometry + _MHA_TAIL + "ElementDataFile = LOCAL\n").encode() + _DATA.tobytes()
+    )
+    with caplog.at_level(logging.WARNING, logger="imaging.io"):
+        read_volume(path)
+    assert (f"AnatomicalOrientation {field}, but" in caplog.text) is warned, caplog.text
