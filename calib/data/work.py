@@ -17,7 +17,12 @@ from ..io import check_run
 from .measurements import Measurements, read_scan
 from .session import ScanEntry
 
-__all__ = ["SavedState", "WorkFolder", "check_record", "read_work"]
+__all__ = ["SCHEMA_VERSION", "SavedState", "WorkFolder", "check_record", "read_work"]
+
+#: Version of ``calibration.json``. 1: the keys of phantom-calib 0.1 plus
+#: ``schema_version``, ``optimiser`` and ``model``. A record without it is 0.1's; one of a
+#: later version is refused by :func:`check_record` (its keys may mean other things).
+SCHEMA_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -162,6 +167,7 @@ def check_record(record: dict, path: Path) -> None:
     Raises
     ------
     ValueError
+        ``schema_version`` later than :data:`SCHEMA_VERSION` or not an integer;
         ``c1_pa`` not a positive finite number; ``c1_ci95_pa`` neither null nor
         ``[low, high]`` with ``0 < low <= high``; ``model`` not an object; ``scans`` not
         an object of records with a known role.
@@ -171,6 +177,14 @@ def check_record(record: dict, path: Path) -> None:
     def bad(key: str, expected: str, got) -> ValueError:
         return ValueError(f"{path}: `{key}` must be {expected}, got {got!r}")
 
+    version = record.get("schema_version", 0)
+    if isinstance(version, bool) or not isinstance(version, int) or version < 0:
+        raise bad("schema_version", f"an integer 0..{SCHEMA_VERSION}", version)
+    if version > SCHEMA_VERSION:
+        raise ValueError(
+            f"{path}: schema_version {version}, written by a newer phantom-calib; this one "
+            f"reads {SCHEMA_VERSION} and earlier: update phantom-calib or recalibrate"
+        )
     c1 = record.get("c1_pa")
     if isinstance(c1, bool) or not isinstance(c1, (int, float)) or not (np.isfinite(c1) and c1 > 0):
         raise bad("c1_pa", "a positive number (Pa)", c1)

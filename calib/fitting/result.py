@@ -7,16 +7,13 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from ..data.work import SCHEMA_VERSION
 from .meshcheck import MeshCheck
 from .optimise import OptimiserStatus
 from .options import CalibrationOptions
 from .uncertainty import Uncertainty
 
 __all__ = ["SCHEMA_VERSION", "Calibration", "phantom_frame", "reference_state_said"]
-
-#: Version of ``calibration.json``. 1: the keys of phantom-calib 0.1 plus
-#: ``schema_version``, ``optimiser`` and ``model``.
-SCHEMA_VERSION = 1
 
 FRAMES = {
     "fiducial": "scans mapped by the fiducial registration only (no ICP)",

@@ -379,6 +379,9 @@ def test_a_missing_fast_solver_is_said_once(monkeypatch, caplog):
         ({"c1_pa": 420.0, "scans": []}, "`scans` must be an object"),
         ({"c1_pa": 420.0, "scans": {"a": {"role": "bogus"}}}, "`scans.a` must be an object"),
         ({"c1_pa": 420.0, "scans": {}, "model": "x"}, "`model` must be an object"),
+        # review AC: schema_version was written, never read back
+        ({"schema_version": 2, "c1_pa": 420.0, "scans": {}}, "written by a newer phantom-calib"),
+        ({"schema_version": "1", "c1_pa": 420.0, "scans": {}}, "`schema_version` must be"),
     ],
 )
 @pytest.mark.parametrize("command", ["validate", "diagnose"])
