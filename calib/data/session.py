@@ -226,10 +226,13 @@ def load_session(folder: str | Path) -> Session:
 
 
 def _check_scans(scans: tuple[ScanEntry, ...], toml: Path) -> None:
-    names = [s.name for s in scans]
-    dup = sorted({n for n in names if names.count(n) > 1})
+    names = [s.name.lower() for s in scans]  # review AC: WORK/scans/Left and /left are one
+    dup = sorted({s.name for s in scans if names.count(s.name.lower()) > 1})  # folder on macOS
     if dup:
-        raise SessionError(f"{toml}: duplicate scan name(s) {dup}")
+        raise SessionError(
+            f"{toml}: duplicate scan name(s) {dup} (names are compared without case: they "
+            "name folders of the work folder)"
+        )
     refs = [s.name for s in scans if s.role == "reference"]
     if len(refs) != 1:
         raise SessionError(f"{toml}: exactly one scan must have role 'reference', found {refs}")
@@ -264,7 +267,7 @@ def _unique_names(paths: list[Path]) -> list[str]:
                 break
         stem = re.sub(r"[^A-Za-z0-9._-]", "_", stem).lstrip("._-") or "scan"
         name, k = stem, 2
-        while name in names:
+        while name.lower() in (n.lower() for n in names):  # as the session compares them
             name, k = f"{stem}_{k}", k + 1
         names.append(name)
     return names

@@ -86,6 +86,11 @@ BAD_SESSIONS = [
         VALID_TOML.replace('name = "tilt"', 'name = "left"'),
         r"duplicate scan name\(s\) \['left'\]",
     ),
+    (  # review AC: one folder of the work folder on a case-insensitive file system
+        "names-differing-in-case",
+        VALID_TOML.replace('name = "tilt"', 'name = "Left"'),
+        r"duplicate scan name\(s\) \['Left', 'left'\] \(names are compared without case",
+    ),
     (
         "missing-scan-path",
         VALID_TOML.replace('path = "tilt"', 'path = "no_such_series"'),
