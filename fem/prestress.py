@@ -622,7 +622,7 @@ def _internal_force(prob: _Prestressed, x: np.ndarray) -> np.ndarray:
     return scatter(prob.disc_v, vec)
 
 
-def _mulf(model, disc0, g_vec, opts, tol_mm, max_passes, n_steps, relax=True):
+def _mulf(model, disc0, g_vec, opts, tol_mm, max_passes, n_steps):
     """Gee et al. (2010), Sect. 3: load steps on the fixed geometry, ``F0 <- F_d F0``.
 
     Each step (and each pass at full load) starts from the reset state, which is out of
@@ -648,7 +648,7 @@ def _mulf(model, disc0, g_vec, opts, tol_mm, max_passes, n_steps, relax=True):
                 return F0, x, path, stats, cuts, last, lam, False
             dlam /= 4
             continue
-        if lam >= 1.0 and relax:  # a pass: Aitken's relaxation of the update
+        if lam >= 1.0:  # a pass: Aitken's relaxation of the update
             omega = _aitken_omega(omega, r_old, new[:nu])
             r_old = new[:nu].copy()
         path.append((target, new.copy(), omega))
