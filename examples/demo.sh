@@ -13,7 +13,11 @@ echo "== 2/4 ingest: segment, surface and register every scan =="
 echo "== 3/4 calibrate: c1 by the whole surface, stress-free reference recovered =="
 "$BIN" calibrate "$OUT/twin/scans" --out "$OUT/work" --objective surface --mesh-size 14 --profile 3
 echo "== 4/4 simulate: the calibrated c1 on the stress-free mesh, right-lateral gravity =="
-C1=$(python3 -c "import json,sys; print(json.load(open(sys.argv[1]))['c1_pa'])" "$OUT/work/calibration.json")
+# the mesh lies in the reference scan's frame: the right lateral scan's gravity there is
+# its registered gravity_ref (calibration.json), not the phantom frame's -x
+read -r C1 GRAVITY < <(python3 -c "import json,sys; d=json.load(open(sys.argv[1])); \
+print(d['c1_pa'], ','.join(map(str, d['scans']['right_lateral']['gravity_ref'])))" \
+    "$OUT/work/calibration.json")
 "$BIN" simulate "$OUT/work/calibration/reference_mesh.vtu" --c1 "$C1" \
-    --gravity=-1,0,0 --out "$OUT/work/simulate/right_lateral.vtu"
+    --gravity="$GRAVITY" --out "$OUT/work/simulate/right_lateral.vtu"
 echo "done: see $OUT/work/calibration.json and $OUT/work/calibration/*.png"
