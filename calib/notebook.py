@@ -22,6 +22,37 @@ from .validation import Validation, validate_work
 __all__ = ["Work"]
 
 
+def _png(fig) -> bytes:
+    from io import BytesIO
+
+    buf = BytesIO()
+    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
+    return buf.getvalue()
+
+
+def show_figures_in_jupyter() -> None:
+    """Let a running IPython kernel show a bare matplotlib ``Figure`` as a PNG.
+
+    The figures here are built without pyplot (no global state, no GUI backend), and a
+    kernel shows such a figure as its text (``<Figure size ... with 1 Axes>``) until
+    ``%matplotlib inline`` has run (review AG: notebooks 01 and 02 showed no figure).
+    Registers a PNG formatter for ``Figure`` (IPython's ``for_type``); outside IPython,
+    nothing.
+    """
+    import sys
+
+    if "IPython" not in sys.modules:
+        return
+    from IPython import get_ipython
+
+    shell = get_ipython()
+    if shell is None:
+        return
+    from matplotlib.figure import Figure
+
+    shell.display_formatter.formatters["image/png"].for_type(Figure, _png)
+
+
 @dataclass
 class Work:
     """A calibrated ``WORK/`` folder (:func:`calib.load_work`).
@@ -38,6 +69,7 @@ class Work:
     @classmethod
     def load(cls, path: str | Path) -> Work:
         """Read a work folder that ``phantom-calib calibrate`` wrote."""
+        show_figures_in_jupyter()
         return cls(read_work(path))
 
     @property

@@ -29,7 +29,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path.cwd()))
 import _settings
-from IPython.display import Markdown
+from IPython.display import Markdown, display
 
 import calib
 
@@ -40,12 +40,15 @@ Markdown(work.validation_table())
 
 # %% [markdown]
 # ## Error maps on a shared colour scale
+# The scale tops at the 99th percentile of every map's errors, as the report's maps do
+# (a few rim vertices would otherwise wash the rest out).
 
 # %%
+import numpy as np
+
 validation_scans = [n for n, r in work.scans.items() if r == "validation"]
-vmax = max(
-    float((abs(work.validation.scans[n].metrics.vertex_error_mm)).max()) for n in validation_scans
-)
+errors = [work.validation.scans[n].metrics.vertex_error_mm for n in validation_scans]
+vmax = float(np.percentile(np.abs(np.concatenate(errors)), 99))
 for name in validation_scans:
     display(work.plot_error_map(name, vmax=vmax))
 

@@ -25,11 +25,12 @@ def notebooks_available() -> bool:
     return all(importlib.util.find_spec(m) is not None for m in ("nbclient", "jupytext"))
 
 
-def execute_notebook(name: str, out: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def execute_notebook(name: str, out: Path, monkeypatch: pytest.MonkeyPatch):
     """Execute ``examples/<name>`` cell by cell in a real kernel at the tiny size.
 
     Outputs go to ``out`` (``PHANTOM_CALIB_OUT``); a failing cell raises
-    ``nbclient.exceptions.CellExecutionError`` with the cell and its traceback.
+    ``nbclient.exceptions.CellExecutionError`` with the cell and its traceback. Returns
+    the executed notebook (its cells' outputs).
     """
     import jupytext
     import nbclient
@@ -41,6 +42,7 @@ def execute_notebook(name: str, out: Path, monkeypatch: pytest.MonkeyPatch) -> N
         nb, timeout=1800, kernel_name="python3", resources={"metadata": {"path": str(EXAMPLES)}}
     )
     client.execute()
+    return nb
 
 
 @dataclass
@@ -49,6 +51,12 @@ class NotebookChain:
 
     out: Path
     errors: dict[str, BaseException] = field(default_factory=dict)
+    executed: dict = field(default_factory=dict)  # name -> the executed notebook
+
+    def images(self, name: str) -> int:
+        """How many image/png outputs the executed notebook ``name`` shows."""
+        cells = self.executed[name].cells
+        return sum("image/png" in o.get("data", {}) for c in cells for o in c.get("outputs", []))
 
     def require(self, name: str) -> None:
         """Fail the calling test with the notebook's own error if it (or one before) failed."""
@@ -71,7 +79,7 @@ def tiny_chain_notebooks(tmp_path_factory) -> NotebookChain:
     with pytest.MonkeyPatch.context() as mp:
         for name in CHAIN_NOTEBOOKS:
             try:
-                execute_notebook(name, chain.out, mp)
+                chain.executed[name] = execute_notebook(name, chain.out, mp)
             except Exception as exc:  # each test that needs it fails with this error
                 chain.errors[name] = exc
                 break

@@ -171,6 +171,23 @@ def test_work_folder_api(nipple_run):
         w.plot_error_map("left_lateral")  # the reference has no simulated state
 
 
+def test_work_figures_show_as_images_in_an_ipython_kernel(nipple_run):
+    # review AG: a bare matplotlib Figure (no pyplot) showed as its text in Jupyter until
+    # %matplotlib inline had run; load_work registers a PNG formatter in a running shell
+    from IPython.core.interactiveshell import InteractiveShell
+
+    import calib
+
+    _, _, work = nipple_run
+    shell = InteractiveShell.instance()
+    try:
+        fig = calib.load_work(work).plot_profile()
+        data, _ = shell.display_formatter.format(fig)
+        assert data["image/png"].startswith(b"\x89PNG")
+    finally:
+        InteractiveShell.clear_instance()
+
+
 def test_a_scan_without_fe_solution_is_listed_not_dropped_by_validate(nipple_run, tmp_path):
     # calibrate writes `failed` for a scan with no FE solution at the calibrated c1 and
     # saves no state for it; validate listed the other scans only, without a word
