@@ -2207,6 +2207,30 @@ def test_scans_imaged_unlike_are_told_from_their_imaging_not_their_residual(tmp_
     assert 1.13 < IMAGED_UNLIKE_RATIO < noise["thick"] / noise["lat"]
 
 
+def test_scans_whose_noise_was_measured_in_different_ways_are_not_compared(tmp_path, caplog):
+    # review AF: the background's and the interior's estimates disagree on correlated
+    # noise (0.47-0.86 of the truth on an interpolated image): two scans of equal noise
+    # measured the two ways could be called imaged unlike
+    import json
+
+    from calib.discrepancy.problem import comparable_imaging_noise
+
+    def scan(name, noise, method):
+        (tmp_path / "scans" / name).mkdir(parents=True)
+        quality = {"seg_noise_sigma_rel": noise} | ({"seg_noise_method": method} if method else {})
+        doc = {"voxel_size_mm": [1.5, 1.5, 1.5], "quality": quality}
+        (tmp_path / "scans" / name / "ingest.json").write_text(json.dumps(doc))
+
+    scan("a", 0.033, None)  # before ingest revision 7: the background's
+    scan("b", 0.030, "background")
+    scan("c", 0.018, "interior")
+    work = SimpleNamespace(path=tmp_path)
+    assert set(comparable_imaging_noise(work, ["a", "b"])) == {"a", "b"}
+    with caplog.at_level("WARNING", logger="calib.discrepancy.problem"):
+        assert comparable_imaging_noise(work, ["a", "c"]) == {}
+    assert "measured in different ways (a background, c interior" in caplog.text
+
+
 def test_inclusions_too_large_for_ingest_are_said_to_be_left_out(tmp_path, caplog):
     # review W: the inclusions effect tags what ingest found; a region of inclusion
     # contrast larger than ingest accepts was left out of it without a word in diagnose
