@@ -111,16 +111,33 @@ def detect_fiducials(
     ns = seg.smoothed.array[crop]
     bright = ns > marker_ratio
     # blobs that tissue encloses are inclusions brighter than the threshold, not markers
-    lab, nlab = ndimage.label(bright & ~enclosed_blobs(seg.normalised.array[crop], bright))
+    enclosed = enclosed_blobs(seg.normalised.array[crop], bright)
+    lab, nlab = ndimage.label(bright & ~enclosed)
     centres, radii, peaks, rejected = _blobs(seg, lab, radius_range_mm)
     found = len(centres)
+    source = seg.mask.source.replace(" [body mask]", "")
+    if expected is not None and found < expected and enclosed.any():
+        # review AF: a marker sunk more than half into tissue reads as enclosed; where
+        # too few lie apart, the enclosed compact blobs are candidates too (as before)
+        lab, nlab = ndimage.label(bright)
+        centres, radii, peaks, rejected = _blobs(seg, lab, radius_range_mm)
+        if len(centres) > found:
+            log.warning(
+                "%s: %d fiducial markers apart from tissue for %d expected; bright blobs "
+                "that tissue encloses taken as candidates too (a marker sunk into the body, "
+                "or an inclusion over %g times the body level)",
+                source,
+                found,
+                expected,
+                marker_ratio,
+            )
+        found = len(centres)
     quality = {
         "n_candidates": int(nlab),
         "threshold": float(marker_ratio),
         "n_found": found,
         "n_dropped": 0,
     }
-    source = seg.mask.source.replace(" [body mask]", "")
     apart_found = None
     if expected is not None and found < expected and marker_ratio > MARKER_RATIO_APART:
         # dim markers (thick slices, another contrast): blobs apart from the body, lower

@@ -293,10 +293,11 @@ def test_a_direction_off_the_training_circles_warns(ours, box_data):
 
 def test_a_direction_out_of_one_training_circle_warns(ours, box_data):
     # review AD: trained on one great circle, the linear term has no response out of its
-    # plane (least squares' minimum norm); 5 degrees out it erred by 0.58 mm on 3.3 mm
-    # (29 degrees: 3.2 mm) where the nearest-direction check (limit 2 x 15 degrees) was
-    # silent. The two-circle surrogate erred by 0.084 mm at most there (review AD's FE
-    # comparison), so the two disagree by more than half of the 0.5 mm difference.
+    # plane (least squares' minimum norm), and the nearest-direction check (limit 2 x 15
+    # degrees) was silent. The two-circle surrogate erred by 0.084 mm at most off the
+    # plane (review AD's FE comparison); the one-circle one departs from it by 1.6 % of
+    # the displacement per degree out (measured: 0.08, 0.31, 1.53 mm at 0.25, 1, 5
+    # degrees on 19 mm, these fixtures): at 5 degrees over 1 % per degree.
     p0 = np.unique(box_data.plane)[0]
     one = box_data.subset(box_data.plane == p0)
     circle = nn.Surrogate.from_fit(nn.fit_reduced_kernel(one, device="cpu"), one)
@@ -309,14 +310,17 @@ def test_a_direction_out_of_one_training_circle_warns(ours, box_data):
         return 9.81 * (np.cos(e) * d0 + np.sin(e) * normal)
 
     with warnings.catch_warnings():
-        warnings.simplefilter("error")  # inside the 1 degree slack: silent
-        circle.predict(tilted(0.5), c1_pa=c1, frame="ref")
+        warnings.simplefilter("error")  # inside the 0.25 degree slack: silent
+        circle.predict(tilted(0.1), c1_pa=c1, frame="ref")
+    with pytest.warns(nn.ExtrapolationWarning, match=r"1\.0 degrees out of the plane"):
+        circle.predict(tilted(1.0), c1_pa=c1, frame="ref")
     with pytest.warns(nn.ExtrapolationWarning, match=r"5\.0 degrees out of the plane"):
         off = circle.predict(tilted(5.0), c1_pa=c1, frame="ref").nodes_mm
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # two circles span all three dimensions: no span check
         both = ours.predict(tilted(5.0), c1_pa=c1, frame="ref").nodes_mm
-    assert np.linalg.norm(off - both, axis=1).max() > 0.25
+    disp = np.linalg.norm(both, axis=1).max()
+    assert np.linalg.norm(off - both, axis=1).max() > 5 * 0.01 * disp
 
 
 def test_repeated_training_loads_are_refused(box_data):
