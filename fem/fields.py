@@ -16,6 +16,8 @@ __all__ = ["displacement_at", "gravity_vector", "vertex_displacement_mm"]
 
 def gravity_vector(direction, g_m_s2: float) -> np.ndarray:
     """Gravity acceleration vector (m/s^2) from a direction (any length) and magnitude."""
+    if not (np.isfinite(g_m_s2) and g_m_s2 >= 0):  # review AF: -9.81 turned gravity round
+        raise ValueError(f"gravity's magnitude must be finite and >= 0 m/s^2, got {g_m_s2!r}")
     d = np.asarray(direction, dtype=float).reshape(3)
     if not np.all(np.isfinite(d)):
         raise ValueError(f"gravity direction must have finite components, got {d.tolist()}")

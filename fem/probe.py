@@ -19,7 +19,7 @@ import scipy.sparse as sp
 from .discretize import Discretization, _skfem_mesh
 from .units import MM_PER_M, mm_to_m
 
-__all__ = ["MaterialPoint", "nearest_inside_mm"]
+__all__ = ["MaterialPoint", "contains", "nearest_inside_mm"]
 
 
 @dataclass(frozen=True)
@@ -105,6 +105,24 @@ class MaterialPoint:
         ``dX`` and ``dstate``.
         """
         return self.place_mm(nodes_mm) + self.displacement_mm(state)
+
+
+def contains(mesh, point_mm: np.ndarray) -> bool:
+    """Whether a point (model frame, mm) lies in the mesh, as :meth:`MaterialPoint.locate`
+    finds it (skfem's element finder on the mesh in metres: the same test and tolerance).
+
+    Parameters
+    ----------
+    mesh : TetMesh
+    point_mm : array_like, shape (3,)
+    """
+    finder = _skfem_mesh(mesh, np.eye(3)).element_finder()
+    p = mm_to_m(np.asarray(point_mm, float).reshape(3, 1))
+    try:
+        finder(*p)
+    except ValueError:
+        return False
+    return True
 
 
 def nearest_inside_mm(mesh, point_mm: np.ndarray, *, candidates: int = 32) -> np.ndarray:

@@ -200,15 +200,6 @@ class SweepModel:
         )
 
 
-def _inside(nodes_mm: np.ndarray, tets: np.ndarray, point_mm: np.ndarray) -> bool:
-    """Whether a point lies in a tetrahedron of the mesh (barycentric, 1e-9 slack)."""
-    v = nodes_mm[tets]  # (n, 4, 3)
-    T = np.transpose(v[:, 1:] - v[:, :1], (0, 2, 1))  # columns: the edges from vertex 0
-    ok = np.abs(np.linalg.det(T)) > 0
-    lam = np.linalg.solve(T[ok], (point_mm - v[ok, 0])[:, :, None])[:, :, 0]
-    return bool(np.any((lam >= -1e-9).all(axis=1) & (lam.sum(axis=1) <= 1 + 1e-9)))
-
-
 def _fail(path: Path, what: str) -> None:
     raise CalibrationMissingError(f"{path}: {what}")
 
@@ -320,7 +311,9 @@ def load_sweep_model(work: str | Path) -> SweepModel:
             t = np.full(1, np.nan)
         if t.shape != (3,) or not np.all(np.isfinite(t)):
             _fail(record, f"the tumour centre {tumour!r} is not a finite point (x, y, z mm)")
-        if not _inside(mesh.nodes_mm, mesh.tets, t):
+        from fem.probe import contains
+
+        if not contains(mesh, t):  # as the engine's MaterialPoint.locate finds it
             _fail(record, f"the tumour centre {t.tolist()} (mm) lies outside the model mesh")
     return SweepModel(
         nodes_mm=mesh.nodes_mm,

@@ -77,6 +77,9 @@ def test_gravity_of_huge_components_keeps_its_direction_and_a_non_finite_one_is_
             gravity_vector(bad, 9.81)
     with pytest.raises(ValueError, match="non-zero vector"):
         gravity_vector([0.0, 0.0, 0.0], 9.81)
+    for g in (-9.81, np.nan, np.inf):  # review AF: a negative magnitude turned gravity round
+        with pytest.raises(ValueError, match="magnitude must be finite and >= 0"):
+            gravity_vector([0.0, 0.0, 1.0], g)
 
 
 @pytest.mark.parametrize("c1", [0.0, -5.0])
