@@ -108,8 +108,10 @@ class MaterialPoint:
 
 
 def contains(mesh, point_mm: np.ndarray) -> bool:
-    """Whether a point (model frame, mm) lies in the mesh, as :meth:`MaterialPoint.locate`
-    finds it (skfem's element finder on the mesh in metres: the same test and tolerance).
+    """Whether a point (model frame, mm) lies in the mesh.
+
+    As :meth:`MaterialPoint.locate` finds it: skfem's element finder on the mesh in
+    metres, the same test and tolerance.
 
     Parameters
     ----------
