@@ -40,14 +40,21 @@ def view(
 
     if not 0 <= port <= 65535:  # before any work (a bind error was a traceback)
         fail(ValueError(f"--port must lie in 0-65535, got {port}"))
+    if screenshot is not None:  # review AG: checked only after the browser had run
+        if screenshot.suffix.lower() != ".png":
+            fail(ValueError(f"--screenshot {screenshot}: a .png file (it saves PNG data)"))
+        if screenshot.is_dir() or not screenshot.parent.is_dir():
+            fail(ValueError(f"--screenshot {screenshot}: not a file in an existing folder"))
     expected = (PortInUseError, SurfaceModelMismatchError, nn.SurrogateFileError, OSError)
     try:
         scene = load_scene(work, model)
     except expected as exc:
         fail(exc)
     names = [s["name"] for s in scene.info.get("scans", [])]
-    if scan is not None and names and scan not in names:  # before a port is opened
-        fail(ValueError(f"--scan {scan!r}: no such scan in {work}; choose from {names}"))
+    if scan is not None and scan not in names:  # before a port is opened
+        # review AG: a folder without scans (no calibration) let any --scan through
+        choose = f"choose from {names}" if names else "it has no calibrated scans"
+        fail(ValueError(f"--scan {scan!r}: no such scan in {work}; {choose}"))
     try:
         server = make_server(scene, port=port)
     except expected as exc:

@@ -20,6 +20,8 @@ import time
 import urllib.request
 from pathlib import Path
 
+from ..io import atomic_write
+
 __all__ = ["BrowserError", "HeadlessBrowser", "find_chromium"]
 
 
@@ -87,15 +89,30 @@ class HeadlessBrowser:
             "--disable-dev-shm-usage",  # small /dev/shm in containers
             "about:blank",
         ]
-        self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        # its output to a file in the profile: a pipe nobody reads stalls a chatty browser
+        self._log = Path(self._profile) / "chromium.log"
+        try:
+            with self._log.open("wb") as log_file:
+                self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=log_file)
+        except OSError as exc:  # review AG: a bad $CHROMIUM said only "[Errno 2] ..."
+            shutil.rmtree(self._profile, ignore_errors=True)
+            named = " ($CHROMIUM)" if os.environ.get("CHROMIUM") else ""
+            raise BrowserError(f"cannot start {self.executable}{named}: {exc}") from exc
+        try:
+            self._connect(websocket)
+        except BaseException:  # review AG: the browser was left running
+            self.close()
+            raise
+        return self
+
+    def _connect(self, websocket) -> None:
         port_file = Path(self._profile) / "DevToolsActivePort"
         t0 = time.monotonic()
         while not port_file.is_file() or not port_file.read_text().strip():
             if self.proc.poll() is not None:
-                err = self.proc.stderr.read().decode(errors="replace")[-2000:]
+                err = self._log.read_text(errors="replace")[-2000:]
                 raise BrowserError(f"{self.executable} exited at start:\n{err}")
             if time.monotonic() - t0 > self.timeout_s:
-                self.close()
                 raise BrowserError(f"{self.executable}: no DevTools port after {self.timeout_s} s")
             time.sleep(0.05)
         port = int(port_file.read_text().split()[0])
@@ -106,7 +123,6 @@ class HeadlessBrowser:
         )
         self.call("Page.enable")
         self.call("Runtime.enable")
-        return self
 
     def call(self, method: str, **params) -> dict:
         """Send one DevTools command and return its ``result``."""
@@ -146,7 +162,7 @@ class HeadlessBrowser:
         """Save a PNG of the page."""
         data = self.call("Page.captureScreenshot", format="png")["data"]
         path = Path(path)
-        path.write_bytes(base64.b64decode(data))
+        atomic_write(path, lambda tmp: tmp.write_bytes(base64.b64decode(data)))
         return path
 
     def close(self) -> None:
@@ -161,8 +177,6 @@ class HeadlessBrowser:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
-        if self.proc is not None and self.proc.stderr:
-            self.proc.stderr.close()
         shutil.rmtree(getattr(self, "_profile", ""), ignore_errors=True)
 
     def __exit__(self, *exc) -> None:

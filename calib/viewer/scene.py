@@ -182,9 +182,10 @@ def _error_ply(path: Path) -> np.ndarray | None:
 
 def _command_hint(work: Path) -> dict:
     return {
-        "calibrate": f"phantom-calib calibrate {work} ...  (see `phantom-calib calibrate -h`)",
+        "calibrate": f"phantom-calib calibrate SCANS --out {work}  (SCANS: the folder of "
+        "session.toml; see `phantom-calib calibrate -h`)",
         "surrogate": (
-            f"phantom-calib sweep {work} --out SWEEP && "
+            f"phantom-calib sweep {work} --out SWEEP (after calibrate) && "
             f"phantom-calib surrogate train SWEEP --out MODEL.pt && "
             f"phantom-calib view {work} --model MODEL.pt"
         ),
@@ -371,7 +372,7 @@ def _add_work(scene: Scene, folder, info: dict, vnodes: np.ndarray, hint: dict) 
     if not any("error_mm" in o for o in scene.overlays.values()):
         scene.missing.append(f"no error maps ({work / 'calibration'}/<scan>_error.ply)")
     if not (work / "diagnosis").is_dir():
-        scene.missing.append(f"no diagnosis residual maps: run {hint['diagnose']}")
+        scene.missing.append(f"no error maps of diagnose's refit: run {hint['diagnose']}")
 
 
 def _refit_maps(work: Path, missing: list) -> dict:

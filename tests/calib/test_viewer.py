@@ -344,6 +344,23 @@ def test_an_unknown_scan_is_refused_before_a_port_is_opened(scans_work):
     assert "--scan 'tilt_25': no such scan" in res.output and "tilt_50" in res.output
 
 
+def test_view_options_are_checked_before_the_page(tmp_path, monkeypatch):
+    # review AG: --scan on a folder without calibrated scans exited 0; a --screenshot path
+    # was checked only after chromium had run; a bad $CHROMIUM did not name it
+    from calib.viewer.headless import BrowserError, HeadlessBrowser
+
+    res = CliRunner().invoke(app, ["view", str(tmp_path), "--scan", "foo", "--port", "0"])
+    assert res.exit_code == 2 and "--scan 'foo': no such scan" in res.output
+    assert "it has no calibrated scans" in res.output
+    for shot, says in (("shot.jpg", "a .png file"), ("nowhere/shot.png", "an existing folder")):
+        args = ["view", str(tmp_path), "--port", "0", "--screenshot", str(tmp_path / shot)]
+        res = CliRunner().invoke(app, args)
+        assert res.exit_code == 2 and says in res.output, res.output
+    monkeypatch.setenv("CHROMIUM", str(tmp_path / "no-chromium"))
+    with pytest.raises(BrowserError, match=r"cannot start .*no-chromium \(\$CHROMIUM\)"):
+        HeadlessBrowser().__enter__()
+
+
 def test_page_at_a_scan_posture_shows_its_error_map(scans_work, box, browser, tmp_path):
     work, p = scans_work
     with _Serving(load_scene(work, box[1])) as server:
@@ -373,6 +390,18 @@ def test_page_at_a_scan_posture_shows_its_error_map(scans_work, box, browser, tm
         label = browser.evaluate("document.getElementById('barlabel').innerText")
         assert f"{p99:.2f} mm" in label and "after diagnose's refit" in label  # one scale
         browser.screenshot(tmp_path / "scan.png")
+
+
+def test_a_scan_without_the_map_asked_for_shows_its_surface_not_zeros(scans_work, box, browser):
+    # review AG: the reference (no FE state, so no error map) in map mode was painted as
+    # 0 mm everywhere under the previous scan's colour bar
+    work, _ = scans_work
+    with _Serving(load_scene(work, box[1])) as server:
+        browser.goto(server.url + "?scan=left_lateral&overlay=error_mm")
+        assert browser.evaluate("window.viewer.error") is None
+        assert browser.evaluate("document.getElementById('bar').style.display") == "none"
+        warn = browser.evaluate("document.getElementById('warn').textContent")
+        assert "no error map for this scan" in warn and "its measured surface shown" in warn
 
 
 def test_page_without_surrogate_shows_the_saved_fe_states(scans_work, browser):

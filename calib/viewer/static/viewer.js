@@ -160,7 +160,9 @@
     gl.uniform3fv(loc.light, M.fwd);
     gl.uniform1f(loc.psize, 11 * devicePixelRatio);
     gl.uniform1f(loc.vmax, vmax);
-    const ov = V.state.overlay, isMap = overlay && (ov === "error_mm" || ov === "error_after_mm");
+    const ov = V.state.overlay;
+    // a scan without the map asked for: its measured surface, not a map of zeros
+    const isMap = overlay && (ov === "error_mm" || ov === "error_after_mm") && !!overlay.maps[ov];
     // error maps: the measured surface coloured alone (a model over it would tint the colours);
     // "measured": the model opaque, the measured surface translucent blue over it
     if (model && $("show_model").checked && !isMap) {
@@ -274,7 +276,7 @@
         V.latencies.push(dt);
         V.lastFrame = { gravity: q.g, c1: q.c1, latency_ms: dt, fetch_ms: fetchMs, draw_ms: drawMs, extrapolating: extra };
         $("status").textContent = `control → frame ${dt.toFixed(1)} ms`;
-        $("warn").textContent = extra ? "outside the surrogate's trained range: it extrapolates" : "";
+        $("warn").textContent = [extra ? "outside the surrogate's trained range: it extrapolates" : "", overlayNote].filter(Boolean).join("; ");
         res();
       }));
     }
@@ -316,12 +318,17 @@
     for (let i = 0; i < 3 * overlay.nScored; i++) overlay.scored[idx[i]] = 1;
     applyOverlayMode();
   }
+  let overlayNote = "";  // why the overlay is not what was asked for (kept past each frame)
   function applyOverlayMode() {
+    overlayNote = "";
     V.state.overlay = $("overlay").value;
     const k = V.state.overlay;
     if (overlay && (k === "error_mm" || k === "error_after_mm")) {
       const m = overlay.maps[k];
-      if (!m) { $("warn").textContent = k === "error_after_mm" ? "no diagnose refit maps for this scan (run `phantom-calib diagnose`)" : "no error map for this scan"; setValues(overlay, new Float32Array(overlay.n)); }
+      if (!m) {
+        overlayNote = (k === "error_after_mm" ? "no diagnose refit map for this scan (run `phantom-calib diagnose`)" : "no error map for this scan (no FE state: the reference, or a failed solve)") + ": its measured surface shown";
+        $("warn").textContent = overlayNote; $("bar").style.display = "none";
+      }
       else {
         // one scale for before and after (as diagnose's figures): the 99th percentile of
         // |error| before, over the vertices of the scored faces (the rest are 0, not compared)
