@@ -231,7 +231,9 @@ def _fmt(v, spec=".3g") -> str:
         return "–"
     if isinstance(v, bool):
         return "yes" if v else "no"
-    if isinstance(v, (int, float)):
+    if isinstance(v, int):  # review AG: point counts read "1.81e+03"
+        return str(v)
+    if isinstance(v, float):
         return format(v, spec)
     return str(v)
 
@@ -287,6 +289,12 @@ def _summary(doc: dict) -> str:
         lines.append("<p>What these data cannot tell apart or test: " + "; ".join(cannot) + ".</p>")
     if limits := detection_limits(doc):
         lines.append(f"<p>{html.escape(limits[0].upper() + limits[1:])}.</p>")
+    # review AG: the command printed these, the page did not
+    notes = [f"{n} ({g['role']}): {g['failed']}" for n, g in doc["gap"].items() if g.get("failed")]
+    notes += _caveats(doc)
+    if hint := nuisance_only_hint(doc):
+        notes.append(hint)
+    lines.extend(f"<p>{html.escape(t[0].upper() + t[1:])}.</p>" for t in notes)
     return "".join(lines)
 
 
@@ -319,8 +327,9 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
     for name, g in doc["gap"].items():
         b, a = g["surface_error_mm"]["before"], g["surface_error_mm"].get("after", {})
         rb, ra = _gap_means(g)
+        cut = g.get("cut_above_floor")  # a share: shown as the command prints it
         gap_rows.append([name, g["role"], b["mean"], a.get("mean"), b["p95"], a.get("p95"),
-                         rb, ra, g.get("cut_above_floor")])  # fmt: skip
+                         rb, ra, None if cut is None else f"{100 * cut:.0f} %"])  # fmt: skip
     gap = _table(["scan", "role", "mean before", "mean after", "p95 before", "p95 after",
                   "mean |residual| before", "after", "cut above floor"], gap_rows)  # fmt: skip
     eff_rows = [[k, v.get("status"), v.get("statistic"), v.get("p_value"), v.get("p_holm"),

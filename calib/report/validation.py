@@ -265,11 +265,11 @@ def _row(sv: ScanValidation) -> list[str]:
     ref = sv.reference or {}
     dis = []
     if ref.get("surface_mean_mm") is not None:
-        dis.append(f"surface {ref['surface_mean_mm']} ± {ref['surface_sd_mm']}")
+        dis.append(f"surface {ref['surface_mean_mm']:.2f} ± {ref['surface_sd_mm']:.2f}")
     if ref.get("nipple_mm") is not None:
-        dis.append(f"nipple {ref['nipple_mm']}")
-    if ref.get("tumour_mm") is not None:
-        dis.append(f"tumour {ref['tumour_mm']}")
+        dis.append(f"nipple {ref['nipple_mm']:.2f}")
+    if ref.get("tumour_mm") is not None:  # review AG: 3.647, where the command says 3.65
+        dis.append(f"tumour {ref['tumour_mm']:.2f}")
     return [
         sv.name,
         sv.role,
