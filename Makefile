@@ -56,7 +56,8 @@ NB_OUT ?= examples/out
 notebooks: $(STAMP)
 	$(PY) -m pip install -q -c constraints.txt -e '.[notebook]'
 	$(VENV)/bin/jupytext --sync $(NOTEBOOKS)
-	cd examples && PHANTOM_CALIB_OUT=$(abspath $(NB_OUT)) ../$(VENV)/bin/jupyter nbconvert \
+	cd examples && PHANTOM_CALIB_OUT=$(abspath $(NB_OUT))/$${PHANTOM_CALIB_SIZE:-quick} \
+		../$(VENV)/bin/jupyter nbconvert \
 		--to html --execute --ExecutePreprocessor.timeout=7200 \
 		--output-dir $(abspath $(NB_OUT))/html $(notdir $(NOTEBOOKS:.py=.ipynb))
 
