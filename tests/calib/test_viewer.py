@@ -415,6 +415,13 @@ def test_page_without_surrogate_shows_the_saved_fe_states(scans_work, browser):
         got = np.array([browser.evaluate(f"window.viewer.readVertex({i})") for i in range(n)])
         # the FE state calibrate saved (float32 of <= 100 mm coordinates)
         np.testing.assert_allclose(got, p["state"] @ p["R"], atol=1e-4, rtol=0)
+        # review AG: the free view is the stress-free shape, and no longer says "prone"
+        browser.goto(server.url)
+        text = browser.evaluate("document.getElementById('gvec').textContent")
+        assert "stress-free shape (no gravity)" in text
+        browser.goto(server.url + "?scan=left_lateral")  # the reference: no saved state
+        status = browser.evaluate("document.getElementById('status').textContent")
+        assert "left_lateral: no saved FE state" in status
 
 
 def test_surrogate_of_another_mesh_is_refused(box, tmp_path):

@@ -239,6 +239,12 @@
     V.state.gravity = postureGravity ? postureGravity.slice() : gravityFromAngles(a, s, V.scene.g_m_s2);
     $("a_val").textContent = a.toFixed(1) + "°"; $("s_val").textContent = s.toFixed(1) + "°";
     if (V.scene.model) { V.state.c1 = c1FromSlider(); $("c1_val").textContent = V.state.c1.toFixed(1); }
+    if (!V.scene.model && !postureGravity) {
+      // review AG: without a surrogate the free shape is the stress-free one, under no gravity
+      V.state.gravity = [0, 0, 0];
+      $("gvec").textContent = "the stress-free shape (no gravity): pick a scan to see its saved FE state";
+      return;
+    }
     const g = V.state.gravity;
     $("gvec").textContent = `g (phantom frame) = (${g.map((x) => x.toFixed(3)).join(", ")}) m/s²`;
   }
@@ -345,7 +351,9 @@
     const c = $("barc"), x = c.getContext("2d"), stops = ["#002250", "#35456c", "#7c7b78", "#bcaf6f", "#fee838"];
     const gr = x.createLinearGradient(0, c.height, 0, 0); stops.forEach((s, i) => gr.addColorStop(i / 4, s));
     x.fillStyle = gr; x.fillRect(0, 0, c.width, c.height);
-    $("barlabel").innerHTML = `|error| ${vmax.toFixed(2)} mm (p99)<br>…<br>0 mm<br>${k === "error_mm" ? "model vs measured" : "after diagnose's refit"}<br>grey: not scored`;
+    // review AG: the map is the saved FE state's, at the scan's posture; the sliders move the
+    // model, not the map
+    $("barlabel").innerHTML = `|error| ${vmax.toFixed(2)} mm (p99)<br>…<br>0 mm<br>${k === "error_mm" ? "model vs measured" : "after diagnose's refit"}<br>at the scan's posture and c1<br>(not the sliders')<br>grey: not scored`;
     $("bar").style.display = "block";
   }
 
@@ -400,7 +408,14 @@
       if (s) { const [a, t] = anglesFromGravity(s.gravity_phantom_m_s2); $("angle_a").value = a; $("angle_s").value = t; }
       if (s && $("overlay").value === "none") $("overlay").value = s.maps.includes("error_mm") ? "error_mm" : "measured";
       await loadOverlay(ev.target.value);
-      if (sc.model) onControl(null); else { readControls(); await showState(s && sc.states.includes(s.name) ? s.name : ""); }
+      if (sc.model) onControl(null);
+      else {
+        readControls();
+        const saved = s && sc.states.includes(s.name);
+        await showState(saved ? s.name : "");
+        // review AG: the reference beside the stress-free shape, offset by its sag, unsaid
+        if (s && !saved) $("status").textContent = `${s.name}: no saved FE state (the reference, or a failed solve): the stress-free shape beside its measured, loaded surface`;
+      }
     }
     $("scan").addEventListener("change", scanChanged);
     $("overlay").addEventListener("change", applyOverlayMode);
