@@ -301,10 +301,23 @@ def load_scene(work: str | Path, model: str | Path | None = None) -> Scene:
     g = float(record_model.get("g_m_s2", STANDARD_GRAVITY_M_S2))
     if sur is not None:
         lo, hi = sur.meta["trained"]["c1_pa"]
+        c1_now = float(record_model["c1_pa"])
+        try:  # calibration.json's, also where its scans cannot be shown
+            c1_now = float(json.loads((work / "calibration.json").read_text())["c1_pa"])
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+        if not np.isclose(c1_now, float(record_model["c1_pa"]), rtol=1e-9, atol=0.0):
+            # review AG: a surrogate of an earlier calibration on the same mesh passed, its
+            # c1 slider at that calibration's c1
+            scene.missing.append(
+                f"{model} was swept from a calibration at c1 {float(record_model['c1_pa']):.1f} "
+                f"Pa; {work / 'calibration.json'} now says {c1_now:.1f} Pa (calibrate ran "
+                "since): the c1 slider starts at the calibration's; sweep and train again"
+            )
         info["model"] = {
             "path": str(model),
             "kind": sur.kind,
-            "c1_pa": float(record_model["c1_pa"]),
+            "c1_pa": c1_now,
             "c1_range_pa": [float(lo), float(hi)],
             "load_range_per_m": sur.meta["trained"]["load_per_m"],
             "g_m_s2": g,

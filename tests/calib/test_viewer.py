@@ -21,7 +21,7 @@ import pytest
 from typer.testing import CliRunner
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "nn"))
-from sweep_helpers import make_box_work
+from sweep_helpers import BOX_C1_PA, make_box_work
 
 from calib.cli import app
 from calib.viewer import (
@@ -430,6 +430,15 @@ def test_surrogate_of_another_mesh_is_refused(box, tmp_path):
         load_scene(other, box[1])
     res = CliRunner().invoke(app, ["view", str(other), "--model", str(box[1]), "--port", "0"])
     assert res.exit_code == 2 and "train it from a sweep of this work folder" in res.output
+
+
+def test_a_surrogate_of_an_earlier_calibration_is_said(box, tmp_path):
+    # review AG: only the mesh was compared; the c1 slider started at the surrogate's c1
+    stiffer = make_box_work(tmp_path / "stiffer", c1_pa=2 * BOX_C1_PA)  # the same mesh
+    scene = load_scene(stiffer, box[1])
+    assert any("was swept from a calibration at c1" in m for m in scene.missing)
+    assert scene.info["model"]["c1_pa"] == pytest.approx(2 * BOX_C1_PA, rel=1e-12)
+    assert not any("was swept from" in m for m in load_scene(box[0], box[1]).missing)
 
 
 def test_the_view_never_writes_into_work(scans_work, box):
