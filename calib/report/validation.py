@@ -105,17 +105,20 @@ def error_surface_figure(
             xlim=(lo[0], hi[0]),
             ylim=(lo[1], hi[1]),
             zlim=(lo[2], hi[2]),
-            xlabel="x (mm)",
-            ylabel="y (mm)",
-            zlabel="z (mm)",
             title=label,
         )
+        # labels clear of the tick labels (review AG: x's sat on them)
+        ax.set_xlabel("x (mm)", labelpad=10)
+        ax.set_ylabel("y (mm)", labelpad=10)
+        ax.set_zlabel("z (mm)", labelpad=8)
         ax.set_box_aspect(hi - lo)
         ax.view_init(elev=elev, azim=azim)
         hidden = ax.zaxis if elev == 90.0 else ax.yaxis  # the axis along the line of sight
         hidden.set_ticklabels([])
         hidden.label.set_visible(False)
-    fig.colorbar(mapper, ax=fig.axes, shrink=0.7, label="distance to the model surface (mm)")
+    over = bool(np.any(e > top))  # a shared scale saturates: the bar says so
+    label = "distance to the model surface (mm)"
+    fig.colorbar(mapper, ax=fig.axes, shrink=0.7, label=label, extend="max" if over else "neither")
     mean = sv.surface["fiducial"]["mean"].value
     fig.suptitle(
         f"{sv.name} ({sv.role}, posture {sv.posture_label}): surface error, "
@@ -193,6 +196,8 @@ def outline_figure(
     model_lps_mm: np.ndarray,
     model_faces: np.ndarray,
     centre_lps_mm: np.ndarray,
+    *,
+    centre: str = "the tumour",
 ):
     """Measured (mask boundary) and model outlines in three slices of the scan.
 
@@ -207,6 +212,8 @@ def outline_figure(
         The model's boundary triangles.
     centre_lps_mm : ndarray, shape (3,)
         Where the three slices cross (the measured tumour, else the nipple).
+    centre : str
+        What that point is, for the title.
     """
     from matplotlib.collections import LineCollection
     from matplotlib.figure import Figure
@@ -245,12 +252,13 @@ def outline_figure(
             ax.add_collection(LineCollection(xy, colors="#d62728", linewidths=1.2))
         ax.set_aspect("equal")
         ax.set_title(f"slice {'ijk'[axis]} = {k} of the scan")
-        ax.set_xlabel(f"{'ijk'[rest[0]]} (mm)")
-        ax.set_ylabel(f"{'ijk'[rest[1]]} (mm)")
+        # voxel index times spacing along the volume's axes, not patient directions
+        ax.set_xlabel(f"along {'ijk'[rest[0]]} (mm)")
+        ax.set_ylabel(f"along {'ijk'[rest[1]]} (mm)")
     axes[0].plot([], [], color="#1f77b4", label="measured (segmentation)")
     axes[0].plot([], [], color="#d62728", label="model at the calibrated c1")
     axes[0].legend(loc="lower left", fontsize=8)
-    fig.suptitle(f"{sv.name}: measured and simulated outlines through the tumour (scan frame)")
+    fig.suptitle(f"{sv.name}: measured and simulated outlines through {centre} (scan frame)")
     return fig
 
 

@@ -46,7 +46,10 @@ def _outline(run: RunOutputs, work: WorkFolder, v: Validation, name: str) -> str
     centre_ref = scan.tumour_mm if scan.tumour_mm is not None else scan.nipple_mm
     centre = apply_transform(T_scan_from_ref, centre_ref)
     faces = SimulatedSurface.of(work.mesh).faces
-    fig = outline_figure(v.scans[name], imaging.read_volume(mask_path), model, faces, centre)
+    said = "the tumour" if scan.tumour_mm is not None else "the nipple"
+    fig = outline_figure(
+        v.scans[name], imaging.read_volume(mask_path), model, faces, centre, centre=said
+    )
     save_figure(fig, run.path(f"{name}_outlines.png"))
     return f"{name}_outlines.png"
 
