@@ -112,7 +112,8 @@ Markdown(
 # %% [markdown]
 # ## 3. Error maps at the worst validation direction
 # Surface vertices coloured by the point-to-point error against FE (the dissertation's
-# Fig. 4.17), each surrogate on its own colour scale.
+# Fig. 4.17), both surrogates on one colour scale (the larger 99th percentile), in the
+# reference scan's frame.
 
 # %%
 from nn.surrogate import surface_errors
@@ -120,11 +121,15 @@ from nn.surrogate import surface_errors
 err = {"ours": surface_errors(ours, valid), "dissertation MLPs": surface_errors(mlps, valid)}
 worst = int(np.argmax(err["dissertation MLPs"].mean(axis=1)))
 pts = data.nodes_mm[data.surface_nodes]
+top = max(float(np.percentile(e[worst], 99)) for e in err.values())
 fig = plt.figure(figsize=(11, 4.5))
 for k, (name, e) in enumerate(err.items()):
     ax = fig.add_subplot(1, 2, k + 1, projection="3d")
-    sc = ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], c=e[worst], cmap="viridis", s=12)
-    fig.colorbar(sc, ax=ax, shrink=0.6, label="error mm")
+    sc = ax.scatter(
+        pts[:, 0], pts[:, 1], pts[:, 2], c=e[worst], cmap="viridis", s=12, vmin=0.0, vmax=top
+    )
+    fig.colorbar(sc, ax=ax, shrink=0.6, label="error (mm)", extend="max")
+    ax.set(xlabel="x (mm)", ylabel="y (mm)", zlabel="z (mm)")
     ax.set_title(f"{name}: {valid.plane[worst]} {valid.angle_deg[worst]:.0f}°")
 plt.tight_layout()
 plt.show()
