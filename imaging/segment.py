@@ -232,19 +232,15 @@ OFFSET_SDS = 3.0
 OFFSET_MIN_SHARE = 0.2
 #: A Rayleigh noise floor's median over its sigma, sqrt(2 ln 2).
 RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
-#: A Rayleigh floor's upper over lower quartile, sqrt(ln 4 / ln(4/3)) = 2.195, and the
-#: band a background's must lie in to be read as one (review AE: a real-valued Gaussian
-#: background read 1e-5 of the body, an 8-coil sum of squares 3.3 times the truth, a
-#: zero-filled floor 0). Ten thousand voxels hold the ratio to about 1 %; a 2-coil floor
-#: reads 1.67, a zero-mean Gaussian one is negative.
-RAYLEIGH_QUARTILE_RATIO = float(np.sqrt(np.log(4.0) / np.log(4.0 / 3.0)))
+#: The band a background's upper over lower quartile must lie in to be read as a
+#: Rayleigh floor, whose ratio is sqrt(ln 4 / ln(4/3)) = 2.195 (review AE: a real-valued
+#: Gaussian background read 1e-5 of the body, an 8-coil sum of squares 3.3 times the
+#: truth, a zero-filled floor 0). Ten thousand voxels hold the ratio to about 1 %; a
+#: 2-coil floor reads 1.67, a zero-mean Gaussian one is negative.
 RAYLEIGH_RATIO_BAND = (1.9, 2.5)
-#: An offset floor's shape, blind to the offset: (q3 - median) / (median - q1), 1.164 for
-#: a Rayleigh floor, 1.096 for a 2-coil sum of squares, 1 for a Gaussian one.
-RAYLEIGH_SHAPE = float(
-    (np.sqrt(np.log(16.0)) - np.sqrt(np.log(4.0)))
-    / (np.sqrt(np.log(4.0)) - np.sqrt(np.log(16.0 / 9.0)))
-)
+#: The band of an offset floor's shape, blind to the offset: (q3 - median) / (median -
+#: q1), 1.164 for a Rayleigh floor (quantiles sqrt(2 ln(1/(1-p)))), 1.096 for a 2-coil sum
+#: of squares, 1 for a Gaussian one.
 RAYLEIGH_SHAPE_BAND = (1.13, 1.21)
 #: Distinct values a floor needs between its quartiles to be read (a floor of a few
 #: quantisation steps, integer counts or a rescale slope's, reads 0.81-0.85 of its sigma).

@@ -523,3 +523,18 @@ def test_a_nipple_off_the_top_of_the_body_is_found_and_said(caplog):
     v[top, 2] = 40.0 * (1.0 - r[top] ** 6) ** (1.0 / 6.0)
     v = v + np.random.default_rng(1).normal(0.0, 0.15, v.shape) * top[:, None]
     assert find_nipple(v, plane).quality["method"] == "apex"
+
+
+def test_the_rayleigh_bands_hold_the_rayleigh_floor_s_own_figures():
+    # the quartile ratio and the offset-free shape of a Rayleigh floor, from its quantiles
+    # sigma sqrt(2 ln(1 / (1 - p))), inside the bands that read a floor as one; a 2-coil
+    # sum of squares (chi with 4 degrees of freedom) outside both
+    from scipy import stats
+
+    from imaging.segment import RAYLEIGH_RATIO_BAND, RAYLEIGH_SHAPE_BAND
+
+    for dist, inside in ((stats.rayleigh, True), (stats.chi(4), False)):
+        q1, med, q3 = dist.ppf([0.25, 0.5, 0.75])
+        ratio, shape = q3 / q1, (q3 - med) / (med - q1)
+        assert bool(RAYLEIGH_RATIO_BAND[0] < ratio < RAYLEIGH_RATIO_BAND[1]) is inside, ratio
+        assert bool(RAYLEIGH_SHAPE_BAND[0] < shape < RAYLEIGH_SHAPE_BAND[1]) is inside, shape
