@@ -162,7 +162,14 @@ def surrogate_train(
         str, typer.Option("--kind", help="ours (reduced basis + kernel) or dissertation (MLPs).")
     ] = "ours",
     device: Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")] = "auto",
-    seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of every random choice.")] = 0,
+    seed: Annotated[
+        int,
+        typer.Option(
+            "--seed",
+            min=0,
+            help="Seed of the MLPs' initial weights and split (ours draws nothing).",
+        ),
+    ] = 0,
     iterations: Annotated[
         int | None,
         typer.Option("--iterations", help="Training iterations of the dissertation MLPs."),

@@ -395,8 +395,8 @@ def run_surrogate_train(
     Raises
     ------
     ValueError
-        An unknown ``kind`` or ``device``, ``cuda`` without a CUDA device, or
-        ``iterations`` below 1: checked before the store is read.
+        An unknown ``kind`` or ``device``, ``cuda`` without a CUDA device,
+        ``iterations`` below 1 or given for ``ours``: checked before the store is read.
     IsADirectoryError
         ``out`` is a folder.
     nn.StoreFormatError
@@ -411,6 +411,10 @@ def run_surrogate_train(
     nn.select_device(device)  # an unknown name, or cuda without a GPU, before any reading
     if iterations is not None and iterations < 1:
         raise ValueError(f"--iterations must be >= 1, got {iterations}")
+    if iterations is not None and kind == "ours":  # review AD: ignored without a word
+        raise ValueError(
+            "--iterations is the dissertation MLPs' (--kind dissertation); ours has none"
+        )
     check_out_file(out)
     data = nn.load_sweep(sweep)
     if kind == "ours":

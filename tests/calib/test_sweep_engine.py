@@ -182,6 +182,20 @@ def test_store_of_another_model_or_plan_is_refused(work, reference, tmp_path):
         run_sweep(stiffer, out, PLAN)
 
 
+def test_a_seed_no_plan_draws_with_is_no_part_of_it(work, reference, tmp_path):
+    # review AD: resuming with another --seed was refused where the plan draws nothing with
+    # it (no hold-out): "another plan (seed: 0 != 1)"
+    from dataclasses import replace
+
+    out = reference[0]
+    summary = run_sweep(work, out, replace(PLAN, seed=1))
+    assert summary["this_run"]["solved"] == 0  # the same plan: nothing to do
+    held = replace(PLAN, plan="sphere:12", holdout=0.25)
+    run_sweep(work, tmp_path / "h", held)
+    with pytest.raises(StoreMismatchError, match=r"another plan \(seed: 0 != 1\)"):
+        run_sweep(work, tmp_path / "h", replace(held, seed=1))  # there it draws
+
+
 def test_missing_calibration_is_named(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(CalibrationMissingError, match=r"calibration\.json not found"):

@@ -127,6 +127,11 @@ def test_train_errors(box_sweep, tmp_path):
         app, ["surrogate", "train", str(box_sweep), "--out", str(tmp_path / "m.pt"), "--kind", "gp"]
     )
     assert res.exit_code == 2 and "unknown surrogate kind" in res.output
+    # review AD: --iterations was ignored by ours without a word
+    args = ["surrogate", "train", str(box_sweep), "--out", str(tmp_path / "m.pt")]
+    res = runner.invoke(app, [*args, "--iterations", "10"])
+    assert res.exit_code == 2 and "--iterations is the dissertation MLPs'" in res.output
+    assert not (tmp_path / "m.pt").exists()
     res = runner.invoke(
         app,
         [
