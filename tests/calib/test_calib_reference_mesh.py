@@ -24,6 +24,14 @@ sys.path.insert(0, str(Path(__file__).parents[1] / "fem"))
 from test_fem_reference_robust import _plane, _self_intersecting, load_fixture
 
 
+def _plane_nodes(mesh, p0, n) -> set:
+    """The boundary nodes on the plane (point p0, normal n) to round-off."""
+    from fem.mesh import boundary_faces
+
+    bnd = np.unique(boundary_faces(mesh.tets))
+    return set(bnd[np.abs((mesh.nodes_mm[bnd] - p0) @ n) < 1e-9].tolist())
+
+
 def test_a_remeshed_reference_surface_keeps_its_back_plane(caplog):
     mesh, g = load_fixture()
     v, f = _self_intersecting(mesh)
@@ -42,9 +50,10 @@ def test_a_remeshed_reference_surface_keeps_its_back_plane(caplog):
         out = reference_mesh(ref, size_mm=12.0)
     assert "after it was remeshed" in caplog.text  # the path that used to fail
     back = out.node_set("back")
-    assert len(back) >= 20
-    # the support finds its faces, all on the plane
+    # the support holds every boundary node on the plane, and only those (review AA: it
+    # was "at least 20"): all on the plane, none on it left free
     np.testing.assert_allclose((out.nodes_mm[back] - p0) @ n, 0.0, atol=1e-9)
+    assert set(back.tolist()) == _plane_nodes(out, p0, n)
     fem.discretize(out, fem.Clamped())
 
 
@@ -73,8 +82,8 @@ def test_the_dihedral_bound_reaches_the_model_mesh():
     assert fem.mesh_quality(tight).n_slivers < 0.5 * fem.mesh_quality(loose).n_slivers
     for out in (loose, tight):
         back = out.node_set("back")
-        assert len(back) >= 20
         np.testing.assert_allclose((out.nodes_mm[back] - p0) @ n, 0.0, atol=1e-9)
+        assert set(back.tolist()) == _plane_nodes(out, p0, n)
 
 
 def _dome_reference():
@@ -125,8 +134,8 @@ def test_a_rejected_decimation_is_remeshed_from_the_full_surface_on_a_fine_grid(
     # the record says which surface and tolerance clamped the back: size/5, not 1 mm
     assert (support.surface, support.back_tol_mm) == ("remeshed", 12.0 / 5.0)
     back = fine.node_set("back")
-    assert len(back) >= 20
     np.testing.assert_allclose(fine.nodes_mm[back, 2], 0.0, atol=1e-9)
+    assert set(back.tolist()) == _plane_nodes(fine, np.zeros(3), np.array([0.0, 0.0, 1.0]))
 
     monkeypatch.setattr(reference, "REMESH_GRID_MM", 4.0)  # the fallback's grid: size/3
     rejected.clear()
