@@ -207,9 +207,10 @@ def test_forward_model_at_neutral_effects_is_the_calibration_model(phantom):
     np.testing.assert_allclose(with_effects["s"].positions_mm, plain["s"].positions_mm, atol=1e-6)
     eff.set_effects(EffectValues(skin_ratio=8.0))
     stiff = eff.evaluate(np.log(420.0), {"s": g}, gradient=False)
-    # a stiffer skin sags less
+    # a stiffer skin sags less: measured 24.5 mm against 46.3 (47 % less); a quarter less
+    # at least (the bar was 0.1 mm, which any change of sign would have passed)
     sag = lambda st: np.abs(st.positions_mm - phantom.nodes_mm).max()  # noqa: E731
-    assert sag(stiff["s"]) < sag(plain["s"]) - 0.1
+    assert sag(stiff["s"]) < 0.75 * sag(plain["s"])
 
 
 def test_density_field_is_minus_the_c1_field(phantom):
