@@ -208,7 +208,7 @@ def test_forward_model_at_neutral_effects_is_the_calibration_model(phantom):
     eff.set_effects(EffectValues(skin_ratio=8.0))
     stiff = eff.evaluate(np.log(420.0), {"s": g}, gradient=False)
     # a stiffer skin sags less: measured 24.5 mm against 46.3 (47 % less); a quarter less
-    # at least (the bar was 0.1 mm, which any change of sign would have passed)
+    # at least (the bar was 0.1 mm less, a five-hundredth of the effect)
     sag = lambda st: np.abs(st.positions_mm - phantom.nodes_mm).max()  # noqa: E731
     assert sag(stiff["s"]) < 0.75 * sag(plain["s"])
 
