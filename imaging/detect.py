@@ -116,22 +116,6 @@ def detect_fiducials(
     centres, radii, peaks, rejected = _blobs(seg, lab, radius_range_mm)
     found = len(centres)
     source = seg.mask.source.replace(" [body mask]", "")
-    if expected is not None and found < expected and enclosed.any():
-        # review AF: a marker sunk more than half into tissue reads as enclosed; where
-        # too few lie apart, the enclosed compact blobs are candidates too (as before)
-        lab, nlab = ndimage.label(bright)
-        centres, radii, peaks, rejected = _blobs(seg, lab, radius_range_mm)
-        if len(centres) > found:
-            log.warning(
-                "%s: %d fiducial markers apart from tissue for %d expected; bright blobs "
-                "that tissue encloses taken as candidates too (a marker sunk into the body, "
-                "or an inclusion over %g times the body level)",
-                source,
-                found,
-                expected,
-                marker_ratio,
-            )
-        found = len(centres)
     quality = {
         "n_candidates": int(nlab),
         "threshold": float(marker_ratio),

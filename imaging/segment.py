@@ -381,6 +381,9 @@ def background_offset(image: np.ndarray, body: np.ndarray) -> float:
 #: Voxels (beyond the first) of the ring around a bright blob whose median level says
 #: whether tissue encloses it (:func:`enclosed_blobs`).
 RING_VOXELS = 3
+#: A blob with background (under a quarter of the body's level) this many voxels from it
+#: stands out of the body: a marker, however much tissue surrounds it.
+SURFACE_VOXELS = 2
 
 
 def enclosed_blobs(normalised: np.ndarray, bright: np.ndarray) -> np.ndarray:
@@ -388,11 +391,13 @@ def enclosed_blobs(normalised: np.ndarray, bright: np.ndarray) -> np.ndarray:
 
     A blob is enclosed where the median of the normalised image (body level 1) on a ring
     around it, 2 to :data:`RING_VOXELS` + 1 voxels out (past its partial-volume edge), is
-    over half the body level. A marker lies in the background (the plate is not imaged);
-    an inclusion brighter than the marker threshold lies in the body. Review AE: inclusions
-    at 2.5 times the body were counted as markers (ingest stopped: 22 markers for 3), and
-    at 2.3 times cut from the body mask as markers are (a dent where one lay near the
-    surface).
+    over half the body level, and no background voxel (under a quarter of that level) lies
+    within :data:`SURFACE_VOXELS` of it. A marker lies in the background (the plate is not
+    imaged), or stands out of the body where sunk into it (reviews AF, AH: one more than
+    half inside had a ring median of 0.94-0.97 and was lost); an inclusion brighter than
+    the marker threshold lies under the surface. Review AE: inclusions at 2.5 times the
+    body were counted as markers (ingest stopped: 22 markers for 3), and at 2.3 times cut
+    from the body mask as markers are (a dent where one lay near the surface).
 
     Parameters
     ----------
@@ -409,6 +414,7 @@ def enclosed_blobs(normalised: np.ndarray, bright: np.ndarray) -> np.ndarray:
     lab, _ = ndimage.label(bright)
     out = np.zeros(bright.shape, bool)
     reach = RING_VOXELS + 1
+    background = normalised < 0.25
     for k, sl in enumerate(ndimage.find_objects(lab), start=1):
         if sl is None:
             continue
@@ -419,7 +425,8 @@ def enclosed_blobs(normalised: np.ndarray, bright: np.ndarray) -> np.ndarray:
         comp = lab[box] == k
         near = ndimage.binary_dilation(comp, iterations=1)
         ring = ndimage.binary_dilation(comp, iterations=reach) & ~near & ~bright[box]
-        if ring.any() and float(np.median(normalised[box][ring])) > 0.5:
+        outside = ndimage.binary_dilation(comp, iterations=SURFACE_VOXELS) & background[box]
+        if ring.any() and float(np.median(normalised[box][ring])) > 0.5 and not outside.any():
             out[box] |= comp
     return out
 
