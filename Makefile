@@ -52,14 +52,15 @@ NOTEBOOKS := $(wildcard examples/0*.py)
 NB_OUT ?= examples/out
 
 # execute every example notebook in order (PHANTOM_CALIB_SIZE=tiny|quick|dissertation)
-# and render each to HTML in $(NB_OUT)/html
+# and render each to HTML in $(NB_OUT)/<size>/html
 notebooks: $(STAMP)
 	$(PY) -m pip install -q -c constraints.txt -e '.[notebook]'
 	$(VENV)/bin/jupytext --sync $(NOTEBOOKS)
 	cd examples && PHANTOM_CALIB_OUT=$(abspath $(NB_OUT))/$${PHANTOM_CALIB_SIZE:-quick} \
 		../$(VENV)/bin/jupyter nbconvert \
 		--to html --execute --ExecutePreprocessor.timeout=7200 \
-		--output-dir $(abspath $(NB_OUT))/html $(notdir $(NOTEBOOKS:.py=.ipynb))
+		--output-dir $(abspath $(NB_OUT))/$${PHANTOM_CALIB_SIZE:-quick}/html \
+		$(notdir $(NOTEBOOKS:.py=.ipynb))
 
 lab: $(STAMP)
 	$(PY) -m pip install -q -c constraints.txt -e '.[notebook]'

@@ -26,7 +26,7 @@ def _png(fig) -> bytes:
     from io import BytesIO
 
     buf = BytesIO()
-    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
+    fig.savefig(buf, format="png", bbox_inches="tight")
     return buf.getvalue()
 
 
@@ -36,8 +36,9 @@ def show_figures_in_jupyter() -> None:
     The figures here are built without pyplot (no global state, no GUI backend), and a
     kernel shows such a figure as its text (``<Figure size ... with 1 Axes>``) until
     ``%matplotlib inline`` has run (review AG: notebooks 01 and 02 showed no figure).
-    Registers a PNG formatter for ``Figure`` (IPython's ``for_type``); outside IPython,
-    nothing.
+    Registers a PNG formatter for ``Figure`` (IPython's ``for_type``) where the shell has
+    none (review AH: one that ``%matplotlib inline`` or a retina setting registered is
+    left as it is); outside IPython, nothing.
     """
     import sys
 
@@ -50,7 +51,11 @@ def show_figures_in_jupyter() -> None:
         return
     from matplotlib.figure import Figure
 
-    shell.display_formatter.formatters["image/png"].for_type(Figure, _png)
+    png = shell.display_formatter.formatters["image/png"]
+    try:
+        png.lookup_by_type(Figure)
+    except KeyError:
+        png.for_type(Figure, _png)
 
 
 @dataclass

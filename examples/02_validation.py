@@ -40,15 +40,22 @@ Markdown(work.validation_table())
 
 # %% [markdown]
 # ## Error maps on a shared colour scale
-# The scale tops at the 99th percentile of every map's errors, as the report's maps do
-# (a few rim vertices would otherwise wash the rest out).
+# The scale tops at the largest 99th percentile of the maps' scored errors, as the
+# report's maps do (a few rim vertices would otherwise wash the rest out).
 
 # %%
 import numpy as np
 
 validation_scans = [n for n, r in work.scans.items() if r == "validation"]
-errors = [work.validation.scans[n].metrics.vertex_error_mm for n in validation_scans]
-vmax = float(np.percentile(np.abs(np.concatenate(errors)), 99))
+measured = work.folder.measurements.scans  # their scored vertices (off the back plate)
+vmax = max(
+    float(
+        np.percentile(
+            np.abs(work.validation.scans[n].metrics.vertex_error_mm)[measured[n].scored], 99
+        )
+    )
+    for n in validation_scans
+)
 for name in validation_scans:
     display(work.plot_error_map(name, vmax=vmax))
 

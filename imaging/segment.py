@@ -242,9 +242,18 @@ RAYLEIGH_RATIO_BAND = (1.9, 2.5)
 #: q1), 1.164 for a Rayleigh floor (quantiles sqrt(2 ln(1/(1-p)))), 1.096 for a 2-coil sum
 #: of squares, 1 for a Gaussian one.
 RAYLEIGH_SHAPE_BAND = (1.13, 1.21)
+#: Voxels an offset floor needs for its shape to be read: the shape's sd is 0.015 at
+#: 50,000 (a Rayleigh floor inside the band 99 % of the time, a 2-coil one 1 %), 0.032 at
+#: 10,000 (77 %; review AH: 30 % at 1,000).
+OFFSET_FLOOR_MIN_VOXELS = 50_000
 #: Distinct values a floor needs between its quartiles to be read (a floor of a few
-#: quantisation steps, integer counts or a rescale slope's, reads 0.81-0.85 of its sigma).
-MIN_FLOOR_LEVELS = 20
+#: quantisation steps, integer counts or a rescale slope's, reads 0.81-0.85 of its sigma
+#: at 1 count per sigma; review AH: 0.955-1.019 from 5 counts, 5 levels, up).
+MIN_FLOOR_LEVELS = 5
+#: Distinct values the interior's differences need between their quartiles for their
+#: median absolute deviation (whose steps bias it by up to half a step over its size:
+#: review AH, 0.975-1.027 at 11-14 counts per sigma, 20 levels); fewer, their clipped sd.
+MIN_DIFF_LEVELS = 40
 #: The interior's differences farther than this many robust sds from their median are
 #: edges (inclusions, partial volumes), not noise.
 DIFF_CLIP_SDS = 5.0
@@ -256,11 +265,11 @@ def _diffs(image: np.ndarray) -> np.ndarray:
     return np.concatenate([x[np.isfinite(x)] for x in diffs])
 
 
-def _quantised(values: np.ndarray) -> bool:
-    """Fewer than :data:`MIN_FLOOR_LEVELS` distinct values between the quartiles."""
+def _quantised(values: np.ndarray, levels: int) -> bool:
+    """Fewer than ``levels`` distinct values between the quartiles."""
     q1, q3 = np.percentile(values, [25.0, 75.0])
     sample = values[:: max(1, values.size // 100_000)]
-    return np.unique(sample[(sample >= q1) & (sample <= q3)]).size < MIN_FLOOR_LEVELS
+    return np.unique(sample[(sample >= q1) & (sample <= q3)]).size < levels
 
 
 def _interior_noise(normalised: np.ndarray, raw: np.ndarray) -> float:
@@ -270,7 +279,7 @@ def _interior_noise(normalised: np.ndarray, raw: np.ndarray) -> float:
     over sqrt(2): exact for white noise and blind to the few differences across an
     inclusion's edge (review AF: 1.01-1.04 of the truth with five inclusions, where a
     trimmed sd read 1.06). Where the differences take fewer than
-    :data:`MIN_FLOOR_LEVELS` values between their quartiles (a quantised image of a few
+    :data:`MIN_DIFF_LEVELS` values between their quartiles (a quantised image of a few
     counts per sigma, where the median absolute deviation jumps: 0.68 to 1.21 of the
     truth at 1.3-1.7 counts), their sd instead, those farther than
     :data:`DIFF_CLIP_SDS` robust sds from the median left out: continuous in the step,
@@ -283,7 +292,7 @@ def _interior_noise(normalised: np.ndarray, raw: np.ndarray) -> float:
         return float("nan")
     dev = np.abs(d - np.median(d))
     mad = 1.4826 * float(np.median(dev))
-    if not _quantised(_diffs(raw)):
+    if not _quantised(_diffs(raw), MIN_DIFF_LEVELS):
         return mad / float(np.sqrt(2.0))
     keep = dev <= DIFF_CLIP_SDS * mad if mad > 0 else np.ones(d.size, bool)
     return float(np.std(d[keep]) / np.sqrt(2.0))
@@ -329,13 +338,14 @@ def image_noise(
     """
     if background.size >= 1000:
         q1, med, q3 = np.percentile(background, [25.0, 50.0, 75.0])
-        fine = not _quantised(background)
-        if fine and offset:  # an offset floor: its shape, then its IQR (0.907 sigma)
+        fine = not _quantised(background, MIN_FLOOR_LEVELS)
+        if fine and offset and background.size >= OFFSET_FLOOR_MIN_VOXELS:
+            # an offset floor: its shape, then its IQR (0.907 sigma)
             shape = (q3 - med) / (med - q1) if med > q1 else np.nan
             lo, hi = RAYLEIGH_SHAPE_BAND
             if lo < shape < hi:
                 return float((q3 - q1) / 0.907), "background (offset)"
-        elif fine:
+        elif fine and not offset:
             lo, hi = RAYLEIGH_RATIO_BAND
             if q1 > 0 and lo < q3 / q1 < hi:
                 return float(med / RAYLEIGH_MEDIAN), "background"

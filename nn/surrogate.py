@@ -49,8 +49,8 @@ DIRECTION_SLACK_DEG = 5.0
 #: training direction. Reviews AD and AF, one great circle (``dissertation:transverse``)
 #: on the tests' block: against FE, 0.58 mm off at 5 degrees out of the plane for 3.3 mm
 #: of displacement, 3.2 mm at 29 degrees, where the direction check's 30 degrees said
-#: nothing; against the two-circle surrogate at its calibrated c1, 0.31 mm at 1 degree on
-#: 19 mm (1.6 % of the displacement per degree). A quarter of a degree keeps a
+#: nothing; against the two-circle surrogate at its calibrated c1, 0.11 mm at a node at 1
+#: degree on 6.8 mm (1.6 % of the displacement per degree). A quarter of a degree keeps a
 #: typed direction's rounding inside (6.9367,0,6.9367: 0.006 degrees) and warns of a
 #: registered scan's gravity half a degree off the plane.
 SPAN_SLACK_DEG = 0.25

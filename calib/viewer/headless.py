@@ -96,7 +96,7 @@ class HeadlessBrowser:
                 self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=log_file)
         except OSError as exc:  # review AG: a bad $CHROMIUM said only "[Errno 2] ..."
             shutil.rmtree(self._profile, ignore_errors=True)
-            named = " ($CHROMIUM)" if os.environ.get("CHROMIUM") else ""
+            named = " ($CHROMIUM)" if os.environ.get("CHROMIUM") == self.executable else ""
             raise BrowserError(f"cannot start {self.executable}{named}: {exc}") from exc
         try:
             self._connect(websocket)

@@ -182,10 +182,10 @@ def _error_ply(path: Path) -> np.ndarray | None:
 
 def _command_hint(work: Path) -> dict:
     return {
-        "calibrate": f"phantom-calib calibrate SCANS --out {work}  (SCANS: the folder of "
-        "session.toml; see `phantom-calib calibrate -h`)",
+        "calibrate": f"phantom-calib calibrate SCANS --out {work}  # SCANS: the folder of "
+        "session.toml",
         "surrogate": (
-            f"phantom-calib sweep {work} --out SWEEP (after calibrate) && "
+            f"phantom-calib sweep {work} --out SWEEP && "
             f"phantom-calib surrogate train SWEEP --out MODEL.pt && "
             f"phantom-calib view {work} --model MODEL.pt"
         ),

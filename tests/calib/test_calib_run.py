@@ -184,6 +184,14 @@ def test_work_figures_show_as_images_in_an_ipython_kernel(nipple_run):
         fig = calib.load_work(work).plot_profile()
         data, _ = shell.display_formatter.format(fig)
         assert data["image/png"].startswith(b"\x89PNG")
+        # a formatter the user's shell has already (inline, retina) is left as it is
+        from matplotlib.figure import Figure
+
+        mine = lambda fig: b"mine"  # noqa: E731
+        png = shell.display_formatter.formatters["image/png"]
+        png.for_type(Figure, mine)
+        calib.load_work(work)
+        assert png.lookup_by_type(Figure) is mine
     finally:
         InteractiveShell.clear_instance()
 

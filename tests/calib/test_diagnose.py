@@ -2222,13 +2222,18 @@ def test_scans_whose_noise_was_measured_in_different_ways_are_not_compared(tmp_p
         (tmp_path / "scans" / name / "ingest.json").write_text(json.dumps(doc))
 
     scan("a", 0.033, None)  # before ingest revision 7: the background's
-    scan("b", 0.030, "background")
+    scan("b", 0.030, "background (offset)")  # one way with "background"
     scan("c", 0.018, "interior")
     work = SimpleNamespace(path=tmp_path)
-    assert set(comparable_imaging_noise(work, ["a", "b"])) == {"a", "b"}
+    assert comparable_imaging_noise(work, ["a", "b"]) == pytest.approx(
+        {"a": 1.5 * 0.033, "b": 1.5 * 0.030}
+    )
     with caplog.at_level("WARNING", logger="calib.discrepancy.problem"):
-        assert comparable_imaging_noise(work, ["a", "c"]) == {}
+        alike = comparable_imaging_noise(work, ["a", "c"])
     assert "measured in different ways (a background, c interior" in caplog.text
+    # review AH: only the voxels compared, not dropped (a 4 mm scan's ratio kept): here
+    # equal voxels, so equal figures at the median image noise
+    assert alike == pytest.approx({"a": 1.5 * 0.0255, "c": 1.5 * 0.0255})
 
 
 def test_inclusions_too_large_for_ingest_are_said_to_be_left_out(tmp_path, caplog):

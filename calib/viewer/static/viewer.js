@@ -307,7 +307,7 @@
     draw();
   }
   async function loadOverlay(name) {
-    overlay = null; $("bar").style.display = "none";
+    overlay = null; overlayNote = ""; $("bar").style.display = "none";
     const sc = V.scene.scans.find((s) => s.name === name);
     marks.mNipple = sc ? sc.nipple_mm : null; marks.mTumour = sc ? sc.tumour_mm : null;
     if (!sc) { draw(); return; }
@@ -414,7 +414,11 @@
         const saved = s && sc.states.includes(s.name);
         await showState(saved ? s.name : "");
         // review AG: the reference beside the stress-free shape, offset by its sag, unsaid
-        if (s && !saved) $("status").textContent = `${s.name}: no saved FE state (the reference, or a failed solve): the stress-free shape beside its measured, loaded surface`;
+        if (s && !saved) {
+          V.state.gravity = [0, 0, 0]; draw();  // the shape shown is under no gravity
+          $("gvec").textContent = "the stress-free shape (no gravity)";
+          $("status").textContent = `${s.name}: no saved FE state (the reference, or a failed solve): the stress-free shape beside its measured, loaded surface`;
+        }
       }
     }
     $("scan").addEventListener("change", scanChanged);
