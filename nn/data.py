@@ -221,8 +221,11 @@ def load_sweep(path: str | Path, *, allow_pending: bool = True) -> SweepData:
     ------
     StoreFormatError
         Not a sweep store, another format version, a missing array or chunk of a solved
-        scenario (truncated), mesh arrays that do not match ``mesh_sha256`` or result
-        shapes of another mesh, or no solved scenario.
+        scenario (truncated; a tumour chunk too where the model has a tumour), an
+        unreadable chunk, a ``model`` block without :data:`MODEL_KEYS`, mesh arrays that
+        do not match ``mesh_sha256``, result shapes of another mesh, node sets past the
+        mesh, non-finite scenario arrays (``angle_deg`` aside), c1 <= 0, role or plane
+        codes outside ``codes``, or no solved scenario.
     """
     path = Path(path)
     attrs = _read_attrs(path)
