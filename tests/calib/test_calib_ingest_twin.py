@@ -187,7 +187,8 @@ def test_the_nipple_sags_with_gravity_and_a_flipped_gravity_is_said(twin, caplog
     # review AE: a scanner.gravity of the wrong sign (an image written prone, read with
     # the supine default) turned every posture's load around and no check saw it. On the
     # twin the nipple moves along the change of gravity (review AE: cosines +1.00, +0.87,
-    # +0.82); with gravity turned round every cosine changes sign, and that is said.
+    # +0.82; the 25 degree scan's 2.5 mm move is under the 5 mm that counts); with
+    # gravity turned round every cosine changes sign, and that is said.
     from dataclasses import replace
 
     from calib.data.ingest import check_gravity_sign
@@ -195,7 +196,7 @@ def test_the_nipple_sags_with_gravity_and_a_flipped_gravity_is_said(twin, caplog
     res = twin["result"]
     with caplog.at_level("WARNING", logger="calib.data.ingest"):
         cos = check_gravity_sign(res.session, res.scans, res.registrations)
-    assert len(cos) == 3 and min(cos.values()) > 0.5, cos
+    assert set(cos) == {"right_lateral", "tilt_50"} and min(cos.values()) > 0.5, cos
     assert "against the change of gravity" not in caplog.text
     up = {n: replace(r, gravity_ref=-r.gravity_ref) for n, r in res.registrations.items()}
     with caplog.at_level("WARNING", logger="calib.data.ingest"):
