@@ -168,12 +168,27 @@ def _read_itk(path: Path) -> Volume:
     if _suffix(path) in (".nrrd", ".nhdr"):
         _check_nrrd_geometry(path)
     else:
-        _check_metaimage_geometry(path)
-        _check_metaimage_orientation(path, np.array(img.GetDirection(), float).reshape(3, 3))
+        header = _metaimage_header(path)
+        _check_metaimage_geometry(path, header)
+        direction = np.array(img.GetDirection(), float).reshape(3, 3)
+        _check_metaimage_orientation(path, header, direction)
     return Volume.from_sitk(img, source=str(path))
 
 
-def _check_metaimage_orientation(path: Path, direction: np.ndarray) -> None:
+def _metaimage_header(path: Path) -> dict[str, str]:
+    """A MetaImage header's fields (names lower case) up to ``ElementDataFile``, its last."""
+    fields = {}
+    for line in _header_lines(path):
+        name, sep, value = line.partition("=")
+        if not sep:
+            continue
+        fields[name.strip().lower()] = value.strip()
+        if name.strip().lower() == "elementdatafile":
+            break
+    return fields
+
+
+def _check_metaimage_orientation(path: Path, header: dict, direction: np.ndarray) -> None:
     """Warn where a MetaImage's ``AnatomicalOrientation`` disagrees with its matrix.
 
     ITK reads a MetaImage's ``TransformMatrix`` and ``Offset`` as LPS and ignores
@@ -182,21 +197,13 @@ def _check_metaimage_orientation(path: Path, direction: np.ndarray) -> None:
     LPS). A file whose field disagrees may come from a writer that meant another space
     (RAS: x and y flipped).
     """
-    given = ""
-    for line in _header_lines(path):
-        name, sep, value = line.partition("=")
-        if sep and name.strip().lower() == "anatomicalorientation":
-            given = value.strip().upper()
-        if sep and name.strip().lower() == "elementdatafile":
-            break
+    given = header.get("anatomicalorientation", "").upper()
     if len(given) != 3 or given == "???":
         return
     # the side each image axis grows from: the opposite of where its LPS direction points
     sides = ("RL", "AP", "IS")  # LPS +x points to L (grows from R), +y to P, +z to S
-    read = "".join(
-        sides[int(np.argmax(np.abs(c)))][0 if c[int(np.argmax(np.abs(c)))] > 0 else 1]
-        for c in direction.T
-    )
+    axes = np.argmax(np.abs(direction), axis=0)  # each column's dominant LPS axis
+    read = "".join(sides[a][0 if direction[a, k] > 0 else 1] for k, a in enumerate(axes.tolist()))
     if read != given:
         log.warning(
             "%s: AnatomicalOrientation %s, but its TransformMatrix read as LPS (as ITK reads "
@@ -255,20 +262,13 @@ def _check_nrrd_geometry(path: Path) -> None:
             )
 
 
-def _check_metaimage_geometry(path: Path) -> None:
+def _check_metaimage_geometry(path: Path, header: dict) -> None:
     """Refuse a MetaImage header that says nothing of where the volume lies in the scanner.
 
     Without ``TransformMatrix`` and ``Offset`` (or their aliases) SimpleITK places the voxels
     at the identity at origin 0. MetaImage stores no spatial unit, so units are not checked.
     """
-    keys = set()
-    for line in _header_lines(path):
-        name, sep, _ = line.partition("=")
-        if not sep:
-            continue
-        keys.add(name.strip().lower())
-        if name.strip().lower() == "elementdatafile":  # the last header line
-            break
+    keys = set(header)
     oriented = bool(keys & {"transformmatrix", "rotation", "orientation"})
     placed = bool(keys & {"offset", "position", "origin"})
     if not (oriented or placed):

@@ -698,7 +698,11 @@ def imaging_noise_mm(work: WorkFolder, name: str) -> float | None:
     model (a residual's own short-lag spread is not: :func:`calib.stats.noise.session_noise`).
     None without those figures.
     """
-    doc = ingest_record(work, name)
+    return _imaging_noise(ingest_record(work, name))
+
+
+def _imaging_noise(doc: dict) -> float | None:
+    """:func:`imaging_noise_mm` of an ingest record."""
     voxel = doc.get("voxel_size_mm")
     noise = (doc.get("quality") or {}).get("seg_noise_sigma_rel")
     if not voxel or noise is None or not np.isfinite(noise) or noise <= 0:
@@ -717,11 +721,10 @@ def comparable_imaging_noise(work: WorkFolder, scans) -> dict[str, float]:
     noise, with a warning; review AH: returning none lost a 4 mm scan's 1.74 times).
     ``background`` and ``background (offset)`` are one way.
     """
-    values = {n: v for n in scans if (v := imaging_noise_mm(work, n)) is not None}
-    methods = {
-        n: (ingest_record(work, n).get("quality") or {}).get("seg_noise_method", "background")
-        for n in values
-    }
+    docs = {n: ingest_record(work, n) for n in scans}  # each record read once
+    values = {n: v for n, doc in docs.items() if (v := _imaging_noise(doc)) is not None}
+    quality = {n: docs[n].get("quality") or {} for n in values}
+    methods = {n: quality[n].get("seg_noise_method", "background") for n in values}
     if len({m.split(" ")[0] for m in methods.values()}) > 1:
         log.warning(
             "%s: the scans' image noise was measured in different ways (%s: ingest.json "
@@ -729,14 +732,10 @@ def comparable_imaging_noise(work: WorkFolder, scans) -> dict[str, float]:
             work.path,
             ", ".join(f"{n} {m}" for n, m in methods.items()),
         )
-        noise = {n: _image_noise_rel(work, n) for n in values}
+        noise = {n: float(quality[n]["seg_noise_sigma_rel"]) for n in values}
         common = float(np.median(list(noise.values())))
         return {n: v / noise[n] * common for n, v in values.items()}
     return values
-
-
-def _image_noise_rel(work: WorkFolder, name: str) -> float:
-    return float((ingest_record(work, name).get("quality") or {})["seg_noise_sigma_rel"])
 
 
 def failed_scans(work: WorkFolder) -> dict[str, str]:

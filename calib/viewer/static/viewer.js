@@ -240,9 +240,10 @@
     $("a_val").textContent = a.toFixed(1) + "°"; $("s_val").textContent = s.toFixed(1) + "°";
     if (V.scene.model) { V.state.c1 = c1FromSlider(); $("c1_val").textContent = V.state.c1.toFixed(1); }
     if (!V.scene.model && !postureGravity) {
-      // review AG: without a surrogate the free shape is the stress-free one, under no gravity
+      // review AG: without a surrogate the shape shown without a saved state is the
+      // stress-free one, under no gravity
       V.state.gravity = [0, 0, 0];
-      $("gvec").textContent = "the stress-free shape (no gravity): pick a scan to see its saved FE state";
+      $("gvec").textContent = "the stress-free shape (no gravity)";
       return;
     }
     const g = V.state.gravity;
@@ -404,21 +405,18 @@
     for (const id of ["angle_a", "angle_s", "c1"]) $(id).addEventListener("input", onControl);
     async function scanChanged(ev) {
       const s = sc.scans.find((x) => x.name === ev.target.value);
-      postureGravity = s ? s.gravity_phantom_m_s2.slice() : null;
+      const saved = s && sc.states.includes(s.name);
+      // without a surrogate only a saved FE state is shown under the scan's gravity
+      postureGravity = s && (sc.model || saved) ? s.gravity_phantom_m_s2.slice() : null;
       if (s) { const [a, t] = anglesFromGravity(s.gravity_phantom_m_s2); $("angle_a").value = a; $("angle_s").value = t; }
       if (s && $("overlay").value === "none") $("overlay").value = s.maps.includes("error_mm") ? "error_mm" : "measured";
       await loadOverlay(ev.target.value);
       if (sc.model) onControl(null);
       else {
         readControls();
-        const saved = s && sc.states.includes(s.name);
         await showState(saved ? s.name : "");
         // review AG: the reference beside the stress-free shape, offset by its sag, unsaid
-        if (s && !saved) {
-          V.state.gravity = [0, 0, 0]; draw();  // the shape shown is under no gravity
-          $("gvec").textContent = "the stress-free shape (no gravity)";
-          $("status").textContent = `${s.name}: no saved FE state (the reference, or a failed solve): the stress-free shape beside its measured, loaded surface`;
-        }
+        if (s && !saved) $("status").textContent = `${s.name}: no saved FE state (the reference, or a failed solve): the stress-free shape beside its measured, loaded surface`;
       }
     }
     $("scan").addEventListener("change", scanChanged);
