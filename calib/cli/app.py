@@ -10,6 +10,8 @@ import typer
 
 from fem.units import STANDARD_GRAVITY_M_S2
 
+from ..fitting.options import MESH_SIZE_RANGE_MM
+
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
@@ -165,8 +167,8 @@ def calibrate(
         float | None,
         typer.Option(
             "--mesh-size",
-            min=1.0,
-            max=50.0,
+            min=MESH_SIZE_RANGE_MM[0],
+            max=MESH_SIZE_RANGE_MM[1],
             help="Element edge length of the model, mm. Default: 12; where no stress-free "
             "reference exists on it, with straight or curved elements, 14 then 16 (each "
             "retry is reported).",

@@ -7,6 +7,7 @@ from typing import Annotated
 
 import typer
 
+from ..fitting.options import MESH_SIZE_RANGE_MM
 from ..model.effects import SKIN_THICKNESS_MM
 from ..stats.scores import SCREEN_ALPHA
 from .app import app, fail
@@ -66,8 +67,8 @@ def diagnose(
         float | None,
         typer.Option(
             "--mesh-size",
-            min=2.0,
-            max=40.0,
+            min=MESH_SIZE_RANGE_MM[0],
+            max=MESH_SIZE_RANGE_MM[1],
             help="Diagnose on a model mesh of this size (mm) instead of the calibration's: "
             "a finer one tells discretisation error from a missing effect (slower).",
         ),
@@ -76,8 +77,8 @@ def diagnose(
         float | None,
         typer.Option(
             "--inclusion-mesh",
-            min=1.0,
-            max=40.0,
+            min=MESH_SIZE_RANGE_MM[0],
+            max=MESH_SIZE_RANGE_MM[1],
             help="Diagnose on a model mesh (of --mesh-size, else the calibration's size) "
             "whose segmented inclusions are meshed as spheres with elements of this size "
             "(mm) inside: a stiff inclusion's print is local (slower). Without "

@@ -70,6 +70,7 @@ import fem
 
 from ..data.work import WorkFolder, ingest_record
 from ..evaluation import ScanMetrics, scan_metrics
+from ..fitting.options import MESH_SIZE_RANGE_MM
 from ..model.effects import ADMISSIBLE, LIBRARY, SKIN_THICKNESS_MM
 from ..stats import NoiseFit, NoiseModel, height_profile, parameter_intervals
 from ..stats.noise import MAX_LAG_MM
@@ -243,12 +244,15 @@ class DiagnosisOptions:
             m = getattr(self, name)
             if m != "element" and (isinstance(m, str) or not 0.0 <= m < 50.0):
                 raise DiagnosisError(f"{name} must lie in [0, 50) mm or be 'element', got {m!r}")
-        if self.mesh_size_mm is not None and not 2.0 <= self.mesh_size_mm <= 40.0:
-            raise DiagnosisError(f"mesh_size_mm must lie in [2, 40] mm, got {self.mesh_size_mm}")
-        h = self.inclusion_mesh_mm
-        if h is not None and not (1.0 <= h <= 40.0 and h <= (self.mesh_size_mm or 40.0)):
+        lo, hi = MESH_SIZE_RANGE_MM
+        if self.mesh_size_mm is not None and not lo <= self.mesh_size_mm <= hi:
             raise DiagnosisError(
-                f"inclusion_mesh_mm must lie in [1, 40] mm and not above mesh_size_mm "
+                f"mesh_size_mm must lie in [{lo:g}, {hi:g}] mm, got {self.mesh_size_mm}"
+            )
+        h = self.inclusion_mesh_mm
+        if h is not None and not (lo <= h <= hi and h <= (self.mesh_size_mm or hi)):
+            raise DiagnosisError(
+                f"inclusion_mesh_mm must lie in [{lo:g}, {hi:g}] mm and not above mesh_size_mm "
                 f"({self.mesh_size_mm}), got {h}"
             )
         if self.noise_profile not in NOISE_PROFILES:

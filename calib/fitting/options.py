@@ -11,6 +11,7 @@ from fem.meshing import check_max_dihedral_deg
 from ..model.residuals import OBJECTIVES
 
 __all__ = [
+    "MESH_SIZE_RANGE_MM",
     "CalibrationOptions",
     "check_mesh_check_ratio",
     "mesh_check_ratios",
@@ -19,6 +20,9 @@ __all__ = [
 
 Objective = Literal["surface", "nipple", "landmarks"]
 ReferenceState = Literal["unload", "prestress", "shortcut"]
+
+#: Element edge lengths a model mesh may take, mm (calibrate's and diagnose's alike).
+MESH_SIZE_RANGE_MM = (1.0, 50.0)
 
 
 def check_mesh_check_ratio(ratio: float) -> None:
@@ -127,9 +131,10 @@ class CalibrationOptions:
                 "reference state must be unload, prestress or shortcut, not "
                 f"{self.reference_state!r}"
             )
+        lo, hi = MESH_SIZE_RANGE_MM
         for size in (self.mesh_size_mm, *self.mesh_retry_mm):
-            if not 1.0 <= size <= 50.0:
-                raise ValueError(f"mesh size must lie in [1, 50] mm, got {size}")
+            if not lo <= size <= hi:
+                raise ValueError(f"mesh size must lie in [{lo:g}, {hi:g}] mm, got {size}")
         check_max_dihedral_deg(self.mesh_max_dihedral_deg, "mesh max dihedral angle")
         if not 0.0 < self.nu < 0.5:
             raise ValueError(f"Poisson's ratio must lie in (0, 0.5), got {self.nu}")

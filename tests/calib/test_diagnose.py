@@ -24,6 +24,8 @@ from calib.discrepancy.fields import Column, FieldSet
 from calib.discrepancy.localise import region_labels, significance_map
 from calib.discrepancy.refit import PHYSICAL, Refit, lopo, sliding_ln_k_bounds
 from calib.discrepancy.screen import screen
+from calib.fitting import CalibrationOptions
+from calib.fitting.options import MESH_SIZE_RANGE_MM
 from calib.model.effects import LIBRARY, EffectValues
 from calib.stats.coverage import NoiseSampler, misfit_pattern, phantom_sample, sag_sensitivity
 from calib.stats.noise import NoiseModel
@@ -270,6 +272,19 @@ def test_options_are_checked():
         DiagnosisOptions(alpha=0.7)
 
 
+def test_diagnose_takes_the_mesh_sizes_calibrate_takes():
+    # One range for both: a calibration on 1 or 50 mm can be diagnosed on its own size.
+    lo, hi = MESH_SIZE_RANGE_MM
+    for size in (lo, hi):
+        CalibrationOptions(mesh_size_mm=size)
+        DiagnosisOptions(mesh_size_mm=size, inclusion_mesh_mm=size)
+    for size in (0.99 * lo, 1.01 * hi):
+        with pytest.raises(ValueError, match="mesh size must lie in"):
+            CalibrationOptions(mesh_size_mm=size)
+        with pytest.raises(DiagnosisError, match="mesh_size_mm must lie in"):
+            DiagnosisOptions(mesh_size_mm=size)
+
+
 def test_command_help_and_errors(tmp_path):
     runner = CliRunner()
     res = runner.invoke(app, ["diagnose", "--help"])
@@ -285,7 +300,7 @@ def test_command_help_and_errors(tmp_path):
     res = runner.invoke(
         app, ["diagnose", str(tmp_path), "--mesh-size", "10", "--inclusion-mesh", "12"]
     )
-    assert res.exit_code == 2 and "inclusion_mesh_mm must lie in [1, 40] mm" in res.output
+    assert res.exit_code == 2 and "inclusion_mesh_mm must lie in [1, 50] mm" in res.output
     res = runner.invoke(app, ["diagnose", str(tmp_path), "--skin-thickness", "0"])
     assert res.exit_code == 2 and "skin_thickness_mm must lie in (0, 10] mm" in res.output
 
