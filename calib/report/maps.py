@@ -44,6 +44,26 @@ def write_error_ply(path: Path, vertices_mm: np.ndarray, faces: np.ndarray, erro
     return imaging.write_ply(path, surface, vertex_scalars={"error_mm": error_mm})
 
 
+def shared_error_scale_mm(errors_mm) -> float:
+    """The top of one colour scale for several scans' error maps (mm).
+
+    The largest per-scan 99th percentile of |error|: no scan's map saturates over more
+    than 1 % of its points, and the maps can be compared.
+
+    Parameters
+    ----------
+    errors_mm : iterable of ndarray
+        Each scan's errors on its scored points (mm).
+
+    Returns
+    -------
+    float
+        The top of the shared scale, mm (1e-3 at least).
+    """
+    tops = [float(np.percentile(np.abs(np.asarray(e, float)), 99)) for e in errors_mm if len(e)]
+    return max([*tops, 1e-3])
+
+
 def error_map_figure(points_mm: np.ndarray, error_mm: np.ndarray, title: str, *, vmax=None):
     """Two orthogonal views of the measured surface points coloured by |error| (mm).
 

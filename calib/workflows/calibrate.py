@@ -22,7 +22,7 @@ from ..data.session import SessionError, load_session, session_inputs
 from ..evaluation import ScanEvaluation, check_postures, evaluate, model_fit_with_postures
 from ..fitting import Calibration, CalibrationOptions, fit
 from ..io import RunOutputs, check_out_apart, check_out_folder, provenance
-from ..report.maps import error_map_figure, save_figure, write_error_ply
+from ..report.maps import error_map_figure, save_figure, shared_error_scale_mm, write_error_ply
 
 __all__ = ["run_calibration", "write_calibration"]
 
@@ -31,7 +31,9 @@ log = logging.getLogger(__name__)
 FOLDER, RECORD = "calibration", "calibration.json"
 
 
-def _scan_files(run: RunOutputs, cal: Calibration, ev: ScanEvaluation) -> list[str]:
+def _scan_files(
+    run: RunOutputs, cal: Calibration, ev: ScanEvaluation, *, vmax_mm: float
+) -> list[str]:
     from fem.io import write_mesh
 
     c = cal.calibrator
@@ -46,7 +48,8 @@ def _scan_files(run: RunOutputs, cal: Calibration, ev: ScanEvaluation) -> list[s
         scan.vertices_mm[off],
         err,
         f"{ev.name}: c1 = {cal.c1_pa:.0f} Pa, fiducial frame, mean |e| = "
-        f"{np.mean(np.abs(err)):.2f} mm",
+        f"{np.mean(np.abs(err)):.2f} mm (colour scale shared by the scans)",
+        vmax=vmax_mm,
     )
     save_figure(fig, run.path(f"{ev.name}_error.png"))
     X = c.fm.stress_free_nodes_mm
@@ -118,9 +121,16 @@ def write_calibration(
     nipple = int(c.mesh.node_set("nipple")[0])
     with RunOutputs(work, folder=FOLDER, record=RECORD) as run:
         write_mesh(c.mesh.with_nodes(c.fm.stress_free_nodes_mm), run.path("reference_mesh.vtu"))
+        measured = c.measurements.scans
+        vmax_mm = shared_error_scale_mm(
+            ev.metrics.vertex_error_mm[measured[ev.name].scored]
+            for ev in evaluations.values()
+            if ev.failed is None
+        )
         scans = {}
         for name, ev in evaluations.items():
-            files = _scan_files(run, calibration, ev) if ev.failed is None else []
+            solved = ev.failed is None
+            files = _scan_files(run, calibration, ev, vmax_mm=vmax_mm) if solved else []
             scans[name] = _scan_json(ev, files)
             if ev.failed is None:
                 scans[name]["model"]["nipple_mm"] = ev.positions_mm[nipple].tolist()

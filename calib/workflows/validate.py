@@ -15,7 +15,7 @@ import numpy as np
 
 from ..data.work import WorkFolder, read_work
 from ..io import RunOutputs, atomic_write, check_work_writable, provenance
-from ..report.maps import save_figure
+from ..report.maps import save_figure, shared_error_scale_mm
 from ..report.validation import (
     error_by_displacement_figure,
     error_surface_figure,
@@ -58,9 +58,8 @@ def _figures(run: RunOutputs, work: WorkFolder, v: Validation) -> dict[str, list
     R = np.asarray(work.record["model"]["R_ref_from_phantom"], float)
     shown = v.validation_scans or list(v.scans.values())
     scans = work.measurements.scans
-    vmax = max(
-        float(np.percentile(np.abs(s.metrics.vertex_error_mm)[scans[s.name].scored], 99))
-        for s in shown
+    vmax = shared_error_scale_mm(
+        np.asarray(s.metrics.vertex_error_mm)[scans[s.name].scored] for s in shown
     )
     figures: dict[str, list[str]] = {}
     for sv in v.scans.values():

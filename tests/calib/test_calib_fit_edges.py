@@ -39,6 +39,7 @@ from calib.data.measurements import load_measurements
 from calib.data.session import load_session
 from calib.fitting import CalibrationOptions
 from calib.model import forward
+from calib.report.maps import error_map_figure
 from calib.twin import synthesize
 from calib.workflows.ingest import run_ingest
 
@@ -166,7 +167,19 @@ def test_a_fit_stopped_where_straight_elements_fail_runs_again_on_curved_ones(
 
     shutil.copytree(folders[1], tmp_path / "work")
     monkeypatch.setattr(workflow, "fit", lambda *a, **kw: cal)
+    tops, errors = [], []
+
+    def error_map(points_mm, error_mm, title, *, vmax=None):
+        tops.append(vmax)
+        errors.append(error_mm)
+        return error_map_figure(points_mm, error_mm, title, vmax=vmax)
+
+    monkeypatch.setattr(workflow, "error_map_figure", error_map)
     written = workflow.run_calibration(folders[0], tmp_path / "work", opts)
+    # review AG: each scan's error map had its own colour scale; one top for all of them,
+    # the largest per-scan 99th percentile (what validate's maps share)
+    assert len(tops) == len(written["scans"]) >= 2 and len(set(tops)) == 1, tops
+    assert tops[0] == max(np.percentile(np.abs(e), 99) for e in errors)
     assert written["optimiser"]["replaced"] == done
     assert written["fe_solves"] == done["fe_solves"] + cal.calibrator.fm.solves
 
