@@ -176,7 +176,17 @@ def _uncertainty(cal: Calibrator, theta: float, say):
     dr = np.concatenate([v.dr for v in final.values()])
     pts = np.concatenate([v.points_mm for v in final.values()])
     c1, model_fit, unc = float(np.exp(theta)), None, None
-    if cal.options.objective == "surface" and len(r) >= MIN_SERIES_POINTS:
+    if cal.options.objective == "surface" and len(r) < MIN_SERIES_POINTS:
+        # review AJ: this fallback was silent (its coverage: README, "Measured coverage")
+        why = (
+            f"{len(r)} surface residuals, under the {MIN_SERIES_POINTS} the series interval "
+            "needs: the Gauss-Newton interval with an effective sample count instead "
+            "(uncertainty.method; on correlated noise it covered 29-98 %), and no "
+            "model-misfit test"
+        )
+        say(why)
+        log.warning(why)
+    elif cal.options.objective == "surface":
         from ..stats.intervals import IntervalError
         from ..stats.noise import NoiseModelError
 

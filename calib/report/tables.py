@@ -10,15 +10,22 @@ from ..fitting.result import reference_state_said
 __all__ = ["format_calibration", "format_validation"]
 
 
-def _uncertainty_lines(unc: dict) -> list[str]:
+def _uncertainty_lines(unc: dict, objective: str) -> list[str]:
+    lines = []
+    if objective == "surface" and unc.get("method") == "gauss-newton":
+        lines.append(
+            "  WARNING: the Gauss-Newton interval, not the series one (too few residuals, "
+            "or its noise model failed): its coverage on correlated noise is not measured, "
+            "and there is no model-misfit test"
+        )
     check = unc.get("mesh_check")
-    if not check:
-        return []
     if unc.get("c1_ci95_pa") is None:
-        return []
+        return lines
+    if not check:
+        return [*lines, "  the interval covers the residuals' noise only (no mesh check)"]
     lo, hi = unc["c1_ci95_pa"]
     found, how = describe_mesh_check(check)
-    lines = [f"  noise alone: {lo:.1f} - {hi:.1f} Pa; mesh check: {found}"]
+    lines.append(f"  noise alone: {lo:.1f} - {hi:.1f} Pa; mesh check: {found}")
     if check.get("gci_ln_c1") is not None:
         lines.append(f"  discretisation bound (GCI) {100 * check['gci_ln_c1']:.2g} % ({how})")
     if check.get("convergence", "assumed order") == "assumed order" and check.get("gci_ln_c1"):
@@ -115,7 +122,7 @@ def format_calibration(doc: dict) -> str:
         f"c1 = {doc['c1_pa']:.1f} Pa  ({interval}), objective {doc['objective']}, "
         + reference_state_said(doc["reference_state"], doc.get("reference_recovery")),
         f"{doc['iterations']} iterations, {doc['fe_solves']} FE solves, {doc['wall_s']:.0f} s",
-        *_uncertainty_lines(doc.get("uncertainty", {})),
+        *_uncertainty_lines(doc.get("uncertainty", {}), doc["objective"]),
         *_optimiser_lines(doc.get("optimiser")),
         *_model_fit_lines(doc.get("model_fit"), doc.get("reference_recovery")),
         f"{'scan':<16}{'role':<13}{'surface mean+-sd (fiducial)':>29}{'(icp)':>16}"

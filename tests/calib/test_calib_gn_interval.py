@@ -55,3 +55,38 @@ def test_residuals_that_do_not_change_with_c1_bound_nothing():
         420.0, np.array([0.1, -0.2, 0.05]), np.zeros(3), np.zeros((3, 3)), area_mm2=None
     )
     assert unc.se_ln_c1 is None and unc.c1_ci95_pa is None
+
+
+def test_a_surface_fit_with_too_few_residuals_for_the_series_interval_says_so(caplog):
+    # review AJ: under MIN_SERIES_POINTS the surface objective took the Gauss-Newton
+    # interval (its coverage on correlated noise 29-98 %, README) without a word
+    from types import SimpleNamespace as NS
+
+    from calib.fitting import pipeline
+    from calib.report.tables import _uncertainty_lines
+    from calib.stats.intervals import MIN_SERIES_POINTS
+
+    rng = np.random.default_rng(0)
+    n = MIN_SERIES_POINTS - 50
+    res = {
+        "s": NS(
+            r=rng.normal(0, 0.2, n), dr=rng.uniform(-5, 5, n), points_mm=rng.normal(0, 30, (n, 3))
+        )
+    }
+    scan = NS(vertices_mm=np.eye(3), faces=np.array([[0, 1, 2]]), scored=np.ones(3, bool))
+    cal = NS(
+        options=NS(objective="surface", seed=0, mesh_check_ratio=0.0, profile_points=0),
+        residuals=lambda theta, scans, gradient: res,
+        calibration_scans=[scan],
+    )
+    said = []
+    unc, _, ci95, _, model_fit = pipeline._uncertainty(cal, np.log(C1_TRUE), said.append)
+    assert unc.method == "gauss-newton" and model_fit is None and ci95 is not None
+    assert any(f"{n} surface residuals, under the {MIN_SERIES_POINTS}" in s for s in said), said
+    assert "no model-misfit test" in caplog.text
+    # and the printed summary says which interval it is, and that no mesh check is in it
+    doc = {"method": unc.method, "c1_ci95_pa": list(ci95), "mesh_check": None}
+    text = "\n".join(_uncertainty_lines(doc, "surface"))
+    assert "WARNING: the Gauss-Newton interval, not the series one" in text
+    assert "noise only (no mesh check)" in text
+    assert "Gauss-Newton" not in "\n".join(_uncertainty_lines(doc, "landmarks"))

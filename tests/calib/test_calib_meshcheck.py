@@ -192,7 +192,7 @@ def test_the_printed_summary_names_the_kind_of_bound(convergence, says, warns):
         "convergence": convergence,
         "meshes": meshes,
     }
-    lines = _uncertainty_lines(_doc(check)["uncertainty"])
+    lines = _uncertainty_lines(_doc(check)["uncertainty"], "surface")
     text = "\n".join(lines)
     assert "16.8 mm mesh calibrates to 422.7 Pa" in text
     assert "8.6 mm mesh failed: MeshError: x" in text
@@ -215,5 +215,5 @@ def test_a_calibration_json_of_0_1_still_prints():
     }
     from calib.report.tables import _uncertainty_lines
 
-    text = "\n".join(_uncertainty_lines(_doc(check)["uncertainty"]))
+    text = "\n".join(_uncertainty_lines(_doc(check)["uncertainty"], "surface"))
     assert "16.8 mm mesh calibrates to 422.7 Pa" in text and "assumed order 1.60" in text
