@@ -144,22 +144,37 @@ def nipple_interval(cal, theta: float, r_hat: np.ndarray) -> tuple[Uncertainty, 
     prof = profile_ci95(sum_sq, theta, float(np.sum(r_hat**2)), sd)
     lo, hi = prof.ln_c1_bounds
     n = len(r_hat)
+    interval = {
+        "level": 0.95,
+        "c1_bounds_pa": [None if b is None else float(np.exp(b)) for b in (lo, hi)],
+        "open": list(prof.open_why),
+    }
     if lo is None or hi is None:
-        log.warning("the nipple error does not bound c1 within a factor 4 on the %s side",
-                    "lower" if lo is None else "upper")  # fmt: skip
-        return Uncertainty(None, None, sd, n, float(n), 0.0, method="profile"), prof
+        for side, why in zip(("lower bound open", "upper bound open"), prof.open_why, strict=True):
+            if why is not None:
+                log.warning("no 95 %% interval of c1 from the nipple error: %s (%s)", side, why)
+        unc = Uncertainty(None, None, sd, n, float(n), 0.0, method="profile", interval=interval)
+        return unc, prof
     se = (hi - lo) / (2.0 * 1.959963984540054)
     ci = (float(np.exp(lo)), float(np.exp(hi)))
-    return Uncertainty(float(se), ci, sd, n, float(n), 0.0, method="profile"), prof
+    unc = Uncertainty(float(se), ci, sd, n, float(n), 0.0, method="profile", interval=interval)
+    return unc, prof
 
 
 def profile_rows(prof: ProfileInterval, n_residuals: int) -> list[dict]:
-    """The evaluated profile as ``calibration.json`` rows (as the Gauss-Newton profile)."""
-    return [
+    """The evaluated profile as ``calibration.json`` rows (as the Gauss-Newton profile).
+
+    A point whose FE solve failed is a row ``{"c1_pa", "objective": None, "failed": True}``.
+    """
+    rows = [
         {"c1_pa": float(np.exp(t)), "objective": 0.5 * s / n_residuals,
          "minus2_delta_loglik": float(dev)}
         for t, s, dev in prof.points
     ]  # fmt: skip
+    failed = [
+        {"c1_pa": float(np.exp(t)), "objective": None, "failed": True} for t in prof.failed_ln_c1
+    ]
+    return sorted(rows + failed, key=lambda row: row["c1_pa"])
 
 
 def likelihood_profile(cal, theta: float, se: float | None, n_eff: float) -> list[dict]:

@@ -13,7 +13,13 @@ from .optimise import OptimiserStatus
 from .options import CalibrationOptions
 from .uncertainty import Uncertainty
 
-__all__ = ["SCHEMA_VERSION", "Calibration", "phantom_frame", "reference_state_said"]
+__all__ = [
+    "SCHEMA_VERSION",
+    "Calibration",
+    "no_interval_said",
+    "phantom_frame",
+    "reference_state_said",
+]
 
 FRAMES = {
     "fiducial": "scans mapped by the fiducial registration only (no ICP)",
@@ -26,6 +32,16 @@ FRAMES = {
 # posture) leaves the in-plane axes to the registration's gravity error (about a degree,
 # README): it does not define them.
 _MIN_IN_PLANE = float(np.sin(np.radians(10.0)))
+
+
+def no_interval_said(interval: dict | None) -> str:
+    """Why a calibration has no 95 % interval, from ``uncertainty.interval``'s ``open``.
+
+    The nipple profile says which side is open and why (a failed FE solve or the search
+    limit); other intervals are open only where the data do not bound c1.
+    """
+    why = [w for w in (interval or {}).get("open") or [] if w]
+    return "no 95 % interval: " + ("; ".join(why) if why else "the data do not bound c1")
 
 
 def reference_state_said(reference_state: str, recovery: dict | None) -> str:
@@ -236,7 +252,7 @@ class Calibration:
         interval = (
             f"95 % interval {ci[0]:.1f} - {ci[1]:.1f} Pa"
             if ci is not None
-            else "no 95 % interval: the data do not bound c1"
+            else no_interval_said(self.uncertainty.interval)
         )
         state = reference_state_said(self.reference_state, self.reference_recovery)
         return f"c1 = {self.c1_pa:.1f} Pa ({interval}), objective {self.objective}, {state}"

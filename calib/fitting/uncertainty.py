@@ -209,11 +209,18 @@ class ProfileInterval:
         Objective evaluations (FE solves of every calibration scan) spent.
     points : tuple of (float, float, float)
         Every ``(ln c1, S in mm^2, -2 delta log-likelihood)`` evaluated, by ln c1.
+    failed_ln_c1 : tuple of float
+        Every ln c1 whose FE solve failed, in the order tried.
+    open_why : tuple of (str or None)
+        Why the lower and upper bounds are open (None where found): the search limit
+        reached, or the FE solve that failed and ended the search on that side.
     """
 
     ln_c1_bounds: tuple[float | None, float | None]
     evaluations: int
     points: tuple[tuple[float, float, float], ...]
+    failed_ln_c1: tuple[float, ...] = ()
+    open_why: tuple[str | None, str | None] = (None, None)
 
 
 def profile_ci95(
@@ -240,7 +247,7 @@ def profile_ci95(
     ----------
     sum_sq : callable
         ``sum_sq(theta) -> S`` in mm^2; may raise ``fem.ConvergenceError``, which ends
-        the search on that side (the bound is then reported as open).
+        the search on that side (the bound is then reported as open, and why).
     theta_hat, sum_sq_min : float
         The optimum and ``S`` there.
     noise_sd_mm : float
@@ -257,33 +264,49 @@ def profile_ci95(
     if not noise_sd_mm > 0:
         raise ValueError(f"the noise standard deviation must be positive, got {noise_sd_mm}")
     points: list[tuple[float, float, float]] = []
+    failed: list[float] = []
 
     def root(t: float) -> float:  # sqrt(-2 dlogL) - sqrt(3.84) at offset t
         try:
             s = float(sum_sq(theta_hat + t))
         except ConvergenceError:
+            failed.append(theta_hat + t)
             return np.inf
         dev = max(s - sum_sq_min, 0.0) / noise_sd_mm**2
         points.append((theta_hat + t, s, dev))
         return float(np.sqrt(dev) - np.sqrt(CHI2_1_95))
 
-    bounds = tuple(_bound(root, side, first_step, limit, tol) for side in (-1.0, 1.0))
-    lo, hi = (None if b is None else theta_hat + b for b in bounds)
-    return ProfileInterval((lo, hi), len(points), tuple(sorted(points)))
+    bounds, why = [], []
+    for side in (-1.0, 1.0):
+        b, stopped = _bound(root, side, first_step, limit, tol)
+        bounds.append(None if b is None else theta_hat + b)
+        if b is not None:
+            why.append(None)
+        elif stopped is None:
+            why.append(f"the data do not bound c1 within a factor {np.exp(limit):.3g}")
+        else:  # review AJ: a failed solve was reported as data that do not bound c1
+            why.append(f"no FE solution at c1 = {np.exp(theta_hat + stopped):.1f} Pa")
+    return ProfileInterval(
+        (bounds[0], bounds[1]), len(points), tuple(sorted(points)), tuple(failed), tuple(why)
+    )
 
 
-def _bound(root, side: float, step: float, limit: float, tol: float) -> float | None:
-    """Signed offset where ``root`` crosses zero on one side, or None past ``limit``."""
+def _bound(root, side: float, step: float, limit: float, tol: float):
+    """Signed offset where ``root`` crosses zero on one side, and where a solve failed.
+
+    Returns ``(offset, None)``; ``(None, None)`` past ``limit``; ``(None, b)`` where the
+    solve at offset ``b`` failed before the profile crossed (the search cannot go on).
+    """
     a, fa, b = 0.0, -np.sqrt(CHI2_1_95), side * step
     fb = root(b)
     while fb < 0:
         if abs(b) >= limit:
-            return None
+            return None, None
         a, fa, b = b, fb, side * min(2.0 * abs(b), limit)
         fb = root(b)
-    if not np.isfinite(fb):  # the solve failed: the search cannot go on, report open
-        return None
-    return _false_position(root, a, fa, b, fb, tol)
+    if not np.isfinite(fb):
+        return None, b
+    return _false_position(root, a, fa, b, fb, tol), None
 
 
 def _false_position(root, a, fa, b, fb, tol: float) -> float:

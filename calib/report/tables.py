@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 from ..fitting.meshcheck import describe_mesh_check
-from ..fitting.result import reference_state_said
+from ..fitting.result import no_interval_said, reference_state_said
 
 __all__ = ["format_calibration", "format_validation"]
 
@@ -116,7 +116,7 @@ def format_calibration(doc: dict) -> str:
     interval = (
         f"95 % interval {ci[0]:.1f} - {ci[1]:.1f} Pa"
         if ci is not None
-        else "no 95 % interval: the data do not bound c1"
+        else no_interval_said(doc.get("uncertainty", {}).get("interval"))
     )
     lines = [
         f"c1 = {doc['c1_pa']:.1f} Pa  ({interval}), objective {doc['objective']}, "

@@ -60,9 +60,43 @@ def test_failed_solve_opens_that_side_only():
             raise fem.ConvergenceError("too soft")
         return (5.0 * t) ** 2
 
-    lo, hi = profile_ci95(sum_sq, 0.0, 0.0, 0.5).ln_c1_bounds
+    prof = profile_ci95(sum_sq, 0.0, 0.0, 0.5)
+    lo, hi = prof.ln_c1_bounds
     assert lo is None
     assert hi == pytest.approx(Z95 * 0.5 / 5.0, abs=TOL)
+    # review AJ: the open side said "the data do not bound c1" and the failed point was
+    # lost; the doubling steps 0.05, 0.1, 0.2 reach the failure at -0.2
+    assert prof.failed_ln_c1 == (-0.2,)
+    assert prof.open_why == (f"no FE solution at c1 = {np.exp(-0.2):.1f} Pa", None)
+    assert "do not bound" in profile_ci95(lambda t: 1.0, 0.0, 1.0, 0.1).open_why[0]
+
+
+def test_the_nipple_interval_records_a_failed_profile_point_and_says_why_it_is_open(caplog):
+    from types import SimpleNamespace as NS
+
+    from calib.fitting import profile
+    from calib.fitting.result import no_interval_said
+
+    def residuals(theta, scans, gradient):
+        if theta > np.log(420.0) + 0.15:
+            raise fem.ConvergenceError("no solution")
+        return {"s": NS(r=np.array([5.0 * (theta - np.log(420.0))]))}
+
+    cal = NS(residuals=residuals, calibration_scans=[])
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(profile, "nipple_noise_sd_mm", lambda cal: 0.5)
+        unc, prof = profile.nipple_interval(cal, np.log(420.0), np.array([0.0]))
+    assert unc.c1_ci95_pa is None  # the contract: null unless both sides are bounded
+    lo_pa, hi_pa = unc.interval["c1_bounds_pa"]
+    assert lo_pa == pytest.approx(420.0 * np.exp(-Z95 * 0.5 / 5.0), rel=TOL) and hi_pa is None
+    said = no_interval_said(unc.interval)
+    assert said == f"no 95 % interval: no FE solution at c1 = {420 * np.exp(0.2):.1f} Pa"
+    assert "upper bound open (no FE solution" in caplog.text
+    rows = profile.profile_rows(prof, 1)
+    assert [r["c1_pa"] for r in rows] == sorted(r["c1_pa"] for r in rows)
+    assert [r for r in rows if r.get("failed")] == [
+        {"c1_pa": pytest.approx(420 * np.exp(0.2)), "objective": None, "failed": True}
+    ]
 
 
 def test_rejects_non_positive_noise():
