@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .data.work import WorkFolder, read_work
+from .fitting.result import calibration_caveats
 from .validation import Validation, validate_work
 
 __all__ = ["Work"]
@@ -169,7 +170,8 @@ class Work:
         ci = self.c1_ci95_pa
         interval = f" (95 % {ci[0]:.1f}–{ci[1]:.1f})" if ci else ""
         scans = ", ".join(f"{n} ({r})" for n, r in self.scans.items())
-        return f"Work({str(self.folder.path)!r}: c1 = {self.c1_pa:.1f} Pa{interval}; {scans})"
+        warn = "".join(f"; WARNING: {said}" for said in calibration_caveats(self.record))
+        return f"Work({str(self.folder.path)!r}: c1 = {self.c1_pa:.1f} Pa{interval}; {scans}{warn})"
 
     def _repr_html_(self) -> str:
         rows = []

@@ -16,6 +16,7 @@ from .uncertainty import Uncertainty
 __all__ = [
     "SCHEMA_VERSION",
     "Calibration",
+    "calibration_caveats",
     "no_interval_said",
     "phantom_frame",
     "reference_state_said",
@@ -32,6 +33,37 @@ FRAMES = {
 # posture) leaves the in-plane axes to the registration's gravity error (about a degree,
 # README): it does not define them.
 _MIN_IN_PLANE = float(np.sin(np.radians(10.0)))
+
+
+def calibration_caveats(record: dict) -> list[str]:
+    """What a reader of figures made from this calibration must be told, one line each.
+
+    A model misfit (the interval is an effective c1's), an optimiser that did not converge
+    or ended on a bound, and a surface interval that is not the series one.
+
+    Parameters
+    ----------
+    record : dict
+        ``calibration.json``.
+    """
+    said = []
+    if (record.get("model_fit") or {}).get("verdict") == "misfit":
+        said.append(
+            "model misfit (calibration.json model_fit): c1 is an effective c1, and its "
+            "interval and every band from it cover noise and mesh, not this model error"
+        )
+    opt = record.get("optimiser") or {}
+    if opt and not opt.get("success", True):
+        said.append(f"the optimiser did not converge ({opt.get('message')})")
+    if opt.get("bound"):
+        said.append(f"c1 ended on the {opt['bound']} bound of its search range")
+    unc = record.get("uncertainty") or {}
+    if record.get("objective") == "surface" and unc.get("method") == "gauss-newton":
+        said.append(
+            "the c1 interval is the Gauss-Newton one, not the series one: its coverage on "
+            "correlated noise is not measured"
+        )
+    return said
 
 
 def no_interval_said(interval: dict | None) -> str:

@@ -180,6 +180,7 @@ def format_validation(doc: dict) -> str:
         )
     for name, why in (doc.get("failed") or {}).items():
         lines.append(f"{name:<16}not validated: no FE solution at calibration ({why})")
+    lines += [f"WARNING (calibration): {said}" for said in doc.get("calibration_caveats") or []]
     if any(s.get("dissertation") for s in doc["scans"].values()):
         lines.append(
             "dissertation: its published figures for the original CIRS phantom's scans (a "

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..validation import ScanValidation, Validation
+from ..validation import BAND_POINTS, ScanValidation, Validation
 from .maps import ERROR_CMAP, face_error_mm
 
 __all__ = [
@@ -324,7 +324,8 @@ def _intro(v: Validation) -> str:
     ci = v.c1_ci95_pa
     band = (
         f"95 % interval {ci[0]:.1f}–{ci[1]:.1f} Pa; each figure's band in brackets is "
-        "its range over that interval (first order in ln c1)"
+        f"its range over that interval (first order in ln c1; fiducial frame: {BAND_POINTS} "
+        "points across it, ICP frame: its ends and the estimate)"
         if ci
         else "no c1 interval: figures without bands"
     )
@@ -332,8 +333,9 @@ def _intro(v: Validation) -> str:
         f" Not validated: {n}, no FE solution at calibration ({why})."
         for n, why in v.failed.items()
     )
+    caveats = "".join(f"WARNING (calibration): {said}. " for said in v.caveats)
     return (
-        f"c1 = {v.c1_pa:.1f} Pa ({band}). All distances in mm. Fiducial frame: the scan "
+        f"{caveats}c1 = {v.c1_pa:.1f} Pa ({band}). All distances in mm. Fiducial frame: the scan "
         "mapped by its fiducial registration only; ICP: after a rigid ICP of the measured "
         "onto the simulated surface (which minimises the surface error: biased low; the "
         "nipple and tumour errors may rise or fall). Nipple: the dissertation's distance from "

@@ -153,6 +153,9 @@ def test_calibrate_ends_with_the_validation_report(nipple_run):
         doc["scans"]["tilt_50"]["nipple_landmark_error_mm"]["fiducial"], rel=1e-9
     )
     assert landmark["ci95"][0] <= landmark["value"] <= landmark["ci95"][1]
+    from calib.fitting.result import calibration_caveats
+
+    assert val["calibration_caveats"] == calibration_caveats(doc)
     for rel in val["files"]:
         assert (work / rel).is_file(), rel
     assert "tilt_50" in (work / "validation" / "report.html").read_text()
@@ -219,6 +222,33 @@ def test_a_scan_without_fe_solution_is_listed_not_dropped_by_validate(nipple_run
         f"Not validated: tilt_50, no FE solution at calibration ({why})"
         in (copy / "validation" / "report.html").read_text()
     )
+
+
+def test_a_band_is_the_figure_s_range_over_the_whole_interval(nipple_run):
+    # review AJ: the band was the figure at the interval's two ends and the estimate; a
+    # distance smallest inside the interval had a band that missed it. The tumour centre's
+    # fiducial error |t + dt u - m| over u in the interval has a closed-form range.
+    from calib.data.work import read_work
+    from calib.validation import BAND_POINTS
+
+    doc, _, work = nipple_run
+    val = json.loads((work / "validation.json").read_text())
+    measured = read_work(work).measurements.scans
+    lo_u, hi_u = np.log(np.asarray(doc["c1_ci95_pa"]) / doc["c1_pa"])
+    for name, s in val["scans"].items():
+        model = doc["scans"][name]["model"]
+        t, dt = np.asarray(model["tumour_mm"]), np.asarray(model["dtumour_dlnc1_mm"])
+        e0 = t - measured[name].tumour_mm
+        u_star = np.clip(-(e0 @ dt) / (dt @ dt), lo_u, hi_u)  # the nearest point on the segment
+        ends = [np.linalg.norm(e0 + u * dt) for u in (lo_u, hi_u)]
+        low, high = np.linalg.norm(e0 + u_star * dt), max(ends)
+        # the grid's step (BAND_POINTS - 1 steps) is at most half a step from u_star, and
+        # the distance changes by at most |dt| per unit of u (its Lipschitz constant)
+        step = (hi_u - lo_u) / (BAND_POINTS - 1)
+        band = s["tumour_error_mm"]["fiducial"]["ci95"]
+        # (1e-9 mm: round-off of the two ways of computing one distance)
+        assert low - 1e-9 <= band[0] <= low + np.linalg.norm(dt) * step / 2 + 1e-9, name
+        assert band[1] == pytest.approx(high, rel=1e-9), name
 
 
 def test_a_tumour_without_its_c1_derivative_gets_no_band(nipple_run, tmp_path):

@@ -1,0 +1,50 @@
+"""What calibration.json says a reader of figures made from it must be told.
+
+Review AJ: `validate`, its reports and the notebook's `Work` printed "95 % bands" from a
+calibration whose record said `misfit` (or an optimiser that did not converge) without a
+word. The caveats are read from the record alone, so the checks are exact.
+"""
+
+from __future__ import annotations
+
+from calib.fitting.result import calibration_caveats
+from calib.report.tables import format_validation
+
+CLEAN = {
+    "objective": "surface",
+    "model_fit": {"verdict": "fits"},
+    "optimiser": {"success": True, "bound": None, "message": "converged"},
+    "uncertainty": {"method": "series"},
+}
+
+
+def test_a_clean_calibration_has_no_caveat():
+    assert calibration_caveats(CLEAN) == []
+    # the nipple objective has no model-fit test and a profile interval: nothing to say
+    assert calibration_caveats({"objective": "nipple", "model_fit": None}) == []
+
+
+def test_each_caveat_is_said_once():
+    record = CLEAN | {
+        "model_fit": {"verdict": "misfit"},
+        "optimiser": {"success": False, "bound": "upper", "message": "no decrease found"},
+        "uncertainty": {"method": "gauss-newton"},
+    }
+    said = calibration_caveats(record)
+    assert len(said) == 4
+    assert said[0].startswith("model misfit") and "effective c1" in said[0]
+    assert said[1] == "the optimiser did not converge (no decrease found)"
+    assert said[2] == "c1 ended on the upper bound of its search range"
+    assert "Gauss-Newton" in said[3]
+    # the landmarks objective's interval is the Gauss-Newton one by design
+    assert calibration_caveats(record | {"objective": "landmarks"})[-1].startswith("c1 ended")
+
+
+def test_the_validation_table_warns_with_each_caveat():
+    doc = {"scans": {}, "calibration_caveats": ["model misfit (x)", "c1 ended on a bound"]}
+    lines = format_validation(doc).splitlines()
+    assert lines[1:] == [
+        "WARNING (calibration): model misfit (x)",
+        "WARNING (calibration): c1 ended on a bound",
+    ]
+    assert "WARNING" not in format_validation({"scans": {}})  # a validation.json before it
