@@ -23,6 +23,7 @@ __all__ = [
     "clean_stale",
     "file_sha256",
     "provenance",
+    "run_id_of",
     "source_sha256",
     "write_json_atomic",
 ]
@@ -295,6 +296,23 @@ class RunOutputs:
             self.abort()
 
 
+def run_id_of(folder: str | os.PathLike) -> str | None:
+    """The run id a result folder's ``RUN`` marker holds; None where it has none.
+
+    Raises
+    ------
+    StaleOutputError
+        ``RUN`` is not a run marker.
+    """
+    run = Path(folder) / "RUN"
+    if not run.is_file():
+        return None
+    try:
+        return json.loads(run.read_text()).get("run_id")
+    except (json.JSONDecodeError, AttributeError) as exc:
+        raise StaleOutputError(f"{run}: not a run marker ({exc})") from exc
+
+
 def check_run(work: str | os.PathLike, *, folder: str, record: str) -> dict:
     """Read a run's record and check that its folder is from the same run.
 
@@ -317,13 +335,8 @@ def check_run(work: str | os.PathLike, *, folder: str, record: str) -> dict:
         raise StaleOutputError(
             f"{path}: expected a JSON object (the command's record), got {type(doc).__name__}"
         )
-    run = work / folder / "RUN"
     if "run_id" in doc:
-        try:
-            found = json.loads(run.read_text()).get("run_id") if run.is_file() else None
-        except (json.JSONDecodeError, AttributeError) as exc:
-            raise StaleOutputError(f"{run}: not a run marker ({exc})") from exc
-        if found != doc["run_id"]:
+        if run_id_of(work / folder) != doc["run_id"]:
             raise StaleOutputError(
                 f"{work / folder} is not from the run recorded in {path} (an interrupted "
                 "run?); run the command again"

@@ -91,10 +91,21 @@ class ScanMeasurement:
 
 @dataclass(frozen=True)
 class Measurements:
-    """All scans of a session after ingest."""
+    """All scans of a session after ingest.
+
+    Attributes
+    ----------
+    reference : ScanMeasurement
+    scans : dict of str to ScanMeasurement
+        Every scan, the reference too.
+    density_kg_m3 : float or None
+        The phantom's declared density (the session's ``phantom.density_kg_m3``), which
+        :func:`calib.fitting.fit` takes; None where the scans came without a session.
+    """
 
     reference: ScanMeasurement
     scans: dict[str, ScanMeasurement]
+    density_kg_m3: float | None = None
 
     def with_role(self, role: str) -> list[ScanMeasurement]:
         """Scans of one role."""
@@ -165,4 +176,4 @@ def load_measurements(work: str | Path, session: Session) -> Measurements:
             f"{'; '.join(reasons)}. Run `phantom-calib ingest` again"
         )
     scans = {s.name: read_scan(work, s) for s in session.scans}
-    return Measurements(scans[session.reference.name], scans)
+    return Measurements(scans[session.reference.name], scans, session.density_kg_m3)

@@ -11,10 +11,12 @@ from pathlib import Path
 import numpy as np
 
 __all__ = [
+    "DENSITY_RANGE_KG_M3",
     "ScanEntry",
     "Session",
     "SessionError",
     "load_session",
+    "plausible_density",
     "scaffold_session",
     "session_inputs",
 ]
@@ -179,6 +181,17 @@ def session_inputs(session: Session) -> list[Path]:
     return [session.folder, *(s.path for s in session.scans)]
 
 
+#: Densities a phantom may declare, kg/m^3 (tissue and its phantoms lie near 1000;
+#: the range refuses a density in g/cm^3 or g/mm^3 by mistake).
+DENSITY_RANGE_KG_M3 = (500.0, 3000.0)
+
+
+def plausible_density(density_kg_m3: float) -> bool:
+    """Whether a density (kg/m^3) lies in :data:`DENSITY_RANGE_KG_M3`."""
+    lo, hi = DENSITY_RANGE_KG_M3
+    return bool(lo <= density_kg_m3 <= hi)
+
+
 def load_session(folder: str | Path) -> Session:
     """Read and validate ``folder/session.toml``.
 
@@ -210,8 +223,12 @@ def load_session(folder: str | Path) -> Session:
     if not 0 < length < np.inf:
         raise SessionError(f"{toml}: scanner.gravity must be non-zero and of finite length")
     density = phantom.get("density_kg_m3", 1000.0)
-    if not _is_number(density) or density <= 0:
-        raise SessionError(f"{toml}: phantom.density_kg_m3 must be positive, got {density!r}")
+    if not _is_number(density) or not plausible_density(density):
+        lo, hi = DENSITY_RANGE_KG_M3
+        raise SessionError(
+            f"{toml}: phantom.density_kg_m3 must lie in [{lo:g}, {hi:g}] kg/m^3 (a tissue "
+            f"phantom's; 1.0 would be g/cm^3), got {density!r}"
+        )
     nfid = phantom.get("fiducials", 3)
     if not isinstance(nfid, int) or isinstance(nfid, bool) or nfid < 3:
         raise SessionError(f"{toml}: phantom.fiducials must be an integer >= 3, got {nfid!r}")

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import check_run
+from ..io import StaleOutputError, check_run, run_id_of
 from .measurements import Measurements, read_scan
 from .session import ScanEntry
 
@@ -107,7 +107,8 @@ def read_work(work: str | Path) -> WorkFolder:
         No ``calibration.json`` (run ``phantom-calib calibrate`` first) or a missing file
         it names.
     calib.io.StaleOutputError
-        ``calibration/`` is not from the run ``calibration.json`` records.
+        ``calibration/`` is not from the run ``calibration.json`` records, or ``scans/``
+        was ingested again after the calibration (its ``ingest_run_id``).
     """
     from fem.io import read_mesh
 
@@ -119,6 +120,15 @@ def read_work(work: str | Path) -> WorkFolder:
             f"{work}: no calibration.json (run `phantom-calib calibrate` first)"
         ) from exc
     check_record(record, work / "calibration.json")
+    fitted = record.get("ingest_run_id")
+    if fitted is not None and run_id_of(work / "scans") != fitted:
+        # review AI: a new ingest into a calibrated WORK was read with the old fit's
+        # states, and validate reported errors 4-8 times the fitted scans'
+        raise StaleOutputError(
+            f"{work / 'scans'} was ingested again after this calibration (it fitted ingest "
+            f"run {fitted}, the folder holds run {run_id_of(work / 'scans')}): its scans "
+            "are not those calibrated; run `phantom-calib calibrate` again"
+        )
     model = record.get("model") or {}
     ref_name = model.get("reference_scan")
     if ref_name is None or "reference_mesh" not in model:
@@ -130,7 +140,7 @@ def read_work(work: str | Path) -> WorkFolder:
         _entry(name, s["role"], s.get("posture"), work) for name, s in record["scans"].items()
     ]
     scans = {e.name: read_scan(work, e) for e in entries}
-    measurements = Measurements(scans[ref_name], scans)
+    measurements = Measurements(scans[ref_name], scans, model.get("density_kg_m3"))
     mesh = read_mesh(work / model["reference_mesh"], orient=False)
     states = {}
     for name, s in record["scans"].items():

@@ -21,7 +21,7 @@ from ..data.measurements import load_measurements
 from ..data.session import SessionError, load_session, session_inputs
 from ..evaluation import ScanEvaluation, check_postures, evaluate, model_fit_with_postures
 from ..fitting import Calibration, CalibrationOptions, fit
-from ..io import RunOutputs, check_out_apart, check_out_folder, provenance
+from ..io import RunOutputs, check_out_apart, check_out_folder, provenance, run_id_of
 from ..report.maps import error_map_figure, save_figure, shared_error_scale_mm, write_error_ply
 
 __all__ = ["run_calibration", "write_calibration"]
@@ -139,6 +139,7 @@ def write_calibration(
             provenance=provenance(inputs=inputs, parameters=asdict(calibration.options)),
         )
         doc["model"]["reference_mesh"] = f"{FOLDER}/reference_mesh.vtu"
+        doc["ingest_run_id"] = run_id_of(Path(work) / "scans")
         prestress = None
         if c.fm.prestressed:
             c.fm.stress_free(calibration.theta)  # the prestress at the calibrated c1 (cached)

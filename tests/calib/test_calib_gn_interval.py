@@ -90,3 +90,18 @@ def test_a_surface_fit_with_too_few_residuals_for_the_series_interval_says_so(ca
     assert "WARNING: the Gauss-Newton interval, not the series one" in text
     assert "noise only (no mesh check)" in text
     assert "Gauss-Newton" not in "\n".join(_uncertainty_lines(doc, "landmarks"))
+
+
+def test_the_fit_takes_the_measurements_density_and_refuses_none_or_g_per_cm3():
+    # review AI: calib.fit(measurements, options) took 1000 kg/m^3 whatever the session
+    # declared; under gravity alone c1 scales with the density (1050: c1 5 % high)
+    from calib.data.measurements import Measurements
+    from calib.fitting.pipeline import _density
+
+    assert _density(Measurements(None, {}, 1050.0), None) == 1050.0
+    assert _density(Measurements(None, {}, 1050.0), 980.0) == 980.0  # the caller's wins
+    with pytest.raises(ValueError, match="no phantom density"):
+        _density(Measurements(None, {}), None)
+    for bad in (1.05, 0.0, -1000.0, float("nan"), True, "1000"):
+        with pytest.raises(ValueError, match=r"must lie in \[500, 3000\] kg/m\^3"):
+            _density(Measurements(None, {}), bad)

@@ -67,7 +67,7 @@ def test_failed_mesh_size_is_reported_and_retried(nipple_run):
 KEYS_0_1 = {"c1_pa", "c1_ci95_pa", "objective", "objective_value_mm2", "reference_state",
             "uncertainty", "frames", "scans", "iterations", "fe_solves", "reference_recovery",
             "history", "profile", "mesh", "wall_s", "provenance"}  # fmt: skip
-KEYS_ADDED = {"schema_version", "run_id", "optimiser", "model", "model_fit"}
+KEYS_ADDED = {"schema_version", "run_id", "optimiser", "model", "model_fit", "ingest_run_id"}
 SCAN_KEYS_0_1 = {"role", "gravity_ref", "nipple_error_mm", "nipple_landmark_error_mm",
                  "surface_error_mm", "icp", "tumour_error_mm", "files"}  # fmt: skip
 UNCERTAINTY_KEYS_0_1 = {"se_ln_c1", "c1_ci95_pa", "residual_sd_mm", "n_residuals",
@@ -249,6 +249,28 @@ def test_a_band_is_the_figure_s_range_over_the_whole_interval(nipple_run):
         # (1e-9 mm: round-off of the two ways of computing one distance)
         assert low - 1e-9 <= band[0] <= low + np.linalg.norm(dt) * step / 2 + 1e-9, name
         assert band[1] == pytest.approx(high, rel=1e-9), name
+
+
+def test_a_work_folder_ingested_again_after_its_calibration_is_refused(nipple_run, tmp_path):
+    # review AI: a new ingest into a calibrated WORK was read with the old fit's saved
+    # states, and validate wrote errors 4-8 times the fitted scans' without a word
+    import shutil
+
+    from calib.data.work import read_work
+    from calib.io import StaleOutputError, run_id_of, write_json_atomic
+
+    doc, _, work = nipple_run
+    assert doc["ingest_run_id"] == run_id_of(work / "scans") is not None
+    assert read_work(work).measurements.density_kg_m3 == doc["model"]["density_kg_m3"]
+    copy = tmp_path / "work"
+    shutil.copytree(work, copy)
+    write_json_atomic(copy / "scans" / "RUN", {"run_id": "a-later-ingest"})
+    with pytest.raises(StaleOutputError, match="ingested again after this calibration"):
+        read_work(copy)
+    before = (copy / "validation.json").read_text()
+    res = CliRunner().invoke(app, ["validate", str(copy)])
+    assert res.exit_code == 2 and "run `phantom-calib calibrate` again" in res.output
+    assert (copy / "validation.json").read_text() == before  # nothing written
 
 
 def test_a_tumour_without_its_c1_derivative_gets_no_band(nipple_run, tmp_path):

@@ -129,12 +129,18 @@ BAD_SESSIONS = [
     (
         "density-negative",
         VALID_TOML.replace("density_kg_m3 = 1050.0", "density_kg_m3 = -1.0"),
-        r"phantom.density_kg_m3 must be positive, got -1.0",
+        r"phantom.density_kg_m3 must lie in \[500, 3000\] kg/m\^3 .*, got -1.0",
+    ),
+    (
+        "density-in-g-per-cm3",  # review AI: c1 scales with the density (1.0: c1 / 1000)
+        VALID_TOML.replace("density_kg_m3 = 1050.0", "density_kg_m3 = 1.05"),
+        r"phantom.density_kg_m3 must lie in \[500, 3000\] kg/m\^3 \(a tissue phantom's; 1.0 "
+        r"would be g/cm\^3\), got 1.05",
     ),
     (
         "density-string",
         VALID_TOML.replace("density_kg_m3 = 1050.0", 'density_kg_m3 = "1000"'),
-        r"phantom.density_kg_m3 must be positive, got '1000'",
+        r"phantom.density_kg_m3 must lie in .*, got '1000'",
     ),
     (
         "fiducials-two",
