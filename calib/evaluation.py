@@ -33,6 +33,7 @@ __all__ = [
     "evaluate",
     "model_fit_with_postures",
     "scan_metrics",
+    "scan_names",
 ]
 
 log = logging.getLogger(__name__)
@@ -216,11 +217,33 @@ class ScanEvaluation:
         return out | self.metrics.to_json()
 
 
+def scan_names(scans, known: dict) -> list[str]:
+    """The scan names a caller asked for: None is every scan but the reference.
+
+    A single name may be given as a string (review AI: ``scans="tilt_25"`` was taken letter
+    by letter, and ``[]`` for every scan).
+
+    Raises
+    ------
+    ValueError
+        An empty list, or names not in ``known``.
+    """
+    if scans is None:
+        return [n for n, s in known.items() if s.role != "reference"]
+    names = [scans] if isinstance(scans, str) else list(scans)
+    if not names:
+        raise ValueError("no scan named: pass scan names, or None for every scan")
+    unknown = sorted(set(names) - set(known))
+    if unknown:
+        raise ValueError(f"unknown scan(s) {unknown}; the session has {sorted(known)}")
+    return names
+
+
 def evaluate(
     calibration,
     measurements: Measurements | None = None,
     *,
-    scans: list[str] | None = None,
+    scans: str | list[str] | None = None,
     gradient: bool = True,
 ) -> dict[str, ScanEvaluation]:
     """Solve every scan's posture at the calibrated c1 and measure it.
@@ -231,8 +254,8 @@ def evaluate(
         The result of :func:`calib.fit`.
     measurements : Measurements, optional
         Defaults to the measurements the calibration was fitted to.
-    scans : list of str, optional
-        Scan names; default every scan but the reference.
+    scans : str or list of str, optional
+        A scan name or names; default every scan but the reference.
     gradient : bool
         Also the derivatives in ln c1 (one more factorisation per scan).
 
@@ -241,15 +264,18 @@ def evaluate(
     dict of str to ScanEvaluation
         A scan whose FE solve fails at the calibrated c1 has ``failed`` set (and a
         warning is logged), the others are evaluated regardless.
+
+    Raises
+    ------
+    ValueError
+        A Calibration without its model (from JSON), an unknown scan name or an empty
+        list of names.
     """
     cal = calibration.calibrator
     if cal is None:
         raise ValueError("this Calibration carries no model to solve (it was loaded from JSON)")
     meas = measurements or cal.measurements
-    names = scans or [n for n, s in meas.scans.items() if s.role != "reference"]
-    unknown = sorted(set(names) - set(meas.scans))
-    if unknown:
-        raise ValueError(f"unknown scan(s) {unknown}; the session has {sorted(meas.scans)}")
+    names = scan_names(scans, meas.scans)
     nipple = int(cal.mesh.node_set("nipple")[0])
     theta = calibration.theta
     out = {}
@@ -305,6 +331,11 @@ def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALP
         ``surface``, or when fewer than two scans have a solution, at least
         ``MIN_SCAN_POINTS`` surface points and a surface that changes with c1
         (``MIN_POSTURE_SENSITIVITY_SHARE``; a scan left out is warned about).
+
+    Raises
+    ------
+    ValueError
+        A solved scan evaluated without its derivative (``gradient=False``).
     """
     from .model.residuals import scan_residuals
     from .stats import SurfaceSample
@@ -315,8 +346,13 @@ def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALP
         return None
     rs, js, pts, labels, names, found = [], [], [], [], {}, []
     for name, ev in evaluations.items():
-        if ev.failed is not None or ev.dpositions_mm is None:
+        if ev.failed is not None:
             continue
+        if ev.dpositions_mm is None:  # review AI: this returned None, as "no test applies"
+            raise ValueError(
+                f"scan {name} was evaluated without its derivative in ln c1, which the "
+                "posture test needs: evaluate(calibration, gradient=True)"
+            )
         res = scan_residuals(
             "surface",
             cal.measurements.scans[name],

@@ -120,11 +120,15 @@ class Work:
         R = np.asarray(self.record["model"]["R_ref_from_phantom"], float)
         return error_surface_figure(sv, self.folder.measurements.scans[scan], R, vmax=vmax)
 
-    def plot_error_by_displacement(self, scans: list[str] | None = None):
-        """Error histograms by displacement magnitude (matplotlib Figure)."""
+    def plot_error_by_displacement(self, scans: str | list[str] | None = None):
+        """Error histograms by displacement magnitude (matplotlib Figure).
+
+        ``scans``: a name or names of validated scans; default every one.
+        """
+        from .evaluation import scan_names
         from .report.validation import error_by_displacement_figure
 
-        names = scans or list(self.validation.scans)
+        names = scan_names(scans, self.validation.scans)
         return error_by_displacement_figure([self._scan(n) for n in names])
 
     def plot_profile(self):

@@ -113,6 +113,11 @@ def read_work(work: str | Path) -> WorkFolder:
     from fem.io import read_mesh
 
     work = Path(work)
+    if not work.is_dir():  # review AI: a mistyped folder or the record's own path
+        what = (
+            "is a file: pass the work folder that holds it" if work.exists() else "no such folder"
+        )
+        raise FileNotFoundError(f"{work}: {what}")
     try:
         record = check_run(work, folder="calibration", record="calibration.json")
     except FileNotFoundError as exc:

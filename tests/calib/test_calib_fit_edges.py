@@ -294,6 +294,15 @@ def test_a_scan_of_the_reference_posture_is_left_out_of_the_posture_test(measure
     lines = _model_fit_lines(model_fit_with_postures(cal.model_fit, test, names), None)
     assert any("each scan alone" in line for line in lines)
     assert all(math.isfinite(s.theta) for s in test.estimates)
+    # review AI: a name as a string was taken letter by letter, [] as every scan, and
+    # states without their derivative gave None, as where no posture test applies
+    other = next(n for n in evs if n != ref)
+    plain = evaluate(cal, scans=other, gradient=False)
+    assert list(plain) == [other] and plain[other].dpositions_mm is None
+    with pytest.raises(ValueError, match="no scan named"):
+        evaluate(cal, scans=[])
+    with pytest.raises(ValueError, match="without its derivative in ln c1"):
+        check_postures(cal, plain)
 
 
 def test_a_nipple_patch_too_small_is_refused_before_any_fe_work(measurements, monkeypatch):

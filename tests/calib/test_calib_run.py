@@ -262,6 +262,8 @@ def test_a_work_folder_ingested_again_after_its_calibration_is_refused(nipple_ru
     doc, _, work = nipple_run
     assert doc["ingest_run_id"] == run_id_of(work / "scans") is not None
     assert read_work(work).measurements.density_kg_m3 == doc["model"]["density_kg_m3"]
+    with pytest.raises(FileNotFoundError, match="is a file: pass the work folder"):
+        read_work(work / "calibration.json")  # it said "no calibration.json"
     copy = tmp_path / "work"
     shutil.copytree(work, copy)
     write_json_atomic(copy / "scans" / "RUN", {"run_id": "a-later-ingest"})

@@ -291,7 +291,9 @@ def test_command_help_and_errors(tmp_path):
     assert res.exit_code == 0 and "--holdout" in res.output and "--effects" in res.output
     assert "--mesh-size" in res.output and "--parameter-limits" in res.output
     res = runner.invoke(app, ["diagnose", str(tmp_path / "nowhere")])
-    assert res.exit_code == 2 and "calibration.json" in res.output
+    assert res.exit_code == 2 and "nowhere: no such folder" in res.output
+    res = runner.invoke(app, ["diagnose", str(tmp_path)])
+    assert res.exit_code == 2 and "no calibration.json" in res.output
     res = runner.invoke(app, ["diagnose", str(tmp_path), "--effects", "skin,wrinkles"])
     assert res.exit_code == 2 and "unknown effect" in res.output
     res = runner.invoke(app, ["diagnose", str(tmp_path), "--rim-margin", "wide"])
