@@ -273,7 +273,10 @@ def evaluate(
     """
     cal = calibration.calibrator
     if cal is None:
-        raise ValueError("this Calibration carries no model to solve (it was loaded from JSON)")
+        raise ValueError(
+            "this Calibration carries no calibrator (the model to solve): evaluate takes the "
+            "result of calib.fit"
+        )
     meas = measurements or cal.measurements
     names = scan_names(scans, meas.scans)
     nipple = int(cal.mesh.node_set("nipple")[0])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from typing import Literal
 
@@ -99,7 +100,7 @@ class CalibrationOptions:
     c1_guess_pa : float
         Starting value of the first estimate.
     max_iterations : int
-        L-BFGS-B iterations.
+        Gauss-Newton iterations (with a line search) of the search for c1.
     profile_points : int
         Points of the likelihood profile over c1 (0 or 1: none).
     mesh_check_ratio : float or tuple of float
@@ -124,6 +125,33 @@ class CalibrationOptions:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        # review AI: a wrong type or formulation failed only inside the fit, after ingest
+        least_of = {"max_points": 10, "max_iterations": 1, "profile_points": 0, "seed": 0}
+        for name, least in least_of.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+                raise ValueError(f"{name} must be an integer, got {value!r}")
+            if value < least:
+                raise ValueError(f"{name} must be >= {least}, got {value}")
+        if isinstance(self.mesh_retry_mm, list):
+            object.__setattr__(self, "mesh_retry_mm", tuple(self.mesh_retry_mm))
+        if not isinstance(self.mesh_retry_mm, tuple):
+            raise ValueError(
+                f"mesh_retry_mm must be a tuple of sizes in mm, got {self.mesh_retry_mm!r}"
+            )
+        numbers_of = [
+            ("mesh_size_mm", self.mesh_size_mm),
+            ("nu", self.nu),
+            ("c1_guess_pa", self.c1_guess_pa),
+            *(("mesh_retry_mm", v) for v in self.mesh_retry_mm),
+        ]
+        for name, value in numbers_of:
+            if isinstance(value, bool) or not isinstance(value, numbers.Real):
+                raise ValueError(f"{name} must be a number, got {value!r}")
+        from fem import FORMULATIONS
+
+        if self.formulation not in FORMULATIONS:
+            raise ValueError(f"formulation must be one of {FORMULATIONS}, got {self.formulation!r}")
         if self.objective not in OBJECTIVES:
             raise ValueError(f"objective must be one of {OBJECTIVES}, got {self.objective!r}")
         if self.reference_state not in ("unload", "prestress", "shortcut"):
@@ -138,12 +166,10 @@ class CalibrationOptions:
         check_max_dihedral_deg(self.mesh_max_dihedral_deg, "mesh max dihedral angle")
         if not 0.0 < self.nu < 0.5:
             raise ValueError(f"Poisson's ratio must lie in (0, 0.5), got {self.nu}")
-        if self.profile_points < 0:
-            raise ValueError(f"profile points must be >= 0, got {self.profile_points}")
-        if self.max_points < 10:
-            raise ValueError(f"max points must be >= 10, got {self.max_points}")
         if not (self.c1_guess_pa > 0 and math.isfinite(self.c1_guess_pa)):
-            raise ValueError(f"--c1-guess must be a positive c1 in Pa, got {self.c1_guess_pa}")
+            raise ValueError(
+                f"c1_guess_pa (--c1-guess) must be a positive c1 in Pa, got {self.c1_guess_pa}"
+            )
         if isinstance(self.mesh_check_ratio, list):
             object.__setattr__(self, "mesh_check_ratio", tuple(self.mesh_check_ratio))
         mesh_check_ratios(self.mesh_check_ratio)

@@ -30,6 +30,8 @@ estimate whose printout overflowed (audit E, item 3). It is left out, with a war
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from calib_helpers import SMALL_VALIDATION_PRESET
@@ -371,8 +373,28 @@ def test_a_bad_c1_guess_is_refused_first(tmp_path, guess):
         app,
         ["calibrate", str(tmp_path / "none"), "--out", str(tmp_path / "w"), "--c1-guess", guess],
     )
-    assert res.exit_code == 2 and "--c1-guess must be a positive c1 in Pa" in res.output
+    assert res.exit_code == 2 and "(--c1-guess) must be a positive c1 in Pa" in res.output
     assert not (tmp_path / "w").exists()
+
+
+@pytest.mark.parametrize(
+    ("options", "says"),
+    [
+        ({"formulation": "p3"}, "formulation must be one of"),
+        ({"seed": "a"}, "seed must be an integer, got 'a'"),
+        ({"max_points": 3000.5}, "max_points must be an integer"),
+        ({"max_iterations": 0}, "max_iterations must be >= 1"),
+        ({"profile_points": True}, "profile_points must be an integer"),
+        ({"mesh_retry_mm": 14.0}, "mesh_retry_mm must be a tuple of sizes in mm"),
+        ({"mesh_retry_mm": ("14",)}, "mesh_retry_mm must be a number"),
+        ({"mesh_size_mm": "12"}, "mesh_size_mm must be a number"),
+    ],
+)
+def test_calibration_options_of_the_wrong_type_are_refused_when_made(options, says):
+    # review AI: each was accepted and failed inside the fit, after a possibly long ingest
+    with pytest.raises(ValueError, match=re.escape(says)):
+        CalibrationOptions(**options)
+    assert CalibrationOptions(mesh_retry_mm=[14, 16]).mesh_retry_mm == (14, 16)  # JSON's lists
 
 
 def test_a_failed_series_interval_keeps_the_fit_and_says_so(measurements, monkeypatch, caplog):
