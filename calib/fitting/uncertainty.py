@@ -55,7 +55,8 @@ class Uncertainty:
         change with c1 (then ``c1_ci95_pa`` is None too).
     c1_ci95_pa : tuple of float or None
     residual_sd_mm : float
-        Residual noise estimate.
+        Residual noise estimate: the residuals' RMS about zero, sqrt(sum r^2 / (n - 1))
+        (not about their mean; for ``profile`` the noise level the profile used).
     n_residuals, n_effective : float
         Residual count and effective independent samples.
     correlation_length_mm : float

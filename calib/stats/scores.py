@@ -118,7 +118,9 @@ class ModelFit:
     method : str
     alpha : float
     chi2_statistic, chi2_p_value : float
-        The plain whitened score test, always reported.
+        The plain whitened score test on ``K_low`` degrees of freedom (``chi2_dof`` in
+        :meth:`as_json`), always reported; with ``method="band-F"`` it is not in the
+        verdict (it needs the noise model's variance exact, which the F ratio does not).
     low_degree, high_degree : int
     noise : NoiseModel
     """
@@ -146,6 +148,7 @@ class ModelFit:
             "alpha": float(self.alpha),
             "chi2_statistic": float(self.chi2_statistic),
             "chi2_p_value": float(self.chi2_p_value),
+            "chi2_dof": float(self.dof[0]),  # K_low, in either method
             "low_degree": int(self.low_degree),
             "high_degree": int(self.high_degree),
             "noise": self.noise.as_json(),

@@ -116,6 +116,13 @@ def test_misfit_fires_on_a_large_scale_pattern(setup):
         assert res.verdict == "misfit", res
     doc = json.loads(json.dumps(res.as_json()))
     assert {"statistic", "dof", "p_value", "verdict"} <= set(doc)
+    # the chi-square's degrees of freedom are band F's K_low (review AJ: not recorded),
+    # the ones its p-value was computed on
+    from scipy import stats
+
+    assert doc["chi2_dof"] == doc["dof"][0]
+    p = stats.chi2.sf(doc["chi2_statistic"], doc["chi2_dof"])
+    assert doc["chi2_p_value"] == pytest.approx(p, rel=1e-12)
 
 
 def test_misfit_rejects_bad_options(setup):
