@@ -73,8 +73,9 @@ log = logging.getLogger(__name__)
 
 #: One-line definition of :attr:`ConstellationMatch.confidence` (for output files).
 CONFIDENCE_DEFINITION = (
-    "posterior probability of this identity against the best competing one-to-one "
-    "assignment of the whole constellation: 1 / (1 + exp(-(C' - C*))), C* the chosen "
+    "two-way posterior probability (equal priors) of this identity against the best "
+    "competing one-to-one assignment of the whole constellation alone (further rivals "
+    "would lower it): 1 / (1 + exp(-(C' - C*))), C* the chosen "
     "assignment's negative log-likelihood (sizes, positions under a smooth Gaussian-"
     "process deformation, missed and extra detections), C' that of the best rated "
     "assignment that changes this identity (0.5: a tie; 0.95: the competitor is 19 "
