@@ -28,7 +28,13 @@ __all__ = [
     "write_json_atomic",
 ]
 
-_PACKAGES = ("phantom-calib", "numpy", "scipy", "scikit-fem", "tetgen", "meshio", "open3d-cpu")
+#: Distributions whose versions a provenance record names (None where not installed:
+#: open3d is ``open3d-cpu`` on x86_64 and ``open3d`` elsewhere; pypardiso decides between
+#: PARDISO and SuperLU).
+_PACKAGES = (
+    *("phantom-calib", "numpy", "scipy", "scikit-fem", "tetgen", "meshio"),
+    *("open3d-cpu", "open3d", "pypardiso"),
+)
 
 
 def write_json_atomic(path: str | os.PathLike, data: dict) -> Path:
