@@ -19,12 +19,13 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from fem.postures import PLANES
 
-from .data.work import WorkFolder, ingest_record
+from .data.work import WorkFolder, as_work_folder, ingest_record
 from .evaluation import ScanMetrics, scan_metrics
 from .fitting.result import calibration_caveats
 
@@ -356,7 +357,7 @@ def _scan_validation(work: WorkFolder, name: str, faces: np.ndarray) -> ScanVali
     )
 
 
-def validate_work(work: WorkFolder, *, scans: list[str] | None = None) -> Validation:
+def validate_work(work: WorkFolder | str | Path, *, scans: list[str] | None = None) -> Validation:
     """Validation figures of every scan with a saved state (default: all but the reference).
 
     Scans whose FE solve failed at the calibration have no state: by default they are
@@ -364,8 +365,8 @@ def validate_work(work: WorkFolder, *, scans: list[str] | None = None) -> Valida
 
     Parameters
     ----------
-    work : WorkFolder
-        From :func:`calib.data.read_work`.
+    work : WorkFolder, str, Path or calib.notebook.Work
+        From :func:`calib.data.read_work`, a path to read, or ``calib.load_work``'s object.
     scans : list of str, optional
         Scan names to validate.
 
@@ -374,6 +375,8 @@ def validate_work(work: WorkFolder, *, scans: list[str] | None = None) -> Valida
     Validation
     """
     from .model.residuals import SimulatedSurface
+
+    work = as_work_folder(work)
 
     faces = SimulatedSurface.of(work.mesh).faces
     names = scans or list(work.states)

@@ -17,7 +17,14 @@ from ..io import StaleOutputError, check_run, run_id_of
 from .measurements import Measurements, read_scan
 from .session import ScanEntry
 
-__all__ = ["SCHEMA_VERSION", "SavedState", "WorkFolder", "check_record", "read_work"]
+__all__ = [
+    "SCHEMA_VERSION",
+    "SavedState",
+    "WorkFolder",
+    "as_work_folder",
+    "check_record",
+    "read_work",
+]
 
 #: Version of ``calibration.json``. 1: the keys of phantom-calib 0.1 plus
 #: ``schema_version``, ``optimiser`` and ``model``. A record without it is 0.1's; one of a
@@ -163,6 +170,31 @@ def read_work(work: str | Path) -> WorkFolder:
             dtumour_mm=_vec(s.get("model", {}).get("dtumour_dlnc1_mm")),
         )
     return WorkFolder(work, record, measurements, mesh, states)
+
+
+def as_work_folder(work) -> WorkFolder:
+    """A calibrated work folder from what a caller holds.
+
+    Parameters
+    ----------
+    work : WorkFolder, str, Path or calib.notebook.Work
+        A path is read (:func:`read_work`); ``calib.load_work``'s object gives its folder.
+
+    Raises
+    ------
+    TypeError
+        Anything else.
+    """
+    if isinstance(work, WorkFolder):
+        return work
+    if isinstance(work, str | Path):
+        return read_work(work)
+    if isinstance(getattr(work, "folder", None), WorkFolder):  # calib.load_work's Work
+        return work.folder
+    raise TypeError(
+        "expected a work folder: its path, calib.load_work(...) or calib.data.read_work(...), "
+        f"got {type(work).__name__}"
+    )
 
 
 def check_record(record: dict, path: Path) -> None:

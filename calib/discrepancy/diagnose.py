@@ -62,13 +62,14 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import partial
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
 import fem
 
-from ..data.work import WorkFolder, ingest_record
+from ..data.work import WorkFolder, as_work_folder, ingest_record
 from ..evaluation import ScanMetrics, scan_metrics
 from ..fitting.options import MESH_SIZE_RANGE_MM
 from ..model.effects import ADMISSIBLE, LIBRARY, SKIN_THICKNESS_MM
@@ -737,7 +738,7 @@ def _columns_of(fields: FieldSet, effects: Sequence[str]) -> tuple[str, ...]:
 
 
 def diagnose(
-    work: WorkFolder,
+    work: WorkFolder | str | Path,
     options: DiagnosisOptions | None = None,
     *,
     progress: Callable[[str], None] | None = None,
@@ -746,8 +747,8 @@ def diagnose(
 
     Parameters
     ----------
-    work : WorkFolder
-        :func:`calib.data.read_work`.
+    work : WorkFolder, str, Path or calib.notebook.Work
+        :func:`calib.data.read_work`, a path to read, or ``calib.load_work``'s object.
     options : DiagnosisOptions, optional
     progress : callable, optional
         Called with a line of text at every step.
@@ -766,6 +767,7 @@ def diagnose(
     o = options or DiagnosisOptions()
     say = progress or log.info
     t0 = time.perf_counter()
+    work = as_work_folder(work)
     prob = build_problem(
         work,
         holdout=o.holdout,

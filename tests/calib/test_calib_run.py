@@ -275,6 +275,21 @@ def test_a_work_folder_ingested_again_after_its_calibration_is_refused(nipple_ru
     assert (copy / "validation.json").read_text() == before  # nothing written
 
 
+def test_validate_and_diagnose_take_the_work_folder_a_notebook_holds(nipple_run):
+    # review AI: calib.load_work's object and a path raised AttributeError in both
+    import calib
+    from calib.data.work import WorkFolder, as_work_folder
+    from calib.validation import validate_work
+
+    _, _, work = nipple_run
+    held = calib.load_work(work)
+    assert as_work_folder(held) is held.folder
+    assert isinstance(as_work_folder(str(work)), WorkFolder)
+    with pytest.raises(TypeError, match="expected a work folder: its path"):
+        as_work_folder(3)
+    assert validate_work(held, scans=["tilt_50"]).scans["tilt_50"].role == "validation"
+
+
 def test_a_tumour_without_its_c1_derivative_gets_no_band(nipple_run, tmp_path):
     # the band of a figure is its range over the c1 interval; a tumour whose derivative
     # was not saved does not move with c1 and got the zero-width band [v, v]
