@@ -301,13 +301,18 @@ def _fmt(x: float | None, spec: str = ".2f") -> str:
     return "-" if x is None else format(x, spec)
 
 
-def format_registration_table(registrations: dict[str, ScanRegistration]) -> str:
+def format_registration_table(
+    registrations: dict[str, ScanRegistration], *, roles: dict[str, str] | None = None
+) -> str:
     """Plain-text summary table of a session's registrations for the CLI.
 
     Parameters
     ----------
     registrations : dict of str to ScanRegistration
         Output of :func:`register_scans`.
+    roles : dict of str to str, optional
+        Each scan's role for the role column; default "reference" for the reference
+        scan and blank for the others.
 
     Returns
     -------
@@ -331,7 +336,7 @@ def format_registration_table(registrations: dict[str, ScanRegistration]) -> str
         rows.append(
             [
                 name,
-                "reference" if r.is_reference else "",
+                (roles or {}).get(name, "reference" if r.is_reference else ""),
                 _fmt(r.fre_mm, ".3f"),
                 _fmt(r.tre_nipple_mm),
                 _fmt(r.tre_tumour_mm),

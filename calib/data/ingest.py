@@ -47,6 +47,14 @@ class IngestResult:
     tracking: dict = field(default_factory=dict)  # name -> InclusionTracking
     tumour_choice: TumourChoice | None = None  # the reference's tracked inclusion and why
 
+    def __repr__(self) -> str:  # review AI: the generated one ran to 30,000 characters
+        return f"IngestResult({str(self.session.folder)!r}, {len(self.scans)} scans)"
+
+    def _repr_html_(self) -> str:
+        import html
+
+        return f"<pre>{html.escape(repr(self))}\n\n{html.escape(self.summary_table)}</pre>"
+
 
 def _process(entry, session: Session, progress):
     import imaging
@@ -501,7 +509,9 @@ def ingest_scans(session: Session, *, progress=None) -> IngestResult:
     scans = {n: _with_tumour(r, tumour[n]) for n, r in scans.items()}
     regs = _register(session, scans, landmarks=True)
     check_gravity_sign(session, scans, regs)
-    table = registration.format_registration_table(regs)
+    table = registration.format_registration_table(
+        regs, roles={s.name: s.role for s in session.scans}
+    )
     table += "\n\n" + _tracking_table(choice, tracking)
     return IngestResult(session, scans, regs, tumour, table, tracking, choice)
 

@@ -1,4 +1,5 @@
-"""What calibration.json says a reader of figures made from it must be told.
+"""What calibration.json says a reader of figures made from it must be told (and how an
+ingest result prints).
 
 Review AJ: `validate`, its reports and the notebook's `Work` printed "95 % bands" from a
 calibration whose record said `misfit` (or an optimiser that did not converge) without a
@@ -48,3 +49,15 @@ def test_the_validation_table_warns_with_each_caveat():
         "WARNING (calibration): c1 ended on a bound",
     ]
     assert "WARNING" not in format_validation({"scans": {}})  # a validation.json before it
+
+
+def test_an_ingest_result_prints_in_a_line_and_shows_its_table_in_jupyter():
+    # review AI: the generated repr ran to 30,000 characters (every scan's arrays)
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from calib.data.ingest import IngestResult
+
+    res = IngestResult(SimpleNamespace(folder=Path("scans")), {"a": 1, "b": 2}, {}, {}, "T <x>")
+    assert repr(res) == "IngestResult('scans', 2 scans)"
+    assert res._repr_html_() == "<pre>IngestResult(&#x27;scans&#x27;, 2 scans)\n\nT &lt;x&gt;</pre>"

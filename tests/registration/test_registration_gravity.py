@@ -133,6 +133,10 @@ def test_session_outputs_json_and_table():
     assert len(lines) == 2 + len(regs)
     assert lines[2].startswith("ref") and "reference" in lines[2]
     assert f"{a.fre_mm:.3f}" in table
+    # review AI: the role column was blank for every scan but the reference
+    named = format_registration_table(regs, roles={"a": "validation"}).splitlines()
+    assert "validation" in next(line for line in named[2:] if line.startswith("a "))
+    assert "reference" in named[2]
 
 
 def test_session_errors():
