@@ -175,7 +175,12 @@ class Work:
         interval = f" (95 % {ci[0]:.1f}–{ci[1]:.1f})" if ci else ""
         scans = ", ".join(f"{n} ({r})" for n, r in self.scans.items())
         warn = "".join(f"; WARNING: {said}" for said in calibration_caveats(self.record))
-        return f"Work({str(self.folder.path)!r}: c1 = {self.c1_pa:.1f} Pa{interval}; {scans}{warn})"
+        named = ((self.record.get("model") or {}).get("effects") or {}).get("named")
+        effects = f" with {', '.join(named)} (diagnose's refit)" if named else ""
+        return (
+            f"Work({str(self.folder.path)!r}: c1 = {self.c1_pa:.1f} Pa{interval}{effects}; "
+            f"{scans}{warn})"
+        )
 
     def _repr_html_(self) -> str:
         rows = []

@@ -61,3 +61,24 @@ def test_an_ingest_result_prints_in_a_line_and_shows_its_table_in_jupyter():
     res = IngestResult(SimpleNamespace(folder=Path("scans")), {"a": 1, "b": 2}, {}, {}, "T <x>")
     assert repr(res) == "IngestResult('scans', 2 scans)"
     assert res._repr_html_() == "<pre>IngestResult(&#x27;scans&#x27;, 2 scans)\n\nT &lt;x&gt;</pre>"
+
+
+def test_a_work_folder_says_its_caveats_and_a_refit_s_effects_in_its_repr():
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from calib.notebook import Work
+
+    scans = {"ref": SimpleNamespace(role="reference")}
+    record = CLEAN | {"c1_ci95_pa": None, "model": {"effects": {"named": ["skin"]}}}
+    folder = SimpleNamespace(
+        path=Path("w"), record=record, c1_pa=420.4, measurements=SimpleNamespace(scans=scans)
+    )
+    assert (
+        repr(Work(folder))
+        == "Work('w': c1 = 420.4 Pa with skin (diagnose's refit); ref (reference))"
+    )
+    folder.record = record | {"model": {}, "model_fit": {"verdict": "misfit"}}
+    assert repr(Work(folder)).endswith(
+        f"ref (reference); WARNING: {calibration_caveats(folder.record)[0]})"
+    )
