@@ -259,10 +259,25 @@ MIN_DIFF_LEVELS = 40
 DIFF_CLIP_SDS = 5.0
 
 
-def _diffs(image: np.ndarray) -> np.ndarray:
-    """The differences between neighbours along each axis where both are finite, pooled."""
-    diffs = (np.diff(image, axis=k).ravel() for k in range(3))
-    return np.concatenate([x[np.isfinite(x)] for x in diffs])
+#: Lags (voxels) the interior's differences are taken at, and the rise from one lag to
+#: the next that says neighbours are correlated: the estimate moves to the next lag while
+#: it rises by more (white noise: equal at every lag within 0.5 %; an interpolated image:
+#: 0.47-0.86 of the truth at lag 1, review AF).
+MAX_DIFF_LAG = 4
+CORRELATED_RISE = 1.03
+
+
+def _diffs(image: np.ndarray, lag: int = 1) -> np.ndarray:
+    """The differences between voxels ``lag`` apart along each axis, where both are finite.
+
+    Pooled over the three axes.
+    """
+    out = []
+    for k in range(3):
+        n = image.shape[k]
+        d = np.take(image, range(lag, n), axis=k) - np.take(image, range(n - lag), axis=k)
+        out.append(d[np.isfinite(d)])
+    return np.concatenate(out)
 
 
 def _quantised(values: np.ndarray, levels: int) -> bool:
@@ -283,19 +298,29 @@ def _interior_noise(normalised: np.ndarray, raw: np.ndarray) -> float:
     counts per sigma, where the median absolute deviation jumps: 0.68 to 1.21 of the
     truth at 1.3-1.7 counts), their sd instead, those farther than
     :data:`DIFF_CLIP_SDS` robust sds from the median left out: continuous in the step,
-    and counting its step^2 / 12 as the noise it is. Low where neighbours are correlated
-    (interpolation). The quantisation is read on the raw image (``raw``, the same voxels):
-    the bias correction's division spreads its steps.
+    and counting its step^2 / 12 as the noise it is. Where neighbours are correlated (an
+    interpolated image) the differences of next neighbours read low: the estimate is
+    taken at the lag, up to :data:`MAX_DIFF_LAG`, where it stops rising by more than
+    :data:`CORRELATED_RISE` (white noise: lag 1). The quantisation is read on the raw
+    image (``raw``, the same voxels): the bias correction's division spreads its steps.
     """
-    d = _diffs(normalised)
-    if not d.size:
-        return float("nan")
-    dev = np.abs(d - np.median(d))
-    mad = 1.4826 * float(np.median(dev))
-    if not _quantised(_diffs(raw), MIN_DIFF_LEVELS):
-        return mad / float(np.sqrt(2.0))
-    keep = dev <= DIFF_CLIP_SDS * mad if mad > 0 else np.ones(d.size, bool)
-    return float(np.std(d[keep]) / np.sqrt(2.0))
+    quantised = _quantised(_diffs(raw), MIN_DIFF_LEVELS)
+    sigma = float("nan")
+    for lag in range(1, MAX_DIFF_LAG + 1):
+        d = _diffs(normalised, lag)
+        if not d.size:
+            break
+        dev = np.abs(d - np.median(d))
+        mad = 1.4826 * float(np.median(dev))
+        if quantised:
+            keep = dev <= DIFF_CLIP_SDS * mad if mad > 0 else np.ones(d.size, bool)
+            at_lag = float(np.std(d[keep]) / np.sqrt(2.0))
+        else:
+            at_lag = mad / float(np.sqrt(2.0))
+        if lag > 1 and not at_lag > CORRELATED_RISE * sigma:
+            break  # no longer rising: neighbours this far apart are not correlated
+        sigma = at_lag
+    return sigma
 
 
 def image_noise(

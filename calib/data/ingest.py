@@ -556,8 +556,9 @@ class StaleIngestError(RuntimeError):
 #: blob that tissue encloses is an inclusion, never a marker, and stays in the body mask
 #: (inclusions over twice the body's level were counted as markers and cut from the body);
 #: the image noise from the body's interior where the background is no Rayleigh floor
-#: (``quality.seg_noise_method``).
-INGEST_REVISION = 7
+#: (``quality.seg_noise_method``). 8: that interior noise at the lag where correlated
+#: neighbours (an interpolated image) stop reading it low.
+INGEST_REVISION = 8
 
 
 def ingest_inputs(session: Session) -> dict:
