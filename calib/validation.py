@@ -26,7 +26,7 @@ import numpy as np
 from fem.postures import PLANES
 
 from .data.work import WorkFolder, as_work_folder, ingest_record
-from .evaluation import ScanMetrics, scan_metrics
+from .evaluation import ScanMetrics, scan_metrics, scan_names
 from .fitting.result import calibration_caveats
 
 log = logging.getLogger(__name__)
@@ -357,7 +357,9 @@ def _scan_validation(work: WorkFolder, name: str, faces: np.ndarray) -> ScanVali
     )
 
 
-def validate_work(work: WorkFolder | str | Path, *, scans: list[str] | None = None) -> Validation:
+def validate_work(
+    work: WorkFolder | str | Path, *, scans: str | list[str] | None = None
+) -> Validation:
     """Validation figures of every scan with a saved state (default: all but the reference).
 
     Scans whose FE solve failed at the calibration have no state: by default they are
@@ -367,8 +369,8 @@ def validate_work(work: WorkFolder | str | Path, *, scans: list[str] | None = No
     ----------
     work : WorkFolder, str, Path or calib.notebook.Work
         From :func:`calib.data.read_work`, a path to read, or ``calib.load_work``'s object.
-    scans : list of str, optional
-        Scan names to validate.
+    scans : str or list of str, optional
+        A scan name or names to validate; default every scan with a saved state.
 
     Returns
     -------
@@ -379,7 +381,8 @@ def validate_work(work: WorkFolder | str | Path, *, scans: list[str] | None = No
     work = as_work_folder(work)
 
     faces = SimulatedSurface.of(work.mesh).faces
-    names = scans or list(work.states)
+    # a name as a string, not its letters; [] refused (review AK)
+    names = list(work.states) if scans is None else scan_names(scans, work.measurements.scans)
     missing = sorted(set(names) - set(work.states))
     if missing:
         raise KeyError(f"{work.path}: no saved state for scan(s) {missing} (failed or unknown)")
@@ -391,9 +394,7 @@ def validate_work(work: WorkFolder | str | Path, *, scans: list[str] | None = No
                 "%s: scan %s not validated: no FE solution at calibration (%s)", work.path, n, why
             )
     ci = work.record.get("c1_ci95_pa")
-    caveats = tuple(calibration_caveats(work.record))
-    for said in caveats:  # review AJ: validate's bands hid a misfit calibrate had said
-        log.warning("%s: calibration: %s", work.path, said)
+    caveats = tuple(calibration_caveats(work.record))  # review AJ: validate hid a misfit
     return Validation(
         c1_pa=work.c1_pa,
         c1_ci95_pa=None if ci is None else (float(ci[0]), float(ci[1])),

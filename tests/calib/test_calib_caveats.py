@@ -37,6 +37,9 @@ def test_each_caveat_is_said_once():
     assert said[1] == "the optimiser did not converge (no decrease found)"
     assert said[2] == "c1 ended on the upper bound of its search range"
     assert "Gauss-Newton" in said[3]
+    # a refit's optimiser names its bound "theta" (review AK: "the theta bound")
+    theta = record | {"optimiser": {"success": True, "bound": "theta"}}
+    assert "c1 ended on a bound of its search range" in calibration_caveats(theta)
     # the landmarks objective's interval is the Gauss-Newton one by design
     assert calibration_caveats(record | {"objective": "landmarks"})[-1].startswith("c1 ended")
 

@@ -60,7 +60,9 @@ def test_a_prone_reference_takes_its_axes_from_a_lateral_scan():
 def test_the_fit_refuses_undefined_axes_before_any_fe_work():
     # it raised in calibration.json's writer, after the whole fit
     prone = _scan(90.0, name="prone")
-    ms = SimpleNamespace(reference=prone, scans={"prone": prone, "sup": _scan(-88.0)})
+    ms = SimpleNamespace(
+        reference=prone, scans={"prone": prone, "sup": _scan(-88.0)}, density_kg_m3=1000.0
+    )
     with pytest.raises(ValueError, match="add a scan in a lateral posture"):
         fit(ms)
 

@@ -141,6 +141,11 @@ def test_the_refitted_model_is_a_calibration_validate_accepts(skin):
     assert set(val["scans"]) == set(doc["gap"])
     roles = {n: s["role"] for n, s in val["scans"].items()}
     assert roles[doc["scans"]["holdout"]] == "validation"
+    # the calibration's model-fit verdict judged the model without the skin: not the
+    # refit's (review AK: validate warned of the calibration's misfit on the refit)
+    assert wf.record["model_fit"] is None and not any(
+        "misfit" in c for c in val["calibration_caveats"]
+    )
 
 
 def test_a_homogeneous_truth_has_no_missing_effect(none):
