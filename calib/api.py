@@ -1,7 +1,8 @@
-"""Notebook-level functions: one call per pipeline stage, results as objects.
+"""Notebook-level functions: one call per pipeline stage.
 
-They wrap :mod:`calib.workflows` (which write WORK/ exactly as the command line does)
-and return Python objects with readable ``repr``s.
+They wrap :mod:`calib.workflows` (which write WORK/ exactly as the command line does):
+``ingest`` returns an :class:`calib.data.ingest.IngestResult`, ``calibrate`` and
+``validate`` their records (dicts), ``load_work`` a :class:`calib.notebook.Work`.
 """
 
 from __future__ import annotations
@@ -23,8 +24,20 @@ def ingest(scans: str | Path, work: str | Path, *, progress=None):
     return run_ingest(scans, work, progress=progress)
 
 
-def calibrate(scans: str | Path, work: str | Path, *, progress=None, **options) -> dict:
-    """Calibrate c1 (``phantom-calib calibrate``); keyword options as ``CalibrationOptions``.
+def calibrate(
+    scans: str | Path, work: str | Path, *, options=None, progress=None, **fields
+) -> dict:
+    """Calibrate c1 (``phantom-calib calibrate``).
+
+    Parameters
+    ----------
+    scans, work : str or Path
+        The scan folder (``session.toml``) and the work folder to write.
+    options : CalibrationOptions, optional
+        The options, as :func:`calib.fit` takes them; or give their fields as keywords
+        (``mesh_size_mm=14``), not both.
+    progress : callable, optional
+        Called with a line of text at every step.
 
     Returns
     -------
@@ -34,7 +47,10 @@ def calibrate(scans: str | Path, work: str | Path, *, progress=None, **options) 
     from .fitting import CalibrationOptions
     from .workflows.calibrate import run_calibration
 
-    return run_calibration(scans, work, CalibrationOptions(**options), progress=progress)
+    if options is not None and fields:
+        raise TypeError(f"give options or its fields as keywords, not both ({sorted(fields)})")
+    opts = options if options is not None else CalibrationOptions(**fields)
+    return run_calibration(scans, work, opts, progress=progress)
 
 
 def validate(work: str | Path, *, progress=None) -> dict:

@@ -397,6 +397,22 @@ def test_calibration_options_of_the_wrong_type_are_refused_when_made(options, sa
     assert CalibrationOptions(mesh_retry_mm=[14, 16]).mesh_retry_mm == (14, 16)  # JSON's lists
 
 
+def test_calibrate_takes_the_options_fit_takes_or_their_fields(tmp_path, monkeypatch):
+    # review AI: calib.calibrate took the fields as keywords only, not the object calib.fit
+    # takes; both at once is refused before any work
+    import calib
+    import calib.workflows.calibrate as workflow
+
+    seen = []
+    monkeypatch.setattr(workflow, "run_calibration", lambda s, w, o, progress: seen.append(o))
+    opts = CalibrationOptions(mesh_size_mm=14.0)
+    calib.calibrate(tmp_path, tmp_path / "w", options=opts)
+    calib.calibrate(tmp_path, tmp_path / "w", mesh_size_mm=14.0)
+    assert seen == [opts, opts]
+    with pytest.raises(TypeError, match="not both"):
+        calib.calibrate(tmp_path, tmp_path / "w", options=opts, mesh_size_mm=12.0)
+
+
 def test_a_failed_series_interval_keeps_the_fit_and_says_so(measurements, monkeypatch, caplog):
     # the series interval's noise model can fail on residuals it cannot model (e.g. constant
     # within scans): that ended the run after the whole fit without calibration.json
