@@ -7,9 +7,12 @@ They wrap :mod:`calib.workflows` (which write WORK/ exactly as the command line 
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 __all__ = ["calibrate", "ingest", "load_work", "validate"]
+
+log = logging.getLogger(__name__)
 
 
 def ingest(scans: str | Path, work: str | Path, *, progress=None):
@@ -49,6 +52,8 @@ def calibrate(
 
     if options is not None and fields:
         raise TypeError(f"give options or its fields as keywords, not both ({sorted(fields)})")
+    if options is not None and not isinstance(options, CalibrationOptions):
+        raise TypeError(f"options must be a CalibrationOptions, got {type(options).__name__}")
     opts = options if options is not None else CalibrationOptions(**fields)
     return run_calibration(scans, work, opts, progress=progress)
 
@@ -63,7 +68,10 @@ def validate(work: str | Path, *, progress=None) -> dict:
     """
     from .workflows.validate import run_validation
 
-    return run_validation(work, progress=progress)
+    record = run_validation(work, progress=progress)
+    for said in record.get("calibration_caveats") or []:  # the command prints them
+        log.warning("calibration: %s", said)
+    return record
 
 
 def load_work(work: str | Path):

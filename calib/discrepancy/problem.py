@@ -714,8 +714,9 @@ def comparable_imaging_noise(work: WorkFolder, scans) -> dict[str, float]:
     """:func:`imaging_noise_mm` of the scans, where their image noise was measured alike.
 
     Ingest reads the noise from a Rayleigh background or, where there is none, from the
-    body's interior (``quality.seg_noise_method``), and the two disagree on correlated
-    noise (interpolated images: the interior reads 0.47-0.86 of the truth, review AF):
+    body's interior (``quality.seg_noise_method``), and the two may disagree on correlated
+    noise (interpolated images: the interior's reading at the lag where they decorrelate
+    is 0.93-1.0 of the truth; at lag 1 it was 0.47-0.86, review AF):
     where the scans' noise was measured in different ways, their image noise is not
     compared, only their voxels (each scan's voxel edge times the scans' median image
     noise, with a warning; review AH: returning none lost a 4 mm scan's 1.74 times).

@@ -85,3 +85,15 @@ def test_a_work_folder_says_its_caveats_and_a_refit_s_effects_in_its_repr():
     assert repr(Work(folder)).endswith(
         f"ref (reference); WARNING: {calibration_caveats(folder.record)[0]})"
     )
+
+
+def test_calib_validate_warns_of_each_caveat_in_a_notebook(monkeypatch, caplog):
+    # review AL: the command prints them in its table; calib.validate() said nothing
+    import calib
+    import calib.workflows.validate as workflow
+
+    record = {"calibration_caveats": ["model misfit (x)"]}
+    monkeypatch.setattr(workflow, "run_validation", lambda work, progress: record)
+    with caplog.at_level("WARNING"):
+        assert calib.validate("w") is record
+    assert "calibration: model misfit (x)" in caplog.text

@@ -411,6 +411,8 @@ def test_calibrate_takes_the_options_fit_takes_or_their_fields(tmp_path, monkeyp
     assert seen == [opts, opts]
     with pytest.raises(TypeError, match="not both"):
         calib.calibrate(tmp_path, tmp_path / "w", options=opts, mesh_size_mm=12.0)
+    with pytest.raises(TypeError, match="options must be a CalibrationOptions, got dict"):
+        calib.calibrate(tmp_path, tmp_path / "w", options={})  # review AL: ran as defaults
 
 
 def test_a_failed_series_interval_keeps_the_fit_and_says_so(measurements, monkeypatch, caplog):
