@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import numbers
 import re
 import tomllib
 from dataclasses import dataclass, field
@@ -15,8 +16,8 @@ __all__ = [
     "ScanEntry",
     "Session",
     "SessionError",
+    "checked_density_kg_m3",
     "load_session",
-    "plausible_density",
     "scaffold_session",
     "session_inputs",
 ]
@@ -186,10 +187,28 @@ def session_inputs(session: Session) -> list[Path]:
 DENSITY_RANGE_KG_M3 = (500.0, 3000.0)
 
 
-def plausible_density(density_kg_m3: float) -> bool:
-    """Whether a density (kg/m^3) lies in :data:`DENSITY_RANGE_KG_M3`."""
+def checked_density_kg_m3(value, name: str) -> float:
+    """A declared density (kg/m^3) as a float, refused outside :data:`DENSITY_RANGE_KG_M3`.
+
+    Parameters
+    ----------
+    value : object
+        The density as given.
+    name : str
+        Where it was given, for the message (``phantom.density_kg_m3``).
+
+    Raises
+    ------
+    ValueError
+        Not a number, or outside the range.
+    """
     lo, hi = DENSITY_RANGE_KG_M3
-    return bool(lo <= density_kg_m3 <= hi)
+    if isinstance(value, bool) or not (isinstance(value, numbers.Real) and lo <= value <= hi):
+        raise ValueError(
+            f"{name} must lie in [{lo:g}, {hi:g}] kg/m^3 (a tissue phantom's; 1.0 would be "
+            f"g/cm^3), got {value!r}"
+        )
+    return float(value)
 
 
 def load_session(folder: str | Path) -> Session:
@@ -222,13 +241,12 @@ def load_session(folder: str | Path) -> Session:
         length = np.linalg.norm(g)
     if not 0 < length < np.inf:
         raise SessionError(f"{toml}: scanner.gravity must be non-zero and of finite length")
-    density = phantom.get("density_kg_m3", 1000.0)
-    if not _is_number(density) or not plausible_density(density):
-        lo, hi = DENSITY_RANGE_KG_M3
-        raise SessionError(
-            f"{toml}: phantom.density_kg_m3 must lie in [{lo:g}, {hi:g}] kg/m^3 (a tissue "
-            f"phantom's; 1.0 would be g/cm^3), got {density!r}"
+    try:
+        density = checked_density_kg_m3(
+            phantom.get("density_kg_m3", 1000.0), "phantom.density_kg_m3"
         )
+    except ValueError as exc:
+        raise SessionError(f"{toml}: {exc}") from None
     nfid = phantom.get("fiducials", 3)
     if not isinstance(nfid, int) or isinstance(nfid, bool) or nfid < 3:
         raise SessionError(f"{toml}: phantom.fiducials must be an integer >= 3, got {nfid!r}")

@@ -133,13 +133,13 @@ def read_work(work: str | Path) -> WorkFolder:
         ) from exc
     check_record(record, work / "calibration.json")
     fitted = record.get("ingest_run_id")
-    if fitted is not None and run_id_of(work / "scans") != fitted:
+    if fitted is not None and (held := run_id_of(work / "scans")) != fitted:
         # review AI: a new ingest into a calibrated WORK was read with the old fit's
         # states, and validate reported errors 4-8 times the fitted scans'
         raise StaleOutputError(
             f"{work / 'scans'} was ingested again after this calibration (it fitted ingest "
-            f"run {fitted}, the folder holds run {run_id_of(work / 'scans')}): its scans "
-            "are not those calibrated; run `phantom-calib calibrate` again"
+            f"run {fitted}, the folder holds run {held}): its scans are not those "
+            "calibrated; run `phantom-calib calibrate` again"
         )
     model = record.get("model") or {}
     ref_name = model.get("reference_scan")

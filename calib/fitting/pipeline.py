@@ -12,7 +12,6 @@ Gauss-Newton; nipple: the likelihood profile) and the likelihood profile over c1
 from __future__ import annotations
 
 import logging
-import numbers
 import time
 from collections.abc import Callable
 from dataclasses import asdict, replace
@@ -20,7 +19,7 @@ from dataclasses import asdict, replace
 import numpy as np
 
 from ..data.measurements import Measurements
-from ..data.session import DENSITY_RANGE_KG_M3, plausible_density
+from ..data.session import checked_density_kg_m3
 from ..model.residuals import surface_area_mm2
 from ..stats.intervals import MIN_SERIES_POINTS
 from .meshcheck import MeshCheck, combined_ci95, describe_mesh_check, mesh_check
@@ -29,7 +28,12 @@ from .optimise import OptimiserStatus, optimise, prepare
 from .options import CalibrationOptions, mesh_check_ratios
 from .profile import likelihood_profile, nipple_interval, profile_rows
 from .result import Calibration, phantom_frame
-from .uncertainty import Uncertainty, gauss_newton_uncertainty, series_uncertainty
+from .uncertainty import (
+    GAUSS_NEWTON_COVERAGE,
+    Uncertainty,
+    gauss_newton_uncertainty,
+    series_uncertainty,
+)
 
 __all__ = ["fit"]
 
@@ -183,8 +187,7 @@ def _uncertainty(cal: Calibrator, theta: float, say):
         why = (
             f"{len(r)} surface residuals, under the {MIN_SERIES_POINTS} the series interval "
             "needs: the Gauss-Newton interval with an effective sample count instead "
-            "(uncertainty.method; on correlated noise it covered 29-98 %), and no "
-            "model-misfit test"
+            f"(uncertainty.method; {GAUSS_NEWTON_COVERAGE}), and no model-misfit test"
         )
         say(why)
         log.warning(why)
@@ -251,15 +254,7 @@ def _density(measurements: Measurements, density_kg_m3: float | None) -> float:
             "no phantom density: these measurements carry none (not from "
             "calib.data.load_measurements); pass density_kg_m3 (kg/m^3)"
         )
-    if isinstance(density, bool) or not (
-        isinstance(density, numbers.Real) and plausible_density(density)
-    ):
-        lo, hi = DENSITY_RANGE_KG_M3
-        raise ValueError(
-            f"density_kg_m3 must lie in [{lo:g}, {hi:g}] kg/m^3 (1.0 would be g/cm^3), "
-            f"got {density!r}"
-        )
-    return float(density)
+    return checked_density_kg_m3(density, "density_kg_m3")
 
 
 def fit(

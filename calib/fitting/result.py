@@ -11,7 +11,7 @@ from ..data.work import SCHEMA_VERSION
 from .meshcheck import MeshCheck
 from .optimise import OptimiserStatus
 from .options import CalibrationOptions
-from .uncertainty import Uncertainty
+from .uncertainty import GAUSS_NEWTON_COVERAGE, Uncertainty
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -61,8 +61,8 @@ def calibration_caveats(record: dict) -> list[str]:
     unc = record.get("uncertainty") or {}
     if record.get("objective") == "surface" and unc.get("method") == "gauss-newton":
         said.append(
-            "the c1 interval is the Gauss-Newton one, not the series one: on correlated "
-            "noise it covered 29-98 % of a nominal 95 % (README, the interval's coverage)"
+            "the c1 interval is the Gauss-Newton one, not the series one: "
+            f"{GAUSS_NEWTON_COVERAGE} (README, the interval's coverage)"
         )
     return said
 

@@ -6,6 +6,7 @@ import math
 
 from ..fitting.meshcheck import describe_mesh_check
 from ..fitting.result import no_interval_said, reference_state_said
+from ..fitting.uncertainty import GAUSS_NEWTON_COVERAGE
 
 __all__ = ["format_calibration", "format_validation"]
 
@@ -15,8 +16,8 @@ def _uncertainty_lines(unc: dict, objective: str) -> list[str]:
     if objective == "surface" and unc.get("method") == "gauss-newton":
         lines.append(
             "  WARNING: the Gauss-Newton interval, not the series one (too few residuals, "
-            "or its noise model failed): on correlated noise it covered 29-98 % of a nominal "
-            "95 %, and there is no model-misfit test"
+            f"or its noise model failed): {GAUSS_NEWTON_COVERAGE}, and there is no "
+            "model-misfit test"
         )
     check = unc.get("mesh_check")
     if unc.get("c1_ci95_pa") is None:

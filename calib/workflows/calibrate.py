@@ -132,7 +132,7 @@ def write_calibration(
             solved = ev.failed is None
             files = _scan_files(run, calibration, ev, vmax_mm=vmax_mm) if solved else []
             scans[name] = _scan_json(ev, files)
-            if ev.failed is None:
+            if solved:
                 scans[name]["model"]["nipple_mm"] = ev.positions_mm[nipple].tolist()
         doc = calibration.to_json(
             scans=scans,

@@ -65,8 +65,9 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
         for f in _SCAN_FILES:
             if (src / f).is_file():
                 shutil.copy2(src / f, dst / f)
-    if (Path(work.path) / "scans" / "RUN").is_file():  # the ingest run its record names
-        shutil.copy2(Path(work.path) / "scans" / "RUN", folder / "scans" / "RUN")
+    marker = Path(work.path) / "scans" / "RUN"  # the ingest run its record names
+    if marker.is_file():
+        shutil.copy2(marker, folder / "scans" / "RUN")
     fm = prob.fm
     X = fm.stress_free_nodes_mm
     ref = work.measurements.reference
