@@ -41,20 +41,16 @@ Markdown(work.validation_table())
 # %% [markdown]
 # ## Error maps on a shared colour scale
 # The scale tops at the largest 99th percentile of the maps' scored errors, as the
-# report's maps do (a few rim vertices would otherwise wash the rest out).
+# report's maps do (`shared_error_scale_mm`; a few rim vertices would otherwise wash the
+# rest out).
 
 # %%
-import numpy as np
+from calib.report.maps import shared_error_scale_mm
 
 validation_scans = [n for n, r in work.scans.items() if r == "validation"]
 measured = work.folder.measurements.scans  # their scored vertices (off the back plate)
-vmax = max(
-    float(
-        np.percentile(
-            np.abs(work.validation.scans[n].metrics.vertex_error_mm)[measured[n].scored], 99
-        )
-    )
-    for n in validation_scans
+vmax = shared_error_scale_mm(
+    work.validation.scans[n].metrics.vertex_error_mm[measured[n].scored] for n in validation_scans
 )
 for name in validation_scans:
     display(work.plot_error_map(name, vmax=vmax))
