@@ -8,6 +8,9 @@ same functions)::
     calib.ingest("twin/scans", "work")                    # surfaces, landmarks, frames
     result = calib.calibrate("twin/scans", "work")         # fit c1, write WORK/
     work = calib.load_work("work")                        # everything in WORK/, with plots
+    calib.diagnose("work")                                # the missing-effect diagnosis
+    calib.gravity_sweep("work", "sweep.zarr", plan="sphere:48")   # ``phantom-calib sweep``
+    calib.train_surrogate("sweep.zarr", "model.pt")       # then calib.load_surrogate
 
 and, without files: ``calib.fit(measurements, options) -> Calibration`` and
 ``calib.evaluate(calibration) -> {scan: ScanEvaluation}`` and
@@ -26,13 +29,17 @@ __all__ = [
     "CalibrationOptions",
     "calibrate",
     "check_postures",
+    "diagnose",
     "evaluate",
     "fit",
+    "gravity_sweep",
     "ingest",
     "load_measurements",
     "load_session",
+    "load_surrogate",
     "load_work",
     "synthesize",
+    "train_surrogate",
     "validate",
 ]
 
@@ -50,6 +57,10 @@ _LAZY = {
     "calibrate": ("calib.api", "calibrate"),
     "validate": ("calib.api", "validate"),
     "load_work": ("calib.api", "load_work"),
+    "diagnose": ("calib.api", "diagnose"),
+    "gravity_sweep": ("calib.api", "gravity_sweep"),
+    "train_surrogate": ("calib.api", "train_surrogate"),
+    "load_surrogate": ("calib.api", "load_surrogate"),
 }
 
 

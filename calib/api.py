@@ -1,8 +1,11 @@
 """Notebook-level functions: one call per pipeline stage.
 
 They wrap :mod:`calib.workflows` (which write WORK/ exactly as the command line does):
-``ingest`` returns an :class:`calib.data.ingest.IngestResult`, ``calibrate`` and
-``validate`` their records (dicts), ``load_work`` a :class:`calib.notebook.Work`.
+``ingest`` returns an :class:`calib.data.ingest.IngestResult`, ``calibrate``,
+``validate``, ``diagnose``, ``gravity_sweep`` and ``train_surrogate`` their records (dicts),
+``load_work`` a :class:`calib.notebook.Work` and ``load_surrogate`` an
+:class:`nn.Surrogate`. ``gravity_sweep`` is the ``sweep`` command (``calib.sweep`` is the
+subpackage of its plans and store).
 """
 
 from __future__ import annotations
@@ -10,9 +13,27 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-__all__ = ["calibrate", "ingest", "load_work", "validate"]
+__all__ = [
+    "calibrate",
+    "diagnose",
+    "gravity_sweep",
+    "ingest",
+    "load_surrogate",
+    "load_work",
+    "train_surrogate",
+    "validate",
+]
 
 log = logging.getLogger(__name__)
+
+
+def _options(cls, options, fields: dict):
+    """``options`` (a ``cls``), or a ``cls`` made of ``fields``; not both."""
+    if options is not None and fields:
+        raise TypeError(f"give options or its fields as keywords, not both ({sorted(fields)})")
+    if options is not None and not isinstance(options, cls):
+        raise TypeError(f"options must be a {cls.__name__}, got {type(options).__name__}")
+    return options if options is not None else cls(**fields)
 
 
 def ingest(scans: str | Path, work: str | Path, *, progress=None):
@@ -50,12 +71,9 @@ def calibrate(
     from .fitting import CalibrationOptions
     from .workflows.calibrate import run_calibration
 
-    if options is not None and fields:
-        raise TypeError(f"give options or its fields as keywords, not both ({sorted(fields)})")
-    if options is not None and not isinstance(options, CalibrationOptions):
-        raise TypeError(f"options must be a CalibrationOptions, got {type(options).__name__}")
-    opts = options if options is not None else CalibrationOptions(**fields)
-    return run_calibration(scans, work, opts, progress=progress)
+    return run_calibration(
+        scans, work, _options(CalibrationOptions, options, fields), progress=progress
+    )
 
 
 def validate(work: str | Path, *, progress=None) -> dict:
@@ -79,3 +97,92 @@ def load_work(work: str | Path):
     from .notebook import Work
 
     return Work.load(work)
+
+
+def diagnose(work, *, options=None, progress=None, **fields) -> dict:
+    """Diagnose a calibrated work folder's missing effect (``phantom-calib diagnose``).
+
+    Parameters
+    ----------
+    work : str, Path or calib.notebook.Work
+        A calibrated work folder.
+    options : calib.discrepancy.DiagnosisOptions, optional
+        The options; or give their fields as keywords (``effects=("skin",)``), not both.
+    progress : callable, optional
+        Called with a line of text at every step.
+
+    Returns
+    -------
+    dict
+        The ``diagnosis.json`` record; ``WORK/diagnosis/refit`` is a work folder that
+        :func:`load_work` and :func:`validate` accept.
+    """
+    from .discrepancy import DiagnosisOptions
+    from .workflows.diagnose import run_diagnosis
+
+    return run_diagnosis(work, _options(DiagnosisOptions, options, fields), progress=progress)
+
+
+def gravity_sweep(work, out, *, options=None, progress=None, **fields) -> dict:
+    """Solve a calibrated model over a plan of gravity directions (``phantom-calib sweep``).
+
+    Parameters
+    ----------
+    work : str or Path
+        A calibrated work folder.
+    out : str or Path
+        The Zarr store to write, or to resume where it holds this model's and plan's sweep.
+    options : calib.workflows.sweep.SweepOptions, optional
+        The options; or give their fields as keywords (``plan="sphere:24"``), not both.
+    progress : callable, optional
+        Called with a dict after each solved scenario (see
+        :func:`calib.workflows.sweep.run_sweep`).
+
+    Returns
+    -------
+    dict
+        The sweep's summary (also in the store's ``summary`` attribute).
+    """
+    from .workflows.sweep import SweepOptions, run_sweep
+
+    return run_sweep(work, out, _options(SweepOptions, options, fields), progress=progress)
+
+
+def train_surrogate(
+    sweep, out, *, kind="ours", device="auto", seed=0, iterations=None, progress=None
+) -> dict:
+    """Train a surrogate on a sweep store and write it (``phantom-calib surrogate train``).
+
+    Parameters
+    ----------
+    sweep : str or Path
+        A store :func:`gravity_sweep` wrote.
+    out : str or Path
+        The model file to write (``.pt``, TorchScript).
+    kind : {"ours", "dissertation"}
+        The reduced-basis kernel surrogate, or the dissertation's two MLPs.
+    device : {"auto", "cpu", "cuda"}
+    seed : int
+        Seed of the MLPs' initialisation and batches.
+    iterations : int, optional
+        Training iterations of the dissertation's MLPs (default 30 000).
+    progress : callable, optional
+
+    Returns
+    -------
+    dict
+        The training report (also inside the model file); :func:`load_surrogate` reads
+        the model.
+    """
+    from .workflows.sweep import run_surrogate_train
+
+    return run_surrogate_train(
+        sweep, out, kind=kind, device=device, seed=seed, iterations=iterations, progress=progress
+    )
+
+
+def load_surrogate(path):
+    """A surrogate file as an :class:`nn.Surrogate` (its ``predict(gravity_m_s2, c1_pa=...)``)."""
+    import nn
+
+    return nn.load_surrogate(path)

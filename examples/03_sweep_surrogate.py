@@ -39,8 +39,8 @@ import numpy as np
 sys.path.insert(0, str(Path.cwd()))  # the notebooks' settings module, beside them
 import _settings
 
+import calib
 import nn
-from calib.workflows.sweep import SweepOptions, run_sweep
 
 out = _settings.OUT
 work = out / "work"
@@ -58,7 +58,7 @@ print(f"size {_settings.SIZE}, work folder {work}")
 # (re-running this cell solves only what is missing).
 
 # %%
-summary = run_sweep(work, out / "sweep", SweepOptions(plan="dissertation", workers=2))
+summary = calib.gravity_sweep(work, out / "sweep", plan="dissertation", workers=2)
 for kind in ("warm", "cold"):
     k = summary[kind]
     print(

@@ -41,11 +41,9 @@ sys.path.insert(0, str(Path.cwd()))  # the notebooks' settings module, beside th
 import _settings
 
 import calib
-from calib.discrepancy import DiagnosisOptions
 from calib.model.effects import TruthEffects
 from calib.report.diagnosis import detection_limits
 from calib.twin import DISSERTATION_POSTURES
-from calib.workflows.diagnose import run_diagnosis
 
 out = _settings.OUT / "04"
 # the diagnosis fits every scan but the held-out one: four postures (the tiny size's
@@ -69,7 +67,7 @@ print(f"calibrated c1 = {record['c1_pa']:.1f} Pa (the skin absorbed into the bul
 # The right-lateral and 50° scans are fitted, the 25° scan is held out (never fitted).
 
 # %%
-doc = run_diagnosis(out / "skin-work", progress=print)
+doc = calib.diagnose(out / "skin-work", progress=print)
 print("verdict:", doc["verdict"])
 
 # %% [markdown]
@@ -137,7 +135,7 @@ print(
 # %%
 calib.synthesize(out / "none", preset=preset, seed=0, effects=TruthEffects(), overwrite=True)
 calib.calibrate(out / "none" / "scans", out / "none-work", **options)
-null = run_diagnosis(out / "none-work", DiagnosisOptions(parameter_limits=True))
+null = calib.diagnose(out / "none-work", parameter_limits=True)
 print("verdict:", null["verdict"], f"(c1 {null['c1_pa']:.1f} Pa)")
 print(detection_limits(null))
 
