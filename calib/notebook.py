@@ -59,9 +59,9 @@ def show_figures_in_jupyter() -> None:
         png.for_type(Figure, _png)
 
 
-@dataclass
+@dataclass(eq=False)
 class Work:
-    """A calibrated ``WORK/`` folder (:func:`calib.load_work`).
+    """A calibrated ``WORK/`` folder (:func:`calib.load_work`; equal only to itself).
 
     Attributes
     ----------

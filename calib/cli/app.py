@@ -57,7 +57,9 @@ def simulate(
     gravity: Annotated[str, typer.Option("--gravity", help="Gravity direction X,Y,Z.")],
     out: Annotated[Path, typer.Option("--out", help="Deformed mesh to write, e.g. RESULT.vtu.")],
     nu: Annotated[float, typer.Option("--nu", help="Poisson's ratio (< 0.5).")] = 0.499,
-    density: Annotated[float, typer.Option("--density", help="Density in kg/m^3.")] = 1000.0,
+    density: Annotated[
+        float, typer.Option("--density", help="Density in kg/m^3 (500-3000).")
+    ] = 1000.0,
     g: Annotated[
         float, typer.Option("--g", help="Gravitational acceleration, m/s^2.")
     ] = STANDARD_GRAVITY_M_S2,

@@ -8,7 +8,7 @@ state (vertex positions and their derivative in ln c1) — with the measurements
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -32,9 +32,12 @@ __all__ = [
 SCHEMA_VERSION = 1
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SavedState:
     """A scan's simulated state at the calibrated c1, as saved by ``calibrate``.
+
+    Its arrays are read-only, and two states are equal only if they are the same object
+    (review AI: ``==`` raised on the arrays).
 
     Attributes
     ----------
@@ -54,10 +57,23 @@ class SavedState:
     tumour_mm: np.ndarray | None
     dtumour_mm: np.ndarray | None
 
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            object.__setattr__(self, f.name, _read_only(getattr(self, f.name)))
 
-@dataclass(frozen=True)
+
+def _read_only(value) -> np.ndarray | None:
+    """``value`` as a read-only float array (None stays None)."""
+    if value is None:
+        return None
+    array = np.array(value, float)
+    array.setflags(write=False)
+    return array
+
+
+@dataclass(frozen=True, eq=False)
 class WorkFolder:
-    """A calibrated ``WORK/`` folder (see :func:`read_work`).
+    """A calibrated ``WORK/`` folder (see :func:`read_work`; equal only to itself).
 
     Attributes
     ----------
@@ -93,10 +109,6 @@ class WorkFolder:
     def nipple_node(self) -> int:
         """The model's nipple vertex."""
         return int(self.mesh.node_set("nipple")[0])
-
-
-def _vec(value) -> np.ndarray | None:
-    return None if value is None else np.asarray(value, float)
 
 
 def _entry(name: str, role: str, posture: dict | None, work: Path) -> ScanEntry:
@@ -166,8 +178,8 @@ def read_work(work: str | Path) -> WorkFolder:
             positions_mm=positions,
             dpositions_mm=data.get("dposition_dlnc1_mm"),
             reference_positions_mm=None if ref is None else positions - ref,
-            tumour_mm=_vec(s.get("model", {}).get("tumour_mm")),
-            dtumour_mm=_vec(s.get("model", {}).get("dtumour_dlnc1_mm")),
+            tumour_mm=s.get("model", {}).get("tumour_mm"),
+            dtumour_mm=s.get("model", {}).get("dtumour_dlnc1_mm"),
         )
     return WorkFolder(work, record, measurements, mesh, states)
 

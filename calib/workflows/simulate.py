@@ -13,6 +13,7 @@ import fem
 from fem.meshing import find_back_plane, tag_node_sets
 from fem.units import STANDARD_GRAVITY_M_S2
 
+from ..data.session import DENSITY_RANGE_KG_M3
 from ..io import atomic_write, provenance, write_json_atomic
 
 __all__ = ["SimulateOptions", "parse_back_plane", "parse_vector", "run_simulate"]
@@ -45,7 +46,14 @@ class SimulateOptions:
         checks = (
             ("--c1", self.c1_pa, self.c1_pa > 0, "a positive stress in Pa"),
             ("--nu", self.nu, 0 < self.nu < 0.5, "in (0, 0.5)"),
-            ("--density", self.density_kg_m3, self.density_kg_m3 > 0, "positive (kg/m^3)"),
+            (
+                "--density",
+                self.density_kg_m3,
+                DENSITY_RANGE_KG_M3[0] <= self.density_kg_m3 <= DENSITY_RANGE_KG_M3[1],
+                "in [{:g}, {:g}] kg/m^3 (a tissue phantom's; 1.0 would be g/cm^3)".format(
+                    *DENSITY_RANGE_KG_M3
+                ),
+            ),
             (
                 "--g",
                 self.g_m_s2,

@@ -150,7 +150,9 @@ BAD = [
     (["--back-plane", "z=abc"], r"--back-plane must be 'auto' or 'z=VALUE'"),
     (["--back-plane", "z=40"], r"no back face found at z=40"),
     (["--bc", "glued"], r"--bc must be 'clamped' or 'sliding', got 'glued'"),
-    (["--density", "-5"], r"--density must be positive"),
+    (["--density", "-5"], r"--density must be in \[500, 3000\] kg/m\^3"),
+    # review AK: the session's density range (1.0, g/cm^3 by mistake) did not apply here
+    (["--density", "1.0"], r"1\.0 would be g/cm\^3\), got 1\.0"),
     # issue 15: a negative g silently reversed gravity; nan gave a scipy dtype message
     (["--g", "-9.81"], r"--g must be a positive magnitude .* \(the direction is --gravity\)"),
     (["--g", "nan"], r"--g must be a positive magnitude .* got nan"),

@@ -172,6 +172,12 @@ def test_work_folder_api(nipple_run):
         assert fig.axes
     with pytest.raises(KeyError, match="left_lateral"):
         w.plot_error_map("left_lateral")  # the reference has no simulated state
+    # review AI: Work == Work raised on the arrays, which a caller could overwrite
+    assert w == w and w != calib.load_work(work) and w.folder == w.folder
+    state = w.folder.states["tilt_50"]
+    with pytest.raises(ValueError, match="read-only"):
+        state.positions_mm[0, 0] = 0.0
+    assert not state.tumour_mm.flags.writeable
 
 
 def test_work_figures_show_as_images_in_an_ipython_kernel(nipple_run):
