@@ -78,6 +78,9 @@ class SweepData:
     mesh_sha256 : str
     attrs : dict
         All root attributes.
+    failed_load_per_m : ndarray, shape (F, 3)
+        The loads of the scenarios the sweep could not solve (status failed), which no
+        subset drops.
     """
 
     path: Path
@@ -100,6 +103,7 @@ class SweepData:
     model: dict
     mesh_sha256: str
     attrs: dict = field(repr=False, default_factory=dict)
+    failed_load_per_m: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 3)))
 
     def __len__(self) -> int:
         return len(self.index)
@@ -280,7 +284,10 @@ def load_sweep(path: str | Path, *, allow_pending: bool = True) -> SweepData:
     pending = int(np.sum(status == 0))
     failed = int(np.sum(status == 2))
     if pending and not allow_pending:
-        raise StoreFormatError(f"{path}: {pending} of {S} scenarios pending (sweep not complete)")
+        raise StoreFormatError(
+            f"{path}: {pending} of {S} scenarios pending (sweep not complete: run the same "
+            "`phantom-calib sweep` again to finish it)"
+        )
     if pending or failed:
         log.warning(
             "%s: %d of %d scenarios pending, %d failed (attribute `failures`); using the %d solved",
@@ -345,4 +352,5 @@ def load_sweep(path: str | Path, *, allow_pending: bool = True) -> SweepData:
         model=dict(model),
         mesh_sha256=attrs["mesh_sha256"],
         attrs=attrs,
+        failed_load_per_m=read("scenarios/load_per_m")[status == 2].reshape(-1, 3),
     )

@@ -151,6 +151,8 @@ def _fit_meta(fit, data: SweepData) -> dict:
             "load_per_m": [float(q.min()), float(q.max())],
             "directions_ref": directions,
             "direction_spacing_deg": spacing,
+            "loads_per_m": train.load_per_m.tolist(),
+            "failed_loads_per_m": np.asarray(data.failed_load_per_m).tolist(),
         },
         "store": {"path": str(data.path), "plan": data.attrs.get("plan", {})},
         "report": fit.report,
@@ -305,6 +307,33 @@ class Surrogate:
                 stacklevel=4,
             )
 
+    def _warn_failed(self, load_per_m: np.ndarray) -> None:
+        """Warn when a load lies nearer a scenario the sweep could not solve than any trained.
+
+        Review AM: where the FE model had no solution (a soft c1 in a steep posture), the
+        surrogate answered inside every trained range with an inverted mesh. Surrogates
+        saved before the loads were recorded are not checked.
+        """
+        trained = self.meta["trained"]
+        failed = np.asarray(trained.get("failed_loads_per_m") or np.zeros((0, 3)), float)
+        if not len(failed) or not len(load_per_m) or "loads_per_m" not in trained:
+            return
+        loads = np.asarray(trained["loads_per_m"], float)
+        d_train = np.linalg.norm(load_per_m[:, None] - loads[None], axis=2).min(axis=1)
+        d_failed = np.linalg.norm(load_per_m[:, None] - failed[None], axis=2)
+        near = d_failed.min(axis=1) < d_train
+        if np.any(near):
+            k = int(np.argmax(near))
+            f = failed[int(np.argmin(d_failed[k]))]
+            warnings.warn(
+                f"load rho g / c1 = {np.round(load_per_m[k], 3).tolist()} 1/m (reference "
+                "frame) lies nearer a scenario the sweep could not solve "
+                f"({np.round(f, 3).tolist()} 1/m, the store's `failures`) than any trained "
+                "one: the FE model may have no solution here, and the surrogate extrapolates",
+                ExtrapolationWarning,
+                stacklevel=4,
+            )
+
     def _warn_range(self, g: np.ndarray, c1: np.ndarray) -> None:
         lo, hi = self.meta["trained"]["c1_pa"]
         loaded = np.linalg.norm(g, axis=1) > 0  # no load: zero displacement at any c1
@@ -329,6 +358,7 @@ class Surrogate:
                 stacklevel=3,
             )
         self._warn_direction(g[loaded])
+        self._warn_failed(rho * g[loaded] / c1[loaded, None])
         below = q < qlo * (1 - _REL_TOL)
         outq = (q > 0) & (below | (q > qhi * (1 + _REL_TOL)))
         if np.any(outq) and not np.any(out):
@@ -450,6 +480,8 @@ def load_surrogate(path: str | Path) -> Surrogate:
     import torch
 
     path = Path(path)
+    if path.is_dir():  # review AM: a sweep store was "not found"
+        raise SurrogateFileError(f"{path}: a folder, not a surrogate file (.pt)")
     if not path.is_file():
         raise SurrogateFileError(f"{path}: surrogate file not found")
     extra = {_EXTRA: ""}
@@ -457,7 +489,9 @@ def load_surrogate(path: str | Path) -> Surrogate:
         with quiet_jit():
             module = torch.jit.load(str(path), map_location="cpu", _extra_files=extra)
     except Exception as exc:  # torch raises RuntimeError and others
-        raise SurrogateFileError(f"{path}: not a TorchScript surrogate ({exc})") from exc
+        # torch's first sentence; the rest is advice on checkpoints (review AM)
+        said = str(exc).split(". ")[0].strip()
+        raise SurrogateFileError(f"{path}: not a TorchScript surrogate ({said})") from exc
     try:
         meta = json.loads(extra[_EXTRA])
     except ValueError:

@@ -112,6 +112,12 @@ def sweep(
         )
         with bar:
             summary = run_sweep(work, out, opts, progress=progress)
+    except KeyboardInterrupt:  # review AM: Ctrl-C ended the command without a word
+        typer.echo(
+            f"interrupted: what was solved is kept in {out}; run the same command again to resume",
+            err=True,
+        )
+        raise typer.Exit(130) from None
     except (
         CalibrationMissingError,
         PlanError,
@@ -210,6 +216,16 @@ def _format_report(r: dict) -> str:
                 f"  {name} ({m['n']}): surface mean {m['surface_mean_mm']:.4f} mm, "
                 f"max {m['surface_max_mm']:.4f} mm{tum}"
             )
+    if not r.get("errors", {}).get("validation", {}).get("n"):  # review AM: "train" alone
+        loo = r.get("loo_mean_error_mm")
+        lines.append(
+            "  validation: none (the sweep held no direction out: sweep --holdout F); "
+            + (
+                "the test split's errors are the estimate between training points"
+                if loo is None
+                else f"the leave-one-out mean error, {loo:.4f} mm, is the estimate between them"
+            )
+        )
     return "\n".join(lines)
 
 
@@ -227,6 +243,13 @@ def surrogate_predict(
     frame: Annotated[
         str, typer.Option("--frame", help="phantom (posture-angle frame) or ref (model frame).")
     ] = "phantom",
+    extrapolate: Annotated[
+        bool,
+        typer.Option(
+            "--extrapolate",
+            help="Write a prediction outside what the surrogate was trained on (else refused).",
+        ),
+    ] = False,
 ) -> None:
     """Predict the deformed phantom for one gravity vector; write a mesh."""
     import warnings
@@ -244,7 +267,9 @@ def surrogate_predict(
             raise ValueError(f"--gravity must be three numbers X,Y,Z in m/s^2, got {gravity!r}")
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            res = run_surrogate_predict(model, out, gravity=parts, c1_pa=c1, frame=frame)
+            res = run_surrogate_predict(
+                model, out, gravity=parts, c1_pa=c1, frame=frame, extrapolate=extrapolate
+            )
         for w in caught:
             typer.secho(f"warning: {w.message}", fg=typer.colors.YELLOW, err=True)
     except (ValueError, OSError, RuntimeError) as exc:

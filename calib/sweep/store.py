@@ -384,6 +384,30 @@ class SweepStore:
             n += 1
         return n
 
+    def requeue_lost(self) -> list[int]:
+        """Set solved scenarios with a result chunk file missing back to pending.
+
+        A solved scenario's displacement, state and nipple chunks (and its tumour chunk
+        where the model has a tumour) are files under ``results/<name>/c/<i>/``; one lost
+        by a partial copy left the store "complete" and a re-run solved nothing (review
+        AM). Returns the scenarios set back.
+        """
+        names = ["displacement_mm", "state", "nipple_mm"]
+        if (self.attrs.get("model") or {}).get("tumour_stress_free_mm") is not None:
+            names.append("tumour_mm")
+        solved = np.flatnonzero(self.status() == SOLVED)
+        lost = [
+            int(i)
+            for i in solved
+            if not all(
+                any(p.is_file() for p in (self.path / "results" / n / "c" / str(i)).rglob("*"))
+                for n in names
+            )
+        ]
+        for i in lost:
+            self._results["status"][i] = PENDING
+        return lost
+
     # -- scenarios ------------------------------------------------------------------------
     def _read(self, name: str, index=slice(None)) -> np.ndarray:
         # review AD: a missing array gave a KeyError traceback, a corrupt chunk the

@@ -310,6 +310,13 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
         removed = store.clean_partial()
         if removed:
             log.info("%s: removed %d partial chunk files of an interrupted run", out, removed)
+        lost = store.requeue_lost()
+        if lost:
+            log.warning(
+                "%s: %d solved scenario(s) had result chunk files missing (a partial copy?): "
+                "solving them again (scenario %d first)",
+                *(out, len(lost), lost[0]),
+            )
         pending = int(np.sum(store.status() == 0)) + (
             int(np.sum(store.status() == 2)) if opts.retry_failed else 0
         )
@@ -396,11 +403,13 @@ def run_surrogate_train(
     ------
     ValueError
         An unknown ``kind`` or ``device``, ``cuda`` without a CUDA device,
-        ``iterations`` below 1 or given for ``ours``: checked before the store is read.
+        ``iterations`` below 1 or given for ``ours``, ``out`` not ``.pt``: checked before
+        the store is read.
     IsADirectoryError
         ``out`` is a folder.
     nn.StoreFormatError
-        ``sweep`` is not a readable sweep store.
+        ``sweep`` is not a readable sweep store, or has pending scenarios (a running or
+        interrupted sweep: run it again to finish).
     """
     import nn
 
@@ -415,8 +424,10 @@ def run_surrogate_train(
         raise ValueError(
             "--iterations is the dissertation MLPs' (--kind dissertation); ours has none"
         )
+    if Path(out).suffix.lower() != ".pt":  # review AM: m.txt was written as a model
+        raise ValueError(f"--out {out}: a surrogate is a TorchScript file, name it .pt")
     check_out_file(out)
-    data = nn.load_sweep(sweep)
+    data = nn.load_sweep(sweep, allow_pending=False)  # review AM: 4 of 12 read as all
     if kind == "ours":
         fit = nn.fit_reduced_kernel(data, device=device, progress=progress)
     else:
@@ -434,6 +445,7 @@ def run_surrogate_predict(
     gravity,
     c1_pa: float | None = None,
     frame: Literal["phantom", "ref"] = "phantom",
+    extrapolate: bool = False,
 ) -> dict:
     """Predict the deformation for one gravity vector and write ``out`` (.vtu or .ply).
 
@@ -450,17 +462,24 @@ def run_surrogate_predict(
     c1_pa : float, optional
         c1 of the prediction (default: the model's calibrated c1).
     frame : {"phantom", "ref"}
+    extrapolate : bool
+        Write a prediction the surrogate warns about (:class:`nn.ExtrapolationWarning`:
+        outside the trained ranges, or nearer a scenario the sweep could not solve than
+        any trained one); else nothing is written (review AM: ten times the trained load
+        was written as 7e17 mm with exit status 0).
 
     Returns
     -------
     dict
-        ``max_displacement_mm``, ``tumour_mm``, ``nipple_mm``, ``out``.
+        ``max_displacement_mm`` (over the file's vertices: every node of a ``.vtu``, the
+        boundary's of a ``.ply``), ``tumour_mm``, ``nipple_mm``, ``out``.
 
     Raises
     ------
     ValueError
         ``out`` not ``.vtu`` or ``.ply``, or ``frame`` unknown (checked before the model
-        is loaded); bad ``gravity`` or ``c1_pa``; a ``.vtu`` of a surface-only model.
+        is loaded); bad ``gravity`` or ``c1_pa``; a ``.vtu`` of a surface-only model; an
+        extrapolation without ``extrapolate``.
     IsADirectoryError
         ``out`` is a folder.
     nn.SurrogateFileError
@@ -469,8 +488,11 @@ def run_surrogate_predict(
     Warns
     -----
     nn.ExtrapolationWarning
-        A query outside the trained range (see :meth:`nn.Surrogate.predict`).
+        With ``extrapolate``: a query outside the trained range (see
+        :meth:`nn.Surrogate.predict`).
     """
+    import warnings
+
     import nn
 
     from ..io import check_out_file
@@ -490,7 +512,13 @@ def run_surrogate_predict(
             f"{model_path}: this surrogate predicts surface nodes only and its back plate "
             "is not clamped: its boundary is unknown"
         )
-    pred = sur.predict(np.asarray(gravity, float), c1_pa=c1_pa, frame=frame)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", nn.ExtrapolationWarning)
+        pred = sur.predict(np.asarray(gravity, float), c1_pa=c1_pa, frame=frame)
+    for w in caught:
+        if issubclass(w.category, nn.ExtrapolationWarning) and not extrapolate:
+            raise ValueError(f"{w.message}; nothing written (--extrapolate writes it anyway)")
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     mesh = sur.mesh
     if suffix == ".vtu":
         from fem import TetMesh

@@ -164,6 +164,23 @@ def test_a_damaged_store_is_named_on_resume(work, reference, tmp_path):
         run_sweep(work, out, PLAN)
 
 
+def test_a_solved_scenario_whose_chunk_was_lost_is_solved_again(work, reference, tmp_path):
+    # review AM: with one displacement chunk deleted, a re-run said "all solved" and did
+    # nothing; it is pending again and solved to the same numbers
+    import shutil
+
+    import nn
+
+    out = tmp_path / "s"
+    shutil.copytree(reference[0], out)
+    shutil.rmtree(out / "results" / "displacement_mm" / "c" / "5")
+    with pytest.raises(nn.StoreFormatError, match="displacement_mm/c/5/0/0: missing"):
+        nn.load_sweep(out)
+    assert run_sweep(work, out, PLAN)["this_run"]["solved"] == 1
+    again, before = nn.load_sweep(out), nn.load_sweep(reference[0])
+    assert np.array_equal(again.displacement_mm, before.displacement_mm)
+
+
 def test_store_of_another_model_or_plan_is_refused(work, reference, tmp_path):
     out = reference[0]
     with pytest.raises(StoreMismatchError, match="another plan.*spec"):

@@ -87,7 +87,25 @@ def test_predict_zero_nan_and_extrapolation(model_file, tmp_path):
             str(tmp_path / "c.vtu"),
         ],
     )
-    assert res.exit_code == 0 and "extrapolates" in res.output
+    # review AM: ten times the trained load was written as 7e17 mm with exit status 0
+    assert res.exit_code == 2 and "extrapolates; nothing written" in res.output
+    assert not (tmp_path / "c.vtu").exists()
+    res = runner.invoke(
+        app,
+        [
+            "surrogate",
+            "predict",
+            str(model_file),
+            "--gravity",
+            "0,0,9.81",
+            "--c1",
+            "5000",
+            "--extrapolate",
+            "--out",
+            str(tmp_path / "c.vtu"),
+        ],
+    )
+    assert res.exit_code == 0 and "extrapolates" in res.output and (tmp_path / "c.vtu").is_file()
     res = runner.invoke(
         app,
         [
@@ -145,6 +163,40 @@ def test_train_errors(box_sweep, tmp_path):
         ],
     )
     assert res.exit_code == 2 and "surrogate file not found" in res.output
+    # review AM: a sweep store given as the model was "not found"; m.txt was written
+    res = runner.invoke(
+        app,
+        [
+            "surrogate",
+            "predict",
+            str(box_sweep),
+            "--gravity",
+            "0,0,1",
+            "--out",
+            str(tmp_path / "r.vtu"),
+        ],
+    )
+    assert res.exit_code == 2 and "a folder, not a surrogate file" in res.output
+    res = runner.invoke(
+        app, ["surrogate", "train", str(box_sweep), "--out", str(tmp_path / "m.txt")]
+    )
+    assert res.exit_code == 2 and "name it .pt" in res.output and not (tmp_path / "m.txt").exists()
+
+
+def test_train_refuses_a_sweep_with_pending_scenarios(box_sweep, tmp_path):
+    # review AM: a sweep killed after 4 of 12 scenarios was trained on with a log line, and
+    # the surrogate erred by up to 9 mm between them
+    import shutil
+
+    import zarr
+
+    store = tmp_path / "s"
+    shutil.copytree(box_sweep, store)
+    zarr.open_group(store, mode="r+")["results/status"][3] = 0
+    res = runner.invoke(app, ["surrogate", "train", str(store), "--out", str(tmp_path / "m.pt")])
+    assert res.exit_code == 2 and "1 of 94 scenarios pending" in res.output
+    assert "run the same `phantom-calib sweep` again" in res.output
+    assert not (tmp_path / "m.pt").exists()
 
 
 def test_baseline_cli_writes_surface_only(box_sweep, tmp_path, monkeypatch):

@@ -93,6 +93,36 @@ def test_closed_form_leave_one_out_matches_refitting(box_data):
     assert fast == pytest.approx(np.mean(errs), rel=1e-6)
 
 
+def test_the_reported_leave_one_out_refits_the_linear_term_too(box_data):
+    # review AM: the closed form keeps the linear term fitted to all scenarios, so with
+    # three training loads (which it interpolates) it reported 0.0000 mm; Eq. (4) in POD
+    # coordinates against a refit without each scenario in full, with no POD
+    from nn.reduced import _loo_model_error, _pod
+
+    d = box_data.subset(box_data.role == "train")
+    X = d.load_per_m / np.linalg.norm(d.load_per_m, axis=1).max()
+    Y = d.displacement_mm.reshape(len(d), -1)
+    V = _pod(Y, 1e-4)
+    gamma, lam = 3.0, 1e-9
+    K = _kernel(X, X, gamma)
+    errs = []
+    for i in range(len(X)):
+        keep = np.arange(len(X)) != i
+        L = np.linalg.lstsq(X[keep], Y[keep], rcond=None)[0]
+        alpha = np.linalg.solve(
+            K[np.ix_(keep, keep)] + lam * np.eye(keep.sum()), Y[keep] - X[keep] @ L
+        )
+        e = (X[i] @ L + K[i, keep] @ alpha - Y[i]).reshape(-1, 3)
+        errs.append(np.linalg.norm(e, axis=1).mean())
+    # the two differ by the POD truncation (1e-4 mm at most per vertex) and round-off
+    assert _loo_model_error(X, Y @ V, V, Y, gamma, lam) == pytest.approx(np.mean(errs), abs=2e-4)
+    # three loads: the linear term interpolates them, the kernel part's closed form reads
+    # 0; left out of the linear term too, each is predicted from two
+    three = np.arange(0, len(X), len(X) // 3)[:3]
+    W = _pod(Y[three], 1e-4)
+    assert _loo_model_error(X[three], Y[three] @ W, W, Y[three], gamma, lam) > 0.1
+
+
 def test_kernel_recovers_a_smooth_field_with_a_c1_axis():
     # synthetic data: u(b) = A b + B (b . n)^2 m (u(0) = 0), over directions and loads
     from nn.data import SweepData
@@ -332,3 +362,29 @@ def test_repeated_training_loads_are_refused(box_data):
     for fit in (nn.fit_reduced_kernel, nn.fit_dissertation_mlps):
         with pytest.raises(ValueError, match=r"1 training scenario\(s\) repeat another's load"):
             fit(twice, device="cpu")
+
+
+def test_a_load_nearer_a_failed_scenario_than_any_trained_one_warns(box_sweep, tmp_path):
+    # review AM: where the sweep had no FE solution, the surrogate answered inside every
+    # trained range (an inverted mesh) without a word; here a solved scenario is marked
+    # failed, so the model is trained without it and its load is the nearest failed one
+    import shutil
+
+    import zarr
+
+    store = tmp_path / "s"
+    shutil.copytree(box_sweep, store)
+    data = nn.load_sweep(store)
+    k = int(data.index[(data.role == "train")][5])
+    zarr.open_group(store, mode="r+")["results/status"][k] = 2
+    failed = nn.load_sweep(store)
+    assert failed.failed_load_per_m.shape == (1, 3) and k not in failed.index
+    sur = nn.Surrogate.from_fit(nn.fit_reduced_kernel(failed, device="cpu"), failed)
+    g_ref = 9.81 * data.gravity_ref[data.index == k][0]
+    c1 = float(data.model["c1_pa"])
+    with pytest.warns(nn.ExtrapolationWarning, match="nearer a scenario the sweep could not"):
+        sur.predict(g_ref, c1_pa=c1, frame="ref")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a trained scenario's own load: silent
+        trained = int(failed.index[failed.role == "train"][0])
+        sur.predict(9.81 * data.gravity_ref[data.index == trained][0], c1_pa=c1, frame="ref")
