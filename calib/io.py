@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import hashlib
 import json
 import os
@@ -16,15 +18,18 @@ from fem.io import atomic_write
 __all__ = [
     "RunOutputs",
     "StaleOutputError",
+    "WorkBusyError",
     "atomic_write",
     "check_out_file",
     "check_out_folder",
     "check_run",
     "clean_stale",
     "file_sha256",
+    "locking_work",
     "provenance",
     "run_id_of",
     "source_sha256",
+    "work_lock",
     "write_json_atomic",
 ]
 
@@ -172,16 +177,58 @@ def _version(name: str) -> str | None:
         return None
 
 
+#: Environment variables that set the thread counts (the FE results are bitwise
+#: reproducible at equal counts, README)
+_THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+
+@functools.cache
+def _source_revision() -> dict | None:
+    """The git commit of the source tree this package runs from, and whether it has edits.
+
+    None where it is not a git checkout (an installed wheel) or git is missing.
+    """
+    import subprocess
+
+    root = Path(__file__).resolve().parent.parent
+    if not (root / ".git").exists():
+        return None
+    try:
+        git = ["git", "-C", str(root)]
+        commit = subprocess.run(
+            [*git, "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10, check=True
+        ).stdout.strip()
+        edits = subprocess.run(
+            [*git, "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return {"commit": commit, "uncommitted_edits": bool(edits)}
+
+
 def provenance(*, inputs: dict[str, str | os.PathLike] | None = None, parameters=None) -> dict:
-    """A provenance record: time, versions, input file hashes and parameters."""
+    """A provenance record: time, versions, input file hashes and parameters.
+
+    Paths are absolute and the working folder is recorded, so that the command can be
+    run again from the record (review AN); ``source`` is the git commit the package runs
+    from (None outside a checkout), ``threads`` the thread-count variables.
+    """
     return {
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "python": sys.version.split()[0],
         "platform": platform.platform(),
         "versions": {p: _version(p) for p in _PACKAGES},
+        "source": _source_revision(),
         "command": sys.argv,
+        "cwd": os.getcwd(),
+        "threads": {k: os.environ.get(k) for k in _THREAD_VARIABLES},
         "inputs": {
-            k: {"path": str(v), "sha256": file_sha256(v)} for k, v in (inputs or {}).items()
+            k: {"path": str(Path(v).resolve()), "sha256": file_sha256(v)}
+            for k, v in (inputs or {}).items()
         },
         "parameters": parameters or {},
     }
@@ -189,6 +236,109 @@ def provenance(*, inputs: dict[str, str | os.PathLike] | None = None, parameters
 
 class StaleOutputError(RuntimeError):
     """A result folder and its record are not from the same run (an interrupted write)."""
+
+
+class WorkBusyError(RuntimeError):
+    """Another phantom-calib command is writing this work folder."""
+
+
+#: Work folders this process holds the lock of: path -> [open lock file, depth]
+_HELD: dict[Path, list] = {}
+
+
+@contextlib.contextmanager
+def work_lock(work: str | os.PathLike, command: str):
+    """Hold ``WORK/.lock`` for the whole of one command that writes WORK.
+
+    ``ingest``, ``calibrate``, ``validate`` and ``diagnose`` each hold it, so that two of
+    them never write one WORK at once (review AN: an ingest during a calibration left a
+    ``calibration.json`` naming scans it never fitted, and a validate beside a
+    calibration replaced the new validation with the old fit's). The lock is an
+    ``flock`` on an open file: the system releases it when its process ends, however it
+    ends. Re-entrant within a process (calibrate's own ingest). ``work`` must exist
+    (:func:`locking_work` makes it where the command would).
+
+    Raises
+    ------
+    WorkBusyError
+        Another process holds the lock (its command and process id are named).
+    """
+    import fcntl
+
+    work = Path(work).resolve()
+    if work in _HELD:
+        _HELD[work][1] += 1
+        try:
+            yield
+        finally:
+            _HELD[work][1] -= 1
+        return
+    f = open(work / ".lock", "a+")  # held open for the command's life
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        f.seek(0)
+        holder = f.read().strip() or "a process"
+        f.close()
+        raise WorkBusyError(
+            f"{work}: in use by another phantom-calib command ({holder}); run this one when "
+            "it has finished"
+        ) from None
+    f.seek(0)
+    f.truncate()
+    f.write(f"{command}, process {os.getpid()}\n")
+    f.flush()
+    _HELD[work] = [f, 1]
+    try:
+        yield
+    finally:
+        del _HELD[work]
+        f.close()
+
+
+def locking_work(command: str, *, create: bool = False):
+    """Decorate a workflow whose ``work`` argument it writes: it runs under :func:`work_lock`.
+
+    Parameters
+    ----------
+    command : str
+        Named in the lock file, for the message another command gets.
+    create : bool
+        Make a missing WORK (its parents too) for the lock, after
+        :func:`check_out_folder` accepts it, and remove what was made again if the command
+        leaves nothing there but the lock (a refused input leaves no folder). Without it
+        a missing WORK is not locked: the command fails on reading it.
+    """
+    import inspect
+
+    def decorate(fn):
+        signature = inspect.signature(fn)
+
+        @functools.wraps(fn)
+        def run(*args, **kwargs):
+            work = Path(signature.bind(*args, **kwargs).arguments["work"])
+            made = []
+            if create and not work.exists():
+                check_out_folder(work)
+                made = [p for p in (work, *work.parents) if not p.exists()]
+                work.mkdir(parents=True)
+            if not work.is_dir():
+                return fn(*args, **kwargs)
+            try:
+                with work_lock(work, command):
+                    return fn(*args, **kwargs)
+            finally:
+                for p in made:  # deepest first
+                    if p == work and [e.name for e in p.iterdir()] == [".lock"]:
+                        (p / ".lock").unlink()
+                    try:
+                        p.rmdir()
+                    except OSError:
+                        break
+
+        return run
+
+    return decorate
 
 
 def _pid_alive(pid: int) -> bool:

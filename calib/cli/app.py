@@ -262,4 +262,20 @@ def main(argv: list[str] | None = None) -> None:
     verbose = [a for a in args if a in ("-v", "--verbose")]
     if verbose and "--" not in args:
         args = verbose[:1] + [a for a in args if a not in ("-v", "--verbose")]
-    app(args=args, prog_name="phantom-calib")
+    try:
+        app(args=args, prog_name="phantom-calib")
+    except SystemExit as exc:  # typer turns Ctrl-C into a silent exit 130
+        if exc.code == 130:  # review AN, AM: a run ended without a word
+            command = next((a for a in args if not a.startswith("-")), "")
+            typer.echo(f"\ninterrupted: {_INTERRUPTED.get(command, _KEPT_NOTHING)}", err=True)
+        raise
+
+
+_KEPT_NOTHING = (
+    "nothing of this run was kept (each command writes its outputs whole at its end); "
+    "earlier outputs are as they were"
+)
+_INTERRUPTED = {
+    "sweep": "the scenarios solved so far are kept in the store; run the same command "
+    "again to resume"
+}

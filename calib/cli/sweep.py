@@ -112,12 +112,6 @@ def sweep(
         )
         with bar:
             summary = run_sweep(work, out, opts, progress=progress)
-    except KeyboardInterrupt:  # review AM: Ctrl-C ended the command without a word
-        typer.echo(
-            f"interrupted: what was solved is kept in {out}; run the same command again to resume",
-            err=True,
-        )
-        raise typer.Exit(130) from None
     except (
         CalibrationMissingError,
         PlanError,

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import StaleOutputError, check_run, run_id_of
+from ..io import StaleOutputError, check_run, file_sha256, run_id_of
 from .measurements import Measurements, read_scan
 from .session import ScanEntry
 
@@ -117,6 +117,26 @@ def _entry(name: str, role: str, posture: dict | None, work: Path) -> ScanEntry:
     return ScanEntry(name, work, role, posture.get("plane"), posture.get("angle_deg"))
 
 
+def _check_ingest_hashes(work: Path, record: dict) -> None:
+    """A record without ``ingest_run_id`` (before 2026-12-06): its scans' ingest hashes.
+
+    Such records name each scan's ``ingest.json`` with its SHA-256 in their provenance;
+    a scan ingested again since (another scan set, or an interrupted calibrate's new
+    ingest) was read with the old fit (review AN: errors of 16-19 mm, exit status 0).
+    """
+    inputs = (record.get("provenance") or {}).get("inputs") or {}
+    for key, entry in inputs.items():
+        if not (key.endswith("/ingest.json") and isinstance(entry, dict) and entry.get("sha256")):
+            continue
+        path = work / "scans" / key
+        if not path.is_file() or file_sha256(path) != entry["sha256"]:
+            raise StaleOutputError(
+                f"{path}: {'missing' if not path.is_file() else 'not the file'} this "
+                "calibration fitted (calibration.json's provenance holds its SHA-256): the "
+                "scans were ingested again after it; run `phantom-calib calibrate` again"
+            )
+
+
 def read_work(work: str | Path) -> WorkFolder:
     """Read a calibrated work folder.
 
@@ -127,7 +147,8 @@ def read_work(work: str | Path) -> WorkFolder:
         it names.
     calib.io.StaleOutputError
         ``calibration/`` is not from the run ``calibration.json`` records, or ``scans/``
-        was ingested again after the calibration (its ``ingest_run_id``).
+        was ingested again after the calibration (its ``ingest_run_id``; in an older
+        record without it, the ``ingest.json`` hashes of its provenance).
     """
     from fem.io import read_mesh
 
@@ -153,6 +174,8 @@ def read_work(work: str | Path) -> WorkFolder:
             f"run {fitted}, the folder holds run {held}): its scans are not those "
             "calibrated; run `phantom-calib calibrate` again"
         )
+    if fitted is None:
+        _check_ingest_hashes(work, record)
     model = record.get("model") or {}
     ref_name = model.get("reference_scan")
     if ref_name is None or "reference_mesh" not in model:

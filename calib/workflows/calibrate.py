@@ -9,6 +9,7 @@ and the measured surface with a per-vertex error (PLY).
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import asdict, replace
@@ -21,7 +22,15 @@ from ..data.measurements import load_measurements
 from ..data.session import SessionError, load_session, session_inputs
 from ..evaluation import ScanEvaluation, check_postures, evaluate, model_fit_with_postures
 from ..fitting import Calibration, CalibrationOptions, fit
-from ..io import RunOutputs, check_out_apart, check_out_folder, provenance, run_id_of
+from ..io import (
+    RunOutputs,
+    StaleOutputError,
+    check_out_apart,
+    check_out_folder,
+    locking_work,
+    provenance,
+    run_id_of,
+)
 from ..report.maps import error_map_figure, save_figure, shared_error_scale_mm, write_error_ply
 
 __all__ = ["run_calibration", "write_calibration"]
@@ -113,9 +122,24 @@ def write_calibration(
     *,
     inputs: dict,
     wall_s: float,
+    ingest_run_id: str | None = None,
 ) -> dict:
-    """Write ``WORK/calibration.json`` and ``WORK/calibration/`` as one run; return the record."""
+    """Write ``WORK/calibration.json`` and ``WORK/calibration/`` as one run; return the record.
+
+    ``ingest_run_id`` is the ``WORK/scans`` run the measurements were read from (default:
+    the one there now); a WORK whose scans were ingested again since is refused
+    (:class:`calib.io.StaleOutputError`: review AN, the record named scans it never
+    fitted).
+    """
     from fem.io import write_mesh
+
+    held = run_id_of(Path(work) / "scans")
+    if ingest_run_id is not None and held != ingest_run_id:
+        raise StaleOutputError(
+            f"{Path(work) / 'scans'} was ingested again during this calibration (it read "
+            f"ingest run {ingest_run_id}, the folder now holds {held}); nothing written: "
+            "calibrate again"
+        )
 
     c = calibration.calibrator
     nipple = int(c.mesh.node_set("nipple")[0])
@@ -139,7 +163,7 @@ def write_calibration(
             provenance=provenance(inputs=inputs, parameters=asdict(calibration.options)),
         )
         doc["model"]["reference_mesh"] = f"{FOLDER}/reference_mesh.vtu"
-        doc["ingest_run_id"] = run_id_of(Path(work) / "scans")
+        doc["ingest_run_id"] = held
         prestress = None
         if c.fm.prestressed:
             c.fm.stress_free(calibration.theta)  # the prestress at the calibrated c1 (cached)
@@ -148,7 +172,35 @@ def write_calibration(
         # with the final states of every scan, and a straight fit the curved one replaced
         doc["fe_solves"] = calibration.optimiser.set_aside_fe_solves + int(c.fm.solves)
         doc["wall_s"] = wall_s
-        return run.commit(doc)
+        record = run.commit(doc)
+    _drop_outputs_of_another_fit(Path(work), record["run_id"])
+    return record
+
+
+def _drop_outputs_of_another_fit(work: Path, run_id: str) -> None:
+    """Remove ``validate``'s and ``diagnose``'s outputs of the calibration just replaced.
+
+    Review AN: a calibrate stopped (or failed) in its closing validate left the old fit's
+    ``validation.json`` and ``validation/report.html`` beside the new calibration. Each
+    record names the calibration it was made from (``calibration_run_id``).
+    """
+    import shutil
+
+    for name in ("validation", "diagnosis"):
+        record = work / f"{name}.json"
+        if not record.is_file():
+            continue
+        try:
+            made_from = json.loads(record.read_text()).get("calibration_run_id")
+        except (ValueError, AttributeError):
+            made_from = None
+        if made_from != run_id:
+            record.unlink()
+            shutil.rmtree(work / name, ignore_errors=True)
+            log.warning(
+                "removed %s and %s/: they were made from the calibration this one replaced",
+                *(record, work / name),
+            )
 
 
 def _with_posture_check(calibration: Calibration, evaluations, say) -> Calibration:
@@ -183,6 +235,7 @@ def _posture_line(test, names: dict) -> str:
     )
 
 
+@locking_work("calibrate", create=True)
 def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=None) -> dict:
     """Calibrate c1 on a scan session and write ``WORK/calibration.json`` and maps.
 
@@ -219,6 +272,7 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
         say(f"ingesting the scans ({'; '.join(reasons)})")
         run_ingest(scans_dir, work)
     meas = load_measurements(work, session)
+    fitted_run = run_id_of(work / "scans")
     calibration = fit(meas, options, density_kg_m3=session.density_kg_m3, progress=say)
     targets = [n for n, s in meas.scans.items() if s.role != "reference"]
     say(f"final state of {len(targets)} scans, error maps")
@@ -228,5 +282,10 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
         f"{s.name}/ingest.json": work / "scans" / s.name / "ingest.json" for s in session.scans
     }
     return write_calibration(
-        work, calibration, evaluations, inputs=inputs, wall_s=time.perf_counter() - t0
+        work,
+        calibration,
+        evaluations,
+        inputs=inputs,
+        wall_s=time.perf_counter() - t0,
+        ingest_run_id=fitted_run,
     )

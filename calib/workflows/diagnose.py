@@ -22,7 +22,7 @@ import numpy as np
 
 from ..data.work import read_work
 from ..discrepancy import Diagnosis, DiagnosisOptions, diagnose
-from ..io import RunOutputs, atomic_write, check_work_writable, provenance
+from ..io import RunOutputs, atomic_write, check_work_writable, locking_work, provenance
 from ..report.diagnosis import (
     diagnosis_html,
     gap_figure,
@@ -218,6 +218,7 @@ def _figures(run: RunOutputs, d: Diagnosis, doc: dict) -> dict[str, list[str]]:
     return figures
 
 
+@locking_work("diagnose")
 def run_diagnosis(work, options: DiagnosisOptions | None = None, *, progress=None) -> dict:
     """Diagnose a calibrated work folder and write the report.
 

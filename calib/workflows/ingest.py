@@ -12,7 +12,14 @@ from pathlib import Path
 
 from ..data.ingest import IngestResult, ingest_inputs, ingest_scans
 from ..data.session import Session, load_session, session_inputs
-from ..io import RunOutputs, check_out_apart, check_out_folder, provenance, write_json_atomic
+from ..io import (
+    RunOutputs,
+    check_out_apart,
+    check_out_folder,
+    locking_work,
+    provenance,
+    write_json_atomic,
+)
 
 __all__ = ["run_ingest", "write_ingest"]
 
@@ -113,6 +120,7 @@ def write_ingest(work: str | Path, result: IngestResult) -> dict:
         )
 
 
+@locking_work("ingest", create=True)
 def run_ingest(scans_dir: str | Path, work: str | Path, *, progress=None) -> IngestResult:
     """Ingest the session in ``scans_dir`` and write the results into ``work``.
 

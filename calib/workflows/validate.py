@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..data.work import WorkFolder, read_work
-from ..io import RunOutputs, atomic_write, check_work_writable, provenance
+from ..io import RunOutputs, atomic_write, check_work_writable, locking_work, provenance
 from ..report.maps import save_figure, shared_error_scale_mm
 from ..report.validation import (
     error_by_displacement_figure,
@@ -80,6 +80,7 @@ def _figures(run: RunOutputs, work: WorkFolder, v: Validation) -> dict[str, list
     return figures
 
 
+@locking_work("validate")
 def run_validation(work: str | Path, *, progress=None) -> dict:
     """Validate a calibrated work folder and write the report.
 

@@ -287,6 +287,59 @@ def test_a_work_folder_ingested_again_after_its_calibration_is_refused(nipple_ru
     assert (copy / "validation.json").read_text() == before  # nothing written
 
 
+def test_an_older_record_is_checked_by_its_ingest_hashes(nipple_run, tmp_path):
+    # review AN: a record without ingest_run_id (written before it) was read with any
+    # scans: another phantom's ingest gave 19 mm errors at exit status 0
+    import json
+    import shutil
+
+    from calib.data.work import read_work
+    from calib.io import StaleOutputError
+
+    _, _, work = nipple_run
+    copy = tmp_path / "work"
+    shutil.copytree(work, copy)
+    record = json.loads((copy / "calibration.json").read_text())
+    del record["ingest_run_id"]
+    (copy / "calibration.json").write_text(json.dumps(record))
+    read_work(copy)  # its scans as it fitted them: read
+    ingest = copy / "scans" / "tilt_50" / "ingest.json"
+    ingest.write_text(ingest.read_text().replace("{", '{"edited": 1, ', 1))
+    with pytest.raises(StaleOutputError, match=r"tilt_50/ingest.json: not the file this"):
+        read_work(copy)
+
+
+def test_a_command_on_a_work_folder_in_use_is_refused(nipple_run, tmp_path):
+    # review AN: an ingest during a calibration, and a validate beside one, wrote into the
+    # same WORK: a record naming scans it never fitted, an old fit's validation
+    import shutil
+    import subprocess
+    import sys
+
+    _, _, work = nipple_run
+    copy = tmp_path / "work"
+    shutil.copytree(work, copy)
+    before = (copy / "validation.json").read_text()
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time\nfrom calib.io import work_lock\n"
+         "with work_lock(sys.argv[1], 'calibrate'):\n print('held', flush=True)\n"
+         " time.sleep(60)", str(copy)],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        res = CliRunner().invoke(app, ["validate", str(copy)])
+        assert res.exit_code == 2, res.output
+        assert "in use by another phantom-calib command (calibrate, process" in res.output
+        assert (copy / "validation.json").read_text() == before  # nothing written
+    finally:
+        holder.kill()
+        holder.wait()
+        holder.stdout.close()
+    res = CliRunner().invoke(app, ["validate", str(copy)])  # released with its process
+    assert res.exit_code == 0, res.output
+
+
 def test_validate_and_diagnose_take_the_work_folder_a_notebook_holds(nipple_run):
     # review AI: calib.load_work's object and a path raised AttributeError in both
     import calib

@@ -1,0 +1,77 @@
+"""Runs as runs (``calib/io.py``, review AN): locks, records of a replaced fit, provenance."""
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+
+def test_a_calibration_whose_scans_were_ingested_again_meanwhile_writes_nothing(tmp_path):
+    # review AN: the record took the scans' run id at its end, so an ingest during the fit
+    # was recorded as the one fitted; the check comes before anything is read or written
+    from calib.io import StaleOutputError, write_json_atomic
+    from calib.workflows.calibrate import write_calibration
+
+    write_json_atomic(tmp_path / "scans" / "RUN", {"run_id": "during"})
+    with pytest.raises(StaleOutputError, match="ingested again during this calibration"):
+        write_calibration(tmp_path, None, {}, inputs={}, wall_s=0.0, ingest_run_id="before")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scans"]
+
+
+def test_a_new_calibration_removes_what_was_made_from_the_old_one(tmp_path, caplog):
+    # review AN: a calibrate stopped in its closing validate left the old fit's report
+    from calib.workflows.calibrate import _drop_outputs_of_another_fit
+
+    for name, made_from in (("validation", "old"), ("diagnosis", "new")):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "report.html").write_text("...")
+        (tmp_path / f"{name}.json").write_text(json.dumps({"calibration_run_id": made_from}))
+    _drop_outputs_of_another_fit(tmp_path, "new")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["diagnosis", "diagnosis.json"]
+    assert "validation.json and" in caplog.text
+
+
+def test_the_lock_is_reentrant_and_a_refused_input_leaves_no_folder(tmp_path):
+    from calib.io import locking_work, work_lock
+
+    @locking_work("ingest", create=True)
+    def refuse(work):
+        with work_lock(work, "nested"):  # the same process: re-entrant
+            raise ValueError("bad session.toml")
+
+    with pytest.raises(ValueError, match="bad session"):
+        refuse(tmp_path / "a" / "work")
+    assert not (tmp_path / "a").exists()  # neither WORK nor the parent made for it
+
+
+def test_provenance_can_run_the_command_again(tmp_path, monkeypatch):
+    # review AN: relative input paths and no working folder; no commit, no thread counts
+    from calib.io import provenance
+
+    monkeypatch.chdir(tmp_path)
+    Path("in.txt").write_text("x")
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    p = provenance(inputs={"input": "in.txt"})
+    assert p["inputs"]["input"]["path"] == str(tmp_path / "in.txt")
+    assert p["cwd"] == os.getcwd() and p["threads"]["OMP_NUM_THREADS"] == "1"
+    repo = Path(__file__).resolve().parents[2]
+    if (repo / ".git").exists():  # a source checkout (CI's clone is one)
+        assert len(p["source"]["commit"]) == 40
+        assert isinstance(p["source"]["uncommitted_edits"], bool)
+
+
+def test_an_interrupted_command_says_what_was_kept(monkeypatch, capsys):
+    # review AN, AM: typer turns Ctrl-C into a silent exit 130
+    import importlib
+
+    cli = importlib.import_module("calib.cli.app")  # calib.cli.app is also the Typer
+
+    def interrupted(args, prog_name):
+        raise SystemExit(130)
+
+    monkeypatch.setattr(cli, "app", interrupted)
+    for command, says in (("validate", "nothing of this run was kept"), ("sweep", "resume")):
+        with pytest.raises(SystemExit):
+            cli.main([command, "w"])
+        assert says in capsys.readouterr().err
