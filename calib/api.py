@@ -104,7 +104,7 @@ def diagnose(work, *, options=None, progress=None, **fields) -> dict:
 
     Parameters
     ----------
-    work : str, Path or calib.notebook.Work
+    work : str or Path
         A calibrated work folder.
     options : calib.discrepancy.DiagnosisOptions, optional
         The options; or give their fields as keywords (``effects=("skin",)``), not both.

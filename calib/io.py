@@ -255,7 +255,8 @@ def work_lock(work: str | os.PathLike, command: str):
     ``calibration.json`` naming scans it never fitted, and a validate beside a
     calibration replaced the new validation with the old fit's). The lock is an
     ``flock`` on an open file: the system releases it when its process ends, however it
-    ends. Re-entrant within a process (calibrate's own ingest). ``work`` must exist
+    ends; the file is removed when the command ends (one killed leaves it, unlocked).
+    Re-entrant within a process (calibrate's own ingest). ``work`` must exist
     (:func:`locking_work` makes it where the command would).
 
     Raises
@@ -273,17 +274,25 @@ def work_lock(work: str | os.PathLike, command: str):
         finally:
             _HELD[work][1] -= 1
         return
-    f = open(work / ".lock", "a+")  # held open for the command's life
-    try:
-        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        f.seek(0)
-        holder = f.read().strip() or "a process"
+    path = work / ".lock"
+    while True:
+        f = open(path, "a+")  # held open for the command's life
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "a process"
+            f.close()
+            raise WorkBusyError(
+                f"{work}: in use by another phantom-calib command ({holder}); run this one "
+                "when it has finished"
+            ) from None
+        try:  # the file its holder removed on release is not the lock: open it again
+            if os.stat(path).st_ino == os.fstat(f.fileno()).st_ino:
+                break
+        except FileNotFoundError:
+            pass
         f.close()
-        raise WorkBusyError(
-            f"{work}: in use by another phantom-calib command ({holder}); run this one when "
-            "it has finished"
-        ) from None
     f.seek(0)
     f.truncate()
     f.write(f"{command}, process {os.getpid()}\n")
@@ -293,6 +302,7 @@ def work_lock(work: str | os.PathLike, command: str):
         yield
     finally:
         del _HELD[work]
+        path.unlink(missing_ok=True)  # before the release: no output folder keeps it
         f.close()
 
 
@@ -306,7 +316,7 @@ def locking_work(command: str, *, create: bool = False):
     create : bool
         Make a missing WORK (its parents too) for the lock, after
         :func:`check_out_folder` accepts it, and remove what was made again if the command
-        leaves nothing there but the lock (a refused input leaves no folder). Without it
+        leaves it empty (a refused input leaves no folder). Without it
         a missing WORK is not locked: the command fails on reading it.
     """
     import inspect
@@ -329,8 +339,6 @@ def locking_work(command: str, *, create: bool = False):
                     return fn(*args, **kwargs)
             finally:
                 for p in made:  # deepest first
-                    if p == work and [e.name for e in p.iterdir()] == [".lock"]:
-                        (p / ".lock").unlink()
                     try:
                         p.rmdir()
                     except OSError:

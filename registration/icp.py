@@ -19,6 +19,11 @@ from registration.errors import RegistrationError
 
 __all__ = ["IcpLevel", "IcpResult", "icp_refine", "sample_triangles"]
 
+#: Iterations over which a level at its cap must have stopped moving to count as settled
+SETTLE_ITERATIONS = 10
+#: ... and the largest change of its fitness (the share of points within the gate) there
+SETTLE_FITNESS = 1e-3
+
 log = logging.getLogger(__name__)
 
 
@@ -38,6 +43,12 @@ class IcpLevel:
         ICP iterations run.
     converged : bool
         Whether the change criterion was met before the iteration cap.
+    settled : bool
+        Converged, or at the cap with its fit no longer moving: the inlier RMSE within
+        ``settle_mm`` and the fitness within :data:`SETTLE_FITNESS` over the last
+        :data:`SETTLE_ITERATIONS` iterations (a surface that slides on itself, a round
+        body about its axis, creeps by 1e-6 mm per iteration and never meets the change
+        criterion, with figures that no longer move: review AO).
     fitness : float
         Open3d fitness at the end of the level (on the clouds of this level).
     inlier_rmse_mm : float
@@ -51,6 +62,7 @@ class IcpLevel:
     converged: bool
     fitness: float
     inlier_rmse_mm: float
+    settled: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,6 +110,11 @@ class IcpResult:
     def converged(self) -> bool:
         """True when every level met its change criterion."""
         return all(lv.converged for lv in self.levels)
+
+    @property
+    def settled(self) -> bool:
+        """True when every level settled (converged, or no longer moving at its cap)."""
+        return all(lv.settled for lv in self.levels)
 
 
 def _cloud(points: np.ndarray, normals: np.ndarray | None = None):
@@ -244,6 +261,7 @@ def icp_refine(
     kernel_scale_mm: float | None = None,
     max_iterations: int = 60,
     tolerance: float = 1e-6,
+    settle_mm: float = 1e-4,
     normal_knn: int = 20,
 ) -> IcpResult:
     """Coarse-to-fine point-to-plane ICP (open3d) with a robust kernel.
@@ -273,6 +291,9 @@ def icp_refine(
     tolerance : float
         A level stops when fitness and inlier RMSE (mm) both change by less than this
         between iterations (open3d's default criterion and value).
+    settle_mm : float
+        A level at its cap is ``settled`` when its inlier RMSE moved by less than this
+        (mm) over its last :data:`SETTLE_ITERATIONS` iterations (see :class:`IcpLevel`).
     normal_knn : int
         Neighbours for normal estimation.
 
@@ -312,10 +333,11 @@ def icp_refine(
                 f"ICP: no correspondences within {dist} mm at the start of a level; "
                 "improve the initial transform or widen the gate"
             )
-        converged, it = False, 0
+        converged, it, trail = False, 0, []
         while it < max_iterations:
             res = reg.registration_icp(s, t, dist, T, est, criteria)
             it += 1
+            trail.append((res.inlier_rmse, res.fitness))
             T = np.asarray(res.transformation)
             if len(res.correspondence_set) < 3:
                 raise RegistrationError(f"ICP lost all correspondences within {dist} mm")
@@ -326,8 +348,17 @@ def icp_refine(
                 converged = True
                 break
             prev = res
+        last = np.array(trail[-SETTLE_ITERATIONS:])
+        settled = converged or (
+            len(last) == SETTLE_ITERATIONS
+            and np.ptp(last[:, 0]) < settle_mm
+            and np.ptp(last[:, 1]) < SETTLE_FITNESS
+        )
         levels.append(
-            IcpLevel(dist, voxel, scale, it, converged, float(res.fitness), float(res.inlier_rmse))
+            IcpLevel(
+                *(dist, voxel, scale, it, converged, float(res.fitness), float(res.inlier_rmse)),
+                settled=bool(settled),
+            )
         )
         log.debug("ICP level %.3g mm: %d iterations, RMSE %.4f mm", dist, it, res.inlier_rmse)
     final = reg.evaluate_registration(_cloud(src), _cloud(tgt), dists[-1], T)

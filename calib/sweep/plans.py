@@ -38,7 +38,15 @@ import numpy as np
 
 from fem.postures import fibonacci_sphere, gravity_for_angle
 
-__all__ = ["PLANES", "ROLES", "Plan", "PlanError", "make_plan", "parse_c1_axis"]
+__all__ = [
+    "PLANES",
+    "ROLES",
+    "Plan",
+    "PlanError",
+    "canonical_c1_axis",
+    "make_plan",
+    "parse_c1_axis",
+]
 
 #: Integer codes of the scenario roles and planes in the store.
 ROLES = ("train", "validation")
@@ -95,6 +103,20 @@ class Plan:
             "n_train": int(np.sum(self.role == 0)),
             "n_validation": int(np.sum(self.role == 1)),
         }
+
+
+def canonical_c1_axis(text: str | None) -> str | None:
+    """``LO:HI:N`` with its numbers written one way (``3e2:6e2:3`` is ``300:600:3``).
+
+    A plan is identified by its description, so that one axis written two ways was
+    "another plan" on resume (review AM). Numbers keep every digit (a shorter form could
+    give two axes one name).
+    """
+    if text is None:
+        return None
+    lo, hi, n = text.split(":")
+    lo, hi = (np.format_float_positional(float(v), trim="-") for v in (lo, hi))
+    return f"{lo}:{hi}:{int(n)}"
 
 
 def parse_c1_axis(text: str | None, c1_cal_pa: float) -> np.ndarray:
@@ -225,7 +247,7 @@ def make_plan(
         role=np.repeat(role, m),
         plane=np.repeat(plane, m),
         angle_deg=np.repeat(angle, m),
-        c1_axis=c1_axis,
+        c1_axis=canonical_c1_axis(c1_axis),
         holdout=float(holdout),
         seed=int(seed),
     )

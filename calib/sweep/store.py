@@ -90,7 +90,7 @@ import numpy as np
 
 from .continuation import Continuation
 from .model import SweepModel
-from .plans import PLANES, ROLES, Plan
+from .plans import PLANES, ROLES, Plan, canonical_c1_axis
 
 __all__ = [
     "CONVERGENCE_COLUMNS",
@@ -336,7 +336,9 @@ class SweepStore:
             "chunk_size": int(chunk_size),
             "max_angle_deg": float(max_angle_deg),
         }
-        have = a.get("plan", {})
+        have = dict(a.get("plan", {}))
+        if have.get("c1_axis"):  # a store made before the axis was written one way
+            have["c1_axis"] = canonical_c1_axis(have["c1_axis"])
         # the seed draws a sphere plan's held-out directions only: elsewhere it is no part
         # of the plan (review AD: a dissertation store was refused a resume at another seed)
         unused = {"seed"} if not want.get("holdout") else set()

@@ -86,6 +86,9 @@ def test_c1_axis():
     p = make_plan("sphere:4", c1_cal_pa=500.0, c1_axis="300:600:2")
     assert len(p) == 8 and np.allclose(p.c1_pa[:2], [300.0, 600.0])
     assert np.allclose(p.gravity_phantom[0], p.gravity_phantom[1])
+    # review AM: one axis written two ways was "another plan" on resume
+    same = make_plan("sphere:4", c1_cal_pa=500.0, c1_axis="3e2:6.0e2:2").describe()
+    assert same == p.describe() and same["c1_axis"] == "300:600:2"
     for bad in ("300", "a:b:c", "600:300:2", "0:1:2", "300:600:0", "300:600:1", "1:2:3:4"):
         with pytest.raises(PlanError, match="--c1"):
             parse_c1_axis(bad, 500.0)
