@@ -161,7 +161,19 @@ def prepare(
             from .profile import nipple_patches
 
             nipple_patches(cal)  # its interval's noise level, from measured points: no FE yet
-        return cal, _start(cal, say), attempts
+        theta0 = _start(cal, say)
+        try:  # the postures at the first estimate too (cached for the optimiser's first step)
+            _evaluate(cal, theta0, say)
+        except EvaluationFailed as exc:
+            # review AO's independent scans: the reference recovered (curved elements) but
+            # no posture solved at the first estimate, and the run ended without trying
+            # the next mesh size (the clamped rim's elements change with it)
+            raise fem.ConvergenceError(
+                f"no FE solution of the postures on the {size:g} mm model mesh at the first "
+                f"estimate c1 = {np.exp(theta0):.0f} Pa ({exc}); try another --mesh-size "
+                f"(e.g. {size + 2:g}) or --reference-state shortcut"
+            ) from exc
+        return cal, theta0, attempts
 
     sizes = (options.mesh_size_mm, *options.mesh_retry_mm)
     for size in sizes[:-1]:
@@ -169,9 +181,14 @@ def prepare(
             return attempt(size)
         except fem.ConvergenceError as exc:
             attempts.append({"mesh_size_mm": size, "failure": str(exc)})
+            what = (
+                "no FE solution of the postures at the first estimate"
+                if isinstance(exc.__cause__, EvaluationFailed)
+                else "no stress-free reference"
+            )
             say(
-                f"no stress-free reference on the {size:g} mm model mesh (the clamped rim "
-                "degenerates); trying the next size"
+                f"{what} on the {size:g} mm model mesh (the clamped rim degenerates); trying "
+                "the next size"
             )
     return attempt(sizes[-1])
 

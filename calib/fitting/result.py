@@ -39,7 +39,8 @@ def calibration_caveats(record: dict) -> list[str]:
     """What a reader of figures made from this calibration must be told, one line each.
 
     A model misfit (the interval is an effective c1's), an optimiser that did not converge
-    or ended on a bound, and a surface interval that is not the series one.
+    or ended on a bound, a retry mesh (its discretisation error may outrun the mesh
+    check's bound), and a surface interval that is not the series one.
 
     Parameters
     ----------
@@ -58,6 +59,15 @@ def calibration_caveats(record: dict) -> list[str]:
     if opt.get("bound"):
         side = f"the {opt['bound']}" if opt["bound"] in ("lower", "upper") else "a"
         said.append(f"c1 ended on {side} bound of its search range")
+    mesh = record.get("mesh") or {}
+    if mesh.get("failed_sizes"):  # review AO: a retry mesh's error outran its bound
+        tried = ", ".join(f"{f['mesh_size_mm']:g}" for f in mesh["failed_sizes"])
+        said.append(
+            f"calibrated on the {mesh.get('size_mm', 0):g} mm retry mesh (no FE solution on "
+            f"{tried} mm): a coarser mesh's discretisation error can exceed the mesh "
+            "check's bound, so the interval may miss c1 (README, the independent "
+            "generator's benchmark); a finer --mesh-size may solve where the default did not"
+        )
     unc = record.get("uncertainty") or {}
     if record.get("objective") == "surface" and unc.get("method") == "gauss-newton":
         said.append(

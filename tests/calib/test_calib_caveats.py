@@ -42,6 +42,14 @@ def test_each_caveat_is_said_once():
     assert "c1 ended on a bound of its search range" in calibration_caveats(theta)
     # the landmarks objective's interval is the Gauss-Newton one by design
     assert calibration_caveats(record | {"objective": "landmarks"})[-1].startswith("c1 ended")
+    # review AO: on a retry mesh (16 mm after 12 and 14 failed) an independent generator's
+    # c1 fell outside its interval
+    retry = CLEAN | {
+        "mesh": {"size_mm": 16.0, "failed_sizes": [{"mesh_size_mm": 12.0}, {"mesh_size_mm": 14.0}]}
+    }
+    (said,) = calibration_caveats(retry)
+    assert said.startswith("calibrated on the 16 mm retry mesh (no FE solution on 12, 14 mm)")
+    assert calibration_caveats(CLEAN | {"mesh": {"size_mm": 12.0, "failed_sizes": []}}) == []
 
 
 def test_the_validation_table_warns_with_each_caveat():

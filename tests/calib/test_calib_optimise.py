@@ -12,6 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+import fem
 from calib.fitting.objective import EvaluationFailed
 from calib.fitting.optimise import EDGE_TOLERANCE, optimise
 
@@ -194,3 +195,45 @@ def test_the_backtracking_step_is_safeguarded():
     assert _backtrack(1.0, -1.0, 100.0) == pytest.approx(0.1)  # far overshoot: 0.1
     assert _backtrack(0.5, -1.0, 0.1) == pytest.approx(0.25 / 1.2)  # curvature 0.6
     assert _backtrack(1.0, -1.0, -0.9) == pytest.approx(0.5)  # never longer than halving
+
+
+def test_a_first_estimate_whose_postures_do_not_solve_tries_the_next_mesh_size(monkeypatch):
+    # review AO's independent scans (a soft dome): the reference was recovered with
+    # curved elements but no posture solved at the first estimate on the 12 mm mesh, and
+    # the run ended there; the 16 mm mesh solved. Now the postures at the first estimate
+    # are part of a mesh size's trial (their result cached for the optimiser)
+    import calib.fitting.optimise as opt
+    from calib.fitting import CalibrationOptions
+
+    class Trial:
+        def __init__(self, measurements, options, density_kg_m3):
+            self.options, self.history = options, []
+            self.mesh, self.calibration_scans = SimpleNamespace(n_tets=10), []
+
+        def objective(self, theta):
+            if self.options.mesh_size_mm == 12.0:
+                raise EvaluationFailed("no FE solution at c1 = 300.0 Pa: load not applied")
+            self.history.append({"c1_pa": 300.0, "rms_mm": 0.5, "wall_s": 1.0})
+            return 1.0, np.array([0.0])
+
+    monkeypatch.setattr(opt, "Calibrator", Trial)
+    monkeypatch.setattr(opt, "_start", lambda cal, say: float(np.log(300.0)))
+    monkeypatch.setattr(opt, "model_mesh_notes", lambda *a, **k: [])
+    said = []
+    measurements = SimpleNamespace(reference=SimpleNamespace(name="left_lateral"))
+    cal, theta0, failed = opt.prepare(measurements, CalibrationOptions(), 1000.0, said.append)
+    assert cal.options.mesh_size_mm == 14.0 and len(cal.history) == 1
+    assert [f["mesh_size_mm"] for f in failed] == [12.0]
+    assert (
+        "no FE solution of the postures on the 12 mm model mesh at the first"
+        in (failed[0]["failure"])
+    )
+    assert any("at the first estimate on the 12 mm model mesh" in s for s in said)
+
+    # the last size's failure is the error, with its remedies
+    def never(self, theta):
+        raise EvaluationFailed("no FE solution at c1 = 300.0 Pa")
+
+    monkeypatch.setattr(Trial, "objective", never)
+    with pytest.raises(fem.ConvergenceError, match="16 mm model mesh .* try another --mesh-size"):
+        opt.prepare(measurements, CalibrationOptions(), 1000.0, said.append)
