@@ -96,11 +96,15 @@ def make_mesh(n: int, nz: int):
 def solve(mesh, gravity_unit, *, c1_pa: float, density_kg_m3: float, steps: int = 2):
     """Displacements (mm) under gravity from the stress-free mesh; units mm, Pa, Pa/mm."""
     import felupe
-    import pypardiso
+
+    try:
+        from pypardiso import spsolve  # x86_64 only; felupe's own sparse solver is slow
+    except ImportError:
+        from scipy.sparse.linalg import spsolve
 
     def pardiso(A, b, **_):
         dense = b.todense() if hasattr(b, "todense") else b  # felupe passes either
-        return pypardiso.spsolve(A.tocsr(), np.asarray(dense).ravel())
+        return spsolve(A.tocsr(), np.asarray(dense).ravel())
 
     mu = 2 * c1_pa
     field = felupe.FieldContainer([felupe.Field(felupe.RegionHexahedron(mesh), dim=3)])
@@ -334,10 +338,21 @@ def mesh_study(spec: dict) -> list[tuple[int, float]]:
     return rows
 
 
+def _set(name: str) -> str:
+    if name not in SETS:
+        raise argparse.ArgumentTypeError(f"unknown set {name!r}; choose from {', '.join(SETS)}")
+    return name
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--sets", default="full,bare")
+    ap.add_argument(
+        "--sets",
+        default="full,bare",
+        type=lambda text: [_set(name) for name in text.split(",")],
+        help=f"comma-separated, of {', '.join(SETS)}",
+    )
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--mesh-study", action="store_true")
     args = ap.parse_args()
@@ -348,7 +363,7 @@ def main() -> None:
     import calib
 
     rows = []
-    for name in args.sets.split(","):
+    for name in args.sets:
         spec = SETS[name]
         folder = args.out / name
         t0 = time.perf_counter()

@@ -6,6 +6,7 @@ import contextlib
 import functools
 import hashlib
 import json
+import logging
 import os
 import platform
 import sys
@@ -14,6 +15,8 @@ from importlib import metadata
 from pathlib import Path
 
 from fem.io import atomic_write
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "RunOutputs",
@@ -194,7 +197,7 @@ def _source_revision() -> dict | None:
     if not (root / ".git").exists():
         return None
     try:
-        git = ["git", "-C", str(root)]
+        git = ["git", "--no-optional-locks", "-C", str(root)]  # no index.lock (review AP)
         commit = subprocess.run(
             [*git, "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10, check=True
         ).stdout.strip()
@@ -242,8 +245,8 @@ class WorkBusyError(RuntimeError):
     """Another phantom-calib command is writing this work folder."""
 
 
-#: Work folders this process holds the lock of: path -> [open lock file, depth]
-_HELD: dict[Path, list] = {}
+#: Work folders this process holds the lock of
+_HELD: set[Path] = set()
 
 
 @contextlib.contextmanager
@@ -264,19 +267,22 @@ def work_lock(work: str | os.PathLike, command: str):
     WorkBusyError
         Another process holds the lock (its command and process id are named).
     """
-    import fcntl
-
     work = Path(work).resolve()
-    if work in _HELD:
-        _HELD[work][1] += 1
-        try:
-            yield
-        finally:
-            _HELD[work][1] -= 1
+    try:
+        import fcntl
+    except ImportError:  # Windows: no flock (review AP)
+        fcntl = None
+    if work in _HELD or fcntl is None:  # the outer command releases it
+        if fcntl is None:
+            log.warning("%s: not locked (no fcntl here): run one command at a time", work)
+        yield
         return
     path = work / ".lock"
     while True:
-        f = open(path, "a+")  # held open for the command's life
+        try:
+            f = open(path, "a+")  # held open for the command's life
+        except PermissionError as exc:
+            raise PermissionError(f"{work}: not writable (this command writes there)") from exc
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -287,21 +293,30 @@ def work_lock(work: str | os.PathLike, command: str):
                 f"{work}: in use by another phantom-calib command ({holder}); run this one "
                 "when it has finished"
             ) from None
+        except OSError as exc:  # a file system without flock (some NFS, CIFS mounts)
+            f.close()
+            path.unlink(missing_ok=True)
+            log.warning("%s: not locked (%s): run one command at a time", work, exc)
+            f = None
+            break
         try:  # the file its holder removed on release is not the lock: open it again
             if os.stat(path).st_ino == os.fstat(f.fileno()).st_ino:
                 break
         except FileNotFoundError:
             pass
         f.close()
+    if f is None:
+        yield
+        return
     f.seek(0)
     f.truncate()
     f.write(f"{command}, process {os.getpid()}\n")
     f.flush()
-    _HELD[work] = [f, 1]
+    _HELD.add(work)
     try:
         yield
     finally:
-        del _HELD[work]
+        _HELD.discard(work)
         path.unlink(missing_ok=True)  # before the release: no output folder keeps it
         f.close()
 
@@ -331,7 +346,7 @@ def locking_work(command: str, *, create: bool = False):
             if create and not work.exists():
                 check_out_folder(work)
                 made = [p for p in (work, *work.parents) if not p.exists()]
-                work.mkdir(parents=True)
+                work.mkdir(parents=True, exist_ok=True)  # a racing command: the lock decides
             if not work.is_dir():
                 return fn(*args, **kwargs)
             try:

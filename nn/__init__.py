@@ -21,6 +21,7 @@ import importlib
 
 __all__ = [
     "ExtrapolationWarning",
+    "FarExtrapolationWarning",
     "MeshMismatchError",
     "Prediction",
     "StoreFormatError",
@@ -44,6 +45,7 @@ _LAZY = {
     "fit_dissertation_mlps": "nn.baseline",
     "select_device": "nn.device",
     "ExtrapolationWarning": "nn.surrogate",
+    "FarExtrapolationWarning": "nn.surrogate",
     "MeshMismatchError": "nn.surrogate",
     "Prediction": "nn.surrogate",
     "Surrogate": "nn.surrogate",

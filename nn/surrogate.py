@@ -24,6 +24,7 @@ from .data import MODEL_KEYS, SweepData
 
 __all__ = [
     "ExtrapolationWarning",
+    "FarExtrapolationWarning",
     "MeshMismatchError",
     "Prediction",
     "Surrogate",
@@ -58,6 +59,21 @@ SPAN_SLACK_DEG = 0.25
 
 class ExtrapolationWarning(UserWarning):
     """A query outside the c1 or load range the surrogate was trained on."""
+
+
+class FarExtrapolationWarning(ExtrapolationWarning):
+    """A query whose answer is not to be trusted at all.
+
+    A load beyond :data:`FAR_LOAD_FACTOR` times the trained range (the exponential
+    kernel grows without bound: ten times the trained load read 7e17 mm, review AM), or
+    nearer a scenario the sweep could not solve than any trained one.
+    ``phantom-calib surrogate predict`` refuses these without ``--extrapolate``.
+    """
+
+
+#: Loads beyond this factor past the trained range (either side) are far: on review AM's
+#: store 1.5 times the load erred by 6 % against FE, twice by a factor of 2.5
+FAR_LOAD_FACTOR = 1.5
 
 
 class SurrogateFileError(ValueError):
@@ -330,7 +346,7 @@ class Surrogate:
                 "frame) lies nearer a scenario the sweep could not solve "
                 f"({np.round(f, 3).tolist()} 1/m, the store's `failures`) than any trained "
                 "one: the FE model may have no solution here, and the surrogate extrapolates",
-                ExtrapolationWarning,
+                FarExtrapolationWarning,
                 stacklevel=4,
             )
 
@@ -338,16 +354,22 @@ class Surrogate:
         lo, hi = self.meta["trained"]["c1_pa"]
         loaded = np.linalg.norm(g, axis=1) > 0  # no load: zero displacement at any c1
         out = loaded & ((c1 < lo * (1 - _REL_TOL)) | (c1 > hi * (1 + _REL_TOL)))
-        if np.any(out):
-            warnings.warn(
-                f"c1 = {c1[out][0]:.6g} Pa lies outside the trained range "
-                f"[{lo:.6g}, {hi:.6g}] Pa: the surrogate extrapolates",
-                ExtrapolationWarning,
-                stacklevel=3,
-            )
         rho = float(self.meta["model"]["density_kg_m3"])
         q = rho * np.linalg.norm(g, axis=1) / c1
         qlo, qhi = self.meta["trained"]["load_per_m"]
+        far = (q > qhi * FAR_LOAD_FACTOR) | ((q > 0) & (q < qlo / FAR_LOAD_FACTOR))
+        beyond = (
+            f" (its load rho g / c1 lies beyond {FAR_LOAD_FACTOR:g} times the trained range: "
+            "not to be trusted, the kernel grows without bound)"
+        )
+        if np.any(out):
+            warnings.warn(
+                f"c1 = {c1[out][0]:.6g} Pa lies outside the trained range "
+                f"[{lo:.6g}, {hi:.6g}] Pa: the surrogate extrapolates"
+                + (beyond if np.any(far) else ""),
+                FarExtrapolationWarning if np.any(far) else ExtrapolationWarning,
+                stacklevel=3,
+            )
         if self.prestressed and np.any(q == 0):
             warnings.warn(
                 "zero gravity on a prestressed reference is the loaded reference shape's "
@@ -372,8 +394,8 @@ class Surrogate:
                 f"load rho g / c1 = {q[outq][0]:.6g} 1/m lies outside the trained "
                 f"range [{qlo:.6g}, {qhi:.6g}] 1/m (gravity magnitude "
                 f"{np.linalg.norm(g[outq][0]):.4g} m/s^2): the surrogate "
-                f"extrapolates{pre}",
-                ExtrapolationWarning,
+                f"extrapolates{pre}" + (beyond if np.any(far) else ""),
+                FarExtrapolationWarning if np.any(far) else ExtrapolationWarning,
                 stacklevel=3,
             )
 

@@ -272,8 +272,8 @@ def main(argv: list[str] | None = None) -> None:
 
 
 _KEPT_NOTHING = (
-    "nothing of this run was kept (each command writes its outputs whole at its end); "
-    "earlier outputs are as they were"
+    "the step that was running kept nothing (each writes its outputs whole at its end); "
+    "outputs of finished steps (calibrate's fit before its closing validate) are kept"
 )
 _INTERRUPTED = {
     "sweep": "the scenarios solved so far are kept in the store; run the same command "

@@ -178,29 +178,30 @@ def write_calibration(
 
 
 def _drop_outputs_of_another_fit(work: Path, run_id: str) -> None:
-    """Remove ``validate``'s and ``diagnose``'s outputs of the calibration just replaced.
+    """Remove ``validate``'s outputs of the calibration just replaced.
 
     Review AN: a calibrate stopped (or failed) in its closing validate left the old fit's
-    ``validation.json`` and ``validation/report.html`` beside the new calibration. Each
-    record names the calibration it was made from (``calibration_run_id``).
+    ``validation.json`` and ``validation/report.html`` beside the new calibration. A
+    diagnosis (35 minutes of work, review AP) stays: it names the calibration it was made
+    from (``calibration_run_id``), which the view checks.
     """
     import shutil
 
-    for name in ("validation", "diagnosis"):
-        record = work / f"{name}.json"
-        if not record.is_file():
-            continue
-        try:
-            made_from = json.loads(record.read_text()).get("calibration_run_id")
-        except (ValueError, AttributeError):
-            made_from = None
-        if made_from != run_id:
-            record.unlink()
-            shutil.rmtree(work / name, ignore_errors=True)
-            log.warning(
-                "removed %s and %s/: they were made from the calibration this one replaced",
-                *(record, work / name),
-            )
+    record = work / "validation.json"
+    try:
+        made_from = json.loads(record.read_text()).get("calibration_run_id")
+    except FileNotFoundError:
+        return
+    except (OSError, ValueError, AttributeError) as exc:  # unreadable: not this fit's
+        log.warning("%s: unreadable (%s)", record, exc)
+        made_from = None
+    if made_from != run_id:
+        record.unlink(missing_ok=True)
+        shutil.rmtree(work / "validation", ignore_errors=True)
+        log.warning(
+            "removed %s and %s/: they were made from the calibration this one replaced",
+            *(record, work / "validation"),
+        )
 
 
 def _with_posture_check(calibration: Calibration, evaluations, say) -> Calibration:

@@ -463,10 +463,11 @@ def run_surrogate_predict(
         c1 of the prediction (default: the model's calibrated c1).
     frame : {"phantom", "ref"}
     extrapolate : bool
-        Write a prediction the surrogate warns about (:class:`nn.ExtrapolationWarning`:
-        outside the trained ranges, or nearer a scenario the sweep could not solve than
-        any trained one); else nothing is written (review AM: ten times the trained load
-        was written as 7e17 mm with exit status 0).
+        Write a prediction not to be trusted at all (:class:`nn.FarExtrapolationWarning`:
+        a load beyond 1.5 times the trained range, or nearer a scenario the sweep could
+        not solve than any trained one); else nothing is written (review AM: ten times
+        the trained load was written as 7e17 mm with exit status 0). Other
+        extrapolations are written with their warning.
 
     Returns
     -------
@@ -479,7 +480,7 @@ def run_surrogate_predict(
     ValueError
         ``out`` not ``.vtu`` or ``.ply``, or ``frame`` unknown (checked before the model
         is loaded); bad ``gravity`` or ``c1_pa``; a ``.vtu`` of a surface-only model; an
-        extrapolation without ``extrapolate``.
+        far extrapolation without ``extrapolate``.
     IsADirectoryError
         ``out`` is a folder.
     nn.SurrogateFileError
@@ -516,7 +517,7 @@ def run_surrogate_predict(
         warnings.simplefilter("always", nn.ExtrapolationWarning)
         pred = sur.predict(np.asarray(gravity, float), c1_pa=c1_pa, frame=frame)
     for w in caught:
-        if issubclass(w.category, nn.ExtrapolationWarning) and not extrapolate:
+        if issubclass(w.category, nn.FarExtrapolationWarning) and not extrapolate:
             raise ValueError(f"{w.message}; nothing written (--extrapolate writes it anyway)")
         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     mesh = sur.mesh

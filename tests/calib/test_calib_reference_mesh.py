@@ -266,9 +266,13 @@ def test_the_calibration_warns_of_its_mesh_as_asked_for_or_not(monkeypatch):
 
     class Calibrator:
         def __init__(self, measurements, options, density_kg_m3):
-            self.options = options
+            self.options, self.history = options, []
             self.mesh = types.SimpleNamespace(n_tets=100)
             self.calibration_scans = []
+
+        def objective(self, theta):  # the first estimate's postures solve
+            self.history.append({"c1_pa": 403.4, "rms_mm": 0.5, "wall_s": 1.0})
+            return 1.0, [0.0]
 
     def start(cal, say):  # the default's 12 mm has no reference; an explicit 12 mm has
         if cal.options.mesh_size_mm == 12.0 and told[-1][1] is False:

@@ -73,10 +73,14 @@ def test_predict_zero_nan_and_extrapolation(model_file, tmp_path):
         ],
     )
     assert res.exit_code == 2 and "NaN" in res.output and not (tmp_path / "n.vtu").exists()
+    # a c1 just past the range (a load inside 1.5 times it) is written with its warning
+    near = ["surrogate", "predict", str(model_file), "--gravity", "0,0,9.81", "--c1", "600"]
+    res = runner.invoke(app, [*near, "--out", str(tmp_path / "n600.vtu")])
+    assert res.exit_code == 0 and "warning: c1 = 600 Pa lies outside" in res.output
     soft = ["surrogate", "predict", str(model_file), "--gravity", "0,0,9.81", "--c1", "5000"]
     res = runner.invoke(app, [*soft, "--out", str(tmp_path / "c.vtu")])
     # review AM: ten times the trained load was written as 7e17 mm with exit status 0
-    assert res.exit_code == 2 and "extrapolates; nothing written" in res.output
+    assert res.exit_code == 2 and "grows without bound); nothing written" in res.output
     assert not (tmp_path / "c.vtu").exists()
     res = runner.invoke(app, [*soft, "--extrapolate", "--out", str(tmp_path / "c.vtu")])
     assert res.exit_code == 0 and "extrapolates" in res.output and (tmp_path / "c.vtu").is_file()
