@@ -268,16 +268,42 @@ def work_lock(work: str | os.PathLike, command: str):
         Another process holds the lock (its command and process id are named).
     """
     work = Path(work).resolve()
-    try:
-        import fcntl
-    except ImportError:  # Windows: no flock (review AP)
-        fcntl = None
-    if work in _HELD or fcntl is None:  # the outer command releases it
-        if fcntl is None:
-            log.warning("%s: not locked (no fcntl here): run one command at a time", work)
+    if work in _HELD:  # the outer command releases it
         yield
         return
     path = work / ".lock"
+    f = _locked_file(path, work)
+    if f is None:
+        yield
+        return
+    f.seek(0)
+    f.truncate()
+    f.write(f"{command}, process {os.getpid()}\n")
+    f.flush()
+    _HELD.add(work)
+    try:
+        yield
+    finally:
+        _HELD.discard(work)
+        path.unlink(missing_ok=True)  # before the release: no output folder keeps it
+        f.close()
+
+
+def _locked_file(path: Path, work: Path):
+    """``path`` open and exclusively ``flock``-ed, or None where nothing can lock (said).
+
+    Raises
+    ------
+    WorkBusyError
+        Another process holds it.
+    PermissionError
+        ``work`` is not writable.
+    """
+    try:
+        import fcntl
+    except ImportError:  # Windows: no flock (review AP)
+        log.warning("%s: not locked (no fcntl here): run one command at a time", work)
+        return None
     while True:
         try:
             f = open(path, "a+")  # held open for the command's life
@@ -297,27 +323,12 @@ def work_lock(work: str | os.PathLike, command: str):
             f.close()
             path.unlink(missing_ok=True)
             log.warning("%s: not locked (%s): run one command at a time", work, exc)
-            f = None
-            break
+            return None
         try:  # the file its holder removed on release is not the lock: open it again
             if os.stat(path).st_ino == os.fstat(f.fileno()).st_ino:
-                break
+                return f
         except FileNotFoundError:
             pass
-        f.close()
-    if f is None:
-        yield
-        return
-    f.seek(0)
-    f.truncate()
-    f.write(f"{command}, process {os.getpid()}\n")
-    f.flush()
-    _HELD.add(work)
-    try:
-        yield
-    finally:
-        _HELD.discard(work)
-        path.unlink(missing_ok=True)  # before the release: no output folder keeps it
         f.close()
 
 

@@ -168,7 +168,7 @@ def _fit_meta(fit, data: SweepData) -> dict:
             "directions_ref": directions,
             "direction_spacing_deg": spacing,
             "loads_per_m": train.load_per_m.tolist(),
-            "failed_loads_per_m": np.asarray(data.failed_load_per_m).tolist(),
+            "failed_loads_per_m": data.failed_load_per_m.tolist(),
         },
         "store": {"path": str(data.path), "plan": data.attrs.get("plan", {})},
         "report": fit.report,
@@ -357,17 +357,20 @@ class Surrogate:
         rho = float(self.meta["model"]["density_kg_m3"])
         q = rho * np.linalg.norm(g, axis=1) / c1
         qlo, qhi = self.meta["trained"]["load_per_m"]
-        far = (q > qhi * FAR_LOAD_FACTOR) | ((q > 0) & (q < qlo / FAR_LOAD_FACTOR))
+        # one warning of the c1 or the load below: far from the trained range, it says so
+        far = np.any((q > qhi * FAR_LOAD_FACTOR) | ((q > 0) & (q < qlo / FAR_LOAD_FACTOR)))
+        category = FarExtrapolationWarning if far else ExtrapolationWarning
         beyond = (
             f" (its load rho g / c1 lies beyond {FAR_LOAD_FACTOR:g} times the trained range: "
             "not to be trusted, the kernel grows without bound)"
+            if far
+            else ""
         )
         if np.any(out):
             warnings.warn(
                 f"c1 = {c1[out][0]:.6g} Pa lies outside the trained range "
-                f"[{lo:.6g}, {hi:.6g}] Pa: the surrogate extrapolates"
-                + (beyond if np.any(far) else ""),
-                FarExtrapolationWarning if np.any(far) else ExtrapolationWarning,
+                f"[{lo:.6g}, {hi:.6g}] Pa: the surrogate extrapolates{beyond}",
+                category,
                 stacklevel=3,
             )
         if self.prestressed and np.any(q == 0):
@@ -394,8 +397,8 @@ class Surrogate:
                 f"load rho g / c1 = {q[outq][0]:.6g} 1/m lies outside the trained "
                 f"range [{qlo:.6g}, {qhi:.6g}] 1/m (gravity magnitude "
                 f"{np.linalg.norm(g[outq][0]):.4g} m/s^2): the surrogate "
-                f"extrapolates{pre}" + (beyond if np.any(far) else ""),
-                FarExtrapolationWarning if np.any(far) else ExtrapolationWarning,
+                f"extrapolates{pre}{beyond}",
+                category,
                 stacklevel=3,
             )
 

@@ -356,8 +356,14 @@ def icp_refine(
         )
         levels.append(
             IcpLevel(
-                *(dist, voxel, scale, it, converged, float(res.fitness), float(res.inlier_rmse)),
-                settled=bool(settled),
+                dist,
+                voxel,
+                scale,
+                it,
+                converged,
+                float(res.fitness),
+                float(res.inlier_rmse),
+                bool(settled),
             )
         )
         log.debug("ICP level %.3g mm: %d iterations, RMSE %.4f mm", dist, it, res.inlier_rmse)

@@ -13,7 +13,7 @@ import fem
 from fem.meshing import find_back_plane, tag_node_sets
 from fem.units import STANDARD_GRAVITY_M_S2
 
-from ..data.session import DENSITY_RANGE_KG_M3
+from ..data.session import checked_density_kg_m3
 from ..io import atomic_write, provenance, write_json_atomic
 
 __all__ = ["SimulateOptions", "parse_back_plane", "parse_vector", "run_simulate"]
@@ -47,14 +47,6 @@ class SimulateOptions:
             ("--c1", self.c1_pa, self.c1_pa > 0, "a positive stress in Pa"),
             ("--nu", self.nu, 0 < self.nu < 0.5, "in (0, 0.5)"),
             (
-                "--density",
-                self.density_kg_m3,
-                DENSITY_RANGE_KG_M3[0] <= self.density_kg_m3 <= DENSITY_RANGE_KG_M3[1],
-                "in [{:g}, {:g}] kg/m^3 (a tissue phantom's; 1.0 would be g/cm^3)".format(
-                    *DENSITY_RANGE_KG_M3
-                ),
-            ),
-            (
                 "--g",
                 self.g_m_s2,
                 self.g_m_s2 > 0,
@@ -64,6 +56,7 @@ class SimulateOptions:
         for name, value, ok, expected in checks:
             if not np.isfinite(value) or not ok:
                 raise ValueError(f"{name} must be {expected}, got {value}")
+        checked_density_kg_m3(self.density_kg_m3, "--density")  # the session's range
         if self.bc not in ("clamped", "sliding"):
             raise ValueError(f"--bc must be 'clamped' or 'sliding', got {self.bc!r}")
         if self.formulation not in fem.FORMULATIONS:

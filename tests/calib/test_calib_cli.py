@@ -150,7 +150,7 @@ BAD = [
     (["--back-plane", "z=abc"], r"--back-plane must be 'auto' or 'z=VALUE'"),
     (["--back-plane", "z=40"], r"no back face found at z=40"),
     (["--bc", "glued"], r"--bc must be 'clamped' or 'sliding', got 'glued'"),
-    (["--density", "-5"], r"--density must be in \[500, 3000\] kg/m\^3"),
+    (["--density", "-5"], r"--density must lie in \[500, 3000\] kg/m\^3"),
     # review AK: the session's density range (1.0, g/cm^3 by mistake) did not apply here
     (["--density", "1.0"], r"1\.0 would be g/cm\^3\), got 1\.0"),
     # issue 15: a negative g silently reversed gravity; nan gave a scipy dtype message
