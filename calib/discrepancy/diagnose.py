@@ -71,6 +71,7 @@ import fem
 
 from ..data.work import WorkFolder, as_work_folder, ingest_record
 from ..evaluation import ScanMetrics, scan_metrics
+from ..fitting.meshcheck import gci_at_size
 from ..fitting.options import MESH_SIZE_RANGE_MM
 from ..model.effects import ADMISSIBLE, LIBRARY, SKIN_THICKNESS_MM
 from ..stats import NoiseFit, NoiseModel, height_profile, parameter_intervals
@@ -1388,6 +1389,40 @@ def _admissible_interval(name: str, lower: float, upper: float) -> tuple[float, 
     return lo, hi
 
 
+def _with_mesh_bound(theta: float, iv, prob: Problem) -> dict:
+    """The refit's c1 interval with the model mesh's own error, and what it came from.
+
+    The calibration's mesh check (GCI of ln c1 on its mesh) in quadrature with the noise,
+    as ``calibrate`` does. On another mesh (a fallback size, ``--mesh-size``,
+    ``--inclusion-mesh``) the check is not of this mesh (review W): its bound is carried
+    to this mesh's element size by the check's order
+    (:func:`calib.fitting.meshcheck.gci_at_size`), said in ``gci_from``.
+    """
+    check = (prob.work.record.get("uncertainty") or {}).get("mesh_check") or {}
+    gci = None
+    if not check:
+        said = "none: the calibration ran no mesh check"
+    elif check.get("gci_ln_c1") is None:
+        said = "none: the calibration's mesh check failed"
+    elif prob.own_mesh:
+        gci, said = float(check["gci_ln_c1"]), "the calibration's mesh check on this mesh"
+    elif not check.get("mesh_size_mm"):
+        said = "none: the calibration's mesh check does not give its mesh size"
+    else:
+        gci = gci_at_size(check, prob.mesh_size_mm)
+        said = (
+            f"the calibration's mesh check on its {float(check['mesh_size_mm']):g} mm "
+            f"mesh, carried to this {prob.mesh_size_mm:g} mm one by the check's order"
+        )
+    lo, hi = (float(np.hypot(theta - b, gci or 0.0)) for b in (iv.lower, iv.upper))
+    return {
+        "c1_ci95_pa": [float(np.exp(theta - lo)), float(np.exp(theta + hi))],
+        "noise_only_c1_ci95_pa": [float(np.exp(iv.lower)), float(np.exp(iv.upper))],
+        "gci_ln_c1": gci,
+        "gci_from": said,
+    }
+
+
 def _intervals(fit: Refit, prob: Problem) -> dict:
     """95 % intervals of the final model's parameters (series estimator, calib.stats)."""
     f = fit.fields
@@ -1415,17 +1450,7 @@ def _intervals(fit: Refit, prob: Problem) -> dict:
             entry["ci95_unclipped"] = entry["ci95"]
             entry["ci95"] = [lo, hi]
         if name == "theta":
-            # the model mesh's own error: the calibration's mesh check (GCI of ln c1 on
-            # its mesh) in quadrature with the noise, as ``calibrate`` does; of another
-            # mesh (--mesh-size, --inclusion-mesh, a fallback size) it is not this one's
-            # (review W), and none is added
-            check = (prob.work.record.get("uncertainty") or {}).get("mesh_check") or {}
-            own = prob.own_mesh
-            gci = (check.get("gci_ln_c1") or 0.0) if own else 0.0
-            lo, hi = (float(np.hypot(v - b, gci)) for b in (iv.lower, iv.upper))
-            entry["c1_ci95_pa"] = [float(np.exp(v - lo)), float(np.exp(v + hi))]
-            entry["noise_only_c1_ci95_pa"] = [float(np.exp(iv.lower)), float(np.exp(iv.upper))]
-            entry["gci_ln_c1"] = gci if own else None
+            entry.update(_with_mesh_bound(v, iv, prob))
         if name in PHYSICAL:  # the ratio - 1 of skin and inclusions, ln k of sliding
             q = PHYSICAL[name]
             entry[q.key] = float(q.convert(v))

@@ -217,3 +217,28 @@ def test_a_calibration_json_of_0_1_still_prints():
 
     text = "\n".join(_uncertainty_lines(_doc(check)["uncertainty"], "surface"))
     assert "16.8 mm mesh calibrates to 422.7 Pa" in text and "assumed order 1.60" in text
+
+
+@pytest.mark.parametrize("ratios", [(1.4,), (1.4, 1 / 1.4)])
+def test_a_bound_carried_to_another_size_is_the_bound_a_check_there_finds(ratios):
+    # two code paths on ln c1(h) = L + C h^p (the module's model, exact here): the bound
+    # a check at 12 mm carries to 15 mm is the one a check run at 15 mm finds; with one
+    # check mesh at the assumed order, with two at the observed one (p = 2.3 here)
+    from calib.fitting.meshcheck import gci_at_size
+
+    p = meshcheck.OBSERVED_ORDER if len(ratios) == 1 else 2.3
+
+    def ln_c1(h):
+        return np.log(420.0) + 0.002 * h**p
+
+    def checked(h):
+        gci, order, _, how = grid_convergence(ln_c1(h), [(q, ln_c1(q * h)) for q in ratios])
+        return {"gci_ln_c1": gci, "order": order, "convergence": how, "mesh_size_mm": h}
+
+    assert gci_at_size(checked(12.0), 15.0) == pytest.approx(checked(15.0)["gci_ln_c1"], rel=1e-9)
+    assert gci_at_size(checked(12.0), 12.0) == pytest.approx(checked(12.0)["gci_ln_c1"], rel=1e-12)
+    anomalous = checked(12.0) | {"convergence": "not asymptotic", "order": float("nan")}
+    assert gci_at_size(anomalous, 24.0) == pytest.approx(
+        anomalous["gci_ln_c1"] * 2**meshcheck.OBSERVED_ORDER
+    )
+    assert gci_at_size({"gci_ln_c1": None, "mesh_size_mm": 12.0}, 14.0) is None

@@ -2153,10 +2153,12 @@ def test_effects_that_cannot_be_tested_are_said():
     assert _none_testable(("inclusions", "skin"), why) is None  # skin is tested
 
 
-def test_the_calibration_s_mesh_bound_widens_c1_only_on_its_own_mesh():
-    # review W: the calibration's GCI of ln c1 was added to the refit's c1 interval on any
-    # diagnosis mesh (--mesh-size, --inclusion-mesh, a fallback size); it describes the
-    # calibration's mesh only
+def test_the_calibration_s_mesh_bound_is_carried_to_the_diagnosis_mesh_size():
+    # review W: the calibration's GCI of ln c1 was added unchanged to the refit's c1
+    # interval on any diagnosis mesh; it describes the calibration's mesh. Then none was
+    # added on another mesh, and a diagnosis moved to the next size reported a noise-only
+    # interval that missed the truth (review AO's set: 411.9-415.1 Pa at 420). Now the
+    # bound is carried to the diagnosis mesh's size by the check's order.
     from calib.discrepancy.diagnose import _intervals
 
     sample = phantom_sample(300, 2, seed=2)
@@ -2168,20 +2170,32 @@ def test_the_calibration_s_mesh_bound_widens_c1_only_on_its_own_mesh():
         x=np.array([np.log(420.0)]),
         names=("theta",),
     )
-    record = {"uncertainty": {"mesh_check": {"gci_ln_c1": 0.05}}}
-    work = SimpleNamespace(record=record, mesh=SimpleNamespace(n_nodes=100))
-    width = {}
-    for nodes in (100, 140):
-        mesh = SimpleNamespace(n_nodes=nodes)
-        prob = SimpleNamespace(points=_points(sample), work=work, mesh=mesh, imaged_unlike=False,
-                               region_scale=1.0, own_mesh=nodes == 100)  # fmt: skip
+    check = {"gci_ln_c1": 0.05, "mesh_size_mm": 12.0, "order": 1.6, "convergence": "assumed order"}
+    work = SimpleNamespace(record={"uncertainty": {"mesh_check": check}},
+                           mesh=SimpleNamespace(n_nodes=100))  # fmt: skip
+
+    def theta_at(nodes, size_mm, mesh_check=check):
+        work.record["uncertainty"]["mesh_check"] = mesh_check
+        prob = SimpleNamespace(points=_points(sample), work=work, imaged_unlike=False,
+                               mesh=SimpleNamespace(n_nodes=nodes), region_scale=1.0,
+                               own_mesh=nodes == 100, mesh_size_mm=size_mm)  # fmt: skip
         theta = _intervals(fit, prob)["theta"]
-        assert theta["gci_ln_c1"] == (0.05 if nodes == 100 else None)
         lo, hi = theta["c1_ci95_pa"]
-        width[nodes] = np.log(hi / lo)
-        if nodes == 140:  # the noise's interval alone
-            assert theta["c1_ci95_pa"] == theta["noise_only_c1_ci95_pa"]
-    assert width[100] > width[140]
+        return theta, np.log(hi / lo)
+
+    own, w_own = theta_at(100, 12.0)
+    assert own["gci_ln_c1"] == 0.05 and own["gci_from"].endswith("on this mesh")
+    coarser, w_coarser = theta_at(140, 14.0)
+    assert coarser["gci_ln_c1"] == pytest.approx(0.05 * (14 / 12) ** 1.6, rel=1e-12)
+    assert "carried to this 14 mm" in coarser["gci_from"]
+    finer, w_finer = theta_at(160, 10.0)
+    assert finer["gci_ln_c1"] == pytest.approx(0.05 * (10 / 12) ** 1.6, rel=1e-12)
+    assert w_finer < w_own < w_coarser
+    for bad, why in (({}, "ran no mesh check"), ({"gci_ln_c1": None}, "check failed"),
+                     ({"gci_ln_c1": 0.05}, "does not give its mesh size")):  # fmt: skip
+        theta, _ = theta_at(140, 14.0, bad)
+        assert theta["gci_ln_c1"] is None and why in theta["gci_from"]
+        assert theta["c1_ci95_pa"] == theta["noise_only_c1_ci95_pa"]  # the noise's alone
 
 
 def test_the_report_s_rim_band_is_the_one_the_maps_use():
