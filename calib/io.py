@@ -281,6 +281,9 @@ def work_lock(work: str | os.PathLike, command: str):
     f.write(f"{command}, process {os.getpid()}\n")
     f.flush()
     _HELD.add(work)
+    # no other command writes WORK now: what a killed one of any kind left goes (review
+    # AN: a killed calibrate's staging folder stayed until the next calibrate's commit)
+    clean_stale(work, WORK_OUTPUTS)
     try:
         yield
     finally:
@@ -389,6 +392,20 @@ def _dir_mode() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return 0o777 & ~mask
+
+
+#: The outputs the commands that hold the WORK lock write there (folder, record), whose
+#: temporaries a killed run leaves: ingest, calibrate, validate, diagnose.
+WORK_OUTPUTS = (
+    "scans",
+    "ingest_summary.json",
+    "calibration",
+    "calibration.json",
+    "validation",
+    "validation.json",
+    "diagnosis",
+    "diagnosis.json",
+)
 
 
 def clean_stale(work: Path, names: tuple[str, ...]) -> list[Path]:

@@ -47,6 +47,26 @@ def test_the_lock_is_reentrant_and_a_refused_input_leaves_no_folder(tmp_path):
     assert not (tmp_path / "a").exists()  # neither WORK nor the parent made for it
 
 
+def test_taking_the_lock_removes_what_killed_runs_of_any_command_left(tmp_path):
+    # review AN: a killed calibrate's staging folder stayed until a later calibrate reached
+    # its write step (a validate or diagnose in between left it); under the lock no other
+    # command writes WORK, so any dead run's temporaries go. A live process's stay.
+    import subprocess
+    import sys
+
+    from calib.io import work_lock
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    left = [f".calibration.staging-{dead.pid}", f".diagnosis.old-{dead.pid}"]
+    live = f".validation.staging-{os.getpid()}"
+    for name in [*left, live]:
+        (tmp_path / name).mkdir()
+    (tmp_path / ".calibration.json.x1.tmp").write_text("{")
+    with work_lock(tmp_path, "validate"):
+        assert sorted(p.name for p in tmp_path.iterdir()) == [".lock", live]
+
+
 def test_provenance_can_run_the_command_again(tmp_path, monkeypatch):
     # review AN: relative input paths and no working folder; no commit, no thread counts
     from calib.io import provenance
