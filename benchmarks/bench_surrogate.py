@@ -188,6 +188,18 @@ def main() -> None:
             f"{base.report['n_test']} held out as the dissertation did); "
             f"{base.report['iterations']} MLP iterations"
         )
+        moved = base.report["max_weight_change"]
+        tumour = diss.subset(diss.role == "train").tumour_mm
+        print(
+            "dissertation MLPs: largest weight change over training "
+            + ", ".join(f"{net} net {v:.3g}" for net, v in moved.items())
+            + (
+                f"; the tumour moves up to {np.linalg.norm(tumour, axis=-1).max():.1f} mm in "
+                "the training scenarios"
+                if diss.has_tumour
+                else ""
+            )
+        )
         print()
         print(
             "| surrogate (validation set) | n | surface mean mm | surface max mm | tumour mean mm "

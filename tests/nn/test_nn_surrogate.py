@@ -264,10 +264,18 @@ def test_baseline_training_is_seeded_and_learns(box_data):
     # the 80 / 20 hold-out of the 46 training scenarios
     assert (f0.report["n_train"], f0.report["n_test"]) == (37, 9)
     # the MAEs fall, slowly (Adam's steps are ~lr = 1e-5 per weight): ~2 % in 1000 steps
-    f, _ = weights(0, iterations=1000)
+    f, w = weights(0, iterations=1000)
     hist = np.array(f.report["loss_history"])  # iteration, surface MAE, tumour MAE
     assert list(hist[:, 0]) == [1, 1000]
     assert np.all(hist[-1, 1:] < 0.99 * hist[0, 1:])
+    # the largest weight change the report gives is that between the trained weights and
+    # the untrained ones of the same seed, and within Adam's bound on 1000 steps:
+    # lr (1 - beta1) / sqrt(1 - beta2) per step (Kingma & Ba 2015, Sec. 2.1), 3.16 lr
+    _, untrained = weights(0, iterations=0)
+    moved = f.report["max_weight_change"]
+    assert set(moved) == {"surface", "tumour"}
+    assert max(moved.values()) == pytest.approx(float((w - untrained).abs().max()), rel=1e-6)
+    assert 0.0 < max(moved.values()) <= 1000 * 1e-5 * 0.1 / np.sqrt(1e-3)
 
 
 def test_device_choice():
