@@ -81,12 +81,13 @@ def sweep(
     if serial and dask:
         fail(ValueError("--serial and --dask exclude each other"))
     backend = "serial" if serial else "dask" if dask else "pool"
-    bar = _progress_bar()
-    task = None
+    bar = task = None  # started with the sweep: a refused input prints its error alone
 
     def progress(ev: dict) -> None:
-        nonlocal task
+        nonlocal bar, task
         if ev.get("start"):
+            bar = _progress_bar()
+            bar.start()
             task = bar.add_task("sweep", total=ev["total"], last="")
             return
         it = ev.get("newton_iterations")
@@ -110,8 +111,11 @@ def sweep(
             overwrite=overwrite,
             retry_failed=retry_failed,
         )
-        with bar:
+        try:
             summary = run_sweep(work, out, opts, progress=progress)
+        finally:
+            if bar is not None:
+                bar.stop()
     except (
         CalibrationMissingError,
         PlanError,

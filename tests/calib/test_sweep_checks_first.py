@@ -73,6 +73,17 @@ def test_cli_refuses_before_reading_or_writing(tmp_path, no_reading, args, match
     assert not out.exists() and not out.parent.exists()
 
 
+def test_a_refused_work_folder_s_error_comes_alone(tmp_path, capfd):
+    # review AM: the progress bar, started before the work folder was read, printed a blank
+    # line before the error (rich writes to the process's own stdout, not the runner's)
+    out = tmp_path / "SWEEP"
+    res = CliRunner().invoke(app, ["sweep", str(tmp_path / "nowhere"), "--out", str(out)])
+    assert res.exit_code == 2, res.output
+    assert res.output.startswith("error:") and "no such work folder" in res.output
+    assert capfd.readouterr().out == ""
+    assert not out.exists()
+
+
 def test_dask_backend_without_distributed_is_refused_first(tmp_path, no_reading, monkeypatch):
     monkeypatch.setattr(wsweep, "_has_distributed", lambda: False)
     out = tmp_path / "SWEEP"
