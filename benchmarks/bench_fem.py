@@ -306,6 +306,9 @@ def main() -> None:
                 th[surface or size] = runs[form][0]["nipple_mm"]
                 family.append(size / (surface or size))
             print(_row(label, mesh, form, runs[form], ref), flush=True)
+        if {"taylor-hood", "felupe-p2"} <= set(todo):  # one discrete problem, two codes
+            gap = abs(runs["felupe-p2"][0]["nipple_mm"] - runs["taylor-hood"][0]["nipple_mm"])
+            print(f"{label:>8} felupe-p2 against taylor-hood: nipple {gap:.1e} mm apart")
     if args.update_reference:
         if len(th) < 3 or max(family) > 1.03 * min(family):
             raise SystemExit(
