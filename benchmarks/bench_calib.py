@@ -4,9 +4,10 @@ For each preset and seed this script synthesises the twin (the preset's hidden e
 ``--effect`` as ``phantom-calib synth`` takes it), ingests it (timed apart: imaging, not
 FE), calibrates it with the given options and validates it, and keeps one JSON per case in
 ``--twins DIR`` (a re-run reuses the finished cases: the matrix can be filled in several
-sittings). It prints per case c1, its 95 % interval and whether the truth lies inside,
-the model-fit verdict, the optimiser's status, FE solves, wall time and the fiducial-frame
-surface error per scan, then per preset and effect the mean and spread over seeds of the
+sittings). It prints per case the model mesh's tets and size, the reference state and how
+its stress-free reference was solved, c1, its 95 % interval and whether the truth lies
+inside, the model-fit verdict, the optimiser's status, FE solves, ingest and calibration
+wall times, and the fiducial-frame surface and tumour-centre errors per scan, then per preset and effect the mean and spread over seeds of the
 relative c1 error, the interval's coverage of the truth (with its count) and timings.
 
     python benchmarks/bench_calib.py [--presets quick,dissertation] [--seeds 0,1,2]
@@ -87,8 +88,14 @@ def run_case(root: Path, preset: str, effect: str, seed: int, o: CalibrationOpti
         "synth_s": t_synth,
         "ingest_s": t_ingest,
         "calibration_s": cal["wall_s"],
+        "reference_state": cal["reference_state"],
+        "recovery": (cal.get("reference_recovery") or {}).get("method"),
         "surface_mean_mm": {
             n: s["surface_error_mm"]["fiducial"]["mean"]["value"] for n, s in val["scans"].items()
+        },
+        "tumour_mm": {
+            n: ((s.get("tumour_error_mm") or {}).get("fiducial") or {}).get("value")
+            for n, s in val["scans"].items()
         },
         "roles": {n: s["role"] for n, s in val["scans"].items()},
     }
@@ -108,10 +115,27 @@ def _print_case(r: dict) -> None:
         "converged" if r["optimiser"]["success"] else f"NOT converged ({r['optimiser']['message']})"
     )
     surf = " / ".join(f"{v:.2f}" for v in r["surface_mean_mm"].values())
+    tumour = " / ".join("–" if v is None else f"{v:.2f}" for v in r.get("tumour_mm", {}).values())
+    mesh = r["mesh"]
     print(
-        f"| {r['case']} | {r['c1_pa']:.1f} ({ci_txt}) | {100 * r['relative_error']:+.1f} % | "
+        f"| {r['case']} | {mesh['n_tets']} ({mesh['size_mm']:g} mm) | {_recovery_cell(r)} "
+        f"| {r['c1_pa']:.1f} ({ci_txt}) | {100 * r['relative_error']:+.1f} % | "
         f"{'yes' if r['covered'] else 'no'} | {_mesh_check_cell(r.get('mesh_check'))} | {fit} "
-        f"| {opt} | {r['fe_solves']} | {r['calibration_s']:.0f} | {surf} |"
+        f"| {opt} | {r['fe_solves']} | {r['ingest_s']:.0f} | {r['calibration_s']:.0f} | {surf} "
+        f"| {tumour or '–'} |"
+    )
+
+
+def _recovery_cell(r: dict) -> str:
+    """How the stress-free reference was solved: ``newton`` (straight elements), ``spatial``
+    (curved; ``switched`` where an unload calibration fell back to them), ``–`` (shortcut)."""
+    state, method = r.get("reference_state"), r.get("recovery")
+    if state is None:  # a case recorded before these were kept
+        return "?"
+    if method is None:
+        return f"{state}: –"
+    return f"{state}: {method}" + (
+        " (switched)" if state == "unload" and method == "spatial" else ""
     )
 
 
@@ -183,10 +207,11 @@ def main() -> None:
     )
     print("command: python " + " ".join(shlex.quote(a) for a in sys.argv))
     print(
-        "| case | c1 Pa (95 %) | error | truth inside | mesh check Pa | model fit | optimiser "
-        "| FE solves | calibration s | surface mean mm per scan |"
+        "| case | model tets (size) | reference: recovery | c1 Pa (95 %) | error | truth inside "
+        "| mesh check Pa | model fit | optimiser | FE solves | ingest s | calibration s "
+        "| surface mean mm per scan | tumour mm per scan |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         root = args.twins or Path(tmp)
