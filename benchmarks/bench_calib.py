@@ -7,8 +7,9 @@ FE), calibrates it with the given options and validates it, and keeps one JSON p
 sittings). It prints per case the model mesh's tets and size, the reference state and how
 its stress-free reference was solved, c1, its 95 % interval and whether the truth lies
 inside, the model-fit verdict, the optimiser's status, FE solves, ingest and calibration
-wall times, and the fiducial-frame surface and tumour-centre errors per scan, then per preset and effect the mean and spread over seeds of the
-relative c1 error, the interval's coverage of the truth (with its count) and timings.
+wall times, and the fiducial-frame surface and tumour-centre errors per scan; then per
+preset and effect the mean and spread over seeds of the relative c1 error, the interval's
+coverage of the truth (with its count) and timings.
 
     python benchmarks/bench_calib.py [--presets quick,dissertation] [--seeds 0,1,2]
         [--effect none] [--twins DIR] [--objective surface] [--reference-state unload]
