@@ -133,7 +133,7 @@ def _recovery_cell(r: dict) -> str:
     state, method = r.get("reference_state"), r.get("recovery")
     if state is None:  # a case recorded before these were kept
         return "?"
-    if method is None:
+    if method is None or state == "shortcut":  # recorded as "none (shortcut)"
         return f"{state}: –"
     return f"{state}: {method}" + (
         " (switched)" if state == "unload" and method == "spatial" else ""
