@@ -281,10 +281,10 @@ def work_lock(work: str | os.PathLike, command: str):
     f.write(f"{command}, process {os.getpid()}\n")
     f.flush()
     _HELD.add(work)
-    # no other command writes WORK now: what a killed one of any kind left goes (review
-    # AN: a killed calibrate's staging folder stayed until the next calibrate's commit)
-    clean_stale(work, WORK_OUTPUTS)
     try:
+        # no other command writes WORK now: what a killed one of any kind left goes (review
+        # AN: a killed calibrate's staging folder stayed until the next calibrate's commit)
+        clean_stale(work, WORK_OUTPUTS)
         yield
     finally:
         _HELD.discard(work)
@@ -379,11 +379,12 @@ def locking_work(command: str, *, create: bool = False):
 
 
 def _pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` lives; a number no process can have counts as alive."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except PermissionError:
+    except (PermissionError, OverflowError, ValueError):
         return True
     return True
 
@@ -411,9 +412,11 @@ WORK_OUTPUTS = (
 def clean_stale(work: Path, names: tuple[str, ...]) -> list[Path]:
     """Remove temporary entries left in ``work`` by killed runs; return what was removed.
 
-    Staging folders ``.NAME.staging-PID``, replaced folders ``.NAME.old-PID`` and atomic
-    writes' temporary files ``.STEM.*.tmp*`` of the given output names, whose process is
-    no longer alive.
+    Staging folders ``.NAME.staging-PID``, replaced folders ``.NAME.old-PID`` and
+    ``.NAME.partial-PID`` of the given output names whose process is no longer alive, and
+    the atomic writes' temporary files of the names that are files (``.STEM.*.tmp.SUFFIX``
+    of ``STEM.SUFFIX``: another file of that stem, a ``calibration.png`` beside the
+    ``calibration`` folder, is not one of them). An entry that cannot be removed stays.
     """
     import re
     import shutil
@@ -422,14 +425,20 @@ def clean_stale(work: Path, names: tuple[str, ...]) -> list[Path]:
     if not work.is_dir():
         return removed
     stems = {Path(n).stem for n in names} | set(names)
+    files = [Path(n) for n in names if Path(n).suffix]
     for entry in work.iterdir():
         m = re.fullmatch(r"\.(.+)\.(staging|old|partial)-(\d+)", entry.name)
         if m and m.group(1) in stems and not _pid_alive(int(m.group(3))):
-            shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() else entry.unlink()
+            try:
+                shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
+            except OSError as exc:
+                log.warning("%s: left by a killed run, not removable (%s)", entry, exc)
+                continue
             removed.append(entry)
             continue
-        if entry.name.startswith(".") and ".tmp" in entry.name and entry.is_file():
-            if any(entry.name.startswith(f".{s}.") for s in stems):
+        name = entry.name
+        if any(name.startswith(f".{f.stem}.") and name.endswith(f".tmp{f.suffix}") for f in files):
+            if entry.is_file():
                 entry.unlink(missing_ok=True)
                 removed.append(entry)
     return removed

@@ -1410,10 +1410,7 @@ def _with_mesh_bound(theta: float, iv, prob: Problem) -> dict:
         said = "none: the calibration's mesh check does not give its mesh size"
     else:
         gci = gci_at_size(check, prob.mesh_size_mm)
-        said = (
-            f"the calibration's mesh check on its {float(check['mesh_size_mm']):g} mm "
-            f"mesh, carried to this {prob.mesh_size_mm:g} mm one by the check's order"
-        )
+        said = _carried_said(check, prob)
     lo, hi = (float(np.hypot(theta - b, gci or 0.0)) for b in (iv.lower, iv.upper))
     return {
         "c1_ci95_pa": [float(np.exp(theta - lo)), float(np.exp(theta + hi))],
@@ -1421,6 +1418,25 @@ def _with_mesh_bound(theta: float, iv, prob: Problem) -> dict:
         "gci_ln_c1": gci,
         "gci_from": said,
     }
+
+
+def _carried_said(check: dict, prob: Problem) -> str:
+    """Where a carried mesh bound came from, and what it does not see (``gci_from``)."""
+    h, size = float(check["mesh_size_mm"]), prob.mesh_size_mm
+    said = f"the calibration's mesh check on its {h:g} mm mesh"
+    if size == h:
+        said += ", on this other mesh of that size"
+    else:
+        said += f", carried to this {size:g} mm one by the check's order"
+    sizes = [h, *(float(m["mesh_size_mm"]) for m in check.get("meshes") or ())]
+    if not min(sizes) <= size <= max(sizes):  # review AR
+        said += f" (extrapolated beyond the sizes checked, {min(sizes):g}-{max(sizes):g} mm)"
+    record = prob.work.record
+    curved = (record.get("reference_recovery") or {}).get("method") == "spatial"
+    if curved or record.get("reference_state") == "prestress":
+        # review AR: the check solved curved stress-free elements, this mesh straight ones
+        said += "; checked with curved stress-free elements, where this mesh has straight ones"
+    return said
 
 
 def _intervals(fit: Refit, prob: Problem) -> dict:

@@ -289,10 +289,12 @@ def gci_at_size(check: Mapping, size_mm: float) -> float | None:
     With ``ln c1(h) = L + C h^p`` (the module's model) the error on a mesh of size ``h'``
     is ``(h'/h)^p`` times that on the checked mesh of size ``h``, so its bound is the
     checked one times that factor; ``p`` is the check's observed order where it was in
-    the asymptotic range, else the assumed :data:`OBSERVED_ORDER` (the anomalous bound of
-    a check outside the range has no order of its own). Review AO: a diagnosis that moved
-    to the next mesh size reported a noise-only interval of c1 (411.9-415.1 Pa on a
-    420 Pa set whose calibration's interval, with its bound, held the truth).
+    the asymptotic range, else the assumed :data:`OBSERVED_ORDER`. The anomalous bound of
+    a check outside the range (3 x the data range) has no order of its own: it is only
+    widened for a coarser mesh, never narrowed for a finer one (review AR). Review AO: a
+    diagnosis that moved to the next mesh size reported a noise-only interval of c1
+    (411.9-415.1 Pa on a 420 Pa set whose calibration's interval, with its bound, held the
+    truth).
 
     Parameters
     ----------
@@ -306,14 +308,25 @@ def gci_at_size(check: Mapping, size_mm: float) -> float | None:
     -------
     float or None
         The bound on ln c1 there; None where the check found none.
+
+    Raises
+    ------
+    ValueError
+        The check gives no mesh size, or a size is not positive.
     """
     gci = check.get("gci_ln_c1")
     if gci is None:
         return None
+    checked = float(check.get("mesh_size_mm") or 0.0)
+    if not (checked > 0.0 and size_mm > 0.0):
+        raise ValueError(
+            f"a mesh bound is carried between positive mesh sizes, got {checked:g} mm (the "
+            f"check's `mesh_size_mm`) and {size_mm:g} mm"
+        )
     order = float(check.get("order") or OBSERVED_ORDER)
-    if check.get("convergence") == "not asymptotic" or not np.isfinite(order):
-        order = OBSERVED_ORDER
-    return float(gci) * (float(size_mm) / float(check["mesh_size_mm"])) ** order
+    anomalous = check.get("convergence") == "not asymptotic" or not np.isfinite(order)
+    factor = (float(size_mm) / checked) ** (OBSERVED_ORDER if anomalous else order)
+    return float(gci) * (max(1.0, factor) if anomalous else factor)
 
 
 def combined_ci95(

@@ -416,6 +416,18 @@ def _cut_note(name: str, iv: dict) -> str:
     )
 
 
+def _mesh_bound_line(theta: dict) -> str | None:
+    """What widens the refit's c1 interval beyond the noise, and where it came from."""
+    if theta.get("gci_ln_c1") is None:
+        return None
+    lo, hi = theta["noise_only_c1_ci95_pa"]
+    source = theta.get("gci_from", "the calibration's mesh check")  # older records
+    return (
+        f"  with the model mesh's bound, {100 * theta['gci_ln_c1']:.2g} % of c1 ({source}); "
+        f"the noise alone {lo:.1f} - {hi:.1f} Pa"
+    )
+
+
 def format_diagnosis(doc: dict) -> str:
     """The command's summary: verdict, c1 before/after and the gap per scan (plain text)."""
     lines = [f"verdict: {doc['verdict']}"]
@@ -423,6 +435,9 @@ def format_diagnosis(doc: dict) -> str:
     ci = doc.get("c1_ci95_pa")
     lines.append(f"c1 = {c1:.1f} Pa" + (f" (95 % {ci[0]:.1f} - {ci[1]:.1f} Pa)" if ci else "")
                  + f"; calibration {c0:.1f} Pa")  # fmt: skip
+    bound = _mesh_bound_line(doc["refit"].get("intervals", {}).get("theta", {}))
+    if bound:
+        lines.append(bound)
     for name, iv in doc["refit"].get("intervals", {}).items():
         if name != "theta" and any(name == e or name.startswith(f"{e}[") for e in doc["named"]):
             lines.append(f"{name} = {iv['value']:.4g} (95 % {iv['ci95'][0]:.4g} - "

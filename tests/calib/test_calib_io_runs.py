@@ -50,21 +50,27 @@ def test_the_lock_is_reentrant_and_a_refused_input_leaves_no_folder(tmp_path):
 def test_taking_the_lock_removes_what_killed_runs_of_any_command_left(tmp_path):
     # review AN: a killed calibrate's staging folder stayed until a later calibrate reached
     # its write step (a validate or diagnose in between left it); under the lock no other
-    # command writes WORK, so any dead run's temporaries go. A live process's stay.
+    # command writes WORK, so any dead run's temporaries go. What is not a dead run's
+    # stays (review AR): a live process's, one whose number no process can have (it
+    # raised OverflowError and left the lock held), another file's atomic temporary (a
+    # screenshot `calibration.png` is written beside the `calibration` folder).
     import subprocess
     import sys
 
-    from calib.io import work_lock
+    from calib.io import _HELD, work_lock
 
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
     left = [f".calibration.staging-{dead.pid}", f".diagnosis.old-{dead.pid}"]
-    live = f".validation.staging-{os.getpid()}"
-    for name in [*left, live]:
+    kept = [f".validation.staging-{os.getpid()}", ".scans.staging-4294967296"]
+    for name in [*left, *kept]:
         (tmp_path / name).mkdir()
-    (tmp_path / ".calibration.json.x1.tmp").write_text("{")
+    (tmp_path / ".calibration.k2x9_a.tmp.json").write_text("{")
+    (tmp_path / ".calibration.q7w1b.tmp.png").write_bytes(b"")
+    kept.append(".calibration.q7w1b.tmp.png")
     with work_lock(tmp_path, "validate"):
-        assert sorted(p.name for p in tmp_path.iterdir()) == [".lock", live]
+        assert sorted(p.name for p in tmp_path.iterdir()) == sorted([".lock", *kept])
+    assert tmp_path.resolve() not in _HELD and not (tmp_path / ".lock").exists()
 
 
 def test_provenance_can_run_the_command_again(tmp_path, monkeypatch):

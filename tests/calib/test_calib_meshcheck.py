@@ -237,8 +237,12 @@ def test_a_bound_carried_to_another_size_is_the_bound_a_check_there_finds(ratios
 
     assert gci_at_size(checked(12.0), 15.0) == pytest.approx(checked(15.0)["gci_ln_c1"], rel=1e-9)
     assert gci_at_size(checked(12.0), 12.0) == pytest.approx(checked(12.0)["gci_ln_c1"], rel=1e-12)
+    # the anomalous bound (3 x the data range) has no order: widened, never narrowed
     anomalous = checked(12.0) | {"convergence": "not asymptotic", "order": float("nan")}
     assert gci_at_size(anomalous, 24.0) == pytest.approx(
         anomalous["gci_ln_c1"] * 2**meshcheck.OBSERVED_ORDER
     )
+    assert gci_at_size(anomalous, 6.0) == anomalous["gci_ln_c1"]
     assert gci_at_size({"gci_ln_c1": None, "mesh_size_mm": 12.0}, 14.0) is None
+    with pytest.raises(ValueError, match="positive mesh sizes, got 0 mm"):
+        gci_at_size({"gci_ln_c1": 0.02}, 14.0)

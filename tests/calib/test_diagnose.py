@@ -2170,9 +2170,15 @@ def test_the_calibration_s_mesh_bound_is_carried_to_the_diagnosis_mesh_size():
         x=np.array([np.log(420.0)]),
         names=("theta",),
     )
-    check = {"gci_ln_c1": 0.05, "mesh_size_mm": 12.0, "order": 1.6, "convergence": "assumed order"}
-    work = SimpleNamespace(record={"uncertainty": {"mesh_check": check}},
-                           mesh=SimpleNamespace(n_nodes=100))  # fmt: skip
+    check = {
+        "gci_ln_c1": 0.05,
+        "mesh_size_mm": 12.0,
+        "order": 1.6,
+        "convergence": "assumed order",
+        "meshes": [{"mesh_size_mm": 16.8}],
+    }
+    record = {"uncertainty": {"mesh_check": check}}
+    work = SimpleNamespace(record=record, mesh=SimpleNamespace(n_nodes=100))
 
     def theta_at(nodes, size_mm, mesh_check=check):
         work.record["uncertainty"]["mesh_check"] = mesh_check
@@ -2188,14 +2194,32 @@ def test_the_calibration_s_mesh_bound_is_carried_to_the_diagnosis_mesh_size():
     coarser, w_coarser = theta_at(140, 14.0)
     assert coarser["gci_ln_c1"] == pytest.approx(0.05 * (14 / 12) ** 1.6, rel=1e-12)
     assert "carried to this 14 mm" in coarser["gci_from"]
+    assert "extrapolated" not in coarser["gci_from"]  # inside the sizes checked, 12-16.8
+    assert theta_at(150, 12.0)[0]["gci_from"].endswith("on this other mesh of that size")
+    far = theta_at(170, 20.0)[0]["gci_from"]
+    assert "(extrapolated beyond the sizes checked, 12-16.8 mm)" in far
+    work.record["reference_recovery"] = {"method": "spatial"}  # review AR
+    assert theta_at(140, 14.0)[0]["gci_from"].endswith("where this mesh has straight ones")
+    del work.record["reference_recovery"]
     finer, w_finer = theta_at(160, 10.0)
     assert finer["gci_ln_c1"] == pytest.approx(0.05 * (10 / 12) ** 1.6, rel=1e-12)
     assert w_finer < w_own < w_coarser
+    # the summary says what widened the interval (review AR: the README's figures were in
+    # diagnosis.json only); an older record without `gci_from` still reads
+    from calib.report.diagnosis import _mesh_bound_line
+
+    line = _mesh_bound_line(coarser)
+    assert f"{100 * coarser['gci_ln_c1']:.2g} % of c1 (the calibration's mesh check on" in line
+    lo, hi = coarser["noise_only_c1_ci95_pa"]
+    assert line.endswith(f"the noise alone {lo:.1f} - {hi:.1f} Pa")
+    old = {k: v for k, v in coarser.items() if k != "gci_from"}
+    assert "(the calibration's mesh check);" in _mesh_bound_line(old)
     for bad, why in (({}, "ran no mesh check"), ({"gci_ln_c1": None}, "check failed"),
                      ({"gci_ln_c1": 0.05}, "does not give its mesh size")):  # fmt: skip
         theta, _ = theta_at(140, 14.0, bad)
         assert theta["gci_ln_c1"] is None and why in theta["gci_from"]
         assert theta["c1_ci95_pa"] == theta["noise_only_c1_ci95_pa"]  # the noise's alone
+        assert _mesh_bound_line(theta) is None
 
 
 def test_the_report_s_rim_band_is_the_one_the_maps_use():
