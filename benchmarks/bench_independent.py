@@ -353,6 +353,13 @@ def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
     return lo, hi
 
 
+def _seeds(text: str) -> list[int]:
+    seeds = [int(v) for v in text.split(",")]
+    if len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f"the seeds must differ (each counts once), got {text}")
+    return seeds
+
+
 def _set(name: str) -> str:
     if name not in SETS:
         raise argparse.ArgumentTypeError(f"unknown set {name!r}; choose from {', '.join(SETS)}")
@@ -368,12 +375,13 @@ def main() -> None:
         type=lambda text: [_set(name) for name in text.split(",")],
         help=f"comma-separated, of {', '.join(SETS)}",
     )
-    ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument(
+    which = ap.add_mutually_exclusive_group()
+    which.add_argument("--seed", type=int, default=1)
+    which.add_argument(
         "--seeds",
         default=None,
-        type=lambda text: [int(v) for v in text.split(",")],
-        help="several seeds (comma-separated; instead of --seed): the intervals' coverage",
+        type=_seeds,
+        help="several distinct seeds (comma-separated; instead of --seed): the coverage",
     )
     ap.add_argument("--mesh-study", action="store_true")
     args = ap.parse_args()
