@@ -171,17 +171,16 @@ def reference_mesh_with_support(
     plane = (ref.back_point_mm, ref.back_normal, max(back_tol_mm, size_mm / 5.0))
     if spheres:
         h = size_mm / 2.0 if sphere_size_mm is None else sphere_size_mm
-        mesh, surface = _with_spheres(
+        mesh, surface, tol = _with_spheres(
             ref, size_mm, back_tol_mm, max_dihedral_deg, plane, spheres, h
         )
     else:
-        mesh, surface = _without_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane)
-    tol = back_tol_mm if surface == "decimated" else plane[2]
+        mesh, surface, tol = _without_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane)
     return mesh, _support_checked(ref, mesh, surface, tol)
 
 
 def _without_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane):
-    """:func:`reference_mesh` without internal spheres, and the surface's kind.
+    """:func:`reference_mesh` without internal spheres, the surface's kind and tolerance.
 
     The decimated surface, its back within ``back_tol_mm`` put onto the plane; where
     TetGen rejects it, the scan's surface remeshed on a fine grid (:func:`_remeshed`), and
@@ -199,10 +198,10 @@ def _without_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane):
     vol = size_mm**3 / (6.0 * np.sqrt(2.0))
     sizing = {"max_volume_mm3": vol, "size_mm": size_mm, "max_dihedral_deg": max_dihedral_deg}
     try:
-        mesh, surface = tetrahedralize(v, f, repair=False, **sizing), "decimated"
+        mesh, surface, tol = tetrahedralize(v, f, repair=False, **sizing), "decimated", back_tol_mm
     except fem.MeshError as exc:
         log.info("TetGen rejected the decimated reference surface (%s)", exc)
-        mesh, surface = _remeshed(ref, plane, sizing), "remeshed"
+        (mesh, tol), surface = _remeshed(ref, plane, sizing, back_tol_mm), "remeshed"
     if mesh is None:  # repaired, or remeshed on the coarse grid (fem.meshing says which)
         try:
             mesh = tetrahedralize(v, f, keep_planes=[plane], **sizing)
@@ -213,13 +212,13 @@ def _without_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane):
                 f"{REMESH_GRID_RETRY_MM:g} mm grids "
                 f"gave no mesh; {exc}"
             ) from exc
-        surface = "repaired"
+        surface, tol = "repaired", plane[2]
     mesh = _with_back(mesh, p0, n, size_mm, ref.nipple_mm)
     back = len(mesh.node_set("back"))
     log.info(
         "reference mesh: %d tets, %d nodes, %d on the back plane", mesh.n_tets, mesh.n_nodes, back
     )
-    return mesh, surface
+    return mesh, surface, tol
 
 
 #: Scan faces whose normal lies within this angle of the back plane's (degrees) make up
@@ -462,7 +461,7 @@ def _sphere_plc(spheres, outer_v, outer_f, h: float):
 
 
 def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane, spheres, h):
-    """:func:`reference_mesh` with internal spheres, and the outer surface's kind.
+    """:func:`reference_mesh` with internal spheres, the outer surface's kind and tolerance.
 
     The outer surface is tried as the plain mesh tries it (decimated, then the scan's
     surface remeshed on a fine grid), with the spheres inside; TetGen's repair fallbacks
@@ -474,11 +473,12 @@ def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane, spheres, h
 
     def decimated():
         v, f = _decimate(ref.vertices_mm, ref.faces, size_mm)
-        return _onto_plane(v, (p0, n, back_tol_mm))[0], f
+        return _onto_plane(v, (p0, n, back_tol_mm))[0], f, back_tol_mm
 
     def remeshed(grid_mm: float):
         w, g = remesh_surface(ref.vertices_mm, ref.faces, size_mm=size_mm, grid_mm=grid_mm)
-        return _onto_plane(w, plane)[0], g
+        tol = remesh_tolerance_mm(back_tol_mm, grid_mm)
+        return _onto_plane(w, (p0, n, tol))[0], g, tol
 
     vol = size_mm**3 / (6.0 * np.sqrt(2.0))
     errors = []
@@ -488,7 +488,7 @@ def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane, spheres, h
     )
     for label, outer in outers:
         try:
-            w, g = outer()
+            w, g, tol = outer()
         except ValueError as exc:  # remesh_surface on a surface it cannot grid
             errors.append(f"{label}: {exc}")
             continue
@@ -519,7 +519,7 @@ def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane, spheres, h
             mesh.n_tets,
             mesh.n_nodes,
         )
-        return _with_back(mesh, p0, n, size_mm, ref.nipple_mm), label
+        return _with_back(mesh, p0, n, size_mm, ref.nipple_mm), label, tol
     raise fem.MeshError(
         "TetGen could not mesh the reference surface with its inclusions: " + "; ".join(errors)
     )
@@ -546,7 +546,33 @@ def _onto_plane(v: np.ndarray, plane) -> tuple[np.ndarray, int]:
     return v - np.outer(np.where(near, d, 0.0), n), int(near.sum())
 
 
-def _remeshed(ref: ScanMeasurement, plane, sizing: dict):
+def remesh_tolerance_mm(back_tol_mm: float, grid_mm: float) -> float:
+    """How far off the back plane a surface remeshed on ``grid_mm`` is put onto it (mm).
+
+    The scan's back face lies within ``back_tol_mm`` of the plane (its measured
+    roughness, :func:`back_tolerance_mm`), and marching cubes moves it by up to half a
+    grid step: one grid step covers that with a factor of 2. It was ``size_mm / 5`` (the
+    coarse size/3 grid's half step, with margin), 2.4 mm at 12 mm: on the independent
+    generator's dome of seed 3 (a 6 mm wall) that clamped the rim's wall up to 2.4 mm
+    above the plate, 7,400 of its 7,599 mm2 plate, and c1 came out at 410.6 Pa (95 %
+    403.1-418.2; truth 420); with one grid step (1.3 mm) 7,229 mm2 and 415.3 Pa
+    (405.3-425.6); its seeds whose decimation meshes clamp 7,291 mm2 at 1 mm.
+
+    Parameters
+    ----------
+    back_tol_mm : float
+        The back face's own tolerance (mm).
+    grid_mm : float
+        The remesh's grid step (mm).
+
+    Returns
+    -------
+    float
+    """
+    return max(float(back_tol_mm), float(grid_mm))
+
+
+def _remeshed(ref: ScanMeasurement, plane, sizing: dict, back_tol_mm: float):
     """The scan's full surface remeshed on a fine grid, decimated, its back put on the plane.
 
     With 3 mm slices along the plate's normal (tilted 4 degrees: terraces), the quick
@@ -556,18 +582,26 @@ def _remeshed(ref: ScanMeasurement, plane, sizing: dict):
     and c1 439.5 Pa (95 % 420.6-459.4; truth 420). The full surface on a
     :data:`REMESH_GRID_MM` grid (where that is rejected too, on
     :data:`REMESH_GRID_RETRY_MM`): 0.32 mm and 429.5 Pa (418.5-440.8); a scan that
-    decimates cleanly: 0.15 mm. Its vertices within ``size_mm / 5`` of the plane go onto
-    it, as in the fallback: within 1 mm only, half the face was left unclamped (3,587
-    against 7,331 mm2) and c1 came out at 540 Pa. None when TetGen rejects it too.
+    decimates cleanly: 0.15 mm. Its vertices within :func:`remesh_tolerance_mm` of the
+    plane go onto it (within 1 mm only, before the back face's tolerance was measured,
+    half the twin's terraced face was left unclamped, 3,587 against 7,331 mm2, and c1
+    came out at 540 Pa).
+
+    Returns
+    -------
+    mesh, tol_mm
+        The mesh and the tolerance its back was put onto the plane with; ``(None, None)``
+        when TetGen rejects it too.
     """
     for grid_mm in (REMESH_GRID_MM, REMESH_GRID_RETRY_MM):
         try:
             w, g = remesh_surface(
                 ref.vertices_mm, ref.faces, size_mm=sizing["size_mm"], grid_mm=grid_mm
             )
-            w, on = _onto_plane(w, plane)  # the fallback's plane (size/5)
+            tol = remesh_tolerance_mm(back_tol_mm, grid_mm)
+            w, on = _onto_plane(w, (plane[0], plane[1], tol))
             if on < 3:
-                return None
+                return None, None
             mesh = tetrahedralize(w, g, repair=False, **sizing)
         except (fem.MeshError, ValueError) as exc:
             log.info(
@@ -582,5 +616,5 @@ def _remeshed(ref: ScanMeasurement, plane, sizing: dict):
             grid_mm,
             len(g),
         )
-        return mesh
-    return None
+        return mesh, tol
+    return None, None

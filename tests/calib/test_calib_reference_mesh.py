@@ -131,8 +131,12 @@ def test_a_rejected_decimation_is_remeshed_from_the_full_surface_on_a_fine_grid(
     with caplog.at_level("INFO"):
         fine, support = reference_mesh_with_support(ref, size_mm=12.0)
     assert "remeshed on a 1 mm grid" in caplog.text
-    # the record says which surface and tolerance clamped the back: size/5, not 1 mm
-    assert (support.surface, support.back_tol_mm) == ("remeshed", 12.0 / 5.0)
+    # the record says which surface and tolerance clamped the back: the back face's own,
+    # or one grid step where that is more (it was size/5, 2.4 mm: it clamped the rim's
+    # wall of the independent generator's dome, and c1 came out 2 % low)
+    own = reference.back_tolerance_mm(ref, reference.BACK_TOL_MM, 12.0)
+    assert (support.surface, support.back_tol_mm) == ("remeshed", max(own, 1.0))
+    assert support.back_tol_mm < 12.0 / 5.0
     back = fine.node_set("back")
     np.testing.assert_allclose(fine.nodes_mm[back, 2], 0.0, atol=1e-9)
     assert set(back.tolist()) == _plane_nodes(fine, np.zeros(3), np.array([0.0, 0.0, 1.0]))
