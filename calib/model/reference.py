@@ -529,9 +529,9 @@ def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane, spheres, h
 REMESH_GRID_MM = 1.0
 #: A second grid step (mm), tried where the first grid's remesh is rejected too: its back
 #: put onto the plane can fold at the rim on one grid and not on another (an independent
-#: generator's dome, seed 3: rejected on 1 mm, meshed on 0.7, 1.3, 1.6 and 2 mm; the
-#: decimation's repair that followed left 0.45-0.54 mm surface errors against 0.14-0.22 on
-#: its other seeds).
+#: generator's dome, seed 3, its back put onto the plane within the former size/5: rejected
+#: on 1 mm, meshed on 0.7, 1.3, 1.6 and 2 mm; the decimation's repair that followed left
+#: 0.45-0.54 mm surface errors against 0.14-0.22 on its other seeds).
 REMESH_GRID_RETRY_MM = 1.3
 
 
