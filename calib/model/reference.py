@@ -201,7 +201,8 @@ def _without_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane):
         mesh, surface, tol = tetrahedralize(v, f, repair=False, **sizing), "decimated", back_tol_mm
     except fem.MeshError as exc:
         log.info("TetGen rejected the decimated reference surface (%s)", exc)
-        (mesh, tol), surface = _remeshed(ref, plane, sizing, back_tol_mm), "remeshed"
+        mesh, tol = _remeshed(ref, plane, sizing, back_tol_mm)
+        surface = "remeshed"
     if mesh is None:  # repaired, or remeshed on the coarse grid (fem.meshing says which)
         try:
             mesh = tetrahedralize(v, f, keep_planes=[plane], **sizing)
@@ -476,9 +477,7 @@ def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane, spheres, h
         return _onto_plane(v, (p0, n, back_tol_mm))[0], f, back_tol_mm
 
     def remeshed(grid_mm: float):
-        w, g = remesh_surface(ref.vertices_mm, ref.faces, size_mm=size_mm, grid_mm=grid_mm)
-        tol = remesh_tolerance_mm(back_tol_mm, grid_mm)
-        return _onto_plane(w, (p0, n, tol))[0], g, tol
+        return _remeshed_onto_plane(ref, plane, size_mm, back_tol_mm, grid_mm)[:3]
 
     vol = size_mm**3 / (6.0 * np.sqrt(2.0))
     errors = []
@@ -572,6 +571,20 @@ def remesh_tolerance_mm(back_tol_mm: float, grid_mm: float) -> float:
     return max(float(back_tol_mm), float(grid_mm))
 
 
+def _remeshed_onto_plane(
+    ref: ScanMeasurement, plane, size_mm: float, back_tol_mm: float, grid_mm: float
+):
+    """The scan's full surface remeshed on ``grid_mm``, its back put onto the plane.
+
+    Returns the vertices, the faces, the tolerance within which vertices were put onto the
+    plane (:func:`remesh_tolerance_mm`) and how many were.
+    """
+    w, g = remesh_surface(ref.vertices_mm, ref.faces, size_mm=size_mm, grid_mm=grid_mm)
+    tol = remesh_tolerance_mm(back_tol_mm, grid_mm)
+    w, on = _onto_plane(w, (plane[0], plane[1], tol))
+    return w, g, tol, on
+
+
 def _remeshed(ref: ScanMeasurement, plane, sizing: dict, back_tol_mm: float):
     """The scan's full surface remeshed on a fine grid, decimated, its back put on the plane.
 
@@ -595,11 +608,9 @@ def _remeshed(ref: ScanMeasurement, plane, sizing: dict, back_tol_mm: float):
     """
     for grid_mm in (REMESH_GRID_MM, REMESH_GRID_RETRY_MM):
         try:
-            w, g = remesh_surface(
-                ref.vertices_mm, ref.faces, size_mm=sizing["size_mm"], grid_mm=grid_mm
+            w, g, tol, on = _remeshed_onto_plane(
+                ref, plane, sizing["size_mm"], back_tol_mm, grid_mm
             )
-            tol = remesh_tolerance_mm(back_tol_mm, grid_mm)
-            w, on = _onto_plane(w, (plane[0], plane[1], tol))
             if on < 3:
                 return None, None
             mesh = tetrahedralize(w, g, repair=False, **sizing)
