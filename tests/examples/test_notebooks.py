@@ -45,10 +45,10 @@ def test_02_validation_reports_every_validation_scan(tiny_chain_notebooks):
 @pytest.mark.slow  # a 94-scenario sweep and 2,000 MLP iterations: minutes on 2 cores
 @pytest.mark.xfail(
     strict=True,
-    reason="known limit (README, Status): the tiny twin's prestressed sweep leaves 5 of 94 "
-    "directions unsolved (sagittal 190-210 and 345 deg: a limit point of the clamped rim "
-    "pressed through the back plate's plane; no contact is modelled), 2 of them validation "
-    "directions, and the surrogate misses the bars beside the gap (surface max 1.77 mm)",
+    reason="known limit (README, Status): the tiny twin's prestressed sweep leaves a few "
+    "sagittal directions near 200 and 345 deg unsolved (a limit point of the clamped rim "
+    "pressed through the back plate's plane; no contact is modelled; `phantom-calib sweep` "
+    "prints how many), and the surrogate misses the bars beside the gap",
 )
 def test_03_sweep_surrogate_beats_the_dissertation(tiny_chain_notebooks, run_notebook):
     tiny_chain_notebooks.require("01_twin_to_c1.py")
