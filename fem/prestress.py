@@ -145,7 +145,10 @@ class Prestress:
         loaded by ``g0`` in the forward solver's own assembly
         (:func:`isoparametric_discretization`, no ``F0``), warm-started at the recovered
         state: ~0 when the two assemblies agree to Newton's tolerance (a round trip from
-        zero displacement is in the tests and the benchmark). ``mulf``: largest vertex
+        zero displacement is in the tests and the benchmark; at a clamped rim with
+        degenerate curved elements it can settle on another equilibrium, 0.094 mm off at
+        nodes within 0.75 mm of the back in ``tests/fem/test_fem_reference_robust.py``).
+        ``mulf``: largest vertex
         displacement of the last pass (the equilibrium defect of ``F0`` on ``x_m``).
     stress_free_nodes_mm : ndarray, shape (n_nodes, 3) or None
         ``inverse``: stress-free vertex positions, model frame, mm (the curved mesh's
@@ -532,7 +535,9 @@ def stress_free_discretization(disc: Discretization, prestress: Prestress) -> Di
     Discretization
         Isoparametric (:func:`isoparametric_discretization`) on the stress-free positions
         ``X = x - U`` of every displacement node; ``.mesh.nodes_mm`` holds its vertices.
-        Loading it by ``g0`` from zero gives back the loaded mesh (the round trip).
+        Loading it by ``g0`` from zero gives back the loaded mesh (the round trip),
+        unless degenerate curved elements at a clamped rim let it settle on another
+        equilibrium there (:class:`Prestress`, ``residual_displacement_mm``).
     """
     return isoparametric_discretization(disc, stress_free_node_positions_mm(disc, prestress))
 
