@@ -148,8 +148,8 @@ class Prestress:
         zero displacement is in the tests and the benchmark; at a clamped rim with
         degenerate curved elements it can settle on another equilibrium, 0.094 mm off at
         nodes within 0.75 mm of the back in ``tests/fem/test_fem_reference_robust.py``).
-        ``mulf``: largest vertex
-        displacement of the last pass (the equilibrium defect of ``F0`` on ``x_m``).
+        ``mulf``: largest vertex displacement of the last pass (the equilibrium defect of
+        ``F0`` on ``x_m``).
     stress_free_nodes_mm : ndarray, shape (n_nodes, 3) or None
         ``inverse``: stress-free vertex positions, model frame, mm (the curved mesh's
         vertices). None for ``mulf`` (no stress-free mesh exists).

@@ -123,11 +123,11 @@ OTHER_EQUILIBRIUM = pytest.mark.xfail(
     strict=True,
     raises=AssertionError,
     reason="the curved stress-free mesh loaded from rest (the whole load cut back, then 3 "
-    "load steps) settles "
-    "0.035-0.094 mm off the scan at 18 of its 27,422 nodes, all within 0.75 mm of the "
-    "clamped back, where the recovered state is an equilibrium too (warm-started: 1e-14 "
-    "mm); from a tenth of g0 it comes back to 3e-7 mm. The rim's curved elements (det F0 "
-    "from 0.25 to 4222) admit more than one equilibrium; README, Status",
+    "load steps) settles 0.035-0.094 mm off the scan at 18 of its 27,422 nodes, all within "
+    "0.75 mm of the clamped back, where the recovered state is an equilibrium too "
+    "(warm-started: 1e-14 mm); from a tenth of g0 it comes back to 3e-7 mm. The rim's "
+    "curved elements (det F0 from 0.25 to 4222) admit more than one equilibrium; README, "
+    "Status",
 )
 
 
@@ -146,9 +146,18 @@ def test_spatial_recovery_on_a_coarse_and_a_fine_mesh(size_mm):
     assert _round_trip_mm(model, g, ps) <= 0.01
 
 
+@pytest.fixture(scope="module")
+def recovered_fixture():
+    """The fixture at 420 Pa, its gravity and its spatial inverse (recovered once)."""
+    mesh, g = load_fixture()
+    model = _model(mesh)
+    opts = fem.SolverOptions(max_steps=10)
+    return model, g, compute_prestress(model, gravity=g, method="inverse", options=opts)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("axis, angle_deg", [((1, 0, 0), 25.0), ((0, 0, 1), 90.0)])
-def test_a_posture_reaches_one_state_along_any_load_path(axis, angle_deg):
+def test_a_posture_reaches_one_state_along_any_load_path(recovered_fixture, axis, angle_deg):
     """From the recovered state the whole load change and steps of 1/50 agree.
 
     The curved stress-free mesh loaded from rest can settle on another equilibrium at
@@ -160,11 +169,7 @@ def test_a_posture_reaches_one_state_along_any_load_path(axis, angle_deg):
     """
     from scipy.spatial.transform import Rotation
 
-    mesh, g = load_fixture()
-    model = _model(mesh)
-    ps = compute_prestress(
-        model, gravity=g, method="inverse", options=fem.SolverOptions(max_steps=10)
-    )
+    model, g, ps = recovered_fixture
     g_new = Rotation.from_rotvec(np.radians(angle_deg) * np.asarray(axis, float)).apply(g)
     disc0 = fem.discretize(model.mesh, model.support)
     states = [
