@@ -103,6 +103,7 @@ __all__ = [
     "prestress_sensitivity",
     "prestressed_residual",
     "PostureSolve",
+    "round_trip_mm",
     "RETRY_OPTIONS",
     "solve_posture",
     "solve_prestressed",
@@ -777,8 +778,61 @@ def compute_prestress(
                      wall_s=time.perf_counter() - t0)  # fmt: skip
 
 
+def round_trip_mm(
+    model: Model,
+    prestress: Prestress,
+    *,
+    warm_start: bool = False,
+    options: SolverOptions | None = None,
+) -> float:
+    """Load the curved stress-free mesh of an inverse prestress by its ``g0``: its distance.
+
+    The recovered stress-free geometry checked in the forward solver's own assembly,
+    independent of ``F0``: :func:`stress_free_discretization` loaded by
+    ``prestress.gravity_m_s2`` (:func:`fem.solve`).
+
+    Parameters
+    ----------
+    model : Model
+        On the loaded mesh the prestress was computed on.
+    prestress : Prestress
+        With ``method="inverse"``.
+    warm_start : bool
+        Start Newton at the recovered state (``prestress.inverse_state``), as the
+        recovery's own check (``residual_displacement_mm``) does; False (default): from
+        zero displacement, the whole load path from rest.
+    options : SolverOptions, optional
+
+    Returns
+    -------
+    float
+        Largest distance (mm) of any displacement node (P2: edge nodes too) of the loaded
+        curved mesh from its place on the loaded mesh. From rest, degenerate curved
+        elements at a clamped rim can settle on another equilibrium than the recovered
+        one (:class:`Prestress`, ``residual_displacement_mm``).
+
+    Raises
+    ------
+    ValueError
+        A ``mulf`` prestress (no stress-free mesh exists).
+    ConvergenceError
+        The forward solve has no solution.
+    """
+    if prestress.stress_free_nodes_mm is None:
+        raise ValueError(f"a {prestress.method} prestress has no stress-free mesh to load")
+    disc0 = discretize(model.mesh, model.support, formulation=prestress.formulation)
+    X_dofs = stress_free_node_positions_mm(disc0, prestress)
+    x0 = prestress.inverse_state if warm_start else None
+    return _round_trip_mm(
+        model, disc0, X_dofs, x0, prestress.gravity_m_s2, options or SolverOptions()
+    )
+
+
 def _round_trip_mm(model, disc0, X_dofs_mm, U, g_vec, opts) -> float:
-    """Load the curved stress-free mesh by ``g0`` (independent of ``F0``): distance to x_m."""
+    """Load the curved stress-free mesh by ``g0`` (independent of ``F0``): distance to x_m.
+
+    ``U``: the Newton start (None: zero displacement).
+    """
     from .solver import solve
 
     iso = isoparametric_discretization(disc0, X_dofs_mm)
