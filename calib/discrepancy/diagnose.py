@@ -554,6 +554,7 @@ class Diagnosis:
                 "size_mm": prob.mesh_size_mm,
                 "max_dihedral_deg": prob.mesh_max_dihedral_deg,
                 "n_tets": prob.mesh.n_tets,
+                "facet_gap_mm": prob.facet_gap_mm(),
                 "error": self.mesh_error_record or None,
                 "inclusions": len(prob.inclusions),
                 "inclusions_left_out": inclusions_left_out(prob.work),

@@ -270,6 +270,29 @@ class Problem:
         """The loaded reference mesh with effect regions."""
         return self.fm.mesh
 
+    def facet_gap_mm(self, *, max_points: int = 3000, seed: int = 0) -> dict | None:
+        """How far the model mesh's straight facets lie from the reference scan's surface.
+
+        The chord gap that :meth:`SimulatedSurface.curved` carries with the material,
+        at the facet points nearest the reference scan's scored vertices beyond the rim
+        margin (a seeded subsample of ``max_points``): the part of every residual that
+        is the mesh's geometry, not its mechanics.
+
+        Returns
+        -------
+        dict or None
+            ``mean`` and ``sd`` (n - 1) of the signed gap (mm, negative inside the scanned
+            surface) and ``n``; None where the surface carries no gap (straight facets)
+            or no vertex lies beyond the margin.
+        """
+        ref = self.work.measurements.reference
+        p = ref.surface_points(max_points=max_points, seed=seed)
+        p = p[plate_height_mm(ref, p) >= self.rim_margin_mm]
+        if self.sim.reference is None or len(p) < 2:
+            return None
+        gap = self.sim.gap_at(p)
+        return {"mean": float(gap.mean()), "sd": float(gap.std(ddof=1)), "n": len(gap)}
+
     def measurement(self, name: str):
         """The :class:`ScanMeasurement` of a scan."""
         return self.work.measurements.scans[name]

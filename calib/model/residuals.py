@@ -95,9 +95,9 @@ class SimulatedSurface:
         A model mesh of ``h`` mm has straight facets, which cut the chords of the
         reference scan's curved surface (up to about ``h^2 / (8 R)`` inside it on a
         radius ``R``), and its corners come from a smoothed, remeshed copy of that
-        surface. On the quick twin's 14 mm mesh the gap has a mean of -0.09 mm and an sd of
-        0.15 mm, as large as everything else in the residual of a posture near the
-        reference. The gap belongs to the reference geometry, not to the mechanics: a
+        surface. On the quick null twin's 14 mm mesh the gap has a mean of -0.096 mm and an
+        sd of 0.157 mm (``diagnosis.json``'s ``model_mesh.facet_gap_mm``), as large as
+        everything else in the residual of a posture near the reference. The gap belongs to the reference geometry, not to the mechanics: a
         residual at barycentrics ``w`` of a deformed facet is corrected by the signed
         distance of the same material point of the reference facet from the reference
         scan's surface (:meth:`gap_mm`), along the deformed facet's normal (first order in
@@ -130,6 +130,17 @@ class SimulatedSurface:
         x = np.einsum("kc,kcj->kj", w, nodes[self.faces[tri]])
         c, _, _, n = closest_on_surface(vertices, faces, x, scene=self._reference_scene)
         return _signed(x - c, n)[0]
+
+    def gap_at(self, points_mm: np.ndarray) -> np.ndarray:
+        """The chord gap (mm, negative inside) at the reference facet points nearest ``points_mm``.
+
+        ``points_mm`` (k, 3) in the reference frame: for instance the reference scan's own
+        vertices, where the gap is what the straight facets miss of the scanned surface.
+        """
+        if self.reference is None:
+            return np.zeros(len(points_mm))
+        _, tri, w, _ = closest_on_surface(self.reference[0], self.faces, points_mm)
+        return self.gap_mm(tri, w)
 
     @cached_property
     def _reference_scene(self):

@@ -467,6 +467,12 @@ def format_diagnosis(doc: dict) -> str:
         if g.get("failed"):
             lines.append(f"{name} ({g['role']}): {g['failed']}")
     lines.append(f"noise floor (mean |e|) {doc['noise']['floor_mean_abs_mm']:.3f} mm")
+    if gap := (doc.get("model_mesh") or {}).get("facet_gap_mm"):  # older: none
+        lines.append(
+            f"model mesh ({doc['model_mesh']['size_mm']:g} mm): its straight facets lie "
+            f"{gap['mean']:+.3f} mm (sd {gap['sd']:.3f}) from the reference scan's surface; "
+            "the residuals are measured to the curved surface"
+        )
     lines.extend(_caveats(doc))
     if profile := _profile(doc):
         lines.append(profile)

@@ -803,6 +803,31 @@ def test_the_curved_surface_carries_the_chord_gap_with_the_material():
     assert np.allclose(dr_curved, _surface(straight, pos, dpos, points).dr)
 
 
+def test_the_facet_gap_at_the_scanned_points_is_their_distance_inside_the_facets():
+    # Closed form: at a coarse sphere's own points (at rest, no motion) the gap of the
+    # nearest facet point is minus the point's distance from the facets, and it lies in
+    # [-sagitta, 0]: a facet of edge h cuts the sphere's chord by up to h^2 / (8 R).
+    from calib.model.residuals import SimulatedSurface, _surface
+
+    R = 50.0
+    coarse, faces = _sphere(R, 20)
+    fine, fine_faces = _sphere(R, 200)
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(500, 3))
+    points = R * d / np.linalg.norm(d, axis=1, keepdims=True)
+    straight = SimulatedSurface(faces)
+    curved = straight.curved(coarse, fine, fine_faces)
+    raw = _surface(straight, coarse, None, points).r
+    gap = curved.gap_at(points)
+    # Tolerance: the fine sphere's own sagitta and the tilt of the facet's normal from
+    # the sphere's (as in the test above)
+    h, h_fine = 2 * np.pi * R / 20, 2 * np.pi * R / 200
+    tol = h_fine**2 / (8 * R) + raw.max() * (h / R) ** 2 / 2
+    assert np.abs(gap + raw).max() < tol
+    assert gap.max() < tol and gap.min() > -(h**2) / (8 * R) - tol
+    assert np.all(straight.gap_at(points) == 0.0)  # straight facets carry no gap
+
+
 def test_points_at_the_clamped_rim_are_left_out(caplog):
     from calib.discrepancy.problem import RIM_MARGIN_MM, _off_the_rim, rim_margin_of
 

@@ -152,6 +152,12 @@ def test_a_homogeneous_truth_has_no_missing_effect(none):
     _, doc = none
     assert doc["verdict"] == "no missing effect"
     assert doc["named"] == []
+    # the model mesh's facets lie inside the scanned surface on average (chords of a
+    # convex body), by less than a 14 mm facet's sagitta on the body's ~50 mm radius
+    # (h^2 / (8 R) = 0.49 mm), and the summary says by how much
+    gap = doc["model_mesh"]["facet_gap_mm"]
+    assert -0.49 < gap["mean"] < 0 < gap["sd"] and gap["n"] > 100
+    assert f"facets lie {gap['mean']:+.3f} mm (sd {gap['sd']:.3f})" in format_diagnosis(doc)
     # and it says how large each physical effect would have to be to show
     summary = format_diagnosis(doc)
     for name, e in doc["effects"].items():
