@@ -95,10 +95,11 @@ class SimulatedSurface:
         A model mesh of ``h`` mm has straight facets, which cut the chords of the
         reference scan's curved surface (up to about ``h^2 / (8 R)`` inside it on a
         radius ``R``), and its corners come from a smoothed, remeshed copy of that
-        surface. On the quick null twin's 14 mm mesh the gap has a mean of -0.096 mm and an
-        sd of 0.157 mm (``diagnosis.json``'s ``model_mesh.facet_gap_mm``), as large as
-        everything else in the residual of a posture near the reference. The gap belongs to the reference geometry, not to the mechanics: a
-        residual at barycentrics ``w`` of a deformed facet is corrected by the signed
+        surface. On the quick null twin's 14 mm mesh the gap has a mean of -0.096 mm and
+        an sd of 0.157 mm (``diagnosis.json``'s ``model_mesh.facet_gap_mm``), as large as
+        everything else in the residual of a posture near the reference. The gap belongs
+        to the reference geometry, not to the mechanics: a residual at barycentrics ``w``
+        of a deformed facet is corrected by the signed
         distance of the same material point of the reference facet from the reference
         scan's surface (:meth:`gap_mm`), along the deformed facet's normal (first order in
         the facet's rotation and stretch; the envelope theorem keeps the derivatives).
