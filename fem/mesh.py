@@ -61,6 +61,12 @@ class TetMesh:
         object.__setattr__(self, "node_sets", MappingProxyType(sets))
         object.__setattr__(self, "region_names", MappingProxyType(dict(self.region_names)))
 
+    def __reduce__(self):
+        # read-only mapping views do not pickle: rebuild them from plain dicts (a process
+        # pool or a saved session carries meshes, calibrations with them)
+        sets = dict(self.node_sets)
+        return TetMesh, (self.nodes_mm, self.tets, self.region, dict(self.region_names), sets)
+
     @property
     def n_nodes(self) -> int:
         """Number of nodes."""

@@ -89,6 +89,23 @@ def test_mesh_phantom_quality_and_node_sets(coarse_mesh):
     assert mesh.volumes_mm3().sum() == pytest.approx(vol, rel=1e-6)
 
 
+def test_a_mesh_pickles_with_its_tags_and_sets_read_only(coarse_mesh):
+    # a process pool, Dask or a saved notebook session carries meshes (calibrations hold
+    # them): the read-only mapping views did not pickle
+    import pickle
+    from types import MappingProxyType
+
+    mesh = coarse_mesh.with_node_sets(extra=np.array([0, 2]))
+    again = pickle.loads(pickle.dumps(mesh))
+    assert np.array_equal(again.nodes_mm, mesh.nodes_mm)
+    assert np.array_equal(again.tets, mesh.tets) and np.array_equal(again.region, mesh.region)
+    assert dict(again.region_names) == dict(mesh.region_names)
+    assert sorted(again.node_sets) == sorted(mesh.node_sets)
+    assert all(np.array_equal(again.node_sets[k], v) for k, v in mesh.node_sets.items())
+    assert isinstance(again.node_sets, MappingProxyType)
+    assert isinstance(again.region_names, MappingProxyType)
+
+
 _PUSHED_SPHERE = """
 import sys, numpy as np
 from fem.geometry import sphere_surface
