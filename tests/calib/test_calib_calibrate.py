@@ -83,22 +83,6 @@ def test_gradient_matches_central_differences(measurements, reference_state, obj
     assert g[0] == pytest.approx(fd, rel=1e-4)
 
 
-def test_a_calibrator_pickles_and_gives_the_same_objective(measurements):
-    # calib.fit's Calibration holds its Calibrator (mesh, forward model, warm starts): a
-    # process pool, Dask or a saved notebook session pickles it (its meshes did not)
-    import pickle
-
-    opts = CalibrationOptions(reference_state="shortcut", mesh_size_mm=12.0, max_points=800)
-    cal = Calibrator(measurements, opts)
-    theta = np.array([np.log(400.0)])
-    j, g = cal.objective(theta)  # with its caches filled
-    again = pickle.loads(pickle.dumps(cal))
-    j2, g2 = again.objective(theta)
-    # Tolerance: both Newton solves stop at rtol 1e-8, the copy perhaps from another
-    # start (its warm starts travel or not): agreement far inside 1e-6 relative
-    assert j2 == pytest.approx(j, rel=1e-6) and g2[0] == pytest.approx(g[0], rel=1e-6)
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("reference_state", ["unload"])
 def test_recovers_known_c1(measurements, reference_state):
