@@ -10,6 +10,7 @@ import logging
 import os
 import platform
 import sys
+import threading
 from datetime import UTC, datetime
 from importlib import metadata
 from pathlib import Path
@@ -245,8 +246,9 @@ class WorkBusyError(RuntimeError):
     """Another phantom-calib command is writing this work folder."""
 
 
-#: Work folders this process holds the lock of
-_HELD: set[Path] = set()
+#: Work folders this process holds the lock of, with the holding thread and command
+_HELD: dict[Path, tuple[int, str]] = {}
+_HELD_GUARD = threading.Lock()
 
 
 @contextlib.contextmanager
@@ -259,18 +261,28 @@ def work_lock(work: str | os.PathLike, command: str):
     calibration replaced the new validation with the old fit's). The lock is an
     ``flock`` on an open file: the system releases it when its process ends, however it
     ends; the file is removed when the command ends (one killed leaves it, unlocked).
-    Re-entrant within a process (calibrate's own ingest). ``work`` must exist
+    Re-entrant within a thread (calibrate's own ingest); another thread of the same
+    process is refused as another process is. ``work`` must exist
     (:func:`locking_work` makes it where the command would).
 
     Raises
     ------
     WorkBusyError
-        Another process holds the lock (its command and process id are named).
+        Another process or thread holds the lock (its command, and its process id, are
+        named).
     """
     work = Path(work).resolve()
-    if work in _HELD:  # the outer command releases it
+    me = threading.get_ident()
+    with _HELD_GUARD:
+        holder = _HELD.get(work)
+    if holder is not None and holder[0] == me:  # the outer command releases it
         yield
         return
+    if holder is not None:  # flock would let this process's second thread through
+        raise WorkBusyError(
+            f"{work}: in use by another phantom-calib command of this process "
+            f"({holder[1]}, another thread); run this one when it has finished"
+        )
     path = work / ".lock"
     f = _locked_file(path, work)
     if f is None:
@@ -280,14 +292,16 @@ def work_lock(work: str | os.PathLike, command: str):
     f.truncate()
     f.write(f"{command}, process {os.getpid()}\n")
     f.flush()
-    _HELD.add(work)
+    with _HELD_GUARD:
+        _HELD[work] = (me, command)
     try:
         # no other command writes WORK now: what a killed one of any kind left goes (review
         # AN: a killed calibrate's staging folder stayed until the next calibrate's commit)
         clean_stale(work, WORK_OUTPUTS)
         yield
     finally:
-        _HELD.discard(work)
+        with _HELD_GUARD:
+            _HELD.pop(work, None)
         path.unlink(missing_ok=True)  # before the release: no output folder keeps it
         f.close()
 

@@ -47,6 +47,35 @@ def test_the_lock_is_reentrant_and_a_refused_input_leaves_no_folder(tmp_path):
     assert not (tmp_path / "a").exists()  # neither WORK nor the parent made for it
 
 
+def test_another_thread_of_the_process_is_refused_as_another_process_is(tmp_path):
+    # closing notes: the re-entrance let a second thread of one process (two calls of
+    # calib.calibrate from a thread pool in a notebook) write the same WORK at once
+    import threading
+
+    from calib.io import WorkBusyError, work_lock
+
+    said = []
+
+    def other():
+        try:
+            with work_lock(tmp_path, "validate"):
+                said.append("entered")
+        except WorkBusyError as exc:
+            said.append(str(exc))
+
+    with work_lock(tmp_path, "calibrate"):
+        t = threading.Thread(target=other)
+        t.start()
+        t.join()
+        with work_lock(tmp_path, "ingest"):  # this thread: re-entrant still
+            pass
+    assert len(said) == 1 and "calibrate, another thread" in said[0], said
+    t = threading.Thread(target=other)  # released: the other thread takes it
+    t.start()
+    t.join()
+    assert said[1:] == ["entered"]
+
+
 def test_taking_the_lock_removes_what_killed_runs_of_any_command_left(tmp_path):
     # review AN: a killed calibrate's staging folder stayed until a later calibrate reached
     # its write step (a validate or diagnose in between left it); under the lock no other
