@@ -12,6 +12,10 @@ mesh (``model.prestress``: ``calibration/loaded_reference_mesh.vtu``) with its p
 rebuilt on each worker from the saved inverse state
 (``calibration/reference_prestress.npz``); stored displacements are then relative to the
 loaded mesh, whose nodes are the store's ``mesh/nodes_mm``.
+
+A diagnosis' refitted model (``WORK/diagnosis/refit``, ``model.effects`` naming effects
+of the library: a skin, stiffer inclusions, c2, nu, the plate on springs) is swept with
+them: the mesh's effect regions and :func:`calib.model.effects.effect_model`.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ _REQUIRED = (
     "reference_mesh",
 )
 _SUPPORTS = ("clamped", "sliding")
+_NEO_HOOKEAN = "neo-hookean (uncoupled), W = c1 (I1bar - 3) + U(J)"
 
 
 class CalibrationMissingError(FileNotFoundError):
@@ -88,6 +93,15 @@ class SweepModel:
         ``nodes_mm`` (the loaded mesh); None for a straight stress-free mesh.
     prestress_gravity_m_s2 : ndarray, shape (3,) or None
         The reference scan's gravity (model frame, m/s^2) the prestress balances.
+    region : ndarray of int, shape (n_tets,) or None
+        Region tag per element (None: one region, ``bulk``).
+    region_names : dict of str to int or None
+    effects : dict or None
+        A diagnosis refit's ``named`` effects and their ``values``
+        (:meth:`calib.model.effects.EffectValues.as_json`); None: the homogeneous
+        neo-Hookean calibration.
+    law : str
+        The record's ``model.law``.
     source : dict
         Paths of the calibration files (for provenance).
     """
@@ -108,7 +122,21 @@ class SweepModel:
     tumour_stress_free_mm: np.ndarray | None = None
     prestress_state: np.ndarray | None = field(default=None, compare=False)
     prestress_gravity_m_s2: np.ndarray | None = field(default=None, compare=False)
+    region: np.ndarray | None = field(default=None, compare=False)
+    region_names: dict | None = None
+    effects: dict | None = None
+    law: str = _NEO_HOOKEAN
     source: dict = field(default_factory=dict, compare=False)
+
+    @property
+    def scales_with_c1(self) -> bool:
+        """Whether a solve at c1 equals one at the calibrated c1 with gravity scaled.
+
+        True unless the back plate is held by tangential springs (Pa/mm), whose stiffness
+        does not scale with c1: every other effect's parameter is a ratio to c1 or nu.
+        """
+        k = (self.effects or {}).get("values", {}).get("support_stiffness_pa_per_mm", "inf")
+        return k == "inf" or float(k) == 0.0
 
     @property
     def key(self) -> str:
@@ -125,8 +153,8 @@ class SweepModel:
     def physics(self) -> dict:
         """Material, load and support as JSON numbers (the store's ``model`` block)."""
         t = self.tumour_stress_free_mm
-        return {
-            "law": "neo-hookean (uncoupled), W = c1 (I1bar - 3) + U(J)",
+        doc = {
+            "law": self.law,
             "c1_pa": self.c1_pa,
             "nu": self.nu,
             "density_kg_m3": self.density_kg_m3,
@@ -147,16 +175,20 @@ class SweepModel:
                 "gravity_m_s2": np.asarray(self.prestress_gravity_m_s2).tolist(),
             },
         }
+        if self.effects:  # absent otherwise: the stores of plain calibrations keep their key
+            doc["effects"] = self.effects
+        return doc
 
     def tet_mesh(self):
         """The :class:`fem.TetMesh` (positively oriented) with its node sets."""
         import fem
 
+        one = self.region is None
         mesh = fem.TetMesh(
             self.nodes_mm,
             self.tets,
-            np.ones(len(self.tets), dtype=np.int64),
-            {"bulk": 1},
+            np.ones(len(self.tets), dtype=np.int64) if one else self.region,
+            {"bulk": 1} if one else self.region_names,
             {
                 "back": self.back_nodes,
                 "surface": self.surface_nodes,
@@ -187,9 +219,14 @@ class SweepModel:
         )
 
     def fem_model(self):
-        """The homogeneous :class:`fem.Model` at the calibrated c1."""
+        """The :class:`fem.Model` at the calibrated c1: homogeneous, or with the effects."""
         import fem
 
+        if self.effects:
+            from ..model.effects import EffectValues, effect_model
+
+            values = EffectValues.from_json(self.effects["values"])
+            return effect_model(self.tet_mesh(), self.c1_pa, values)
         supports = {"clamped": fem.Clamped(), "sliding": fem.Sliding()}
         material = fem.NeoHookean(self.c1_pa, nu=self.nu)
         return fem.Model.homogeneous(
@@ -315,6 +352,7 @@ def load_sweep_model(work: str | Path) -> SweepModel:
 
         if not contains(mesh, t):  # as the engine's MaterialPoint.locate finds it
             _fail(record, f"the tumour centre {t.tolist()} (mm) lies outside the model mesh")
+    effects = _effects(record, model, mesh, mesh_path, float(doc["c1_pa"]))
     return SweepModel(
         nodes_mm=mesh.nodes_mm,
         tets=mesh.tets,
@@ -332,5 +370,51 @@ def load_sweep_model(work: str | Path) -> SweepModel:
         tumour_stress_free_mm=None if tumour is None else np.asarray(tumour, float),
         prestress_state=state,
         prestress_gravity_m_s2=g_pre,
+        region=None if effects is None else mesh.region,
+        region_names=None if effects is None else dict(mesh.region_names),
+        effects=effects,
+        law=str(model.get("law") or _NEO_HOOKEAN) if effects else _NEO_HOOKEAN,
         source={"calibration.json": record, "reference_mesh.vtu": mesh_path},
     )
+
+
+def _effects(record: Path, model: dict, mesh, mesh_path: Path, c1_pa: float) -> dict | None:
+    """A diagnosis refit's ``model.effects`` (``named``, ``values``), checked; None if none.
+
+    Review AT: the sweep solved a refit with a named skin as the homogeneous body at the
+    refitted c1 (44 % more nipple displacement), without a word.
+    """
+    from ..model.effects import LIBRARY, EffectError, EffectValues, effect_model
+
+    eff = model.get("effects")
+    if eff is None:
+        return None
+    named = eff.get("named") if isinstance(eff, dict) else None
+    if not isinstance(named, list) or not all(isinstance(n, str) for n in named):
+        _fail(record, f"model.effects.named is {named!r}: not a list of effect names")
+    if not named:
+        return None
+    unknown = sorted(set(named) - set(LIBRARY))
+    if unknown:
+        _fail(record, f"model.effects.named: {unknown} are not effects of the library "
+                      f"({sorted(LIBRARY)})")  # fmt: skip
+    raw = eff.get("values")
+    try:
+        values = EffectValues.from_json(raw)
+    except (EffectError, TypeError, ValueError, AttributeError) as exc:
+        _fail(record, f"model.effects.values {raw!r}: {exc}")
+    for key in ("nu", "density_kg_m3"):  # the model block's, which the store records
+        if not np.isclose(getattr(values, key), float(model[key]), rtol=1e-12, atol=0.0):
+            _fail(record, f"model.effects.values.{key} {getattr(values, key)!r} differs from "
+                          f"model.{key} {model[key]!r}")  # fmt: skip
+    try:
+        effect_model(mesh, c1_pa, values)
+    except EffectError as exc:
+        _fail(mesh_path, f"its regions do not carry the named effects ({named}): {exc}")
+    regional = {"skin": "skin", "inclusions": "inclusion"}
+    names = {n.split(":")[0] for n in mesh.region_names}
+    lost = [e for e in named if e in regional and regional[e] not in names]
+    if lost:
+        _fail(mesh_path, f"no {', '.join(regional[e] for e in lost)} region for the named "
+                         f"{', '.join(lost)} (cell data 'region' and its names)")  # fmt: skip
+    return {"named": list(named), "values": values.as_json()}

@@ -253,7 +253,7 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     anything is read or written.
     """
     from ..io import check_out_folder, clean_stale
-    from ..sweep import load_sweep_model, make_plan, plan_continuation
+    from ..sweep import PlanError, load_sweep_model, make_plan, plan_continuation
     from ..sweep.engine import make_backend, run_scenarios
     from ..sweep.store import StoreError, SweepStore
 
@@ -277,6 +277,12 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     plan = make_plan(
         opts.plan, c1_cal_pa=model.c1_pa, c1_axis=opts.c1_axis, holdout=opts.holdout, seed=opts.seed
     )
+    if not model.scales_with_c1 and np.any(plan.c1_pa != model.c1_pa):
+        raise PlanError(
+            f"--c1 {opts.c1_axis}: {work} holds the back plate on tangential springs "
+            "(model.effects, a diagnosis refit), whose stiffness does not scale with c1, so "
+            "another c1 is not the calibrated one under scaled gravity; sweep without --c1"
+        )
     loads = plan.gravity_phantom * (model.c1_pa / plan.c1_pa)[:, None]
     cont = plan_continuation(loads, chunk_size=opts.chunk_size, max_angle_deg=opts.max_angle_deg)
     clean_stale(out.parent, (out.name,))  # staging folders of creations killed midway

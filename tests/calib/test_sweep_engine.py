@@ -213,6 +213,74 @@ def test_a_seed_no_plan_draws_with_is_no_part_of_it(work, reference, tmp_path):
         run_sweep(work, tmp_path / "h", replace(held, seed=1))  # there it draws
 
 
+def _skin_work(path, **values):
+    from calib.model.effects import EffectValues
+
+    v = EffectValues(nu=0.49, **values).as_json()  # make_box_work's nu
+    return make_box_work(path, skin_above_mm=20.0, effects={"named": ["skin"], "values": v})
+
+
+def test_a_diagnosis_refit_is_swept_with_its_effects(tmp_path):
+    # review AT: a refit naming a skin was swept as the homogeneous body at the refitted
+    # c1 (44 % more nipple displacement on the tiny twin), exit 0. Two code paths: the
+    # store against independent solves of the library's effect model, at the calibrated
+    # c1 and at another c1 of the axis (the skin's c1 is a ratio of the bulk's, so the
+    # c1 -> gravity scaling holds; its tolerance as in test_store_holds_the_fe_solutions)
+    from calib.model.effects import EffectValues, effect_model
+
+    work = _skin_work(tmp_path / "work", skin_ratio=4.0)
+    m = load_sweep_model(work)
+    assert m.effects["named"] == ["skin"] and m.scales_with_c1
+    out = tmp_path / "s"
+    run_sweep(work, out, SweepOptions(plan="sphere:4", c1_axis="400:700:2", backend="serial"))
+    r, attrs = _read(out)
+    assert attrs["model"]["effects"]["named"] == ["skin"]
+    assert attrs["model"]["effects"]["values"]["skin_ratio"] == 4.0
+    mesh = m.tet_mesh()
+    assert sorted(mesh.region_names) == ["bulk", "skin"]
+    disc = fem.discretize(mesh, fem.Clamped(), formulation=m.formulation)
+    values = EffectValues(skin_ratio=4.0, nu=0.49)
+    for i in range(len(r["scenarios/c1_pa"])):
+        c1, g_ph = r["scenarios/c1_pa"][i], r["scenarios/gravity_phantom"][i]
+        g = m.R_ref_from_phantom @ g_ph
+        sol = fem.solve(effect_model(mesh, c1, values), gravity=g, g_m_s2=9.81, disc=disc)
+        u = r["results/displacement_mm"][i]
+        assert np.abs(u - sol.displacement_mm).max() <= 1e-7
+        bare = fem.Model.homogeneous(mesh, fem.NeoHookean(c1, nu=0.49))
+        homogeneous = fem.solve(bare, gravity=g, g_m_s2=9.81, disc=disc).displacement_mm
+        assert np.abs(u - homogeneous).max() > 0.1  # the skin shows in the store
+
+
+def test_a_refit_on_springs_has_no_c1_axis_and_bad_effects_are_named(tmp_path):
+    from calib.sweep.plans import PlanError
+
+    work = _skin_work(tmp_path / "springs", support_stiffness_pa_per_mm=300.0)
+    assert not load_sweep_model(work).scales_with_c1
+    with pytest.raises(PlanError, match="tangential springs.*sweep without --c1"):
+        run_sweep(work, tmp_path / "s", PLAN)
+    assert not (tmp_path / "s").exists()
+    run_sweep(work, tmp_path / "s", SweepOptions(plan="sphere:2", backend="serial"))
+    # a named effect outside the library, and a skin named on a mesh without its region
+    import json
+
+    for edit, says in (
+        (lambda d: d["model"]["effects"]["named"].append("gloss"), "not effects of the library"),
+        (lambda d: d["model"]["effects"]["values"].update(skin_ratio=-1), "skin_ratio must be"),
+        (lambda d: d["model"]["effects"]["values"].update(nu=0.45), "differs from model.nu"),
+    ):
+        w = _skin_work(tmp_path / f"w{len(says)}", skin_ratio=4.0)
+        record = w / "calibration.json"
+        doc = json.loads(record.read_text())
+        edit(doc)
+        record.write_text(json.dumps(doc))
+        with pytest.raises(CalibrationMissingError, match=f"calibration.json: .*{says}"):
+            load_sweep_model(w)
+    values = {"named": ["skin"], "values": {"skin_ratio": 4.0, "nu": 0.49}}
+    w = make_box_work(tmp_path / "noskin", effects=values)
+    with pytest.raises(CalibrationMissingError, match="reference_mesh.vtu: no skin region"):
+        load_sweep_model(w)
+
+
 def test_missing_calibration_is_named(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(CalibrationMissingError, match=r"calibration\.json not found"):

@@ -49,14 +49,24 @@ def make_box_work(
     R_ref_from_phantom: np.ndarray | None = None,
     tumour_mm=(20.0, 20.0, 15.0),
     shift_mm: float = 0.0,
+    skin_above_mm: float | None = None,
+    effects: dict | None = None,
 ) -> Path:
-    """Write a calibrated work folder of a clamped block (see the module docstring)."""
+    """Write a calibrated work folder of a clamped block (see the module docstring).
+
+    ``skin_above_mm``: the elements whose centroid lies above this height form a region
+    ``skin`` (the rest ``bulk``); ``effects``: the record's ``model.effects`` block, as a
+    diagnosis refit writes it (``named``, ``values``).
+    """
     from calib.io import RunOutputs
     from fem.io import write_mesh
 
     mesh = box_mesh(n=n)
     if shift_mm:
         mesh = mesh.with_nodes(mesh.nodes_mm + shift_mm)
+    if skin_above_mm is not None:
+        top = mesh.nodes_mm[mesh.tets].mean(axis=1)[:, 2] > skin_above_mm
+        mesh = mesh.with_regions(np.where(top, 2, 1), {"bulk": 1, "skin": 2})
     R = rotation_xyz() if R_ref_from_phantom is None else np.asarray(R_ref_from_phantom)
     doc = {
         "schema_version": 1,
@@ -76,6 +86,8 @@ def make_box_work(
             "reference_mesh": "calibration/reference_mesh.vtu",
         },
     }
+    if effects is not None:
+        doc["model"]["effects"] = effects
     with RunOutputs(work, folder="calibration", record="calibration.json") as run:
         write_mesh(mesh, run.path("reference_mesh.vtu"))
         run.commit(doc)
