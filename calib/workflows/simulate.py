@@ -23,6 +23,11 @@ log = logging.getLogger(__name__)
 
 #: Plausible extent of a phantom or breast, mm: a mesh outside it is in other units.
 BODY_EXTENT_MM = (10.0, 2000.0)
+#: Below this extent (mm) a body is warned about: centimetres pass the range above.
+SMALL_BODY_MM = 40.0
+#: Output formats that keep the tetrahedra and the ``displacement_mm`` point data
+#: (review AT: .stl, .ply, .off and .inp dropped them, .obj and .xdmf failed after the solve).
+OUTPUT_SUFFIXES = (".vtu", ".vtk", ".msh")
 
 
 @dataclass(frozen=True)
@@ -94,6 +99,16 @@ def parse_back_plane(text: str) -> float | None:
 
 
 def _back_nodes(mesh: fem.TetMesh, z_mm: float | None):
+    own = mesh.node_sets.get("back")
+    if z_mm is None and own is not None and len(own) >= 3:
+        # the mesh's own back set (`set:back`, as calibrate writes it): review AT, the
+        # detected plane clamped 3 nodes the calibration had left free
+        from fem.discretize import plane_fit
+
+        normal, _, _ = plane_fit(mesh.nodes_mm[own])
+        if normal @ (mesh.nodes_mm.mean(axis=0) - mesh.nodes_mm[own].mean(axis=0)) > 0:
+            normal = -normal  # outward: away from the body
+        return np.asarray(own), normal
     if z_mm is None:
         nodes, normal, _ = find_back_plane(mesh)
         return nodes, normal
@@ -126,6 +141,31 @@ def _components(mesh: fem.TetMesh) -> np.ndarray:
     return labels
 
 
+def check_orientation(mesh: fem.TetMesh, path: Path) -> None:
+    """Refuse a tangled mesh: elements of both orientations (before any flipping).
+
+    One convention throughout (every element positive, or every one negative, as some
+    writers order them) is flipped to positive; a few inverted elements among positive
+    ones overlap their neighbours (review AT: a node moved through its neighbours was
+    "repaired" and solved without a word). Non-finite coordinates are named first.
+    """
+    bad = np.flatnonzero(~np.isfinite(mesh.nodes_mm).all(axis=1))
+    if len(bad):
+        raise fem.MeshError(
+            f"{path}: {len(bad)} points have non-finite coordinates, e.g. point {bad[0]} "
+            f"{mesh.nodes_mm[bad[0]].tolist()}"
+        )
+    vol = mesh.volumes_mm3()
+    neg, pos = np.flatnonzero(vol < 0), int((vol > 0).sum())
+    if len(neg) and pos:
+        few = neg if len(neg) <= pos else np.flatnonzero(vol > 0)
+        raise fem.MeshError(
+            f"{path}: {len(few)} of {mesh.n_tets} elements are inverted against the rest "
+            f"(e.g. element {few[0]}): a tangled mesh, whose elements overlap; untangle it "
+            "(or write every element in one node order)"
+        )
+
+
 def check_mesh(mesh: fem.TetMesh, path: Path) -> None:
     """Refuse a mesh that cannot be a phantom in mm: wrong units, or several bodies."""
     extent = float(np.ptp(mesh.nodes_mm, axis=0).max()) if mesh.n_nodes else 0.0
@@ -135,6 +175,13 @@ def check_mesh(mesh: fem.TetMesh, path: Path) -> None:
         raise fem.MeshError(
             f"{path}: the mesh spans {extent:.4g} mm; lengths must be in "
             f"millimetres (a body of {lo:g}-{hi:g} mm). Is it in {unit}?"
+        )
+    if extent < SMALL_BODY_MM:
+        log.warning(
+            "%s: the mesh spans %.3g mm, small for a breast or a phantom: if it is in "
+            "centimetres, scale it by 10 (lengths are read in millimetres)",
+            path,
+            extent,
         )
     labels = _components(mesh)
     counts = np.bincount(labels)
@@ -152,14 +199,14 @@ def check_output(out_path: Path) -> None:
 
     from ..io import check_out_file
 
-    if out_path.suffix.lower() not in (".node", ".ele"):
-        try:
-            mesh_format_for(out_path)
-        except ValueError:
-            raise ValueError(
-                f"--out {out_path}: not a mesh format (use .vtu, .vtk, .xdmf, .inp, .msh, ...)"
-            ) from None
+    if out_path.suffix.lower() not in OUTPUT_SUFFIXES:
+        raise ValueError(
+            f"--out {out_path}: use {', '.join(OUTPUT_SUFFIXES)} (formats that keep the "
+            "tetrahedra and the displacement_mm point data)"
+        )
+    mesh_format_for(out_path)  # the writer knows it
     check_out_file(out_path)
+    check_out_file(out_path.with_suffix(".json"))  # RESULT.json, written beside it
 
 
 def _in_file_numbering(mesh: fem.TetMesh, points, u_mm: np.ndarray):
@@ -198,7 +245,8 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
         raise ValueError(f"--out {out_path}: it (or its .json) is the input mesh {mesh_path}")
     t0 = time.perf_counter()
     try:
-        mesh, points = read_mesh(mesh_path, return_input_points=True)
+        mesh, points = read_mesh(mesh_path, orient=False, return_input_points=True)
+        check_orientation(mesh, mesh_path)
         mesh = mesh.oriented()
         if mesh.n_tets == 0:
             raise fem.MeshError("the mesh has no tetrahedra")

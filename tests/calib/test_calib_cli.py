@@ -159,7 +159,12 @@ BAD = [
     (["--c1", "inf"], r"--c1 must be a positive stress in Pa, got inf"),
     (["--formulation", "q3"], r"--formulation must be one of"),
     # checked before the solve, naming the file the user gave (not a hidden temp file)
-    (["--out", "RESULT.txt"], r"--out RESULT\.txt: not a mesh format"),
+    (["--out", "RESULT.txt"], r"--out RESULT\.txt: use \.vtu, \.vtk, \.msh"),
+    # review AT: these dropped the tetrahedra or the displacement (exit 0), or failed after
+    # the solve with a traceback
+    (["--out", "RESULT.stl"], r"--out RESULT\.stl: use \.vtu, \.vtk, \.msh \(formats that keep"),
+    (["--out", "RESULT.inp"], r"--out RESULT\.inp: use"),
+    (["--out", "RESULT.xdmf"], r"--out RESULT\.xdmf: use"),
 ]
 
 
@@ -255,6 +260,79 @@ def test_simulate_refuses_a_floating_part(mesh_file, tmp_path):
         _simulate(_write(tmp_path / "two.vtu", nodes, cells), tmp_path / "o.vtu")
     )
     assert "two.vtu" in line and "2 disconnected parts" in line
+
+
+def test_simulate_refuses_a_tangled_mesh_and_a_non_finite_point(mesh_file, tmp_path):
+    # review AT: a node pushed through its neighbours inverted a few elements, which
+    # were flipped and solved without a word; a NaN coordinate was called a unit problem
+    import meshio
+
+    m = meshio.read(mesh_file)
+    pts, tets = m.points.copy(), m.cells_dict["tetra"]
+    flipped = _write(tmp_path / "flipped.vtu", pts, tets[:, [1, 0, 2, 3]])  # one convention
+    assert _simulate(flipped, tmp_path / "f.vtu").exit_code == 0
+    vol = np.linalg.det(pts[tets[:, 1:]] - pts[tets[:, :1]])
+    inner = np.setdiff1d(np.arange(len(pts)), np.unique(_boundary(tets)))
+    k = inner[0]
+    x = pts[k].copy()
+    # through the far face of one of its elements
+    e = np.flatnonzero((tets == k).any(axis=1))[0]
+    others = pts[tets[e][tets[e] != k]]
+    pts[k] = 2 * others.mean(axis=0) - x  # mirrored through that face's centroid
+    new = np.linalg.det(pts[tets[:, 1:]] - pts[tets[:, :1]])
+    assert 0 < (np.sign(new) != np.sign(vol)).sum() < len(tets) // 2
+    line = _one_error_line(_simulate(_write(tmp_path / "t.vtu", pts, tets), tmp_path / "t2.vtu"))
+    assert "t.vtu" in line and "inverted against the rest" in line and "tangled" in line
+    pts[k] = [np.nan, 0.0, 0.0]
+    line = _one_error_line(_simulate(_write(tmp_path / "n.vtu", pts, tets), tmp_path / "n2.vtu"))
+    assert f"1 points have non-finite coordinates, e.g. point {k}" in line
+    assert not any(p.name.endswith("2.vtu") for p in tmp_path.iterdir())
+
+
+def _boundary(tets):
+    import fem
+
+    return fem.boundary_faces(np.asarray(tets))
+
+
+def test_simulate_warns_of_a_body_in_centimetres_and_refuses_a_json_folder(
+    mesh_file, tmp_path, caplog
+):
+    # review AT: a mesh in cm (extent 12) passed as a 12 mm body, its answer 100x small;
+    # a folder where RESULT.json goes failed after the solve, the mesh written
+    import meshio
+
+    m = meshio.read(mesh_file)
+    extent = float(np.ptp(m.points, axis=0).max())
+    cm = _write(tmp_path / "cm.vtu", m.points / 10, m.cells_dict["tetra"])
+    with caplog.at_level("WARNING"):
+        result = _simulate(cm, tmp_path / "cm_out.vtu")
+    assert result.exit_code == 0 and 10 < extent / 10 < 40  # inside the refused range
+    assert "small for a breast or a phantom" in caplog.text and "centimetres" in caplog.text
+    (tmp_path / "r.json").mkdir()
+    line = _one_error_line(_simulate(mesh_file, tmp_path / "r.vtu"))
+    assert "r.json: is a folder" in line and not (tmp_path / "r.vtu").exists()
+
+
+def test_simulate_clamps_the_mesh_s_own_back_set(mesh_file, tmp_path):
+    # review AT: on calibrate's reference_mesh.vtu (`set:back`) the detected plane
+    # clamped 3 nodes the calibration had left free; the mesh's own set now decides
+    import meshio
+
+    m = meshio.read(mesh_file)
+    pts, tets = m.points, m.cells_dict["tetra"]
+    plane = np.flatnonzero(np.isclose(pts[:, 2], 0.0))
+    rim = plane[np.argsort(-np.linalg.norm(pts[plane, :2], axis=1))[:3]]  # 3 outermost
+    flags = np.isin(np.arange(len(pts)), np.setdiff1d(plane, rim)).astype(np.int8)
+    own = tmp_path / "own.vtu"
+    meshio.write(own, meshio.Mesh(pts, [("tetra", tets)], point_data={"set:back": flags}))
+    assert _simulate(own, tmp_path / "own_out.vtu").exit_code == 0
+    u = meshio.read(tmp_path / "own_out.vtu").point_data["displacement_mm"]
+    assert np.abs(u[np.setdiff1d(plane, rim)]).max() == 0.0
+    assert np.linalg.norm(u[rim], axis=1).min() > 0  # left free, as the set says
+    assert _simulate(mesh_file, tmp_path / "auto.vtu").exit_code == 0  # no set: detected
+    u = meshio.read(tmp_path / "auto.vtu").point_data["displacement_mm"]
+    assert np.abs(u[plane]).max() == 0.0
 
 
 def test_simulate_names_the_mesh_of_an_empty_or_degenerate_body(tmp_path):
