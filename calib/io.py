@@ -20,10 +20,12 @@ from fem.io import atomic_write
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "InsideRunFolderError",
     "RunOutputs",
     "StaleOutputError",
     "WorkBusyError",
     "atomic_write",
+    "check_not_in_run_folder",
     "check_out_file",
     "check_out_folder",
     "check_run",
@@ -75,6 +77,39 @@ def check_work_writable(work: str | os.PathLike, writes: str) -> None:
         raise PermissionError(f"{work}: not writable (this command writes {writes} there)")
 
 
+#: A work folder's run folders, the record beside each, and the command that replaces it
+RUN_FOLDERS = {
+    "scans": ("ingest_summary.json", "ingest"),
+    "calibration": ("calibration.json", "calibrate"),
+    "validation": ("validation.json", "validate"),
+    "diagnosis": ("diagnosis.json", "diagnose"),
+}
+
+
+class InsideRunFolderError(ValueError):
+    """An ``--out`` inside a work folder's run folder, which a later run replaces whole."""
+
+
+def check_not_in_run_folder(out: str | os.PathLike) -> None:
+    """Refuse an ``--out`` inside a work folder's ``calibration/``, ``validation/``, ...
+
+    Each run replaces its folder as a whole (review AT: a sweep store written into
+    ``WORK/calibration/`` went with the next ``calibrate``, without a word).
+
+    Raises
+    ------
+    InsideRunFolderError
+    """
+    out = Path(out).absolute()
+    for folder in (out, *out.parents):
+        record, command = RUN_FOLDERS.get(folder.name, (None, None))
+        if record is not None and (folder.parent / record).is_file():
+            raise InsideRunFolderError(
+                f"--out {out}: inside {folder}, which the next `phantom-calib {command}` of "
+                f"{folder.parent} replaces as a whole; write it outside"
+            )
+
+
 def check_out_file(out: str | os.PathLike) -> None:
     """Refuse an ``--out`` file that cannot be written, before any work.
 
@@ -86,8 +121,11 @@ def check_out_file(out: str | os.PathLike) -> None:
         Its nearest existing parent is a file.
     PermissionError
         Its nearest existing parent folder is not writable.
+    InsideRunFolderError
+        It lies in a work folder's run folder (:func:`check_not_in_run_folder`).
     """
     out = Path(out)
+    check_not_in_run_folder(out)
     if out.is_dir():
         raise IsADirectoryError(f"--out {out}: is a folder; name the file to write")
     _check_parents(out)
@@ -104,8 +142,11 @@ def check_out_folder(out: str | os.PathLike) -> None:
         ``out`` is a link to nothing.
     PermissionError
         ``out``, or where it does not exist its nearest existing parent, is not writable.
+    InsideRunFolderError
+        It lies in a work folder's run folder (:func:`check_not_in_run_folder`).
     """
     out = Path(out)
+    check_not_in_run_folder(out)
     if out.is_symlink() and not out.exists():
         raise FileExistsError(f"--out {out}: a link to nothing ({os.readlink(out)})")
     if out.exists() and not out.is_dir():

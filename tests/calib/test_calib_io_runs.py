@@ -76,6 +76,27 @@ def test_another_thread_of_the_process_is_refused_as_another_process_is(tmp_path
     assert said[1:] == ["entered"]
 
 
+def test_an_out_inside_a_work_folder_s_run_folder_is_refused(tmp_path):
+    # review AT: a sweep store (or a simulate result) written into WORK/calibration/ went
+    # with the next calibrate, which replaces that folder whole, without a word
+    from calib.io import InsideRunFolderError, check_out_file, check_out_folder
+
+    work = tmp_path / "work"
+    for folder, record in (("calibration", "calibration.json"), ("diagnosis", "diagnosis.json")):
+        (work / folder).mkdir(parents=True)
+        (work / record).write_text("{}")
+    with pytest.raises(InsideRunFolderError, match=r"calibration, which the next `phantom-c"):
+        check_out_folder(work / "calibration" / "store")
+    with pytest.raises(InsideRunFolderError, match="`phantom-calib diagnose` of"):
+        check_out_file(work / "diagnosis" / "refit" / "calibration" / "mine.vtu")
+    with pytest.raises(InsideRunFolderError, match="calibrate"):
+        check_out_folder(work / "calibration")
+    check_out_folder(work / "sweeps" / "store")  # beside the run folders: fine
+    (work / "validation").mkdir()  # a folder of that name without its record: not a run's
+    check_out_file(work / "validation" / "x.vtu")
+    check_out_folder(tmp_path / "twin" / "scans")  # a scan folder named scans
+
+
 def test_taking_the_lock_removes_what_killed_runs_of_any_command_left(tmp_path):
     # review AN: a killed calibrate's staging folder stayed until a later calibrate reached
     # its write step (a validate or diagnose in between left it); under the lock no other

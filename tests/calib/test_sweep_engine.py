@@ -281,6 +281,15 @@ def test_a_refit_on_springs_has_no_c1_axis_and_bad_effects_are_named(tmp_path):
         load_sweep_model(w)
 
 
+def test_a_store_inside_the_work_folder_s_calibration_is_refused(work):
+    # review AT: the next calibrate deleted it (hours of FE on a real plan) without a word
+    from calib.io import InsideRunFolderError
+
+    with pytest.raises(InsideRunFolderError, match="replaces as a whole"):
+        run_sweep(work, work / "calibration" / "store", PLAN)
+    assert not (work / "calibration" / "store").exists()
+
+
 def test_missing_calibration_is_named(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(CalibrationMissingError, match=r"calibration\.json not found"):
