@@ -112,6 +112,33 @@ class Measurements:
         return [s for s in self.scans.values() if s.role == role]
 
 
+def _check_ingest_shapes(doc: dict, path: Path) -> None:
+    """The arrays of ``ingest.json`` this reader uses, of the right shape and finite.
+
+    Review AT: a ``nipple_lps_mm`` of null reached the user as an IndexError traceback.
+    """
+    plane = doc.get("back_plane")
+    wanted = [
+        ("T_ref_from_scan", doc.get("T_ref_from_scan"), (4, 4)),
+        ("gravity_ref", doc.get("gravity_ref"), (3,)),
+        ("nipple_lps_mm", doc.get("nipple_lps_mm"), (3,)),
+        ("back_plane.normal", (plane or {}).get("normal"), (3,)),
+        ("back_plane.point_lps_mm", (plane or {}).get("point_lps_mm"), (3,)),
+    ]
+    if doc.get("tumour_lps_mm") is not None:
+        wanted.append(("tumour_lps_mm", doc["tumour_lps_mm"], (3,)))
+    for key, value, shape in wanted:
+        try:
+            a = np.asarray(value, float)
+        except (TypeError, ValueError):
+            a = np.empty(0)
+        if value is None or a.shape != shape or not np.all(np.isfinite(a)):
+            raise ValueError(
+                f"{path}: `{key}` must be {' x '.join(map(str, shape))} finite numbers, "
+                f"got {value!r}; run `phantom-calib ingest` again"
+            )
+
+
 def read_scan(work: Path, entry: ScanEntry) -> ScanMeasurement:
     """One scan's measurements from ``WORK/scans/<name>/`` (role from ``entry``)."""
     import imaging
@@ -122,6 +149,7 @@ def read_scan(work: Path, entry: ScanEntry) -> ScanMeasurement:
     name = entry.name
     folder = work / "scans" / name
     doc = load_ingest(work, name)
+    _check_ingest_shapes(doc, folder / "ingest.json")
     surf = imaging.read_ply(folder / "surface_ref.ply")
     T = np.asarray(doc["T_ref_from_scan"], float)
     tumour = doc.get("tumour_lps_mm")

@@ -183,6 +183,8 @@ def read_work(work: str | Path) -> WorkFolder:
             f"{work / 'calibration.json'}: written by an older phantom-calib "
             "(no `model` block); run `phantom-calib calibrate` again"
         )
+    if not record.get("scans"):  # review AT: a bare KeyError 'scans'; {} validated nothing
+        raise ValueError(f"{work / 'calibration.json'}: no `scans` (the calibrated scans)")
     entries = [_entry(ref_name, "reference", model.get("reference_posture"), work)] + [
         _entry(name, s["role"], s.get("posture"), work) for name, s in record["scans"].items()
     ]
@@ -195,6 +197,11 @@ def read_work(work: str | Path) -> WorkFolder:
             continue
         deformed = work / "calibration" / f"{name}_deformed.vtu"
         data = _point_data(deformed)
+        if data.get("displacement_mm", np.empty(0)).shape != mesh.nodes_mm.shape:
+            raise ValueError(
+                f"{deformed}: no `displacement_mm` point data of the reference mesh's "
+                f"{mesh.n_nodes} nodes (calibrate writes it)"
+            )
         positions = mesh.nodes_mm + data["displacement_mm"]
         ref = data.get("displacement_from_reference_mm")
         states[name] = SavedState(
@@ -274,16 +281,79 @@ def check_record(record: dict, path: Path) -> None:
     pair = isinstance(ci, list) and len(ci) == 2
     if ci is not None and not (pair and all(isinstance(v, (int, float)) for v in ci)):
         raise bad("c1_ci95_pa", "null or [low, high] in Pa", ci)
-    if ci is not None and not 0 < ci[0] <= ci[1]:
-        raise bad("c1_ci95_pa", "0 < low <= high (Pa)", ci)
-    if not isinstance(record.get("model", {}), (dict, type(None))):
-        raise bad("model", "an object", record.get("model"))
+    if ci is not None and not (np.all(np.isfinite(ci)) and 0 < ci[0] <= ci[1]):
+        raise bad("c1_ci95_pa", "finite, 0 < low <= high (Pa)", ci)
+    # c1 inside its own interval (review AT: [100, 200] around 554 Pa gave bands that
+    # did not hold the figures); 1 % slack for a profile interval's grid
+    if ci is not None and not 0.99 * ci[0] <= c1 <= 1.01 * ci[1]:
+        raise bad("c1_ci95_pa", f"an interval that holds c1_pa ({c1:g} Pa)", ci)
+    model = record.get("model", {})
+    if not isinstance(model, (dict, type(None))):
+        raise bad("model", "an object", model)
+    _check_model_block(model or {}, bad)
     scans = record.get("scans", {})  # absent: said by the readers that need it
     if not isinstance(scans, dict):
         raise bad("scans", "an object of scan name to its record", scans)
+    targets = tuple(r for r in ROLES if r != "reference")  # the reference is model's
     for name, s in scans.items():
-        if not isinstance(s, dict) or s.get("role") not in ROLES:
-            raise bad(f"scans.{name}", f"an object with a role among {ROLES}", s)
+        if not isinstance(s, dict) or s.get("role") not in targets:
+            raise bad(f"scans.{name}", f"an object with a role among {targets}", s)
+        if not isinstance(s.get("posture"), (dict, type(None))):
+            raise bad(f"scans.{name}.posture", "null or {plane, angle_deg}", s.get("posture"))
+        if not isinstance(s.get("model", {}), dict):
+            raise bad(f"scans.{name}.model", "an object", s.get("model"))
+        for key in ("tumour_mm", "dtumour_dlnc1_mm"):
+            value = s.get("model", {}).get(key)
+            if value is not None and not _finite_vector(value, 3):
+                raise bad(f"scans.{name}.model.{key}", "null or [x, y, z] (mm)", value)
+    ref = (model or {}).get("reference_scan")
+    if ref is not None and ref in scans:
+        raise bad("model.reference_scan", "the reference scan, not one of `scans`", ref)
+    if scans and not any(s["role"] == "calibration" for s in scans.values()):
+        raise bad("scans", "records with at least one scan of role 'calibration'", sorted(scans))
+
+
+def _finite_vector(value, n: int) -> bool:
+    """``value`` is a list of ``n`` finite numbers (no booleans)."""
+    return (
+        isinstance(value, list)
+        and len(value) == n
+        and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+        and bool(np.all(np.isfinite(value)))
+    )
+
+
+def _check_model_block(model: dict, bad) -> None:
+    """The ``model`` keys the readers use, where present (review AT: tracebacks)."""
+    for key in ("reference_mesh", "reference_scan", "law"):
+        if key in model and not isinstance(model[key], str):
+            raise bad(f"model.{key}", "a string", model[key])
+    if not isinstance(model.get("reference_posture"), (dict, type(None))):
+        raise bad(
+            "model.reference_posture", "null or {plane, angle_deg}", model["reference_posture"]
+        )
+    for key, ok, expected in (
+        ("nu", lambda v: 0 < v < 0.5, "a number in (0, 0.5)"),
+        ("density_kg_m3", lambda v: v > 0, "a positive number (kg/m^3)"),
+        ("g_m_s2", lambda v: v > 0, "a positive number (m/s^2)"),
+    ):
+        v = model.get(key)
+        number = isinstance(v, (int, float)) and not isinstance(v, bool)
+        if key in model and not (number and np.isfinite(v) and ok(v)):
+            raise bad(f"model.{key}", expected, v)
+    R = model.get("R_ref_from_phantom")
+    if R is not None:
+        rows = isinstance(R, list) and len(R) == 3 and all(_finite_vector(r, 3) for r in R)
+        M = np.asarray(R, float) if rows else None
+        if M is None or not (np.allclose(M.T @ M, np.eye(3), atol=1e-6) and np.linalg.det(M) > 0):
+            raise bad("model.R_ref_from_phantom", "a 3x3 rotation (orthonormal, det +1)", R)
+    pre = model.get("prestress")
+    if pre is not None and not (
+        isinstance(pre, dict) and all(isinstance(pre.get(k), str) for k in ("mesh", "state"))
+    ):
+        raise bad("model.prestress", "null or an object naming its `mesh` and `state` files", pre)
+    if "effects" in model and not isinstance(model["effects"], (dict, type(None))):
+        raise bad("model.effects", "null or an object", model["effects"])
 
 
 def _point_data(path: Path) -> dict:

@@ -368,6 +368,9 @@ def test_a_missing_fast_solver_is_said_once(monkeypatch, caplog):
         fem.linalg._pardiso.cache_clear()
 
 
+_CAL = {"role": "calibration"}
+
+
 @pytest.mark.parametrize(
     "doc, says",
     [
@@ -382,6 +385,31 @@ def test_a_missing_fast_solver_is_said_once(monkeypatch, caplog):
         # review AC: schema_version was written, never read back
         ({"schema_version": 2, "c1_pa": 420.0, "scans": {}}, "written by a newer phantom-calib"),
         ({"schema_version": "1", "c1_pa": 420.0, "scans": {}}, "`schema_version` must be"),
+        # review AT: accepted and reported on, or tracebacks
+        ({"c1_pa": 420.0, "c1_ci95_pa": [100, 200], "scans": {}}, "an interval that holds c1"),
+        ({"c1_pa": 420.0, "c1_ci95_pa": [400, float("inf")], "scans": {}}, "finite, 0 < low"),
+        ({"c1_pa": 420.0, "scans": {"a": {"role": "reference"}}}, "`scans.a` must be an object"),
+        ({"c1_pa": 420.0, "scans": {"a": {"role": "validation"}}}, "of role 'calibration'"),
+        (
+            {"c1_pa": 420.0, "scans": {"a": _CAL}, "model": {"reference_scan": "a"}},
+            "`model.reference_scan` must be the reference scan",
+        ),
+        ({"c1_pa": 420.0, "scans": {"a": _CAL | {"posture": "50"}}}, "`scans.a.posture` must"),
+        ({"c1_pa": 420.0, "scans": {"a": _CAL | {"model": None}}}, "`scans.a.model` must be"),
+        (
+            {"c1_pa": 420.0, "scans": {"a": _CAL | {"model": {"tumour_mm": [1, 2]}}}},
+            "`scans.a.model.tumour_mm` must be null or",
+        ),
+        (
+            {"c1_pa": 420.0, "scans": {}, "model": {"reference_mesh": 5}},
+            "`model.reference_mesh` must be a string",
+        ),
+        ({"c1_pa": 420.0, "scans": {}, "model": {"nu": None}}, "`model.nu` must be a number"),
+        ({"c1_pa": 420.0, "scans": {}, "model": {"prestress": "yes"}}, "`model.prestress` must"),
+        (
+            {"c1_pa": 420.0, "scans": {}, "model": {"R_ref_from_phantom": [[1, 0], [0, 1]]}},
+            "`model.R_ref_from_phantom` must be a 3x3 rotation",
+        ),
     ],
 )
 @pytest.mark.parametrize("command", ["validate", "diagnose"])

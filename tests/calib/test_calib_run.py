@@ -287,6 +287,34 @@ def test_a_work_folder_ingested_again_after_its_calibration_is_refused(nipple_ru
     assert (copy / "validation.json").read_text() == before  # nothing written
 
 
+def test_hand_edited_arrays_of_a_work_folder_are_named(nipple_run, tmp_path):
+    # review AT: an ingest.json nipple of null was an IndexError traceback, a deformed
+    # mesh without its displacement a bare KeyError 'displacement_mm'
+    import shutil
+
+    import meshio
+
+    from calib.data.work import read_work
+
+    doc, _, work = nipple_run
+    copy = tmp_path / "work"
+    shutil.copytree(work, copy)
+    name = next(iter(doc["scans"]))
+    ingest = copy / "scans" / name / "ingest.json"
+    kept = ingest.read_text()
+    edited = json.loads(kept)
+    edited["nipple_lps_mm"] = None
+    ingest.write_text(json.dumps(edited))
+    with pytest.raises(ValueError, match=rf"{name}/ingest.json: `nipple_lps_mm` must be 3 finite"):
+        read_work(copy)
+    ingest.write_text(kept)
+    deformed = copy / "calibration" / f"{name}_deformed.vtu"
+    m = meshio.read(deformed)
+    meshio.write(deformed, meshio.Mesh(m.points, m.cells))
+    with pytest.raises(ValueError, match=rf"{name}_deformed.vtu: no `displacement_mm` point"):
+        read_work(copy)
+
+
 def test_an_older_record_is_checked_by_its_ingest_hashes(nipple_run, tmp_path):
     # review AN: a record without ingest_run_id (written before it) was read with any
     # scans: another phantom's ingest gave 19 mm errors at exit status 0
