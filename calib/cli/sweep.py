@@ -57,7 +57,9 @@ def sweep(
         float, typer.Option("--holdout", help="Fraction of sphere directions held out.")
     ] = 0.0,
     seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of the hold-out.")] = 0,
-    workers: Annotated[int, typer.Option("--workers", help="Worker processes.")] = 2,
+    workers: Annotated[
+        int | None, typer.Option("--workers", help="Worker processes (default 2).")
+    ] = None,
     serial: Annotated[bool, typer.Option("--serial", help="Solve in this process.")] = False,
     dask: Annotated[
         str | None,
@@ -80,6 +82,8 @@ def sweep(
 
     if serial and dask:
         fail(ValueError("--serial and --dask exclude each other"))
+    if serial and workers is not None:  # review AT: silently one worker
+        fail(ValueError("--serial solves in this process: drop --workers (or --serial)"))
     backend = "serial" if serial else "dask" if dask else "pool"
     bar = task = None  # started with the sweep: a refused input prints its error alone
 
@@ -105,7 +109,7 @@ def sweep(
             holdout=holdout,
             seed=seed,
             backend=backend,
-            workers=workers,
+            workers=2 if workers is None else workers,
             dask=dask,
             chunk_size=chunk_size,
             overwrite=overwrite,

@@ -318,10 +318,7 @@ def load_sweep_model(work: str | Path) -> SweepModel:
     if not mesh_path.is_file():
         _fail(mesh_path, "reference mesh named in calibration.json not found")
     mesh = _read_model_mesh(mesh_path)
-    R = np.asarray(model["R_ref_from_phantom"], float)
-    rotation = R.shape == (3, 3) and np.allclose(R.T @ R, np.eye(3), atol=1e-9)
-    if not (rotation and np.linalg.det(R) > 0):  # review AD: a mirror passed
-        _fail(record, "model.R_ref_from_phantom is not a 3x3 rotation (orthonormal, det +1)")
+    R = np.asarray(model["R_ref_from_phantom"], float)  # a rotation: check_record
     nipple = model["nipple_node"]
     if (
         isinstance(nipple, bool)

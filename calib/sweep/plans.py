@@ -51,6 +51,10 @@ __all__ = [
 #: Integer codes of the scenario roles and planes in the store.
 ROLES = ("train", "validation")
 PLANES = ("transverse", "sagittal", "sphere")
+#: The most scenarios one plan holds: its continuation tour is planned in one process,
+#: in time growing faster than N^2 (10 s at 20,000 on the development machine)
+MAX_SCENARIOS = 20_000
+_WHY_MAX = "the continuation tour is planned in one process; split the sweep"
 
 
 class PlanError(ValueError):
@@ -148,6 +152,8 @@ def parse_c1_axis(text: str | None, c1_cal_pa: float) -> np.ndarray:
         raise PlanError(f"--c1 {text!r}: one value needs LO == HI")
     if n > 1 and lo == hi:  # review AD: each direction swept N times over (duplicates)
         raise PlanError(f"--c1 {text!r}: LO == HI repeats one c1 {n} times; give N = 1")
+    if n > MAX_SCENARIOS:
+        raise PlanError(f"--c1 {text!r}: at most {MAX_SCENARIOS} values ({_WHY_MAX})")
     return np.geomspace(lo, hi, n)
 
 
@@ -233,6 +239,8 @@ def make_plan(
             n = 0
         if n < 1:
             raise PlanError(f"--plan sphere:N needs a positive integer N, got {spec!r}")
+        if n > MAX_SCENARIOS:  # review AT: sphere:100000000 planned silently for minutes
+            raise PlanError(f"--plan {spec}: at most {MAX_SCENARIOS} directions ({_WHY_MAX})")
         dirs, role, plane, angle = _sphere(n, holdout, seed)
     else:
         raise PlanError(
@@ -240,6 +248,11 @@ def make_plan(
         )
     c1 = parse_c1_axis(c1_axis, c1_cal_pa)
     m = len(c1)
+    if len(dirs) * m > MAX_SCENARIOS:
+        raise PlanError(
+            f"--plan {spec} --c1 {c1_axis}: {len(dirs)} directions x {m} c1 values is more "
+            f"than {MAX_SCENARIOS} scenarios ({_WHY_MAX})"
+        )
     return Plan(
         spec=spec,
         gravity_phantom=np.repeat(dirs, m, axis=0),

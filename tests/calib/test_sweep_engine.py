@@ -290,6 +290,18 @@ def test_a_store_inside_the_work_folder_s_calibration_is_refused(work):
     assert not (work / "calibration" / "store").exists()
 
 
+def test_serial_with_workers_is_refused(work, tmp_path):
+    # review AT: --serial --workers 7 ran on one worker without a word
+    from typer.testing import CliRunner
+
+    from calib.cli import app
+
+    args = ["sweep", str(work), "--out", str(tmp_path / "s"), "--serial", "--workers", "7"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2 and "--serial solves in this process" in res.stderr
+    assert not (tmp_path / "s").exists()
+
+
 def test_missing_calibration_is_named(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(CalibrationMissingError, match=r"calibration\.json not found"):

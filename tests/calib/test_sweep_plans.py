@@ -103,6 +103,10 @@ def test_c1_axis():
         ("ring", {}, "unknown --plan"),
         ("sphere:x", {}, "positive integer"),
         ("sphere:0", {}, "positive integer"),
+        # review AT: sphere:100000000 planned for minutes without a word
+        ("sphere:100000000", {}, r"at most 20000 directions \(the continuation tour"),
+        ("sphere:200", {"c1_axis": "400:700:101"}, r"200 directions x 101 c1 values is more"),
+        ("sphere:2", {"c1_axis": "400:700:1000000000"}, r"at most 20000 values"),
         ("dissertation", {"holdout": 0.2}, "own validation"),
         ("sphere:10", {"holdout": 1.0}, "holdout"),
         ("sphere:10", {"holdout": 0.04}, r"holds 0 out: need at least 1"),
