@@ -52,7 +52,7 @@ __all__ = [
 ROLES = ("train", "validation")
 PLANES = ("transverse", "sagittal", "sphere")
 #: The most scenarios one plan holds: its continuation tour is planned in one process,
-#: in time growing faster than N^2 (10 s at 20,000 on the development machine)
+#: in a time growing faster than N^2 (review AT: seconds at this size)
 MAX_SCENARIOS = 20_000
 _WHY_MAX = "the continuation tour is planned in one process; split the sweep"
 
