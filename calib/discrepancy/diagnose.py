@@ -239,35 +239,41 @@ class DiagnosisOptions:
         if len(set(self.effects)) != len(self.effects):
             raise DiagnosisError(f"effects given twice: {list(self.effects)}")
         if not 0.0 < self.alpha < 0.5:
-            raise DiagnosisError(f"alpha must lie in (0, 0.5), got {self.alpha}")
+            raise DiagnosisError(f"alpha (--alpha) must lie in (0, 0.5), got {self.alpha}")
         if not 0.0 < self.min_explained <= 1.0:
             raise DiagnosisError(f"min_explained must lie in (0, 1], got {self.min_explained}")
+        _FLAGS = {"rim_margin_mm": "--rim-margin", "explained_margin_mm": "--explained-margin"}
         for name in ("rim_margin_mm", "explained_margin_mm"):
             m = getattr(self, name)
             if m != "element" and (isinstance(m, str) or not 0.0 <= m < 50.0):
-                raise DiagnosisError(f"{name} must lie in [0, 50) mm or be 'element', got {m!r}")
+                raise DiagnosisError(
+                    f"{name} ({_FLAGS[name]}) must lie in [0, 50) mm or be 'element', got {m!r}"
+                )
         lo, hi = MESH_SIZE_RANGE_MM
         if self.mesh_size_mm is not None and not lo <= self.mesh_size_mm <= hi:
             raise DiagnosisError(
-                f"mesh_size_mm must lie in [{lo:g}, {hi:g}] mm, got {self.mesh_size_mm}"
+                f"mesh_size_mm (--mesh-size) must lie in [{lo:g}, {hi:g}] mm, "
+                f"got {self.mesh_size_mm}"
             )
         h = self.inclusion_mesh_mm
         if h is not None and not (lo <= h <= hi and h <= (self.mesh_size_mm or hi)):
             raise DiagnosisError(
-                f"inclusion_mesh_mm must lie in [{lo:g}, {hi:g}] mm and not above mesh_size_mm "
-                f"({self.mesh_size_mm}), got {h}"
+                f"inclusion_mesh_mm (--inclusion-mesh) must lie in [{lo:g}, {hi:g}] mm and "
+                f"not above mesh_size_mm ({self.mesh_size_mm}), got {h}"
             )
         if self.noise_profile not in NOISE_PROFILES:
             raise DiagnosisError(
-                f"noise_profile must be one of {NOISE_PROFILES}, got {self.noise_profile!r}"
+                f"noise_profile (--noise-profile) must be one of {NOISE_PROFILES}, "
+                f"got {self.noise_profile!r}"
             )
         if self.mesh_error not in MESH_ERRORS:
             raise DiagnosisError(
-                f"mesh_error must be one of {MESH_ERRORS}, got {self.mesh_error!r}"
+                f"mesh_error (--mesh-error) must be one of {MESH_ERRORS}, got {self.mesh_error!r}"
             )
         if not 0.0 < self.skin_thickness_mm <= 10.0:
             raise DiagnosisError(
-                f"skin_thickness_mm must lie in (0, 10] mm, got {self.skin_thickness_mm}"
+                f"skin_thickness_mm (--skin-thickness) must lie in (0, 10] mm, "
+                f"got {self.skin_thickness_mm}"
             )
         if self.max_candidates < 1 or self.max_named < 1:
             raise DiagnosisError("max_candidates and max_named must be >= 1")

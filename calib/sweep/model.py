@@ -281,7 +281,12 @@ def load_sweep_model(work: str | Path) -> SweepModel:
     work = Path(work)
     record = work / "calibration.json"
     if not work.is_dir():
-        raise CalibrationMissingError(f"{work}: no such work folder")
+        what = (
+            "is a file: pass the work folder that holds it"
+            if work.exists()
+            else "no such work folder"
+        )
+        raise CalibrationMissingError(f"{work}: {what}")
     try:
         doc = check_run(work, folder="calibration", record="calibration.json")
     except FileNotFoundError:

@@ -219,7 +219,12 @@ def load_scene(work: str | Path, model: str | Path | None = None) -> Scene:
     """
     work = Path(work)
     if not work.is_dir():
-        raise FileNotFoundError(f"{work}: no such work folder")
+        what = (
+            "is a file: pass the work folder that holds it"
+            if work.exists()
+            else "no such work folder"
+        )
+        raise FileNotFoundError(f"{work}: {what}")
     hint = _command_hint(work)
     scene = Scene(work)
     info: dict = {
@@ -384,7 +389,13 @@ def _add_work(scene: Scene, folder, info: dict, vnodes: np.ndarray, hint: dict) 
         scene.missing.append(f"no fiducials in {work / 'scans' / ref_name / 'ingest.json'}")
     if not any("error_mm" in o for o in scene.overlays.values()):
         scene.missing.append(f"no error maps ({work / 'calibration'}/<scan>_error.ply)")
-    if not (work / "diagnosis").is_dir():
+    if made := (folder.record or {}).get("diagnosis"):  # review AT: it advised a refused run
+        source = made.get("source_work", "its source work folder")
+        scene.missing.append(
+            f"a diagnosis' refitted model: its error maps show in the view of the calibration "
+            f"it came from ({source})"
+        )
+    elif not (work / "diagnosis").is_dir():
         scene.missing.append(f"no error maps of diagnose's refit: run {hint['diagnose']}")
 
 

@@ -157,7 +157,7 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
             "diagnosis": {
                 "verdict": d.verdict,
                 "named": list(d.named),
-                "source_work": str(work.path),
+                "source_work": str(Path(work.path).resolve()),  # wherever it is read from
                 "calibration_run_id": work.record.get("run_id"),
                 "calibration_mesh": work.record.get("mesh"),
             },  # fmt: skip

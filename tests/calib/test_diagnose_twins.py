@@ -137,6 +137,8 @@ def test_the_refitted_model_is_a_calibration_validate_accepts(skin):
     assert mesh["failed_sizes"] == [] and mesh["formulation"] == "taylor-hood"
     calibration = json.loads((out / "work" / "calibration.json").read_text())
     assert wf.record["diagnosis"]["calibration_mesh"] == calibration["mesh"]
+    # review AT: recorded as given (relative to wherever diagnose ran), then named wrongly
+    assert wf.record["diagnosis"]["source_work"] == str((out / "work").resolve())
     val = run_validation(refit)
     assert set(val["scans"]) == set(doc["gap"])
     roles = {n: s["role"] for n, s in val["scans"].items()}

@@ -308,6 +308,9 @@ def test_missing_calibration_is_named(tmp_path):
         run_sweep(tmp_path / "empty", tmp_path / "s", PLAN)
     with pytest.raises(CalibrationMissingError, match="no such work folder"):
         run_sweep(tmp_path / "nowhere", tmp_path / "s", PLAN)
+    (tmp_path / "calibration.json").write_text("{}")  # review AT: called no such folder
+    with pytest.raises(CalibrationMissingError, match="is a file: pass the work folder"):
+        run_sweep(tmp_path / "calibration.json", tmp_path / "s", PLAN)
     assert not (tmp_path / "s").exists()
 
 

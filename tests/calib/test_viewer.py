@@ -143,6 +143,14 @@ def test_page_follows_the_gravity_and_c1_controls(box, browser, tmp_path):
         assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and shot.stat().st_size > 5000
 
 
+def test_a_record_file_given_as_the_work_folder_is_named(tmp_path):
+    # review AT: "no such work folder" for WORK/calibration.json, which exists
+    record = tmp_path / "calibration.json"
+    record.write_text("{}")
+    with pytest.raises(FileNotFoundError, match="is a file: pass the work folder"):
+        load_scene(record)
+
+
 def test_page_without_calibration_says_what_is_missing(tmp_path, browser):
     empty = tmp_path / "work"
     empty.mkdir()
