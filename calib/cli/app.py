@@ -65,7 +65,12 @@ def simulate(
     ] = STANDARD_GRAVITY_M_S2,
     bc: Annotated[str, typer.Option("--bc", help="Back plane: clamped or sliding.")] = "clamped",
     back_plane: Annotated[
-        str, typer.Option("--back-plane", help="auto, or z=VALUE (mm).")
+        str,
+        typer.Option(
+            "--back-plane",
+            help="auto (the mesh's own set:back point data where it has it, else the "
+            "largest flat face), or z=VALUE (mm).",
+        ),
     ] = "auto",
     formulation: Annotated[
         str, typer.Option("--formulation", help="taylor-hood, mini, p2 or p1.")

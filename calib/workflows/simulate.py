@@ -100,25 +100,52 @@ def parse_back_plane(text: str) -> float | None:
 
 def _back_nodes(mesh: fem.TetMesh, z_mm: float | None):
     own = mesh.node_sets.get("back")
-    if z_mm is None and own is not None and len(own) >= 3:
+    if z_mm is None and own is not None and len(own):
         # the mesh's own back set (`set:back`, as calibrate writes it): review AT, the
         # detected plane clamped 3 nodes the calibration had left free
-        from fem.discretize import plane_fit
-
-        normal, _, _ = plane_fit(mesh.nodes_mm[own])
-        if normal @ (mesh.nodes_mm.mean(axis=0) - mesh.nodes_mm[own].mean(axis=0)) > 0:
-            normal = -normal  # outward: away from the body
-        return np.asarray(own), normal
+        return (*_own_back(mesh, np.asarray(own)), "set:back")
     if z_mm is None:
         nodes, normal, _ = find_back_plane(mesh)
-        return nodes, normal
+        return nodes, normal, "detected"
     bnodes = np.unique(fem.boundary_faces(mesh.tets))
     scale = float(np.ptp(mesh.nodes_mm, axis=0).max())
     nodes = bnodes[np.abs(mesh.nodes_mm[bnodes, 2] - z_mm) < 1e-6 * scale + 1e-9]
     if len(nodes) < 3:
         raise fem.MeshError(f"no back face found at z={z_mm} mm (found {len(nodes)} nodes)")
     normal = np.array([0.0, 0.0, -1.0 if mesh.nodes_mm[:, 2].mean() > z_mm else 1.0])
-    return nodes, normal
+    return nodes, normal, f"z={z_mm:g}"
+
+
+def _own_back(mesh: fem.TetMesh, own: np.ndarray):
+    """The mesh's ``set:back``, checked: a flat face of the boundary (review AT).
+
+    A set of a few nodes at the nipple (any tool may export a point array of that name)
+    failed the solve with "the support leaves the body free".
+    """
+    from fem.discretize import plane_fit
+
+    boundary = np.unique(fem.boundary_faces(mesh.tets))
+    extent = float(np.ptp(mesh.nodes_mm, axis=0).max())
+    normal, _, rms = plane_fit(mesh.nodes_mm[own]) if len(own) >= 3 else (None, 0.0, 0.0)
+    span = float(np.ptp(mesh.nodes_mm[own], axis=0).max()) if len(own) else 0.0
+    why = None
+    if len(own) < 3:
+        why = f"{len(own)} nodes"
+    elif not np.isin(own, boundary).all():
+        why = f"{int((~np.isin(own, boundary)).sum())} of its {len(own)} nodes are inside the body"
+    elif rms > 1e-3 * extent:
+        why = f"its {len(own)} nodes lie {rms:.3g} mm (rms) off one plane"
+    elif span < 0.25 * extent:
+        why = f"its {len(own)} nodes span {span:.3g} mm of a {extent:.3g} mm body"
+    if why is not None:
+        raise fem.MeshError(
+            f"the mesh's `set:back` point data is no back face to clamp ({why}); remove it "
+            "or give --back-plane z=VALUE"
+        )
+    if normal @ (mesh.nodes_mm.mean(axis=0) - mesh.nodes_mm[own].mean(axis=0)) > 0:
+        normal = -normal  # outward: away from the body
+    log.info("clamping the mesh's own back face (`set:back`, %d nodes)", len(own))
+    return own, normal
 
 
 def _model(mesh: fem.TetMesh, opts: SimulateOptions) -> fem.Model:
@@ -251,7 +278,7 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
         if mesh.n_tets == 0:
             raise fem.MeshError("the mesh has no tetrahedra")
         check_mesh(mesh, mesh_path)
-        back, normal = _back_nodes(mesh, parse_back_plane(opts.back_plane))
+        back, normal, back_source = _back_nodes(mesh, parse_back_plane(opts.back_plane))
         mesh = tag_node_sets(mesh, back, normal)
     except fem.MeshError as exc:  # every mesh problem names the mesh file
         if str(mesh_path) in str(exc):
@@ -285,6 +312,7 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
         "max_displacement_mm": sol.max_displacement_mm,
         "nipple_displacement_mm": float(np.linalg.norm(sol.displacement_mm[nipple])),
         "nipple_node": int(points.node_index[nipple]),  # the input file's numbering
+        "back": {"source": back_source, "nodes": len(back)},  # the clamped (or sliding) face
         "points": points.n_points,
         "unsolved_points": unsolved,
         "converged": sol.converged,

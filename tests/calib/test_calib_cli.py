@@ -330,9 +330,29 @@ def test_simulate_clamps_the_mesh_s_own_back_set(mesh_file, tmp_path):
     u = meshio.read(tmp_path / "own_out.vtu").point_data["displacement_mm"]
     assert np.abs(u[np.setdiff1d(plane, rim)]).max() == 0.0
     assert np.linalg.norm(u[rim], axis=1).min() > 0  # left free, as the set says
+    assert json.loads((tmp_path / "own_out.json").read_text())["back"] == {
+        "source": "set:back",
+        "nodes": len(plane) - 3,
+    }
     assert _simulate(mesh_file, tmp_path / "auto.vtu").exit_code == 0  # no set: detected
     u = meshio.read(tmp_path / "auto.vtu").point_data["displacement_mm"]
     assert np.abs(u[plane]).max() == 0.0
+    assert json.loads((tmp_path / "auto.json").read_text())["back"]["source"] == "detected"
+    # review AT: a set:back of a few nodes at the top (any tool may write that name) was
+    # clamped unchecked and the solve failed saying the support left the body free
+    top = np.argsort(-pts[:, 2])[:6]
+    for name, ids, says in (
+        ("top", top, "off one plane"),
+        ("patch", plane[np.argsort(np.linalg.norm(pts[plane, :2], axis=1))[:6]], "span"),
+        ("two", plane[:2], "2 nodes"),
+        ("inner", np.r_[plane, np.argmin(np.linalg.norm(pts - pts.mean(0), axis=1))], "inside"),
+    ):
+        flags = np.isin(np.arange(len(pts)), ids).astype(np.int8)
+        path = tmp_path / f"{name}.vtu"
+        meshio.write(path, meshio.Mesh(pts, [("tetra", tets)], point_data={"set:back": flags}))
+        line = _one_error_line(_simulate(path, tmp_path / f"{name}_out.vtu"))
+        assert f"{name}.vtu" in line and "`set:back` point data is no back face" in line, line
+        assert says in line, line
 
 
 def test_simulate_names_the_mesh_of_an_empty_or_degenerate_body(tmp_path):
