@@ -176,7 +176,8 @@ class SweepModel:
             },
         }
         if self.effects:  # absent otherwise: the stores of plain calibrations keep their key
-            doc["effects"] = self.effects
+            tags = np.ascontiguousarray(self.region, dtype="<i8").tobytes()
+            doc["effects"] = self.effects | {"regions_sha256": hashlib.sha256(tags).hexdigest()}
         return doc
 
     def tet_mesh(self):

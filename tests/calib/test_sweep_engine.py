@@ -236,6 +236,7 @@ def test_a_diagnosis_refit_is_swept_with_its_effects(tmp_path):
     r, attrs = _read(out)
     assert attrs["model"]["effects"]["named"] == ["skin"]
     assert attrs["model"]["effects"]["values"]["skin_ratio"] == 4.0
+    assert len(attrs["model"]["effects"]["regions_sha256"]) == 64  # the tags are the model
     mesh = m.tet_mesh()
     assert sorted(mesh.region_names) == ["bulk", "skin"]
     disc = fem.discretize(mesh, fem.Clamped(), formulation=m.formulation)
