@@ -172,7 +172,7 @@ def test_page_without_calibration_says_what_is_missing(tmp_path, browser):
 def test_surrogate_without_work_scans_still_views(box):
     work, model = box
     scene = load_scene(work, model)
-    assert any("no 'scans' entry" in m for m in scene.missing)
+    assert any("could not be read back" in m and "no `scans`" in m for m in scene.missing)
     with _Serving(scene) as server:
         with urllib.request.urlopen(server.url + "api/predict?g=0,0,9.81&c1=500") as r:
             body = np.frombuffer(r.read(), "<f4")
