@@ -375,6 +375,13 @@ def validate_work(
     Returns
     -------
     Validation
+
+    Raises
+    ------
+    KeyError
+        A scan asked for by name without a saved state.
+    ValueError
+        No scan has a saved state (every one failed at the calibration).
     """
     from .model.residuals import SimulatedSurface
 
@@ -393,6 +400,11 @@ def validate_work(
             log.warning(
                 "%s: scan %s not validated: no FE solution at calibration (%s)", work.path, n, why
             )
+    if not names:  # review AT: an empty report, exit 0
+        raise ValueError(
+            f"{work.path}: no scan to validate: every scan in calibration.json is marked "
+            f"failed (no FE solution at the calibrated c1: {sorted(failed)})"
+        )
     ci = work.record.get("c1_ci95_pa")
     caveats = tuple(calibration_caveats(work.record))  # review AJ: validate hid a misfit
     return Validation(

@@ -407,6 +407,16 @@ def test_validate_and_diagnose_take_the_work_folder_a_notebook_holds(nipple_run)
     assert validate_work(held, scans="tilt_50").scans["tilt_50"].role == "validation"
     with pytest.raises(ValueError, match="no scan named"):  # it meant every scan
         validate_work(held, scans=[])
+    # review AT: every scan marked failed gave an empty report, exit 0
+    import dataclasses
+
+    record = dict(held.folder.record)
+    record["scans"] = {
+        n: s | {"failed": "no FE solution (test)"} for n, s in record["scans"].items()
+    }
+    none = dataclasses.replace(held.folder, states={}, record=record)
+    with pytest.raises(ValueError, match="no scan to validate: every scan in calibration.json"):
+        validate_work(none)
 
 
 def test_a_tumour_without_its_c1_derivative_gets_no_band(nipple_run, tmp_path):
