@@ -100,7 +100,7 @@ def check_not_in_run_folder(out: str | os.PathLike) -> None:
     ------
     InsideRunFolderError
     """
-    out = Path(out).absolute()
+    out = Path(out).resolve()  # links followed, ".." taken out (review AU: both fooled it)
     for folder in (out, *out.parents):
         record, command = RUN_FOLDERS.get(folder.name, (None, None))
         if record is not None and (folder.parent / record).is_file():

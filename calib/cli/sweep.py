@@ -82,8 +82,6 @@ def sweep(
 
     if serial and dask:
         fail(ValueError("--serial and --dask exclude each other"))
-    if serial and workers is not None:  # review AT: silently one worker
-        fail(ValueError("--serial solves in this process: drop --workers (or --serial)"))
     backend = "serial" if serial else "dask" if dask else "pool"
     bar = task = None  # started with the sweep: a refused input prints its error alone
 
@@ -109,7 +107,7 @@ def sweep(
             holdout=holdout,
             seed=seed,
             backend=backend,
-            workers=2 if workers is None else workers,
+            workers=workers,
             dask=dask,
             chunk_size=chunk_size,
             overwrite=overwrite,

@@ -1344,6 +1344,11 @@ def _gaps(prob: Problem, null: Refit, final: Refit, say) -> tuple[dict, dict]:
                 if failed is None:
                     raise
                 null_states = solve(null, list(prob.scans))
+            # the final model last: the refit's files take its stress-free geometry and
+            # derivative from the forward model's last recovery (review AU: the null fit's
+            # was left there, and a sweep of the refit was 1.2-1.5 mm off its states).
+            # Warm-started from its own states and recovery: a few Newton steps
+            states = solve(final, list(states))
     out = {}
     for n in names:
         scan = prob.measurement(n)

@@ -183,6 +183,11 @@ class ForwardModel:
         return self._X
 
     @property
+    def stress_free_theta(self) -> float | None:
+        """``ln c1`` of :attr:`stress_free_nodes_mm` (with :attr:`effects`), None before any."""
+        return self._X_theta
+
+    @property
     def stress_free_state(self) -> np.ndarray | None:
         """Solver state of the reference posture on :attr:`stress_free_nodes_mm` (unload)."""
         return self._u0

@@ -299,6 +299,15 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
         if str(mesh_path) in str(exc):
             raise
         raise fem.MeshError(f"{mesh_path}: {exc}") from exc
+    if len(mesh.region_names) > 1:  # review AU: a refit's skin solved as bulk, silently
+        log.warning(
+            "%s: its %d regions (%s) are solved as one neo-Hookean material at --c1: "
+            "simulate is homogeneous (a diagnosis refit's effects: phantom-calib sweep)",
+            mesh_path,
+            len(mesh.region_names),
+            ", ".join(sorted(mesh.region_names)[:4])
+            + (", ..." if len(mesh.region_names) > 4 else ""),
+        )
     model = _model(mesh, opts)
     sol = fem.solve(
         model, gravity=np.array(opts.gravity), g_m_s2=opts.g_m_s2, formulation=opts.formulation

@@ -57,8 +57,8 @@ class SweepOptions:
     seed : int
         Seed of the hold-out.
     backend : {"serial", "pool", "dask"}
-    workers : int
-        Processes of the pool or of a local Dask cluster.
+    workers : int or None
+        Processes of the pool or of a local Dask cluster (None: 2); not with ``serial``.
     dask : str or None
         ``local`` or ``tcp://HOST:PORT`` (backend ``dask``).
     chunk_size : int
@@ -78,7 +78,7 @@ class SweepOptions:
     holdout: float = 0.0
     seed: int = 0
     backend: Literal["serial", "pool", "dask"] = "pool"
-    workers: int = 2
+    workers: int | None = None
     dask: str | None = None
     chunk_size: int = 12
     max_angle_deg: float = 45.0
@@ -98,8 +98,10 @@ class SweepOptions:
         """
         if self.backend not in _BACKENDS:
             raise ValueError(f"unknown backend {self.backend!r}; choose serial, pool or dask")
+        if self.backend == "serial" and self.workers is not None:  # review AT, AU: ignored
+            raise ValueError("--serial (backend 'serial') solves in this process: drop --workers")
         for name, value in (
-            ("--workers", self.workers),
+            ("--workers", 2 if self.workers is None else self.workers),
             ("--chunk-size", self.chunk_size),
             ("threads", self.threads),
         ):
@@ -297,7 +299,10 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
 
     def start_backend():
         return make_backend(
-            opts.backend, workers=opts.workers, dask=opts.dask, threads=opts.threads
+            opts.backend,
+            workers=2 if opts.workers is None else opts.workers,
+            dask=opts.dask,
+            threads=opts.threads,
         )
 
     try:

@@ -325,6 +325,23 @@ def test_simulate_warns_of_a_body_in_centimetres_and_refuses_a_json_folder(
     assert "r.json: is a folder" in line and not (tmp_path / "r.vtu").exists()
 
 
+def test_simulate_says_that_a_mesh_s_regions_are_solved_as_one_material(
+    mesh_file, tmp_path, caplog
+):
+    # review AU: a diagnosis refit's skin and inclusion regions were solved as bulk with
+    # no word (44 % more nipple displacement than the refit's own state)
+    from fem.io import read_mesh, write_mesh
+
+    mesh = read_mesh(mesh_file)
+    top = mesh.nodes_mm[mesh.tets].mean(axis=1)[:, 2] > 0.8 * mesh.nodes_mm[:, 2].max()
+    tagged = mesh.with_regions(np.where(top, 2, 1), {"bulk": 1, "skin": 2})
+    write_mesh(tagged, tmp_path / "tagged.vtu")
+    with caplog.at_level("WARNING"):
+        assert _simulate(tmp_path / "tagged.vtu", tmp_path / "t_out.vtu").exit_code == 0
+    assert "its 2 regions (bulk, skin) are solved as one neo-Hookean material" in caplog.text
+    assert "phantom-calib sweep" in caplog.text
+
+
 def test_simulate_clamps_the_mesh_s_own_back_set(mesh_file, tmp_path):
     # review AT: on calibrate's reference_mesh.vtu (`set:back`) the detected plane
     # clamped 3 nodes the calibration had left free; the mesh's own set now decides

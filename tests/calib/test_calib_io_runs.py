@@ -95,6 +95,11 @@ def test_an_out_inside_a_work_folder_s_run_folder_is_refused(tmp_path):
     (work / "validation").mkdir()  # a folder of that name without its record: not a run's
     check_out_file(work / "validation" / "x.vtu")
     check_out_folder(tmp_path / "twin" / "scans")  # a scan folder named scans
+    # review AU: ".." out of a run folder was refused, a link into one accepted
+    check_out_file(work / "calibration" / ".." / "x.vtu")
+    (tmp_path / "link").symlink_to(work / "calibration")
+    with pytest.raises(InsideRunFolderError, match="calibration, which the next"):
+        check_out_folder(tmp_path / "link" / "store")
 
 
 def test_taking_the_lock_removes_what_killed_runs_of_any_command_left(tmp_path):

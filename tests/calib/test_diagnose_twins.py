@@ -150,6 +150,40 @@ def test_the_refitted_model_is_a_calibration_validate_accepts(skin):
     )
 
 
+def test_a_refit_on_another_mesh_is_swept_as_its_own_states(skin, tmp_path):
+    # review AU: diagnosed on another mesh than the calibration's, the refit's
+    # reference_mesh.vtu held the null fit's stress-free geometry (solved after the final
+    # model), and a sweep of it was 1.2-1.5 mm off the refit's own states. Two code paths:
+    # the sweep's model of the refit against the states diagnose saved. Tolerance: both
+    # Newton solves stop at rtol 1e-8 of the load (~1e-9 mm on ~15 mm)
+    import shutil
+
+    import meshio
+
+    import fem
+    from calib.discrepancy import DiagnosisOptions
+    from calib.sweep import load_sweep_model
+    from calib.workflows.diagnose import run_diagnosis
+
+    out, _ = skin
+    work = tmp_path / "work"
+    shutil.copytree(out / "work", work)
+    doc = run_diagnosis(work, DiagnosisOptions(mesh_size_mm=16.0))
+    assert doc["model_mesh"]["size_mm"] == 16.0 and doc["calibration"]["mesh_note"]
+    refit = work / "diagnosis" / "refit"
+    record = json.loads((refit / "calibration.json").read_text())
+    assert record["reference_state"] == "unload"  # its own straight reference
+    m = load_sweep_model(refit)
+    fm = m.fem_model()
+    disc = fem.discretize(fm.mesh, fm.support, formulation=m.formulation)
+    for name, scan in record["scans"].items():
+        sol = fem.solve(fm, gravity=np.asarray(scan["gravity_ref"]), g_m_s2=m.g_m_s2, disc=disc)
+        saved = meshio.read(refit / "calibration" / f"{name}_deformed.vtu")
+        u = saved.point_data["displacement_mm"]
+        assert np.linalg.norm(u, axis=1).max() > 5.0
+        assert np.abs(sol.displacement_mm - u).max() < 1e-6, name
+
+
 def test_a_homogeneous_truth_has_no_missing_effect(none):
     _, doc = none
     assert doc["verdict"] == "no missing effect"

@@ -299,7 +299,10 @@ def test_serial_with_workers_is_refused(work, tmp_path):
 
     args = ["sweep", str(work), "--out", str(tmp_path / "s"), "--serial", "--workers", "7"]
     res = CliRunner().invoke(app, args)
-    assert res.exit_code == 2 and "--serial solves in this process" in res.stderr
+    assert res.exit_code == 2 and "solves in this process: drop --workers" in res.stderr
+    # and the Python API alike (review AU)
+    with pytest.raises(ValueError, match="solves in this process: drop --workers"):
+        SweepOptions(backend="serial", workers=4)
     assert not (tmp_path / "s").exists()
 
 
