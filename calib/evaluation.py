@@ -231,6 +231,8 @@ def scan_names(scans, known: dict) -> list[str]:
     """
     if scans is None:
         return [n for n, s in known.items() if s.role != "reference"]
+    if not isinstance(scans, str) and not hasattr(scans, "__iter__"):  # review AU: 3
+        raise TypeError(f"scans must be a scan name or names, got {scans!r}")
     names = [scans] if isinstance(scans, str) else list(scans)
     if not names:
         raise ValueError("no scan named: pass scan names, or None for every scan")
@@ -238,6 +240,21 @@ def scan_names(scans, known: dict) -> list[str]:
     if unknown:
         raise ValueError(f"unknown scan(s) {unknown}; the session has {sorted(known)}")
     return names
+
+
+def _calibrator(calibration, what: str):
+    """The live model of a :class:`calib.fitting.Calibration`; a clear error for anything else.
+
+    Review AU: a work folder's path or ``calib.load_work``'s object ended in an
+    AttributeError from deep inside.
+    """
+    if not hasattr(calibration, "calibrator") or not hasattr(calibration, "objective"):
+        raise TypeError(
+            f"{what} takes the Calibration that calib.fit returns, got "
+            f"{type(calibration).__name__}; a work folder's figures: calib.load_work(...), "
+            "calib.validate(...)"
+        )
+    return calibration.calibrator
 
 
 def evaluate(
@@ -268,11 +285,13 @@ def evaluate(
 
     Raises
     ------
+    TypeError
+        ``calibration`` is not a Calibration.
     ValueError
         A Calibration without its model (from JSON), an unknown scan name or an empty
         list of names.
     """
-    cal = calibration.calibrator
+    cal = _calibrator(calibration, "evaluate")
     if cal is None:
         raise ValueError(
             "this Calibration carries no calibrator (the model to solve): evaluate takes the "
@@ -345,7 +364,7 @@ def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALP
     from .stats import SurfaceSample
     from .stats.consistency import posture_consistency
 
-    cal = calibration.calibrator
+    cal = _calibrator(calibration, "check_postures")
     if cal is None or calibration.objective != "surface":
         return None
     rs, js, pts, labels, names, found = [], [], [], [], {}, []

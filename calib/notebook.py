@@ -116,6 +116,9 @@ class Work:
         """The measured surface of ``scan`` shaded by its error (matplotlib Figure)."""
         from .report.validation import error_surface_figure
 
+        number = isinstance(vmax, (int, float)) and not isinstance(vmax, bool)
+        if vmax is not None and not (number and np.isfinite(vmax) and vmax > 0):
+            raise ValueError(f"vmax must be a positive number of mm (or None), got {vmax!r}")
         sv = self._scan(scan)
         R = np.asarray(self.record["model"]["R_ref_from_phantom"], float)
         return error_surface_figure(sv, self.folder.measurements.scans[scan], R, vmax=vmax)

@@ -274,11 +274,16 @@ class Surrogate:
         elif frame != "ref":
             raise ValueError(f"frame must be 'phantom' or 'ref', got {frame!r}")
         c1_model = float(self.meta["model"]["c1_pa"])
-        c1 = (
-            np.full(len(g), c1_model)
-            if c1_pa is None
-            else np.broadcast_to(np.asarray(c1_pa, float), (len(g),)).copy()
-        )
+        if c1_pa is None:
+            c1 = np.full(len(g), c1_model)
+        else:
+            given = np.asarray(c1_pa, float)
+            if given.ndim > 1 or given.size not in (1, len(g)):  # review AU: numpy's words
+                raise ValueError(
+                    f"c1_pa must be one value or one per gravity ({len(g)}), got shape "
+                    f"{given.shape}"
+                )
+            c1 = np.broadcast_to(given, (len(g),)).copy()
         if not np.all(np.isfinite(c1)) or np.any(c1 <= 0):
             raise ValueError(f"c1 must be finite and positive, got {c1_pa!r}")
         self._warn_range(g, c1)

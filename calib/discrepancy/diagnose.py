@@ -231,6 +231,25 @@ class DiagnosisOptions:
     parameter_limits: bool = False
 
     def __post_init__(self) -> None:
+        if isinstance(self.effects, str):  # one name, not its letters (review AU)
+            object.__setattr__(self, "effects", (self.effects,))
+        object.__setattr__(self, "effects", tuple(self.effects))
+        numbers = {
+            "alpha": "--alpha",
+            "min_explained": None,
+            "skin_thickness_mm": "--skin-thickness",
+            "mesh_size_mm": "--mesh-size",
+            "inclusion_mesh_mm": "--inclusion-mesh",
+            "rim_margin_mm": "--rim-margin",
+            "explained_margin_mm": "--explained-margin",
+        }
+        for name, flag in numbers.items():  # review AU: '0.05' gave a bare TypeError
+            v = getattr(self, name, None)
+            if v is None or v == "element":
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+                said = f"{name} ({flag})" if flag else name
+                raise DiagnosisError(f"{said} must be a number, got {v!r}")
         unknown = sorted(set(self.effects) - set(LIBRARY))
         if unknown:
             raise DiagnosisError(f"unknown effect(s) {unknown}; the library has {sorted(LIBRARY)}")

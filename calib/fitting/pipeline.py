@@ -284,6 +284,9 @@ def fit(
 
     Raises
     ------
+    TypeError
+        ``measurements`` not :class:`Measurements` or ``options`` not
+        :class:`CalibrationOptions`.
     ValueError
         No density (neither given nor in the measurements) or one outside
         :data:`calib.data.session.DENSITY_RANGE_KG_M3`; no scan with role ``calibration``;
@@ -294,6 +297,13 @@ def fit(
     fem.ConvergenceError
         No stress-free reference on any model mesh tried.
     """
+    if not isinstance(measurements, Measurements):  # review AU: an AttributeError inside
+        raise TypeError(
+            "fit takes the Measurements of calib.load_measurements(work, session), got "
+            f"{type(measurements).__name__}; from a scan folder: calib.calibrate(scans, work)"
+        )
+    if not isinstance(options, (CalibrationOptions, type(None))):
+        raise TypeError(f"options must be a CalibrationOptions, got {type(options).__name__}")
     options = options or CalibrationOptions()
     density_kg_m3 = _density(measurements, density_kg_m3)
     say = progress or log.info

@@ -407,6 +407,17 @@ def test_validate_and_diagnose_take_the_work_folder_a_notebook_holds(nipple_run)
     assert validate_work(held, scans="tilt_50").scans["tilt_50"].role == "validation"
     with pytest.raises(ValueError, match="no scan named"):  # it meant every scan
         validate_work(held, scans=[])
+    # review AU: a notebook's wrong arguments ended in matplotlib's or numpy's words
+    with pytest.raises(ValueError, match="vmax must be a positive number of mm"):
+        held.plot_error_map("tilt_50", vmax=-1)
+    with pytest.raises(TypeError, match="scans must be a scan name or names, got 3"):
+        held.plot_error_by_displacement(3)
+    with pytest.raises(TypeError, match="evaluate takes the Calibration that calib.fit returns"):
+        calib.evaluate(held)
+    with pytest.raises(TypeError, match="check_postures takes the Calibration"):
+        calib.check_postures(str(work), {})
+    with pytest.raises(TypeError, match="fit takes the Measurements of calib.load_measurements"):
+        calib.fit(str(work))
     # review AT: every scan marked failed gave an empty report, exit 0
     import dataclasses
 

@@ -834,6 +834,16 @@ def test_the_facet_gap_at_the_scanned_points_is_their_distance_inside_the_facets
     assert np.all(straight.gap_at(points) == 0.0)  # straight facets carry no gap
 
 
+def test_options_take_one_effect_name_and_refuse_a_number_as_text():
+    # review AU: "skin" was read letter by letter, alpha="0.05" a bare TypeError
+    assert DiagnosisOptions(effects="skin").effects == ("skin",)
+    assert DiagnosisOptions(effects=["skin", "poisson"]).effects == ("skin", "poisson")
+    with pytest.raises(DiagnosisError, match=r"alpha \(--alpha\) must be a number, got '0.05'"):
+        DiagnosisOptions(alpha="0.05")
+    with pytest.raises(DiagnosisError, match=r"mesh_size_mm \(--mesh-size\) must be a number"):
+        DiagnosisOptions(mesh_size_mm="12")
+
+
 def test_points_at_the_clamped_rim_are_left_out(caplog):
     from calib.discrepancy.problem import RIM_MARGIN_MM, _off_the_rim, rim_margin_of
 

@@ -225,6 +225,9 @@ def test_bad_queries(ours, box_data):
     with pytest.raises(ValueError, match="frame"):
         ours.predict([0.0, 0.0, 9.81], frame="scanner")
     c1 = float(box_data.model["c1_pa"])
+    # review AU: three c1 for two gravities was numpy's broadcast error
+    with pytest.raises(ValueError, match=r"c1_pa must be one value or one per gravity \(2\)"):
+        ours.predict([[0.0, 0.0, 9.81], [9.81, 0.0, 0.0]], c1_pa=[c1, c1, c1])
     with pytest.warns(nn.ExtrapolationWarning, match="c1 = 1000 Pa lies outside the trained"):
         ours.predict([0.0, 0.0, 9.81], c1_pa=1000.0)
     with pytest.warns(nn.ExtrapolationWarning, match="load rho g / c1"):
