@@ -390,7 +390,9 @@ def _add_work(scene: Scene, folder, info: dict, vnodes: np.ndarray, hint: dict) 
     if not any("error_mm" in o for o in scene.overlays.values()):
         scene.missing.append(f"no error maps ({work / 'calibration'}/<scan>_error.ply)")
     if made := (folder.record or {}).get("diagnosis"):  # review AT: it advised a refused run
-        source = made.get("source_work", "its source work folder")
+        source = made.get("source_work") or "its source work folder"
+        if not Path(source).is_absolute() and work.parent.name == "diagnosis":
+            source = work.parent.parent  # older refits recorded it as given (review AU)
         scene.missing.append(
             f"a diagnosis' refitted model: its error maps show in the view of the calibration "
             f"it came from ({source})"
