@@ -257,9 +257,13 @@ def check_record(record: dict, path: Path) -> None:
     ------
     ValueError
         ``schema_version`` later than :data:`SCHEMA_VERSION` or not an integer;
-        ``c1_pa`` not a positive finite number; ``c1_ci95_pa`` neither null nor
-        ``[low, high]`` with ``0 < low <= high``; ``model`` not an object; ``scans`` not
-        an object of records with a known role.
+        ``c1_pa`` not a positive finite number; ``c1_ci95_pa`` neither null nor a finite
+        ``[low, high]`` with ``0 < low <= high`` that holds ``c1_pa`` (1 % slack);
+        ``model`` not an object, or its keys the readers use of the wrong type or range
+        (strings, numbers, the rotation, the prestress files, ``effects``); ``scans``
+        not an object of records with the role ``calibration`` or ``validation`` (at
+        least one ``calibration``), a posture or model of the wrong shape, or holding
+        ``model.reference_scan``.
     """
     from .session import ROLES
 
