@@ -248,7 +248,7 @@ def _calibrator(calibration, what: str):
     Review AU: a work folder's path or ``calib.load_work``'s object ended in an
     AttributeError from deep inside.
     """
-    if not hasattr(calibration, "calibrator") or not hasattr(calibration, "objective"):
+    if not hasattr(calibration, "calibrator"):
         raise TypeError(
             f"{what} takes the Calibration that calib.fit returns, got "
             f"{type(calibration).__name__}; a work folder's figures: calib.load_work(...), "

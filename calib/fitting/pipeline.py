@@ -297,7 +297,9 @@ def fit(
     fem.ConvergenceError
         No stress-free reference on any model mesh tried.
     """
-    if not isinstance(measurements, Measurements):  # review AU: an AttributeError inside
+    if not (hasattr(measurements, "scans") and hasattr(measurements, "reference")):
+        # review AU: a path gave an AttributeError from inside (duck-typed: tests and
+        # callers pass their own containers of scans)
         raise TypeError(
             "fit takes the Measurements of calib.load_measurements(work, session), got "
             f"{type(measurements).__name__}; from a scan folder: calib.calibrate(scans, work)"
