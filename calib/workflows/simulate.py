@@ -168,16 +168,21 @@ def _components(mesh: fem.TetMesh) -> np.ndarray:
     return labels
 
 
-def check_orientation(mesh: fem.TetMesh, path: Path) -> int:
-    """Elements inverted against the rest (before any flipping), warned about; their count.
+def check_orientation(mesh: fem.TetMesh, path: Path) -> np.ndarray:
+    """Elements inverted against the rest (before any flipping), or none.
 
     One convention throughout (every element positive, or every one negative, as some
     writers order them) is flipped to positive silently. A few inverted among positive
     ones are either a tangled mesh, whose elements overlap (review AT: a node moved
     through its neighbours was flipped and solved without a word), or a recovered
     stress-free mesh with elements inverted at a clamped rim, which ``calibrate`` reports
-    (its ``reference_mesh.vtu``, as ``make demo`` simulates it): flipped and solved, with
-    a warning naming one. Non-finite coordinates are refused first.
+    (its ``reference_mesh.vtu``, as ``make demo`` simulates it); :func:`say_inverted`
+    tells which, once the back face is known. Non-finite coordinates are refused first.
+
+    Returns
+    -------
+    ndarray of int
+        The elements inverted against the rest (empty where there is one orientation).
 
     Raises
     ------
@@ -193,19 +198,40 @@ def check_orientation(mesh: fem.TetMesh, path: Path) -> int:
     vol = mesh.volumes_mm3()
     neg, pos = np.flatnonzero(vol < 0), np.flatnonzero(vol > 0)
     if not (len(neg) and len(pos)):
-        return 0
-    few = neg if len(neg) <= len(pos) else pos
+        return neg[:0]
+    return neg if len(neg) <= len(pos) else pos
+
+
+def say_inverted(mesh: fem.TetMesh, path: Path, few: np.ndarray, back: np.ndarray) -> None:
+    """Warn of the elements :func:`check_orientation` found, flipped for the solve.
+
+    Every one touching the clamped back face: as a recovered stress-free mesh holds them;
+    any other: a tangled mesh, whose answer is wrong.
+    """
+    if not len(few):
+        return
+    at_back = np.isin(mesh.tets[few], back).any(axis=1)
+    if at_back.all():
+        log.warning(
+            "%s: %d of %d elements, all at the back face, are inverted against the rest "
+            "and are flipped (a stress-free mesh calibrate recovered holds such at the "
+            "clamped rim, and reports them)",
+            path,
+            len(few),
+            mesh.n_tets,
+        )
+        return
+    inner = few[~at_back]
     log.warning(
-        "%s: %d of %d elements are inverted against the rest (e.g. element %d), and are "
-        "flipped: a tangled mesh, whose elements overlap, gives a wrong answer (untangle "
-        "it); a stress-free mesh calibrate recovered may hold a few at the clamped rim "
-        "(it reports them)",
+        "%s: %d of %d elements are inverted against the rest, %d of them away from the "
+        "back face (e.g. element %d), and are flipped: a tangled mesh, whose elements "
+        "overlap, gives a wrong answer; untangle it",
         path,
         len(few),
         mesh.n_tets,
-        few[0],
+        len(inner),
+        inner[0],
     )
-    return len(few)
 
 
 def check_mesh(mesh: fem.TetMesh, path: Path) -> None:
@@ -288,12 +314,13 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
     t0 = time.perf_counter()
     try:
         mesh, points = read_mesh(mesh_path, orient=False, return_input_points=True)
-        flipped = check_orientation(mesh, mesh_path)
+        inverted = check_orientation(mesh, mesh_path)
         mesh = mesh.oriented()
         if mesh.n_tets == 0:
             raise fem.MeshError("the mesh has no tetrahedra")
         check_mesh(mesh, mesh_path)
         back, normal, back_source = _back_nodes(mesh, parse_back_plane(opts.back_plane))
+        say_inverted(mesh, mesh_path, inverted, back)
         mesh = tag_node_sets(mesh, back, normal)
     except fem.MeshError as exc:  # every mesh problem names the mesh file
         if str(mesh_path) in str(exc):
@@ -337,7 +364,7 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
         "nipple_displacement_mm": float(np.linalg.norm(sol.displacement_mm[nipple])),
         "nipple_node": int(points.node_index[nipple]),  # the input file's numbering
         "back": {"source": back_source, "nodes": len(back)},  # the clamped (or sliding) face
-        "inverted_elements_flipped": flipped,
+        "inverted_elements_flipped": len(inverted),
         "points": points.n_points,
         "unsolved_points": unsolved,
         "converged": sol.converged,

@@ -300,6 +300,27 @@ def test_simulate_warns_of_a_tangled_mesh_and_refuses_a_non_finite_point(
     assert not any(p.name.endswith("2.vtu") for p in tmp_path.iterdir())
 
 
+def test_elements_inverted_at_the_back_face_are_said_as_a_recovered_mesh_s(mesh_file, caplog):
+    # make demo simulates calibrate's recovered reference_mesh.vtu, whose few elements
+    # inverted at the clamped rim drew the tangled-mesh warning
+    from calib.workflows.simulate import say_inverted
+    from fem.io import read_mesh
+
+    mesh = read_mesh(mesh_file)
+    back = np.flatnonzero(np.isclose(mesh.nodes_mm[:, 2], 0.0))
+    touching = np.flatnonzero(np.isin(mesh.tets, back).any(axis=1))
+    away = np.flatnonzero(~np.isin(mesh.tets, back).any(axis=1))
+    with caplog.at_level("WARNING"):
+        say_inverted(mesh, Path("m.vtu"), touching[:2], back)
+    assert "2 of" in caplog.text and "all at the back face" in caplog.text
+    assert "tangled" not in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        say_inverted(mesh, Path("m.vtu"), np.r_[touching[:2], away[:1]], back)
+    assert f"1 of them away from the back face (e.g. element {away[0]})" in caplog.text
+    assert "tangled" in caplog.text
+
+
 def _boundary(tets):
     import fem
 
