@@ -452,15 +452,8 @@ def _dir_mode() -> int:
 
 #: The outputs the commands that hold the WORK lock write there (folder, record), whose
 #: temporaries a killed run leaves: ingest, calibrate, validate, diagnose.
-WORK_OUTPUTS = (
-    "scans",
-    "ingest_summary.json",
-    "calibration",
-    "calibration.json",
-    "validation",
-    "validation.json",
-    "diagnosis",
-    "diagnosis.json",
+WORK_OUTPUTS = tuple(
+    name for folder, (record, _) in RUN_FOLDERS.items() for name in (folder, record)
 )
 
 
