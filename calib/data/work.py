@@ -23,6 +23,7 @@ __all__ = [
     "WorkFolder",
     "as_work_folder",
     "check_record",
+    "not_a_folder",
     "read_work",
 ]
 
@@ -137,6 +138,17 @@ def _check_ingest_hashes(work: Path, record: dict) -> None:
             )
 
 
+def not_a_folder(work: Path, *, missing: str = "no such work folder") -> str | None:
+    """Why ``work`` is no work folder to read, or None where it is a folder.
+
+    Review AI, AT: a mistyped folder, or the record's own path (``WORK/calibration.json``),
+    which was called missing although it exists.
+    """
+    if work.is_dir():
+        return None
+    return "is a file: pass the work folder that holds it" if work.exists() else missing
+
+
 def read_work(work: str | Path) -> WorkFolder:
     """Read a calibrated work folder.
 
@@ -153,11 +165,8 @@ def read_work(work: str | Path) -> WorkFolder:
     from fem.io import read_mesh
 
     work = Path(work)
-    if not work.is_dir():  # review AI: a mistyped folder or the record's own path
-        what = (
-            "is a file: pass the work folder that holds it" if work.exists() else "no such folder"
-        )
-        raise FileNotFoundError(f"{work}: {what}")
+    if why := not_a_folder(work, missing="no such folder"):
+        raise FileNotFoundError(f"{work}: {why}")
     try:
         record = check_run(work, folder="calibration", record="calibration.json")
     except FileNotFoundError as exc:

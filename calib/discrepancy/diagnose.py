@@ -123,6 +123,18 @@ MESH_ERRORS = ("ignored", "absorbed")
 MAP_KERNEL_MM = 10.0  # the significance map's smoothing (a pad's print, a rim band), scaled
 
 
+#: The numeric options and the command's flag of each (None: no flag), for messages
+_NUMBER_FLAGS = {
+    "alpha": "--alpha",
+    "min_explained": None,
+    "skin_thickness_mm": "--skin-thickness",
+    "mesh_size_mm": "--mesh-size",
+    "inclusion_mesh_mm": "--inclusion-mesh",
+    "rim_margin_mm": "--rim-margin",
+    "explained_margin_mm": "--explained-margin",
+}
+
+
 @dataclass(frozen=True)
 class DiagnosisOptions:
     """Options of ``phantom-calib diagnose``.
@@ -231,19 +243,10 @@ class DiagnosisOptions:
     parameter_limits: bool = False
 
     def __post_init__(self) -> None:
-        if isinstance(self.effects, str):  # one name, not its letters (review AU)
-            object.__setattr__(self, "effects", (self.effects,))
-        object.__setattr__(self, "effects", tuple(self.effects))
-        numbers = {
-            "alpha": "--alpha",
-            "min_explained": None,
-            "skin_thickness_mm": "--skin-thickness",
-            "mesh_size_mm": "--mesh-size",
-            "inclusion_mesh_mm": "--inclusion-mesh",
-            "rim_margin_mm": "--rim-margin",
-            "explained_margin_mm": "--explained-margin",
-        }
-        for name, flag in numbers.items():  # review AU: '0.05' gave a bare TypeError
+        # one name, not its letters (review AU)
+        effects = (self.effects,) if isinstance(self.effects, str) else tuple(self.effects)
+        object.__setattr__(self, "effects", effects)
+        for name, flag in _NUMBER_FLAGS.items():  # review AU: '0.05' gave a bare TypeError
             v = getattr(self, name, None)
             if v is None or v == "element":
                 continue
@@ -261,12 +264,12 @@ class DiagnosisOptions:
             raise DiagnosisError(f"alpha (--alpha) must lie in (0, 0.5), got {self.alpha}")
         if not 0.0 < self.min_explained <= 1.0:
             raise DiagnosisError(f"min_explained must lie in (0, 1], got {self.min_explained}")
-        _FLAGS = {"rim_margin_mm": "--rim-margin", "explained_margin_mm": "--explained-margin"}
         for name in ("rim_margin_mm", "explained_margin_mm"):
             m = getattr(self, name)
             if m != "element" and (isinstance(m, str) or not 0.0 <= m < 50.0):
                 raise DiagnosisError(
-                    f"{name} ({_FLAGS[name]}) must lie in [0, 50) mm or be 'element', got {m!r}"
+                    f"{name} ({_NUMBER_FLAGS[name]}) must lie in [0, 50) mm or be 'element', "
+                    f"got {m!r}"
                 )
         lo, hi = MESH_SIZE_RANGE_MM
         if self.mesh_size_mm is not None and not lo <= self.mesh_size_mm <= hi:

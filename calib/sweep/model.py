@@ -276,18 +276,13 @@ def load_sweep_model(work: str | Path) -> SweepModel:
     calib.io.StaleOutputError
         ``calibration/`` is not from the run recorded in ``calibration.json``.
     """
-    from ..data.work import check_record
+    from ..data.work import check_record, not_a_folder
     from ..io import check_run
 
     work = Path(work)
     record = work / "calibration.json"
-    if not work.is_dir():
-        what = (
-            "is a file: pass the work folder that holds it"
-            if work.exists()
-            else "no such work folder"
-        )
-        raise CalibrationMissingError(f"{work}: {what}")
+    if why := not_a_folder(work):
+        raise CalibrationMissingError(f"{work}: {why}")
     try:
         doc = check_run(work, folder="calibration", record="calibration.json")
     except FileNotFoundError:
@@ -295,7 +290,9 @@ def load_sweep_model(work: str | Path) -> SweepModel:
             f"{record} not found: {work} holds no calibration (run `phantom-calib calibrate "
             f"SCANS --out {work}` first)"
         ) from None
-    check_record(doc, record)  # c1_pa and the keys every reader uses
+    # c1_pa and the keys every reader uses, nu, density, g and the rotation among them
+    # (review AC: c1 -5 or NaN swept every scenario to a failure and exited 0)
+    check_record(doc, record)
     model = doc.get("model")
     if not isinstance(model, dict):
         _fail(record, "no 'model' block (written by phantom-calib calibrate >= 0.1 with schema 1)")
@@ -310,14 +307,6 @@ def load_sweep_model(work: str | Path) -> SweepModel:
     missing = [k for k in _REQUIRED if model.get(k) is None]
     if missing:
         _fail(record, f"model block lacks {', '.join(missing)}")
-    for key, value, ok in (
-        ("model.nu", model["nu"], lambda v: 0 < v < 0.5),
-        ("model.density_kg_m3", model["density_kg_m3"], lambda v: v > 0),
-        ("model.g_m_s2", model["g_m_s2"], lambda v: v > 0),
-    ):  # review AC: c1 -5 or NaN swept every scenario to a failure and exited 0
-        number = isinstance(value, (int, float)) and not isinstance(value, bool)
-        if not (number and np.isfinite(value) and ok(value)):
-            _fail(record, f"{key} is {value!r}: not a finite number in its physical range")
     if model["support"] not in _SUPPORTS:
         _fail(record, f"model.support {model['support']!r} is not one of {_SUPPORTS}")
     mesh_path = work / model["reference_mesh"]

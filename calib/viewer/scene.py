@@ -218,13 +218,10 @@ def load_scene(work: str | Path, model: str | Path | None = None) -> Scene:
         ``work`` is not a folder.
     """
     work = Path(work)
-    if not work.is_dir():
-        what = (
-            "is a file: pass the work folder that holds it"
-            if work.exists()
-            else "no such work folder"
-        )
-        raise FileNotFoundError(f"{work}: {what}")
+    from ..data.work import not_a_folder
+
+    if why := not_a_folder(work):
+        raise FileNotFoundError(f"{work}: {why}")
     hint = _command_hint(work)
     scene = Scene(work)
     info: dict = {

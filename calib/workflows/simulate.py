@@ -124,19 +124,20 @@ def _own_back(mesh: fem.TetMesh, own: np.ndarray):
     """
     from fem.discretize import plane_fit
 
-    boundary = np.unique(fem.boundary_faces(mesh.tets))
+    inside = ~np.isin(own, np.unique(fem.boundary_faces(mesh.tets)))
     extent = float(np.ptp(mesh.nodes_mm, axis=0).max())
-    normal, _, rms = plane_fit(mesh.nodes_mm[own]) if len(own) >= 3 else (None, 0.0, 0.0)
-    span = float(np.ptp(mesh.nodes_mm[own], axis=0).max()) if len(own) else 0.0
-    why = None
+    why = normal = None
     if len(own) < 3:
         why = f"{len(own)} nodes"
-    elif not np.isin(own, boundary).all():
-        why = f"{int((~np.isin(own, boundary)).sum())} of its {len(own)} nodes are inside the body"
-    elif rms > 1e-3 * extent:
-        why = f"its {len(own)} nodes lie {rms:.3g} mm (rms) off one plane"
-    elif span < 0.25 * extent:
-        why = f"its {len(own)} nodes span {span:.3g} mm of a {extent:.3g} mm body"
+    elif inside.any():
+        why = f"{int(inside.sum())} of its {len(own)} nodes are inside the body"
+    else:
+        normal, _, rms = plane_fit(mesh.nodes_mm[own])
+        span = float(np.ptp(mesh.nodes_mm[own], axis=0).max())
+        if rms > 1e-3 * extent:
+            why = f"its {len(own)} nodes lie {rms:.3g} mm (rms) off one plane"
+        elif span < 0.25 * extent:
+            why = f"its {len(own)} nodes span {span:.3g} mm of a {extent:.3g} mm body"
     if why is not None:
         raise fem.MeshError(
             f"the mesh's `set:back` point data is no back face to clamp ({why}); remove it "

@@ -181,6 +181,9 @@ def test_a_calibration_without_a_physical_c1_is_refused_before_sweeping(tmp_path
         (lambda m: m.update(tumour_stress_free_mm=[1.0, 2.0]), "is not a finite point"),
         (lambda m: m.update(nipple_node=10**6), "nipple_node 1000000 is not a node"),
         (lambda m: m.update(nipple_node=-1), "nipple_node -1 is not a node"),
+        # review AC: swept every scenario to a failure; now check_record's, one place
+        (lambda m: m.update(nu=0.7), r"`model.nu` must be a number in \(0, 0.5\)"),
+        (lambda m: m.update(g_m_s2=float("nan")), "`model.g_m_s2` must be a positive number"),
         (
             lambda m: m.update(R_ref_from_phantom=[[-1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]),
             r"`model.R_ref_from_phantom` must be a 3x3 rotation \(orthonormal, det \+1\)",
