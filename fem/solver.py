@@ -255,6 +255,27 @@ def _apply_dirichlet(x, prescribed, lam):
     return x
 
 
+def _failure_cause(stats: _Stats, lam: float, rtol: float) -> str:
+    """Why a load stepping failed, in words: a load too large, or one too small to resolve.
+
+    Where no step converged but Newton came within a thousand times the tolerance of
+    the load, the residual stalled at roundoff: the internal force's rounding error
+    (relative to the stiffness) is larger than ``rtol`` times a load that is tiny
+    against the stiffness (a negligible gravity, a very stiff material).
+    """
+    best = min(stats.history, default=np.inf)
+    if lam <= 0.0 and best < 1e3 * rtol:
+        return (
+            f"Newton came within {best:.1e} of the load (tolerance {rtol:g}) and stalled "
+            "there, at roundoff: the load is too small against the material's stiffness "
+            "to resolve (a negligible gravity or a very stiff material)"
+        )
+    return (
+        "the load may be too large for the material (elements invert) or the support "
+        "leaves the body free"
+    )
+
+
 def stall_note(
     disc: Discretization, model: Model, x: np.ndarray, lam: float, *, load: str = "the load"
 ) -> str:
@@ -412,8 +433,7 @@ def solve(
         raise ConvergenceError(
             f"load not applied: Newton failed at a load step below {opts.min_step:g} "
             f"after {stats.newton} iterations ({cuts} cut-backs); "
-            f"{stall_note(disc, model, x, lam)}; the load may be too large "
-            "for the material (elements invert) or the support leaves the body free"
+            f"{stall_note(disc, model, x, lam)}; {_failure_cause(stats, lam, opts.rtol)}"
         )
     total = time.perf_counter() - t_start
     return Solution(

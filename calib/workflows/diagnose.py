@@ -58,6 +58,19 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
 
     prob, final = d.problem, d.final
     work = prob.work
+    fm = prob.fm
+    shortcut = fm.reference_state == "shortcut"  # its geometry is the loaded scan's
+    if fm.effects != final.values or not (shortcut or fm.stress_free_theta == final.theta):
+        # review AU: the null fit's geometry was written as the refit's (another mesh)
+        raise RuntimeError(
+            "the forward model's last recovery is not the final model's: the refit would "
+            "be written with another stress-free geometry"
+        )
+    if fm.prestressed:  # the diagnosis' models have straight elements (no spatial fallback)
+        raise RuntimeError(
+            "the forward model solved curved stress-free elements: a refit records a "
+            "straight stress-free mesh and no prestress files"
+        )
     folder.mkdir(parents=True, exist_ok=True)
     for name in [work.measurements.reference.name, *d.gaps]:
         src, dst = Path(work.path) / "scans" / name, folder / "scans" / name
@@ -68,14 +81,6 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
     marker = Path(work.path) / "scans" / "RUN"  # the ingest run its record names
     if marker.is_file():
         shutil.copy2(marker, folder / "scans" / "RUN")
-    fm = prob.fm
-    shortcut = fm.reference_state == "shortcut"  # its geometry is the loaded scan's
-    if fm.effects != final.values or not (shortcut or fm.stress_free_theta == final.theta):
-        # review AU: the null fit's geometry was written as the refit's (another mesh)
-        raise RuntimeError(
-            "the forward model's last recovery is not the final model's: the refit would "
-            "be written with another stress-free geometry"
-        )
     X = fm.stress_free_nodes_mm
     ref = work.measurements.reference
     tumour = None  # as calibrate follows it (an outside point: the nearest inside)
@@ -121,12 +126,9 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
             scans[name] = entry
         ci = doc.get("c1_ci95_pa")
         record |= {
-            # the refit's own reference: straight unless the diagnosis solved curved ones
-            # (review AU: a prestressed calibration's refit kept "prestress", and sweep
-            # refused it for want of prestress files it never had)
-            "reference_state": "shortcut"
-            if fm.reference_state == "shortcut"
-            else ("prestress" if fm.prestressed else "unload"),
+            # the refit's own reference, straight (review AU: a prestressed calibration's
+            # refit kept "prestress", and sweep refused it for want of prestress files)
+            "reference_state": "shortcut" if shortcut else "unload",
             "c1_pa": final.c1_pa,
             "c1_ci95_pa": ci,
             "objective": "surface",

@@ -2471,3 +2471,32 @@ def test_the_summary_says_what_the_diagnosis_left_out_or_weighted_apart():
     assert "no FE solution at the calibrated c1: flip (Newton failed)" in said
     assert "scans imaged unlike (voxel x image noise a 0.066)" in said
     assert "leaves out 1 region(s) of inclusion contrast" in said
+
+
+def test_a_refit_is_not_written_from_another_model_s_geometry(tmp_path):
+    # write_refit writes the forward model's last stress-free mesh as the refit's: it
+    # refuses where that is not the final model's (review AU: the null fit's, on another
+    # mesh) or where it is a curved one (a refit records straight elements and no
+    # prestress files), before anything is written
+    from calib.workflows.diagnose import write_refit
+
+    values = SimpleNamespace(name="neutral")
+    work = SimpleNamespace(path=tmp_path, measurements=SimpleNamespace(
+        reference=SimpleNamespace(name="ref")))  # fmt: skip
+
+    def refit(**fm):
+        fm = {"reference_state": "unload", "effects": values, "stress_free_theta": 6.0,
+              "prestressed": False} | fm  # fmt: skip
+        d = SimpleNamespace(
+            problem=SimpleNamespace(work=work, fm=SimpleNamespace(**fm)), gaps={},
+            final=SimpleNamespace(values=values, theta=6.0),
+        )  # fmt: skip
+        write_refit(tmp_path / "refit", d, {})
+
+    with pytest.raises(RuntimeError, match="last recovery is not the final model's"):
+        refit(stress_free_theta=5.9)
+    with pytest.raises(RuntimeError, match="last recovery is not the final model's"):
+        refit(effects=SimpleNamespace(name="skin"))
+    with pytest.raises(RuntimeError, match="curved stress-free elements"):
+        refit(prestressed=True)
+    assert not (tmp_path / "refit").exists()

@@ -130,6 +130,19 @@ def test_load_that_cannot_converge_raises():
     assert not sol.converged
 
 
+def test_a_load_too_small_to_resolve_is_not_said_to_be_too_large():
+    # a 40 mm cube at 420 Pa under 1e-8 m/s^2: the free residual stalls near 1.5e-8 of
+    # the load, above the tolerance 1e-8 (the internal force's roundoff against the
+    # stiffness); at 1e-6 m/s^2 it converges. The message said "too large" (review AT)
+    mesh = box_mesh((40.0, 40.0, 40.0), (3, 3, 3))
+    model = Model.homogeneous(mesh, NeoHookean(420.0, nu=0.499), support=Clamped("z0"))
+    with pytest.raises(ConvergenceError, match=r"stalled there, at roundoff.*too small") as err:
+        solve(model, gravity=[1.0, 0.0, 0.0], g_m_s2=1e-8, formulation="taylor-hood")
+    assert "too large" not in str(err.value)
+    sol = solve(model, gravity=[1.0, 0.0, 0.0], g_m_s2=1e-6, formulation="taylor-hood")
+    assert sol.converged
+
+
 def test_a_failed_solve_says_how_far_it_got_and_where_the_mesh_gave():
     # a 40 mm column clamped at its top under sideways gravity: at 1e6 m/s^2 no step
     # converges; at 100 m/s^2 load stepping stalls part way (about 39 %). The message's
