@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .data.session import is_finite_number
 from .data.work import WorkFolder, read_work
 from .fitting.result import calibration_caveats
 from .validation import Validation, validate_work
@@ -116,8 +117,7 @@ class Work:
         """The measured surface of ``scan`` shaded by its error (matplotlib Figure)."""
         from .report.validation import error_surface_figure
 
-        number = isinstance(vmax, (int, float)) and not isinstance(vmax, bool)
-        if vmax is not None and not (number and np.isfinite(vmax) and vmax > 0):
+        if vmax is not None and not (is_finite_number(vmax) and vmax > 0):
             raise ValueError(f"vmax must be a positive number of mm (or None), got {vmax!r}")
         sv = self._scan(scan)
         R = np.asarray(self.record["model"]["R_ref_from_phantom"], float)

@@ -113,12 +113,15 @@ class Session:
         return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
 
 
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+def is_finite_number(value) -> bool:
+    """``value`` is a finite int or float as read from TOML or JSON (a bool is no number)."""
+    return (
+        isinstance(value, (int, float)) and not isinstance(value, bool) and bool(np.isfinite(value))
+    )
 
 
 def _vector(value, where: str) -> np.ndarray:
-    if not isinstance(value, list) or len(value) != 3 or not all(map(_is_number, value)):
+    if not isinstance(value, list) or len(value) != 3 or not all(map(is_finite_number, value)):
         raise SessionError(f"{where} must be a list of 3 numbers, got {value!r}")
     return np.asarray(value, dtype=float)
 
@@ -169,7 +172,7 @@ def _scan(entry, index: int, folder: Path, toml: Path) -> ScanEntry:
     if unknown:
         raise SessionError(f"{where}: unknown posture key(s) {sorted(unknown)}")
     angle = posture.get("angle_deg")
-    if angle is not None and not _is_number(angle):
+    if angle is not None and not is_finite_number(angle):
         raise SessionError(f"{where}: posture.angle_deg must be a number, got {angle!r}")
     plane = posture.get("plane")
     if plane is not None and plane not in PLANES:

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..io import StaleOutputError, check_run, file_sha256, run_id_of
 from .measurements import Measurements, read_scan
-from .session import ScanEntry
+from .session import ScanEntry, is_finite_number
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -328,12 +328,7 @@ def check_record(record: dict, path: Path) -> None:
 
 def _finite_vector(value, n: int) -> bool:
     """``value`` is a list of ``n`` finite numbers (no booleans)."""
-    return (
-        isinstance(value, list)
-        and len(value) == n
-        and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
-        and bool(np.all(np.isfinite(value)))
-    )
+    return isinstance(value, list) and len(value) == n and all(is_finite_number(v) for v in value)
 
 
 def _check_model_block(model: dict, bad) -> None:
@@ -351,8 +346,7 @@ def _check_model_block(model: dict, bad) -> None:
         ("g_m_s2", lambda v: v > 0, "a positive number (m/s^2)"),
     ):
         v = model.get(key)
-        number = isinstance(v, (int, float)) and not isinstance(v, bool)
-        if key in model and not (number and np.isfinite(v) and ok(v)):
+        if key in model and not (is_finite_number(v) and ok(v)):
             raise bad(f"model.{key}", expected, v)
     R = model.get("R_ref_from_phantom")
     if R is not None:
