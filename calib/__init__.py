@@ -27,6 +27,8 @@ import importlib
 __all__ = [
     "Calibration",
     "CalibrationOptions",
+    "DiagnosisOptions",
+    "SweepOptions",
     "calibrate",
     "check_postures",
     "diagnose",
@@ -47,6 +49,8 @@ __all__ = [
 _LAZY = {
     "Calibration": ("calib.fitting", "Calibration"),
     "CalibrationOptions": ("calib.fitting", "CalibrationOptions"),
+    "DiagnosisOptions": ("calib.discrepancy", "DiagnosisOptions"),
+    "SweepOptions": ("calib.workflows.sweep", "SweepOptions"),
     "fit": ("calib.fitting", "fit"),
     "evaluate": ("calib.evaluation", "evaluate"),
     "check_postures": ("calib.evaluation", "check_postures"),

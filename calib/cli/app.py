@@ -139,7 +139,10 @@ def synth(
     seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of every random choice.")] = 0,
     effect: Annotated[
         list[str] | None,
-        typer.Option("--effect", help="Hidden effect NAME[=VALUE]; repeat for several."),
+        typer.Option(
+            "--effect",
+            help="Hidden effect NAME[=VALUE]; repeat for several. Any replaces the preset's skin (1.5:8): add --effect skin to keep it.",
+        ),
     ] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace OUT.")] = False,
 ) -> None:

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from registration.rigid import MAX_AUTO_MARKERS
+
 __all__ = [
     "DENSITY_RANGE_KG_M3",
     "ScanEntry",
@@ -29,6 +31,8 @@ PLANES = ("transverse", "sagittal")  # fem.postures.PLANES
 #: A scan name is a folder name under WORK/scans/ and part of output file names.
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 VOLUME_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
+#: scan names taken under ``WORK/scans/`` (compared case-insensitively): the run marker
+RESERVED_NAMES = frozenset({"run"})
 
 
 class SessionError(ValueError):
@@ -160,6 +164,11 @@ def _scan(entry, index: int, folder: Path, toml: Path) -> ScanEntry:
             f"{where}: name {entry['name']!r} must start with a letter or digit and hold only "
             "letters, digits, '.', '_' and '-' (it names folders and files in the work folder)"
         )
+    if entry["name"].lower() in RESERVED_NAMES:  # review AW: WORK/scans/RUN is the marker
+        raise SessionError(
+            f"{where}: name {entry['name']!r} is taken by the run marker in WORK/scans/ "
+            "(names are compared without case); choose another"
+        )
     if entry["role"] not in ROLES:
         raise SessionError(f"{where}: role must be one of {ROLES}, got {entry['role']!r}")
     path = (folder / entry["path"]).resolve()
@@ -251,8 +260,12 @@ def load_session(folder: str | Path) -> Session:
     except ValueError as exc:
         raise SessionError(f"{toml}: {exc}") from None
     nfid = phantom.get("fiducials", 3)
-    if not isinstance(nfid, int) or isinstance(nfid, bool) or nfid < 3:
-        raise SessionError(f"{toml}: phantom.fiducials must be an integer >= 3, got {nfid!r}")
+    if not isinstance(nfid, int) or isinstance(nfid, bool) or not 3 <= nfid <= MAX_AUTO_MARKERS:
+        # review AW: 8 were refused by the registration, after every scan was segmented
+        raise SessionError(
+            f"{toml}: phantom.fiducials must be an integer from 3 to {MAX_AUTO_MARKERS} (the "
+            f"markers are matched between scans over every ordering), got {nfid!r}"
+        )
     tumour = landmarks.get("tumour")
     hint = None if tumour is None else _vector(tumour, f"{toml}: landmarks.tumour")
     raw = doc.get("scans")
@@ -305,7 +318,8 @@ def _unique_names(paths: list[Path]) -> list[str]:
                 break
         stem = re.sub(r"[^A-Za-z0-9._-]", "_", stem).lstrip("._-") or "scan"
         name, k = stem, 2
-        while name.lower() in (n.lower() for n in names):  # as the session compares them
+        taken = {n.lower() for n in names} | RESERVED_NAMES  # as the session compares them
+        while name.lower() in taken:
             name, k = f"{stem}_{k}", k + 1
         names.append(name)
     return names

@@ -58,9 +58,10 @@ class SweepOptions:
         Seed of the hold-out.
     backend : {"serial", "pool", "dask"}
     workers : int or None
-        Processes of the pool or of a local Dask cluster (None: 2); not with ``serial``.
+        Processes of the pool or of a local Dask cluster (None: 2); not with ``serial``
+        nor with a scheduler's address (its workers are its own).
     dask : str or None
-        ``local`` or ``tcp://HOST:PORT`` (backend ``dask``).
+        ``local`` or ``tcp://HOST:PORT`` (backend ``dask`` only).
     chunk_size : int
         Scenarios per continuation chunk.
     max_angle_deg : float
@@ -100,6 +101,13 @@ class SweepOptions:
             raise ValueError(f"unknown backend {self.backend!r}; choose serial, pool or dask")
         if self.backend == "serial" and self.workers is not None:  # review AT, AU: ignored
             raise ValueError("--serial (backend 'serial') solves in this process: drop --workers")
+        if self.dask is not None and self.backend != "dask":  # review AW: it was ignored
+            raise ValueError(f"--dask goes with backend 'dask', not {self.backend!r}")
+        if self.dask not in (None, "local") and self.workers is not None:
+            raise ValueError(
+                f"--workers sizes a LocalCluster (--dask local); the scheduler at {self.dask} "
+                "has its own workers: drop --workers"
+            )
         for name, value in (
             ("--workers", 2 if self.workers is None else self.workers),
             ("--chunk-size", self.chunk_size),

@@ -205,9 +205,12 @@ def test_a_first_estimate_whose_postures_do_not_solve_tries_the_next_mesh_size(m
     import calib.fitting.optimise as opt
     from calib.fitting import CalibrationOptions
 
+    tried = []
+
     class Trial:
         def __init__(self, measurements, options, density_kg_m3):
             self.options, self.history = options, []
+            tried.append(options.mesh_size_mm)
             self.mesh, self.calibration_scans = SimpleNamespace(n_tets=10), []
 
         def objective(self, theta):
@@ -237,3 +240,10 @@ def test_a_first_estimate_whose_postures_do_not_solve_tries_the_next_mesh_size(m
     monkeypatch.setattr(Trial, "objective", never)
     with pytest.raises(fem.ConvergenceError, match="16 mm model mesh .* try another --mesh-size"):
         opt.prepare(measurements, CalibrationOptions(), 1000.0, said.append)
+
+    # each size is tried once (review AW: 14 mm asked for was tried again as a retry)
+    tried.clear()
+    with pytest.raises(fem.ConvergenceError, match="16 mm model mesh"):
+        opt.prepare(measurements, CalibrationOptions(mesh_size_mm=14), 1000.0, said.append)
+    assert tried == [14.0, 16.0]
+    assert CalibrationOptions(mesh_size_mm=16, mesh_retry_mm=(14, 16, 14)).mesh_retry_mm == (14.0,)

@@ -145,12 +145,19 @@ BAD_SESSIONS = [
     (
         "fiducials-two",
         VALID_TOML.replace("fiducials = 4", "fiducials = 2"),
-        r"phantom.fiducials must be an integer >= 3, got 2",
+        r"phantom.fiducials must be an integer from 3 to 7 .*, got 2",
     ),
     (
         "fiducials-float",
         VALID_TOML.replace("fiducials = 4", "fiducials = 3.5"),
-        r"phantom.fiducials must be an integer >= 3, got 3.5",
+        r"phantom.fiducials must be an integer from 3 to 7 .*, got 3.5",
+    ),
+    (
+        # review AW: 8 markers were refused by the registration after every scan had been
+        # segmented (registration.rigid.MAX_AUTO_MARKERS: every ordering is fitted)
+        "fiducials-eight",
+        VALID_TOML.replace("fiducials = 4", "fiducials = 8"),
+        r"phantom.fiducials must be an integer from 3 to 7 \(the markers are matched .*got 8",
     ),
     (
         "scanner-not-a-table",
@@ -186,6 +193,13 @@ BAD_SESSIONS = [
         "name-with-a-slash",
         VALID_TOML.replace('name = "tilt"', 'name = "tilt/25"'),
         r"#3: name 'tilt/25' must start .* only letters, digits",
+    ),
+    (
+        # review AW: ingest stages WORK/scans/<name>/ and then writes the run marker
+        # WORK/scans/RUN over it (on a case-insensitive file system for "run" too)
+        "name-of-the-run-marker",
+        VALID_TOML.replace('name = "tilt"', 'name = "Run"'),
+        r"#3: name 'Run' is taken by the run marker in WORK/scans/",
     ),
     (
         "name-with-a-space",
@@ -347,8 +361,9 @@ def test_scaffold_names_are_valid_scan_names(tmp_path):
 def test_scaffold_result_loads_when_stems_collide(tmp_path):
     (tmp_path / "a.nii.gz").write_bytes(b"placeholder")
     (tmp_path / "a.mha").write_bytes(b"placeholder")
+    (tmp_path / "RUN.nrrd").write_bytes(b"placeholder")  # the run marker's name is taken
     scaffold_session(tmp_path)
-    assert len(load_session(tmp_path).scans) == 2
+    assert sorted(s.name for s in load_session(tmp_path).scans) == ["RUN_2", "a", "a_2"]
 
 
 def test_calibrate_without_a_calibration_scan_stops_before_ingest(tmp_path):

@@ -43,6 +43,14 @@ def no_reading(monkeypatch):
         ({"backend": "dask", "dask": "tcp//10.0.0.5:8786"}, "--dask must be"),
         ({"backend": "dask", "dask": "tcp://10.0.0.5"}, "--dask must be"),
         ({"backend": "dask", "dask": "tcp://10.0.0.5:99999"}, "--dask must be"),
+        # review AW: a scheduler's address with another backend, or with --workers (its
+        # workers are its own), was ignored without a word
+        ({"backend": "serial", "dask": "local"}, "--dask goes with backend 'dask', not 'serial'"),
+        ({"backend": "pool", "dask": "tcp://10.0.0.5:8786"}, "--dask goes with backend 'dask'"),
+        (
+            {"backend": "dask", "dask": "tcp://10.0.0.5:8786", "workers": 4},
+            "the scheduler at tcp://10.0.0.5:8786 has its own workers: drop --workers",
+        ),
     ],
 )
 def test_bad_options_are_refused_when_built(kw, match):
