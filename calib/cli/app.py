@@ -141,7 +141,8 @@ def synth(
         list[str] | None,
         typer.Option(
             "--effect",
-            help="Hidden effect NAME[=VALUE]; repeat for several. Any replaces the preset's skin (1.5:8): add --effect skin to keep it.",
+            help="Hidden effect NAME[=VALUE]; repeat for several. Any replaces the preset's "
+            "skin (1.5:8): add --effect skin to keep it.",
         ),
     ] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace OUT.")] = False,
