@@ -280,3 +280,9 @@ def surrogate_predict(
         if res[key] is not None
     )
     typer.echo(f"max displacement {res['max_displacement_mm']:.3f} mm{extra} -> {out}")
+    # review AT: calibration.json's gravity_ref given in the default phantom frame moved
+    # the demo's body 25.5 mm instead of 17.6: the frame read is said
+    other = (
+        "ref: the model's, as calibration.json's gravity_ref" if frame == "phantom" else "phantom"
+    )
+    typer.echo(f"  gravity {gravity} m/s^2 read in the {frame} frame (--frame {other})")

@@ -36,6 +36,7 @@ def test_predict_vtu_and_ply(model_file, tmp_path):
         ["surrogate", "predict", str(model_file), "--gravity", g, "--out", str(tmp_path / "r.vtu")],
     )
     assert res.exit_code == 0, res.output
+    assert "gravity 0,6.9367,6.9367 m/s^2 read in the phantom frame (--frame ref: " in res.output
     m = meshio.read(tmp_path / "r.vtu")
     u = sur.predict([0.0, 6.9367, 6.9367]).nodes_mm[0]
     assert np.allclose(m.point_data["displacement_mm"], u, atol=1e-12)
