@@ -98,6 +98,22 @@ class ScreeningError(ValueError):
     """Sensitivity fields or names that do not fit the residuals."""
 
 
+def _check_not_absorbed(r: np.ndarray, J: np.ndarray) -> None:
+    """Refuse a residual the fitted columns explain exactly (review AV).
+
+    Its statistics would be ratios of round-off (every draw of such residuals screened
+    some effect significant) or a division by zero.
+    """
+    q, _ = np.linalg.qr(J)
+    size = float(np.linalg.norm(r))
+    rest = float(np.linalg.norm(r - q @ (q.T @ r)))
+    if not rest > 1e-10 * size:  # a zero residual too
+        raise ScreeningError(
+            f"the residual (norm {size:.3g} mm) has no part that the fitted columns do not "
+            f"explain ({rest:.3g} mm left): an exact fit leaves nothing to test"
+        )
+
+
 # ------------------------------------------------------------------------ misfit test
 
 
@@ -259,6 +275,7 @@ def misfit_test(
         raise ScreeningError(f"method must be 'band-F' or 'chi2', got {method!r}")
     d = design or misfit_design(sample, jacobian, low_degree=low_degree, high_degree=high_degree)
     r = sample.check_values(residual_mm, "residual_mm")
+    _check_not_absorbed(r, _jacobian(sample, jacobian))
     u = d.modes.T @ r
     k_lo, k_hi = d.n_low, d.modes.shape[1] - d.n_low
     best = None
@@ -637,6 +654,7 @@ def screen_effects(
     groups = names if effects is None else tuple(str(e) for e in effects)
     if len(groups) != len(names):
         raise ScreeningError(f"need one effect per column ({len(names)}), got {len(groups)}")
+    _check_not_absorbed(r, J)
     retained, cosine, metric = signature_geometry(sample, J, S, noise)
     ident = retained >= min_retained
     designs = {}

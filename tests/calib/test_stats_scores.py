@@ -135,6 +135,22 @@ def test_misfit_rejects_bad_options(setup):
         misfit_design(sample, J, low_degree=3, high_degree=3)
 
 
+def test_a_residual_the_fit_explains_exactly_is_refused(correlated):
+    # review AV: a residual in the span of what c1 absorbs gave t as a ratio of round-off
+    # (every one of five draws screened some effect significant, t up to 22 at se 8e-18)
+    # and a zero residual a bare ZeroDivisionError; now each says there is nothing to test
+    sample, J, _, S = correlated
+    for r in (0.3 * J, np.zeros(sample.n)):
+        with pytest.raises(ScreeningError, match="an exact fit leaves nothing to test"):
+            screen_effects(r, J, S, ["p2", "tilt", "bump"], sample, CORRELATED)
+        with pytest.raises(ScreeningError, match="an exact fit leaves nothing to test"):
+            misfit_test(r, J, sample, CORRELATED)
+    # a residual with a part beyond (relative 1e-6) is tested
+    rest = _residual(J, misfit_pattern(sample))
+    r = 0.3 * J + 1e-6 * rest / np.linalg.norm(rest) * np.linalg.norm(0.3 * J)
+    assert misfit_test(r, J, sample, CORRELATED).p_value >= 0.0
+
+
 # ------------------------------------------------------------------------ screening
 
 
