@@ -70,10 +70,14 @@ def imhof_sf(
         val, _ = quad(lambda u: float(integrand(np.array([u]))[0]) if u > 0 else 0.5 * lam.sum(),
                       0.0, np.inf, limit=400, epsabs=1e-11, epsrel=1e-9)  # fmt: skip
     elif method == "trapezoid":
-        # f(u) ~ sum(lam)/2 near 0 and decays at least like u^-2 beyond 1/min|lam|
-        s = np.arange(np.log(1e-7), np.log(1e7 / np.min(np.abs(lam))), 0.02)
+        # f(u) ~ sum(lam)/2 near 0 (to O(u^2)), so [0, u0] adds sum(lam) u0 / 2 (without
+        # it every p had an absolute error of about 1.5e-7: a floor; review AV), and it
+        # decays at least like u^-2 beyond 1/min|lam|
+        u0 = 1e-7
+        s = np.arange(np.log(u0), np.log(1e7 / np.min(np.abs(lam))), 0.02)
         u = np.exp(s)
-        val = 0.02 * float(np.sum(integrand(u) * u))
+        g = integrand(u) * u  # the trapezoid's first point counts half
+        val = 0.02 * (float(np.sum(g)) - 0.5 * float(g[0])) + 0.5 * float(lam.sum()) * u0
     else:
         raise ValueError(f"method must be 'trapezoid' or 'quad', got {method!r}")
     return float(np.clip(0.5 + val / np.pi, 0.0, 1.0))

@@ -46,7 +46,20 @@ def test_imhof_trapezoid_matches_adaptive_quadrature():
         m = int(rng.integers(2, 30))
         lam = np.concatenate([[rng.uniform(0.5, 3.0)], -rng.uniform(1e-3, 1.0, m - 1)])
         worst = max(worst, abs(imhof_sf(lam) - imhof_sf(lam, method="quad")))
-    assert worst < 1e-6  # measured 3e-7 (quad's own tolerance is 1e-9 relative)
+    # measured 7.6e-12 (3e-7 before [0, 1e-7] was added: review AV); quad's own
+    # tolerance is 1e-9 relative
+    assert worst < 1e-9
+
+
+@pytest.mark.parametrize("c", [3.0, 5.0, 7.0, 9.0])
+def test_imhof_small_tails_are_values_not_a_floor(c):
+    # review AV: every p had an absolute error near 1.5e-7 (the integral began at
+    # u = 1e-7), so a p under about 1e-6 was a floor. Closed form: X0 - c^2 mean(X_1..k)
+    # > 0 for iid chi-square(1) is t^2 > c^2 with t ~ t(k): 1.3e-2 to 4.1e-6 here,
+    # measured within 1.3e-6 relative (against 4 % at c = 9 before)
+    k = 10
+    lam = np.array([1.0] + [-(c**2) / k] * k)
+    assert imhof_sf(lam) == pytest.approx(2 * stats.t.sf(c, k), rel=1e-5)
 
 
 @pytest.mark.parametrize("k", [1, 4, 25])
