@@ -235,7 +235,7 @@ def load_session(folder: str | Path) -> Session:
     folder = Path(folder).resolve()
     toml = folder / "session.toml"
     if not toml.is_file():
-        raise SessionError(f"{folder}: no session.toml (create one with `phantom-calib init`)")
+        raise SessionError(f"{folder}: no session.toml ({_where_a_session_is(folder)})")
     try:
         doc = tomllib.loads(toml.read_bytes().decode("utf-8-sig"))  # a leading BOM is dropped
     except UnicodeDecodeError as exc:
@@ -325,6 +325,25 @@ def _unique_names(paths: list[Path]) -> list[str]:
     return names
 
 
+def _sessions_below(folder: Path) -> list[Path]:
+    """The folders directly inside ``folder`` that hold a ``session.toml``."""
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if (p / "session.toml").is_file())
+
+
+def _where_a_session_is(folder: Path) -> str:
+    """What to do about a folder without ``session.toml``, for the error (review AX)."""
+    below = _sessions_below(folder)
+    if below:  # a twin's OUT (its scans/ holds the session)
+        return f"did you mean {below[0]}? it holds one"
+    if (folder / "calibration.json").is_file() or any(folder.glob("scans/*/ingest.json")):
+        return "this is a work folder: pass the scan folder it was made from"
+    if any(folder.glob("*/ingest.json")):
+        return "this is a work folder's scans/ (ingest's results): pass the scan folder"
+    return "create one with `phantom-calib init`"
+
+
 def scaffold_session(folder: str | Path, *, overwrite: bool = False) -> Path:
     """Write a ``session.toml`` listing every series folder and volume file in ``folder``.
 
@@ -344,6 +363,17 @@ def scaffold_session(folder: str | Path, *, overwrite: bool = False) -> Path:
         raise SessionError(
             f"{folder} is a work folder (ingest's or calibrate's results); point init at "
             "the folder that holds the scans' series"
+        )
+    if any(folder.glob("*/ingest.json")):  # review AX: its per-scan results became series
+        raise SessionError(
+            f"{folder} is a work folder's scans/ (ingest's results); point init at the "
+            "folder that holds the scans' series"
+        )
+    below = _sessions_below(folder)
+    if below:  # review AX: a twin's OUT gave scans/ and its sealed truth/ as two series
+        raise SessionError(
+            f"{below[0]} holds a session.toml: pass that folder (init lists the series "
+            f"folders inside {folder}, and {below[0].name}/ is a scan folder, not a series)"
         )
     scans = _find_scans(folder)
     if not scans:

@@ -329,6 +329,23 @@ def test_scaffold_refuses_a_work_folder(tmp_path):
     with pytest.raises(SessionError, match="is a work folder"):
         scaffold_session(tmp_path)
     assert not (tmp_path / "session.toml").exists()
+    with pytest.raises(SessionError, match="this is a work folder: pass the scan folder"):
+        load_session(tmp_path)
+    # review AX: the work folder's scans/ (its per-scan results became series) and a
+    # twin's OUT (its scans/ and its sealed truth/ became two series) were accepted
+    with pytest.raises(SessionError, match=r"is a work folder's scans/ \(ingest's results\)"):
+        scaffold_session(tmp_path / "scans")
+    with pytest.raises(SessionError, match="this is a work folder's scans/"):
+        load_session(tmp_path / "scans")
+    assert not (tmp_path / "scans" / "session.toml").exists()
+    twin = _bare_folder(tmp_path / "T")
+    scaffold_session(twin)
+    (tmp_path / "T" / "truth").mkdir()
+    (tmp_path / "T" / "truth" / "truth.json").write_text("{}")
+    with pytest.raises(SessionError, match=r"T/scans holds a session.toml: pass that folder"):
+        scaffold_session(tmp_path / "T")
+    with pytest.raises(SessionError, match=r"no session.toml \(did you mean .*T/scans\?"):
+        load_session(tmp_path / "T")
 
 
 def test_cli_init(tmp_path):
