@@ -130,6 +130,16 @@ def ingest(
         fail(exc)
     typer.echo(result.summary_table)
     typer.echo(f"wrote {out / 'scans'}")
+    stale = [
+        f for f in ("calibration.json", "validation.json", "diagnosis.json") if (out / f).is_file()
+    ]
+    if stale:  # review AX: said only when validate or diagnose refused them later
+        typer.secho(
+            f"warning: {out}: {', '.join(stale)} fitted to the previous ingest no longer "
+            "apply (validate, diagnose, sweep and view refuse them): run `phantom-calib "
+            "calibrate` again",
+            fg=typer.colors.YELLOW, err=True,
+        )  # fmt: skip
 
 
 @app.command()

@@ -128,6 +128,7 @@ def sweep(
     ) as exc:
         fail(exc)
     typer.echo(_format_summary(summary))
+    typer.echo(_model_line(out, work))
     if summary["solved"] == 0 and summary["failed"]:  # review AD: this exited 0
         import zarr
 
@@ -140,6 +141,31 @@ def sweep(
             )
         )
     typer.echo(f"wrote {out}")
+
+
+def _model_line(out: Path, work: Path) -> str:
+    """Which model the store solved, and where a diagnosis named more (review AX)."""
+    import json
+
+    import zarr
+
+    model = dict(zarr.open_group(out, mode="r").attrs["model"])
+    named = (model.get("effects") or {}).get("named") or []
+    what = f"with {', '.join(named)} (a diagnosis refit)" if named else "homogeneous"
+    law = str(model.get("law", "neo-hookean")).split(",")[0]
+    line = f"model: c1 {model['c1_pa']:.1f} Pa, {what}, {law}, from {work}"
+    record = Path(work) / "diagnosis.json"
+    if not named and record.is_file():
+        try:
+            found = json.loads(record.read_text()).get("named") or []
+        except (OSError, ValueError):
+            found = []
+        if found:
+            line += (
+                f"\n  {record} names {', '.join(found)}: {Path(work) / 'diagnosis' / 'refit'} "
+                "holds that model, and `phantom-calib sweep` of it solves it"
+            )
+    return line
 
 
 def _format_summary(s: dict) -> str:

@@ -55,6 +55,8 @@ def view(
         # review AG: a folder without scans (no calibration) let any --scan through
         choose = f"choose from {names}" if names else "it has no calibrated scans"
         fail(ValueError(f"--scan {scan!r}: no such scan in {work}; {choose}"))
+    if screenshot is not None and scene.faces is None:  # review AX: an empty PNG, exit 0
+        fail(ValueError(f"--screenshot: nothing to draw in {work}: {'; '.join(scene.missing)}"))
     try:
         server = make_server(scene, port=port)
     except expected as exc:

@@ -13,6 +13,7 @@ import os
 import shutil
 import signal
 import stat
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -446,3 +447,25 @@ def test_a_work_folder_that_cannot_be_written_is_said_before_the_work(tmp_path, 
     monkeypatch.setattr(calib.io.os, "access", lambda path, mode: False)
     with pytest.raises(PermissionError, match=r"not writable \(this command writes validation/"):
         calib.io.check_work_writable(tmp_path, "validation/")
+
+
+def test_ingest_over_a_calibrated_work_folder_says_its_calibration_no_longer_applies(
+    tmp_path, monkeypatch
+):
+    # review AX: ingesting again into a calibrated WORK said nothing; validate, diagnose
+    # and sweep refused its calibration later
+    import calib.workflows.ingest as ingest_mod
+
+    scans = make_scan_folder(tmp_path / "scans")
+    work = tmp_path / "w"
+    work.mkdir()
+    fake = SimpleNamespace(summary_table="(table)")
+    monkeypatch.setattr(ingest_mod, "run_ingest", lambda *a, **k: fake)
+    result = CliRunner().invoke(app, ["ingest", str(scans), "--out", str(work)])
+    assert result.exit_code == 0 and "no longer apply" not in result.stderr
+    (work / "calibration.json").write_text("{}")
+    (work / "validation.json").write_text("{}")
+    result = CliRunner().invoke(app, ["ingest", str(scans), "--out", str(work)])
+    assert result.exit_code == 0, result.output
+    assert "calibration.json, validation.json fitted to the previous ingest" in result.stderr
+    assert "run `phantom-calib calibrate` again" in result.stderr

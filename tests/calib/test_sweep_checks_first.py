@@ -229,3 +229,21 @@ def test_a_sweep_that_solves_nothing_exits_2(tmp_path, monkeypatch):
     assert res.exit_code == 2, res.output
     assert "0 of 6 scenarios solved, 6 failed" in res.output
     assert "no scenario solved" in res.stderr and "simulated failure" in res.stderr
+
+
+def test_a_sweep_says_which_model_it_solved(tmp_path):
+    # review AX: the homogeneous calibration's sweep and a diagnosis refit's printed the
+    # same lines, and nothing said that the diagnosis had named an effect elsewhere
+    import json
+
+    work = make_box_work(tmp_path / "work")
+    c1 = json.loads((work / "calibration.json").read_text())["c1_pa"]
+    args = ["sweep", str(work), "--out", str(tmp_path / "S"), "--plan", "sphere:6", "--serial"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert f"model: c1 {c1:.1f} Pa, homogeneous, neo-hookean (uncoupled), from {work}" in res.output
+    assert "names" not in res.output
+    (work / "diagnosis.json").write_text(json.dumps({"named": ["skin"]}))
+    res = CliRunner().invoke(app, args)  # resumed: nothing pending, the same lines
+    assert res.exit_code == 0, res.output
+    assert f"diagnosis.json names skin: {work / 'diagnosis' / 'refit'} holds" in res.output

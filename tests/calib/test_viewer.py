@@ -364,6 +364,12 @@ def test_view_options_are_checked_before_the_page(tmp_path, monkeypatch):
         args = ["view", str(tmp_path), "--port", "0", "--screenshot", str(tmp_path / shot)]
         res = CliRunner().invoke(app, args)
         assert res.exit_code == 2 and says in res.output, res.output
+    # review AX: a folder with nothing to draw (no calibration, no surrogate) saved an
+    # empty page and exited 0
+    args = ["view", str(tmp_path), "--port", "0", "--screenshot", str(tmp_path / "s.png")]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2 and "--screenshot: nothing to draw in" in res.output
+    assert "this folder has no calibration" in res.output and not (tmp_path / "s.png").exists()
     monkeypatch.setenv("CHROMIUM", str(tmp_path / "no-chromium"))
     with pytest.raises(BrowserError, match=r"cannot start .*no-chromium \(\$CHROMIUM\)"):
         HeadlessBrowser().__enter__()
