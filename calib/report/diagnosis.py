@@ -320,6 +320,17 @@ def _mesh_paragraph(doc: dict) -> str:
             f"mesh: {errs}.</p>")  # fmt: skip
 
 
+def _cut_text(cut: float | None) -> str | None:
+    """The gap's cut above the floor as printed; past 100 % the after lies under the floor.
+
+    (Review AX: "202 %" beside a map of 0.207 -> 0.202 mm read as a bug: the mean
+    |residual| before stood 0.011 mm above the floor, and the after fell under it.)
+    """
+    if cut is None:
+        return None
+    return f"{100 * cut:.0f} %" + (" (after: under the floor)" if cut > 1.0 else "")
+
+
 def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
     """The report page from ``diagnosis.json``'s document and the figures (relative paths)."""
     esc = html.escape
@@ -329,7 +340,7 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
         rb, ra = _gap_means(g)
         cut = g.get("cut_above_floor")  # a share: shown as the command prints it
         gap_rows.append([name, g["role"], b["mean"], a.get("mean"), b["p95"], a.get("p95"),
-                         rb, ra, None if cut is None else f"{100 * cut:.0f} %"])  # fmt: skip
+                         rb, ra, _cut_text(cut)])  # fmt: skip
     gap = _table(["scan", "role", "mean before", "mean after", "p95 before", "p95 after",
                   "mean |residual| before", "after", "cut above floor"], gap_rows)  # fmt: skip
     eff_rows = [[k, v.get("status"), v.get("statistic"), v.get("p_value"), v.get("p_holm"),
@@ -462,7 +473,7 @@ def format_diagnosis(doc: dict) -> str:
         lines.append(f"{name:15s} {g['role']:10s} {b:12.3f} "
                      f"{'' if a is None else f'{a:.3f}':>11s} {rb:18.3f} "
                      f"{'' if not np.isfinite(ra) else f'{ra:.3f}':>6s} "
-                     f"{'' if cut is None else f'{100 * cut:.0f} %':>16s}")  # fmt: skip
+                     f"{_cut_text(cut) or '':>16s}")  # fmt: skip
     for name, g in doc["gap"].items():
         if g.get("failed"):
             lines.append(f"{name} ({g['role']}): {g['failed']}")
