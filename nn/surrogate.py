@@ -398,11 +398,14 @@ class Surrogate:
                 if self.prestressed and np.any(below & outq)
                 else ""
             )
+            k = int(np.flatnonzero(outq)[0])
+            glo, ghi = (b * c1[k] / rho for b in (qlo, qhi))  # in m/s^2 at this c1
+            # review AX: a unit vector given (as simulate's direction) read as 1 m/s^2
             warnings.warn(
-                f"load rho g / c1 = {q[outq][0]:.6g} 1/m lies outside the trained "
-                f"range [{qlo:.6g}, {qhi:.6g}] 1/m (gravity magnitude "
-                f"{np.linalg.norm(g[outq][0]):.4g} m/s^2): the surrogate "
-                f"extrapolates{pre}{beyond}",
+                f"gravity magnitude {np.linalg.norm(g[k]):.4g} m/s^2 at c1 = {c1[k]:.6g} Pa "
+                f"lies outside the trained [{glo:.4g}, {ghi:.4g}] m/s^2 (the gravity vector's "
+                f"length is its magnitude; load rho g / c1 = {q[k]:.6g} 1/m against "
+                f"[{qlo:.6g}, {qhi:.6g}]): the surrogate extrapolates{pre}{beyond}",
                 category,
                 stacklevel=3,
             )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -92,6 +93,13 @@ def simulate(
         f"{summary['nipple_displacement_mm']:.2f} mm  max {summary['max_displacement_mm']:.2f} mm  "
         f"{summary['newton_iterations']} Newton iterations, {summary['load_steps']} load steps, "
         f"{summary['dofs']} dofs, {summary['wall_s']:.1f} s -> {out}"
+    )
+    # review AX: --gravity 0,4.9,0 and 0,1,0 gave one answer without a word (predict's
+    # --gravity is m/s^2 in the phantom frame): say how it was read
+    length = math.hypot(*opts.gravity)
+    typer.echo(
+        f"  gravity: the direction {gravity} in the mesh's own frame, of magnitude --g "
+        f"{g:g} m/s^2" + ("" if abs(length - 1.0) < 1e-6 else f" (its length {length:g} unused)")
     )
 
 

@@ -260,8 +260,10 @@ def test_bad_queries(ours, box_data):
         ours.predict([[0.0, 0.0, 9.81], [9.81, 0.0, 0.0]], c1_pa=[c1, c1, c1])
     with pytest.warns(nn.ExtrapolationWarning, match="c1 = 1000 Pa lies outside the trained"):
         ours.predict([0.0, 0.0, 9.81], c1_pa=1000.0)
-    with pytest.warns(nn.ExtrapolationWarning, match="load rho g / c1"):
-        ours.predict([0.0, 0.0, 2 * 9.81], c1_pa=c1)
+    with pytest.warns(nn.ExtrapolationWarning, match=r"gravity magnitude 19\.62 m/s\^2 at c1"):
+        ours.predict([0.0, 0.0, 2 * 9.81], c1_pa=c1)  # the trained 9.81 (one c1, one g)
+    with pytest.warns(nn.ExtrapolationWarning, match=r"outside the trained \[9\.81, 9\.81\] m/s"):
+        ours.predict([0.0, 0.0, 1.0], c1_pa=c1)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # in range: silent
         ours.predict([0.0, 0.0, 9.81], c1_pa=c1)
