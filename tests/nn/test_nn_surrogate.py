@@ -123,36 +123,6 @@ def test_the_reported_leave_one_out_refits_the_linear_term_too(box_data):
     assert _loo_model_error(X[three], Y[three] @ W, W, Y[three], gamma, lam) > 0.1
 
 
-def test_the_leave_one_out_by_one_inverse_is_the_refit_without_each_scenario():
-    # the reported leave-one-out error, from one inverse of K + ridge I (O(S^3)), against
-    # a solve without each scenario (O(S^4), the form it replaced), in POD coordinates:
-    # the same number up to round-off times the conditioning of K (1e-8 relative with a
-    # ridge 1e-9 of the diagonal on smooth loads; 1e-6 allowed). Loads in one plane (a
-    # transverse plan) leave the linear term rank deficient: the min-norm fit in both
-    from nn.reduced import _loo_model_error, _pod
-
-    def refit_each(X, C, V, Y, gamma, ridge):
-        K, errs = _kernel(X, X, gamma), []
-        for i in range(len(X)):
-            keep = np.arange(len(X)) != i
-            L = np.linalg.lstsq(X[keep], C[keep], rcond=None)[0]
-            Kk = K[np.ix_(keep, keep)] + ridge * np.eye(len(X) - 1)
-            pred = (X[i] @ L + K[i, keep] @ np.linalg.solve(Kk, C[keep] - X[keep] @ L)) @ V.T
-            errs.append(np.linalg.norm((pred - Y[i]).reshape(-1, 3), axis=1).mean())
-        return float(np.mean(errs))
-
-    rng = np.random.default_rng(4)
-    for planar in (False, True):
-        d = rng.normal(size=(60, 3))
-        d[:, 2] *= 0.0 if planar else 1.0
-        X = d / np.linalg.norm(d, axis=1)[:, None] * rng.uniform(0.5, 1.0, (60, 1))
-        Y = X @ rng.normal(size=(3, 90)) + 0.3 * np.sin(X @ rng.normal(size=(3, 90)))
-        V = _pod(Y, 1e-6)
-        for gamma, ridge in ((3.0, 1e-9), (30.0, 1e-12)):
-            fast = _loo_model_error(X, Y @ V, V, Y, gamma, ridge)
-            assert fast == pytest.approx(refit_each(X, Y @ V, V, Y, gamma, ridge), rel=1e-6)
-
-
 def test_kernel_recovers_a_smooth_field_with_a_c1_axis():
     # synthetic data: u(b) = A b + B (b . n)^2 m (u(0) = 0), over directions and loads
     from nn.data import SweepData
