@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import numbers
 import re
 import tomllib
@@ -118,10 +119,16 @@ class Session:
 
 
 def is_finite_number(value) -> bool:
-    """``value`` is a finite int or float as read from TOML or JSON (a bool is no number)."""
-    return (
-        isinstance(value, (int, float)) and not isinstance(value, bool) and bool(np.isfinite(value))
-    )
+    """``value`` is a finite int or float as read from TOML or JSON (a bool is no number).
+
+    An integer beyond a float's range (TOML and JSON allow them) is not finite.
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # review AY: np.isfinite raised a bare TypeError
+        return False
 
 
 def _vector(value, where: str) -> np.ndarray:

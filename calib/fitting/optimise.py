@@ -175,7 +175,9 @@ def prepare(
             ) from exc
         return cal, theta0, attempts
 
-    sizes = (options.mesh_size_mm, *options.mesh_retry_mm)
+    # each size once (review AW: calib.calibrate(..., mesh_size_mm=14) tried 14 again as
+    # the default's first retry; review AY: kept in the options, replace() would lose one)
+    sizes = tuple(dict.fromkeys(float(s) for s in (options.mesh_size_mm, *options.mesh_retry_mm)))
     for size in sizes[:-1]:
         try:
             return attempt(size)

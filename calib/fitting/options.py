@@ -85,8 +85,8 @@ class CalibrationOptions:
     mesh_size_mm : float
         Element edge length of the model mesh.
     mesh_retry_mm : tuple of float
-        Sizes tried in turn when no stress-free reference exists on a mesh (each once,
-        ``mesh_size_mm`` left out).
+        Sizes tried in turn when no stress-free reference exists on a mesh (each size is
+        tried once, ``mesh_size_mm`` first).
     mesh_max_dihedral_deg : float or None
         TetGen's optimisation bound on the largest dihedral angle of the model mesh
         (:func:`fem.meshing.tetrahedralize`); None keeps the ``tetgen`` package's (177
@@ -149,10 +149,6 @@ class CalibrationOptions:
         for name, value in numbers_of:
             if isinstance(value, bool) or not isinstance(value, numbers.Real):
                 raise ValueError(f"{name} must be a number, got {value!r}")
-        # each size once, the size asked for first (review AW: calib.calibrate(...,
-        # mesh_size_mm=14) tried 14 again as the default's first retry)
-        retries = dict.fromkeys(float(s) for s in self.mesh_retry_mm if s != self.mesh_size_mm)
-        object.__setattr__(self, "mesh_retry_mm", tuple(retries))
         from fem import FORMULATIONS
 
         if self.formulation not in FORMULATIONS:

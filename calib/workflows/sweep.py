@@ -101,13 +101,6 @@ class SweepOptions:
             raise ValueError(f"unknown backend {self.backend!r}; choose serial, pool or dask")
         if self.backend == "serial" and self.workers is not None:  # review AT, AU: ignored
             raise ValueError("--serial (backend 'serial') solves in this process: drop --workers")
-        if self.dask is not None and self.backend != "dask":  # review AW: it was ignored
-            raise ValueError(f"--dask goes with backend 'dask', not {self.backend!r}")
-        if self.dask not in (None, "local") and self.workers is not None:
-            raise ValueError(
-                f"--workers sizes a LocalCluster (--dask local); the scheduler at {self.dask} "
-                "has its own workers: drop --workers"
-            )
         for name, value in (
             ("--workers", 2 if self.workers is None else self.workers),
             ("--chunk-size", self.chunk_size),
@@ -122,6 +115,13 @@ class SweepOptions:
                     f"--dask must be 'local' or a scheduler address tcp://HOST:PORT, "
                     f"got {self.dask!r}"
                 )
+        if self.dask is not None and self.backend != "dask":  # review AW: it was ignored
+            raise ValueError(f"--dask goes with backend 'dask', not {self.backend!r}")
+        if self.dask not in (None, "local") and self.workers is not None:
+            raise ValueError(
+                f"--workers sizes a LocalCluster (--dask local); the scheduler at {self.dask} "
+                "has its own workers: drop --workers"
+            )
 
 
 def _versions() -> dict:

@@ -122,6 +122,12 @@ BAD_SESSIONS = [
         r"scanner.gravity must be a list of 3 numbers",
     ),
     (
+        # review AY: an integer beyond a float's range was a bare TypeError (np.isfinite)
+        "tumour-huge-integer",
+        VALID_TOML.replace("tumour = [12.0, -30.5, 40.2]", "tumour = [12, -30, " + "9" * 400 + "]"),
+        r"landmarks.tumour must be a list of 3 numbers",
+    ),
+    (
         "tumour-malformed",
         VALID_TOML.replace("tumour = [12.0, -30.5, 40.2]", "tumour = [[12.0, -30.5, 40.2]]"),
         r"landmarks.tumour must be a list of 3 numbers",

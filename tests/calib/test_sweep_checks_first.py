@@ -47,6 +47,10 @@ def no_reading(monkeypatch):
         # workers are its own), was ignored without a word
         ({"backend": "serial", "dask": "local"}, "--dask goes with backend 'dask', not 'serial'"),
         ({"backend": "pool", "dask": "tcp://10.0.0.5:8786"}, "--dask goes with backend 'dask'"),
+        # its form first (review AY: "LOCAL" was called a scheduler, and "" given on the
+        # command line, which picks the pool, was said to need backend dask)
+        ({"backend": "dask", "dask": "LOCAL", "workers": 3}, "--dask must be 'local' or"),
+        ({"backend": "pool", "dask": ""}, "--dask must be 'local' or .*got ''"),
         (
             {"backend": "dask", "dask": "tcp://10.0.0.5:8786", "workers": 4},
             "the scheduler at tcp://10.0.0.5:8786 has its own workers: drop --workers",
