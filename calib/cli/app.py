@@ -249,7 +249,9 @@ def calibrate(
             nu=nu, profile_points=profile, mesh_check_ratio=mesh_check,
             mesh_max_dihedral_deg=mesh_max_dihedral, c1_guess_pa=c1_guess,
         )  # fmt: skip
-        doc = run_calibration(scans, out, opts, progress=lambda msg: typer.echo(f"  {msg}"))
+        # every line indented (the ingest table it may print is several)
+        say = lambda msg: typer.echo("\n".join(f"  {line}" for line in msg.splitlines()))  # noqa: E731
+        doc = run_calibration(scans, out, opts, progress=say)
     except (ValueError, OSError, RuntimeError) as exc:
         fail(exc)
     typer.echo(format_calibration(doc))

@@ -215,8 +215,11 @@ def _uncertainty(cal: Calibrator, theta: float, say):
         unc = gauss_newton_uncertainty(c1, r, dr, pts, area_mm2=area)
     check, ci95 = _mesh_check(cal, theta, unc, say)
     if cal.options.profile_points >= 2:
-        say(f"likelihood profile over c1: {cal.options.profile_points} points")
-    profile = likelihood_profile(cal, theta, unc.se_ln_c1, unc.n_effective)
+        say(
+            f"likelihood profile over c1: {cal.options.profile_points} points (a check of "
+            "the interval's shape, calibration.json's profile; --profile 0 skips it)"
+        )
+    profile = likelihood_profile(cal, theta, unc.se_ln_c1, unc.n_effective, say=say)
     return unc, check, ci95, profile, model_fit
 
 

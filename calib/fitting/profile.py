@@ -177,18 +177,29 @@ def profile_rows(prof: ProfileInterval, n_residuals: int) -> list[dict]:
     return sorted(rows + failed, key=lambda row: row["c1_pa"])
 
 
-def likelihood_profile(cal, theta: float, se: float | None, n_eff: float) -> list[dict]:
+def likelihood_profile(
+    cal, theta: float, se: float | None, n_eff: float, *, say=None
+) -> list[dict]:
     """The objective on ``profile_points`` values of ln c1 around ``theta`` (+-2 se).
 
     Each row has ``c1_pa``, ``objective`` and ``minus2_delta_loglik`` (``n_eff ln(J/J_min)``,
     the Gaussian profile with the noise level profiled out); a point whose FE solve fails
-    is recorded with ``"failed": true``, not fatal.
+    is recorded with ``"failed": true``, not fatal. ``say`` (optional) is called with a
+    line per point (review AX: a minute of FE solves passed without a word).
     """
     k = cal.options.profile_points
     if k < 2:
         return []
     half = max(2.0 * se, 0.05) if se is not None and np.isfinite(se) else 0.2
-    rows = [_profile_point(cal, float(t)) for t in np.linspace(theta - half, theta + half, k)]
+    rows = []
+    for j, t in enumerate(np.linspace(theta - half, theta + half, k), start=1):
+        rows.append(_profile_point(cal, float(t)))
+        if say is not None:
+            row = rows[-1]
+            value = (
+                "no FE solution" if row.get("failed") else f"objective {row['objective']:.4g} mm^2"
+            )
+            say(f"  profile point {j}/{k}: c1 = {row['c1_pa']:.1f} Pa, {value}")
     jmin = min((row["objective"] for row in rows if not row.get("failed")), default=None)
     for row in rows:
         if not row.get("failed"):

@@ -271,7 +271,8 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
         from .ingest import run_ingest
 
         say(f"ingesting the scans ({'; '.join(reasons)})")
-        run_ingest(scans_dir, work)
+        ingested = run_ingest(scans_dir, work)
+        say(ingested.summary_table)  # as `phantom-calib ingest` prints it (review AX)
     meas = load_measurements(work, session)
     fitted_run = run_id_of(work / "scans")
     calibration = fit(meas, options, density_kg_m3=session.density_kg_m3, progress=say)

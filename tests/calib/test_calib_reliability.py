@@ -166,6 +166,8 @@ def test_a_swapped_reference_is_re_ingested_and_said(scans, tmp_path):
         result = _calibrate(scans, work)
     assert result.exit_code == 0, result.output
     assert "ingesting the scans (session.toml changed" in result.output
+    # and its registration table, as `phantom-calib ingest` prints it (review AX)
+    assert "  scan           role         FRE mm  TRE nipple mm" in result.output
     # right_lateral is the reference now: its registration is the identity, and the
     # calibration fitted left_lateral (not the new reference against itself)
     ing = json.loads((work / "scans" / "right_lateral" / "ingest.json").read_text())

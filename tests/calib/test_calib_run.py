@@ -502,6 +502,11 @@ def test_failed_profile_point_is_recorded_not_fatal():
     assert failed and all(r["c1_pa"] < 480.0 and r["objective"] is None for r in failed)
     ok = [r for r in rows if not r.get("failed")]
     assert len(ok) == 5 - len(failed) and min(r["minus2_delta_loglik"] for r in ok) == 0.0
+    # a line per point (review AX: a minute of FE solves passed without a word)
+    said = []
+    calib.fitting.profile.likelihood_profile(cal, np.log(500.0), 0.05, 10.0, say=said.append)
+    assert len(said) == 5 and said[0].startswith("  profile point 1/5: c1 = 452.4 Pa, no FE")
+    assert "objective" in said[-1]
 
 
 def test_scan_without_solution_at_the_calibrated_c1_is_reported():
