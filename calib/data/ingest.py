@@ -371,15 +371,24 @@ def _register(session: Session, scans: dict, landmarks: bool):
             | ({"tumour": r.tumour_lps_mm} if r.tumour_lps_mm is not None else {})
             for n, r in scans.items()
         }
-    return registration.register_scans(
-        fids,
-        reference=session.reference.name,
-        gravity_scanner=session.gravity_scanner,
-        nominal_gravity=nominal if len(nominal) >= 2 else None,
-        landmarks_by_scan=marks,
-        plate_normals_by_scan={n: r.back_plane.normal for n, r in scans.items()},
-        footprints_by_scan=_footprints(scans),
-    )
+    # the first pass (without landmarks, for the inclusion tracking) is said by the second:
+    # its lines and warnings were printed twice (review AX)
+    quiet = logging.getLogger("registration")
+    level = quiet.level
+    if not landmarks:
+        quiet.setLevel(logging.ERROR)
+    try:
+        return registration.register_scans(
+            fids,
+            reference=session.reference.name,
+            gravity_scanner=session.gravity_scanner,
+            nominal_gravity=nominal if len(nominal) >= 2 else None,
+            landmarks_by_scan=marks,
+            plate_normals_by_scan={n: r.back_plane.normal for n, r in scans.items()},
+            footprints_by_scan=_footprints(scans),
+        )
+    finally:
+        quiet.setLevel(level)
 
 
 def _footprints(scans: dict) -> dict:

@@ -7,6 +7,7 @@ module. Tolerances are the accuracy bars of issues 3 (imaging), 4 (registration)
 from __future__ import annotations
 
 import json
+import logging
 
 import numpy as np
 import pytest
@@ -23,11 +24,32 @@ def twin(tmp_path_factory):
     base = tmp_path_factory.mktemp("twin")
     out, work = base / "twin", base / "work"
     record = synthesize(out, preset="quick", seed=0)
-    result = run_ingest(out / "scans", work)
+    said = []  # the registration's log lines (review AX: each was printed twice)
+    handler = logging.Handler(logging.INFO)
+    handler.emit = lambda rec: said.append(rec.getMessage())
+    logger = logging.getLogger("registration")
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        result = run_ingest(out / "scans", work)
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
     truth = json.loads((out / "truth" / "truth.json").read_text())
     assert truth == json.loads(json.dumps(record))  # the returned record is what was sealed
     ingested = {name: load_ingest(work, name) for name in truth["scans"]}
-    return {"out": out, "work": work, "truth": truth, "ingest": ingested, "result": result}
+    return {"out": out, "work": work, "truth": truth, "ingest": ingested, "result": result,
+            "registration_log": said}  # fmt: skip
+
+
+def test_each_scan_s_registration_is_said_once(twin):
+    # ingest registers twice (without, then with landmarks, for the inclusion tracking);
+    # `-v ingest` printed every "registered" line twice (review AX)
+    said = [s for s in twin["registration_log"] if s.startswith("registered ")]
+    assert sorted(s.split(":")[0] for s in said) == sorted(
+        f"registered {name}" for name in twin["truth"]["scans"]
+    )
 
 
 def _reference(truth) -> str:
