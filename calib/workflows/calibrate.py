@@ -232,7 +232,9 @@ def _posture_line(test, names: dict) -> str:
     return (
         f"POSTURE INCONSISTENCY: the scans alone ask for different c1 ({own}; Cochran Q "
         f"p = {test.p_value:.2g} < {test.alpha:g}): the model misses an effect that "
-        "changes with posture"
+        "changes with posture, or its mesh errs unlike in each posture (the test leaves the "
+        "model mesh's discretisation out: a homogeneous quick twin on a 14 mm mesh fires "
+        "it); `phantom-calib diagnose` tells which"
     )
 
 

@@ -525,3 +525,18 @@ def test_scan_without_solution_at_the_calibrated_c1_is_reported():
     assert out.failed is not None and "load not applied" in out.failed
     assert out.to_json() == {"role": "validation", "gravity_ref": [0.0, 0.0, 1.0],
                              "posture": posture, "failed": out.failed}  # fmt: skip
+
+
+def test_the_posture_test_s_verdict_says_what_it_leaves_out():
+    # review AX: on a homogeneous quick twin (14 mm) calibrate said "the model misses an
+    # effect that changes with posture" and diagnose "no missing effect", unreconciled
+    from types import SimpleNamespace
+
+    from calib.workflows.calibrate import _posture_line
+
+    est = [SimpleNamespace(label=0, theta=np.log(424.4)), SimpleNamespace(label=1, theta=6.07)]
+    test = SimpleNamespace(verdict="inconsistent", estimates=est, p_value=0.0014, alpha=0.04)
+    line = _posture_line(test, {0: "right_lateral", 1: "tilt_50"})
+    assert line.startswith("POSTURE INCONSISTENCY: the scans alone ask for different c1 ")
+    assert "right_lateral 424 Pa, tilt_50 433 Pa; Cochran Q p = 0.0014 < 0.04" in line
+    assert "leaves the model mesh's discretisation out" in line and "diagnose" in line
