@@ -325,7 +325,8 @@ def fit(
     also = f", {before} of them in {aside}" if before else ""
     say(
         f"c1 = {c1:.1f} Pa after {status.iterations} iterations "
-        f"({before + cal.fm.solves} FE solves{also})"
+        f"({before + cal.fm.solves} FE solves so far{also}; the interval, mesh check and "
+        "final states add theirs)"
     )
     unc, check, ci95, profile, model_fit = _uncertainty(cal, theta, say)
     cal.fm.stress_free(theta)  # the calibrated c1's geometry again (the profile moved it)

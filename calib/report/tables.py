@@ -122,7 +122,8 @@ def format_calibration(doc: dict) -> str:
     lines = [
         f"c1 = {doc['c1_pa']:.1f} Pa  ({interval}), objective {doc['objective']}, "
         + reference_state_said(doc["reference_state"], doc.get("reference_recovery")),
-        f"{doc['iterations']} iterations, {doc['fe_solves']} FE solves, {doc['wall_s']:.0f} s",
+        f"{doc['iterations']} iterations, {doc['fe_solves']} FE solves in all, "
+        f"{doc['wall_s']:.0f} s",
         *_uncertainty_lines(doc.get("uncertainty", {}), doc["objective"]),
         *_optimiser_lines(doc.get("optimiser")),
         *_model_fit_lines(doc.get("model_fit"), doc.get("reference_recovery")),

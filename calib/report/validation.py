@@ -108,9 +108,10 @@ def error_surface_figure(
             title=label,
         )
         # labels clear of the tick labels (review AG: x's sat on them)
-        ax.set_xlabel("x (mm)", labelpad=10)
-        ax.set_ylabel("y (mm)", labelpad=10)
-        ax.set_zlabel("z (mm)", labelpad=8)
+        # the frame named (review AX: the calibration's maps are in the reference scan's)
+        ax.set_xlabel("x (mm, phantom frame)", labelpad=10)
+        ax.set_ylabel("y (mm, phantom frame)", labelpad=10)
+        ax.set_zlabel("z (mm, phantom frame)", labelpad=8)
         ax.set_box_aspect(hi - lo)
         ax.view_init(elev=elev, azim=azim)
         hidden = ax.zaxis if elev == 90.0 else ax.yaxis  # the axis along the line of sight
@@ -163,7 +164,10 @@ def error_by_displacement_figure(scans: list[ScanValidation]):
             f"{sv.name} ({sv.role}, {sv.posture_label}): mean "
             f"{err.mean():.2f} mm, p95 {np.percentile(err, 95):.2f} mm"
         )
-        ax.legend(fontsize=8)
+        # review AX: "moved" said from where (the model surface, from the reference scan)
+        ax.legend(
+            fontsize=8, title="model surface moved\nfrom the reference scan", title_fontsize=8
+        )
     return fig
 
 
