@@ -619,6 +619,17 @@ def _caveats(doc: dict) -> list[str]:
         levels = doc["scans"].get("imaging_noise_mm") or {}
         each = ", ".join(f"{n} {v:.3g}" for n, v in levels.items())
         out.append(f"scans imaged unlike (voxel x image noise {each}): each tested at its level")
+    m = doc["noise"].get("model") or {}
+    reach, length = m.get("max_lag_mm"), m.get("length_mm")
+    if length is not None and (m.get("length_at_bound") or (reach and length >= reach)):
+        # review AX: "misfit test: p = 1, fits" beside "named: skin", at a 51 mm length
+        past = f"the variogram's {reach:g} mm" if reach else "its search bound"
+        out.append(
+            f"the noise model's correlation length ({length:.0f} mm) reaches past "
+            f"{past}: smooth structure was taken for noise, so the "
+            "misfit test cannot tell a smooth misfit from noise here (the screen still tests "
+            "the library's effects)"
+        )
     if left := doc["model_mesh"].get("inclusions_left_out"):
         out.append(
             f"the inclusions effect leaves out {left} region(s) of inclusion contrast too large "

@@ -2509,3 +2509,18 @@ def test_a_cut_past_the_whole_gap_says_the_after_lies_under_the_floor():
 
     assert _cut_text(0.5) == "50 %" and _cut_text(1.0) == "100 %" and _cut_text(None) is None
     assert _cut_text(2.02) == "202 % (after: under the floor)"
+
+
+def test_a_noise_model_longer_than_its_variogram_is_said_to_blind_the_misfit_test():
+    # review AX: "Misfit test (band F): p = 1, fits" beside "named: skin": the noise model
+    # (51 mm, its variogram reaching 40 mm) had taken the skin's print for noise
+    from calib.report.diagnosis import _caveats
+
+    def doc(length_mm, at_bound=False):
+        model = {"length_mm": length_mm, "max_lag_mm": 40.0, "length_at_bound": at_bound}
+        return {"scans": {}, "noise": {"model": model}, "model_mesh": {}}
+
+    (said,) = _caveats(doc(51.4))
+    assert said.startswith("the noise model's correlation length (51 mm) reaches past the ")
+    assert "variogram's 40 mm" in said and "cannot tell a smooth misfit from noise" in said
+    assert _caveats(doc(12.0)) == [] and len(_caveats(doc(12.0, at_bound=True))) == 1
