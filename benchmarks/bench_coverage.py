@@ -27,6 +27,10 @@ Tables (``--table``):
   quadrature by the tool) is zero here: there is no discretisation in a linear model.
 - ``misfit``: false-alarm rate of :func:`calib.stats.scores.misfit_test` (band-F and
   chi2) on null residuals, and power against an added smooth ``p2`` pattern.
+- ``session``: the misfit test as ``diagnose`` runs it, at the quietest scan's noise
+  fit (:func:`calib.stats.noise.session_noise`, per-scan offsets projected out), against
+  the true model and with each scan's own fit as further alternatives (review AV's
+  proposal): false alarms on null residuals and power against a 30 mm bump at the apex.
 - ``screen``: per-effect and family-wise (Holm) false-positive rates of
   :func:`calib.stats.scores.screen_effects` on null residuals, power for one effect,
   and the power at the size the screening reports as detectable.
@@ -290,6 +294,77 @@ def print_misfit(results: list[dict]) -> None:
         for m in ("band-F", "chi2"):
             row = " | ".join(f"{binom(res['p'][(m, a)] < 0.01):>10s}" for a in amps)
             print(f"| {res['cell'].label:36s} | {m:6s} | {row} |")
+
+
+# ---------------------------------------------------------- misfit with the session fit
+
+
+def session_cells(quick: bool) -> list[Cell]:
+    if quick:
+        return [Cell("exponential", 12.0, 0.1, 0.2, 500, 2)]
+    return [
+        Cell("exponential", 12.0, 0.1, 0.2, 500, 2),
+        Cell("exponential", 10.0, 0.2, 0.1, 1000, 3),
+        Cell("exponential", 5.0, 0.2, 0.1, 1000, 3),
+    ]
+
+
+SESSION_VARIANTS = ("true model", "session fit", "+ each scan's fit")
+
+
+def run_session(cell: Cell, draws: int, seed: int) -> dict:
+    """``diagnose``'s misfit test (band F at its noise model, the quietest scan's fit of
+    the per-scan centred residual, ``calib.stats.noise.session_noise``) on null draws and
+    against a 30 mm bump at the apex in every scan, beside the true model and the
+    session fit with each scan's own fit as further alternatives (review AV)."""
+    from calib.stats.noise import session_noise
+
+    sample = phantom_sample(cell.n_per_scan, cell.n_scans, seed=seed)
+    c1 = sag_sensitivity(sample)
+    offsets = np.column_stack([sample.scan == k for k in sample.labels]).astype(float)
+    J = np.column_stack([c1, offsets])
+    design = misfit_design(sample, J)
+    sampler = NoiseSampler.of(sample, cell.model())
+    bump = misfit_pattern(sample, kind="bump") * cell.sigma_mm
+    rng = np.random.default_rng(seed + 5)
+    amps = (0.0, 2.0, 4.0, 8.0)  # the bump's RMS in units of sigma
+    p = {(v, a): [] for v in SESSION_VARIANTS for a in amps}
+    t0 = time.perf_counter()
+    for k in range(draws):
+        eps = sampler.draw(rng)[:, 0]
+        for amp in amps if k < POWER_DRAWS else (0.0,):
+            x = eps + amp * bump
+            r = x - c1 * float(c1 @ x) / float(c1 @ c1)
+            r_c = r - offsets @ np.linalg.lstsq(offsets, r, rcond=None)[0]
+            fit = session_noise(sample, r_c, max_lag_mm=40.0)
+            others = [m for s, m in fit.scan_fits.items() if s != fit.reference_scan]
+            each = (*fit.alternatives, dict(fit.scan_fits), *others)
+            for variant, noise, alt in (
+                ("true model", cell.model(), ()),
+                ("session fit", fit.best_arg, fit.alternatives),  # diagnose's
+                ("+ each scan's fit", fit.best_arg, each),
+            ):
+                res = misfit_test(r, J, sample, noise, alternatives=alt, design=design)
+                p[(variant, amp)].append(res.p_value)
+    _progress("session", cell, t0)
+    return {"cell": cell, "p": {k: np.array(v) for k, v in p.items()}, "amps": amps,
+            "seconds": time.perf_counter() - t0}  # fmt: skip
+
+
+def print_session(results: list[dict]) -> None:
+    print(
+        "\nMisfit test with diagnose's session noise fit: rejection rate % (binomial se), "
+        "band F; null draws, then power at alpha = 0.01 against a 30 mm bump at the apex "
+        "of RMS 2, 4 and 8 sigma in every scan"
+    )
+    print(f"| {'cell':36s} | {'noise model':18s} | a=0.05 null | a=0.01 null | "
+          "bump 2 sigma | bump 4 sigma | bump 8 sigma |")  # fmt: skip
+    for res in results:
+        for v in SESSION_VARIANTS:
+            row = [binom(res["p"][(v, 0.0)] < a) for a in (0.05, 0.01)]
+            row += [binom(res["p"][(v, a)] < 0.01) for a in res["amps"][1:]]
+            print(f"| {res['cell'].label:36s} | {v:18s} | " + " | ".join(f"{c:>11s}" for c in row)
+                  + " |")  # fmt: skip
 
 
 # ------------------------------------------------------------------------ screening
@@ -558,7 +633,16 @@ def main() -> None:
     ap.add_argument(
         "--table",
         default="coverage",
-        choices=["coverage", "misfit", "screen", "postures", "variogram", "effective", "all"],
+        choices=[
+            "coverage",
+            "misfit",
+            "session",
+            "screen",
+            "postures",
+            "variogram",
+            "effective",
+            "all",
+        ],
     )
     ap.add_argument("--draws", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
@@ -566,7 +650,8 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="2 cells, 200 draws")  # fmt: skip
     args = ap.parse_args()
     draws = 200 if args.quick else args.draws
-    tables = ["coverage", "misfit", "screen", "postures", "variogram", "effective"] \
+    tables = ["coverage", "misfit", "session", "screen", "postures", "variogram",
+              "effective"] \
         if args.table == "all" \
         else [args.table]  # fmt: skip
     t0 = time.perf_counter()
@@ -580,6 +665,9 @@ def main() -> None:
         jobs = [(c, draws, args.seed, c.n_scans == 1 and c.length_mm in (2.0, 5.0, 10.0, 20.0)
                  and c.kernel == "exponential") for c in cells]  # fmt: skip
         print_misfit(_map(run_misfit, jobs, args.workers))
+    if "session" in tables:
+        cells = session_cells(args.quick)
+        print_session(_map(run_session, [(c, draws, args.seed) for c in cells], args.workers))
     if "screen" in tables:
         cells = screen_cells(args.quick)
         print_screen(_map(run_screen, [(c, draws, args.seed) for c in cells], args.workers))
