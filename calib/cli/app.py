@@ -103,6 +103,11 @@ def simulate(
     )
 
 
+def _indented(msg: str) -> None:
+    """A progress message, every line indented (the ingest table calibrate prints is several)."""
+    typer.echo("\n".join(f"  {line}" for line in msg.splitlines()))
+
+
 @app.command()
 def init(
     scans: Annotated[Path, typer.Argument(help="Folder of DICOM series folders / volume files.")],
@@ -144,8 +149,8 @@ def ingest(
     if stale:  # review AX: said only when validate or diagnose refused them later
         typer.secho(
             f"warning: {out}: {', '.join(stale)} fitted to the previous ingest no longer "
-            "apply (validate, diagnose, sweep and view refuse them): run `phantom-calib "
-            "calibrate` again",
+            "apply (validate, diagnose and sweep refuse them): run `phantom-calib calibrate` "
+            "again",
             fg=typer.colors.YELLOW, err=True,
         )  # fmt: skip
 
@@ -249,9 +254,7 @@ def calibrate(
             nu=nu, profile_points=profile, mesh_check_ratio=mesh_check,
             mesh_max_dihedral_deg=mesh_max_dihedral, c1_guess_pa=c1_guess,
         )  # fmt: skip
-        # every line indented (the ingest table it may print is several)
-        say = lambda msg: typer.echo("\n".join(f"  {line}" for line in msg.splitlines()))  # noqa: E731
-        doc = run_calibration(scans, out, opts, progress=say)
+        doc = run_calibration(scans, out, opts, progress=_indented)
     except (ValueError, OSError, RuntimeError) as exc:
         fail(exc)
     typer.echo(format_calibration(doc))
