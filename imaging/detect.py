@@ -176,7 +176,7 @@ def detect_fiducials(
             found = len(centres)
     if expected is not None and found != expected:
         listing = "; ".join(
-            f"{_at(c)} r={r:.1f} mm peak {p:.2f}"
+            f"{_at(c)} r={r:.1f} mm peak {p:.2f} x body"
             for c, r, p in zip(centres, radii, peaks, strict=True)
         )
         said = f"{source}: found {found} fiducial markers, expected {expected}"

@@ -60,7 +60,16 @@ def _process(entry, session: Session, progress):
     import imaging
 
     volume = imaging.read_volume(entry.path)
-    result = imaging.process_scan(volume, expected_fiducials=session.expected_fiducials)
+    try:
+        result = imaging.process_scan(volume, expected_fiducials=session.expected_fiducials)
+    except imaging.FiducialError as exc:
+        # review AX: the count it expected comes from session.toml, which it did not say
+        toml = session.folder / "session.toml"
+        raise type(exc)(
+            f"{exc} (the count expected is {toml}'s [phantom] fiducials = "
+            f"{session.expected_fiducials}: where the phantom has another number of "
+            "markers, set it there)"
+        ) from exc
     progress(entry.name)
     return result
 

@@ -437,3 +437,23 @@ def test_scaffold_skips_hidden_folders_and_two_scans_of_one_series_are_said(tmp_
     with caplog.at_level("WARNING", logger="calib.data.session"):
         load_session(folder)
     assert "read the same data" in caplog.text and "'left', 'tilt'" in caplog.text
+
+
+def test_a_marker_count_unlike_the_session_s_names_its_key(tmp_path, monkeypatch):
+    # review AX: "found 3 fiducial markers, expected 4" did not say where 4 came from
+    from types import SimpleNamespace
+
+    import imaging
+    from calib.data import ingest
+
+    def found_three(volume, expected_fiducials):
+        raise imaging.FiducialError(
+            f"s.nii: found 3 fiducial markers, expected {expected_fiducials}"
+        )
+
+    monkeypatch.setattr(imaging, "read_volume", lambda path: None)
+    monkeypatch.setattr(imaging, "process_scan", found_three)
+    session = SimpleNamespace(folder=tmp_path, expected_fiducials=4)
+    says = r"expected 4 \(the count expected is .*session.toml's \[phantom\] fiducials = 4"
+    with pytest.raises(imaging.FiducialError, match=says):
+        ingest._process(SimpleNamespace(path=tmp_path / "s.nii"), session, print)
