@@ -169,11 +169,18 @@ def _model_line(out: Path, work: Path) -> str:
 
 
 def _format_summary(s: dict) -> str:
+    run = s["this_run"]
+    if run["solved"] == 0 and run.get("failed", 0) == 0 and not run["workers"]:
+        # review AX: "0 solved in 0.0 s on pool (0 workers)" of a store already complete
+        this = "this run: nothing to solve (none pending; --retry-failed solves the failed again)"
+    else:
+        this = (
+            f"this run: {run['solved']} solved in {run['wall_s']:.1f} s on {run['backend']} "
+            f"({run['workers']} workers)"
+        )
     lines = [
         f"{s['solved']} of {s['n_scenarios']} scenarios solved, {s['failed']} failed, "
-        f"{s['pending']} pending; this run: {s['this_run']['solved']} solved in "
-        f"{s['this_run']['wall_s']:.1f} s on {s['this_run']['backend']} "
-        f"({s['this_run']['workers']} workers)"
+        f"{s['pending']} pending; {this}"
     ]
     for kind in ("warm", "cold"):
         k = s[kind]
