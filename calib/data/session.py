@@ -394,5 +394,13 @@ def scaffold_session(folder: str | Path, *, overwrite: bool = False) -> Path:
             for i, (n, p) in enumerate(zip(names, scans, strict=True))
         ],
     }
-    text = tomli_w.dumps(doc)
+    # what to edit, said where it is edited (review AX: init said "edit the roles and
+    # postures" and wrote no posture, nor what the roles mean)
+    text = (
+        "# written by `phantom-calib init`: edit it before ingest (README, 'The scan folder').\n"
+        "# roles: one reference (the posture the model geometry is taken from); calibration\n"
+        "# scans fit c1; validation scans check it. Give each scan its nominal posture, e.g.\n"
+        '# posture = { plane = "transverse", angle_deg = 25.0 }\n'
+        "# and [phantom] fiducials the number of markers on the plate (3 to 7).\n"
+    ) + tomli_w.dumps(doc)
     return atomic_write(target, lambda p: p.write_text(text))

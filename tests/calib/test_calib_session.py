@@ -361,6 +361,9 @@ def test_cli_init(tmp_path):
     assert result.exit_code == 0, result.output
     assert "wrote" in result.output
     assert len(load_session(folder).scans) == 4
+    # what to edit is said in the file (review AX: no posture, nor what the roles mean)
+    text = (folder / "session.toml").read_text()
+    assert text.startswith("# written by `phantom-calib init`") and "# posture = {" in text
     again = runner.invoke(app, ["init", str(folder)])
     assert again.exit_code == 2
     assert "error:" in again.stderr and "session.toml exists" in again.stderr
