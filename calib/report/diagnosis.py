@@ -125,7 +125,11 @@ def localisation_figure(scan_map, R):
         ax.set_aspect("equal")
         ax.set_xlabel(f"{lab[0]} (mm, phantom frame)")
         ax.set_ylabel(f"{lab[1]} (mm)")
-    fig.colorbar(sc, ax=axes, label="local z of the smoothed residual (noise model)")
+    # the sign said (review AX): the residual is the scan's distance along the model
+    # surface's outward normal (calib.model.residuals)
+    fig.colorbar(
+        sc, ax=axes, label="local z of the smoothed residual\n(+: the scan lies outside the model)"
+    )
     worst = max(scan_map.regions, key=lambda r: abs(r.z) if math.isfinite(r.z) else -1)
     fig.suptitle(f"{scan_map.name}: where model and scan disagree (kernel "
                  f"{scan_map.bandwidth_mm:.0f} mm); strongest region: {worst.region} "
