@@ -317,11 +317,12 @@ def run_session(cell: Cell, draws: int, seed: int) -> dict:
     the per-scan centred residual, ``calib.stats.noise.session_noise``) on null draws and
     against a 30 mm bump at the apex in every scan, beside the true model and the
     session fit with each scan's own fit as further alternatives (review AV)."""
+    from calib.discrepancy.screen import offset_columns
     from calib.stats.noise import session_noise
 
     sample = phantom_sample(cell.n_per_scan, cell.n_scans, seed=seed)
     c1 = sag_sensitivity(sample)
-    offsets = np.column_stack([sample.scan == k for k in sample.labels]).astype(float)
+    offsets = offset_columns(sample)  # as diagnose projects them out
     J = np.column_stack([c1, offsets])
     design = misfit_design(sample, J)
     sampler = NoiseSampler.of(sample, cell.model())
@@ -628,21 +629,16 @@ def _map(fn, jobs, workers):
         return pool.starmap(fn, jobs, chunksize=1)
 
 
+#: the tables, in the order ``--table all`` prints them
+TABLES = ("coverage", "misfit", "session", "screen", "postures", "variogram", "effective")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
         "--table",
         default="coverage",
-        choices=[
-            "coverage",
-            "misfit",
-            "session",
-            "screen",
-            "postures",
-            "variogram",
-            "effective",
-            "all",
-        ],
+        choices=[*TABLES, "all"],
     )
     ap.add_argument("--draws", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
@@ -650,10 +646,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="2 cells, 200 draws")  # fmt: skip
     args = ap.parse_args()
     draws = 200 if args.quick else args.draws
-    tables = ["coverage", "misfit", "session", "screen", "postures", "variogram",
-              "effective"] \
-        if args.table == "all" \
-        else [args.table]  # fmt: skip
+    tables = list(TABLES) if args.table == "all" else [args.table]
     t0 = time.perf_counter()
     print(f"bench_coverage: tables {tables}, {draws} draws per cell, seed {args.seed}, "
           f"numpy {np.__version__}")  # fmt: skip

@@ -239,8 +239,8 @@ def _newton(prob: _Problem, x, lam):
         dx = prob.linear_solve(K, r, m)
         prob.stats.newton += 1
         if k == 0 and np.any(prob.u_free):  # the step's linear response: the load's size
-            step = float(np.max(np.abs(dx[prob.u_free])))
-            prob.stats.first_step_m = max(prob.stats.first_step_m, step)
+            moved = float(np.max(np.abs(dx[prob.u_free])))
+            prob.stats.first_step_m = max(prob.stats.first_step_m, moved)
         step = _line_search(prob, x, dx, lam, m)
         if step is None:
             return None
