@@ -318,7 +318,8 @@ def format_registration_table(
     -------
     str
         One header line, a rule and one line per scan (FRE, TRE at nipple and tumour in mm,
-        gravity in the reference frame and its angle to the reference scan's gravity).
+        gravity in the reference frame and its 3-D angle to the reference scan's gravity,
+        unlike ``validate``'s posture: the angle within the posture's plane).
     """
     ref = next((r for r in registrations.values() if r.is_reference), None)
     header = [
@@ -328,7 +329,7 @@ def format_registration_table(
         "TRE nipple mm",
         "TRE tumour mm",
         "gravity_ref",
-        "g angle deg",
+        "angle to ref g, deg",  # 3-D; validate's posture is the in-plane angle
     ]
     rows = []
     for name, r in registrations.items():

@@ -1,6 +1,6 @@
 """Reports of results: error maps, tables, the validation report."""
 
-from .maps import error_map_figure, save_figure, write_error_ply
+from .maps import save_figure, surface_error_figure, write_error_ply
 from .tables import format_calibration
 
-__all__ = ["error_map_figure", "format_calibration", "save_figure", "write_error_ply"]
+__all__ = ["format_calibration", "save_figure", "surface_error_figure", "write_error_ply"]

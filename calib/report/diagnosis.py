@@ -3,8 +3,9 @@
 Figures, returned to the caller (:mod:`calib.workflows.diagnose` saves them):
 
 - :func:`residual_maps_figure`: a scan's measured surface shaded by its distance to the
-  model before (c1 alone) and after (the diagnosis' final model), front and side
-  views in the phantom frame, one colour scale (cividis, mm) shared by every scan;
+  model before (c1 alone) and after (the diagnosis' final model), signed (red: the scan
+  outside the model), front and side views in the phantom frame, one colour scale (mm)
+  shared by every scan, and the change between them;
 - :func:`localisation_figure`: the significance map (local z-score of the smoothed
   residual under the noise model) of a scan, diverging colours, fixed scale -4..4;
 - :func:`gap_figure`: the mean surface error of every scan before and after, the
@@ -18,7 +19,14 @@ import math
 
 import numpy as np
 
-from .maps import ERROR_CMAP, face_error_mm
+from .maps import (
+    draw_surface_views,
+    face_error_mm,
+    map_figure,
+    signed_colorbar,
+    signed_error_mapper,
+    surface_in_phantom_frame,
+)
 
 __all__ = [
     "diagnosis_html",
@@ -32,47 +40,12 @@ Z_CMAP = "RdBu_r"
 Z_LIMIT = 4.0
 
 
-def _surface(scan, R):
-    v = np.asarray(scan.vertices_mm, float) @ np.asarray(R, float)
-    keep = scan.scored[scan.faces].any(axis=1)
-    faces = scan.faces[keep]
-    tri = v[faces]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    light = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
-    return v, faces, 0.55 + 0.45 * np.abs(n @ light)
-
-
-_VIEWS = (("front (from the apex)", 90.0, -90.0), ("side", 0.0, -90.0))
-
-
-def _draw(fig, pos, v, faces, shade, face_values, mapper, title):
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
-
-    axes = []
-    for k, (label, elev, azim) in enumerate(_VIEWS):
-        ax = fig.add_subplot(pos[0], pos[1], pos[2] + k, projection="3d")
-        rgba = mapper.to_rgba(face_values)
-        rgba[:, :3] *= shade[:, None]
-        ax.add_collection3d(Poly3DCollection(v[faces], facecolors=rgba, edgecolors="none"))
-        lo, hi = v.min(axis=0), v.max(axis=0)
-        ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), zlim=(lo[2], hi[2]))
-        # mplot3d's default label pad puts a face-on axis' label on its tick labels
-        for axis, name in ((ax.xaxis, "x"), (ax.yaxis, "y"), (ax.zaxis, "z")):
-            axis.set_label_text(f"{name} (mm)")
-            axis.labelpad = 10
-        ax.set_title(f"{title}\n{label}", fontsize=10)
-        ax.set_box_aspect(hi - lo)
-        ax.view_init(elev=elev, azim=azim)
-        hidden = ax.zaxis if elev == 90.0 else ax.yaxis
-        hidden.set_ticklabels([])
-        hidden.label.set_visible(False)
-        axes.append(ax)
-    return axes
-
-
 def residual_maps_figure(name: str, role: str, scan, before_mm, after_mm, R, *, vmax: float):
-    """|error| on the measured surface before and after, one colour scale (mm).
+    """Signed error on the measured surface before and after, one colour scale (mm).
+
+    Front and side views in the phantom frame, red where the scan lies outside the model
+    (:data:`calib.report.maps.SIGN_NOTE`); with an ``after``, a third row shows the change
+    (after - before) on its own symmetric scale: where the final model moved its surface.
 
     Parameters
     ----------
@@ -84,24 +57,36 @@ def residual_maps_figure(name: str, role: str, scan, before_mm, after_mm, R, *, 
     R : ndarray, shape (3, 3)
         ``R_ref_from_phantom``.
     vmax : float
-        Top of the colour scale (mm), shared by every scan's figure.
+        Top of the symmetric colour scale of the errors (mm), shared by every scan's figure.
     """
-    from matplotlib import cm, colormaps, colors
-    from matplotlib.figure import Figure
-
-    v, faces, shade = _surface(scan, R)
-    mapper = cm.ScalarMappable(norm=colors.Normalize(0.0, vmax), cmap=colormaps[ERROR_CMAP])
+    surface = surface_in_phantom_frame(scan, R)
+    faces = surface[1]
+    mapper = signed_error_mapper(vmax)
     rows = [("before (c1 alone)", before_mm)]
     if after_mm is not None:
         rows.append(("after (final model)", after_mm))
-    fig = Figure(figsize=(10, 4.4 * len(rows)), layout="constrained")
+    n_rows = len(rows) + (after_mm is not None)
+    fig = map_figure(10, 4.4 * n_rows)
+    axes, saturated = [], False
     for i, (label, err) in enumerate(rows):
-        e = face_error_mm(err, faces, scan.scored)
+        e = face_error_mm(err, faces, scan.scored, signed=True)
+        saturated |= bool(np.any(np.abs(e) > vmax))
         mean = float(np.abs(err)[scan.scored].mean())
-        _draw(fig, (len(rows), 2, 2 * i + 1), v, faces, shade, e, mapper,
-              f"{label}, mean {mean:.3f} mm")  # fmt: skip
-    fig.colorbar(mapper, ax=fig.axes, shrink=0.6, label="distance to the model surface (mm)")
-    fig.suptitle(f"{name} ({role}): surface error before and after, one colour scale")
+        axes += draw_surface_views(fig, (n_rows, 2, 2 * i + 1), surface, e, mapper,
+                                   f"{label}, mean |e| {mean:.3f} mm")  # fmt: skip
+    signed_colorbar(fig, mapper, axes, saturated=saturated, shrink=0.6)
+    if after_mm is not None:
+        # review AX: before and after looked alike where the mean moved 0.207 -> 0.202 mm
+        change = np.asarray(after_mm, float) - np.asarray(before_mm, float)
+        d = face_error_mm(change, faces, scan.scored, signed=True)
+        top = max(float(np.percentile(np.abs(d), 99)), 1e-3)
+        moved = signed_error_mapper(top)
+        ax = draw_surface_views(fig, (n_rows, 2, 2 * n_rows - 1), surface, d, moved,
+                                "change, after - before (its own scale)")  # fmt: skip
+        fig.colorbar(moved, ax=ax, shrink=0.6, extend="both" if np.any(np.abs(d) > top) else
+                     "neither", label="change of the distance (mm)\n-: the final model moved "
+                     "outward here")  # fmt: skip
+    fig.suptitle(f"{name} ({role}): signed surface error before and after, one colour scale")
     return fig
 
 

@@ -1,7 +1,11 @@
 """Error maps of a calibrated model: figures (matplotlib) and a PLY with per-vertex error.
 
-Figures use a perceptual colour map (cividis) for the error magnitude, whose
-colour bar is in millimetres; functions return figures, callers decide where they go.
+Every report draws a scan's error the same way (:func:`surface_error_figure`): the
+measured surface, opaque and shaded, seen from the front and from the side in the
+phantom frame (``R_ref_from_phantom``), coloured by the signed distance of each measured
+point to the model surface along the model's outward normal (+: the scan lies outside
+the model), on a diverging scale symmetric about zero whose top the caller may share
+between scans. Functions return figures, callers decide where they go.
 """
 
 from __future__ import annotations
@@ -12,14 +16,26 @@ import numpy as np
 
 from ..io import atomic_write
 
-__all__ = ["error_map_figure", "face_error_mm", "save_figure", "write_error_ply"]
+__all__ = [
+    "face_error_mm",
+    "save_figure",
+    "surface_error_figure",
+    "write_error_ply",
+]
 
-#: Colour map of error magnitudes (perceptually uniform, colour-vision-deficiency safe).
-ERROR_CMAP = "cividis"
+#: Colour map of signed errors: blue (scan inside the model), white, red (outside); a
+#: diverging map readable with red-green colour-vision deficiency.
+SIGNED_CMAP = "RdBu_r"
+#: What the sign of a surface error means (every signed map's colour bar says it).
+SIGN_NOTE = "+: the scan lies outside the model"
+#: The two views of a surface map: (title, elevation, azimuth), phantom frame.
+VIEWS = (("front (from the apex)", 90.0, -90.0), ("side (lateral)", 0.0, -90.0))
 
 
-def face_error_mm(error_mm: np.ndarray, faces: np.ndarray, scored: np.ndarray) -> np.ndarray:
-    """|error| of each face: the mean over its scored vertices, (f,) mm.
+def face_error_mm(
+    error_mm: np.ndarray, faces: np.ndarray, scored: np.ndarray, *, signed: bool = False
+) -> np.ndarray:
+    """The error of each face: the mean over its scored vertices, (f,) mm.
 
     A face at the rim holds back-plate vertices, whose error is not measured (0 in the
     per-vertex arrays); averaging them in would pale the rim. Every face needs a scored
@@ -28,12 +44,156 @@ def face_error_mm(error_mm: np.ndarray, faces: np.ndarray, scored: np.ndarray) -
     Parameters
     ----------
     error_mm : ndarray, shape (n,)
+        Signed distance of each vertex to the model (mm).
     faces : ndarray, shape (f, 3)
     scored : ndarray of bool, shape (n,)
         :attr:`calib.data.measurements.ScanMeasurement.scored`.
+    signed : bool
+        Average the signed distances; else their magnitudes (|error|).
     """
     w = np.asarray(scored, bool)[faces]
-    return (np.abs(np.asarray(error_mm, float))[faces] * w).sum(axis=1) / w.sum(axis=1)
+    e = np.asarray(error_mm, float)
+    e = e if signed else np.abs(e)
+    return (e[faces] * w).sum(axis=1) / w.sum(axis=1)
+
+
+def surface_in_phantom_frame(scan, R_ref_from_phantom: np.ndarray):
+    """A scan's surface ready to draw: phantom-frame vertices, scored faces, shading.
+
+    Parameters
+    ----------
+    scan : ScanMeasurement
+        Its ``vertices_mm`` in the reference frame, ``faces`` and ``scored``.
+    R_ref_from_phantom : ndarray, shape (3, 3)
+
+    Returns
+    -------
+    vertices_mm : ndarray, shape (n, 3)
+        Phantom frame (``R_ref_from_phantom^T x_ref``).
+    faces : ndarray, shape (f, 3)
+        The faces holding a scored vertex (the back plate's left out).
+    shade : ndarray, shape (f,)
+        Two-sided Lambertian factor in [0.55, 1]: the shape stays readable under colour.
+    """
+    v = np.asarray(scan.vertices_mm, float) @ np.asarray(R_ref_from_phantom, float)
+    faces = scan.faces[scan.scored[scan.faces].any(axis=1)]
+    tri = v[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    light = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    return v, faces, 0.55 + 0.45 * np.abs(n @ light)
+
+
+def signed_error_mapper(top_mm: float):
+    """The colour scale of signed errors: ``[-top_mm, top_mm]`` on :data:`SIGNED_CMAP`."""
+    from matplotlib import cm, colormaps, colors
+
+    return cm.ScalarMappable(norm=colors.Normalize(-top_mm, top_mm), cmap=colormaps[SIGNED_CMAP])
+
+
+def draw_surface_views(fig, grid: tuple[int, int, int], surface, face_values, mapper, title: str):
+    """Draw a shaded surface in :data:`VIEWS` into two subplots of ``fig``.
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+    grid : (rows, columns, first)
+        The subplot grid and the index of the first of two adjacent panels.
+    surface : tuple
+        :func:`surface_in_phantom_frame`'s result.
+    face_values : ndarray, shape (f,)
+        The value of each face, coloured by ``mapper``.
+    mapper : matplotlib.cm.ScalarMappable
+    title : str
+        Above each panel, before the view's name.
+
+    Returns
+    -------
+    list of Axes3D
+    """
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    v, faces, shade = surface
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    hi = np.maximum(hi, lo + 1.0)  # a flat patch keeps a drawable box
+    axes = []
+    for k, (view, elev, azim) in enumerate(VIEWS):
+        ax = fig.add_subplot(grid[0], grid[1], grid[2] + k, projection="3d")
+        rgba = mapper.to_rgba(face_values)
+        rgba[:, :3] *= shade[:, None]
+        ax.add_collection3d(Poly3DCollection(v[faces], facecolors=rgba, edgecolors="none"))
+        ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), zlim=(lo[2], hi[2]))
+        # the frame on every axis (review AX: four frames across the reports), the labels
+        # clear of the tick labels (mplot3d's default pad puts a face-on axis' on them)
+        for axis, name in ((ax.xaxis, "x"), (ax.yaxis, "y"), (ax.zaxis, "z")):
+            axis.set_label_text(f"{name} (mm, phantom frame)")
+            axis.labelpad = 10
+        ax.set_title(f"{title}\n{view}" if title else view, fontsize=10)
+        ax.set_box_aspect(hi - lo)
+        ax.view_init(elev=elev, azim=azim)
+        hidden = ax.zaxis if elev == 90.0 else ax.yaxis  # the axis along the line of sight
+        hidden.set_ticklabels([])
+        hidden.label.set_visible(False)
+        axes.append(ax)
+    return axes
+
+
+def map_figure(width_in: float, height_in: float):
+    """An empty figure for surface maps: constrained layout with a margin at the sides.
+
+    mplot3d's axis labels lie outside what the constrained layout measures: without the
+    margin the left panel's y label is cut at the figure's edge.
+    """
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width_in, height_in), layout="constrained")
+    fig.get_layout_engine().set(rect=(0.03, 0.0, 0.95, 1.0))
+    return fig
+
+
+def signed_colorbar(fig, mapper, axes, *, saturated: bool, shrink: float = 0.7):
+    """The colour bar of a signed map, its sign said, extended where the scale saturates."""
+    return fig.colorbar(
+        mapper,
+        ax=axes,
+        shrink=shrink,
+        label=f"distance of the scan to the model surface (mm)\n{SIGN_NOTE}",
+        extend="both" if saturated else "neither",
+    )
+
+
+def surface_error_figure(
+    scan, error_mm: np.ndarray, R_ref_from_phantom: np.ndarray, title: str, *, vmax=None
+):
+    """The measured surface coloured by its signed distance to the model, two views.
+
+    Parameters
+    ----------
+    scan : ScanMeasurement
+        The measured scan (``vertices_mm`` in the reference frame, ``faces``, ``scored``).
+    error_mm : ndarray, shape (n_vertices,)
+        Signed distance of every measured vertex to the model surface
+        (:attr:`calib.evaluation.ScanMetrics.vertex_error_mm`; + outside the model).
+    R_ref_from_phantom : ndarray, shape (3, 3)
+        The phantom frame the views are drawn in.
+    title : str
+    vmax : float, optional
+        Top of the symmetric colour scale (mm); default the scan's 99th percentile of
+        |error| (share it between scans to compare them: :func:`shared_error_scale_mm`).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    surface = surface_in_phantom_frame(scan, R_ref_from_phantom)
+    e = face_error_mm(error_mm, surface[1], scan.scored, signed=True)
+    top = vmax or max(float(np.percentile(np.abs(e), 99)), 1e-3)
+    mapper = signed_error_mapper(top)
+    fig = map_figure(10, 4.8)
+    axes = draw_surface_views(fig, (1, 2, 1), surface, e, mapper, "")
+    signed_colorbar(fig, mapper, axes, saturated=bool(np.any(np.abs(e) > top)))
+    fig.suptitle(title)
+    return fig
 
 
 def write_error_ply(path: Path, vertices_mm: np.ndarray, faces: np.ndarray, error_mm) -> Path:
@@ -62,42 +222,6 @@ def shared_error_scale_mm(errors_mm) -> float:
     """
     tops = [float(np.percentile(np.abs(np.asarray(e, float)), 99)) for e in errors_mm if len(e)]
     return max([*tops, 1e-3])
-
-
-def error_map_figure(points_mm: np.ndarray, error_mm: np.ndarray, title: str, *, vmax=None):
-    """Two orthogonal views of the measured surface points coloured by |error| (mm).
-
-    Parameters
-    ----------
-    points_mm : ndarray, shape (n, 3)
-        Measured surface points (reference frame).
-    error_mm : ndarray, shape (n,)
-        Their distance to the simulated surface.
-    title : str
-    vmax : float, optional
-        Top of the colour scale (mm); default the 99th percentile (shared scales let
-        maps be compared).
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-    """
-    from matplotlib.figure import Figure
-
-    e = np.abs(np.asarray(error_mm, float))
-    fig = Figure(figsize=(10, 4.5), layout="constrained")
-    axes = fig.subplots(1, 2)
-    top = vmax if vmax is not None else max(float(np.percentile(e, 99)), 1e-3)
-    for ax, (i, j), lab in zip(axes, ((0, 1), (0, 2)), (("x", "y"), ("x", "z")), strict=True):
-        order = np.argsort(points_mm[:, 3 - i - j])  # nearer points drawn last
-        sc = ax.scatter(points_mm[order, i], points_mm[order, j], c=e[order], s=4,
-                        cmap=ERROR_CMAP, vmin=0.0, vmax=top)  # fmt: skip
-        ax.set_aspect("equal")
-        ax.set_xlabel(f"{lab[0]} (mm, reference LPS)")
-        ax.set_ylabel(f"{lab[1]} (mm)")
-    fig.colorbar(sc, ax=axes, label="distance to the simulated surface (mm)")
-    fig.suptitle(title)
-    return fig
 
 
 def save_figure(fig, path: Path, *, dpi: int = 110) -> Path:

@@ -2,9 +2,9 @@
 
 Figures (matplotlib, returned to the caller):
 
-- :func:`error_surface_figure`: the measured surface shaded by its distance to the
-  model, seen from the front and from the side of the phantom, on a colour scale shared
-  by every scan (cividis, mm);
+- :func:`error_surface_figure`: the measured surface shaded by its signed distance to
+  the model (red: the scan outside the model), seen from the front and from the side of
+  the phantom, on a colour scale shared by every scan (mm);
 - :func:`error_by_displacement_figure`: the dissertation's kind of histogram (its Figs.
   3.18-3.21): the share of surface points per error bin, split by how far the surface
   moved from the reference posture;
@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..validation import BAND_POINTS, ScanValidation, Validation
-from .maps import ERROR_CMAP, face_error_mm
+from .maps import surface_error_figure
 
 __all__ = [
     "error_by_displacement_figure",
@@ -59,14 +59,10 @@ def displacement_bins_mm(displacement_mm: np.ndarray) -> tuple[float, ...]:
     return (0.0, step, 2 * step, 3 * step, np.inf)
 
 
-def _phantom_coordinates(points_mm: np.ndarray, R_ref_from_phantom: np.ndarray) -> np.ndarray:
-    return np.asarray(points_mm, float) @ np.asarray(R_ref_from_phantom, float)
-
-
 def error_surface_figure(
     sv: ScanValidation, scan, R_ref_from_phantom: np.ndarray, *, vmax: float | None = None
 ):
-    """The measured surface shaded by |error| (mm), front and side views, phantom frame.
+    """The measured surface coloured by its signed error (mm), front and side, phantom frame.
 
     Parameters
     ----------
@@ -75,57 +71,18 @@ def error_surface_figure(
         The measured scan (its surface, reference frame).
     R_ref_from_phantom : ndarray, shape (3, 3)
     vmax : float, optional
-        Top of the colour scale (mm); share it between scans to compare them.
+        Top of the symmetric colour scale (mm); share it between scans to compare them.
     """
-    from matplotlib import cm, colormaps, colors
-    from matplotlib.figure import Figure
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
-
-    v = _phantom_coordinates(scan.vertices_mm, R_ref_from_phantom)
-    keep = scan.scored[scan.faces].any(axis=1)
-    faces = scan.faces[keep]
-    e = face_error_mm(sv.metrics.vertex_error_mm, faces, scan.scored)
-    top = vmax or max(float(np.percentile(e, 99)), 1e-3)
-    mapper = cm.ScalarMappable(norm=colors.Normalize(0.0, top), cmap=colormaps[ERROR_CMAP])
-    tri = v[faces]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    light = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
-    shade = 0.55 + 0.45 * np.abs(n @ light)  # Lambertian, two-sided: shape stays readable
-    fig = Figure(figsize=(10, 4.8), layout="constrained")
-    views = (("front (from the breast's apex)", 90.0, -90.0), ("side (lateral)", 0.0, -90.0))
-    for k, (label, elev, azim) in enumerate(views):
-        ax = fig.add_subplot(1, 2, k + 1, projection="3d")
-        rgba = mapper.to_rgba(e)
-        rgba[:, :3] *= shade[:, None]
-        coll = Poly3DCollection(v[faces], facecolors=rgba, edgecolors="none")
-        ax.add_collection3d(coll)
-        lo, hi = v.min(axis=0), v.max(axis=0)
-        ax.set(
-            xlim=(lo[0], hi[0]),
-            ylim=(lo[1], hi[1]),
-            zlim=(lo[2], hi[2]),
-            title=label,
-        )
-        # labels clear of the tick labels (review AG: x's sat on them)
-        # the frame named (review AX: the calibration's maps are in the reference scan's)
-        ax.set_xlabel("x (mm, phantom frame)", labelpad=10)
-        ax.set_ylabel("y (mm, phantom frame)", labelpad=10)
-        ax.set_zlabel("z (mm, phantom frame)", labelpad=8)
-        ax.set_box_aspect(hi - lo)
-        ax.view_init(elev=elev, azim=azim)
-        hidden = ax.zaxis if elev == 90.0 else ax.yaxis  # the axis along the line of sight
-        hidden.set_ticklabels([])
-        hidden.label.set_visible(False)
-    over = bool(np.any(e > top))  # a shared scale saturates: the bar says so
-    label = "distance to the model surface (mm)"
-    fig.colorbar(mapper, ax=fig.axes, shrink=0.7, label=label, extend="max" if over else "neither")
     mean = sv.surface["fiducial"]["mean"].value
-    fig.suptitle(
-        f"{sv.name} ({sv.role}, posture {sv.posture_label}): surface error, "
-        f"mean {mean:.2f} mm (fiducial frame)"
+    # "(fiducial frame)" read as the axes' frame (review AX): the registration named
+    return surface_error_figure(
+        scan,
+        sv.metrics.vertex_error_mm,
+        R_ref_from_phantom,
+        f"{sv.name} ({sv.role}, posture {sv.posture_label}): surface error, mean |e| "
+        f"{mean:.2f} mm (fiducial registration)",
+        vmax=vmax,
     )
-    return fig
 
 
 def error_by_displacement_figure(scans: list[ScanValidation]):
@@ -202,6 +159,7 @@ def outline_figure(
     centre_lps_mm: np.ndarray,
     *,
     centre: str = "the tumour",
+    model_tumour_lps_mm: np.ndarray | None = None,
 ):
     """Measured (mask boundary) and model outlines in three slices of the scan.
 
@@ -217,7 +175,9 @@ def outline_figure(
     centre_lps_mm : ndarray, shape (3,)
         Where the three slices cross (the measured tumour, else the nipple).
     centre : str
-        What that point is, for the title.
+        What that point is, for the title and the legend: marked in every slice.
+    model_tumour_lps_mm : ndarray, shape (3,), optional
+        The simulated tumour centre (scan LPS), marked in every slice where given.
     """
     from matplotlib.collections import LineCollection
     from matplotlib.figure import Figure
@@ -227,6 +187,9 @@ def outline_figure(
     to_index = lambda p: np.asarray(p, float) @ inv[:3, :3].T + inv[:3, 3]  # noqa: E731
     vi = to_index(model_lps_mm)
     c = to_index(np.asarray(centre_lps_mm, float)[None])[0]
+    mt = None
+    if model_tumour_lps_mm is not None:
+        mt = to_index(np.asarray(model_tumour_lps_mm, float)[None])[0]
     arr = np.asarray(mask.array) > 0
     sp = np.asarray(mask.spacing_mm, float)
     fig = Figure(figsize=(12, 4.4), layout="constrained")
@@ -254,13 +217,27 @@ def outline_figure(
         if len(segs):
             xy = segs[:, :, rest] * sp[rest]
             ax.add_collection(LineCollection(xy, colors="#d62728", linewidths=1.2))
+        # review AX: the title named the tumour and no slice showed it; the centre lies in
+        # every slice, the simulated tumour projected onto it
+        ax.plot(*(c[rest] * sp[rest]), "+", color="#1f77b4", ms=11, mew=1.6)
+        if mt is not None:
+            ax.plot(*(mt[rest] * sp[rest]), "x", color="#d62728", ms=8, mew=1.6)
         ax.set_aspect("equal")
         ax.set_title(f"slice {'ijk'[axis]} = {k} of the scan")
         # voxel index times spacing along the volume's axes, not patient directions
         ax.set_xlabel(f"along {'ijk'[rest[0]]} (mm)")
         ax.set_ylabel(f"along {'ijk'[rest[1]]} (mm)")
     axes[0].plot([], [], color="#1f77b4", label="measured (segmentation)")
-    axes[0].plot([], [], color="#d62728", label="model at the calibrated c1")
+    axes[0].plot(
+        [],
+        [],
+        color="#d62728",
+        label="model at the calibrated c1\n(its face on the back plate not drawn)",
+    )
+    axes[0].plot([], [], "+", color="#1f77b4", ms=9, mew=1.6, label=f"{centre} (measured)")
+    if mt is not None:
+        axes[0].plot([], [], "x", color="#d62728", ms=7, mew=1.6, label="simulated tumour "
+                     "(projected on each slice)")  # fmt: skip
     axes[0].legend(loc="lower left", fontsize=8)
     fig.suptitle(f"{sv.name}: measured and simulated outlines through {centre} (scan frame)")
     return fig
@@ -339,7 +316,10 @@ def _intro(v: Validation) -> str:
     )
     caveats = "".join(f"WARNING (calibration): {said}. " for said in v.caveats)
     return (
-        f"{caveats}c1 = {v.c1_pa:.1f} Pa ({band}). All distances in mm. Fiducial frame: the scan "
+        f"{caveats}c1 = {v.c1_pa:.1f} Pa ({band}). All distances in mm. Posture: the angle "
+        "of the scan's registered gravity within its posture plane (0° left lateral; "
+        "ingest's table gives its 3-D angle to the reference scan's gravity). Error maps: "
+        "red where the scan lies outside the model, blue inside. Fiducial frame: the scan "
         "mapped by its fiducial registration only; ICP: after a rigid ICP of the measured "
         "onto the simulated surface (which minimises the surface error: biased low; the "
         "nipple and tumour errors may rise or fall). Nipple: the dissertation's distance from "

@@ -22,6 +22,7 @@ from ..data.measurements import load_measurements
 from ..data.session import SessionError, load_session, session_inputs
 from ..evaluation import ScanEvaluation, check_postures, evaluate, model_fit_with_postures
 from ..fitting import Calibration, CalibrationOptions, fit
+from ..fitting.result import phantom_frame
 from ..io import (
     RunOutputs,
     StaleOutputError,
@@ -31,7 +32,12 @@ from ..io import (
     provenance,
     run_id_of,
 )
-from ..report.maps import error_map_figure, save_figure, shared_error_scale_mm, write_error_ply
+from ..report.maps import (
+    save_figure,
+    shared_error_scale_mm,
+    surface_error_figure,
+    write_error_ply,
+)
 
 __all__ = ["run_calibration", "write_calibration"]
 
@@ -41,7 +47,7 @@ FOLDER, RECORD = "calibration", "calibration.json"
 
 
 def _scan_files(
-    run: RunOutputs, cal: Calibration, ev: ScanEvaluation, *, vmax_mm: float
+    run: RunOutputs, cal: Calibration, ev: ScanEvaluation, R: np.ndarray, *, vmax_mm: float
 ) -> list[str]:
     from fem.io import write_mesh
 
@@ -51,13 +57,15 @@ def _scan_files(
     write_error_ply(
         run.path(f"{ev.name}_error.ply"), scan.vertices_mm, scan.faces, m.vertex_error_mm
     )
-    off = scan.scored
-    err = m.vertex_error_mm[off]
-    fig = error_map_figure(
-        scan.vertices_mm[off],
-        err,
-        f"{ev.name}: c1 = {cal.c1_pa:.0f} Pa, fiducial frame, mean |e| = "
-        f"{np.mean(np.abs(err)):.2f} mm (colour scale shared by the scans)",
+    err = m.vertex_error_mm[scan.scored]
+    # the phantom frame and the signed scale of validate's and diagnose's maps (review
+    # AX: this one was a see-through scatter in the reference frame, and unsigned)
+    fig = surface_error_figure(
+        scan,
+        m.vertex_error_mm,
+        R,
+        f"{ev.name}: surface error at c1 = {cal.c1_pa:.0f} Pa, mean |e| {np.mean(np.abs(err)):.2f}"
+        " mm (fiducial registration; colour scale shared by the scans)",
         vmax=vmax_mm,
     )
     save_figure(fig, run.path(f"{ev.name}_error.png"))
@@ -151,10 +159,11 @@ def write_calibration(
             for ev in evaluations.values()
             if ev.failed is None
         )
+        R = phantom_frame(c.measurements.reference, measured.values())
         scans = {}
         for name, ev in evaluations.items():
             solved = ev.failed is None
-            files = _scan_files(run, calibration, ev, vmax_mm=vmax_mm) if solved else []
+            files = _scan_files(run, calibration, ev, R, vmax_mm=vmax_mm) if solved else []
             scans[name] = _scan_json(ev, files)
             if solved:
                 scans[name]["model"]["nipple_mm"] = ev.positions_mm[nipple].tolist()

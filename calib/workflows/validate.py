@@ -47,8 +47,19 @@ def _outline(run: RunOutputs, work: WorkFolder, v: Validation, name: str) -> str
     centre = apply_transform(T_scan_from_ref, centre_ref)
     faces = SimulatedSurface.of(work.mesh).faces
     said = "the tumour" if scan.tumour_mm is not None else "the nipple"
+    simulated = work.states[name].tumour_mm
+    if simulated is not None and scan.tumour_mm is not None:
+        simulated = apply_transform(T_scan_from_ref, np.asarray(simulated, float))
+    else:
+        simulated = None
     fig = outline_figure(
-        v.scans[name], imaging.read_volume(mask_path), model, faces, centre, centre=said
+        v.scans[name],
+        imaging.read_volume(mask_path),
+        model,
+        faces,
+        centre,
+        centre=said,
+        model_tumour_lps_mm=simulated,
     )
     save_figure(fig, run.path(f"{name}_outlines.png"))
     return f"{name}_outlines.png"

@@ -41,7 +41,7 @@ from calib.data.measurements import load_measurements
 from calib.data.session import load_session
 from calib.fitting import CalibrationOptions
 from calib.model import forward
-from calib.report.maps import error_map_figure
+from calib.report.maps import surface_error_figure
 from calib.twin import synthesize
 from calib.workflows.ingest import run_ingest
 
@@ -171,12 +171,12 @@ def test_a_fit_stopped_where_straight_elements_fail_runs_again_on_curved_ones(
     monkeypatch.setattr(workflow, "fit", lambda *a, **kw: cal)
     tops, errors = [], []
 
-    def error_map(points_mm, error_mm, title, *, vmax=None):
+    def error_map(scan, error_mm, R, title, *, vmax=None):
         tops.append(vmax)
-        errors.append(error_mm)
-        return error_map_figure(points_mm, error_mm, title, vmax=vmax)
+        errors.append(error_mm[scan.scored])
+        return surface_error_figure(scan, error_mm, R, title, vmax=vmax)
 
-    monkeypatch.setattr(workflow, "error_map_figure", error_map)
+    monkeypatch.setattr(workflow, "surface_error_figure", error_map)
     written = workflow.run_calibration(folders[0], tmp_path / "work", opts)
     # review AG: each scan's error map had its own colour scale; one top for all of them,
     # the largest per-scan 99th percentile (what validate's maps share)

@@ -45,3 +45,37 @@ def test_a_rim_face_is_coloured_by_its_scored_vertices_only():
     assert face_error_mm(error, faces, scored) == pytest.approx([3.0, 1.0], rel=1e-15)
     everything = np.ones(4, bool)
     assert face_error_mm(error, faces, everything) == pytest.approx([1.0, 1.0 / 3.0])
+
+
+def _square_scan():
+    """A flat 2 x 2 grid of vertices, two faces, every vertex scored (reference frame)."""
+    v = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [10.0, 10.0, 0.0]])
+    faces = np.array([[0, 1, 2], [1, 3, 2]])
+    from types import SimpleNamespace
+
+    return SimpleNamespace(vertices_mm=v, faces=faces, scored=np.ones(4, bool))
+
+
+def test_the_error_maps_show_the_sign_of_the_error():
+    # review AX: every map showed |error|, so a model too stiff (the scan outside) and too
+    # soft looked alike. The figure colours a face where the scan lies outside the model
+    # (+) red and one inside blue.
+    from matplotlib.colors import to_rgba_array
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    from calib.report.maps import SIGN_NOTE, face_error_mm, surface_error_figure
+
+    scan = _square_scan()
+    error = np.array([1.0, 1.0, 1.0, -1.0])  # face 0 outside (+1), face 1 mostly inside
+    faces_e = face_error_mm(error, scan.faces, scan.scored, signed=True)
+    assert faces_e == pytest.approx([1.0, 1.0 / 3.0], rel=1e-15)
+    assert face_error_mm(-error, scan.faces, scan.scored, signed=True) == pytest.approx(-faces_e)
+    fig = surface_error_figure(scan, error, np.eye(3), "t", vmax=1.0)
+    flipped = surface_error_figure(scan, -error, np.eye(3), "t", vmax=1.0)
+    for f, sign in ((fig, 1.0), (flipped, -1.0)):
+        coll = [c for c in f.axes[0].collections if isinstance(c, Poly3DCollection)]
+        (rgba,) = (to_rgba_array(c.get_facecolor()) for c in coll)
+        red_minus_blue = rgba[:, 0] - rgba[:, 2]
+        assert (np.sign(red_minus_blue) == sign).all()  # + (1 and 1/3 mm): red; -: blue
+        assert not np.allclose(rgba[0], rgba[1])  # 1 mm and 1/3 mm apart on the scale
+    assert SIGN_NOTE in fig.axes[-1].get_ylabel()  # the colour bar says what + means
