@@ -145,14 +145,19 @@ _KEYS = {
 }
 
 
+def _names(items, *, order: bool = True) -> str:
+    """``a, b, c``: names for a message (review AX: Python's list reprs leaked into them)."""
+    return ", ".join(sorted(items) if order else items)
+
+
 def _table(doc: dict, key: str, where: Path) -> dict:
     value = doc.get(key, {})
     if not isinstance(value, dict):
         raise SessionError(f"{where}: [{key}] must be a table")
     unknown = set(value) - _KEYS[key]
     if unknown:
-        raise SessionError(f"{where}: unknown key(s) {sorted(unknown)} in [{key}]; "
-                           f"expected {sorted(_KEYS[key])}")  # fmt: skip
+        raise SessionError(f"{where}: unknown key(s) {_names(unknown)} in [{key}]; "
+                           f"expected {_names(_KEYS[key])}")  # fmt: skip
     return value
 
 
@@ -162,7 +167,9 @@ def _scan(entry, index: int, folder: Path, toml: Path) -> ScanEntry:
         raise SessionError(f"{where} must be a table")
     unknown = set(entry) - {"name", "path", "role", "posture"}
     if unknown:
-        raise SessionError(f"{where}: unknown key(s) {sorted(unknown)}")
+        raise SessionError(
+            f"{where}: unknown key(s) {_names(unknown)}; expected name, path, role, posture"
+        )
     for key in ("name", "path", "role"):
         if not isinstance(entry.get(key), str) or not entry[key]:
             raise SessionError(f"{where}: '{key}' must be a non-empty string")
@@ -177,7 +184,9 @@ def _scan(entry, index: int, folder: Path, toml: Path) -> ScanEntry:
             "(names are compared without case); choose another"
         )
     if entry["role"] not in ROLES:
-        raise SessionError(f"{where}: role must be one of {ROLES}, got {entry['role']!r}")
+        raise SessionError(
+            f"{where}: role must be one of {_names(ROLES, order=False)}, got {entry['role']!r}"
+        )
     path = (folder / entry["path"]).resolve()
     if not path.exists():
         raise SessionError(f"{where} ({entry['name']}): scan path {path} does not exist")
@@ -186,13 +195,17 @@ def _scan(entry, index: int, folder: Path, toml: Path) -> ScanEntry:
         raise SessionError(f"{where}: posture must be an inline table")
     unknown = set(posture) - {"plane", "angle_deg"}
     if unknown:
-        raise SessionError(f"{where}: unknown posture key(s) {sorted(unknown)}")
+        raise SessionError(
+            f"{where}: unknown posture key(s) {_names(unknown)}; expected plane, angle_deg"
+        )
     angle = posture.get("angle_deg")
     if angle is not None and not is_finite_number(angle):
         raise SessionError(f"{where}: posture.angle_deg must be a number, got {angle!r}")
     plane = posture.get("plane")
     if plane is not None and plane not in PLANES:
-        raise SessionError(f"{where}: posture.plane must be one of {PLANES}, got {plane!r}")
+        raise SessionError(
+            f"{where}: posture.plane must be one of {_names(PLANES, order=False)}, got {plane!r}"
+        )
     return ScanEntry(entry["name"], path, entry["role"], plane, angle)
 
 
@@ -251,8 +264,8 @@ def load_session(folder: str | Path) -> Session:
         raise SessionError(f"{toml}: not valid TOML: {exc}") from exc
     unknown = set(doc) - _KEYS[""]
     if unknown:
-        raise SessionError(f"{toml}: unknown table(s) {sorted(unknown)}; "
-                           f"expected {sorted(_KEYS[''])}")  # fmt: skip
+        raise SessionError(f"{toml}: unknown table(s) {_names(unknown)}; "
+                           f"expected {_names(_KEYS[''])}")  # fmt: skip
     scanner, phantom = _table(doc, "scanner", toml), _table(doc, "phantom", toml)
     landmarks = _table(doc, "landmarks", toml)
     g = _vector(scanner.get("gravity", [0.0, 1.0, 0.0]), f"{toml}: scanner.gravity")
@@ -288,12 +301,15 @@ def _check_scans(scans: tuple[ScanEntry, ...], toml: Path) -> None:
     dup = sorted({s.name for s in scans if names.count(s.name.lower()) > 1})  # folder on macOS
     if dup:
         raise SessionError(
-            f"{toml}: duplicate scan name(s) {dup} (names are compared without case: they "
+            f"{toml}: duplicate scan name(s) {_names(dup)} (names are compared without case: they "
             "name folders of the work folder)"
         )
     refs = [s.name for s in scans if s.role == "reference"]
     if len(refs) != 1:
-        raise SessionError(f"{toml}: exactly one scan must have role 'reference', found {refs}")
+        raise SessionError(
+            f"{toml}: exactly one scan must have role 'reference', found "
+            f"{_names(refs, order=False) if refs else 'none'}"
+        )
     by_path: dict[Path, list[str]] = {}
     for s in scans:
         by_path.setdefault(s.path, []).append(s.name)

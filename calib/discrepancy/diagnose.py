@@ -808,7 +808,7 @@ def diagnose(
         inclusion_mesh_mm=o.inclusion_mesh_mm,
         say=say,
     )
-    say(f"diagnosis scans {prob.scans}, held out: {prob.holdout or 'none'}; model mesh "
+    say(f"diagnosis scans {', '.join(prob.scans)}, held out: {prob.holdout or 'none'}; model mesh "
         f"{prob.mesh.n_tets} tets, {len(prob.inclusions)} inclusions tagged; points within "
         f"{prob.rim_margin_mm:g} mm of the back plate mapped, not diagnosed")  # fmt: skip
     if prob.mesh_note:

@@ -150,7 +150,7 @@ def prepare(
         )
         say(
             f"reference mesh: {cal.mesh.n_tets} tets ({size:g} mm); calibration scans: "
-            f"{[s.name for s in cal.calibration_scans]}"
+            f"{', '.join(s.name for s in cal.calibration_scans)}"
         )
         ref = measurements.reference
         # the calibration's mesh, not the checks'; a fine mesh asked for is meant

@@ -74,22 +74,22 @@ BAD_SESSIONS = [
     (
         "zero-references",
         VALID_TOML.replace('role = "reference"', 'role = "calibration"'),
-        r"exactly one scan must have role 'reference', found \[\]",
+        r"exactly one scan must have role 'reference', found none",
     ),
     (
         "two-references",
         VALID_TOML.replace('role = "validation"', 'role = "reference"'),
-        r"exactly one .*reference.*\['left', 'tilt'\]",
+        r"exactly one .*reference.*found left, tilt$",
     ),
     (
         "duplicate-names",
         VALID_TOML.replace('name = "tilt"', 'name = "left"'),
-        r"duplicate scan name\(s\) \['left'\]",
+        r"duplicate scan name\(s\) left \(",
     ),
     (  # review AC: one folder of the work folder on a case-insensitive file system
         "names-differing-in-case",
         VALID_TOML.replace('name = "tilt"', 'name = "Left"'),
-        r"duplicate scan name\(s\) \['Left', 'left'\] \(names are compared without case",
+        r"duplicate scan name\(s\) Left, left \(names are compared without case",
     ),
     (
         "missing-scan-path",
@@ -173,7 +173,7 @@ BAD_SESSIONS = [
     (
         "unknown-scan-key",
         VALID_TOML.replace('role = "validation"', 'role = "validation"\nangle = 25'),
-        r"#3: unknown key\(s\) \['angle'\]",
+        r"#3: unknown key\(s\) angle; expected name, path, role, posture",
     ),
     (
         "empty-name",
@@ -217,7 +217,7 @@ BAD_SESSIONS = [
         VALID_TOML.replace(
             'plane = "transverse", angle_deg = 180', 'plane = "coronal", angle_deg = 180'
         ),
-        r"#2: posture.plane must be one of \('transverse', 'sagittal'\), got 'coronal'",
+        r"#2: posture.plane must be one of transverse, sagittal, got 'coronal'",
     ),
     (
         "posture-not-a-table",
