@@ -22,6 +22,7 @@ from ..data.measurements import Measurements
 from ..data.session import checked_density_kg_m3
 from ..model.residuals import surface_area_mm2
 from ..stats.intervals import MIN_SERIES_POINTS
+from ..stats.noise import SMOOTH_TAKEN_FOR_NOISE
 from .meshcheck import MeshCheck, combined_ci95, describe_mesh_check, mesh_check
 from .objective import Calibrator, EvaluationFailed
 from .optimise import OptimiserStatus, optimise, prepare
@@ -226,8 +227,7 @@ def _uncertainty(cal: Calibrator, theta: float, say):
 #: Said with a ``fits`` verdict whose noise model's correlation length ended on its bound.
 LENGTH_AT_BOUND_NOTE = (
     "but the noise model's correlation length ended at its search bound (the residual "
-    "does not level off across the phantom): smooth structure was taken for noise, so "
-    "this test cannot tell a smooth misfit from noise here"
+    f"does not level off across the phantom): {SMOOTH_TAKEN_FOR_NOISE}"
 )
 
 

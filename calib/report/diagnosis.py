@@ -19,6 +19,7 @@ import math
 
 import numpy as np
 
+from ..stats.noise import SMOOTH_TAKEN_FOR_NOISE
 from .maps import (
     draw_surface_views,
     face_error_mm,
@@ -615,9 +616,7 @@ def _caveats(doc: dict) -> list[str]:
         past = f"the variogram's {reach:g} mm" if reach else "its search bound"
         out.append(
             f"the noise model's correlation length ({length:.0f} mm) reaches past "
-            f"{past}: smooth structure was taken for noise, so the "
-            "misfit test cannot tell a smooth misfit from noise here (the screen still tests "
-            "the library's effects)"
+            f"{past}: {SMOOTH_TAKEN_FOR_NOISE} (the screen still tests the library's effects)"
         )
     if left := doc["model_mesh"].get("inclusions_left_out"):
         out.append(

@@ -46,6 +46,7 @@ __all__ = [
     "NoiseModel",
     "NoiseModelError",
     "Variogram",
+    "SMOOTH_TAKEN_FOR_NOISE",
     "Whitener",
     "apply_covariance",
     "covariance_matrix",
@@ -66,6 +67,12 @@ CHUNK = 2048  # rows per block when a covariance is applied without a dense matr
 #: :data:`calib.discrepancy.diagnose.NOISE_LAG_MM`).
 MAX_LAG_MM = 40.0
 N_BINS = 20
+#: What a correlation length at its bound, or past the variogram's reach, means for a
+#: misfit test under the noise model: one clause, said by calibrate and diagnose alike.
+SMOOTH_TAKEN_FOR_NOISE = (
+    "smooth structure was taken for noise, so the misfit test cannot tell a smooth "
+    "misfit from noise here"
+)
 
 
 class NoiseModelError(ValueError):
