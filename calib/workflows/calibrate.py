@@ -220,13 +220,9 @@ def _with_posture_check(calibration: Calibration, evaluations, say) -> Calibrati
         return calibration
     test, names = checked
     say(_posture_line(test, names))
+    # what a misfit means for the interval is the summary's WARNING, printed next (review
+    # AX: a progress line said it too, the misfit four times in one run)
     merged = model_fit_with_postures(calibration.model_fit, test, names)
-    if merged["verdict"] == "misfit" and merged.get("band_f_verdict") != "misfit":
-        # (a band-F misfit was said by the fit already, with the same advice)
-        say(
-            "MODEL MISFIT: the interval covers noise and mesh, not this model error; it is the "
-            "interval of an effective c1 (phantom-calib diagnose looks for the missing effect)"
-        )
     return replace(calibration, model_fit=merged)
 
 
