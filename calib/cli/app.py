@@ -39,7 +39,7 @@ def _main(
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log progress details.")] = False,
 ) -> None:
     logging.basicConfig(
-        level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(message)s"
+        level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s: %(message)s"
     )
     # scikit-fem logs every basis it builds at INFO: hundreds of lines per calibration
     logging.getLogger("skfem").setLevel(logging.WARNING)
@@ -148,7 +148,7 @@ def ingest(
     ]
     if stale:  # review AX: said only when validate or diagnose refused them later
         typer.secho(
-            f"warning: {out}: {', '.join(stale)} fitted to the previous ingest no longer "
+            f"WARNING: {out}: {', '.join(stale)} fitted to the previous ingest no longer "
             "apply (validate, diagnose and sweep refuse them): run `phantom-calib calibrate` "
             "again",
             fg=typer.colors.YELLOW, err=True,

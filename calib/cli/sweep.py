@@ -304,7 +304,7 @@ def surrogate_predict(
                 model, out, gravity=parts, c1_pa=c1, frame=frame, extrapolate=extrapolate
             )
         for w in caught:
-            typer.secho(f"warning: {w.message}", fg=typer.colors.YELLOW, err=True)
+            typer.secho(f"WARNING: {w.message}", fg=typer.colors.YELLOW, err=True)
     except (ValueError, OSError, RuntimeError) as exc:
         fail(exc)
     extra = "".join(

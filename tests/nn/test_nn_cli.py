@@ -77,7 +77,7 @@ def test_predict_zero_nan_and_extrapolation(model_file, tmp_path):
     # a c1 just past the range (a load inside 1.5 times it) is written with its warning
     near = ["surrogate", "predict", str(model_file), "--gravity", "0,0,9.81", "--c1", "600"]
     res = runner.invoke(app, [*near, "--out", str(tmp_path / "n600.vtu")])
-    assert res.exit_code == 0 and "warning: c1 = 600 Pa lies outside" in res.output
+    assert res.exit_code == 0 and "WARNING: c1 = 600 Pa lies outside" in res.output
     soft = ["surrogate", "predict", str(model_file), "--gravity", "0,0,9.81", "--c1", "5000"]
     res = runner.invoke(app, [*soft, "--out", str(tmp_path / "c.vtu")])
     # review AM: ten times the trained load was written as 7e17 mm with exit status 0

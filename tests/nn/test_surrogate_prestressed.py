@@ -74,4 +74,4 @@ def test_cli_predict_warns_at_zero_gravity(prestressed, tmp_path):
     args = ["surrogate", "predict", str(model), "--gravity", "0,0,0", "--out", str(out)]
     res = CliRunner().invoke(app, args)  # warned, not refused: not a far extrapolation
     assert res.exit_code == 0, res.output
-    assert f"warning: {ZERO}" in res.output and out.is_file()
+    assert f"WARNING: {ZERO}" in res.output and out.is_file()
