@@ -304,7 +304,7 @@ HEADER = [
     "FRE",
     "TRE nipple",
     "TRE tumour",
-    "dissertation (c1 = 420 Pa)",
+    "dissertation's own phantom (published; its fit 420 Pa)",
 ]
 
 
