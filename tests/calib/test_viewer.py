@@ -387,7 +387,7 @@ def test_page_at_a_scan_posture_shows_its_error_map(scans_work, box, browser, tm
         got = np.array(browser.evaluate("window.viewer.readVertex(5)"))
         np.testing.assert_allclose(got, expect[5], atol=1e-3, rtol=0)  # as in the first test
         assert browser.evaluate("document.getElementById('overlay').value") == "error_mm"
-        label = browser.evaluate("document.getElementById('barlabel').innerText")
+        label = browser.evaluate("document.getElementById('bar').innerText")
         # the colour scale: 99th percentile of |error| over the vertices of the scored
         # faces (off the back plate; the planted errors there are not 0, and counted, gave
         # another scale)
@@ -396,12 +396,12 @@ def test_page_at_a_scan_posture_shows_its_error_map(scans_work, box, browser, tm
         p99 = e[int(0.99 * (len(e) - 1))]
         e_all = np.sort(np.abs(p["error"].astype(np.float32)))
         assert f"{e_all[int(0.99 * (len(e_all) - 1))]:.2f}" != f"{p99:.2f}"
-        assert f"|error| {p99:.2f} mm" in label
+        assert f"+{p99:.2f} mm: the scan" in label and f"−{p99:.2f} mm: inside" in label
         browser.evaluate(
             "document.getElementById('overlay').value = 'error_after_mm';"
             "document.getElementById('overlay').dispatchEvent(new Event('change'))"
         )
-        label = browser.evaluate("document.getElementById('barlabel').innerText")
+        label = browser.evaluate("document.getElementById('bar').innerText")
         assert f"{p99:.2f} mm" in label and "after diagnose's refit" in label  # one scale
         browser.screenshot(tmp_path / "scan.png")
 

@@ -34,10 +34,10 @@
   precision highp float;
   in vec3 vn; in float vv; out vec4 o;
   uniform vec4 color; uniform int mode; uniform float vmax; uniform vec3 light;
-  vec3 cmap(float t) { // cividis, 5 samples (matplotlib), linear in between
-    vec3 c0 = vec3(0.000, 0.135, 0.305), c1 = vec3(0.208, 0.271, 0.424),
-         c2 = vec3(0.486, 0.482, 0.471), c3 = vec3(0.737, 0.686, 0.435),
-         c4 = vec3(0.995, 0.907, 0.217);
+  vec3 cmap(float t) { // RdBu_r, 5 samples (matplotlib), linear in between: the reports' map
+    vec3 c0 = vec3(0.020, 0.188, 0.380), c1 = vec3(0.421, 0.676, 0.819),
+         c2 = vec3(0.969, 0.966, 0.965), c3 = vec3(0.895, 0.504, 0.400),
+         c4 = vec3(0.404, 0.000, 0.122);
     t = clamp(t, 0.0, 1.0) * 4.0;
     if (t < 1.0) return mix(c0, c1, t); if (t < 2.0) return mix(c1, c2, t - 1.0);
     if (t < 3.0) return mix(c2, c3, t - 2.0); return mix(c3, c4, t - 3.0);
@@ -47,7 +47,8 @@
       if (color.a < 0.5 && dot(d, d) < 0.09) discard; o = vec4(color.rgb, 1.0); return; }
     if (mode == 3) { o = color; return; }
     vec3 n = normalize(vn); float l = 0.35 + 0.65 * abs(dot(n, light));
-    vec3 base = mode == 1 ? cmap(abs(vv) / vmax) : color.rgb;  // |signed distance|
+    // the signed distance, + where the scan lies outside the model (calib.report.maps)
+    vec3 base = mode == 1 ? cmap(0.5 + 0.5 * vv / vmax) : color.rgb;
     o = vec4(base * l, color.a);
   }`;
   function compile(type, src) {
@@ -175,8 +176,9 @@
       if (!isMap) { gl.enable(gl.BLEND); gl.blendFunc(gl.SRC_ALPHA, gl.ONE_MINUS_SRC_ALPHA); gl.depthMask(false); }
       const nc = isMap ? 3 * overlay.nScored : overlay.count;
       gl.bindVertexArray(overlay.vao); gl.drawElements(gl.TRIANGLES, nc, gl.UNSIGNED_INT, 0);
-      if (nc < overlay.count) {  // faces on the back plate or a cut field of view: not scored, grey
-        gl.uniform1i(loc.mode, 0); gl.uniform4f(loc.color, 0.72, 0.72, 0.72, 1);
+      if (nc < overlay.count) {  // faces on the back plate or a cut field of view: not scored,
+        // dark grey (a light one read as the signed map's white, 0 mm, once shaded)
+        gl.uniform1i(loc.mode, 0); gl.uniform4f(loc.color, 0.42, 0.42, 0.42, 1);
         gl.drawElements(gl.TRIANGLES, overlay.count - nc, gl.UNSIGNED_INT, 4 * nc);
       }
       gl.disable(gl.BLEND); gl.depthMask(true);
@@ -349,12 +351,17 @@
     draw();
   }
   function showBar(vmax, k) {
-    const c = $("barc"), x = c.getContext("2d"), stops = ["#002250", "#35456c", "#7c7b78", "#bcaf6f", "#fee838"];
+    const c = $("barc"), x = c.getContext("2d"), stops = ["#053061", "#6bacd1", "#f7f6f6", "#e48066", "#67001f"];
     const gr = x.createLinearGradient(0, c.height, 0, 0); stops.forEach((s, i) => gr.addColorStop(i / 4, s));
     x.fillStyle = gr; x.fillRect(0, 0, c.width, c.height);
     // review AG: the map is the saved FE state's, at the scan's posture; the sliders move the
     // model, not the map
-    $("barlabel").innerHTML = `|error| ${vmax.toFixed(2)} mm (p99)<br>…<br>0 mm<br>${k === "error_mm" ? "model vs measured" : "after diagnose's refit"}<br>at the scan's posture and c1<br>(not the sliders')<br>grey: not scored`;
+    // the ticks beside the bar's top, middle and bottom
+    const at = (css, text) => `<span style="position: absolute; ${css}">${text}</span>`;
+    $("barticks").innerHTML = at("top: 0", `+${vmax.toFixed(2)} mm: the scan<br>outside the model`) +
+      at("top: 50%; transform: translateY(-50%)", "0 mm") +
+      at("bottom: 0", `−${vmax.toFixed(2)} mm: inside`);
+    $("barlabel").innerHTML = `scale: p99 of |error|<br>${k === "error_mm" ? "model vs measured" : "after diagnose's refit"}<br>at the scan's posture and c1<br>(not the sliders')<br>dark grey: not scored`;
     $("bar").style.display = "block";
   }
 
