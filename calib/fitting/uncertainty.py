@@ -63,8 +63,10 @@ class Uncertainty:
     residual_sd_mm : float
         Residual noise estimate: the residuals' RMS about zero, sqrt(sum r^2 / (n - 1))
         (not about their mean; for ``profile`` the noise level the profile used).
-    n_residuals, n_effective : float
-        Residual count and effective independent samples.
+    n_residuals : int
+        Residual count.
+    n_effective : float
+        Effective independent samples.
     correlation_length_mm : float
         ``series``: the noise kernel's length scale; ``gauss-newton``: the distance at
         which the residuals' correlation falls below 1/e (0 when treated as independent).
