@@ -433,6 +433,8 @@ def test_page_without_surrogate_shows_the_saved_fe_states(scans_work, browser):
         browser.goto(server.url)
         text = browser.evaluate("document.getElementById('gvec').textContent")
         assert "stress-free shape (no gravity)" in text
+        # review AX: the disabled slider's 90° read as the shape's posture
+        assert browser.evaluate("document.getElementById('a_val').textContent") == "–"
         browser.goto(server.url + "?scan=left_lateral")  # the reference: no saved state
         status = browser.evaluate("document.getElementById('status').textContent")
         assert "left_lateral: no saved FE state" in status

@@ -246,6 +246,8 @@
       // stress-free one, under no gravity
       V.state.gravity = [0, 0, 0];
       $("gvec").textContent = "the stress-free shape (no gravity)";
+      // review AX: the disabled sliders' 90° read as the shape's posture
+      $("a_val").textContent = "–"; $("s_val").textContent = "–";
       return;
     }
     const g = V.state.gravity;
