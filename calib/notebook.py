@@ -114,7 +114,10 @@ class Work:
         return validation_markdown(self.validation)
 
     def plot_error_map(self, scan: str, *, vmax: float | None = None):
-        """The measured surface of ``scan`` shaded by its error (matplotlib Figure)."""
+        """The measured surface of ``scan`` coloured by its signed error (matplotlib Figure).
+
+        Red where the scan lies outside the model, blue inside (the reports' maps).
+        """
         from .report.validation import error_surface_figure
 
         if vmax is not None and not (is_finite_number(vmax) and vmax > 0):

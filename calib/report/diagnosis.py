@@ -72,7 +72,8 @@ def residual_maps_figure(name: str, role: str, scan, before_mm, after_mm, R, *, 
     for i, (label, err) in enumerate(rows):
         e = face_error_mm(err, faces, scan.scored, signed=True)
         saturated |= bool(np.any(np.abs(e) > vmax))
-        mean = float(np.abs(err)[scan.scored].mean())
+        scored = np.abs(err)[scan.scored]
+        mean = float(scored.mean()) if scored.size else float("nan")
         axes += draw_surface_views(fig, (n_rows, 2, 2 * i + 1), surface, e, mapper,
                                    f"{label}, mean |e| {mean:.3f} mm")  # fmt: skip
     signed_colorbar(fig, mapper, axes, saturated=saturated, shrink=0.6)
@@ -80,7 +81,7 @@ def residual_maps_figure(name: str, role: str, scan, before_mm, after_mm, R, *, 
         # review AX: before and after looked alike where the mean moved 0.207 -> 0.202 mm
         change = np.asarray(after_mm, float) - np.asarray(before_mm, float)
         d = face_error_mm(change, faces, scan.scored, signed=True)
-        top = max(float(np.percentile(np.abs(d), 99)), 1e-3)
+        top = max(float(np.percentile(np.abs(d), 99)) if d.size else 0.0, 1e-3)
         moved = signed_error_mapper(top)
         ax = draw_surface_views(fig, (n_rows, 2, 2 * n_rows - 1), surface, d, moved,
                                 "change, after - before (its own scale)")  # fmt: skip

@@ -187,7 +187,7 @@ def surface_error_figure(
     """
     surface = surface_in_phantom_frame(scan, R_ref_from_phantom)
     e = face_error_mm(error_mm, surface[1], scan.scored, signed=True)
-    top = vmax or max(float(np.percentile(np.abs(e), 99)), 1e-3)
+    top = vmax or max(float(np.percentile(np.abs(e), 99)) if e.size else 0.0, 1e-3)
     mapper = signed_error_mapper(top)
     fig = map_figure(10, 4.8)
     axes = draw_surface_views(fig, (1, 2, 1), surface, e, mapper, "")

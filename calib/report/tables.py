@@ -7,6 +7,7 @@ import math
 from ..fitting.meshcheck import describe_mesh_check
 from ..fitting.result import no_interval_said, reference_state_said
 from ..fitting.uncertainty import GAUSS_NEWTON_COVERAGE
+from ..stats.noise import SMOOTH_TAKEN_FOR_NOISE
 
 __all__ = ["format_calibration", "format_validation"]
 
@@ -88,8 +89,8 @@ def _model_fit_lines(fit: dict | None, recovery: dict | None) -> list[str]:
         lines.append(f"  band-F misfit test: p = {fit['p_value']:.2g} ({what} beyond the noise)")
         if band != "misfit" and (fit.get("noise") or {}).get("length_at_bound"):
             lines.append(
-                "    its noise model's correlation length ended at the search bound: smooth "
-                "structure was taken for noise (a smooth misfit cannot be told from noise)"
+                "    its noise model's correlation length ended at the search bound: "
+                f"{SMOOTH_TAKEN_FOR_NOISE}"
             )
     postures = (fit or {}).get("postures")
     if postures:
@@ -174,7 +175,8 @@ def format_validation(doc: dict) -> str:
     # review AX: ingest's angle is another (3-D, to the reference's gravity)
     note = (
         "posture: the angle of the scan's registered gravity within its posture plane "
-        "(0° left lateral; ingest's table gives its 3-D angle to the reference scan's)"
+        "(transverse: 0° left lateral; ingest's table gives its 3-D angle to the reference "
+        "scan's)"
     )
     for name, s in doc["scans"].items():
         surf = s["surface_error_mm"]["fiducial"]

@@ -102,6 +102,9 @@ def error_by_displacement_figure(scans: list[ScanValidation]):
     for ax, sv in zip(axes, scans, strict=False):
         off = sv.metrics.vertex_error_mm != 0.0
         err = measured(sv)
+        if not err.size:  # review BA: every error 0 (nothing scored) divided by zero
+            ax.set_title(f"{sv.name} ({sv.role}): no measured point off the back plate")
+            continue
         disp = sv.displacement_mm[off]
         edges = displacement_bins_mm(disp)
         stacks, labels, colours = [], [], []
@@ -324,7 +327,8 @@ def _intro(v: Validation) -> str:
     caveats = "".join(f"WARNING (calibration): {said}. " for said in v.caveats)
     return (
         f"{caveats}c1 = {v.c1_pa:.1f} Pa ({band}). All distances in mm. Posture: the angle "
-        "of the scan's registered gravity within its posture plane (0° left lateral; "
+        "of the scan's registered gravity within its posture plane (transverse: 0° left "
+        "lateral; "
         "ingest's table gives its 3-D angle to the reference scan's gravity). Error maps: "
         "red where the scan lies outside the model, blue inside. Fiducial frame: the scan "
         "mapped by its fiducial registration only; ICP: after a rigid ICP of the measured "

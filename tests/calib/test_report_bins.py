@@ -79,3 +79,25 @@ def test_the_error_maps_show_the_sign_of_the_error():
         assert (np.sign(red_minus_blue) == sign).all()  # + (1 and 1/3 mm): red; -: blue
         assert not np.allclose(rgba[0], rgba[1])  # 1 mm and 1/3 mm apart on the scale
     assert SIGN_NOTE in fig.axes[-1].get_ylabel()  # the colour bar says what + means
+
+
+def test_maps_of_a_scan_with_nothing_scored_are_drawn_not_raised():
+    # review BA: with no scored face the scale's percentile of an empty array raised
+    # (the notebook's plot_error_map without vmax, diagnose's change row), and the
+    # error-by-displacement panel of a scan whose errors are all 0 divided by zero
+    from types import SimpleNamespace
+
+    from calib.report.diagnosis import residual_maps_figure
+    from calib.report.maps import surface_error_figure
+    from calib.report.validation import error_by_displacement_figure
+
+    scan = _square_scan()
+    scan.scored = np.zeros(4, bool)
+    zero = np.zeros(4)
+    surface_error_figure(scan, zero, np.eye(3), "t")
+    residual_maps_figure("s", "calibration", scan, zero, zero, np.eye(3), vmax=1.0)
+    sv = SimpleNamespace(name="s", role="validation", posture_label="25°",
+                         metrics=SimpleNamespace(vertex_error_mm=zero),
+                         displacement_mm=np.full(4, np.nan))  # fmt: skip
+    fig = error_by_displacement_figure([sv])
+    assert fig.axes[0].get_title() == "s (validation): no measured point off the back plate"
