@@ -85,9 +85,9 @@ def residual_maps_figure(name: str, role: str, scan, before_mm, after_mm, R, *, 
         moved = signed_error_mapper(top)
         ax = draw_surface_views(fig, (n_rows, 2, 2 * n_rows - 1), surface, d, moved,
                                 "change, after - before (its own scale)")  # fmt: skip
-        fig.colorbar(moved, ax=ax, shrink=0.6, extend="both" if np.any(np.abs(d) > top) else
-                     "neither", label="change of the distance (mm)\n-: the final model moved "
-                     "outward here")  # fmt: skip
+        signed_colorbar(fig, moved, ax, saturated=bool(np.any(np.abs(d) > top)), shrink=0.6,
+                        label="change of the distance (mm)\n-: the final model moved outward "
+                        "here")  # fmt: skip
     fig.suptitle(f"{name} ({role}): signed surface error before and after, one colour scale")
     return fig
 

@@ -17,9 +17,15 @@ import numpy as np
 from ..io import atomic_write
 
 __all__ = [
+    "draw_surface_views",
     "face_error_mm",
+    "map_figure",
     "save_figure",
+    "shared_error_scale_mm",
+    "signed_colorbar",
+    "signed_error_mapper",
     "surface_error_figure",
+    "surface_in_phantom_frame",
     "write_error_ply",
 ]
 
@@ -151,14 +157,18 @@ def map_figure(width_in: float, height_in: float):
     return fig
 
 
-def signed_colorbar(fig, mapper, axes, *, saturated: bool, shrink: float = 0.7):
+def signed_colorbar(
+    fig,
+    mapper,
+    axes,
+    *,
+    saturated: bool,
+    shrink: float = 0.7,
+    label: str = f"distance of the scan to the model surface (mm)\n{SIGN_NOTE}",
+):
     """The colour bar of a signed map, its sign said, extended where the scale saturates."""
     return fig.colorbar(
-        mapper,
-        ax=axes,
-        shrink=shrink,
-        label=f"distance of the scan to the model surface (mm)\n{SIGN_NOTE}",
-        extend="both" if saturated else "neither",
+        mapper, ax=axes, shrink=shrink, label=label, extend="both" if saturated else "neither"
     )
 
 

@@ -9,6 +9,13 @@ from ..fitting.result import no_interval_said, reference_state_said
 from ..fitting.uncertainty import GAUSS_NEWTON_COVERAGE
 from ..stats.noise import SMOOTH_TAKEN_FOR_NOISE
 
+#: What validate's posture angle is (review AX: ingest's is another, 3-D, to the reference
+#: scan's gravity); the console table and the report say it alike.
+POSTURE_NOTE = (
+    "the angle of the scan's registered gravity within its posture plane (transverse: 0° "
+    "left lateral; ingest's table gives its 3-D angle to the reference scan's gravity)"
+)
+
 __all__ = ["format_calibration", "format_validation"]
 
 
@@ -172,12 +179,6 @@ def format_validation(doc: dict) -> str:
         f"{'scan':<16}{'role':<13}{'posture':>8}  {'surface mean (95 % band)':<26}"
         f"{'sd':>6}  {'nipple':<22}{'tumour':<22}{'dissertation':<20}"
     ]
-    # review AX: ingest's angle is another (3-D, to the reference's gravity)
-    note = (
-        "posture: the angle of the scan's registered gravity within its posture plane "
-        "(transverse: 0° left lateral; ingest's table gives its 3-D angle to the reference "
-        "scan's)"
-    )
     for name, s in doc["scans"].items():
         surf = s["surface_error_mm"]["fiducial"]
         tumour = (s.get("tumour_error_mm") or {}).get("fiducial")
@@ -190,7 +191,7 @@ def format_validation(doc: dict) -> str:
     for name, why in (doc.get("failed") or {}).items():
         lines.append(f"{name:<16}not validated: no FE solution at calibration ({why})")
     if doc["scans"]:
-        lines.append(note)
+        lines.append(f"posture: {POSTURE_NOTE}")
     lines += [f"WARNING (calibration): {said}" for said in doc.get("calibration_caveats") or []]
     if any(s.get("dissertation") for s in doc["scans"].values()):
         lines.append(

@@ -21,6 +21,7 @@ import numpy as np
 
 from ..validation import BAND_POINTS, ScanValidation, Validation
 from .maps import surface_error_figure
+from .tables import POSTURE_NOTE
 
 __all__ = [
     "error_by_displacement_figure",
@@ -92,16 +93,13 @@ def error_by_displacement_figure(scans: list[ScanValidation]):
     fig = Figure(figsize=(9, 2.8 * max(len(scans), 1) + 0.6), layout="constrained")
     axes = fig.subplots(max(len(scans), 1), 1, squeeze=False)[:, 0]
 
-    def measured(sv):
-        return np.abs(sv.metrics.vertex_error_mm[sv.metrics.vertex_error_mm != 0.0])
-
+    # the measured points: off the back plate (0 there, not compared)
+    offs = [sv.metrics.vertex_error_mm != 0.0 for sv in scans]
+    errs = [np.abs(sv.metrics.vertex_error_mm[off]) for sv, off in zip(scans, offs, strict=True)]
     # one error axis for every scan (review AX: 0-1.75 mm in one panel, 0-0.8 in the next)
-    top = max([float(np.percentile(measured(sv), 99.5)) for sv in scans if measured(sv).size]
-              + [0.1])  # fmt: skip
+    top = max([float(np.percentile(e, 99.5)) for e in errs if e.size] + [0.1])
     bins = np.linspace(0.0, top, 21)
-    for ax, sv in zip(axes, scans, strict=False):
-        off = sv.metrics.vertex_error_mm != 0.0
-        err = measured(sv)
+    for ax, sv, off, err in zip(axes, scans, offs, errs, strict=False):
         if not err.size:  # review BA: every error 0 (nothing scored) divided by zero
             ax.set_title(f"{sv.name} ({sv.role}): no measured point off the back plate")
             continue
@@ -326,10 +324,8 @@ def _intro(v: Validation) -> str:
     )
     caveats = "".join(f"WARNING (calibration): {said}. " for said in v.caveats)
     return (
-        f"{caveats}c1 = {v.c1_pa:.1f} Pa ({band}). All distances in mm. Posture: the angle "
-        "of the scan's registered gravity within its posture plane (transverse: 0° left "
-        "lateral; "
-        "ingest's table gives its 3-D angle to the reference scan's gravity). Error maps: "
+        f"{caveats}c1 = {v.c1_pa:.1f} Pa ({band}). All distances in mm. Posture: "
+        f"{POSTURE_NOTE}. Error maps: "
         "red where the scan lies outside the model, blue inside. Fiducial frame: the scan "
         "mapped by its fiducial registration only; ICP: after a rigid ICP of the measured "
         "onto the simulated surface (which minimises the surface error: biased low; the "
