@@ -872,7 +872,7 @@ def diagnose(
         else ""
     )
     say(
-        f"criterion (d), the share explained, judged on the {n_judged} of {n_all} points "
+        f"the share of the residual an effect explains, judged on the {n_judged} of {n_all} points "
         f"beyond {judged_beyond:.3g} mm of the back plate{lowered}"
     )
     named, confounded, candidates, current, cur_scr = [], [], [], null, scr0
@@ -889,7 +889,8 @@ def diagnose(
         for chosen in stages:  # physical effects first, nuisances if none passes
             if passing or not chosen:
                 continue
-            say(f"round {rnd}: refitting {chosen} jointly with c1 (full FE)")
+            each = "each " if len(chosen) > 1 else ""
+            say(f"round {rnd}: refitting {', '.join(chosen)}, {each}jointly with c1 (full FE)")
             for eff in chosen:
                 key = tuple(sorted([*named, eff]))
                 try:
@@ -915,7 +916,8 @@ def diagnose(
                     say(f"  {c.effect}: not refitted ({c.reason})")
                     continue
                 say(f"  {c.effect}: c1 = {c.c1_pa:.1f} Pa, explains {c.explained:.0%} above "
-                    f"the floor, LOPO {'better' if c.lopo_improves else 'not better'}"
+                    f"the floor, leave-one-posture-out prediction "
+                    f"{'better' if c.lopo_improves else 'not better'}"
                     + ("" if c.passes else f"; not named ({c.reason})"))  # fmt: skip
         if not passing:
             break

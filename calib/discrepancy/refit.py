@@ -36,7 +36,15 @@ from ..model.effects import LIBRARY, EffectValues
 from .fields import MATERIAL_EFFECTS, FieldSet, effect_fields
 from .problem import Nuisance, Problem
 
-__all__ = ["PHYSICAL", "PhysicalParameter", "Refit", "lopo", "refit", "sliding_ln_k_bounds"]
+__all__ = [
+    "PHYSICAL",
+    "PhysicalParameter",
+    "Refit",
+    "lopo",
+    "parameter_text",
+    "refit",
+    "sliding_ln_k_bounds",
+]
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +104,54 @@ PHYSICAL = {
     ),
 }
 _OFFSET_BOUNDS = (3.0, 3.0, 3.0, math.radians(2.0), math.radians(2.0), math.radians(2.0))
+#: The quantities of the parameters that are physical as they stand (no unit).
+_AS_IS = {"mooney": "c2/c1", "poisson": "nu"}
+
+
+def _quantity(name: str) -> tuple[str, str, Callable[[float], float], str]:
+    """``(label, unit, convert, format)`` of a refit parameter (:func:`parameter_text`)."""
+    if name == "theta":
+        return "c1", "Pa", math.exp, ".1f"
+    if name in PHYSICAL:
+        q = PHYSICAL[name]
+        return f"{name} {q.label}", q.unit, q.convert, ".4g"
+    if name in _AS_IS:
+        return f"{name} {_AS_IS[name]}", "", float, ".4g"
+    if name.startswith("gravity[") or name.split(".")[-1] in _COMPONENTS[3:]:
+        return name, "deg", math.degrees, ".3g"
+    if name.split(".")[-1] in _COMPONENTS[:3]:
+        return name, "mm", float, ".3g"
+    return name, "", float, ".4g"
+
+
+def parameter_text(name: str, value: float, ci95: Sequence[float] | None = None) -> str:
+    """A refit parameter as a person reads it: its quantity and unit.
+
+    Parameters
+    ----------
+    name : str
+        A name of :attr:`Refit.names`: ``theta``, a global effect, ``gravity[scan].a0``
+        or ``registration[scan].tx`` (``tx, ty, tz`` in mm, ``wx, wy, wz`` in rad).
+    value : float
+        The parameter's value in its own units (``ln c1``, ratio - 1, ``ln k``, rad, mm).
+    ci95 : (float, float), optional
+        Its 95 % interval in the same units, said after the value.
+
+    Returns
+    -------
+    str
+        For example ``c1 = 422.0 Pa``, ``skin ratio = 7.87``, ``sliding springs = 311
+        Pa/mm (95 % 250 - 402)``, ``gravity[tilt_25].a0 = 0.7 deg``,
+        ``registration[tilt_25].ty = -0.902 mm`` (review AX: ``skin = 6.868`` and
+        ``gravity[...].a0 = 0.01221`` said no unit).
+    """
+    label, unit, convert, fmt = _quantity(name)
+    unit = f" {unit}" if unit else ""
+    text = f"{label} = {format(convert(float(value)), fmt)}{unit}"
+    if ci95 is not None:
+        lo, hi = (format(convert(float(b)), fmt) for b in ci95)
+        text += f" (95 % {lo} - {hi}{unit})"
+    return text
 
 
 def _offset_bounds(tolerance_mm: float | None) -> tuple[float, ...]:
@@ -374,9 +430,7 @@ def refit(
         fs = evaluate(x, True)
         lam = max(lam / 3.0, 1e-6) if t == 1.0 else lam
         t_last = t
-        shown = [f"c1 = {np.exp(x[0]):.1f} Pa"] + [
-            f"{n} = {v:.4g}" for n, v in zip(names[1:4], x[1:4], strict=False)
-        ]
+        shown = [parameter_text(n, v) for n, v in zip(names[:4], x[:4], strict=False)]
         say(f"  refit {'+'.join(effects) or 'c1'}: {', '.join(shown)}, "
             f"rms {np.sqrt(S / n_res):.4f} mm")  # fmt: skip
         if gain < rtol:

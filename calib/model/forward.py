@@ -138,6 +138,7 @@ class ForwardModel:
     _du0: tuple | None = None  # (theta, d u0 / d theta) of the last gradient
     _ps: object = None  # fem.prestress.Prestress of the last spatial recovery
     _dF0: tuple | None = None  # (theta, d F0 / d theta) of the last spatial gradient
+    _rim_fold_said: bool = False  # the inverted-rim warning said in full once (review AX)
 
     def __post_init__(self) -> None:
         if self.reference_state not in ("unload", "prestress", "shortcut"):
@@ -294,14 +295,20 @@ class ForwardModel:
         ):
             # an inverted straight stress-free element keeps det F > 0 only with its loaded
             # quadratic element folded too (fem.unload's module notes): say so
-            log.warning(
-                "recovered reference at c1=%.1f Pa: %d vertex tetrahedra inverted at the "
-                "clamped rim, and their loaded quadratic elements folded with them (the "
-                "model is wrong there, locally; --reference-state prestress has curved "
-                "stress-free elements and none)",
-                np.exp(theta),
-                rec.inverted_elements,
-            )
+            n = rec.inverted_elements
+            what = f"{n} vertex tetrahedr{'on' if n == 1 else 'a'} inverted at the clamped rim"
+            where = f"recovered reference at c1={np.exp(theta):.1f} Pa ({self.mesh.n_tets} tets)"
+            if self._rim_fold_said:  # review AX: the same paragraph three times a run
+                log.warning("%s: %s (as said above)", where, what)
+            else:
+                log.warning(
+                    "%s: %s, and %s loaded quadratic element%s folded with %s (the model is "
+                    "wrong there, locally: the surface next to the back plate; "
+                    "--reference-state prestress has curved stress-free elements and none)",
+                    where, what, "its" if n == 1 else "their", "" if n == 1 else "s",
+                    "it" if n == 1 else "them",
+                )  # fmt: skip
+            self._rim_fold_said = True
         self.inverted_reference_elements = rec.inverted_elements
         return self._X
 

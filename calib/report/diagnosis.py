@@ -19,6 +19,7 @@ import math
 
 import numpy as np
 
+from ..discrepancy.refit import parameter_text
 from ..stats.noise import SMOOTH_TAKEN_FOR_NOISE
 from .maps import (
     draw_surface_views,
@@ -236,6 +237,14 @@ def _table(header: list[str], rows: list[list]) -> str:
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
+def _fitted(candidate: dict) -> str:
+    """A refit candidate's own parameter in its quantity and unit (nuisances: a count)."""
+    pars = candidate.get("parameters") or {}
+    if candidate["effect"] in pars:
+        return parameter_text(candidate["effect"], pars[candidate["effect"]])
+    return f"{len(pars)} parameters" if pars else ""
+
+
 def _summary(doc: dict) -> str:
     c0, c1 = doc["calibration"]["c1_pa"], doc["c1_pa"]
     ci = doc.get("c1_ci95_pa")
@@ -249,15 +258,11 @@ def _summary(doc: dict) -> str:
     for name in doc["named"]:
         for pname, iv in ivs.items():
             if pname == name or pname.startswith(f"{name}["):
-                lines.append(f"<p>{html.escape(pname)} = {iv['value']:.4g} "
-                             f"(95 % {iv['ci95'][0]:.4g}–{iv['ci95'][1]:.4g})"
-                             + (f", stiffness ratio {iv['ratio']:.2f}" if "ratio" in iv else "")
-                             + (f" at an assumed {iv['thickness_mm']:g} mm band: (ratio − 1) × "
+                lines.append("<p>" + html.escape(parameter_text(pname, iv["value"], iv["ci95"]))
+                             + (f"; at an assumed {iv['thickness_mm']:g} mm band: (ratio − 1) × "
                                 f"thickness {iv['excess_mm']:.3g} mm (95 % "
                                 f"{iv['excess_ci95_mm'][0]:.3g}–{iv['excess_ci95_mm'][1]:.3g})"
                                 if "excess_mm" in iv else "")
-                             + (f", springs {iv['stiffness_pa_per_mm']:.3g} Pa/mm"
-                                if "stiffness_pa_per_mm" in iv else "")
                              + "</p>")  # fmt: skip
                 if "ci95_unclipped" in iv:
                     lines.append(f"<p>{html.escape(_cut_note(pname, iv))}</p>")
@@ -351,6 +356,7 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
             c["effect"],
             c["round"],
             c["c1_pa"],
+            _fitted(c),
             c["explained"],
             c.get("explained_all_points"),
             c["lopo_improves"],
@@ -360,7 +366,8 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
         ]
         for c in doc["candidates"]
     ]
-    head = ["candidate", "round", "c1 Pa", judged, "explained, every point", "LOPO better"]
+    head = ["candidate", "round", "c1 Pa", "fitted", judged, "explained, every point"]
+    head += ["leave-one-posture-out better"]
     head += ["plausible", "named", "why not"]
     cands = _table(head, cand_rows) if cand_rows else "<p>none</p>"
     loc_rows = []
@@ -442,8 +449,7 @@ def format_diagnosis(doc: dict) -> str:
         lines.append(bound)
     for name, iv in doc["refit"].get("intervals", {}).items():
         if name != "theta" and any(name == e or name.startswith(f"{e}[") for e in doc["named"]):
-            lines.append(f"{name} = {iv['value']:.4g} (95 % {iv['ci95'][0]:.4g} - "
-                         f"{iv['ci95'][1]:.4g})")  # fmt: skip
+            lines.append(parameter_text(name, iv["value"], iv["ci95"]))
             if "excess_mm" in iv:
                 lo, hi = iv["excess_ci95_mm"]
                 excess = f"(ratio - 1) x thickness {iv['excess_mm']:.3g} mm"

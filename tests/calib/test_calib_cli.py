@@ -76,7 +76,7 @@ def test_simulate_writes_result_and_summary(simulated):
     assert result.exit_code == 0, result.output
     assert "converged=True" in result.output
     # review AX: how --gravity was read (a direction; predict's is m/s^2 in another frame)
-    said = "gravity: the direction 1,0,0 in the mesh's own frame, of magnitude --g 9.81 m/s^2\n"
+    said = "gravity: the direction (1, 0, 0) in the mesh's own frame, of magnitude --g 9.81 m/s^2\n"
     assert said in result.output
     summary = json.loads(out.with_suffix(".json").read_text())
     keys = (

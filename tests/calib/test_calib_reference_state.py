@@ -172,3 +172,31 @@ def test_the_kept_recovery_outlives_the_others(scan_mesh, monkeypatch):
     for t in thetas:
         other.stress_free(t)
     assert (None, thetas[0]) not in other._recovered
+
+
+def test_the_inverted_rim_is_said_in_full_once_then_briefly(scan_mesh, monkeypatch, caplog):
+    # review AX: calibrate printed the inverted-rim paragraph at every new count (three
+    # times in make demo's run, "1 vertex tetrahedra" among them); it is said in full once
+    # per model, later counts in one short line, a count it had last time not again
+    from types import SimpleNamespace
+
+    fm = _fm(scan_mesh, "unload")
+    counts = iter([3, 4, 4, 1])
+    monkeypatch.setattr(
+        fm,
+        "_recover",
+        lambda theta: SimpleNamespace(
+            nodes_mm=scan_mesh.nodes_mm, prestress=None,
+            solution=SimpleNamespace(state=None), inverted_elements=next(counts),
+        ),
+    )  # fmt: skip
+    with caplog.at_level("WARNING", logger="calib.model.forward"):
+        for dt in (0.0, 0.01, 0.02, 0.03):
+            fm.stress_free(np.log(C1) + dt)
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 3, said
+    assert "3 vertex tetrahedra inverted" in said[0] and "folded with them" in said[0]
+    assert "(the model is wrong there, locally" in said[0]
+    assert said[1].endswith("4 vertex tetrahedra inverted at the clamped rim (as said above)")
+    assert said[2].endswith("1 vertex tetrahedron inverted at the clamped rim (as said above)")
+    assert f"({scan_mesh.n_tets} tets)" in said[2]

@@ -1032,6 +1032,48 @@ def test_a_sliding_plate_is_refitted_as_ln_k_of_its_springs():
     assert effect_support(values).tangent_stiffness_pa_per_mm == pytest.approx(250.0)
 
 
+def test_refit_parameters_are_said_in_their_quantity_and_unit():
+    # review AX: the refit's lines said "skin = 6.868" (ratio - 1), "gravity[...].a0 =
+    # 0.01221" (rad) and "registration[...].ty = -0.9021" (mm) without a unit; each
+    # parameter is said as the quantity it stands for, its interval converted the same way
+    # (a monotone map, so the interval's ends are the ends' images)
+    import math
+
+    from calib.discrepancy.refit import parameter_text
+    from calib.report.diagnosis import format_diagnosis
+
+    said = {
+        ("theta", math.log(422.0)): "c1 = 422.0 Pa",
+        ("skin", 6.868): "skin ratio = 7.868",
+        ("inclusions", 4.0): "inclusions ratio = 5",
+        ("sliding", math.log(311.0)): "sliding springs = 311 Pa/mm",
+        ("mooney", 0.5): "mooney c2/c1 = 0.5",
+        ("poisson", 0.45): "poisson nu = 0.45",
+        ("gravity[tilt_25].a1", math.radians(0.7)): "gravity[tilt_25].a1 = 0.7 deg",
+        ("registration[tilt_25].ty", -0.9021): "registration[tilt_25].ty = -0.902 mm",
+        ("registration[tilt_25].wz", math.radians(-1.5)): "registration[tilt_25].wz = -1.5 deg",
+    }
+    for (name, value), text in said.items():
+        assert parameter_text(name, value) == text
+    assert parameter_text("sliding", math.log(300.0), (math.log(250.0), math.log(400.0))) == (
+        "sliding springs = 300 Pa/mm (95 % 250 - 400 Pa/mm)"
+    )
+    # the command's summary says a named effect's interval in the same words
+    doc = {
+        "verdict": "named: skin",
+        "named": ["skin"],
+        "calibration": {"c1_pa": 554.5},
+        "c1_pa": 422.0,
+        "refit": {"intervals": {"skin": {"value": 6.868, "ci95": [5.327, 8.409]}}},
+        "gap": {},
+        "noise": {"floor_mean_abs_mm": 0.079},
+        "scans": {"diagnosis": ["right_lateral", "tilt_50"], "holdout": None},
+        "effects": {},
+        "model_mesh": {},
+    }
+    assert "\nskin ratio = 7.868 (95 % 6.327 - 9.409)\n" in format_diagnosis(doc)
+
+
 def test_the_registration_tolerance_takes_half_the_largest_voxel_edge(tmp_path):
     # closed form: 3 x the larger expected TRE + half the largest voxel edge (thick
     # slices place a point to half a slice along their axis; the twin is isotropic)
