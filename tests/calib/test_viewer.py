@@ -99,6 +99,21 @@ def test_page_follows_the_gravity_and_c1_controls(box, browser, tmp_path):
         browser.goto(server.url)
         assert browser.evaluate("window.viewer.error") is None
         n = browser.evaluate("window.viewer.nVertices()")
+        # review AX: no plate and no scale; the back plate is a 10 mm grid in the plane of
+        # the body's back face (its lowest z: z points from the plate into the body),
+        # wider than the body (float32 positions: 1e-4 mm)
+        import nn
+        from fem.mesh import boundary_faces
+
+        sur = nn.load_surrogate(model)
+        rest = (sur.mesh.nodes_mm @ sur.R_ref_from_phantom)[
+            np.unique(boundary_faces(sur.mesh.tets))
+        ]
+        plate = browser.evaluate("window.viewer.plate")
+        assert plate["spacing_mm"] == 10
+        assert plate["z_mm"] == pytest.approx(rest[:, 2].min(), abs=1e-4)
+        for k, key in enumerate(("x_mm", "y_mm")):
+            assert plate[key][0] < rest[:, k].min() and plate[key][1] > rest[:, k].max()
         checked = []
         # (transverse angle, tilt, c1 slider position 0..1000) moved as a user would:
         # set the input's value and fire its "input" event

@@ -147,7 +147,20 @@
     { passive: false });
 
   // ---------- scene ----------
-  let model = null, overlay = null, points = null, lines = null, vmax = 1;
+  let model = null, overlay = null, points = null, lines = null, plate = null, vmax = 1;
+  // The back plate: the plane of the body's back face (z = its lowest z: the phantom frame's
+  // z points from the plate into the breast), drawn as a grid of PLATE_MM squares a little
+  // wider than the body, behind it (review AX: no plate, no scale).
+  const PLATE_MM = 10;
+  function plateGrid(lo, hi) {
+    const pad = [0, 1].map((i) => 0.15 * (hi[i] - lo[i]));
+    const a = [0, 1].map((i) => PLATE_MM * Math.floor((lo[i] - pad[i]) / PLATE_MM));
+    const b = [0, 1].map((i) => PLATE_MM * Math.ceil((hi[i] + pad[i]) / PLATE_MM));
+    const z = lo[2], v = [];
+    for (let x = a[0]; x <= b[0] + 1e-6; x += PLATE_MM) v.push(x, a[1], z, x, b[1], z);
+    for (let y = a[1]; y <= b[1] + 1e-6; y += PLATE_MM) v.push(a[0], y, z, b[0], y, z);
+    return { z, spacing_mm: PLATE_MM, x_mm: [a[0], b[0]], y_mm: [a[1], b[1]], pos: new Float32Array(v) };
+  }
   const marks = { nipple: null, tumour: null, fiducials: [], mNipple: null, mTumour: null };
   function draw() {
     const w = Math.round(canvas.clientWidth * devicePixelRatio), h = Math.round(canvas.clientHeight * devicePixelRatio);
@@ -166,6 +179,10 @@
     const isMap = overlay && (ov === "error_mm" || ov === "error_after_mm") && !!overlay.maps[ov];
     // error maps: the measured surface coloured alone (a model over it would tint the colours);
     // "measured": the model opaque, the measured surface translucent blue over it
+    if (plate) {
+      gl.uniform1i(loc.mode, 3); gl.uniform4f(loc.color, 0.62, 0.62, 0.6, 1);
+      gl.bindVertexArray(plate.vao); gl.drawArrays(gl.LINES, 0, plate.n);
+    }
     if (model && $("show_model").checked && !isMap) {
       gl.uniform1i(loc.mode, 0); gl.uniform4f(loc.color, 0.86, 0.72, 0.62, 1);
       gl.bindVertexArray(model.vao); gl.drawElements(gl.TRIANGLES, model.count, gl.UNSIGNED_INT, 0);
@@ -383,6 +400,9 @@
       model = makeMesh(V.rest.slice(), idx, null);
       const lo = [1e9, 1e9, 1e9], hi = [-1e9, -1e9, -1e9];
       for (let i = 0; i < V.rest.length; i++) { lo[i % 3] = Math.min(lo[i % 3], V.rest[i]); hi[i % 3] = Math.max(hi[i % 3], V.rest[i]); }
+      const grid = plateGrid(lo, hi);
+      plate = makeMesh(grid.pos, null, null);
+      V.plate = { z_mm: grid.z, spacing_mm: grid.spacing_mm, x_mm: grid.x_mm, y_mm: grid.y_mm };
       cam.center = lo.map((l, i) => (l + hi[i]) / 2);
       cam.dist = 1.9 * Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]);
       const nv = sc.landmarks.nipple_vertex;
