@@ -296,8 +296,8 @@ def test_the_model_mesh_s_error_absorbed_names_the_skin_and_nothing_on_the_null(
     # homogeneous truth gets no name (0 false namings); the record says which mesh (its
     # element count 1.2-1.6 times coarser per edge: TetGen's sizing is loose) and how
     # large the change was (at least 0.02 mm rms: the dissertation twins' 12 -> 16.8 mm
-    # change was 0.05-0.25 mm, README "The model mesh's own error as a nuisance"), and
-    # the column acted: the null's screen statistics differ from the default's
+    # change was 0.05-0.25 mm, docs/diagnose-evidence.md, "The model mesh's own error as
+    # a nuisance"), and the column acted: the null's screen statistics differ from the default's
     docs = _skin_and_null_again(skin, none, tmp_path, mesh_error="absorbed")
     for doc in docs.values():
         rec = doc["model_mesh"]["error"]
