@@ -126,6 +126,11 @@ def test_page_follows_the_gravity_and_c1_controls(box, browser, tmp_path):
             js += "document.getElementById('angle_a').dispatchEvent(new Event('input'));"
             browser.evaluate(js + "window.viewer.settled()")
             last = browser.evaluate("window.viewer.lastFrame")
+            # review AX: "control -> frame 332.7 ms" read as a developer's metric
+            status = browser.evaluate("document.getElementById('status').textContent")
+            assert status.startswith("surrogate prediction drawn ") and status.endswith(
+                " ms after the control moved"
+            ), status
             g, c1 = np.array(last["gravity"]), last["c1"]
             # the page's gravity is the posture-angle convention of the README's sweeps
             rad_a, rad_s = np.radians(a), np.radians(s)

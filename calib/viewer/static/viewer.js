@@ -303,7 +303,7 @@
         const dt = performance.now() - q.t0;
         V.latencies.push(dt);
         V.lastFrame = { gravity: q.g, c1: q.c1, latency_ms: dt, fetch_ms: fetchMs, draw_ms: drawMs, extrapolating: extra };
-        $("status").textContent = `control → frame ${dt.toFixed(1)} ms`;
+        $("status").textContent = `surrogate prediction drawn ${dt.toFixed(0)} ms after the control moved`;
         $("warn").textContent = [extra ? "outside the surrogate's trained range: it extrapolates" : "", overlayNote].filter(Boolean).join("; ");
         res();
       }));
