@@ -65,8 +65,9 @@ print(ingested.summary_table)
 # %% [markdown]
 # ## 3. Calibrate c1
 # The stress-free reference is recovered from the (sagging) reference scan, then c1 is
-# fitted to the calibration scans' surfaces. `calib.calibrate` writes `WORK/` as the
-# command line does; `calib.load_work` reads it back as an object.
+# fitted to the calibration scans' surfaces. `calib.calibrate` writes `calibration.json`
+# and `calibration/` as `phantom-calib calibrate` does (the command then validates as
+# well: notebook 02's `calib.validate`); `calib.load_work` reads it back as an object.
 
 # %%
 record = calib.calibrate(
@@ -77,19 +78,24 @@ work
 
 # %%
 c1_true = truth["material"]["c1_pa"]
-lo, hi = record["c1_ci95_pa"]
-print(f"c1 = {record['c1_pa']:.1f} Pa, 95 % interval {lo:.1f}-{hi:.1f} Pa, truth {c1_true} Pa")
+interval = record["c1_ci95_pa"]  # None where the fit could not give one (the record says why)
+said = "no interval" if interval is None else "95 % interval {:.1f}-{:.1f} Pa".format(*interval)
+print(f"c1 = {record['c1_pa']:.1f} Pa, {said}, truth {c1_true} Pa")
 print(f"relative error {100 * (record['c1_pa'] / c1_true - 1):+.2f} %")
 work.plot_profile()
 
 # %% [markdown]
 # ## 4. Where the calibrated model and the calibration scan disagree
+# The measured surface coloured by its signed distance to the model along the model's
+# outward normal (red: the scan lies outside the model, blue: inside), in the phantom
+# frame, on this scan's own scale (±99th percentile of |error|; `WORK/calibration/`'s
+# maps share one scale over the scans: pass `vmax=` for that).
 
 # %%
 calibration_scan = next(n for n, r in work.scans.items() if r == "calibration")
 work.plot_error_map(calibration_scan)
 
 # %%
-summary = {"c1_pa": record["c1_pa"], "c1_true_pa": c1_true, "c1_ci95_pa": [lo, hi]}
+summary = {"c1_pa": record["c1_pa"], "c1_true_pa": c1_true, "c1_ci95_pa": interval}
 (out / "01_summary.json").write_text(json.dumps(summary, indent=2))
 summary

@@ -16,8 +16,10 @@
 # %% [markdown]
 # # Validation against the postures the model was not fitted to
 #
-# The dissertation's headline result is the calibrated model's error on the 25° and 50°
-# scans (surface 3.63 ± 1.12 mm at 25°, 2.69 ± 0.7 mm at 50°, tumour centre 3.65 mm).
+# The dissertation's headline results are the errors at the postures its model was not
+# fitted to: its FE model against the MRI surface at 25° (3.63 ± 1.12 mm, tumour centre
+# 3.65 mm) and its surrogate's prediction against it at 50° (2.69 ± 0.7 mm); the table's
+# last column prints them beside a scan at that posture (`calib.validation.DISSERTATION`).
 # Here the same figures for the work folder of `01_twin_to_c1`, with a 95 % band from
 # the c1 interval, next to each scan's registration error. No FE solve: `calibrate`
 # saved every posture's deformed state and its derivative in ln c1.
@@ -40,17 +42,19 @@ Markdown(work.validation_table())
 
 # %% [markdown]
 # ## Error maps on a shared colour scale
-# The scale tops at the largest 99th percentile of the maps' scored errors, as the
-# report's maps do (`shared_error_scale_mm`; a few rim vertices would otherwise wash the
-# rest out).
+# Each map is the measured surface coloured by its signed distance to the model along the
+# model's outward normal (red: the scan lies outside the model, blue: inside), in the
+# phantom frame. The scale runs over ± the largest 99th percentile of |error| over every
+# validated scan's scored vertices, as `WORK/validation/`'s maps do
+# (`shared_error_scale_mm`; a few rim vertices would otherwise wash the rest out).
 
 # %%
 from calib.report.maps import shared_error_scale_mm
 
 validation_scans = [n for n, r in work.scans.items() if r == "validation"]
 measured = work.folder.measurements.scans  # their scored vertices (off the back plate)
-vmax = shared_error_scale_mm(
-    work.validation.scans[n].metrics.vertex_error_mm[measured[n].scored] for n in validation_scans
+vmax = shared_error_scale_mm(  # over every scan validate draws, the calibration's too
+    sv.metrics.vertex_error_mm[measured[n].scored] for n, sv in work.validation.scans.items()
 )
 for name in validation_scans:
     display(work.plot_error_map(name, vmax=vmax))

@@ -58,7 +58,11 @@ print(f"size {_settings.SIZE}, outputs in {out}")
 
 # %%
 truth = calib.synthesize(out / "skin", preset=preset, seed=0, overwrite=True)
-print("hidden effects:", truth["effects"]["active"], "; true c1", truth["material"]["c1_pa"], "Pa")
+hidden = truth["effects"]
+print(
+    f"hidden effects: {', '.join(hidden['active'])} ({hidden['skin_thickness_mm']:g} mm skin, "
+    f"{hidden['skin_ratio']:g} times the bulk's c1); true c1 {truth['material']['c1_pa']} Pa"
+)
 record = calib.calibrate(out / "skin" / "scans", out / "skin-work", **options)
 print(f"calibrated c1 = {record['c1_pa']:.1f} Pa (the skin absorbed into the bulk)")
 
@@ -76,9 +80,8 @@ print("verdict:", doc["verdict"])
 
 # %%
 for scan, m in doc["localisation"].items():
-    print(
-        scan, {r: f"mean {v['mean_mm']:+.2f} mm, z {v['z']:+.1f}" for r, v in m["regions"].items()}
-    )
+    regions = m["regions"].items()  # a region with no point has no mean (None)
+    print(scan, {r: f"mean {v['mean_mm']:+.2f} mm, z {v['z']:+.1f}" for r, v in regions if v["n"]})
 display(Image(out / "skin-work" / "diagnosis" / "right_lateral_localisation.png"))
 
 # %% [markdown]
@@ -97,11 +100,15 @@ for name, e in doc["effects"].items():
 # (each facet carries its gap to the reference scan), which the noise floor describes.
 
 # %%
-ci = doc["c1_ci95_pa"]
-print(f"c1: {doc['calibration']['c1_pa']:.1f} Pa -> {doc['c1_pa']:.1f} Pa "
-      f"(95 % {ci[0]:.1f}-{ci[1]:.1f}), truth {truth['material']['c1_pa']} Pa")  # fmt: skip
+ci = doc["c1_ci95_pa"]  # None where the refit could not give an interval
+said = "no interval" if ci is None else "95 % {:.1f}-{:.1f}".format(*ci)
+print(f"c1: {doc['calibration']['c1_pa']:.1f} Pa -> {doc['c1_pa']:.1f} Pa ({said}), "
+      f"truth {truth['material']['c1_pa']} Pa")  # fmt: skip
 for name, g in doc["gap"].items():
     e, r = g["surface_error_mm"], g["residual_mm"]
+    if "after" not in e:  # a held-out scan the final model has no FE solution for
+        print(f"{name:14s} {g['role']:9s} {g.get('failed')}")
+        continue
     print(
         f"{name:14s} {g['role']:9s} surface {e['before']['mean']:.3f} -> "
         f"{e['after']['mean']:.3f} mm, |residual| {r['before']['mean']:.3f} -> "

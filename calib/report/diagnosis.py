@@ -31,6 +31,7 @@ from .maps import (
 )
 
 __all__ = [
+    "detection_limits",
     "diagnosis_html",
     "format_diagnosis",
     "gap_figure",

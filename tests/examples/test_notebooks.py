@@ -74,6 +74,10 @@ def test_04_missing_effect_names_the_hidden_skin_and_nothing_on_the_null_twin(
     assert s["c1_calibrated_pa"] > 1.2 * s["c1_true_pa"]  # the skin absorbed into c1
     assert s["c1_refit_pa"] == pytest.approx(s["c1_true_pa"], rel=0.05)
     assert s["none_verdict"] == "no missing effect"
+    # review BB: the FE parameter limits (parameter_limits=True, the notebook's costliest
+    # step) gave the null twin's skin a limit: a stiffness ratio above 1 (a stiffer skin;
+    # 1.7-2.3 on the quick null twins, docs/diagnose-evidence.md)
+    assert s["none_skin_limit"] is not None and s["none_skin_limit"] > 1.0
 
 
 @pytest.mark.parametrize(
