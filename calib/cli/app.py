@@ -98,7 +98,7 @@ def simulate(
     # --gravity is m/s^2 in the phantom frame): say how it was read
     length = math.hypot(*opts.gravity)
     typer.echo(
-        f"  gravity: the direction ({', '.join(f'{v:.4g}' for v in opts.gravity)}) in the "
+        f"  gravity: the direction ({', '.join(f'{v + 0.0:.4g}' for v in opts.gravity)}) in the "
         f"mesh's own frame, of magnitude --g "
         f"{g:g} m/s^2" + ("" if abs(length - 1.0) < 1e-6 else f" (its length {length:g} unused)")
     )

@@ -890,7 +890,9 @@ def diagnose(
             if passing or not chosen:
                 continue
             each = "each " if len(chosen) > 1 else ""
-            say(f"round {rnd}: refitting {', '.join(chosen)}, {each}jointly with c1 (full FE)")
+            jointly = ", ".join(["c1", *named])  # review BC: from round 2 the named ones too
+            say(f"round {rnd}: refitting {', '.join(chosen)}, {each}jointly with {jointly} "
+                "(full FE)")  # fmt: skip
             for eff in chosen:
                 key = tuple(sorted([*named, eff]))
                 try:
@@ -916,8 +918,7 @@ def diagnose(
                     say(f"  {c.effect}: not refitted ({c.reason})")
                     continue
                 say(f"  {c.effect}: c1 = {c.c1_pa:.1f} Pa, explains {c.explained:.0%} above "
-                    f"the floor, leave-one-posture-out prediction "
-                    f"{'better' if c.lopo_improves else 'not better'}"
+                    f"the floor, leave-one-posture-out prediction {_lopo_word(c)}"
                     + ("" if c.passes else f"; not named ({c.reason})"))  # fmt: skip
         if not passing:
             break
@@ -955,6 +956,13 @@ def diagnose(
         explained_margin_mm=judged_beyond, explained_floor_mm2=floor_judged, limits=limits,
         mesh_error_record=mesh_error,
     )  # fmt: skip
+
+
+def _lopo_word(c: Candidate) -> str:
+    """The leave-one-posture-out criterion as judged: a nuisance's need only not worsen."""
+    if LIBRARY[c.effect].kind == "nuisance":  # _judge: la <= lb (review BC)
+        return "not worse" if c.lopo_improves else "worse"
+    return "better" if c.lopo_improves else "not better"
 
 
 def _absorb_mesh_error(

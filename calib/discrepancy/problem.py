@@ -834,7 +834,8 @@ def rim_margin_of(mesh_size_mm: float, margin: float | Literal["element"] = RIM_
         (``python benchmarks/bench_diagnose.py --out DIR --rim-profile``). Leaving one
         element out lets a stiff inclusion explain half of what remains, but it also
         sharpens the noise model, so per-scan nuisances screen significant more often
-        (README, the diagnosis benchmark): it is an option, not the default. The share a
+        (``docs/diagnose-evidence.md``, "A rim margin of one element"): it is an option,
+        not the default. The share a
         named effect must explain is judged beyond one element by default, with the
         tests on every diagnosed point (``DiagnosisOptions.explained_margin_mm``).
 

@@ -40,6 +40,7 @@ __all__ = [
     "PHYSICAL",
     "PhysicalParameter",
     "Refit",
+    "interval_text",
     "lopo",
     "parameter_text",
     "refit",
@@ -140,8 +141,8 @@ def parameter_text(name: str, value: float, ci95: Sequence[float] | None = None)
     Returns
     -------
     str
-        For example ``c1 = 422.0 Pa``, ``skin ratio = 7.87``, ``sliding springs = 311
-        Pa/mm (95 % 250 - 402)``, ``gravity[tilt_25].a0 = 0.7 deg``,
+        For example ``c1 = 422.0 Pa``, ``skin ratio = 7.868``, ``sliding springs = 300
+        Pa/mm (95 % 250 - 400 Pa/mm)``, ``gravity[tilt_25].a1 = 0.7 deg``,
         ``registration[tilt_25].ty = -0.902 mm`` (review AX: ``skin = 6.868`` and
         ``gravity[...].a0 = 0.01221`` said no unit).
     """
@@ -152,6 +153,18 @@ def parameter_text(name: str, value: float, ci95: Sequence[float] | None = None)
         lo, hi = (format(convert(float(b)), fmt) for b in ci95)
         text += f" (95 % {lo} - {hi}{unit})"
     return text
+
+
+def interval_text(name: str, ci95: Sequence[float]) -> str:
+    """A refit parameter's interval in its quantity and unit, as :func:`parameter_text`.
+
+    For example ``inclusions ratio from -132 to 191`` for the ratio - 1 interval
+    (-133, 190): the note on a Wald interval cut to the values the model admits says it in
+    the units of the cut interval beside it (review BC).
+    """
+    label, unit, convert, fmt = _quantity(name)
+    lo, hi = (format(convert(float(b)), fmt) for b in ci95)
+    return f"{label} from {lo} to {hi}" + (f" {unit}" if unit else "")
 
 
 def _offset_bounds(tolerance_mm: float | None) -> tuple[float, ...]:

@@ -175,6 +175,7 @@ def _check_at(cal, theta: float, ratio: float) -> CheckMesh:
         check = Calibrator(cal.measurements, opts, density_kg_m3=cal.density_kg_m3)
         tets = check.mesh.n_tets
         check.fm.fixed_point_fallback = False
+        check.fm.rim_fold_said = cal.fm.rim_fold_said  # said in full once per calibration
         # a check mesh solves the calibration's formulation: a GCI across straight and
         # curved stress-free elements would count their difference as discretisation error
         check.fm.spatial_fallback = False

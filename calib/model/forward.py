@@ -111,6 +111,10 @@ class ForwardModel:
         Effects of the library (:mod:`calib.model.effects`) on a region-tagged mesh; they
         replace ``nu`` and ``density_kg_m3`` and set the support. None: homogeneous,
         clamped (the calibration's model). Change them with :meth:`set_effects`.
+    rim_fold_said : bool
+        Whether the warning on vertex tetrahedra inverted at the clamped rim has been said
+        in full; later recoveries say theirs in one line (review AX: three paragraphs in
+        one calibration). The calibration's check meshes take the calibration's.
     """
 
     mesh: fem.TetMesh
@@ -138,7 +142,7 @@ class ForwardModel:
     _du0: tuple | None = None  # (theta, d u0 / d theta) of the last gradient
     _ps: object = None  # fem.prestress.Prestress of the last spatial recovery
     _dF0: tuple | None = None  # (theta, d F0 / d theta) of the last spatial gradient
-    _rim_fold_said: bool = False  # the inverted-rim warning said in full once (review AX)
+    rim_fold_said: bool = False
 
     def __post_init__(self) -> None:
         if self.reference_state not in ("unload", "prestress", "shortcut"):
@@ -298,7 +302,7 @@ class ForwardModel:
             n = rec.inverted_elements
             what = f"{n} vertex tetrahedr{'on' if n == 1 else 'a'} inverted at the clamped rim"
             where = f"recovered reference at c1={np.exp(theta):.1f} Pa ({self.mesh.n_tets} tets)"
-            if self._rim_fold_said:  # review AX: the same paragraph three times a run
+            if self.rim_fold_said:  # review AX: the same paragraph three times a run
                 log.warning("%s: %s (as said above)", where, what)
             else:
                 log.warning(
@@ -308,7 +312,7 @@ class ForwardModel:
                     where, what, "its" if n == 1 else "their", "" if n == 1 else "s",
                     "it" if n == 1 else "them",
                 )  # fmt: skip
-            self._rim_fold_said = True
+            self.rim_fold_said = True
         self.inverted_reference_elements = rec.inverted_elements
         return self._X
 

@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from ..discrepancy.refit import parameter_text
+from ..discrepancy.refit import interval_text, parameter_text
 from ..stats.noise import SMOOTH_TAKEN_FOR_NOISE
 from .maps import (
     draw_surface_views,
@@ -368,7 +368,7 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
         for c in doc["candidates"]
     ]
     head = ["candidate", "round", "c1 Pa", "fitted", judged, "explained, every point"]
-    head += ["leave-one-posture-out better"]
+    head += ["leave-one-posture-out better (a nuisance: not worse)"]
     head += ["plausible", "named", "why not"]
     cands = _table(head, cand_rows) if cand_rows else "<p>none</p>"
     loc_rows = []
@@ -419,10 +419,9 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
 
 def _cut_note(name: str, iv: dict) -> str:
     """Why an interval was cut (``diagnosis.json``'s ``ci95_unclipped``)."""
-    lo, hi = iv["ci95_unclipped"]
     return (
-        f"{name}: its 95 % interval ({lo:.4g} - {hi:.4g}) is cut to the values the model "
-        "admits (the truth lies there, so the coverage is kept)"
+        f"its 95 % interval, {interval_text(name, iv['ci95_unclipped'])}, is cut to the "
+        "values the model admits (the truth lies there, so the coverage is kept)"
     )
 
 

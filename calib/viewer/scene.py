@@ -193,6 +193,12 @@ def _command_hint(work: Path) -> dict:
     }
 
 
+#: How far from one plane of constant phantom z the back nodes may lie for the page to
+#: draw the plate there (mm): calibrate's reference mesh puts them on the fitted back
+#: plane, whose normal is the frame's z (``calib.fitting.result.phantom_frame``).
+PLATE_FLATNESS_MM = 1e-3
+
+
 def load_scene(work: str | Path, model: str | Path | None = None) -> Scene:
     """Read what the page shows from a work folder and an optional surrogate.
 
@@ -292,6 +298,18 @@ def load_scene(work: str | Path, model: str | Path | None = None) -> Scene:
         vnodes, faces = _boundary(folder.mesh.tets)
     scene.vertex_nodes, scene.faces = vnodes, faces
     scene.rest_mm = (nodes_ref[vnodes] @ R).astype(np.float32)
+    # the back plate's plane, z of the phantom frame: the clamped back nodes' (review BC:
+    # the body's lowest z lay 0.46 mm past it on make demo's mesh, a lip over the plate)
+    back = sur.mesh.back_nodes if sur is not None else folder.mesh.node_sets.get("back")
+    back_z = (nodes_ref[back] @ R)[:, 2] if back is not None and len(back) else np.zeros(0)
+    info["plate_z_mm"] = None
+    if back_z.size and np.ptp(back_z) <= PLATE_FLATNESS_MM:
+        info["plate_z_mm"] = float(np.mean(back_z))
+    else:
+        scene.missing.append(
+            "no back plate drawn: the mesh's back nodes do not lie in one plane normal to "
+            "the phantom frame's z"
+        )
     nipple_node = int(record_model["nipple_node"])
     hit = np.flatnonzero(vnodes == nipple_node)
     t = record_model.get("tumour_stress_free_mm")

@@ -180,16 +180,14 @@ def test_the_inverted_rim_is_said_in_full_once_then_briefly(scan_mesh, monkeypat
     # per model, later counts in one short line, a count it had last time not again
     from types import SimpleNamespace
 
-    fm = _fm(scan_mesh, "unload")
-    counts = iter([3, 4, 4, 1])
-    monkeypatch.setattr(
-        fm,
-        "_recover",
-        lambda theta: SimpleNamespace(
+    def fake(counts):
+        return lambda theta: SimpleNamespace(
             nodes_mm=scan_mesh.nodes_mm, prestress=None,
             solution=SimpleNamespace(state=None), inverted_elements=next(counts),
-        ),
-    )  # fmt: skip
+        )  # fmt: skip
+
+    fm = _fm(scan_mesh, "unload")
+    monkeypatch.setattr(fm, "_recover", fake(iter([3, 4, 4, 1])))
     with caplog.at_level("WARNING", logger="calib.model.forward"):
         for dt in (0.0, 0.01, 0.02, 0.03):
             fm.stress_free(np.log(C1) + dt)
@@ -200,3 +198,12 @@ def test_the_inverted_rim_is_said_in_full_once_then_briefly(scan_mesh, monkeypat
     assert said[1].endswith("4 vertex tetrahedra inverted at the clamped rim (as said above)")
     assert said[2].endswith("1 vertex tetrahedron inverted at the clamped rim (as said above)")
     assert f"({scan_mesh.n_tets} tets)" in said[2]
+    # a calibration's check mesh takes its calibration's flag (calib.fitting.meshcheck):
+    # a model told the paragraph was said starts with the short line
+    told = _fm(scan_mesh, "unload")
+    told.rim_fold_said = True
+    monkeypatch.setattr(told, "_recover", fake(iter([2])))
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="calib.model.forward"):
+        told.stress_free(np.log(C1))
+    assert [r.getMessage().endswith("(as said above)") for r in caplog.records] == [True]

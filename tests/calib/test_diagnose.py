@@ -1072,6 +1072,32 @@ def test_refit_parameters_are_said_in_their_quantity_and_unit():
         "model_mesh": {},
     }
     assert "\nskin ratio = 7.868 (95 % 6.327 - 9.409)\n" in format_diagnosis(doc)
+    # review BC: a Wald interval cut to the values the model admits is said in the same
+    # quantity as the cut one beside it (its note said the ratio - 1, "(-133 - 190)")
+    doc["named"], doc["verdict"] = ["inclusions"], "named: inclusions"
+    cut = {"value": 28.3, "ci95": [-0.999, 190.0], "ci95_unclipped": [-133.0, 190.0]}
+    doc["refit"]["intervals"] = {"inclusions": cut}
+    said = format_diagnosis(doc)
+    assert "\ninclusions ratio = 29.3 (95 % 0.001 - 191)\n" in said
+    assert "\n  its 95 % interval, inclusions ratio from -132 to 191, is cut" in said
+
+
+def test_the_console_says_the_leave_one_posture_out_rule_as_judged():
+    # review BC: a nuisance passes leave-one-posture-out where its prediction is not worse
+    # (_judge: la <= lb), a physical effect where it is better; the line said "better" of both
+    from calib.discrepancy.diagnose import _lopo_word
+
+    said = {
+        (effect, ok): _lopo_word(SimpleNamespace(effect=effect, lopo_improves=ok))
+        for effect in ("skin", "registration")
+        for ok in (True, False)
+    }
+    assert said == {
+        ("skin", True): "better",
+        ("skin", False): "not better",
+        ("registration", True): "not worse",
+        ("registration", False): "worse",
+    }
 
 
 def test_the_registration_tolerance_takes_half_the_largest_voxel_edge(tmp_path):
@@ -1447,7 +1473,7 @@ def test_with_the_model_mesh_s_error_absorbed_the_false_positive_rate_is_nominal
     # column is for); absorbed, the family-wise rate is at most 5 % + 3 binomial se
     # (11.5 %). The column is given the exact shape: this checks the projection, not how
     # well a coarser mesh's change matches the model mesh's error (measured on twins,
-    # README)
+    # docs/diagnose-evidence.md)
     sample, J, cols, sampler = linear
     _, y, z = sample.points_mm.T
     other = y * z - np.mean(y * z)

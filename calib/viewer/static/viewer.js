@@ -148,15 +148,15 @@
 
   // ---------- scene ----------
   let model = null, overlay = null, points = null, lines = null, plate = null, vmax = 1;
-  // The back plate: the plane of the body's back face (z = its lowest z: the phantom frame's
-  // z points from the plate into the breast), drawn as a grid of PLATE_MM squares a little
-  // wider than the body, behind it (review AX: no plate, no scale).
+  // The back plate: the plane of the clamped back nodes (the scene's plate_z_mm; the phantom
+  // frame's z points from the plate into the breast), drawn as a grid of PLATE_MM squares a
+  // little wider than the body (review AX: no plate, no scale).
   const PLATE_MM = 10;
-  function plateGrid(lo, hi) {
+  function plateGrid(lo, hi, z) {
     const pad = [0, 1].map((i) => 0.15 * (hi[i] - lo[i]));
     const a = [0, 1].map((i) => PLATE_MM * Math.floor((lo[i] - pad[i]) / PLATE_MM));
     const b = [0, 1].map((i) => PLATE_MM * Math.ceil((hi[i] + pad[i]) / PLATE_MM));
-    const z = lo[2], v = [];
+    const v = [];
     for (let x = a[0]; x <= b[0] + 1e-6; x += PLATE_MM) v.push(x, a[1], z, x, b[1], z);
     for (let y = a[1]; y <= b[1] + 1e-6; y += PLATE_MM) v.push(a[0], y, z, b[0], y, z);
     return { z, spacing_mm: PLATE_MM, x_mm: [a[0], b[0]], y_mm: [a[1], b[1]], pos: new Float32Array(v) };
@@ -400,9 +400,11 @@
       model = makeMesh(V.rest.slice(), idx, null);
       const lo = [1e9, 1e9, 1e9], hi = [-1e9, -1e9, -1e9];
       for (let i = 0; i < V.rest.length; i++) { lo[i % 3] = Math.min(lo[i % 3], V.rest[i]); hi[i % 3] = Math.max(hi[i % 3], V.rest[i]); }
-      const grid = plateGrid(lo, hi);
-      plate = makeMesh(grid.pos, null, null);
-      V.plate = { z_mm: grid.z, spacing_mm: grid.spacing_mm, x_mm: grid.x_mm, y_mm: grid.y_mm };
+      if (sc.plate_z_mm != null) {  // a mesh without its back nodes: no plate drawn
+        const grid = plateGrid(lo, hi, sc.plate_z_mm);
+        plate = makeMesh(grid.pos, null, null);
+        V.plate = { z_mm: grid.z, spacing_mm: grid.spacing_mm, x_mm: grid.x_mm, y_mm: grid.y_mm };
+      }
       cam.center = lo.map((l, i) => (l + hi[i]) / 2);
       cam.dist = 1.9 * Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]);
       const nv = sc.landmarks.nipple_vertex;
