@@ -75,9 +75,10 @@ def test_04_missing_effect_names_the_hidden_skin_and_nothing_on_the_null_twin(
     assert s["c1_refit_pa"] == pytest.approx(s["c1_true_pa"], rel=0.05)
     assert s["none_verdict"] == "no missing effect"
     # review BB: the FE parameter limits (parameter_limits=True, the notebook's costliest
-    # step) gave the null twin's skin a limit: a stiffness ratio above 1 (a stiffer skin;
-    # 1.7-2.3 on the quick null twins, docs/diagnose-evidence.md)
-    assert s["none_skin_limit"] is not None and s["none_skin_limit"] > 1.0
+    # step) gave the null twin's skin a limit, a stiffness ratio under the hidden 8 that
+    # the same size names (3.88 on this tiny twin, run 2026-12-07; 1.7-2.3 on the quick
+    # null twins, docs/diagnose-evidence.md); review BC: a bare "> 1" held for any limit
+    assert s["none_skin_limit"] is not None and 1.5 < s["none_skin_limit"] < 8.0
 
 
 @pytest.mark.parametrize(
