@@ -53,9 +53,19 @@ def fail(exc: Exception) -> None:
 
 @app.command()
 def simulate(
-    mesh: Annotated[Path, typer.Argument(help="Tetrahedral mesh (any meshio format), in mm.")],
+    mesh: Annotated[
+        Path, typer.Argument(metavar="MESH", help="Tetrahedral mesh (any meshio format), in mm.")
+    ],
     c1: Annotated[float, typer.Option("--c1", help="Neo-Hookean c1 in Pa (shear modulus 2 c1).")],
-    gravity: Annotated[str, typer.Option("--gravity", help="Gravity direction X,Y,Z.")],
+    gravity: Annotated[
+        str,
+        typer.Option(
+            "--gravity",
+            metavar="X,Y,Z",
+            help="Gravity direction in the mesh's own coordinates (its length is not used: "
+            "the magnitude is --g; surrogate predict's --gravity is m/s^2 in the phantom frame).",
+        ),
+    ],
     out: Annotated[Path, typer.Option("--out", help="Deformed mesh to write, e.g. RESULT.vtu.")],
     nu: Annotated[float, typer.Option("--nu", help="Poisson's ratio (< 0.5).")] = 0.499,
     density: Annotated[
@@ -64,7 +74,9 @@ def simulate(
     g: Annotated[
         float, typer.Option("--g", help="Gravitational acceleration, m/s^2.")
     ] = STANDARD_GRAVITY_M_S2,
-    bc: Annotated[str, typer.Option("--bc", help="Back plane: clamped or sliding.")] = "clamped",
+    bc: Annotated[
+        str, typer.Option("--bc", help="Back plate support: clamped or sliding.")
+    ] = "clamped",
     back_plane: Annotated[
         str,
         typer.Option(
@@ -111,7 +123,10 @@ def _indented(msg: str) -> None:
 
 @app.command()
 def init(
-    scans: Annotated[Path, typer.Argument(help="Folder of DICOM series folders / volume files.")],
+    scans: Annotated[
+        Path,
+        typer.Argument(metavar="SCANS", help="Folder of DICOM series folders / volume files."),
+    ],
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace session.toml.")] = False,
 ) -> None:
     """Scaffold a session.toml by finding the series in a folder."""
@@ -126,7 +141,7 @@ def init(
 
 @app.command()
 def ingest(
-    scans: Annotated[Path, typer.Argument(help="Scan folder with session.toml.")],
+    scans: Annotated[Path, typer.Argument(metavar="SCANS", help="Scan folder with session.toml.")],
     out: Annotated[Path, typer.Option("--out", help="Work folder to write.")],
 ) -> None:
     """Segment, surface and register every scan of a session."""
@@ -158,15 +173,21 @@ def ingest(
 
 @app.command()
 def synth(
-    out: Annotated[Path, typer.Argument(help="Folder to create (scans/ and truth/).")],
+    out: Annotated[
+        Path, typer.Argument(metavar="OUT", help="Folder to create (scans/ and truth/).")
+    ],
     preset: Annotated[str, typer.Option("--preset", help="quick or dissertation.")] = "quick",
     seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of every random choice.")] = 0,
     effect: Annotated[
         list[str] | None,
         typer.Option(
             "--effect",
-            help="Hidden effect NAME[=VALUE]; repeat for several. Any replaces the preset's "
-            "skin (1.5:8): add --effect skin to keep it.",
+            metavar="NAME[=VALUE]",
+            help="Hidden effect; repeat for several: none; skin[=MM:RATIO] (thickness, "
+            "stiffness ratio to the bulk; 1.5:8); sliding[=PA_PER_MM] (the plate on "
+            "tangential springs; bare: frictionless); inclusions[=RATIO] (5); "
+            "mooney[=C2_PA] (210); poisson[=NU] (0.45); density[=KG_M3] (1100). Any replaces "
+            "the preset's skin (1.5 mm, 8 times stiffer): add --effect skin to keep it.",
         ),
     ] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace OUT.")] = False,
@@ -177,7 +198,9 @@ def synth(
 
     try:
         if preset not in PRESETS:
-            raise ValueError(f"unknown preset {preset!r}; choose {sorted(PRESETS)}")
+            raise ValueError(
+                f"--preset: unknown preset {preset!r}; choose {' or '.join(sorted(PRESETS))}"
+            )
         effects = parse_effects(effect or [], default=PRESETS[preset].effects)
         record = synthesize(out, preset=preset, seed=seed, effects=effects, overwrite=overwrite,
                             progress=lambda msg: typer.echo(f"  {msg}"))  # fmt: skip
@@ -190,7 +213,7 @@ def synth(
 
 @app.command()
 def calibrate(
-    scans: Annotated[Path, typer.Argument(help="Scan folder with session.toml.")],
+    scans: Annotated[Path, typer.Argument(metavar="SCANS", help="Scan folder with session.toml.")],
     out: Annotated[Path, typer.Option("--out", help="Work folder (ingest results go here).")],
     objective: Annotated[
         str, typer.Option("--objective", help="surface, nipple or landmarks.")
@@ -206,7 +229,7 @@ def calibrate(
             max=MESH_SIZE_RANGE_MM[1],
             help="Element edge length of the model, mm. Default: 12; where no stress-free "
             "reference exists on it, with straight or curved elements, 14 then 16 (each "
-            "retry is reported).",
+            "retry is reported). A size given here is the only one tried (no retries).",
         ),
     ] = None,
     mesh_max_dihedral: Annotated[
@@ -277,7 +300,9 @@ def _validate(work: Path) -> None:
 
 @app.command()
 def validate(
-    work: Annotated[Path, typer.Argument(help="A work folder that `calibrate` wrote.")],
+    work: Annotated[
+        Path, typer.Argument(metavar="WORK", help="A work folder that `calibrate` wrote.")
+    ],
 ) -> None:
     """Validate the calibrated model against the validation scans (no FE: saved states)."""
     _validate(work)

@@ -15,7 +15,9 @@ from .app import app, fail
 
 @app.command()
 def diagnose(
-    work: Annotated[Path, typer.Argument(help="A work folder that `calibrate` wrote.")],
+    work: Annotated[
+        Path, typer.Argument(metavar="WORK", help="A work folder that `calibrate` wrote.")
+    ],
     effects: Annotated[
         str | None,
         typer.Option(

@@ -39,7 +39,9 @@ def _progress_bar():
 
 @app.command()
 def sweep(
-    work: Annotated[Path, typer.Argument(help="Calibrated work folder (calibration.json).")],
+    work: Annotated[
+        Path, typer.Argument(metavar="WORK", help="Calibrated work folder (calibration.json).")
+    ],
     out: Annotated[Path, typer.Option("--out", help="Sweep store to write or resume (Zarr).")],
     plan: Annotated[
         str,
@@ -211,7 +213,11 @@ def surrogate_train(
     ] = 0,
     iterations: Annotated[
         int | None,
-        typer.Option("--iterations", help="Training iterations of the dissertation MLPs."),
+        typer.Option(
+            "--iterations",
+            help="Training iterations (full-batch Adam steps) of the dissertation MLPs "
+            "(--kind dissertation only; default: the dissertation's 30000).",
+        ),
     ] = None,
 ) -> None:
     """Fit a surrogate on the training scenarios of a sweep; report validation errors."""

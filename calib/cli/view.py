@@ -12,7 +12,9 @@ from .app import app, fail
 
 @app.command()
 def view(
-    work: Annotated[Path, typer.Argument(help="A work folder (`calibrate` output).")],
+    work: Annotated[
+        Path, typer.Argument(metavar="WORK", help="A work folder (`calibrate` output).")
+    ],
     model: Annotated[
         Path | None,
         typer.Option("--model", help="Surrogate (.pt, `surrogate train`): turn gravity freely."),

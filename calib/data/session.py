@@ -378,9 +378,11 @@ def scaffold_session(folder: str | Path, *, overwrite: bool = False) -> Path:
     from ..io import atomic_write
 
     folder = Path(folder)
+    if not folder.is_dir():  # review BD: "[Errno 2] No such file or directory"
+        raise SessionError(f"{folder}: no such folder (the scans' folder is expected)")
     target = folder / "session.toml"
     if target.exists() and not overwrite:
-        raise SessionError(f"{target} exists; pass overwrite to replace it")
+        raise SessionError(f"{target} exists; pass --overwrite (overwrite=True) to replace it")
     if any(folder.glob("scans/*/ingest.json")) or (folder / "calibration.json").is_file():
         # review AC: its calibration/, scans/ and validation/ were listed as series
         raise SessionError(

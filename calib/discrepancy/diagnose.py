@@ -255,11 +255,14 @@ class DiagnosisOptions:
                 raise DiagnosisError(f"{said} must be a number, got {v!r}")
         unknown = sorted(set(self.effects) - set(LIBRARY))
         if unknown:
-            raise DiagnosisError(f"unknown effect(s) {unknown}; the library has {sorted(LIBRARY)}")
+            raise DiagnosisError(
+                f"effects (--effects): unknown effect(s) {', '.join(unknown)}; the library "
+                f"has {', '.join(sorted(LIBRARY))}"
+            )
         if not self.effects:
             raise DiagnosisError("no effect to screen")
         if len(set(self.effects)) != len(self.effects):
-            raise DiagnosisError(f"effects given twice: {list(self.effects)}")
+            raise DiagnosisError(f"effects (--effects) given twice: {', '.join(self.effects)}")
         if not 0.0 < self.alpha < 0.5:
             raise DiagnosisError(f"alpha (--alpha) must lie in (0, 0.5), got {self.alpha}")
         if not 0.0 < self.min_explained <= 1.0:

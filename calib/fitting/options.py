@@ -29,7 +29,9 @@ MESH_SIZE_RANGE_MM = (1.0, 50.0)
 def check_mesh_check_ratio(ratio: float) -> None:
     """Raise ``ValueError`` unless ``ratio`` lies in [0.5, 0.9] (finer) or [1.1, 3] (coarser)."""
     if not (0.5 <= ratio <= 0.9 or 1.1 <= ratio <= 3.0):
-        raise ValueError(f"mesh check ratio must lie in [0.5, 0.9] or [1.1, 3], got {ratio}")
+        raise ValueError(
+            f"mesh check ratio (--mesh-check) must lie in [0.5, 0.9] or [1.1, 3], got {ratio}"
+        )
 
 
 def mesh_check_ratios(ratio: float | tuple[float, ...]) -> tuple[float, ...]:
@@ -152,21 +154,30 @@ class CalibrationOptions:
         from fem import FORMULATIONS
 
         if self.formulation not in FORMULATIONS:
-            raise ValueError(f"formulation must be one of {FORMULATIONS}, got {self.formulation!r}")
+            raise ValueError(
+                f"formulation must be one of {', '.join(FORMULATIONS)}, got {self.formulation!r}"
+            )
         if self.objective not in OBJECTIVES:
-            raise ValueError(f"objective must be one of {OBJECTIVES}, got {self.objective!r}")
+            raise ValueError(
+                f"objective (--objective) must be one of {', '.join(OBJECTIVES)}, got "
+                f"{self.objective!r}"
+            )
         if self.reference_state not in ("unload", "prestress", "shortcut"):
             raise ValueError(
-                "reference state must be unload, prestress or shortcut, not "
-                f"{self.reference_state!r}"
+                "reference_state (--reference-state) must be unload, prestress or shortcut, "
+                f"not {self.reference_state!r}"
             )
         lo, hi = MESH_SIZE_RANGE_MM
         for size in (self.mesh_size_mm, *self.mesh_retry_mm):
             if not lo <= size <= hi:
-                raise ValueError(f"mesh size must lie in [{lo:g}, {hi:g}] mm, got {size}")
-        check_max_dihedral_deg(self.mesh_max_dihedral_deg, "mesh max dihedral angle")
+                raise ValueError(
+                    f"mesh size (--mesh-size) must lie in [{lo:g}, {hi:g}] mm, got {size}"
+                )
+        check_max_dihedral_deg(
+            self.mesh_max_dihedral_deg, "mesh max dihedral angle (--mesh-max-dihedral)"
+        )
         if not 0.0 < self.nu < 0.5:
-            raise ValueError(f"Poisson's ratio must lie in (0, 0.5), got {self.nu}")
+            raise ValueError(f"Poisson's ratio (--nu) must lie in (0, 0.5), got {self.nu}")
         if not (self.c1_guess_pa > 0 and math.isfinite(self.c1_guess_pa)):
             raise ValueError(
                 f"c1_guess_pa (--c1-guess) must be a positive c1 in Pa, got {self.c1_guess_pa}"

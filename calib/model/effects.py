@@ -677,15 +677,24 @@ _TWIN_RANGES = {
     "density": ((500.0, 2000.0),),  # kg/m^3
     "sliding": ((10.0, 1e6),),  # tangential springs, Pa/mm (no value: frictionless)
 }
+# the unit of each of those numbers, said in a range error ("" where it has none)
+_TWIN_UNITS = {
+    "skin": (" mm", ""),
+    "inclusions": ("",),
+    "mooney": (" Pa",),
+    "poisson": ("",),
+    "density": (" kg/m^3",),
+    "sliding": (" Pa/mm",),
+}
 
 
-def _number(text: str, name: str, lo: float, hi: float) -> float:
+def _number(text: str, name: str, lo: float, hi: float, unit: str = "") -> float:
     try:
         v = float(text)
     except ValueError:
         raise EffectError(f"effect {name!r}: {text!r} is not a number") from None
     if not lo <= v <= hi:
-        raise EffectError(f"effect {name!r}: value {v} outside the range [{lo}, {hi}]")
+        raise EffectError(f"effect {name!r}: value {v} outside the range [{lo}, {hi}]{unit}")
     return v
 
 
@@ -693,18 +702,20 @@ def _apply(eff: dict, name: str, value: str | None) -> None:
     if name == "sliding":
         eff["sliding"] = True
         if value not in (None, "true", "yes"):  # springs of this stiffness, Pa/mm
-            eff["sliding_stiffness_pa_per_mm"] = _number(value, name, *_TWIN_RANGES[name][0])
+            eff["sliding_stiffness_pa_per_mm"] = _number(
+                value, name, *_TWIN_RANGES[name][0], _TWIN_UNITS[name][0]
+            )
         return
     value = value or EFFECTS[name]
-    ranges = _TWIN_RANGES[name]
+    ranges, units = _TWIN_RANGES[name], _TWIN_UNITS[name]
     if name == "skin":
         t, _, r = value.partition(":")
-        eff["skin_thickness_mm"] = _number(t, name, *ranges[0])
-        eff["skin_ratio"] = _number(r or "8", name, *ranges[1])
+        eff["skin_thickness_mm"] = _number(t, name, *ranges[0], units[0])
+        eff["skin_ratio"] = _number(r or "8", name, *ranges[1], units[1])
         return
     field = {"inclusions": "inclusion_ratio", "mooney": "c2_pa", "poisson": "nu",
              "density": "density_kg_m3"}[name]  # fmt: skip
-    eff[field] = _number(value, name, *ranges[0])
+    eff[field] = _number(value, name, *ranges[0], units[0])
 
 
 def parse_effects(specs: list[str], *, default: TruthEffects) -> TruthEffects:
@@ -720,7 +731,7 @@ def parse_effects(specs: list[str], *, default: TruthEffects) -> TruthEffects:
         name, sep, value = spec.partition("=")
         name = name.strip().lower()
         if name not in EFFECTS:
-            raise EffectError(f"unknown effect {name!r}; choose from {sorted(EFFECTS)}")
+            raise EffectError(f"unknown effect {name!r}; choose from {', '.join(sorted(EFFECTS))}")
         if name in seen:
             raise EffectError(f"effect {name!r} given twice")
         seen.add(name)

@@ -196,11 +196,17 @@ def test_a_corrupted_series_is_never_calibrated_on_old_results(scans, tmp_path):
 @pytest.mark.parametrize(
     ("args", "pattern"),
     [
-        (["--nu", "0.5"], r"Poisson's ratio must lie in \(0, 0\.5\)"),
+        (["--nu", "0.5"], r"Poisson's ratio \(--nu\) must lie in \(0, 0\.5\)"),
         (["--profile", "-3"], r"'--profile'.*greater than or equal to 0"),
         (["--mesh-size", "0.5"], r"'--mesh-size'.*greater than or equal to 1"),
-        (["--objective", "volume"], r"objective must be one of"),
-        (["--mesh-max-dihedral", "180"], r"max dihedral angle must lie in \(90, 180\)"),
+        (
+            ["--objective", "volume"],
+            r"objective \(--objective\) must be one of nipple, surface, landmarks",
+        ),
+        (
+            ["--mesh-max-dihedral", "180"],
+            r"max dihedral angle \(--mesh-max-dihedral\) must lie in \(90, 180\)",
+        ),
     ],
 )
 def test_calibrate_options_are_checked_before_any_work(tmp_path, args, pattern):

@@ -279,7 +279,7 @@ def test_diagnose_takes_the_mesh_sizes_calibrate_takes():
         CalibrationOptions(mesh_size_mm=size)
         DiagnosisOptions(mesh_size_mm=size, inclusion_mesh_mm=size)
     for size in (0.99 * lo, 1.01 * hi):
-        with pytest.raises(ValueError, match="mesh size must lie in"):
+        with pytest.raises(ValueError, match=r"mesh size \(--mesh-size\) must lie in"):
             CalibrationOptions(mesh_size_mm=size)
         with pytest.raises(DiagnosisError, match=r"mesh_size_mm \(--mesh-size\) must lie in"):
             DiagnosisOptions(mesh_size_mm=size)
