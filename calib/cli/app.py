@@ -216,10 +216,22 @@ def calibrate(
     scans: Annotated[Path, typer.Argument(metavar="SCANS", help="Scan folder with session.toml.")],
     out: Annotated[Path, typer.Option("--out", help="Work folder (ingest results go here).")],
     objective: Annotated[
-        str, typer.Option("--objective", help="surface, nipple or landmarks.")
+        str,
+        typer.Option(
+            "--objective",
+            help="surface (every scored surface point), nipple (the dissertation's: "
+            "the nipple's distance to the measured surface) or landmarks (nipple and tumour "
+            "centre).",
+        ),
     ] = "surface",
     reference_state: Annotated[
-        str, typer.Option("--reference-state", help="unload, prestress or shortcut.")
+        str,
+        typer.Option(
+            "--reference-state",
+            help="unload (recover the stress-free shape from the sagging reference scan), "
+            "prestress (solve on the loaded scan mesh with its prestress) or "
+            "shortcut (the dissertation's: the reference scan taken as stress-free).",
+        ),
     ] = "unload",
     mesh_size: Annotated[
         float | None,
