@@ -113,6 +113,12 @@ class Work:
 
         return validation_markdown(self.validation)
 
+    def error_scale_mm(self) -> float:
+        """The colour-scale top (mm) that validate's error maps share (pass it as ``vmax``)."""
+        from .report.validation import validation_error_scale_mm
+
+        return validation_error_scale_mm(self.validation, self.folder.measurements.scans)
+
     def plot_error_map(self, scan: str, *, vmax: float | None = None):
         """The measured surface of ``scan`` coloured by its signed error (matplotlib Figure).
 

@@ -46,16 +46,11 @@ Markdown(work.validation_table())
 # model's outward normal (red: the scan lies outside the model, blue: inside), in the
 # phantom frame. The scale runs over ± the largest 99th percentile of |error| over every
 # validated scan's scored vertices, as `WORK/validation/`'s maps do
-# (`shared_error_scale_mm`; a few rim vertices would otherwise wash the rest out).
+# (`work.error_scale_mm()`; a few rim vertices would otherwise wash the rest out).
 
 # %%
-from calib.report.maps import shared_error_scale_mm
-
 validation_scans = [n for n, r in work.scans.items() if r == "validation"]
-measured = work.folder.measurements.scans  # their scored vertices (off the back plate)
-vmax = shared_error_scale_mm(  # over every scan validate draws, the calibration's too
-    sv.metrics.vertex_error_mm[measured[n].scored] for n, sv in work.validation.scans.items()
-)
+vmax = work.error_scale_mm()  # validate's: over every scan it draws, the calibration's too
 for name in validation_scans:
     display(work.plot_error_map(name, vmax=vmax))
 

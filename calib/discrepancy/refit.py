@@ -125,6 +125,12 @@ def _quantity(name: str) -> tuple[str, str, Callable[[float], float], str]:
     return name, "", float, ".4g"
 
 
+def _shown(name: str, values: Sequence[float]) -> tuple[str, str, list[str]]:
+    """``(label, " unit" or "", values converted and formatted)`` of a refit parameter."""
+    label, unit, convert, fmt = _quantity(name)
+    return label, f" {unit}" if unit else "", [format(convert(float(v)), fmt) for v in values]
+
+
 def parameter_text(name: str, value: float, ci95: Sequence[float] | None = None) -> str:
     """A refit parameter as a person reads it: its quantity and unit.
 
@@ -146,12 +152,10 @@ def parameter_text(name: str, value: float, ci95: Sequence[float] | None = None)
         ``registration[tilt_25].ty = -0.902 mm`` (review AX: ``skin = 6.868`` and
         ``gravity[...].a0 = 0.01221`` said no unit).
     """
-    label, unit, convert, fmt = _quantity(name)
-    unit = f" {unit}" if unit else ""
-    text = f"{label} = {format(convert(float(value)), fmt)}{unit}"
+    label, unit, (shown, *ends) = _shown(name, [value, *(ci95 if ci95 is not None else ())])
+    text = f"{label} = {shown}{unit}"
     if ci95 is not None:
-        lo, hi = (format(convert(float(b)), fmt) for b in ci95)
-        text += f" (95 % {lo} - {hi}{unit})"
+        text += f" (95 % {ends[0]} - {ends[1]}{unit})"
     return text
 
 
@@ -162,9 +166,8 @@ def interval_text(name: str, ci95: Sequence[float]) -> str:
     (-133, 190): the note on a Wald interval cut to the values the model admits says it in
     the units of the cut interval beside it (review BC).
     """
-    label, unit, convert, fmt = _quantity(name)
-    lo, hi = (format(convert(float(b)), fmt) for b in ci95)
-    return f"{label} from {lo} to {hi}" + (f" {unit}" if unit else "")
+    label, unit, (lo, hi) = _shown(name, ci95)
+    return f"{label} from {lo} to {hi}{unit}"
 
 
 def _offset_bounds(tolerance_mm: float | None) -> tuple[float, ...]:

@@ -20,16 +20,35 @@ from pathlib import Path
 import numpy as np
 
 from ..validation import BAND_POINTS, ScanValidation, Validation
-from .maps import surface_error_figure
+from .maps import shared_error_scale_mm, surface_error_figure
 from .tables import POSTURE_NOTE
 
 __all__ = [
     "error_by_displacement_figure",
     "error_surface_figure",
     "outline_figure",
+    "validation_error_scale_mm",
     "validation_html",
     "validation_markdown",
 ]
+
+
+def validation_error_scale_mm(v: Validation, scans: dict) -> float:
+    """The colour-scale top (mm) that validate's error maps share.
+
+    :func:`calib.report.maps.shared_error_scale_mm` over every scan validated, the
+    calibration scans included (review AK: the validation scans' alone left a calibration
+    scan's map saturated over 12 %).
+
+    Parameters
+    ----------
+    v : Validation
+    scans : dict of str to ScanMeasurement
+        The work folder's measured scans (their ``scored`` vertices).
+    """
+    return shared_error_scale_mm(
+        np.asarray(sv.metrics.vertex_error_mm)[scans[sv.name].scored] for sv in v.scans.values()
+    )
 
 
 def displacement_bins_mm(displacement_mm: np.ndarray) -> tuple[float, ...]:

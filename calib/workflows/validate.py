@@ -15,11 +15,12 @@ import numpy as np
 
 from ..data.work import WorkFolder, read_work
 from ..io import RunOutputs, atomic_write, check_work_writable, locking_work, provenance
-from ..report.maps import save_figure, shared_error_scale_mm
+from ..report.maps import save_figure
 from ..report.validation import (
     error_by_displacement_figure,
     error_surface_figure,
     outline_figure,
+    validation_error_scale_mm,
     validation_html,
     validation_markdown,
 )
@@ -67,12 +68,7 @@ def _outline(run: RunOutputs, work: WorkFolder, v: Validation, name: str) -> str
 
 def _figures(run: RunOutputs, work: WorkFolder, v: Validation) -> dict[str, list[str]]:
     R = np.asarray(work.record["model"]["R_ref_from_phantom"], float)
-    scans = work.measurements.scans
-    vmax = shared_error_scale_mm(  # over every scan drawn (review AK: the validation
-        # scans' alone left a calibration scan's map saturated over 12 %)
-        np.asarray(s.metrics.vertex_error_mm)[scans[s.name].scored]
-        for s in v.scans.values()
-    )
+    vmax = validation_error_scale_mm(v, work.measurements.scans)
     figures: dict[str, list[str]] = {}
     for sv in v.scans.values():
         files = []
