@@ -9,9 +9,12 @@ from typing import Annotated
 
 import typer
 
+from fem.discretize import Formulation
 from fem.units import STANDARD_GRAVITY_M_S2
 
-from ..fitting.options import MESH_SIZE_RANGE_MM
+from ..fitting.options import MESH_SIZE_RANGE_MM, Objective, ReferenceState
+from ..twin import PresetName
+from ..workflows.simulate import BackSupport
 
 app = typer.Typer(
     add_completion=False,
@@ -75,18 +78,25 @@ def simulate(
         float, typer.Option("--g", help="Gravitational acceleration, m/s^2.")
     ] = STANDARD_GRAVITY_M_S2,
     bc: Annotated[
-        str, typer.Option("--bc", help="Back plate support: clamped or sliding.")
+        BackSupport,
+        typer.Option("--bc", help="Back plate support: every back node fixed, or frictionless."),
     ] = "clamped",
     back_plane: Annotated[
         str,
         typer.Option(
             "--back-plane",
+            metavar="auto|z=MM",
             help="auto (the mesh's own set:back point data where it has it, else the "
-            "largest flat face), or z=VALUE (mm).",
+            "largest flat face), or z=MM (the plane z = MM of the mesh's coordinates).",
         ),
     ] = "auto",
     formulation: Annotated[
-        str, typer.Option("--formulation", help="taylor-hood, mini, p2 or p1.")
+        Formulation,
+        typer.Option(
+            "--formulation",
+            help="Elements (displacement/pressure): taylor-hood (P2/P1), mini (P1+bubble/P1), "
+            "p2 or p1 (displacement only).",
+        ),
     ] = "taylor-hood",
 ) -> None:
     """Deform a mesh under gravity; write the deformed mesh and RESULT.json."""
@@ -176,7 +186,13 @@ def synth(
     out: Annotated[
         Path, typer.Argument(metavar="OUT", help="Folder to create (scans/ and truth/).")
     ],
-    preset: Annotated[str, typer.Option("--preset", help="quick or dissertation.")] = "quick",
+    preset: Annotated[
+        PresetName,
+        typer.Option(
+            "--preset",
+            help="quick (10 mm truth mesh, 1.5 mm voxels) or dissertation (5 mm, 0.8 mm).",
+        ),
+    ] = "quick",
     seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of every random choice.")] = 0,
     effect: Annotated[
         list[str] | None,
@@ -197,10 +213,6 @@ def synth(
     from ..twin import PRESETS, synthesize
 
     try:
-        if preset not in PRESETS:
-            raise ValueError(
-                f"--preset: unknown preset {preset!r}; choose {' or '.join(sorted(PRESETS))}"
-            )
         effects = parse_effects(effect or [], default=PRESETS[preset].effects)
         record = synthesize(out, preset=preset, seed=seed, effects=effects, overwrite=overwrite,
                             progress=lambda msg: typer.echo(f"  {msg}"))  # fmt: skip
@@ -216,7 +228,7 @@ def calibrate(
     scans: Annotated[Path, typer.Argument(metavar="SCANS", help="Scan folder with session.toml.")],
     out: Annotated[Path, typer.Option("--out", help="Work folder (ingest results go here).")],
     objective: Annotated[
-        str,
+        Objective,
         typer.Option(
             "--objective",
             help="surface (every scored surface point), nipple (the dissertation's: "
@@ -225,7 +237,7 @@ def calibrate(
         ),
     ] = "surface",
     reference_state: Annotated[
-        str,
+        ReferenceState,
         typer.Option(
             "--reference-state",
             help="unload (recover the stress-free shape from the sagging reference scan), "
@@ -261,6 +273,7 @@ def calibrate(
         str,
         typer.Option(
             "--mesh-check",
+            metavar="RATIO[,RATIO]",
             help="Element-size ratio of the check mesh whose c1 bounds the discretisation "
             "error in the 95 % interval: >1 coarser (cheap), <1 finer; two reciprocal "
             "ratios (1.4,0.714): coarser and finer, the observed order (0: off, noise only).",

@@ -7,6 +7,7 @@ from typing import Annotated
 
 import typer
 
+from ..discrepancy.diagnose import MeshErrorTreatment, NoiseProfile
 from ..fitting.options import MESH_SIZE_RANGE_MM
 from ..model.effects import SKIN_THICKNESS_MM
 from ..stats.scores import SCREEN_ALPHA
@@ -22,6 +23,7 @@ def diagnose(
         str | None,
         typer.Option(
             "--effects",
+            metavar="NAME,NAME",
             help="Comma-separated library effects to screen (skin, sliding, inclusions, "
             "mooney, poisson, density, gravity, registration). Default: all.",
         ),
@@ -30,17 +32,20 @@ def diagnose(
         str | None,
         typer.Option(
             "--holdout",
+            metavar="SCAN",
             help="Scan never fitted, to show the gap on (default: the first validation "
             "scan; 'none' for none).",
         ),
     ] = None,
     alpha: Annotated[
-        float, typer.Option("--alpha", help="Family-wise error rate of the screening.")
+        float,
+        typer.Option("--alpha", help="Family-wise error rate of the screening, in (0, 0.5)."),
     ] = SCREEN_ALPHA,
     rim_margin: Annotated[
         str | None,
         typer.Option(
             "--rim-margin",
+            metavar="MM|element",
             help="Measured points nearer than this to the back plate (mm) are only mapped, "
             "not diagnosed (the clamped edge; default 5; 'element': one model element, the "
             "mesh size; 0 keeps them).",
@@ -50,7 +55,8 @@ def diagnose(
         float,
         typer.Option(
             "--skin-thickness",
-            help=f"Thickness (mm) of the skin effect's stiffer outer band (default "
+            metavar="MM",
+            help=f"Thickness (mm, in (0, 10]) of the skin effect's stiffer outer band (default "
             f"{SKIN_THICKNESS_MM:g}). The "
             "surface sees about (ratio - 1) x thickness of a thin layer: the fitted ratio "
             "stands for that product at this thickness (diagnosis.json: excess_mm).",
@@ -60,6 +66,7 @@ def diagnose(
         str | None,
         typer.Option(
             "--explained-margin",
+            metavar="MM|element",
             help="The share of the residual a named effect must explain is measured beyond "
             "this distance from the back plate (mm; default 'element': one model element, "
             "where the clamped edge's discretisation error lies; 0: every diagnosed point).",
@@ -89,7 +96,7 @@ def diagnose(
         ),
     ] = None,
     noise_profile: Annotated[
-        str,
+        NoiseProfile,
         typer.Option(
             "--noise-profile",
             help="'flat': one noise level at every height (default); 'plate': the noise "
@@ -98,7 +105,7 @@ def diagnose(
         ),
     ] = "flat",
     mesh_error: Annotated[
-        str,
+        MeshErrorTreatment,
         typer.Option(
             "--mesh-error",
             help="'ignored': the tests condition on c1, the per-scan offsets and the named "

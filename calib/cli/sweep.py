@@ -7,6 +7,9 @@ from typing import Annotated
 
 import typer
 
+from nn.device import Device
+
+from ..workflows.sweep import PredictFrame, SurrogateKind
 from .app import app, fail
 
 surrogate_app = typer.Typer(
@@ -47,16 +50,26 @@ def sweep(
         str,
         typer.Option(
             "--plan",
+            metavar="PLAN",
             help="dissertation (15 deg transverse + sagittal training, 48 validation "
             "directions), dissertation:transverse (24 transverse training), or sphere:N.",
         ),
     ] = "dissertation",
     c1: Annotated[
         str | None,
-        typer.Option("--c1", help="c1 axis LO:HI:N in Pa (geometric); default: calibrated c1."),
+        typer.Option(
+            "--c1",
+            metavar="LO:HI:N",
+            help="c1 axis in Pa, N values spaced geometrically; default: the calibrated c1.",
+        ),
     ] = None,
     holdout: Annotated[
-        float, typer.Option("--holdout", help="Fraction of sphere directions held out.")
+        float,
+        typer.Option(
+            "--holdout",
+            metavar="FRACTION",
+            help="Fraction of a sphere:N plan's directions held out for validation, in [0, 1).",
+        ),
     ] = 0.0,
     seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of the hold-out.")] = 0,
     workers: Annotated[
@@ -65,7 +78,11 @@ def sweep(
     serial: Annotated[bool, typer.Option("--serial", help="Solve in this process.")] = False,
     dask: Annotated[
         str | None,
-        typer.Option("--dask", help="'local' (a LocalCluster) or tcp://HOST:PORT (a scheduler)."),
+        typer.Option(
+            "--dask",
+            metavar="local|tcp://HOST:PORT",
+            help="A LocalCluster, or the scheduler at that address.",
+        ),
     ] = None,
     chunk_size: Annotated[
         int, typer.Option("--chunk-size", help="Scenarios per continuation chunk.")
@@ -200,9 +217,12 @@ def surrogate_train(
     sweep_store: Annotated[Path, typer.Argument(metavar="SWEEP", help="Sweep store.")],
     out: Annotated[Path, typer.Option("--out", help="Model file to write (TorchScript .pt).")],
     kind: Annotated[
-        str, typer.Option("--kind", help="ours (reduced basis + kernel) or dissertation (MLPs).")
+        SurrogateKind,
+        typer.Option("--kind", help="ours (reduced basis + kernel) or dissertation (MLPs)."),
     ] = "ours",
-    device: Annotated[str, typer.Option("--device", help="auto, cpu or cuda.")] = "auto",
+    device: Annotated[
+        Device, typer.Option("--device", help="Where to train (auto: cuda where there is one).")
+    ] = "auto",
     seed: Annotated[
         int,
         typer.Option(
@@ -273,14 +293,19 @@ def surrogate_predict(
     model: Annotated[Path, typer.Argument(metavar="MODEL", help="Surrogate (.pt).")],
     gravity: Annotated[
         str,
-        typer.Option("--gravity", help="Gravity X,Y,Z in m/s^2 (length = magnitude; 0,0,0: none)."),
+        typer.Option(
+            "--gravity",
+            metavar="X,Y,Z",
+            help="Gravity in m/s^2 (length = magnitude; 0,0,0: none).",
+        ),
     ],
     out: Annotated[Path, typer.Option("--out", help="R.vtu (mesh) or R.ply (surface).")],
     c1: Annotated[
         float | None, typer.Option("--c1", help="c1 in Pa (default: the calibrated c1).")
     ] = None,
     frame: Annotated[
-        str, typer.Option("--frame", help="phantom (posture-angle frame) or ref (model frame).")
+        PredictFrame,
+        typer.Option("--frame", help="phantom (posture-angle frame) or ref (model frame)."),
     ] = "phantom",
     extrapolate: Annotated[
         bool,

@@ -22,7 +22,9 @@ def view(
     port: Annotated[int, typer.Option("--port", help="TCP port on 127.0.0.1.")] = 8050,
     scan: Annotated[
         str | None,
-        typer.Option("--scan", help="Open at this scan's posture, its error map overlaid."),
+        typer.Option(
+            "--scan", metavar="SCAN", help="Open at this scan's posture, its error map overlaid."
+        ),
     ] = None,
     screenshot: Annotated[
         Path | None,

@@ -63,7 +63,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -116,10 +116,12 @@ DEFAULT_EFFECTS = (
 #: caught the misfit in 3 and 4 of 8 (the smaller body holds fewer independent samples).
 NOISE_LAG_MM = MAX_LAG_MM
 FLOOR_LAG_MM = 20.0
-#: ``DiagnosisOptions.noise_profile``'s choices.
-NOISE_PROFILES = ("flat", "plate")
-#: ``DiagnosisOptions.mesh_error``'s choices.
-MESH_ERRORS = ("ignored", "absorbed")
+#: ``DiagnosisOptions.noise_profile``'s choices (``diagnose --noise-profile``).
+NoiseProfile = Literal["flat", "plate"]
+NOISE_PROFILES = get_args(NoiseProfile)
+#: ``DiagnosisOptions.mesh_error``'s choices (``diagnose --mesh-error``).
+MeshErrorTreatment = Literal["ignored", "absorbed"]
+MESH_ERRORS = get_args(MeshErrorTreatment)
 MAP_KERNEL_MM = 10.0  # the significance map's smoothing (a pad's print, a rim band), scaled
 
 
@@ -231,8 +233,8 @@ class DiagnosisOptions:
     rim_margin_mm: float | Literal["element"] = RIM_MARGIN_MM
     mesh_size_mm: float | None = None
     inclusion_mesh_mm: float | None = None
-    noise_profile: Literal["flat", "plate"] = "flat"
-    mesh_error: Literal["ignored", "absorbed"] = "ignored"
+    noise_profile: NoiseProfile = "flat"
+    mesh_error: MeshErrorTreatment = "ignored"
     max_candidates: int = 2
     max_named: int = 2
     min_explained: float = 0.5

@@ -4,6 +4,6 @@ Only the twin (and tests and benchmarks) may read ``OUT/truth/``; the pipeline
 (data, model, fitting) never imports this package (an import-linter contract).
 """
 
-from .synth import DISSERTATION_POSTURES, PRESETS, Posture, TwinPreset, synthesize
+from .synth import DISSERTATION_POSTURES, PRESETS, Posture, PresetName, TwinPreset, synthesize
 
-__all__ = ["DISSERTATION_POSTURES", "PRESETS", "Posture", "TwinPreset", "synthesize"]
+__all__ = ["DISSERTATION_POSTURES", "PRESETS", "Posture", "PresetName", "TwinPreset", "synthesize"]

@@ -16,6 +16,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -27,7 +28,7 @@ from fem.postures import random_scanner_pose
 from ..io import check_out_folder, clean_stale, provenance, write_json_atomic
 from ..model.effects import TruthEffects, truth_model
 
-__all__ = ["PRESETS", "Posture", "TwinPreset", "scanner_poses", "synthesize"]
+__all__ = ["PRESETS", "Posture", "PresetName", "TwinPreset", "scanner_poses", "synthesize"]
 
 log = logging.getLogger(__name__)
 G_SCANNER = np.array([0.0, 1.0, 0.0])
@@ -82,6 +83,8 @@ PRESETS = {
         min_shape=(256, 256, 0),
     ),  # fmt: skip
 }
+#: The names ``synth --preset`` takes: the keys of :data:`PRESETS`.
+PresetName = Literal["quick", "dissertation"]
 
 
 def _truth_mesh(phantom, p: TwinPreset, eff: TruthEffects) -> fem.TetMesh:

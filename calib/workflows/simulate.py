@@ -6,10 +6,12 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
 import fem
+from fem.discretize import Formulation
 from fem.meshing import find_back_plane, tag_node_sets
 from fem.units import STANDARD_GRAVITY_M_S2
 
@@ -28,6 +30,9 @@ SMALL_BODY_MM = 40.0
 #: Output formats that keep the tetrahedra and the ``displacement_mm`` point data
 #: (review AT: .stl, .ply, .off and .inp dropped them, .obj and .xdmf failed after the solve).
 OUTPUT_SUFFIXES = (".vtu", ".vtk", ".msh")
+#: How the back plate holds the body: ``clamped`` (every back node fixed) or
+#: ``sliding`` (frictionless: only the normal displacement fixed).
+BackSupport = Literal["clamped", "sliding"]
 
 
 @dataclass(frozen=True)
@@ -43,9 +48,9 @@ class SimulateOptions:
     density_kg_m3: float = 1000.0
     gravity: tuple[float, float, float] = (0.0, 1.0, 0.0)
     g_m_s2: float = STANDARD_GRAVITY_M_S2
-    bc: str = "clamped"
+    bc: BackSupport = "clamped"
     back_plane: str = "auto"
-    formulation: str = "taylor-hood"
+    formulation: Formulation = "taylor-hood"
 
     def __post_init__(self) -> None:
         checks = (

@@ -17,9 +17,11 @@ import time
 from dataclasses import asdict, dataclass
 from importlib import metadata
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
+
+from nn.device import Device
 
 __all__ = [
     "SweepOptions",
@@ -33,7 +35,12 @@ log = logging.getLogger(__name__)
 _BACKENDS = ("serial", "pool", "dask")
 #: ``--dask``: ``local``, or a scheduler address ``[tcp://|tls://]HOST:PORT`` (IPv6 in [])
 _DASK_ADDRESS = re.compile(r"(?:(?:tcp|tls)://)?(?:\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]]+):(\d{1,5})")
-_KINDS = ("ours", "dissertation")
+#: ``surrogate train --kind``: the reduced basis with a kernel, or the dissertation's MLPs.
+SurrogateKind = Literal["ours", "dissertation"]
+_KINDS = get_args(SurrogateKind)
+#: ``surrogate predict --frame``: the gravity vector in the phantom (posture-angle) frame
+#: or in the model's (calibration.json's ``gravity_ref``).
+PredictFrame = Literal["phantom", "ref"]
 _PREDICT_SUFFIXES = (".vtu", ".ply")
 
 
@@ -96,7 +103,18 @@ class SweepOptions:
             An unknown backend, fewer than 1 worker, thread or scenario per chunk, or a
             ``dask`` that is neither ``local`` nor a ``tcp://HOST:PORT`` address (its
             form only: whether a scheduler answers there is known when it is reached).
+        calib.sweep.PlanError
+            A plan, c1 axis or hold-out that no calibration can make valid (an unknown
+            plan, ``LO:HI:N`` out of form, a hold-out outside [0, 1) or on the
+            dissertation's plan), found before the work folder is read (review BD).
         """
+        from ..sweep import make_plan
+
+        # the calibrated c1 only fills a plan without a c1 axis: any positive stand-in
+        # checks everything else about the plan
+        make_plan(
+            self.plan, c1_cal_pa=1.0, c1_axis=self.c1_axis, holdout=self.holdout, seed=self.seed
+        )
         if self.backend not in _BACKENDS:
             raise ValueError(f"unknown backend {self.backend!r}; choose serial, pool or dask")
         if self.backend == "serial" and self.workers is not None:  # review AT, AU: ignored
@@ -391,8 +409,8 @@ def run_surrogate_train(
     sweep,
     out,
     *,
-    kind: Literal["ours", "dissertation"] = "ours",
-    device: Literal["auto", "cpu", "cuda"] = "auto",
+    kind: SurrogateKind = "ours",
+    device: Device = "auto",
     seed: int = 0,
     iterations: int | None = None,
     progress=None,
@@ -463,7 +481,7 @@ def run_surrogate_predict(
     *,
     gravity,
     c1_pa: float | None = None,
-    frame: Literal["phantom", "ref"] = "phantom",
+    frame: PredictFrame = "phantom",
     extrapolate: bool = False,
 ) -> dict:
     """Predict the deformation for one gravity vector and write ``out`` (.vtu or .ply).
@@ -521,7 +539,9 @@ def run_surrogate_predict(
     suffix = out.suffix.lower()
     if suffix not in _PREDICT_SUFFIXES:
         raise ValueError(f"--out {out}: write .vtu or .ply, got suffix {out.suffix!r}")
-    if frame not in ("phantom", "ref"):
+    if c1_pa is not None and not (np.isfinite(c1_pa) and c1_pa > 0):  # before the model's read
+        raise ValueError(f"--c1 must be a positive stress in Pa, got {c1_pa!r}")
+    if frame not in get_args(PredictFrame):
         raise ValueError(f"--frame must be 'phantom' or 'ref', got {frame!r}")
     check_out_file(out)
     sur = nn.load_surrogate(model_path)

@@ -201,7 +201,8 @@ def test_a_corrupted_series_is_never_calibrated_on_old_results(scans, tmp_path):
         (["--mesh-size", "0.5"], r"'--mesh-size'.*greater than or equal to 1"),
         (
             ["--objective", "volume"],
-            r"objective \(--objective\) must be one of nipple, surface, landmarks",
+            r"Invalid value for '--objective'.*'volume' is not one of 'surface', 'nipple', "
+            r"'landmarks'",
         ),
         (
             ["--mesh-max-dihedral", "180"],

@@ -246,9 +246,8 @@ def test_unknown_preset(tmp_path):
         (["--effect", "wrinkles"], r"unknown effect 'wrinkles'"),
         (["--effect", "poisson=0.6"], r"effect 'poisson': value 0.6 outside the range"),
         (["--effect", "none", "--effect", "skin"], r"'none' cannot be combined"),
-        (["--preset", "huge"], r"unknown preset 'huge'"),
     ],
-    ids=["unknown-effect", "out-of-range", "none-combined", "unknown-preset"],
+    ids=["unknown-effect", "out-of-range", "none-combined"],
 )
 def test_cli_synth_bad_options(tmp_path, args, pattern):
     result = CliRunner().invoke(app, ["synth", str(tmp_path / "twin"), *args])

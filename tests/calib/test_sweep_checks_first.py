@@ -55,6 +55,15 @@ def no_reading(monkeypatch):
             {"backend": "dask", "dask": "tcp://10.0.0.5:8786", "workers": 4},
             "the scheduler at tcp://10.0.0.5:8786 has its own workers: drop --workers",
         ),
+        # review BD: the plan, c1 axis and hold-out were checked after the calibration
+        # was read (its c1 only fills a plan without a c1 axis)
+        ({"plan": "sphere:0"}, "--plan sphere:N needs a positive integer N"),
+        ({"plan": "grid"}, "unknown --plan 'grid'"),
+        ({"holdout": 0.3}, "--plan dissertation has its own validation directions"),
+        ({"plan": "sphere:10", "holdout": 1.0}, r"--holdout must lie in \[0, 1\)"),
+        ({"plan": "sphere:10", "holdout": 0.04}, "holds 0 out"),
+        ({"c1_axis": "300:600"}, "--c1 must be LO:HI:N"),
+        ({"c1_axis": "600:300:3"}, "need 0 < LO <= HI"),
     ],
 )
 def test_bad_options_are_refused_when_built(kw, match):
@@ -75,6 +84,8 @@ def test_good_dask_addresses_are_accepted(address):
         (["--workers", "0"], "--workers must be an integer >= 1, got 0"),
         (["--dask", "tcp//10.0.0.5:8786"], "--dask must be 'local' or"),
         (["--chunk-size", "0"], "--chunk-size must be"),
+        (["--plan", "sphere:x"], "--plan sphere:N needs a positive integer N"),
+        (["--c1", "0:300:3"], "need 0 < LO <= HI"),
     ],
 )
 def test_cli_refuses_before_reading_or_writing(tmp_path, no_reading, args, match):
