@@ -93,7 +93,7 @@ class CalibrationOptions:
         TetGen's optimisation bound on the largest dihedral angle of the model mesh
         (:func:`fem.meshing.tetrahedralize`); None keeps the ``tetgen`` package's (177
         degrees). 165 removes most slivers, where the straight stress-free recovery
-        fails first (README, "Slivers and the stress-free recovery").
+        fails first (docs/calibration-evidence.md, "Slivers and the stress-free recovery").
     formulation : str
         FE formulation (:data:`fem.FORMULATIONS`).
     nu : float

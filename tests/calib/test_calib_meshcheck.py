@@ -118,7 +118,7 @@ def test_irregular_convergence_gets_three_times_the_spread(c1_coarse, c1_fine, w
 
 
 def test_the_dissertation_twins_three_meshes_would_have_covered_its_truth():
-    # what the default coarser check missed (README, reference states: 414.2 Pa, truth
+    # what the default coarser check missed (docs/calibration-evidence.md: 414.2 Pa, truth
     # 420 Pa, noise half-width 0.86 %): with the finer mesh the bound holds the truth
     ln0 = np.log(414.2)
     gci, *_ = grid_convergence(ln0, [(1.4, np.log(413.8)), (1 / 1.4, np.log(419.4))])
