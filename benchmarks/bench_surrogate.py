@@ -31,6 +31,8 @@ from pathlib import Path
 import numpy as np
 from bench_sweep import calibrated_twin, machine
 
+from fem.units import STANDARD_GRAVITY_M_S2
+
 
 def sweep(work: Path, out: Path, **kw) -> Path:
     from calib.workflows.sweep import SweepOptions, run_sweep
@@ -67,11 +69,11 @@ def query_times(path: Path, c1: float, repeats: int) -> tuple[list, list]:
 
     with quiet_jit():
         m = torch.jit.load(str(path))
-    g1 = torch.tensor([[0.0, 9.81, 0.0]], dtype=torch.float64)
+    g1 = torch.tensor([[0.0, STANDARD_GRAVITY_M_S2, 0.0]], dtype=torch.float64)
     c = torch.tensor([c1], dtype=torch.float64)
     rng = np.random.default_rng(0)
     d = rng.normal(size=(4096, 3))
-    gb = torch.as_tensor(9.81 * d / np.linalg.norm(d, axis=1, keepdims=True))
+    gb = torch.as_tensor(STANDARD_GRAVITY_M_S2 * d / np.linalg.norm(d, axis=1, keepdims=True))
     cb = torch.full((4096,), c1, dtype=torch.float64)
     with torch.inference_mode():
         for _ in range(300):

@@ -36,6 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fem.units import STANDARD_GRAVITY_M_S2
+
 
 def _box(root: Path) -> tuple[Path, Path]:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "nn"))
@@ -70,7 +72,7 @@ def _python_peers(model: Path, n: int, tmp: Path) -> tuple[list, list]:
     q, f = [], []
     for k in range(n):
         a = np.radians(3.0 * k)
-        g = 9.81 * np.array([np.cos(a), 0.0, np.sin(a)])
+        g = STANDARD_GRAVITY_M_S2 * np.array([np.cos(a), 0.0, np.sin(a)])
         t0 = time.perf_counter()
         sur.predict(g)
         q.append(1e3 * (time.perf_counter() - t0))

@@ -417,18 +417,29 @@ def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALP
     return test, names
 
 
+def _c1_pa(theta) -> float | None:
+    """c1 in Pa of ``theta = ln c1`` as JSON writes it (None where theta is None)."""
+    return None if theta is None else float(np.exp(theta))
+
+
 def model_fit_with_postures(model_fit: dict | None, postures, names: dict) -> dict | None:
     """``calibration.json``'s ``model_fit`` with the posture test added.
 
     The band-F fields stay as they were (``statistic``, ``p_value``, ``alpha``: the
     band-F test's; its own verdict is ``band_f_verdict``); ``postures`` holds the
-    posture test; ``verdict`` is ``misfit`` when either test fires.
+    posture test; ``verdict`` is ``misfit`` when either test fires. The test's parameter
+    ``theta`` is ln c1 (c1 in Pa): each scan's estimate and their mean are also given as
+    ``c1_pa`` and ``c1_bar_pa`` (review BE: ``theta`` alone read as an angle).
     """
     if postures is None:
         return model_fit
     out = dict(model_fit or {})
     band = out.get("verdict")
     out["band_f_verdict"] = band
-    out["postures"] = postures.as_json(names)
+    doc = postures.as_json(names)
+    doc["c1_bar_pa"] = _c1_pa(doc["theta_bar"])
+    for scan in doc["scans"].values():
+        scan["c1_pa"] = _c1_pa(scan["theta"])
+    out["postures"] = doc
     out["verdict"] = "misfit" if band == "misfit" or postures.verdict == "inconsistent" else "fits"
     return out

@@ -16,6 +16,7 @@ import numpy as np
 
 from .materials import Material
 from .mesh import MeshError, TetMesh
+from .units import DEFAULT_DENSITY_KG_M3
 
 __all__ = ["Clamped", "Constrained", "ElasticSupport", "Model", "Sliding", "Support"]
 
@@ -129,7 +130,7 @@ class Model:
         mesh: TetMesh,
         material: Material,
         *,
-        density_kg_m3: float = 1000.0,
+        density_kg_m3: float = DEFAULT_DENSITY_KG_M3,
         support: Support | None = None,
     ) -> Model:
         """One material and density for every region of the mesh."""

@@ -2,6 +2,7 @@
 
 Public boundaries of the toolkit use millimetres for lengths, pascals for stresses,
 kg/m^3 for densities and m/s^2 for accelerations. The solver works in SI internally.
+The two physical constants the toolkit assumes where a caller gives none are here too.
 """
 
 from __future__ import annotations
@@ -9,6 +10,9 @@ from __future__ import annotations
 M_PER_MM = 1.0e-3
 MM_PER_M = 1.0e3
 STANDARD_GRAVITY_M_S2 = 9.81
+#: The density of a body whose density is not given (water's; ``session.toml``'s default
+#: ``phantom.density_kg_m3``).
+DEFAULT_DENSITY_KG_M3 = 1000.0
 
 
 def mm_to_m(value):

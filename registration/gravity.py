@@ -1,4 +1,4 @@
-"""Gravity direction of each scan in the phantom (reference scan LPS) frame, posture checks."""
+"""Gravity direction of each scan in the ref frame (the reference scan's LPS), posture checks."""
 
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ def _unit(v: np.ndarray, *, name: str) -> np.ndarray:
 def gravity_in_reference(
     T_ref_from_scan: np.ndarray, g_scanner: np.ndarray = (0.0, 1.0, 0.0)
 ) -> np.ndarray:
-    """Gravity of one scan expressed in the reference (phantom) frame.
+    """Gravity of one scan expressed in the ref frame (the reference scan's LPS).
 
     Parameters
     ----------

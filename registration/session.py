@@ -182,7 +182,7 @@ def register_scans(
         Marker centroids per scan in that scan's LPS frame, millimetres (any order with
         ``correspondence="auto"``).
     reference : str
-        Name of the reference scan (its LPS frame is the phantom frame).
+        Name of the reference scan (its LPS frame is the ref frame, the model's).
     gravity_scanner : array_like, shape (3,), or dict of str to it
         Gravity direction in the scanner LPS frame, for all scans or per scan.
     nominal_angles_deg : dict of str to float, optional

@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 
 from fem.discretize import Formulation
-from fem.units import STANDARD_GRAVITY_M_S2
+from fem.units import DEFAULT_DENSITY_KG_M3, STANDARD_GRAVITY_M_S2
 
 from ..fitting.options import MESH_SIZE_RANGE_MM, Objective, ReferenceState
 from ..twin import PresetName
@@ -73,7 +73,7 @@ def simulate(
     nu: Annotated[float, typer.Option("--nu", help="Poisson's ratio (< 0.5).")] = 0.499,
     density: Annotated[
         float, typer.Option("--density", help="Density in kg/m^3 (500-3000).")
-    ] = 1000.0,
+    ] = DEFAULT_DENSITY_KG_M3,
     g: Annotated[
         float, typer.Option("--g", help="Gravitational acceleration, m/s^2.")
     ] = STANDARD_GRAVITY_M_S2,

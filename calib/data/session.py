@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fem.units import DEFAULT_DENSITY_KG_M3
 from registration.rigid import MAX_AUTO_MARKERS
 
 __all__ = [
@@ -275,7 +276,7 @@ def load_session(folder: str | Path) -> Session:
         raise SessionError(f"{toml}: scanner.gravity must be non-zero and of finite length")
     try:
         density = checked_density_kg_m3(
-            phantom.get("density_kg_m3", 1000.0), "phantom.density_kg_m3"
+            phantom.get("density_kg_m3", DEFAULT_DENSITY_KG_M3), "phantom.density_kg_m3"
         )
     except ValueError as exc:
         raise SessionError(f"{toml}: {exc}") from None
@@ -406,7 +407,7 @@ def scaffold_session(folder: str | Path, *, overwrite: bool = False) -> Path:
     names = _unique_names(scans)
     doc = {
         "scanner": {"gravity": [0.0, 1.0, 0.0]},
-        "phantom": {"density_kg_m3": 1000.0, "fiducials": 3},
+        "phantom": {"density_kg_m3": DEFAULT_DENSITY_KG_M3, "fiducials": 3},
         "scans": [
             {"name": n, "path": p.name, "role": "reference" if i == 0 else "calibration"}
             for i, (n, p) in enumerate(zip(names, scans, strict=True))

@@ -28,7 +28,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 
 import fem
-from fem.units import STANDARD_GRAVITY_M_S2
+from fem.units import DEFAULT_DENSITY_KG_M3, STANDARD_GRAVITY_M_S2
 
 from ..data.work import WorkFolder, ingest_record
 from ..fitting import CalibrationOptions
@@ -1020,7 +1020,7 @@ def build_problem(
         )
     scans, held = choose_scans(work, holdout)
     nu = float(model.get("nu", 0.499))
-    density = float(model.get("density_kg_m3", 1000.0))
+    density = float(model.get("density_kg_m3", DEFAULT_DENSITY_KG_M3))
     inclusions = reference_inclusions(work)
     base = EffectValues(nu=nu, density_kg_m3=density)
     prestressed = (

@@ -104,6 +104,8 @@ PHYSICAL = {
         "stiffness_pa_per_mm", "stiffness_ci95_pa_per_mm", "springs", "Pa/mm", math.exp
     ),
 }
+#: Bounds of a scan's registration offset, in the order of :data:`_COMPONENTS`: tx, ty, tz
+#: in mm, wx, wy, wz in rad (2 deg).
 _OFFSET_BOUNDS = (3.0, 3.0, 3.0, math.radians(2.0), math.radians(2.0), math.radians(2.0))
 #: The quantities of the parameters that are physical as they stand (no unit).
 _AS_IS = {"mooney": "c2/c1", "poisson": "nu"}

@@ -17,6 +17,7 @@ import numpy as np
 
 import fem
 from fem.probe import MaterialPoint
+from fem.units import DEFAULT_DENSITY_KG_M3
 
 from ..data.measurements import Measurements, ScanMeasurement
 from ..model.forward import ForwardModel, ReferenceRecoveryFailed
@@ -58,7 +59,7 @@ class Calibrator:
 
     measurements: Measurements
     options: CalibrationOptions
-    density_kg_m3: float = 1000.0
+    density_kg_m3: float = DEFAULT_DENSITY_KG_M3
     history: list = field(default_factory=list)
 
     def __post_init__(self) -> None:

@@ -75,6 +75,7 @@ import numpy as np
 import fem
 from fem.mesh import REGION_IDS
 from fem.meshing import skin_fraction
+from fem.units import DEFAULT_DENSITY_KG_M3
 
 from ..stats.scores import ALTERNATIVES
 
@@ -147,7 +148,7 @@ class EffectValues:
     inclusion_ratio: float = 1.0
     c2_ratio: float = 0.0
     nu: float = 0.499
-    density_kg_m3: float = 1000.0
+    density_kg_m3: float = DEFAULT_DENSITY_KG_M3
     support_stiffness_pa_per_mm: float = math.inf
 
     def __post_init__(self) -> None:
@@ -195,7 +196,7 @@ class EffectValues:
             inclusion_ratio=float(doc.get("inclusion_ratio", 1.0)),
             c2_ratio=float(doc.get("c2_ratio", 0.0)),
             nu=float(doc.get("nu", 0.499)),
-            density_kg_m3=float(doc.get("density_kg_m3", 1000.0)),
+            density_kg_m3=float(doc.get("density_kg_m3", DEFAULT_DENSITY_KG_M3)),
             support_stiffness_pa_per_mm=math.inf if k == "inf" else float(k),
         )
 
@@ -481,7 +482,7 @@ _SETTERS: dict[str, Callable[[EffectValues, float], EffectValues]] = {
     "inclusions": lambda v, p: replace(v, inclusion_ratio=1.0 + p),
     "mooney": lambda v, p: replace(v, c2_ratio=max(p, 0.0)),
     "poisson": lambda v, p: replace(v, nu=p),
-    "density": lambda v, p: replace(v, density_kg_m3=1000.0 * math.exp(p)),
+    "density": lambda v, p: replace(v, density_kg_m3=DEFAULT_DENSITY_KG_M3 * math.exp(p)),
     "sliding": lambda v, p: replace(v, support_stiffness_pa_per_mm=math.exp(p)),
 }
 _GETTERS: dict[str, Callable[[EffectValues], float]] = {
@@ -489,7 +490,7 @@ _GETTERS: dict[str, Callable[[EffectValues], float]] = {
     "inclusions": lambda v: v.inclusion_ratio - 1.0,
     "mooney": lambda v: v.c2_ratio,
     "poisson": lambda v: v.nu,
-    "density": lambda v: math.log(v.density_kg_m3 / 1000.0),
+    "density": lambda v: math.log(v.density_kg_m3 / DEFAULT_DENSITY_KG_M3),
     "sliding": lambda v: (
         math.log(v.support_stiffness_pa_per_mm) if v.support_stiffness_pa_per_mm > 0 else -math.inf
     ),
@@ -628,7 +629,7 @@ class TruthEffects:
     inclusion_ratio: float = 1.0
     c2_pa: float = 0.0
     nu: float = 0.499
-    density_kg_m3: float = 1000.0
+    density_kg_m3: float = DEFAULT_DENSITY_KG_M3
     sliding_stiffness_pa_per_mm: float = 0.0
 
     def active(self) -> list[str]:

@@ -34,7 +34,7 @@ from fem.prestress import (
     solve_prestressed_sensitivity,
 )
 from fem.sensitivity import state_sensitivity, stress_free_sensitivity, vertex_dofs
-from fem.units import STANDARD_GRAVITY_M_S2
+from fem.units import DEFAULT_DENSITY_KG_M3, STANDARD_GRAVITY_M_S2
 from fem.unload import recover_stress_free
 
 from .effects import EffectValues, effect_model, effect_support
@@ -120,7 +120,7 @@ class ForwardModel:
     mesh: fem.TetMesh
     gravity_ref: np.ndarray
     nu: float = 0.499
-    density_kg_m3: float = 1000.0
+    density_kg_m3: float = DEFAULT_DENSITY_KG_M3
     reference_state: str = "unload"
     formulation: str = "taylor-hood"
     g_m_s2: float = STANDARD_GRAVITY_M_S2

@@ -24,6 +24,7 @@ import fem
 from fem.geometry import PhantomSpec, build_phantom, sphere_surface
 from fem.meshing import mesh_phantom
 from fem.postures import random_scanner_pose
+from fem.units import DEFAULT_DENSITY_KG_M3
 
 from ..io import check_out_folder, clean_stale, provenance, write_json_atomic
 from ..model.effects import TruthEffects, truth_model
@@ -174,7 +175,7 @@ def _session_toml(preset: TwinPreset, tumour_hint_lps_mm: np.ndarray) -> str:
 
     return tomli_w.dumps({
         "scanner": {"gravity": G_SCANNER.tolist()},
-        "phantom": {"density_kg_m3": 1000.0, "fiducials": 3},
+        "phantom": {"density_kg_m3": DEFAULT_DENSITY_KG_M3, "fiducials": 3},
         "landmarks": {"tumour": [round(float(c), 1) for c in tumour_hint_lps_mm]},
         "scans": [
             {"name": p.name, "path": p.name, "role": p.role,

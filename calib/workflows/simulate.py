@@ -13,7 +13,7 @@ import numpy as np
 import fem
 from fem.discretize import Formulation
 from fem.meshing import find_back_plane, tag_node_sets
-from fem.units import STANDARD_GRAVITY_M_S2
+from fem.units import DEFAULT_DENSITY_KG_M3, STANDARD_GRAVITY_M_S2
 
 from ..data.session import checked_density_kg_m3
 from ..io import atomic_write, provenance, write_json_atomic
@@ -45,7 +45,7 @@ class SimulateOptions:
 
     c1_pa: float
     nu: float = 0.499
-    density_kg_m3: float = 1000.0
+    density_kg_m3: float = DEFAULT_DENSITY_KG_M3
     gravity: tuple[float, float, float] = (0.0, 1.0, 0.0)
     g_m_s2: float = STANDARD_GRAVITY_M_S2
     bc: BackSupport = "clamped"

@@ -143,6 +143,9 @@ def test_model_fit_verdict_is_misfit_when_either_test_fires(band, postures, verd
     assert out["verdict"] == verdict
     assert out["band_f_verdict"] == band
     assert set(out["postures"]["scans"]) == {"lateral", "tilt"}
+    # review BE: theta is ln c1; each scan's c1 and their mean are given in Pa beside it
+    assert out["postures"]["scans"]["tilt"]["c1_pa"] == pytest.approx(np.exp(6.1), rel=1e-12)
+    assert out["postures"]["c1_bar_pa"] == pytest.approx(np.exp(6.02), rel=1e-12)
     assert model_fit_with_postures(band_fit, None, {}) is band_fit
 
 
