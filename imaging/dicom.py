@@ -41,6 +41,9 @@ _SKIP_SUFFIXES = {".txt", ".json", ".md", ".toml", ".xml", ".csv", ".log"}
 #: Suffixes (lower case) of a DICOM slice: a file named so that cannot be read as DICOM is a
 #: broken slice (an error), not a stray file; ``imaging.io.read_volume`` reads its folder.
 DICOM_SUFFIXES = (".dcm", ".dicom", ".ima")
+#: The volume files a scan's ``path`` may name instead of a DICOM series folder
+#: (:func:`imaging.read_volume`'s formats: NIfTI, NRRD, MetaImage).
+VOLUME_FILE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
 
 
 def _candidate_files(folder: Path) -> list[Path]:
@@ -189,6 +192,16 @@ def _no_dicom_error(folder: Path, skipped: list) -> DicomSeriesError:
             "MR image slices with their position and orientation"
         )
     subfolders = sorted(p.name for p in folder.iterdir() if p.is_dir() and p.name[:1] != ".")
+    volumes = sorted(
+        p.name
+        for p in folder.iterdir()
+        if p.is_file() and p.name.lower().endswith(VOLUME_FILE_SUFFIXES)
+    )
+    if volumes and not subfolders:  # review BG: it said "holds no DICOM files" alone
+        return DicomSeriesError(
+            f"{folder}: folder holds no DICOM files but the volume file(s) "
+            f"{', '.join(volumes)}: point `path` at the file"
+        )
     if not subfolders:
         return DicomSeriesError(f"{folder}: folder holds no DICOM files")
     names = ", ".join(f"{name}/" for name in subfolders)

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from fem.units import DEFAULT_DENSITY_KG_M3
+from imaging.dicom import DICOM_SUFFIXES, VOLUME_FILE_SUFFIXES
 from registration.rigid import MAX_AUTO_MARKERS
 
 __all__ = [
@@ -32,7 +33,7 @@ ROLES = ("reference", "calibration", "validation")
 PLANES = ("transverse", "sagittal")  # fem.postures.PLANES
 #: A scan name is a folder name under WORK/scans/ and part of output file names.
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
-VOLUME_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
+VOLUME_SUFFIXES = VOLUME_FILE_SUFFIXES
 #: scan names taken under ``WORK/scans/`` (compared case-insensitively): the run marker
 RESERVED_NAMES = frozenset({"run"})
 
@@ -172,8 +173,10 @@ def _scan(entry, index: int, folder: Path, toml: Path) -> ScanEntry:
             f"{where}: unknown key(s) {_names(unknown)}; expected name, path, role, posture"
         )
     for key in ("name", "path", "role"):
-        if not isinstance(entry.get(key), str) or not entry[key]:
-            raise SessionError(f"{where}: '{key}' must be a non-empty string")
+        if key not in entry:  # review BG: it said "must be a non-empty string"
+            raise SessionError(f"{where}: '{key}' is missing (a non-empty string)")
+        if not isinstance(entry[key], str) or not entry[key]:
+            raise SessionError(f"{where}: '{key}' must be a non-empty string, got {entry[key]!r}")
     if not NAME_PATTERN.fullmatch(entry["name"]):
         raise SessionError(
             f"{where}: name {entry['name']!r} must start with a letter or digit and hold only "
@@ -191,6 +194,15 @@ def _scan(entry, index: int, folder: Path, toml: Path) -> ScanEntry:
     path = (folder / entry["path"]).resolve()
     if not path.exists():
         raise SessionError(f"{where} ({entry['name']}): scan path {path} does not exist")
+    if path.is_file() and not path.name.lower().endswith(VOLUME_SUFFIXES):
+        # review BG: found only when ingest read it, after the scans before it
+        hint = (
+            "a single DICOM file: point path at its series folder"
+            if path.name.lower().endswith(DICOM_SUFFIXES)
+            else "not a volume file: expected a DICOM series folder or a "
+            f"{', '.join(VOLUME_SUFFIXES)} file"
+        )
+        raise SessionError(f"{where} ({entry['name']}): path {entry['path']!r} is {hint}")
     posture = entry.get("posture", {})
     if not isinstance(posture, dict):
         raise SessionError(f"{where}: posture must be an inline table")

@@ -178,12 +178,26 @@ BAD_SESSIONS = [
     (
         "empty-name",
         VALID_TOML.replace('name = "tilt"', 'name = ""'),
-        r"#3: 'name' must be a non-empty string",
+        r"#3: 'name' must be a non-empty string, got ''",
     ),
     (
         "missing-role",
         VALID_TOML.replace('role = "validation"\n', ""),
-        r"#3: 'role' must be a non-empty string",
+        r"#3: 'role' is missing \(a non-empty string\)",  # review BG: said "must be"
+    ),
+    (
+        # review BG: a file that is not a volume was refused only when ingest read it,
+        # after the scans before it, without naming session.toml or the entry
+        "path-not-a-volume",
+        VALID_TOML.replace('path = "right.nii.gz"', 'path = "session.toml"'),
+        r"#2 \(right\): path 'session.toml' is not a volume file: expected a DICOM series "
+        r"folder or a \.nii, \.nii\.gz, \.nrrd, \.nhdr, \.mha, \.mhd file",
+    ),
+    (
+        "path-a-dicom-file",
+        VALID_TOML.replace('path = "left"', 'path = "left/IM00001.dcm"'),
+        r"#1 \(left\): path 'left/IM00001.dcm' is a single DICOM file: point path at its "
+        "series folder",
     ),
     (
         "posture-angle-string",

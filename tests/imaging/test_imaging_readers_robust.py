@@ -172,6 +172,22 @@ def test_a_series_of_images_without_geometry_says_so(series):
         read_volume(series)
 
 
+def test_a_folder_holding_a_volume_file_names_it(oblique, tmp_path, caplog):
+    # review BG: a scan path at the folder of a NIfTI said "folder holds no DICOM files"
+    from imaging import write_nifti
+
+    write_nifti(oblique, tmp_path / "scan" / "left.nii.gz")
+    with (
+        caplog.at_level(logging.WARNING, logger="imaging.dicom"),
+        pytest.raises(
+            DicomSeriesError,
+            match=r"scan: folder holds no DICOM files but the volume file\(s\) left\.nii\.gz: "
+            r"point `path` at the file$",
+        ),
+    ):
+        read_volume(tmp_path / "scan")
+
+
 def test_a_parent_folder_names_its_subfolders(oblique, tmp_path):
     write_dicom_series(oblique, tmp_path / "exam" / "DICOM")
     (tmp_path / "exam" / "notes.txt").write_text("exam notes\n")
