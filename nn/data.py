@@ -155,10 +155,19 @@ def _read_attrs(path: Path) -> dict:
         raise StoreFormatError(f"{meta}: not valid JSON ({exc})") from exc
     if attrs.get("format") != FORMAT:
         raise StoreFormatError(f"{meta}: not a {FORMAT} store (format {attrs.get('format')!r})")
-    if attrs.get("format_version") != FORMAT_VERSION:
+    version = attrs.get("format_version")
+    if version != FORMAT_VERSION:
+        # review BF: say what to do (and "1" as text read as "format version 1")
+        newer = (
+            isinstance(version, int) and not isinstance(version, bool) and version > FORMAT_VERSION
+        )
         raise StoreFormatError(
-            f"{meta}: format version {attrs.get('format_version')}; "
-            f"this reader knows {FORMAT_VERSION}"
+            f"{meta}: format version {version!r}; this reader knows {FORMAT_VERSION}"
+            + (
+                " (written by a newer phantom-calib: upgrade it to read this store)"
+                if newer
+                else ""
+            )
         )
     return attrs
 
@@ -260,6 +269,16 @@ def load_sweep(path: str | Path, *, allow_pending: bool = True) -> SweepData:
             f"{path / 'mesh'}: mesh arrays do not match the store's "
             "mesh_sha256 (a store mixed from another mesh?)"
         )
+    nipple_node = model["nipple_node"]
+    if not (
+        isinstance(nipple_node, int)
+        and not isinstance(nipple_node, bool)
+        and 0 <= nipple_node < len(nodes)
+    ):  # review BF: an index past the mesh became an IndexError traceback in training
+        raise StoreFormatError(
+            f"{path / 'zarr.json'}: model.nipple_node {nipple_node!r} is not a node of the "
+            f"store's {len(nodes)}"
+        )
     node_sets = {k: read(f"mesh/{k}") for k in ("surface_nodes", "back_nodes", "boundary_faces")}
     for k, v in node_sets.items():
         if v.size and (v.min() < 0 or v.max() >= len(nodes)):
@@ -303,8 +322,12 @@ def load_sweep(path: str | Path, *, allow_pending: bool = True) -> SweepData:
             f"finite for {len(bad)} solved scenario(s) (truncated store)"
         )
     nipple = read("results/nipple_mm")[solved]
-    if not np.all(np.isfinite(nipple)):
-        raise StoreFormatError(f"{path}/results/nipple_mm: missing chunks (truncated store)")
+    lost = solved[~np.all(np.isfinite(nipple), axis=1)]
+    if lost.size:  # review BF: the README says the chunk file is named
+        raise StoreFormatError(
+            f"{path}/results/nipple_mm/c/{int(lost[0])}/0: missing or not finite for "
+            f"{lost.size} solved scenario(s) (truncated store)"
+        )
     tumour = read("results/tumour_mm")[solved]
     if model.get("tumour_stress_free_mm") is not None:
         # review AD: one lost chunk turned a model with a tumour into one without

@@ -52,7 +52,8 @@ path                           shape              dtype     content
 ``scenarios/angle_deg``        (S,)               float64   posture angle (NaN: sphere)
 ``scenarios/chunk``            (S,)               int64     continuation chunk
 ``scenarios/parent``           (S,)               int64     warm-start scenario, -1 cold
-``scenarios/order``            (S,)               int64     position in the tour
+``scenarios/order``            (S,)               int64     the scenario at tour
+                                                            position k (a permutation)
 ``results/status``             (S,)               int8      0 pending, 1 solved, 2 failed
 ``results/displacement_mm``    (S, N, 3)          float64   vertex displacements
 ``results/tumour_mm``          (S, 3)             float64   tumour-centre material point
@@ -463,6 +464,14 @@ class SweepStore:
             del failures[str(i)]
             self.group.attrs["failures"] = failures
         r["status"][i] = SOLVED if result.ok else FAILED
+
+    def mark_running(self) -> None:
+        """Set the root ``status`` to ``running`` before scenarios are solved.
+
+        A run killed before its end leaves it so; :meth:`set_status_attrs` sets
+        ``complete`` when none is pending.
+        """
+        self.group.attrs["status"] = "running"
 
     def set_status_attrs(self, status: str, summary: dict) -> None:
         """Set the root ``status`` and ``summary`` attributes."""

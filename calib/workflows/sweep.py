@@ -357,6 +357,10 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
         pending = int(np.sum(store.status() == 0)) + (
             int(np.sum(store.status() == 2)) if opts.retry_failed else 0
         )
+        if pending:
+            # review BF: a resume that found lost chunks, killed, left "complete" with
+            # scenarios pending
+            store.mark_running()
         if progress is not None:
             progress({"start": True, "done": 0, "total": pending})
         info = {"backend": opts.backend, "workers": 0}

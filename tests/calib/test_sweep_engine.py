@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -176,7 +177,18 @@ def test_a_solved_scenario_whose_chunk_was_lost_is_solved_again(work, reference,
     shutil.rmtree(out / "results" / "displacement_mm" / "c" / "5")
     with pytest.raises(nn.StoreFormatError, match="displacement_mm/c/5/0/0: missing"):
         nn.load_sweep(out)
+
+    # review BF: the root status stayed "complete" while the lost scenario was pending;
+    # a run killed then left it so
+    def killed(ev):
+        if ev.get("start"):
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(work, out, PLAN, progress=killed)
+    assert json.loads((out / "zarr.json").read_text())["attributes"]["status"] == "running"
     assert run_sweep(work, out, PLAN)["this_run"]["solved"] == 1
+    assert json.loads((out / "zarr.json").read_text())["attributes"]["status"] == "complete"
     again, before = nn.load_sweep(out), nn.load_sweep(reference[0])
     assert np.array_equal(again.displacement_mm, before.displacement_mm)
 

@@ -74,6 +74,10 @@ def test_a_lost_tumour_chunk_or_a_corrupt_chunk_is_named(box_sweep, tmp_path):
     (s / "results" / "tumour_mm" / "c" / "7" / "0").unlink()
     with pytest.raises(StoreFormatError, match=r"results/tumour_mm/c/7/0: missing or not finite"):
         nn.load_sweep(s)
+    s = _copy(box_sweep, tmp_path / "c")
+    (s / "results" / "nipple_mm" / "c" / "3" / "0").unlink()  # review BF: it named no file
+    with pytest.raises(StoreFormatError, match=r"results/nipple_mm/c/3/0: missing or not finite"):
+        nn.load_sweep(s)
     s = _copy(box_sweep, tmp_path / "b")
     chunk = s / "results" / "displacement_mm" / "c" / "5" / "0" / "0"
     chunk.write_bytes(chunk.read_bytes()[:17])
@@ -88,6 +92,18 @@ def test_a_lost_tumour_chunk_or_a_corrupt_chunk_is_named(box_sweep, tmp_path):
         (lambda g: g["scenarios/role"].__setitem__(4, -1), r"scenarios/role: codes outside 0\.\.1"),
         (lambda g: g["mesh/surface_nodes"].__setitem__(0, 10**6), r"surface_nodes: node indices"),
         (lambda g: g.attrs.__setitem__("model", {"c1_pa": 420.0}), r"`model` block lacks density"),
+        # review BF: an index past the mesh was an IndexError traceback in training; a
+        # newer store said what it was but not what to do
+        (
+            lambda g: g.attrs.__setitem__("model", g.attrs["model"] | {"nipple_node": 10**6}),
+            r"zarr\.json: model\.nipple_node 1000000 is not a node of the store's \d+",
+        ),
+        (
+            lambda g: g.attrs.__setitem__("format_version", 2),
+            r"zarr\.json: format version 2; this reader knows 1 \(written by a newer "
+            r"phantom-calib: upgrade it to read this store\)",
+        ),
+        (lambda g: g.attrs.__setitem__("format_version", "1"), r"format version '1'; this reader"),
     ],
 )
 def test_scenarios_and_mesh_sets_are_checked(box_sweep, tmp_path, edit, says):
