@@ -176,6 +176,16 @@ def _choose_tumour(session: Session, res) -> TumourChoice:
 
     c, d = res.inclusions.centres_lps_mm, res.inclusions.diameters_mm
     if len(c) == 0:
+        if session.tumour_hint_lps_mm is not None:  # review BG: dropped without a word
+            import warnings
+
+            warnings.warn(
+                f"{session.reference.name!r}: no inclusion found in the reference scan, so "
+                "the [landmarks] tumour hint is not used (ingest finds bright inclusions "
+                "2-15 mm wide); no tumour is tracked",
+                TumourHintWarning,
+                stacklevel=2,
+            )
         return TumourChoice(None, "no inclusion found in the reference scan")
     k = imaging.select_tumour(c, d, hint_lps_mm=session.tumour_hint_lps_mm)
     if session.tumour_hint_lps_mm is not None:

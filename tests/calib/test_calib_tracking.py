@@ -390,3 +390,11 @@ def test_a_tumour_hint_far_from_every_inclusion_is_warned_about():
     with pytest.warns(TumourHintWarning, match=said):
         far = _choose_tumour(session(np.array([0.0, 9.1, 20.0])), res)
     assert far.reference_index == 0 and "9.1 mm away" in far.reason
+    # review BG: with no inclusion in the reference scan the hint was dropped unsaid
+    none = _scan(np.zeros((0, 3)), np.zeros(0), [0.0, 0.0, 60.0])
+    with pytest.warns(TumourHintWarning, match=r"'ref': no inclusion found .* hint is not used"):
+        lone = _choose_tumour(session(np.array([0.0, 9.1, 20.0])), none)
+    assert lone.reference_index is None
+    with warnings.catch_warnings():  # no hint, nothing to say
+        warnings.simplefilter("error")
+        assert _choose_tumour(session(None), none).reference_index is None
