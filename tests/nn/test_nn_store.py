@@ -36,13 +36,34 @@ def test_store_matches_its_documentation(box_sweep):
 
     import calib.sweep.store as store
 
-    rows = re.findall(r"^``([a-z_]+/[a-z_]+)``\s+\(([^)]*)\)", store.__doc__, flags=re.M)
+    rows = re.findall(r"^``([a-z_]+/[a-z_]+)``\s+\(([^)]*)\)\s+(\w+)", store.__doc__, flags=re.M)
     assert len(rows) >= 20
     g = zarr.open_group(box_sweep, mode="r")
-    for path, shape in rows:
+    for path, shape, dtype in rows:
         rank = len([s for s in shape.split(",") if s.strip()])
         assert g[path].ndim == rank, path
+        assert g[path].dtype == np.dtype(dtype), (path, g[path].dtype)  # review BF
     assert g.attrs["convergence_columns"] == list(store.CONVERGENCE_COLUMNS)
+
+
+def test_the_readme_s_table_lists_every_array_of_a_store(box_sweep):
+    # review BF: the README's copy of the contract is what other readers follow; only the
+    # docstring's was checked
+    from pathlib import Path
+
+    import zarr
+
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    section = readme.split("### The sweep store — public contract")[1].split("\n## ")[0]
+    documented, group = set(), None
+    for cell in re.findall(r"^\| (`[^|]+`) \|", section, flags=re.M):
+        for name in re.findall(r"`([^`]+)`", cell):  # `scenarios/role`, `plane`: one group
+            group, name = name.split("/") if "/" in name else (group, name)
+            documented.add(f"{group}/{name}")
+    g = zarr.open_group(box_sweep, mode="r")
+    written = {f"{k}/{a}" for k in ("mesh", "scenarios", "results") for a in g[k].array_keys()}
+    assert documented == written
+    assert set(g.group_keys()) == {"mesh", "scenarios", "results"}
 
 
 def _copy(src, tmp_path):
