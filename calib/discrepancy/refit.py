@@ -449,7 +449,8 @@ def refit(
         lam = max(lam / 3.0, 1e-6) if t == 1.0 else lam
         t_last = t
         shown = [parameter_text(n, v) for n, v in zip(names[:4], x[:4], strict=False)]
-        say(f"  refit {'+'.join(effects) or 'c1'}: {', '.join(shown)}, "
+        # the iteration said: two steps at one rounded value read as a repeated line
+        say(f"  refit {'+'.join(effects) or 'c1'}, step {it}: {', '.join(shown)}, "
             f"rms {np.sqrt(S / n_res):.4f} mm")  # fmt: skip
         if gain < rtol:
             message, success = "the sum of squares changed by less than the tolerance", True

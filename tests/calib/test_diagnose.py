@@ -1265,9 +1265,14 @@ def test_a_refit_whose_every_short_trial_has_no_fe_solution_does_not_claim_a_min
 
     # a wall the short trials clear at first: the search walks up to it (420 -> 409.6 ->
     # 405.8 Pa) and ends when every trial beyond fails, unsuccessful as well
-    near = refit(_wall_problem(monkeypatch, 405.0), ())
+    lines = []
+    near = refit(_wall_problem(monkeypatch, 405.0), (), say=lines.append)
     assert 405.0 <= near.c1_pa < 407.0
     assert not near.success and near.failed_evaluations > 0
+    # each accepted step is numbered (two steps at one rounded c1 read as a repeated line)
+    steps = [s for s in lines if "no FE solution" not in s]
+    assert steps[0].startswith("  refit c1, step 1: c1 = 409.6 Pa, rms"), steps
+    assert steps[1].startswith("  refit c1, step 2: c1 = 405.8 Pa"), steps
 
 
 def _dome_problem(mesh_size_mm: float = 14.0):
