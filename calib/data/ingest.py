@@ -630,7 +630,9 @@ def stale_reasons(work: str | Path, session: Session) -> list[str]:
             f"the ingest results are of an older phantom-calib (ingest revision {revision}, "
             f"now {INGEST_REVISION}: the scans may give other surfaces and flags)"
         )
-    if recorded["session_sha256"] != now["session_sha256"]:
+    # ingest results written before 2026-12-07 fingerprinted the scans' absolute paths
+    legacy = session.ingest_fingerprint(paths="absolute")
+    if recorded["session_sha256"] not in (now["session_sha256"], legacy):
         reasons.append(
             "session.toml changed (its reference scan, postures, landmarks, "
             "scanner gravity, marker count or list of scans)"

@@ -9,6 +9,7 @@ import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -89,22 +90,39 @@ class Session:
 
     @property
     def reference(self) -> ScanEntry:
-        """The reference scan (its LPS frame is the phantom frame)."""
+        """The reference scan (its LPS frame is the ref frame, the model's)."""
         return next(s for s in self.scans if s.role == "reference")
 
     def by_role(self, role: str) -> list[ScanEntry]:
         """Scans with the given role."""
         return [s for s in self.scans if s.role == role]
 
-    def ingest_fingerprint(self) -> str:
+    def ingest_fingerprint(self, *, paths: Literal["relative", "absolute"] = "relative") -> str:
         """SHA-256 of everything in ``session.toml`` that ingest's results depend on.
 
         The scanner gravity, the marker count, the tumour hint, which scan is the
         reference, and every scan's name, path and nominal posture. The calibration and
         validation roles are not part of it: they are read from the session every time.
+
+        Parameters
+        ----------
+        paths : {"relative", "absolute"}
+            How the scans' paths enter: relative to the session's folder (a scan folder
+            moved or copied elsewhere keeps its fingerprint; its contents are
+            fingerprinted apart), or resolved, as ingest results written before
+            2026-12-07 recorded them (review BG).
         """
         import hashlib
         import json
+        import os
+
+        def where(path: Path) -> str:
+            if paths == "absolute":
+                return str(path)
+            try:
+                return os.path.relpath(path, self.folder)
+            except ValueError:  # another drive (Windows): no relative path
+                return str(path)
 
         doc = {
             "gravity": self.gravity_scanner.tolist(),
@@ -114,7 +132,7 @@ class Session:
             else self.tumour_hint_lps_mm.tolist(),
             "reference": self.reference.name,
             "scans": [
-                [s.name, str(s.path), s.posture_plane, s.posture_angle_deg] for s in self.scans
+                [s.name, where(s.path), s.posture_plane, s.posture_angle_deg] for s in self.scans
             ],
         }
         return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()

@@ -69,6 +69,15 @@ def test_roles_come_from_the_current_session(scans, tmp_path):
     _edit(scans, 'role = "TMP"', 'role = "validation"')
     session = load_session(scans)
     assert stale_reasons(work, session) == []  # roles are not an input of ingest
+    # review BG: a scan folder moved or copied elsewhere was "session.toml changed"
+    moved = shutil.copytree(scans, tmp_path / "elsewhere" / "scans")
+    assert stale_reasons(work, load_session(moved)) == []
+    # ingest results of before then recorded the absolute paths: still current
+    record = work / "ingest_summary.json"
+    doc = json.loads(record.read_text())
+    doc["inputs"]["session_sha256"] = session.ingest_fingerprint(paths="absolute")
+    record.write_text(json.dumps(doc))
+    assert stale_reasons(work, session) == []
     meas = load_measurements(work, session)
     assert [s.name for s in meas.with_role("calibration")] == ["tilt_50"]
     result = _calibrate(scans, work)
