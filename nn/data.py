@@ -39,6 +39,8 @@ _ARRAYS = (
 )
 
 
+#: The root attributes the reader needs besides ``format``, ``format_version`` and ``model``.
+ROOT_KEYS = ("mesh_sha256", "n_scenarios", "codes")
 #: What the surrogates read of the store's ``model`` block.
 MODEL_KEYS = ("c1_pa", "density_kg_m3", "g_m_s2", "R_ref_from_phantom", "nipple_node")
 _SCENARIO_KEYS = ("gravity_ref", "gravity_phantom", "c1_pa", "load_per_m", "role", "plane")
@@ -242,6 +244,12 @@ def load_sweep(path: str | Path, *, allow_pending: bool = True) -> SweepData:
     """
     path = Path(path)
     attrs = _read_attrs(path)
+    absent = [k for k in ROOT_KEYS if k not in attrs]
+    if absent:  # review BF: a missing n_scenarios read as "results of another mesh?"
+        raise StoreFormatError(
+            f"{path / 'zarr.json'}: the store's root attributes lack {', '.join(absent)} "
+            "(written by `phantom-calib sweep`)"
+        )
     model = attrs.get("model")
     lacking = [k for k in MODEL_KEYS if not isinstance(model, dict) or model.get(k) is None]
     if lacking:
@@ -299,6 +307,10 @@ def load_sweep(path: str | Path, *, allow_pending: bool = True) -> SweepData:
                 f"{path / name / 'zarr.json'}: {arr[name].shape[0]} scenarios, the store has {S}"
             )
     status = read("results/status")
+    if np.any((status < 0) | (status > 2)):  # review BF: counted as neither, unsaid
+        raise StoreFormatError(
+            f"{path / 'results/status'}: codes outside 0..2 (pending, solved, failed)"
+        )
     solved = np.flatnonzero(status == 1)
     pending = int(np.sum(status == 0))
     failed = int(np.sum(status == 2))

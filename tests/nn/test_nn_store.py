@@ -125,6 +125,8 @@ def test_a_lost_tumour_chunk_or_a_corrupt_chunk_is_named(box_sweep, tmp_path):
             r"phantom-calib: upgrade it to read this store\)",
         ),
         (lambda g: g.attrs.__setitem__("format_version", "1"), r"format version '1'; this reader"),
+        (lambda g: g.attrs.__delitem__("n_scenarios"), r"root attributes lack n_scenarios"),
+        (lambda g: g["results/status"].__setitem__(2, 7), r"status: codes outside 0\.\.2"),
     ],
 )
 def test_scenarios_and_mesh_sets_are_checked(box_sweep, tmp_path, edit, says):
