@@ -15,7 +15,8 @@ coverage of the truth (with its count) and timings.
         [--effect none] [--twins DIR] [--objective surface] [--reference-state unload]
         [--mesh-size 12] [--mesh-check 1.4|1.4,0.714] [--profile 5]
 
-The README's calibration tables are printed by it (the command is printed with them).
+The calibration tables of the README and of docs/calibration-evidence.md are printed by
+it (the command is printed with them).
 """
 
 from __future__ import annotations

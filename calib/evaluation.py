@@ -418,8 +418,12 @@ def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALP
 
 
 def _c1_pa(theta) -> float | None:
-    """c1 in Pa of ``theta = ln c1`` as JSON writes it (None where theta is None)."""
-    return None if theta is None else float(np.exp(theta))
+    """c1 in Pa of ``theta = ln c1`` as JSON writes it (None where either is not finite)."""
+    if theta is None:
+        return None
+    with np.errstate(over="ignore"):
+        c1 = float(np.exp(theta))
+    return c1 if np.isfinite(c1) else None
 
 
 def model_fit_with_postures(model_fit: dict | None, postures, names: dict) -> dict | None:

@@ -39,8 +39,9 @@ _ARRAYS = (
 )
 
 
-#: The root attributes the reader needs besides ``format``, ``format_version`` and ``model``.
-ROOT_KEYS = ("mesh_sha256", "n_scenarios", "codes")
+#: The root attributes the reader needs besides ``format``, ``format_version`` and ``model``
+#: (a store without ``codes`` is read with the codes phantom-calib writes).
+ROOT_KEYS = ("mesh_sha256", "n_scenarios")
 #: What the surrogates read of the store's ``model`` block.
 MODEL_KEYS = ("c1_pa", "density_kg_m3", "g_m_s2", "R_ref_from_phantom", "nipple_node")
 _SCENARIO_KEYS = ("gravity_ref", "gravity_phantom", "c1_pa", "load_per_m", "role", "plane")
@@ -158,7 +159,7 @@ def _read_attrs(path: Path) -> dict:
     if attrs.get("format") != FORMAT:
         raise StoreFormatError(f"{meta}: not a {FORMAT} store (format {attrs.get('format')!r})")
     version = attrs.get("format_version")
-    if version != FORMAT_VERSION:
+    if version != FORMAT_VERSION or isinstance(version, bool):  # True == 1
         # review BF: say what to do (and "1" as text read as "format version 1")
         newer = (
             isinstance(version, int) and not isinstance(version, bool) and version > FORMAT_VERSION
@@ -284,8 +285,8 @@ def load_sweep(path: str | Path, *, allow_pending: bool = True) -> SweepData:
         and 0 <= nipple_node < len(nodes)
     ):  # review BF: an index past the mesh became an IndexError traceback in training
         raise StoreFormatError(
-            f"{path / 'zarr.json'}: model.nipple_node {nipple_node!r} is not a node of the "
-            f"store's {len(nodes)}"
+            f"{path / 'zarr.json'}: model.nipple_node {nipple_node!r} must be an integer "
+            f"node index below the store's {len(nodes)} nodes"
         )
     node_sets = {k: read(f"mesh/{k}") for k in ("surface_nodes", "back_nodes", "boundary_faces")}
     for k, v in node_sets.items():

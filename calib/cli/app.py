@@ -12,9 +12,8 @@ import typer
 from fem.discretize import Formulation
 from fem.units import DEFAULT_DENSITY_KG_M3, STANDARD_GRAVITY_M_S2
 
+from ..choices import BackSupport, PresetName
 from ..fitting.options import MESH_SIZE_RANGE_MM, Objective, ReferenceState
-from ..twin import PresetName
-from ..workflows.simulate import BackSupport
 
 app = typer.Typer(
     add_completion=False,

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from ..discrepancy.diagnose import MeshErrorTreatment, NoiseProfile
+from ..choices import MeshErrorTreatment, NoiseProfile
 from ..fitting.options import MESH_SIZE_RANGE_MM
 from ..model.effects import SKIN_THICKNESS_MM
 from ..stats.scores import SCREEN_ALPHA

@@ -9,7 +9,7 @@ import typer
 
 from nn.device import Device
 
-from ..workflows.sweep import PredictFrame, SurrogateKind
+from ..choices import PredictFrame, SurrogateKind
 from .app import app, fail
 
 surrogate_app = typer.Typer(

@@ -1,4 +1,4 @@
-"""What the scans measured, in the reference scan's LPS frame (the phantom frame), mm."""
+"""What the scans measured, in the reference scan's LPS frame (the ref frame), mm."""
 
 from __future__ import annotations
 

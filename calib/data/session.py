@@ -14,7 +14,6 @@ from typing import Literal
 import numpy as np
 
 from fem.units import DEFAULT_DENSITY_KG_M3
-from imaging.dicom import DICOM_SUFFIXES, VOLUME_FILE_SUFFIXES
 from registration.rigid import MAX_AUTO_MARKERS
 
 __all__ = [
@@ -34,7 +33,9 @@ ROLES = ("reference", "calibration", "validation")
 PLANES = ("transverse", "sagittal")  # fem.postures.PLANES
 #: A scan name is a folder name under WORK/scans/ and part of output file names.
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
-VOLUME_SUFFIXES = VOLUME_FILE_SUFFIXES
+#: The volume files a scan's path may name (imaging.dicom.VOLUME_FILE_SUFFIXES: imaging is
+#: not imported here, so that reading a session stays light; a test keeps the two equal).
+VOLUME_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
 #: scan names taken under ``WORK/scans/`` (compared case-insensitively): the run marker
 RESERVED_NAMES = frozenset({"run"})
 
@@ -107,22 +108,20 @@ class Session:
         Parameters
         ----------
         paths : {"relative", "absolute"}
-            How the scans' paths enter: relative to the session's folder (a scan folder
-            moved or copied elsewhere keeps its fingerprint; its contents are
-            fingerprinted apart), or resolved, as ingest results written before
-            2026-12-07 recorded them (review BG).
+            How the scans' paths enter: those inside the session's folder relative to it
+            (a scan folder moved or copied elsewhere keeps its fingerprint; the contents
+            are fingerprinted apart), those outside it resolved; or every one resolved,
+            as ingest results written before 2026-12-07 recorded them (review BG).
         """
         import hashlib
         import json
-        import os
 
         def where(path: Path) -> str:
-            if paths == "absolute":
+            # a scan outside the session's folder keeps its absolute path (review BH: a
+            # relative one changed when the session alone was moved)
+            if paths == "absolute" or not path.is_relative_to(self.folder):
                 return str(path)
-            try:
-                return os.path.relpath(path, self.folder)
-            except ValueError:  # another drive (Windows): no relative path
-                return str(path)
+            return path.relative_to(self.folder).as_posix()
 
         doc = {
             "gravity": self.gravity_scanner.tolist(),
@@ -213,6 +212,8 @@ def _scan(entry, index: int, folder: Path, toml: Path) -> ScanEntry:
     if not path.exists():
         raise SessionError(f"{where} ({entry['name']}): scan path {path} does not exist")
     if path.is_file() and not path.name.lower().endswith(VOLUME_SUFFIXES):
+        from imaging.dicom import DICOM_SUFFIXES
+
         # review BG: found only when ingest read it, after the scans before it
         hint = (
             "a single DICOM file: point path at its series folder"

@@ -69,6 +69,7 @@ import numpy as np
 
 import fem
 
+from ..choices import MeshErrorTreatment, NoiseProfile
 from ..data.work import WorkFolder, as_work_folder, ingest_record
 from ..evaluation import ScanMetrics, scan_metrics
 from ..fitting.meshcheck import gci_at_size
@@ -117,10 +118,8 @@ DEFAULT_EFFECTS = (
 NOISE_LAG_MM = MAX_LAG_MM
 FLOOR_LAG_MM = 20.0
 #: ``DiagnosisOptions.noise_profile``'s choices (``diagnose --noise-profile``).
-NoiseProfile = Literal["flat", "plate"]
 NOISE_PROFILES = get_args(NoiseProfile)
 #: ``DiagnosisOptions.mesh_error``'s choices (``diagnose --mesh-error``).
-MeshErrorTreatment = Literal["ignored", "absorbed"]
 MESH_ERRORS = get_args(MeshErrorTreatment)
 MAP_KERNEL_MM = 10.0  # the significance map's smoothing (a pad's print, a rim band), scaled
 

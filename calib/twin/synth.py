@@ -16,7 +16,6 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
@@ -26,6 +25,7 @@ from fem.meshing import mesh_phantom
 from fem.postures import random_scanner_pose
 from fem.units import DEFAULT_DENSITY_KG_M3
 
+from ..choices import PresetName
 from ..io import check_out_folder, clean_stale, provenance, write_json_atomic
 from ..model.effects import TruthEffects, truth_model
 
@@ -84,8 +84,6 @@ PRESETS = {
         min_shape=(256, 256, 0),
     ),  # fmt: skip
 }
-#: The names ``synth --preset`` takes: the keys of :data:`PRESETS`.
-PresetName = Literal["quick", "dissertation"]
 
 
 def _truth_mesh(phantom, p: TwinPreset, eff: TruthEffects) -> fem.TetMesh:

@@ -6,7 +6,6 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
@@ -15,6 +14,7 @@ from fem.discretize import Formulation
 from fem.meshing import find_back_plane, tag_node_sets
 from fem.units import DEFAULT_DENSITY_KG_M3, STANDARD_GRAVITY_M_S2
 
+from ..choices import BackSupport
 from ..data.session import checked_density_kg_m3
 from ..io import atomic_write, provenance, write_json_atomic
 
@@ -30,9 +30,6 @@ SMALL_BODY_MM = 40.0
 #: Output formats that keep the tetrahedra and the ``displacement_mm`` point data
 #: (review AT: .stl, .ply, .off and .inp dropped them, .obj and .xdmf failed after the solve).
 OUTPUT_SUFFIXES = (".vtu", ".vtk", ".msh")
-#: How the back plate holds the body: ``clamped`` (every back node fixed) or
-#: ``sliding`` (frictionless: only the normal displacement fixed).
-BackSupport = Literal["clamped", "sliding"]
 
 
 @dataclass(frozen=True)
@@ -92,7 +89,7 @@ def parse_vector(text: str) -> tuple[float, float, float]:
 
 
 def parse_back_plane(text: str) -> float | None:
-    """``auto`` gives None; ``z=VALUE`` gives the plane's z in mm."""
+    """``auto`` gives None; ``z=MM`` gives the plane's z in mm."""
     if text == "auto":
         return None
     if text.startswith("z="):
@@ -100,7 +97,7 @@ def parse_back_plane(text: str) -> float | None:
             return float(text[2:])
         except ValueError:
             pass
-    raise ValueError(f"--back-plane must be 'auto' or 'z=VALUE' (mm), got {text!r}")
+    raise ValueError(f"--back-plane must be 'auto' or 'z=MM', got {text!r}")
 
 
 def _back_nodes(mesh: fem.TetMesh, z_mm: float | None):
@@ -146,7 +143,7 @@ def _own_back(mesh: fem.TetMesh, own: np.ndarray):
     if why is not None:
         raise fem.MeshError(
             f"the mesh's `set:back` point data is no back face to clamp ({why}); remove it "
-            "or give --back-plane z=VALUE"
+            "or give --back-plane z=MM"
         )
     if normal @ (mesh.nodes_mm.mean(axis=0) - mesh.nodes_mm[own].mean(axis=0)) > 0:
         normal = -normal  # outward: away from the body

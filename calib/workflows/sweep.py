@@ -23,6 +23,8 @@ import numpy as np
 
 from nn.device import Device
 
+from ..choices import PredictFrame, SurrogateKind
+
 __all__ = [
     "SweepOptions",
     "run_surrogate_predict",
@@ -35,12 +37,7 @@ log = logging.getLogger(__name__)
 _BACKENDS = ("serial", "pool", "dask")
 #: ``--dask``: ``local``, or a scheduler address ``[tcp://|tls://]HOST:PORT`` (IPv6 in [])
 _DASK_ADDRESS = re.compile(r"(?:(?:tcp|tls)://)?(?:\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]]+):(\d{1,5})")
-#: ``surrogate train --kind``: the reduced basis with a kernel, or the dissertation's MLPs.
-SurrogateKind = Literal["ours", "dissertation"]
 _KINDS = get_args(SurrogateKind)
-#: ``surrogate predict --frame``: the gravity vector in the phantom (posture-angle) frame
-#: or in the model's (calibration.json's ``gravity_ref``).
-PredictFrame = Literal["phantom", "ref"]
 _PREDICT_SUFFIXES = (".vtu", ".ply")
 
 
@@ -49,8 +46,9 @@ class SweepOptions:
     """Options of ``phantom-calib sweep`` (see its ``--help``).
 
     Every option that needs no file (backend, counts, the form of the ``dask``
-    address) is checked at construction, so a bad one fails before anything is read
-    or written; the plan and c1 axis are checked against the calibration it reads.
+    address, the plan, c1 axis and hold-out) is checked at construction, so a bad one
+    fails before anything is read or written; the c1 axis again against the calibration
+    it reads (a sliding model's springs).
 
     Attributes
     ----------

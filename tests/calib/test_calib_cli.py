@@ -149,8 +149,8 @@ BAD = [
     (["--gravity", "0,0,0"], r"expected a non-zero vector"),
     # review AC: a length that overflows normalised to a zero load, "converged" at 0 mm
     (["--gravity", "0,1e300,1e300"], r"of finite length, got '0,1e300,1e300'"),
-    (["--back-plane", "y=3"], r"--back-plane must be 'auto' or 'z=VALUE' \(mm\), got 'y=3'"),
-    (["--back-plane", "z=abc"], r"--back-plane must be 'auto' or 'z=VALUE'"),
+    (["--back-plane", "y=3"], r"--back-plane must be 'auto' or 'z=MM', got 'y=3'"),
+    (["--back-plane", "z=abc"], r"--back-plane must be 'auto' or 'z=MM'"),
     (["--back-plane", "z=40"], r"no back face found at z=40"),
     (["--density", "-5"], r"--density must lie in \[500, 3000\] kg/m\^3"),
     # review AK: the session's density range (1.0, g/cm^3 by mistake) did not apply here

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -474,3 +475,34 @@ def test_a_marker_count_unlike_the_session_s_names_its_key(tmp_path, monkeypatch
     says = r"expected 4 \(the count expected is .*session.toml's \[phantom\] fiducials = 4"
     with pytest.raises(imaging.FiducialError, match=says):
         ingest._process(SimpleNamespace(path=tmp_path / "s.nii"), session, print)
+
+
+def test_the_session_s_volume_suffixes_are_the_readers():
+    # session.toml's paths are checked against the formats imaging reads (kept apart so
+    # that reading a session does not import imaging)
+    from calib.data.session import VOLUME_SUFFIXES
+    from imaging.dicom import VOLUME_FILE_SUFFIXES
+
+    assert VOLUME_SUFFIXES == VOLUME_FILE_SUFFIXES
+
+
+def test_the_ingest_fingerprint_survives_moving_the_scan_folder():
+    # review BG: a scan folder moved or copied elsewhere was "session.toml changed";
+    # review BH: a scan outside the session's folder keeps its absolute path, so moving
+    # the session alone does not change it either
+    from calib.data.session import ScanEntry, Session
+
+    def session(folder: str, outside: str = "/data/right.nii.gz") -> Session:
+        scans = (
+            ScanEntry("left", Path(folder) / "left", "reference", "transverse", 0.0),
+            ScanEntry("right", Path(outside), "calibration", "transverse", 180.0),
+        )
+        return Session(Path(folder), np.array([0.0, 1.0, 0.0]), 1000.0, 3, None, scans)
+
+    here, there = session("/scans/a"), session("/elsewhere/b/scans")
+    assert here.ingest_fingerprint() == there.ingest_fingerprint()
+    assert here.ingest_fingerprint(paths="absolute") != there.ingest_fingerprint(paths="absolute")
+    # the scan outside enters as it is: another one is another session
+    assert session("/scans/a", "/data/other.nii.gz").ingest_fingerprint() != (
+        here.ingest_fingerprint()
+    )

@@ -146,6 +146,15 @@ def test_model_fit_verdict_is_misfit_when_either_test_fires(band, postures, verd
     # review BE: theta is ln c1; each scan's c1 and their mean are given in Pa beside it
     assert out["postures"]["scans"]["tilt"]["c1_pa"] == pytest.approx(np.exp(6.1), rel=1e-12)
     assert out["postures"]["c1_bar_pa"] == pytest.approx(np.exp(6.02), rel=1e-12)
+    # review BH: a theta JSON cannot hold (nan) or whose c1 overflows gives null, not a
+    # non-finite number that calibration.json's strict write would refuse
+    odd = PostureConsistency(
+        (ScanEstimate(0, float("nan"), 0.01, 0.1, 300), ScanEstimate(1, 800.0, 0.02, 0.0, 300)),
+        float("nan"), 5.0, 1, 0.5, 0.04, "consistent", {},
+    )  # fmt: skip
+    scans = model_fit_with_postures(None, odd, {0: "lateral", 1: "tilt"})["postures"]
+    assert scans["c1_bar_pa"] is None
+    assert scans["scans"]["lateral"]["c1_pa"] is None and scans["scans"]["tilt"]["c1_pa"] is None
     assert model_fit_with_postures(band_fit, None, {}) is band_fit
 
 
