@@ -233,6 +233,10 @@ def _scan(entry, index: int, folder: Path, toml: Path) -> ScanEntry:
     angle = posture.get("angle_deg")
     if angle is not None and not is_finite_number(angle):
         raise SessionError(f"{where}: posture.angle_deg must be a number, got {angle!r}")
+    if angle is not None and abs(angle) > 360.0:  # review BG: 720 passed, matched nothing
+        raise SessionError(
+            f"{where}: posture.angle_deg must lie in [-360, 360] degrees, got {angle}"
+        )
     plane = posture.get("plane")
     if plane is not None and plane not in PLANES:
         raise SessionError(
@@ -332,16 +336,17 @@ def _check_scans(scans: tuple[ScanEntry, ...], toml: Path) -> None:
     names = [s.name.lower() for s in scans]  # review AC: WORK/scans/Left and /left are one
     dup = sorted({s.name for s in scans if names.count(s.name.lower()) > 1})  # folder on macOS
     if dup:
+        at = [
+            f"#{i + 1}" for i, s in enumerate(scans) if s.name.lower() in {d.lower() for d in dup}
+        ]
         raise SessionError(
-            f"{toml}: duplicate scan name(s) {_names(dup)} (names are compared without case: they "
-            "name folders of the work folder)"
+            f"{toml}: duplicate scan name(s) {_names(dup)} in [[scans]] {', '.join(at)} (names "
+            "are compared without case: they name folders of the work folder)"
         )
-    refs = [s.name for s in scans if s.role == "reference"]
+    refs = [(i, s.name) for i, s in enumerate(scans) if s.role == "reference"]
     if len(refs) != 1:
-        raise SessionError(
-            f"{toml}: exactly one scan must have role 'reference', found "
-            f"{_names(refs, order=False) if refs else 'none'}"
-        )
+        found = ", ".join(f"{n} (#{i + 1})" for i, n in refs) if refs else "none"
+        raise SessionError(f"{toml}: exactly one scan must have role 'reference', found {found}")
     by_path: dict[Path, list[str]] = {}
     for s in scans:
         by_path.setdefault(s.path, []).append(s.name)

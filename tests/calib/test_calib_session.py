@@ -80,17 +80,23 @@ BAD_SESSIONS = [
     (
         "two-references",
         VALID_TOML.replace('role = "validation"', 'role = "reference"'),
-        r"exactly one .*reference.*found left, tilt$",
+        r"exactly one .*reference.*found left \(#1\), tilt \(#3\)$",  # review BG: entries
     ),
     (
         "duplicate-names",
         VALID_TOML.replace('name = "tilt"', 'name = "left"'),
-        r"duplicate scan name\(s\) left \(",
+        r"duplicate scan name\(s\) left in \[\[scans\]\] #1, #3 \(",
     ),
     (  # review AC: one folder of the work folder on a case-insensitive file system
         "names-differing-in-case",
         VALID_TOML.replace('name = "tilt"', 'name = "Left"'),
-        r"duplicate scan name\(s\) Left, left \(names are compared without case",
+        r"duplicate scan name\(s\) Left, left in \[\[scans\]\] #1, #3 \(names are compared "
+        "without case",
+    ),
+    (  # review BG: 720 was accepted and matched no posture
+        "posture-angle-out-of-range",
+        VALID_TOML.replace("angle_deg = 180", "angle_deg = 540"),
+        r"#2: posture.angle_deg must lie in \[-360, 360\] degrees, got 540",
     ),
     (
         "missing-scan-path",
