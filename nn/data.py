@@ -59,7 +59,8 @@ class SweepData:
     ----------
     path : Path
     nodes_mm : ndarray, shape (N, 3)
-        Stress-free reference mesh, reference-scan frame, mm.
+        The reference mesh, reference-scan frame, mm: stress-free, or the loaded mesh of
+        a prestressed reference (``model["prestress"]`` set; review BF).
     tets : ndarray, shape (T, 4)
     surface_nodes, back_nodes : ndarray of int
     boundary_faces : ndarray, shape (F, 3)

@@ -64,6 +64,16 @@ def test_the_readme_s_table_lists_every_array_of_a_store(box_sweep):
     written = {f"{k}/{a}" for k in ("mesh", "scenarios", "results") for a in g[k].array_keys()}
     assert documented == written
     assert set(g.group_keys()) == {"mesh", "scenarios", "results"}
+    # its "Types:" paragraph (review BH): the int64 and int8 arrays it names, float64 the rest
+    types = section.split("Types:")[1]
+    named = {}
+    for kind, text in zip(("int64", "int8"), re.split(r" int64;| int8 ", types)[:2], strict=True):
+        for name in re.findall(r"`([^`]+)`", text):
+            group, name = name.split("/") if "/" in name else (group, name)
+            named[f"{group}/{name}"] = kind
+    for path in written:
+        kind = named.get(path, "float64")
+        assert g[path].dtype == np.dtype(kind), (path, g[path].dtype, kind)
 
 
 def _copy(src, tmp_path):
