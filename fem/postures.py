@@ -101,7 +101,7 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def random_scanner_pose(
     angle_deg: float,
-    g_scanner: np.ndarray,
+    gravity_scanner: np.ndarray,
     rng: np.random.Generator,
     *,
     roll_deg: float = 5.0,
@@ -116,7 +116,7 @@ def random_scanner_pose(
     (up to ``tilt_deg``, which changes the true gravity in the phantom frame) and a
     shift of up to ``shift_mm`` of ``centre_mm`` from the scanner's isocentre.
     """
-    g_s = np.asarray(g_scanner, float) / np.linalg.norm(g_scanner)
+    g_s = np.asarray(gravity_scanner, float) / np.linalg.norm(gravity_scanner)
     R = rotation_between(gravity_for_angle(angle_deg), g_s)
     R = _axis_angle(g_s, np.radians(rng.uniform(-roll_deg, roll_deg))) @ R
     tilt_axis = np.cross(g_s, rng.normal(size=3))

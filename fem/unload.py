@@ -255,14 +255,15 @@ def _recovery(model: Model, X: np.ndarray, *args) -> ReferenceRecovery:
 
 
 def shortcut_gravity(
-    g_target, g_reference, *, g_m_s2: float = STANDARD_GRAVITY_M_S2
+    gravity_scan, gravity_ref, *, g_m_s2: float = STANDARD_GRAVITY_M_S2
 ) -> tuple[np.ndarray, float]:
     """The dissertation's shortcut load: the loaded scan taken as stress-free, load ``g - g0``.
 
     Parameters
     ----------
-    g_target, g_reference : array_like, shape (3,)
-        Gravity directions of the target posture and of the reference scan.
+    gravity_scan, gravity_ref : array_like, shape (3,)
+        Gravity directions of the scan's posture and of the reference scan, in the ref
+        frame (the model's).
 
     Returns
     -------
@@ -270,8 +271,8 @@ def shortcut_gravity(
     magnitude_m_s2 : float
         Pass both to :func:`fem.solve` (``gravity=direction, g_m_s2=magnitude``).
     """
-    g = np.asarray(g_target, float) / np.linalg.norm(g_target)
-    g0 = np.asarray(g_reference, float) / np.linalg.norm(g_reference)
+    g = np.asarray(gravity_scan, float) / np.linalg.norm(gravity_scan)
+    g0 = np.asarray(gravity_ref, float) / np.linalg.norm(gravity_ref)
     d = (g - g0) * g_m_s2
     n = float(np.linalg.norm(d))
     return (d / n if n > 0 else g), n

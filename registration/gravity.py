@@ -28,7 +28,7 @@ def _unit(v: np.ndarray, *, name: str) -> np.ndarray:
 
 
 def gravity_in_reference(
-    T_ref_from_scan: np.ndarray, g_scanner: np.ndarray = (0.0, 1.0, 0.0)
+    T_ref_from_scan: np.ndarray, gravity_scanner: np.ndarray = (0.0, 1.0, 0.0)
 ) -> np.ndarray:
     """Gravity of one scan expressed in the ref frame (the reference scan's LPS).
 
@@ -36,19 +36,19 @@ def gravity_in_reference(
     ----------
     T_ref_from_scan : array_like, shape (4, 4) or (3, 3)
         Transform (or its rotation) mapping the scan's LPS frame to the reference scan's LPS.
-    g_scanner : array_like, shape (3,)
+    gravity_scanner : array_like, shape (3,)
         Gravity direction in the scanner's LPS frame (normalised here); default
         ``(0, 1, 0)``, the +P (posterior) axis, as in session.toml's ``[scanner] gravity``.
 
     Returns
     -------
     numpy.ndarray, shape (3,)
-        Unit gravity vector ``R_ref_from_scan @ g_scanner`` in the reference frame.
+        Unit gravity vector ``R_ref_from_scan @ gravity_scanner`` in the ref frame.
     """
     T = np.asarray(T_ref_from_scan, dtype=float)
     if T.shape not in ((4, 4), (3, 3)):
         raise RegistrationError(f"T_ref_from_scan: expected (4, 4) or (3, 3), got {T.shape}")
-    g = _unit(g_scanner, name="g_scanner")
+    g = _unit(gravity_scanner, name="gravity_scanner")
     return _unit(T[:3, :3] @ g, name="gravity_ref")
 
 
