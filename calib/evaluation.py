@@ -23,7 +23,7 @@ import fem
 
 from .data.measurements import Measurements, ScanMeasurement
 from .stats.consistency import POSTURE_ALPHA
-from .stats.intervals import MIN_SERIES_POINTS
+from .stats.intervals import MIN_SERIES_POINTS, _json_number
 
 __all__ = [
     "POSTURE_ALPHA",
@@ -422,8 +422,7 @@ def _c1_pa(theta) -> float | None:
     if theta is None:
         return None
     with np.errstate(over="ignore"):
-        c1 = float(np.exp(theta))
-    return c1 if np.isfinite(c1) else None
+        return _json_number(np.exp(theta))
 
 
 def model_fit_with_postures(model_fit: dict | None, postures, names: dict) -> dict | None:

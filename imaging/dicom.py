@@ -191,12 +191,11 @@ def _no_dicom_error(folder: Path, skipped: list) -> DicomSeriesError:
             f"class {sorted(set(skipped))[0]}: a secondary capture?); a series is read from "
             "MR image slices with their position and orientation"
         )
-    subfolders = sorted(p.name for p in folder.iterdir() if p.is_dir() and p.name[:1] != ".")
-    volumes = sorted(
-        p.name
-        for p in folder.iterdir()
-        if p.is_file() and p.name.lower().endswith(VOLUME_FILE_SUFFIXES)
-    )
+    entries = sorted(folder.iterdir())
+    subfolders = [p.name for p in entries if p.is_dir() and p.name[:1] != "."]
+    volumes = [
+        p.name for p in entries if p.is_file() and p.name.lower().endswith(VOLUME_FILE_SUFFIXES)
+    ]
     if volumes and not subfolders:  # review BG: it said "holds no DICOM files" alone
         return DicomSeriesError(
             f"{folder}: folder holds no DICOM files but the volume file(s) "

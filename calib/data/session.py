@@ -334,11 +334,10 @@ def load_session(folder: str | Path) -> Session:
 
 def _check_scans(scans: tuple[ScanEntry, ...], toml: Path) -> None:
     names = [s.name.lower() for s in scans]  # review AC: WORK/scans/Left and /left are one
-    dup = sorted({s.name for s in scans if names.count(s.name.lower()) > 1})  # folder on macOS
+    twice = [names.count(n) > 1 for n in names]  # folder on macOS
+    dup = sorted({s.name for s, t in zip(scans, twice, strict=True) if t})
     if dup:
-        at = [
-            f"#{i + 1}" for i, s in enumerate(scans) if s.name.lower() in {d.lower() for d in dup}
-        ]
+        at = [f"#{i + 1}" for i, t in enumerate(twice) if t]
         raise SessionError(
             f"{toml}: duplicate scan name(s) {_names(dup)} in [[scans]] {', '.join(at)} (names "
             "are compared without case: they name folders of the work folder)"

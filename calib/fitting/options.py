@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 from fem.meshing import check_max_dihedral_deg
 
@@ -162,7 +162,7 @@ class CalibrationOptions:
                 f"objective (--objective) must be one of {', '.join(OBJECTIVES)}, got "
                 f"{self.objective!r}"
             )
-        if self.reference_state not in ("unload", "prestress", "shortcut"):
+        if self.reference_state not in get_args(ReferenceState):
             raise ValueError(
                 "reference_state (--reference-state) must be unload, prestress or shortcut, "
                 f"not {self.reference_state!r}"

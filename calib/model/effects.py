@@ -669,27 +669,19 @@ EFFECTS = {
     "density": "1100",
 }
 
-# the twin's values in their own units: name -> (lo, hi) of each number it takes
+# the twin's values in their own units: name -> (lo, hi, unit said in a range error) of
+# each number it takes
 _TWIN_RANGES = {
-    "skin": ((0.0, 10.0), (0.1, 100.0)),  # thickness mm, stiffness ratio
-    "inclusions": ((0.1, 100.0),),
-    "mooney": ((0.0, 1e4),),  # c2 in Pa
-    "poisson": ((LIBRARY["poisson"].bounds[0], LIBRARY["poisson"].bounds[1]),),
-    "density": ((500.0, 2000.0),),  # kg/m^3
-    "sliding": ((10.0, 1e6),),  # tangential springs, Pa/mm (no value: frictionless)
-}
-# the unit of each of those numbers, said in a range error ("" where it has none)
-_TWIN_UNITS = {
-    "skin": (" mm", ""),
-    "inclusions": ("",),
-    "mooney": (" Pa",),
-    "poisson": ("",),
-    "density": (" kg/m^3",),
-    "sliding": (" Pa/mm",),
+    "skin": ((0.0, 10.0, " mm"), (0.1, 100.0, "")),  # thickness, stiffness ratio
+    "inclusions": ((0.1, 100.0, ""),),
+    "mooney": ((0.0, 1e4, " Pa"),),  # c2
+    "poisson": ((*LIBRARY["poisson"].bounds, ""),),
+    "density": ((500.0, 2000.0, " kg/m^3"),),
+    "sliding": ((10.0, 1e6, " Pa/mm"),),  # tangential springs (no value: frictionless)
 }
 
 
-def _number(text: str, name: str, lo: float, hi: float, unit: str = "") -> float:
+def _number(text: str, name: str, lo: float, hi: float, unit: str) -> float:
     try:
         v = float(text)
     except ValueError:
@@ -703,20 +695,18 @@ def _apply(eff: dict, name: str, value: str | None) -> None:
     if name == "sliding":
         eff["sliding"] = True
         if value not in (None, "true", "yes"):  # springs of this stiffness, Pa/mm
-            eff["sliding_stiffness_pa_per_mm"] = _number(
-                value, name, *_TWIN_RANGES[name][0], _TWIN_UNITS[name][0]
-            )
+            eff["sliding_stiffness_pa_per_mm"] = _number(value, name, *_TWIN_RANGES[name][0])
         return
     value = value or EFFECTS[name]
-    ranges, units = _TWIN_RANGES[name], _TWIN_UNITS[name]
+    ranges = _TWIN_RANGES[name]
     if name == "skin":
         t, _, r = value.partition(":")
-        eff["skin_thickness_mm"] = _number(t, name, *ranges[0], units[0])
-        eff["skin_ratio"] = _number(r or "8", name, *ranges[1], units[1])
+        eff["skin_thickness_mm"] = _number(t, name, *ranges[0])
+        eff["skin_ratio"] = _number(r or "8", name, *ranges[1])
         return
     field = {"inclusions": "inclusion_ratio", "mooney": "c2_pa", "poisson": "nu",
              "density": "density_kg_m3"}[name]  # fmt: skip
-    eff[field] = _number(value, name, *ranges[0], units[0])
+    eff[field] = _number(value, name, *ranges[0])
 
 
 def parse_effects(specs: list[str], *, default: TruthEffects) -> TruthEffects:

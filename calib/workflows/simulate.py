@@ -6,6 +6,7 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import get_args
 
 import numpy as np
 
@@ -64,7 +65,7 @@ class SimulateOptions:
             if not np.isfinite(value) or not ok:
                 raise ValueError(f"{name} must be {expected}, got {value}")
         checked_density_kg_m3(self.density_kg_m3, "--density")  # the session's range
-        if self.bc not in ("clamped", "sliding"):
+        if self.bc not in get_args(BackSupport):
             raise ValueError(f"--bc must be 'clamped' or 'sliding', got {self.bc!r}")
         if self.formulation not in fem.FORMULATIONS:
             raise ValueError(
