@@ -11,7 +11,20 @@ subpackage of its plans and store).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # annotations only: ``import calib`` stays light
+    import nn
+    from nn.device import Device
+
+    from .choices import SurrogateKind
+    from .data.ingest import IngestResult
+    from .discrepancy import DiagnosisOptions
+    from .fitting import CalibrationOptions
+    from .notebook import Work
+    from .workflows.sweep import SweepOptions
 
 __all__ = [
     "calibrate",
@@ -36,12 +49,30 @@ def _options(cls, options, fields: dict):
     return options if options is not None else cls(**fields)
 
 
-def ingest(scans: str | Path, work: str | Path, *, progress=None):
+def ingest(
+    scans: str | Path, work: str | Path, *, progress: Callable[[str], Any] | None = None
+) -> IngestResult:
     """Ingest the scan folder ``scans`` into ``work`` (``phantom-calib ingest``).
+
+    Parameters
+    ----------
+    scans : str or Path
+        The scan folder, holding ``session.toml``.
+    work : str or Path
+        The work folder to write (created); per-scan results go to ``work/scans/<name>/``.
+    progress : callable, optional
+        Called with each scan's name when it has been processed.
 
     Returns
     -------
     calib.data.ingest.IngestResult
+        The session, the per-scan results, the registrations to the reference scan and
+        the tumour tracking.
+
+    Raises
+    ------
+    calib.data.SessionError
+        ``scans/session.toml`` is missing or invalid (:func:`calib.load_session`).
     """
     from .workflows.ingest import run_ingest
 
@@ -49,7 +80,12 @@ def ingest(scans: str | Path, work: str | Path, *, progress=None):
 
 
 def calibrate(
-    scans: str | Path, work: str | Path, *, options=None, progress=None, **fields
+    scans: str | Path,
+    work: str | Path,
+    *,
+    options: CalibrationOptions | None = None,
+    progress: Callable[[str], Any] | None = None,
+    **fields: Any,
 ) -> dict:
     """Calibrate c1 (``phantom-calib calibrate``).
 
@@ -62,11 +98,19 @@ def calibrate(
         (``mesh_size_mm=14``), not both.
     progress : callable, optional
         Called with a line of text at every step.
+    **fields
+        :class:`calib.CalibrationOptions` fields by name, when ``options`` is not given.
 
     Returns
     -------
     dict
         The ``calibration.json`` record.
+
+    Raises
+    ------
+    TypeError
+        Both ``options`` and ``fields`` are given, ``options`` is not a
+        ``CalibrationOptions``, or a field name is unknown.
     """
     from .fitting import CalibrationOptions
     from .workflows.calibrate import run_calibration
@@ -76,13 +120,28 @@ def calibrate(
     )
 
 
-def validate(work: str | Path, *, progress=None) -> dict:
+def validate(work: str | Path, *, progress: Callable[[str], Any] | None = None) -> dict:
     """Write the validation report of a calibrated work folder (``phantom-calib validate``).
+
+    Parameters
+    ----------
+    work : str or Path
+        A work folder ``calibrate`` wrote; the report goes into it.
+    progress : callable, optional
+        Called with a line of text at every step.
 
     Returns
     -------
     dict
         The ``validation.json`` record.
+
+    Raises
+    ------
+    FileNotFoundError
+        ``work`` has no ``calibration.json`` or misses a file it names.
+    calib.io.StaleOutputError
+        ``work``'s calibration does not match its ``calibration/`` or its scans were
+        ingested again after it.
     """
     from .workflows.validate import run_validation
 
@@ -92,14 +151,39 @@ def validate(work: str | Path, *, progress=None) -> dict:
     return record
 
 
-def load_work(work: str | Path):
-    """A calibrated work folder as an object (:class:`calib.notebook.Work`), for notebooks."""
+def load_work(work: str | Path) -> Work:
+    """A calibrated work folder as an object (:class:`calib.notebook.Work`), for notebooks.
+
+    Parameters
+    ----------
+    work : str or Path
+        A work folder ``calibrate`` wrote.
+
+    Returns
+    -------
+    calib.notebook.Work
+        Its records, states and plots (c1 in Pa, geometry in the ref frame, mm).
+
+    Raises
+    ------
+    FileNotFoundError
+        ``work`` has no ``calibration.json`` or misses a file it names.
+    calib.io.StaleOutputError
+        ``work``'s calibration does not match its ``calibration/`` or its scans were
+        ingested again after it.
+    """
     from .notebook import Work
 
     return Work.load(work)
 
 
-def diagnose(work, *, options=None, progress=None, **fields) -> dict:
+def diagnose(
+    work: str | Path,
+    *,
+    options: DiagnosisOptions | None = None,
+    progress: Callable[[str], Any] | None = None,
+    **fields: Any,
+) -> dict:
     """Diagnose a calibrated work folder's missing effect (``phantom-calib diagnose``).
 
     Parameters
@@ -110,12 +194,20 @@ def diagnose(work, *, options=None, progress=None, **fields) -> dict:
         The options; or give their fields as keywords (``effects=("skin",)``), not both.
     progress : callable, optional
         Called with a line of text at every step.
+    **fields
+        :class:`calib.DiagnosisOptions` fields by name, when ``options`` is not given.
 
     Returns
     -------
     dict
         The ``diagnosis.json`` record; ``WORK/diagnosis/refit`` is a work folder that
         :func:`load_work` and :func:`validate` accept.
+
+    Raises
+    ------
+    TypeError
+        Both ``options`` and ``fields`` are given, ``options`` is not a
+        ``DiagnosisOptions``, or a field name is unknown.
     """
     from .discrepancy import DiagnosisOptions
     from .workflows.diagnose import run_diagnosis
@@ -123,7 +215,14 @@ def diagnose(work, *, options=None, progress=None, **fields) -> dict:
     return run_diagnosis(work, _options(DiagnosisOptions, options, fields), progress=progress)
 
 
-def gravity_sweep(work, out, *, options=None, progress=None, **fields) -> dict:
+def gravity_sweep(
+    work: str | Path,
+    out: str | Path,
+    *,
+    options: SweepOptions | None = None,
+    progress: Callable[[dict], Any] | None = None,
+    **fields: Any,
+) -> dict:
     """Solve a calibrated model over a plan of gravity directions (``phantom-calib sweep``).
 
     Parameters
@@ -137,11 +236,19 @@ def gravity_sweep(work, out, *, options=None, progress=None, **fields) -> dict:
     progress : callable, optional
         Called with a dict after each solved scenario (see
         :func:`calib.workflows.sweep.run_sweep`).
+    **fields
+        :class:`calib.SweepOptions` fields by name, when ``options`` is not given.
 
     Returns
     -------
     dict
         The sweep's summary (also in the store's ``summary`` attribute).
+
+    Raises
+    ------
+    TypeError
+        Both ``options`` and ``fields`` are given, ``options`` is not a ``SweepOptions``,
+        or a field name is unknown.
     """
     from .workflows.sweep import SweepOptions, run_sweep
 
@@ -149,7 +256,14 @@ def gravity_sweep(work, out, *, options=None, progress=None, **fields) -> dict:
 
 
 def train_surrogate(
-    sweep, out, *, kind="ours", device="auto", seed=0, iterations=None, progress=None
+    sweep: str | Path,
+    out: str | Path,
+    *,
+    kind: SurrogateKind = "ours",
+    device: Device = "auto",
+    seed: int = 0,
+    iterations: int | None = None,
+    progress: Callable[[str], Any] | None = None,
 ) -> dict:
     """Train a surrogate on a sweep store and write it (``phantom-calib surrogate train``).
 
@@ -162,17 +276,29 @@ def train_surrogate(
     kind : {"ours", "dissertation"}
         The reduced-basis kernel surrogate, or the dissertation's two MLPs.
     device : {"auto", "cpu", "cuda"}
+        Where training runs; ``auto`` takes CUDA when present.
     seed : int
         Seed of the MLPs' initialisation and batches.
     iterations : int, optional
         Training iterations of the dissertation's MLPs (default 30 000).
     progress : callable, optional
+        Called with a line of text.
 
     Returns
     -------
     dict
         The training report (also inside the model file); :func:`load_surrogate` reads
         the model.
+
+    Raises
+    ------
+    ValueError
+        An unknown ``kind`` or ``device``, ``cuda`` without a CUDA device, ``iterations``
+        below 1 or given for ``ours``, or ``out`` not ``.pt``.
+    IsADirectoryError
+        ``out`` is a folder.
+    nn.StoreFormatError
+        ``sweep`` is not a readable sweep store, or has pending scenarios.
     """
     from .workflows.sweep import run_surrogate_train
 
@@ -181,8 +307,23 @@ def train_surrogate(
     )
 
 
-def load_surrogate(path):
-    """A surrogate file as an :class:`nn.Surrogate` (its ``predict(gravity_m_s2, c1_pa=...)``)."""
+def load_surrogate(path: str | Path) -> nn.Surrogate:
+    """A surrogate file as an :class:`nn.Surrogate` (its ``predict(gravity_m_s2, c1_pa=...)``).
+
+    Parameters
+    ----------
+    path : str or Path
+        A model file :func:`train_surrogate` wrote (``.pt``).
+
+    Returns
+    -------
+    nn.Surrogate
+
+    Raises
+    ------
+    nn.SurrogateFileError
+        Missing file, a folder, not a TorchScript archive, or no phantom-calib metadata.
+    """
     import nn
 
     return nn.load_surrogate(path)

@@ -346,6 +346,8 @@ def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALP
     evaluations : dict of str to ScanEvaluation
         From :func:`evaluate` with ``gradient=True``.
     alpha : float
+        False-alarm rate of the verdict, in (0, 1)
+        (:data:`calib.stats.consistency.POSTURE_ALPHA` by default).
 
     Returns
     -------
@@ -357,8 +359,13 @@ def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALP
 
     Raises
     ------
+    TypeError
+        ``calibration`` is not the :class:`Calibration` that :func:`calib.fit` returns.
     ValueError
         A solved scan evaluated without its derivative (``gradient=False``).
+    calib.stats.consistency.ConsistencyError
+        ``alpha`` outside (0, 1), or a scan whose c1 estimate has no interval (a
+        ``ValueError``); raised only once two scans are tested.
     """
     from .model.residuals import scan_residuals
     from .stats import SurfaceSample

@@ -145,8 +145,19 @@ def external_force(disc: Discretization, model: Model, gravity_m_s2: np.ndarray)
 
     Parameters
     ----------
+    disc : Discretization
+        Of ``model.mesh``; its quadrature weights (m^3) and displacement shape functions
+        integrate the load.
+    model : Model
+        Gives each element's density, kg/m^3.
     gravity_m_s2 : ndarray, shape (3,)
         Gravitational acceleration vector in the model frame, m/s^2.
+
+    Returns
+    -------
+    ndarray, shape (disc.n_dofs,)
+        Nodal forces, N, in the solver frame (``disc.R_solver_from_model``); zero on the
+        pressure unknowns.
     """
     g = disc.R_solver_from_model @ np.asarray(gravity_m_s2, dtype=float)
     f = np.zeros(disc.n_dofs)

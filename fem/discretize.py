@@ -324,6 +324,15 @@ def discretize(
     Returns
     -------
     Discretization
+
+    Raises
+    ------
+    ValueError
+        ``formulation`` is unknown, or ``Constrained`` node sets are combined with a
+        sliding/elastic plane.
+    MeshError
+        The mesh has inverted or degenerate elements, or a plane support's node set has
+        fewer than 3 nodes or no boundary face.
     """
     if formulation not in FORMULATIONS:
         raise ValueError(f"unknown formulation {formulation!r}; choose {sorted(FORMULATIONS)}")

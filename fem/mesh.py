@@ -102,7 +102,19 @@ class TetMesh:
         return replace(self, region=region, region_names=region_names)
 
     def oriented(self) -> TetMesh:
-        """A copy with negatively oriented elements flipped; raises on degenerate ones."""
+        """A copy with negatively oriented elements flipped; raises on degenerate ones.
+
+        Returns
+        -------
+        TetMesh
+            Same nodes (mm), node sets and regions; every element has positive volume.
+
+        Raises
+        ------
+        MeshError
+            Some element has zero volume (below ``1e-14`` times the cube of the mesh
+            extent).
+        """
         vol = self.volumes_mm3()
         scale = np.ptp(self.nodes_mm, axis=0).max() ** 3 if self.n_nodes else 1.0
         if np.any(np.abs(vol) <= 1e-14 * scale):

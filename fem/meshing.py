@@ -498,6 +498,9 @@ def mesh_phantom(
     skin_thickness_mm : float, optional
         Tag a skin band of this thickness (defaults to the phantom spec's): regions
         ``skin`` and ``skin:f`` for elements partly in the band (see :func:`skin_fraction`).
+    min_ratio : float
+        Bound of the elements' radius-edge ratio (TetGen ``-q``; see
+        :func:`tetrahedralize`).
 
     Returns
     -------

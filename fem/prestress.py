@@ -320,7 +320,7 @@ def solve_prestressed(
     gravity : array_like, shape (3,), or None
         Gravity direction of the posture, model frame; None for no gravity.
     g_m_s2 : float
-        Its magnitude.
+        Its magnitude, m/s^2.
     disc : Discretization, optional
         Of ``model.mesh`` (reused across calls; else built).
     options : SolverOptions, optional
@@ -335,6 +335,14 @@ def solve_prestressed(
     Solution
         ``displacement_mm`` relative to the loaded mesh (model frame, mm): the posture's
         vertex positions are ``model.mesh.nodes_mm + displacement_mm``.
+
+    Raises
+    ------
+    ConvergenceError
+        Newton fails at a load step below ``options.min_step`` and ``raise_on_failure``.
+    ValueError
+        ``prestress`` does not belong to ``disc`` (quadrature shape or formulation), or
+        its ``F0`` has ``det <= 0`` at some quadrature point.
     """
     t_start = time.perf_counter()
     opts = options or SolverOptions()

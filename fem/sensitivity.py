@@ -97,13 +97,22 @@ def tangent_matrix(
 
     Parameters
     ----------
+    disc : Discretization
+        On the stress-free nodes.
+    model : Model
+        Materials and densities (its mesh topology must be ``disc``'s).
+    state : ndarray, shape (n_dofs,)
+        Full solver vector (solver frame, SI: displacements in m, pressures in Pa), e.g.
+        ``Solution.state``.
     shape_load_m_s2 : ndarray, shape (3,), optional
         Gravity of the shape derivative ``D`` to subtract (the inverse problem's
-        Jacobian, :mod:`fem.unload`).
+        Jacobian, :mod:`fem.unload`), model frame, m/s^2.
 
     Returns
     -------
     scipy.sparse.csr_matrix, shape (n_free, n_free)
+        Over ``disc.free``, SI (N/m on the displacement rows and columns), a support's
+        springs included.
     """
     Ke = assemble(disc, model, state, tangent=True).matrices
     if shape_load_m_s2 is not None:
@@ -178,9 +187,24 @@ def state_sensitivity(
 
     Parameters
     ----------
+    disc : Discretization
+        On the stress-free nodes.
+    model_at : callable
+        ``model_at(p) -> Model`` with the parameter value ``p``.
+    p : float
+        The parameter's value at the state (in the unit ``model_at`` takes).
+    state : ndarray, shape (n_dofs,)
+        The converged state (``Solution.state``: solver frame, SI).
+    gravity_m_s2 : ndarray, shape (3,)
+        Gravity acceleration vector the state was solved under, model frame, m/s^2.
     dX_state : ndarray, shape (n_dofs,), optional
         Derivative of the stress-free geometry in ``p`` as a solver vector on the vertex
         dofs (metres, solver frame; e.g. ``-du0`` there), when the geometry moves with ``p``.
+
+    Returns
+    -------
+    ndarray, shape (n_dofs,)
+        ``du/dp``, solver frame, SI per unit of ``p`` (zero on the fixed dofs).
     """
     model = model_at(p)
     free = disc.free

@@ -424,6 +424,17 @@ def solve(
     Returns
     -------
     Solution
+
+    Raises
+    ------
+    ConvergenceError
+        Newton fails at a load step below ``options.min_step`` and ``raise_on_failure``.
+    ValueError
+        ``prescribed`` names a component that is not constrained (or is combined with a
+        sliding/elastic plane), ``x0`` has the wrong shape, or (``disc`` not given)
+        ``formulation`` is unknown.
+    MeshError
+        From :func:`fem.discretize.discretize`, when ``disc`` is not given.
     """
     t_start = time.perf_counter()
     opts = options or SolverOptions()

@@ -7,6 +7,15 @@ The two physical constants the toolkit assumes where a caller gives none are her
 
 from __future__ import annotations
 
+__all__ = [
+    "DEFAULT_DENSITY_KG_M3",
+    "MM_PER_M",
+    "M_PER_MM",
+    "STANDARD_GRAVITY_M_S2",
+    "m_to_mm",
+    "mm_to_m",
+]
+
 M_PER_MM = 1.0e-3
 MM_PER_M = 1.0e3
 STANDARD_GRAVITY_M_S2 = 9.81

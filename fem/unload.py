@@ -263,13 +263,18 @@ def shortcut_gravity(
     ----------
     gravity_scan, gravity_ref : array_like, shape (3,)
         Gravity directions of the scan's posture and of the reference scan, in the ref
-        frame (the model's).
+        frame (the model's); any non-zero length (normalised here).
+    g_m_s2 : float
+        Gravitational acceleration magnitude, m/s^2, of both postures.
 
     Returns
     -------
     direction : ndarray, shape (3,)
+        Unit direction of ``g_m_s2 * (g - g0)`` in the ref frame (``g``, the scan's
+        direction, when the two postures coincide).
     magnitude_m_s2 : float
-        Pass both to :func:`fem.solve` (``gravity=direction, g_m_s2=magnitude``).
+        Its magnitude, m/s^2 (0 when the postures coincide). Pass both to
+        :func:`fem.solve` (``gravity=direction, g_m_s2=magnitude``).
     """
     g = np.asarray(gravity_scan, float) / np.linalg.norm(gravity_scan)
     g0 = np.asarray(gravity_ref, float) / np.linalg.norm(gravity_ref)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from scipy import ndimage
@@ -287,7 +288,7 @@ def detect_inclusions(
     noise_sigmas: float = 4.5,
     diameter_range_mm: tuple[float, float] = (2.0, 15.0),
     edge_margin_mm: float = 2.0,
-    polarity: str = "bright",
+    polarity: Literal["bright", "dark", "both"] = "bright",
 ) -> InclusionDetection:
     """Find compact regions of distinct intensity inside the body.
 
@@ -315,6 +316,17 @@ def detect_inclusions(
         20-97 such fragments were taken for inclusions.
     polarity : {"bright", "dark", "both"}
         Which contrast sign to look for.
+
+    Returns
+    -------
+    InclusionDetection
+        ``centres_lps_mm`` (n, 3) in the scan's LPS frame, ``diameters_mm`` (n,),
+        ``contrast`` (n,) and the ``quality`` record.
+
+    Raises
+    ------
+    ValueError
+        ``polarity`` is not one of the three choices.
     """
     if polarity not in ("bright", "dark", "both"):
         raise ValueError(f"polarity must be 'bright', 'dark' or 'both', got {polarity!r}")

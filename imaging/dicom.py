@@ -451,8 +451,12 @@ def write_dicom_series(
     seed : int
         Seeds the Study/Series/SOP/FrameOfReference UIDs, so that two runs with the same seed
         produce byte-identical files.
-    patient_name, patient_id, series_description, series_number, study_date : str or int
-        Header values.
+    patient_name, patient_id, series_description : str
+        Header values (PatientName, PatientID, SeriesDescription).
+    series_number : int
+        Header value (SeriesNumber).
+    study_date : str
+        Header value (StudyDate, ``YYYYMMDD``).
     modality, photometric : str
         Written as given (tests use them to produce invalid series).
     overwrite : bool
@@ -462,6 +466,13 @@ def write_dicom_series(
     -------
     list of Path
         Files written, in slice order.
+
+    Raises
+    ------
+    FileExistsError
+        ``folder`` exists and not ``overwrite``.
+    ValueError
+        The volume's slice axis k is not normal to its i, j plane.
     """
     import pydicom
     from pydicom.dataset import Dataset, FileMetaDataset

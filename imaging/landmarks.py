@@ -336,6 +336,35 @@ def find_nipple(
     noise (:data:`CAP_FALL_OVER_NOISE`), by the fit within twice, then four times the
     radius (``quality["cap_radius_mm"]``). A top flat even then keeps the highest vertex
     (``quality["refined"]`` False), with a warning.
+
+    Parameters
+    ----------
+    vertices_lps_mm : (N, 3) float
+        Surface vertices in the scan's LPS frame, mm.
+    plane : BackPlane
+        The back plane (:func:`estimate_back_plane`); heights are measured along its normal.
+    cap_radius_mm : float
+        Radius (mm, in the plane coordinates) of the quadratic cap fit at a bump-free
+        apex; doubled, then quadrupled, on a flat top.
+    search_radius_mm : float
+        Radius (mm) around the apex searched for a bump.
+    fit_radius_mm : float
+        Radius (mm) of the local plane each vertex's protrusion is measured from.
+    tip_radius_mm : float
+        Radius (mm) of the quadratic fit that refines a bump's tip.
+    min_protrusion_mm : float
+        Protrusion (mm) above the median that makes a bump.
+
+    Returns
+    -------
+    Nipple
+        ``position_lps_mm`` (3,) in the scan's LPS frame (mm), ``height_mm`` above the
+        back plane and the ``quality`` record described above.
+
+    Raises
+    ------
+    SegmentationError
+        No vertex lies above the back plane.
     """
     v = np.asarray(vertices_lps_mm, float)
     n = plane.normal

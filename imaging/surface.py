@@ -223,6 +223,9 @@ def extract_surface(
         more than ``band_voxels`` outside it, so only the boundary band sets the surface.
     level : float
         Iso-level.
+    band_voxels : int
+        Half-width of the boundary band, voxels: with ``mask``, the field is kept as it is
+        only within this many voxels of the mask's boundary; also the crop margin.
     smooth_iterations : int
         Taubin iterations (0: none).
     target_faces : int
@@ -231,6 +234,18 @@ def extract_surface(
     max_face_area_mm2 : float
         Largest mean face area of the decimated surface (mm^2; see
         :data:`MAX_FACE_AREA_MM2`).
+
+    Returns
+    -------
+    SurfaceMesh
+        Vertices ``(N, 3) float`` in LPS mm, faces ``(M, 3) int64``,
+        no back-plate flags, and a ``quality`` record.
+
+    Raises
+    ------
+    SurfaceError
+        The mask (or, without one, the field above 0.5) is empty, or the iso-surface has
+        no faces.
     """
     from skimage.measure import marching_cubes
 
@@ -330,6 +345,24 @@ def read_ply(path: str | os.PathLike) -> SurfaceMesh:
 
     Binary little-endian with scalar vertex properties and a triangle list, as written by
     :func:`write_ply`, open3d or trimesh.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The PLY file.
+
+    Returns
+    -------
+    SurfaceMesh
+        Vertices (float, in the file's frame and unit: LPS mm as written by
+        :func:`write_ply`), faces ``(M, 3) int64``, and the ``back_plate`` / ``fov_edge``
+        vertex flags where the file has them (else None).
+
+    Raises
+    ------
+    SurfaceError
+        The file cannot be read or parsed, is not binary little-endian, has non-triangle
+        faces, or lacks a vertex or face element.
     """
     path = Path(path)
     try:

@@ -99,13 +99,41 @@ class Volume:
         return float(abs(np.linalg.det(self.affine_lps_from_index[:3, :3])))
 
     def index_to_lps(self, ijk: np.ndarray) -> np.ndarray:
-        """Map (n, 3) (possibly fractional) indices to (n, 3) LPS points in mm."""
+        """Map (n, 3) (possibly fractional) indices to (n, 3) LPS points in mm.
+
+        Parameters
+        ----------
+        ijk : (N, 3) float
+            Voxel indices in (i, j, k) array order, possibly fractional; integers are voxel
+            centres. Any shape ``(..., 3)`` is accepted.
+
+        Returns
+        -------
+        (N, 3) float
+            The same points in the patient LPS frame, mm (shape like ``ijk``):
+            ``affine_lps_from_index`` applied.
+        """
         ijk = np.asarray(ijk, dtype=float)
         A = self.affine_lps_from_index
         return ijk @ A[:3, :3].T + A[:3, 3]
 
     def lps_to_index(self, points_lps_mm: np.ndarray) -> np.ndarray:
-        """Map (n, 3) LPS points in mm to (n, 3) fractional indices."""
+        """Map (n, 3) LPS points in mm to (n, 3) fractional indices.
+
+        The inverse of :meth:`index_to_lps`.
+
+        Parameters
+        ----------
+        points_lps_mm : (N, 3) float
+            Points in the patient LPS frame, mm; a single ``(3,)`` point is accepted too.
+
+        Returns
+        -------
+        (N, 3) float
+            Fractional voxel indices in (i, j, k) array order (shape like
+            ``points_lps_mm``); integers are voxel centres. Points outside the grid give
+            indices outside ``[0, shape)``; nothing is clipped.
+        """
         p = np.asarray(points_lps_mm, dtype=float)
         A = self.affine_lps_from_index
         return np.linalg.solve(A[:3, :3], (p - A[:3, 3]).T).T
@@ -118,7 +146,15 @@ class Volume:
         return Volume(array, self.affine_lps_from_index.copy(), source or self.source)
 
     def to_sitk(self):  # SimpleITK is imported lazily
-        """Return a ``SimpleITK.Image`` with the same geometry (array copied)."""
+        """Return a ``SimpleITK.Image`` with the same geometry (array copied).
+
+        Returns
+        -------
+        SimpleITK.Image
+            The voxel values with ITK's LPS origin (mm), spacing (mm) and direction
+            cosines taken from ``affine_lps_from_index``; ITK's index ``(i, j, k)`` is this
+            array's (its numpy view is ``(k, j, i)``).
+        """
         import SimpleITK as sitk
 
         img = sitk.GetImageFromArray(np.ascontiguousarray(np.transpose(self.array, (2, 1, 0))))
@@ -129,7 +165,27 @@ class Volume:
 
     @classmethod
     def from_sitk(cls, image, *, source: str = "<sitk>") -> Volume:
-        """Build a volume from a 3-D scalar ``SimpleITK.Image`` (LPS, as ITK uses)."""
+        """Build a volume from a 3-D scalar ``SimpleITK.Image`` (LPS, as ITK uses).
+
+        Parameters
+        ----------
+        image : SimpleITK.Image
+            3-D, one component per voxel; its origin, spacing (mm) and direction are in
+            LPS, as ITK keeps them.
+        source : str
+            Where the image came from, for messages.
+
+        Returns
+        -------
+        Volume
+            The array in (i, j, k) index order (ITK's numpy view transposed) with
+            ``affine_lps_from_index`` built from the image's geometry.
+
+        Raises
+        ------
+        ValueError
+            ``image`` is not 3-D or not scalar.
+        """
         if image.GetDimension() != 3 or image.GetNumberOfComponentsPerPixel() != 1:
             raise ValueError(f"{source}: expected a 3-D scalar image")
         import SimpleITK as sitk

@@ -13,11 +13,11 @@ normalised (the text mentions no scaling).
 from __future__ import annotations
 
 import time
-from typing import Literal
 
 import numpy as np
 
 from .data import SweepData, training_scenarios
+from .device import Device
 
 __all__ = ["DISSERTATION_REPORTED", "DissertationFit", "fit_dissertation_mlps"]
 
@@ -49,7 +49,7 @@ def fit_dissertation_mlps(
     iterations: int = 30_000,
     learning_rate: float = 1e-5,
     test_fraction: float = 0.2,
-    device: Literal["auto", "cpu", "cuda"] = "auto",
+    device: Device = "auto",
     seed: int = 0,
     progress=None,
 ) -> DissertationFit:

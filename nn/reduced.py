@@ -42,11 +42,11 @@ reported 0.61 mm for a true 0.93).
 from __future__ import annotations
 
 import time
-from typing import Literal
 
 import numpy as np
 
 from .data import SweepData, training_scenarios
+from .device import Device
 
 __all__ = ["ReducedKernelFit", "fit_reduced_kernel"]
 
@@ -150,7 +150,7 @@ def _pod(Y: np.ndarray, tol_mm: float) -> np.ndarray:
 def fit_reduced_kernel(
     data: SweepData,
     *,
-    device: Literal["auto", "cpu", "cuda"] = "auto",
+    device: Device = "auto",
     pod_tol_mm: float = 1e-4,
     progress=None,
 ) -> ReducedKernelFit:

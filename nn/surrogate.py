@@ -17,6 +17,7 @@ import json
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -410,7 +411,9 @@ class Surrogate:
                 stacklevel=3,
             )
 
-    def predict(self, gravity_m_s2, *, c1_pa=None, frame: str = "phantom") -> Prediction:
+    def predict(
+        self, gravity_m_s2, *, c1_pa=None, frame: Literal["phantom", "ref"] = "phantom"
+    ) -> Prediction:
         """Predict displacements for gravity acceleration vectors.
 
         Parameters
@@ -465,6 +468,23 @@ class Surrogate:
 
         For the surface-only baseline the interior vertices are NaN and the clamped back
         plate is at rest.
+
+        Parameters
+        ----------
+        pred : Prediction
+            From :meth:`predict`.
+        k : int
+            Index of the query in ``pred``'s batch.
+
+        Returns
+        -------
+        (N, 3) float
+            Displacement of every mesh vertex, reference frame, mm (NaN where unknown).
+
+        Raises
+        ------
+        ValueError
+            A surface-only prediction of a model whose back plate is not clamped.
         """
         if pred.nodes_mm is not None:
             return pred.nodes_mm[k]

@@ -37,7 +37,7 @@ from registration.gravity import (
     gravity_in_reference,
 )
 from registration.icp import IcpLevel, IcpResult, icp_refine, sample_triangles
-from registration.rigid import RigidFit, apply_transform, fit_rigid
+from registration.rigid import RigidFit, apply_transform, check_marker_geometry, fit_rigid
 from registration.session import (
     ScanRegistration,
     footprint_mismatch_mm,
@@ -66,6 +66,7 @@ __all__ = [
     "SurfaceError",
     "angle_between_deg",
     "apply_transform",
+    "check_marker_geometry",
     "check_posture",
     "closest_point_distances",
     "fit_rigid",

@@ -7,6 +7,7 @@ name here; all distances are in millimetres, measured in the frame the inputs sh
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -15,17 +16,20 @@ from registration.errors import RegistrationError
 __all__ = [
     "FRAMES",
     "DistanceSummary",
+    "Frame",
     "closest_point_distances",
     "hausdorff_mm",
     "point_to_surface_distances",
     "summarise",
 ]
 
+#: A frame an error can be measured in (see :mod:`registration.distances`).
+Frame = Literal["fiducial", "icp"]
 #: Frames an error can be measured in.
-FRAMES = ("fiducial", "icp")
+FRAMES: tuple[Frame, ...] = ("fiducial", "icp")
 
 
-def _check_frame(frame: str) -> str:
+def _check_frame(frame: str) -> Frame:
     if frame not in FRAMES:
         raise RegistrationError(f"frame must be one of {FRAMES}, got {frame!r}")
     return frame
@@ -46,8 +50,7 @@ class DistanceSummary:
 
     Attributes
     ----------
-    frame : str
-        ``"fiducial"`` or ``"icp"``.
+    frame : {"fiducial", "icp"}
     n : int
         Number of distances.
     mean_mm, sd_mm, median_mm, p95_mm, max_mm, rms_mm : float
@@ -55,7 +58,7 @@ class DistanceSummary:
         maximum and root mean square of the distances as given (signed stay signed).
     """
 
-    frame: str
+    frame: Frame
     n: int
     mean_mm: float
     sd_mm: float
@@ -69,7 +72,7 @@ class DistanceSummary:
         return dict(self.__dict__)
 
 
-def summarise(distances_mm: np.ndarray, *, frame: str = "fiducial") -> DistanceSummary:
+def summarise(distances_mm: np.ndarray, *, frame: Frame = "fiducial") -> DistanceSummary:
     """Summarise distances.
 
     Parameters
@@ -83,6 +86,11 @@ def summarise(distances_mm: np.ndarray, *, frame: str = "fiducial") -> DistanceS
     -------
     DistanceSummary
         Mean, sd, median, p95, max, RMS and count.
+
+    Raises
+    ------
+    RegistrationError
+        ``distances_mm`` is empty or not finite, or ``frame`` is unknown.
     """
     d = np.asarray(distances_mm, dtype=float).ravel()
     if d.size == 0 or not np.all(np.isfinite(d)):
@@ -117,6 +125,11 @@ def closest_point_distances(
     -------
     numpy.ndarray, shape (n,)
         Distances, millimetres (and indices, shape (n,), if requested).
+
+    Raises
+    ------
+    RegistrationError
+        Either point set is not a non-empty finite (n, 3) array.
     """
     from scipy.spatial import cKDTree
 
@@ -138,6 +151,11 @@ def hausdorff_mm(a_points_mm: np.ndarray, b_points_mm: np.ndarray) -> float:
     -------
     float
         ``max(max_a min_b |a - b|, max_b min_a |a - b|)``.
+
+    Raises
+    ------
+    RegistrationError
+        Either point set is not a non-empty finite (n, 3) array.
     """
     return float(
         max(
@@ -173,6 +191,12 @@ def point_to_surface_distances(
     -------
     numpy.ndarray, shape (n,)
         Distances, millimetres (float32 ray-casting precision, ~1e-5 mm at 100 mm).
+
+    Raises
+    ------
+    RegistrationError
+        ``points_mm`` or ``vertices_mm`` is not a non-empty finite (n, 3) array, or
+        ``faces`` is not a non-empty (f, 3) array of indices into ``vertices_mm``.
     """
     import open3d as o3d
 

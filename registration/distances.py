@@ -16,6 +16,7 @@ import numpy as np
 from registration.distance_metrics import (
     FRAMES,
     DistanceSummary,
+    Frame,
     _check_frame,
     _pts,
     closest_point_distances,
@@ -29,6 +30,7 @@ from registration.rigid import apply_transform
 __all__ = [
     "FRAMES",
     "DistanceSummary",
+    "Frame",
     "PointError",
     "SurfaceError",
     "closest_point_distances",
@@ -47,8 +49,7 @@ class SurfaceError:
 
     Attributes
     ----------
-    frame : str
-        ``"fiducial"`` or ``"icp"``.
+    frame : {"fiducial", "icp"}
     method : str
         ``"point_to_point"`` (closest fixed point) or ``"point_to_surface"`` (signed, to mesh).
     summary : DistanceSummary
@@ -62,7 +63,7 @@ class SurfaceError:
         Transform applied to the moving points before measuring (identity for fiducial).
     """
 
-    frame: str
+    frame: Frame
     method: str
     summary: DistanceSummary
     hausdorff_mm: float
@@ -78,8 +79,7 @@ class PointError:
     ----------
     name : str
         What was measured (e.g. ``"nipple"``).
-    frame : str
-        ``"fiducial"`` or ``"icp"``.
+    frame : {"fiducial", "icp"}
     method : str
         ``"closest_point"`` (to the other surface) or ``"landmark"`` (to the other landmark).
     error_mm : float
@@ -87,12 +87,12 @@ class PointError:
     """
 
     name: str
-    frame: str
+    frame: Frame
     method: str
     error_mm: float
 
 
-def _transforms(frames: Sequence[str], T_icp: np.ndarray | None, icp=None) -> dict:
+def _transforms(frames: Sequence[Frame], T_icp: np.ndarray | None, icp=None) -> dict:
     out = {}
     for fr in frames:
         _check_frame(fr)
@@ -112,7 +112,7 @@ def surface_errors(
     fixed_vertices_mm: np.ndarray,
     fixed_faces: np.ndarray | None = None,
     *,
-    frames: Sequence[str] = FRAMES,
+    frames: Sequence[Frame] = FRAMES,
     T_icp: np.ndarray | None = None,
     fixed_mask: np.ndarray | None = None,
     icp_options: dict | None = None,
@@ -143,6 +143,12 @@ def surface_errors(
     -------
     dict of str to SurfaceError
         Keyed by frame.
+
+    Raises
+    ------
+    RegistrationError
+        A point array is not a non-empty finite (n, 3) array, ``fixed_mask`` is not bool
+        of shape (m,), ``fixed_faces`` is malformed, or a frame is unknown.
     """
     mov = _pts(moving_points_mm, "moving_points_mm")
     fix = _pts(fixed_vertices_mm, "fixed_vertices_mm")
@@ -186,7 +192,7 @@ def nipple_error(
     nipple_mm: np.ndarray,
     surface_points_mm: np.ndarray,
     *,
-    frames: Sequence[str] = FRAMES,
+    frames: Sequence[Frame] = FRAMES,
     T_icp: np.ndarray | None = None,
 ) -> dict[str, PointError]:
     """Compute the dissertation's nipple error: closest point-to-point distance of the nipple.
@@ -206,6 +212,12 @@ def nipple_error(
     -------
     dict of str to PointError
         Keyed by frame.
+
+    Raises
+    ------
+    RegistrationError
+        A frame is unknown, ``"icp"`` is requested without ``T_icp``, or ``nipple_mm`` or
+        ``surface_points_mm`` is not finite or not of its shape.
     """
     p = _pts(np.reshape(nipple_mm, (1, 3)), "nipple_mm")
     out = {}
@@ -219,7 +231,7 @@ def landmark_errors(
     moving_by_name: dict[str, np.ndarray],
     fixed_by_name: dict[str, np.ndarray],
     *,
-    frames: Sequence[str] = ("fiducial",),
+    frames: Sequence[Frame] = ("fiducial",),
     T_icp: np.ndarray | None = None,
 ) -> dict[str, dict[str, PointError]]:
     """Landmark-to-landmark distances (e.g. nipple and tumour centre) for common names.
@@ -239,6 +251,11 @@ def landmark_errors(
     -------
     dict of str to dict of str to PointError
         ``result[frame][name]``.
+
+    Raises
+    ------
+    RegistrationError
+        A frame is unknown, or ``"icp"`` is requested without ``T_icp``.
     """
     names = [n for n in moving_by_name if n in fixed_by_name]
     out: dict[str, dict[str, PointError]] = {}

@@ -44,6 +44,12 @@ def gravity_in_reference(
     -------
     numpy.ndarray, shape (3,)
         Unit gravity vector ``R_ref_from_scan @ gravity_scanner`` in the ref frame.
+
+    Raises
+    ------
+    RegistrationError
+        ``T_ref_from_scan`` is neither (4, 4) nor (3, 3), or ``gravity_scanner`` (or its
+        image) is not a finite non-zero 3-vector.
     """
     T = np.asarray(T_ref_from_scan, dtype=float)
     if T.shape not in ((4, 4), (3, 3)):
@@ -64,6 +70,11 @@ def angle_between_deg(a: np.ndarray, b: np.ndarray) -> float:
     -------
     float
         Angle in degrees.
+
+    Raises
+    ------
+    RegistrationError
+        ``a`` or ``b`` is not a finite non-zero 3-vector.
     """
     ua = _unit(a, name="a")
     ub = _unit(b, name="b")

@@ -76,6 +76,11 @@ def apply_transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     -------
     numpy.ndarray, shape like ``points``
         Points in the transform's target frame, millimetres.
+
+    Raises
+    ------
+    RegistrationError
+        ``T`` is not 4 x 4, or the last dimension of ``points`` is not 3.
     """
     T = np.asarray(T, dtype=float)
     if T.shape != (4, 4):
@@ -264,6 +269,11 @@ class RigidFit:
         -------
         float or numpy.ndarray, shape (m,)
             Expected RMS TRE at each point, millimetres.
+
+        Raises
+        ------
+        RegistrationError
+            ``points_mm`` is not of shape (3,) or (m, 3).
         """
         fle = self.fle_estimate_mm if fle_mm is None else float(fle_mm)
         r = np.asarray(points_mm, dtype=float)

@@ -6,6 +6,7 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -167,7 +168,7 @@ def register_scans(
     landmarks_by_scan: dict[str, dict[str, np.ndarray]] | None = None,
     plate_normals_by_scan: dict[str, np.ndarray] | None = None,
     footprints_by_scan: dict[str, np.ndarray | tuple] | None = None,
-    correspondence: str = "auto",
+    correspondence: Literal["given", "auto"] = "auto",
     fle_mm: float | None = None,
     max_fre_mm: float | None = 2.0,
     ambiguity_margin_mm: float = 1.0,
@@ -224,6 +225,12 @@ def register_scans(
     ------
     RegistrationError
         Unknown reference, bad markers (see ``fit_rigid``), posture mismatch.
+    MarkerCountError
+        A scan's marker array differs in shape from the reference scan's (a
+        :class:`RegistrationError`).
+    PostureMismatchError
+        The registered gravities contradict the nominal postures by more than
+        ``posture_error_deg`` (a :class:`RegistrationError`).
     """
     if reference not in fiducials_by_scan:
         raise RegistrationError(

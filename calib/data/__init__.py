@@ -11,9 +11,9 @@ __all__ = [
     "ScanMeasurement",
     "Session",
     "SessionError",
+    "WorkFolder",
     "load_measurements",
     "load_session",
     "read_work",
     "scaffold_session",
-    "WorkFolder",
 ]

@@ -81,7 +81,20 @@ class ScanMeasurement:
         return {"plane": self.posture_plane, "angle_deg": self.posture_angle_deg}
 
     def surface_points(self, *, max_points: int = 4000, seed: int = 0) -> np.ndarray:
-        """Measured surface vertices (:attr:`scored`), a seeded subsample, (k, 3)."""
+        """Measured surface vertices (:attr:`scored`), a seeded subsample, (k, 3).
+
+        Parameters
+        ----------
+        max_points : int
+            At most this many points are returned (a uniform seeded subset).
+        seed : int
+            Seed of the subset.
+
+        Returns
+        -------
+        (k, 3) float
+            Points in the ref frame, mm, in vertex order.
+        """
         pts = self.vertices_mm[self.scored]
         if len(pts) > max_points:
             rng = np.random.default_rng(seed)
@@ -108,7 +121,18 @@ class Measurements:
     density_kg_m3: float | None = None
 
     def with_role(self, role: str) -> list[ScanMeasurement]:
-        """Scans of one role."""
+        """Scans of one role.
+
+        Parameters
+        ----------
+        role : str
+            ``"reference"``, ``"calibration"`` or ``"validation"``.
+
+        Returns
+        -------
+        list of ScanMeasurement
+            In the session's order.
+        """
         return [s for s in self.scans.values() if s.role == role]
 
 
@@ -188,11 +212,28 @@ def read_scan(work: Path, entry: ScanEntry) -> ScanMeasurement:
 def load_measurements(work: str | Path, session: Session) -> Measurements:
     """Read every scan's ``ingest.json`` and ``surface_ref.ply`` from a work folder.
 
+    Parameters
+    ----------
+    work : str or Path
+        The work folder ``ingest`` wrote (its ``scans/<name>/``).
+    session : Session
+        The session those results were ingested from (:func:`load_session`).
+
+    Returns
+    -------
+    Measurements
+        Every scan's measured geometry in the ref frame (the reference scan's LPS), mm.
+
     Raises
     ------
     calib.data.ingest.StaleIngestError
         The ingest results are missing, or not those of the session's current scans
         (the recorded fingerprints differ): run ``phantom-calib ingest`` again.
+    ValueError
+        A scan's ``ingest.json`` lacks an array it needs or holds one of the wrong shape
+        or non-finite.
+    imaging.SurfaceError
+        A scan's ``surface_ref.ply`` cannot be read.
     """
     from .ingest import StaleIngestError, stale_reasons
 

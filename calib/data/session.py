@@ -95,7 +95,17 @@ class Session:
         return next(s for s in self.scans if s.role == "reference")
 
     def by_role(self, role: str) -> list[ScanEntry]:
-        """Scans with the given role."""
+        """Scans with the given role.
+
+        Parameters
+        ----------
+        role : {"reference", "calibration", "validation"}
+
+        Returns
+        -------
+        list of ScanEntry
+            In the session's order.
+        """
         return [s for s in self.scans if s.role == role]
 
     def ingest_fingerprint(self, *, paths: Literal["relative", "absolute"] = "relative") -> str:
@@ -282,6 +292,17 @@ def checked_density_kg_m3(value, name: str) -> float:
 def load_session(folder: str | Path) -> Session:
     """Read and validate ``folder/session.toml``.
 
+    Parameters
+    ----------
+    folder : str or Path
+        The scans' folder, holding ``session.toml``.
+
+    Returns
+    -------
+    Session
+        The scans with their roles and postures, the scanner's unit gravity (LPS), the
+        phantom's density (kg/m^3) and marker count, and the tumour hint.
+
     Raises
     ------
     SessionError
@@ -408,6 +429,25 @@ def scaffold_session(folder: str | Path, *, overwrite: bool = False) -> Path:
 
     The first scan becomes the reference, the others calibration scans; edit the
     roles and postures afterwards.
+
+    Parameters
+    ----------
+    folder : str or Path
+        The folder that holds the scans' series folders or volume files.
+    overwrite : bool
+        Replace an existing ``session.toml``.
+
+    Returns
+    -------
+    Path
+        The ``session.toml`` written.
+
+    Raises
+    ------
+    SessionError
+        ``folder`` is not a folder, ``session.toml`` exists and not ``overwrite``,
+        ``folder`` is a work folder (or its ``scans/``), a sub-folder holds a
+        ``session.toml``, or no DICOM series folder or volume file is found.
     """
     import tomli_w
 

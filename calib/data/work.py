@@ -152,6 +152,15 @@ def not_a_folder(work: Path, *, missing: str = "no such work folder") -> str | N
 def read_work(work: str | Path) -> WorkFolder:
     """Read a calibrated work folder.
 
+    Parameters
+    ----------
+    work : str or Path
+        A work folder ``phantom-calib calibrate`` wrote.
+
+    Returns
+    -------
+    WorkFolder
+
     Raises
     ------
     FileNotFoundError

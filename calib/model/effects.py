@@ -713,6 +713,28 @@ def parse_effects(specs: list[str], *, default: TruthEffects) -> TruthEffects:
     """Parse ``NAME[=VALUE]`` strings (``skin=1.5:8`` is thickness mm : stiffness ratio).
 
     With no specs the preset's ``default`` is returned; ``none`` gives a neutral truth.
+
+    Parameters
+    ----------
+    specs : list of str
+        ``NAME`` or ``NAME=VALUE`` per effect, NAME one of ``none``, ``skin``
+        (``THICKNESS_MM[:RATIO]``), ``sliding`` (none, ``true``/``yes``, or a tangential
+        stiffness in Pa/mm), ``inclusions`` (stiffness ratio), ``mooney`` (c2 in Pa),
+        ``poisson`` (nu) or ``density`` (kg/m^3); without a value each takes its
+        default from :data:`EFFECTS`.
+    default : TruthEffects
+        Returned when ``specs`` is empty.
+
+    Returns
+    -------
+    TruthEffects
+
+    Raises
+    ------
+    EffectError
+        An unknown or repeated name, an empty value after ``=``, a value that is not a
+        number or lies outside the twin's range, or ``none`` given a value or combined
+        with other effects.
     """
     if not specs:
         return default
@@ -739,7 +761,26 @@ def parse_effects(specs: list[str], *, default: TruthEffects) -> TruthEffects:
 
 
 def truth_model(mesh: fem.TetMesh, c1_pa: float, effects: TruthEffects) -> fem.Model:
-    """The truth model of a phantom mesh (regions bulk, inclusion, skin) with effects."""
+    """The truth model of a phantom mesh (regions bulk, inclusion, skin) with effects.
+
+    Parameters
+    ----------
+    mesh : fem.TetMesh
+        The phantom mesh (nodes in mm) with named regions.
+    c1_pa : float
+        Bulk neo-Hookean ``c1``, Pa.
+    effects : TruthEffects
+        The effects applied on top (:func:`parse_effects`).
+
+    Returns
+    -------
+    fem.Model
+
+    Raises
+    ------
+    ValueError
+        A region of ``mesh`` has no material in the truth model.
+    """
     unknown = []
     for name in mesh.region_names:
         try:

@@ -5,24 +5,32 @@ Pure numpy/scipy (no FE, no files). ``noise``: variogram and kernel fit
 measured coverage; ``profile``: a noise level by height band; ``scores``: the misfit
 test and effect screening; ``coverage``: cheap linear models on phantom-like geometry
 for the studies in ``benchmarks/bench_coverage.py``.
+
+Errors (all ``ValueError`` subclasses): :class:`NoiseModelError`, :class:`IntervalError`,
+:class:`ScreeningError`, :class:`SampleError`, :class:`UnknownKernelError`.
 """
 
-from .intervals import ParameterInterval, parameter_intervals, sandwich_covariance
-from .kernels import KERNELS, correlation
-from .noise import NoiseFit, NoiseModel, Variogram, estimate_noise, whitener
+from .intervals import IntervalError, ParameterInterval, parameter_intervals, sandwich_covariance
+from .kernels import KERNELS, UnknownKernelError, correlation
+from .noise import NoiseFit, NoiseModel, NoiseModelError, Variogram, estimate_noise, whitener
 from .profile import HeightProfile, height_profile
-from .sample import SurfaceSample
-from .scores import EffectScreening, ModelFit, misfit_test, screen_effects
+from .sample import SampleError, SurfaceSample
+from .scores import EffectScreening, ModelFit, ScreeningError, misfit_test, screen_effects
 
 __all__ = [
     "KERNELS",
     "EffectScreening",
     "HeightProfile",
+    "IntervalError",
     "ModelFit",
     "NoiseFit",
     "NoiseModel",
+    "NoiseModelError",
     "ParameterInterval",
+    "SampleError",
+    "ScreeningError",
     "SurfaceSample",
+    "UnknownKernelError",
     "Variogram",
     "correlation",
     "estimate_noise",

@@ -344,12 +344,20 @@ def sandwich_covariance(sample: SurfaceSample, jacobian: np.ndarray, noise: Nois
     ----------
     sample : SurfaceSample
     jacobian : ndarray, shape (n,) or (n, p)
+        ``dr / dtheta`` at the fit (mm per unit of theta).
     noise : NoiseModel or mapping of scan label to NoiseModel
 
     Returns
     -------
     ndarray, shape (p, p)
         In (units of theta)^2.
+
+    Raises
+    ------
+    IntervalError
+        The Jacobian has rank < p.
+    SampleError
+        ``jacobian`` has not one finite row per point of ``sample``.
     """
     J = _jacobian(sample, jacobian)
     bread = np.linalg.inv(J.T @ J)
@@ -399,9 +407,11 @@ def parameter_intervals(
     jacobian : ndarray, shape (n,) or (n, p)
         ``dr / dtheta`` at the fit (mm per unit of theta).
     residual_mm : ndarray, shape (n,)
+        Residuals at the fit, mm.
     sample : SurfaceSample
     noise : NoiseModel or mapping of scan label to NoiseModel
     level : float
+        Coverage of the interval, in (0, 1).
     method : {"series", "sandwich"}
         The series estimator with its exact reference (default) or the plug-in sandwich
         with a normal quantile (for comparison: it under-covers).
@@ -412,6 +422,15 @@ def parameter_intervals(
     -------
     tuple of ParameterInterval
         One per parameter, in order.
+
+    Raises
+    ------
+    IntervalError
+        ``theta``'s length differs from the Jacobian's column count, the Jacobian has
+        rank < p, ``method`` is unknown, or no smooth mode is left once ``J`` is
+        projected out.
+    SampleError
+        ``jacobian`` or ``residual_mm`` has not one finite row per point of ``sample``.
     """
     from scipy import stats
 

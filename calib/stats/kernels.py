@@ -27,6 +27,7 @@ import numpy as np
 __all__ = [
     "KERNELS",
     "Kernel",
+    "UnknownKernelError",
     "correlation",
     "correlation_area_mm2",
     "one_over_e_distance_mm",
@@ -63,6 +64,11 @@ def correlation(kernel: Kernel, distance_mm: np.ndarray, length_mm: float) -> np
     -------
     ndarray, same shape as ``distance_mm``
         Correlations in [0, 1].
+
+    Raises
+    ------
+    UnknownKernelError
+        ``kernel`` is not one of :data:`KERNELS`.
     """
     _check(kernel)
     h0 = np.asarray(distance_mm, dtype=float)

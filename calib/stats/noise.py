@@ -129,7 +129,8 @@ class NoiseModel:
         Pairs behind the fit.
     max_lag_mm : float
         Largest lag fitted.
-    detrend : str
+    detrend : {"none", "linear", "quadratic"}
+        Per-scan polynomial trend removed before the fit.
     length_at_bound : bool
         The fitted length reached the top of its search range: the variogram does not
         level off within ``max_lag_mm`` (long-range structure or misfit; see
@@ -143,7 +144,7 @@ class NoiseModel:
     criterion: float = float("nan")
     n_pairs: int = 0
     max_lag_mm: float = float("nan")
-    detrend: str = "none"
+    detrend: Detrend = "none"
     length_at_bound: bool = False
 
     def __post_init__(self) -> None:
@@ -161,10 +162,16 @@ class NoiseModel:
 
         Parameters
         ----------
-        distance_mm : ndarray
+        distance_mm : ndarray, any shape; (n, n) when ``same_points``
+            Distances between points, mm.
         same_points : bool
             ``distance_mm`` is the square distance matrix of one point set: the nugget
             goes on its diagonal. Otherwise only zero distances get it.
+
+        Returns
+        -------
+        ndarray, shape like ``distance_mm``
+            Correlation (dimensionless, in [0, 1]).
         """
         d = np.asarray(distance_mm, dtype=float)
         if same_points and self.white:  # independent, even where points coincide
@@ -189,6 +196,11 @@ class NoiseModel:
         -------
         ndarray, shape (n, n)
             For several scans use :func:`covariance_matrix` (zero between scans).
+
+        Raises
+        ------
+        NoiseModelError
+            ``points_mm`` is not an (n, 3) array.
         """
         from scipy.spatial.distance import cdist
 
@@ -203,7 +215,18 @@ class NoiseModel:
         return self.length_mm == 0.0 or self.nugget_fraction == 1.0
 
     def semivariance_mm2(self, lag_mm: np.ndarray) -> np.ndarray:
-        """Model semivariogram ``gamma(h)`` for ``h > 0`` (mm^2)."""
+        """Model semivariogram ``gamma(h)`` for ``h > 0`` (mm^2).
+
+        Parameters
+        ----------
+        lag_mm : ndarray, any shape
+            Lags ``h`` between points, mm.
+
+        Returns
+        -------
+        ndarray, shape like ``lag_mm``
+            Semivariance, mm^2.
+        """
         rho = correlation(self.kernel, np.asarray(lag_mm, dtype=float), self.length_mm)
         return self.sigma_mm**2 * (1.0 - (1.0 - self.nugget_fraction) * rho)
 
@@ -302,7 +325,23 @@ class NoiseFit:
         return scaled
 
     def variance_mm2(self, sample: SurfaceSample) -> float:
-        """The best model's noise variance, averaged over ``sample``'s points (mm^2)."""
+        """The best model's noise variance, averaged over ``sample``'s points (mm^2).
+
+        Parameters
+        ----------
+        sample : SurfaceSample
+            Points and scan labels; with one model per scan, each scan weighs by its count.
+
+        Returns
+        -------
+        float
+            Variance, mm^2.
+
+        Raises
+        ------
+        NoiseModelError
+            The per-scan models lack one of ``sample``'s scan labels.
+        """
         arg = self.best_arg
         if isinstance(arg, NoiseModel):
             return float(arg.sigma_mm**2)
@@ -542,6 +581,16 @@ def estimate_noise(
     Returns
     -------
     NoiseFit or dict of int to NoiseFit
+
+    Raises
+    ------
+    NoiseModelError
+        ``scope`` or ``detrend`` unknown, ``n_bins < 3``, ``kernels`` empty, fewer than 3
+        distance bins with enough pairs, or a variogram that is zero (residuals constant
+        within scans).
+    SampleError
+        ``residual_mm`` not one finite value per point, or ``max_lag_mm``/``max_pairs``
+        not positive.
     """
     kw = dict(max_lag_mm=max_lag_mm, n_bins=n_bins, max_pairs=max_pairs, detrend=detrend,
               seed=seed)  # fmt: skip
@@ -731,6 +780,14 @@ def whitener(sample: SurfaceSample, noise: NoiseArg, *, jitter: float = 1e-10) -
     Returns
     -------
     Whitener
+
+    Raises
+    ------
+    NoiseModelError
+        ``noise`` has no model for one of the scans, or a scan's correlation matrix is not
+        positive definite even with ``jitter``.
+    SampleError
+        A scan has more than :data:`MAX_DENSE_BLOCK` points.
     """
     factors = []
     for b, (label, _idx) in enumerate(zip(sample.labels, sample.blocks, strict=True)):

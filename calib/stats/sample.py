@@ -121,10 +121,21 @@ class SurfaceSample:
         Parameters
         ----------
         values : ndarray, shape (n,) or (n, k)
+            One value (or row) per point, in the caller's unit (e.g. residuals in mm).
         name : str
             Used in the error message.
         columns : bool
             Accept (and return) a 2-D array; a 1-D one becomes (n, 1).
+
+        Returns
+        -------
+        ndarray, shape (n,) or (n, k) float
+            ``values`` as a float array, unit unchanged.
+
+        Raises
+        ------
+        SampleError
+            ``values`` has not one row per point, or holds non-finite values.
         """
         v = np.asarray(values, dtype=float)
         if columns and v.ndim == 1:
@@ -139,6 +150,16 @@ class SurfaceSample:
 
     def distances(self, block: int) -> np.ndarray:
         """Dense distance matrix (mm) of scan block ``block`` (cached).
+
+        Parameters
+        ----------
+        block : int
+            Position of the scan in :attr:`labels` / :attr:`blocks` (not its label).
+
+        Returns
+        -------
+        ndarray, shape (m, m) float
+            Distances between the block's ``m`` points, mm.
 
         Raises
         ------
@@ -173,6 +194,11 @@ class SurfaceSample:
         Returns
         -------
         PairSet
+
+        Raises
+        ------
+        SampleError
+            ``max_lag_mm`` not positive or ``max_pairs < 1``.
         """
         if not max_lag_mm > 0:
             raise SampleError(f"max_lag_mm must be positive, got {max_lag_mm}")

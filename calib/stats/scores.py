@@ -266,6 +266,17 @@ def misfit_test(
     Returns
     -------
     ModelFit
+
+    Raises
+    ------
+    ScreeningError
+        ``alpha`` outside (0, 1), ``method`` unknown, ``low_degree``/``high_degree`` not
+        ``0 <= low < high``, a band empty after projection, or a residual that the fitted
+        columns explain exactly.
+    IntervalError
+        The Jacobian has rank < p.
+    SampleError
+        ``residual_mm`` or ``jacobian`` has not one finite row per point of ``sample``.
     """
     from scipy import stats
 
@@ -637,6 +648,18 @@ def screen_effects(
     Returns
     -------
     EffectScreening
+
+    Raises
+    ------
+    ScreeningError
+        ``names`` not q distinct names, ``alpha`` outside (0, 1), ``directions`` or
+        ``effects`` not one valid entry per column, or a residual that the fitted columns
+        explain exactly.
+    IntervalError
+        The Jacobian has rank < p.
+    SampleError
+        ``residual_mm``, ``jacobian`` or ``sensitivities`` has not one finite row per point
+        of ``sample``.
     """
     from scipy import stats
 

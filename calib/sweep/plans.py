@@ -131,11 +131,19 @@ def parse_c1_axis(text: str | None, c1_cal_pa: float) -> np.ndarray:
     text : str or None
         ``"LO:HI:N"`` in Pa, ``LO <= HI``, ``N >= 1`` (``N = 1`` if and only if ``LO == HI``).
     c1_cal_pa : float
-        The calibrated c1, used when ``text`` is None.
+        The calibrated c1 (Pa), used when ``text`` is None.
 
     Returns
     -------
     ndarray, shape (N,)
+        c1 values, Pa, increasing (one value when ``text`` is None).
+
+    Raises
+    ------
+    PlanError
+        ``text`` is not ``LO:HI:N``, ``LO``/``HI`` not finite with ``0 < LO <= HI``,
+        ``N < 1``, ``N`` and ``LO == HI`` disagree, or ``N`` exceeds
+        :data:`MAX_SCENARIOS`.
     """
     if text is None:
         return np.array([float(c1_cal_pa)])
@@ -209,7 +217,7 @@ def make_plan(
     spec : str
         ``dissertation``, ``dissertation:transverse`` or ``sphere:N``.
     c1_cal_pa : float
-        The calibrated c1 (the c1 of every scenario without a c1 axis).
+        The calibrated c1, Pa (the c1 of every scenario without a c1 axis).
     c1_axis : str, optional
         ``LO:HI:N`` (:func:`parse_c1_axis`).
     holdout : float
