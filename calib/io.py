@@ -41,10 +41,14 @@ __all__ = [
 
 #: Distributions whose versions a provenance record names (None where not installed:
 #: open3d is ``open3d-cpu`` on x86_64 and ``open3d`` elsewhere; pypardiso decides between
-#: PARDISO and SuperLU).
+#: PARDISO and SuperLU, and mkl's version sets PARDISO's last bits; the readers and
+#: segmentation of ingest; torch the surrogates'; zarr the sweep store's). Review BI: mkl,
+#: the ingest chain, torch and zarr were missing.
 _PACKAGES = (
     *("phantom-calib", "numpy", "scipy", "scikit-fem", "tetgen", "meshio"),
-    *("open3d-cpu", "open3d", "pypardiso"),
+    *("open3d-cpu", "open3d", "pypardiso", "mkl"),
+    *("SimpleITK", "pydicom", "python-gdcm", "nibabel", "pynrrd", "scikit-image", "trimesh"),
+    *("torch", "zarr"),
 )
 
 
@@ -227,11 +231,12 @@ def _version(name: str) -> str | None:
 _THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 
-@functools.cache
 def _source_revision() -> dict | None:
     """The git commit of the source tree this package runs from, and whether it has edits.
 
-    None where it is not a git checkout (an installed wheel) or git is missing.
+    None where it is not a git checkout (an installed wheel) or git is missing. Asked at
+    every record (review BI: a cached answer kept a long-lived kernel's first commit and
+    edits after the tree changed under it).
     """
     import subprocess
 
@@ -255,12 +260,35 @@ def _source_revision() -> dict | None:
     return {"commit": commit, "uncommitted_edits": bool(edits)}
 
 
+def _thread_pools() -> dict:
+    """The thread counts in use: ``cpu_count`` and each loaded BLAS/OpenMP pool's.
+
+    Review BI: ``threads`` records the environment variables only, null where unset,
+    when MKL and OpenMP take every core; the FE results' last bits depend on the counts
+    in use. ``pools`` maps each library's ``internal_api`` (mkl, openblas, openmp) to its
+    largest ``num_threads`` (threadpoolctl's view of the libraries loaded so far); null
+    where threadpoolctl is not installed.
+    """
+    try:
+        from threadpoolctl import threadpool_info
+    except ImportError:
+        pools = None
+    else:
+        pools = {}
+        for lib in threadpool_info():
+            api = str(lib.get("internal_api"))
+            pools[api] = max(pools.get(api, 0), int(lib.get("num_threads") or 0))
+        pools = dict(sorted(pools.items()))
+    return {"cpu_count": os.cpu_count(), "pools": pools}
+
+
 def provenance(*, inputs: dict[str, str | os.PathLike] | None = None, parameters=None) -> dict:
     """A provenance record: time, versions, input file hashes and parameters.
 
     Paths are absolute and the working folder is recorded, so that the command can be
     run again from the record (review AN); ``source`` is the git commit the package runs
-    from (None outside a checkout), ``threads`` the thread-count variables.
+    from (None outside a checkout), ``threads`` the thread-count variables,
+    ``thread_pools`` the counts in use (:func:`_thread_pools`).
     """
     return {
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
@@ -271,6 +299,7 @@ def provenance(*, inputs: dict[str, str | os.PathLike] | None = None, parameters
         "command": sys.argv,
         "cwd": os.getcwd(),
         "threads": {k: os.environ.get(k) for k in _THREAD_VARIABLES},
+        "thread_pools": _thread_pools(),
         "inputs": {
             k: {"path": str(Path(v).resolve()), "sha256": file_sha256(v)}
             for k, v in (inputs or {}).items()

@@ -141,6 +141,10 @@ def fit_dissertation_mlps(
         "kind": "dissertation",
         "method": "two ReLU MLPs (60-60 surface, 20 tumour), Adam lr 1e-5, MAE, full batch",
         "device": str(dev),
+        # review BI: on the CPU torch's reductions follow its thread count, so training is
+        # reproducible at equal counts only (one step's gradients differ by ~1e-7 between
+        # 1 and 2 threads)
+        "torch_threads": int(torch.get_num_threads()),
         "n_train": int(len(fit_idx)),
         "n_test": int(len(test_idx)),
         "test_scenarios": [int(i) for i in train.index[test_idx]],

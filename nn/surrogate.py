@@ -171,9 +171,30 @@ def _fit_meta(fit, data: SweepData) -> dict:
             "loads_per_m": train.load_per_m.tolist(),
             "failed_loads_per_m": data.failed_load_per_m.tolist(),
         },
-        "store": {"path": str(data.path), "plan": data.attrs.get("plan", {})},
+        "store": {
+            "path": str(data.path),
+            "plan": data.attrs.get("plan", {}),
+            # review BI: a store written again at the same path was still "the" store
+            "created_utc": (data.attrs.get("provenance") or {}).get("created_utc"),
+            "training_sha256": _training_digest(train),
+        },
         "report": fit.report,
     }
+
+
+def _training_digest(train: SweepData) -> str:
+    """SHA-256 of the training scenarios as read: numbers, loads, c1, displacements, tumour.
+
+    Little-endian float64 (int64 for the numbers) bytes in that order: two surrogates
+    trained on the same solutions carry the same digest whatever store they came from.
+    """
+    import hashlib
+
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(train.index, dtype="<i8").tobytes())
+    for a in (train.load_per_m, train.c1_pa, train.displacement_mm, train.tumour_mm):
+        h.update(np.ascontiguousarray(a, dtype="<f8").tobytes())
+    return h.hexdigest()
 
 
 class Surrogate:

@@ -473,6 +473,16 @@ class SweepStore:
         """
         self.group.attrs["status"] = "running"
 
+    def record_resume(self, record: dict) -> None:
+        """Append a later run's provenance record to the root ``resumes`` attribute.
+
+        ``provenance`` stays the creating run's; each run that solves scenarios of an
+        existing store adds its own record here (review BI: a resume with other code,
+        versions or thread counts left no trace).
+        """
+        resumes = list(self.attrs.get("resumes", []))
+        self.group.attrs["resumes"] = [*resumes, json.loads(json.dumps(record))]
+
     def set_status_attrs(self, status: str, summary: dict) -> None:
         """Set the root ``status`` and ``summary`` attributes."""
         self.group.attrs.update({"status": status, "summary": json.loads(json.dumps(summary))})

@@ -350,4 +350,8 @@ def _record(preset, p, seed, eff, phantom, mesh, disc, scans) -> dict:
         },  # fmt: skip
         "scans": scans,
         "versions": prov["versions"],
+        # review BI: twins of two commits (each phantom-calib 0.1.0) read alike, and a
+        # custom preset's settings were written as "custom" alone
+        "source": prov["source"],
+        "preset_settings": {k: v for k, v in asdict(p).items() if k != "effects"},
     }

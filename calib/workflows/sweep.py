@@ -329,8 +329,10 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
             threads=opts.threads,
         )
 
+    resumed = False
     try:
         if out.exists() and any(out.iterdir()) and not replacing:
+            resumed = True
             store = SweepStore.open(out)
             store.check_matches(
                 model, plan, chunk_size=opts.chunk_size, max_angle_deg=opts.max_angle_deg
@@ -359,6 +361,8 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
             # review BF: a resume that found lost chunks, killed, left "complete" with
             # scenarios pending
             store.mark_running()
+            if resumed:  # an existing store's run: its record beside the first
+                _record_resume(store, opts, model)
         if progress is not None:
             progress({"start": True, "done": 0, "total": pending})
         info = {"backend": opts.backend, "workers": 0}
@@ -380,6 +384,33 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
             store.unlock()
         if old is not None:
             old.unlock()
+
+
+def _record_resume(store, opts: SweepOptions, model) -> None:
+    """Add this run's provenance to the store's ``resumes``; warn where its code differs.
+
+    The scenarios the store holds then come from runs of other commits or library
+    versions: equal to round-off where the solver is the same, but not one run's numbers.
+    """
+    from ..io import provenance
+
+    prov = provenance(inputs=model.source, parameters=asdict(opts))
+    prov["versions"] |= _versions()
+    first = store.attrs.get("provenance") or {}
+    said = []
+    if (first.get("source") or {}).get("commit") != (prov["source"] or {}).get("commit"):
+        said.append("another phantom-calib commit")
+    if first.get("versions") is not None and first["versions"] != prov["versions"]:
+        changed = sorted(k for k, v in prov["versions"].items() if first["versions"].get(k, v) != v)
+        if changed:
+            said.append("other versions of " + ", ".join(changed))
+    if said:
+        log.warning(
+            "%s: resumed with %s than the run that created it: its scenarios come from "
+            "both (each run's record is in the store's `resumes`)",
+            *(store.path, " and ".join(said)),
+        )
+    store.record_resume(prov)
 
 
 def _create_new_store(out: Path, model, plan, cont, opts: SweepOptions):
@@ -452,7 +483,7 @@ def run_surrogate_train(
     """
     import nn
 
-    from ..io import atomic_write, check_out_file
+    from ..io import atomic_write, check_out_file, provenance
 
     if kind not in _KINDS:
         raise ValueError(f"unknown surrogate kind {kind!r}; choose ours or dissertation")
@@ -473,6 +504,11 @@ def run_surrogate_train(
         kw = {} if iterations is None else {"iterations": iterations}
         fit = nn.fit_dissertation_mlps(data, device=device, seed=seed, progress=progress, **kw)
     sur = nn.Surrogate.from_fit(fit, data)
+    # review BI: surrogate.json had no provenance (versions, commit, command, thread counts)
+    sur.meta["provenance"] = provenance(
+        parameters={"kind": kind, "device": device, "seed": seed, "iterations": iterations}
+    )
+    sur.meta["provenance"]["versions"] |= _versions()
     atomic_write(out, lambda p: nn.save_surrogate(sur, p))
     return sur.report
 

@@ -1,5 +1,6 @@
 """Runs as runs (``calib/io.py``, review AN): locks, records of a replaced fit, provenance."""
 
+import importlib.util
 import json
 import os
 from pathlib import Path
@@ -142,6 +143,30 @@ def test_provenance_can_run_the_command_again(tmp_path, monkeypatch):
     if (repo / ".git").exists():  # a source checkout (CI's clone is one)
         assert len(p["source"]["commit"]) == 40
         assert isinstance(p["source"]["uncommitted_edits"], bool)
+
+
+def test_provenance_names_the_libraries_and_thread_counts_that_set_the_numbers():
+    # review BI: mkl (PARDISO's last bits), the ingest chain, torch and zarr were missing
+    # from `versions`, and `threads` held the environment only (null where unset)
+    from importlib import metadata
+
+    import numpy as np  # noqa: F401  (its BLAS is loaded: threadpoolctl sees it)
+
+    from calib.io import provenance
+
+    p = provenance()
+    for name in ("mkl", "SimpleITK", "pydicom", "scikit-image", "trimesh", "torch", "zarr"):
+        assert name in p["versions"], name
+    assert p["versions"]["SimpleITK"] == metadata.version("SimpleITK")  # a dependency
+    pools = p["thread_pools"]
+    assert pools["cpu_count"] == os.cpu_count()
+    if importlib.util.find_spec("threadpoolctl") is not None:  # the dev extra has it
+        from threadpoolctl import threadpool_info
+
+        assert pools["pools"] and set(pools["pools"]) == {
+            lib["internal_api"] for lib in threadpool_info()
+        }
+        assert all(n >= 1 for n in pools["pools"].values())
 
 
 def test_an_interrupted_command_says_what_was_kept(monkeypatch, capsys):

@@ -54,6 +54,11 @@ def test_layout_and_record(twin_a):
     truth = json.loads((out / "truth" / "truth.json").read_text())
     assert truth == json.loads(json.dumps(record))
     assert (truth["preset"], truth["seed"]) == ("custom", 3)
+    # review BI: a custom preset's settings were not written, nor the commit
+    settings = truth["preset_settings"]
+    assert settings["spacing_mm"] == list(SMALL_PRESET.spacing_mm)
+    assert [p["name"] for p in settings["postures"]] == [p.name for p in SMALL_PRESET.postures]
+    assert "effects" not in settings and "source" in truth
     # The preset's default hides the dissertation's skin layer.
     assert truth["effects"]["active"] == ["skin"]
     assert truth["material"] == {"law": "neo-hookean", "c1_pa": 420.0, "c2_pa": 0.0, "nu": 0.499}

@@ -119,7 +119,11 @@ def test_warm_starts_save_newton_iterations(work, tmp_path):
     assert s["warm"]["newton_mean"] < s["cold"]["newton_mean"]
 
 
-def test_interrupted_sweep_resumes_to_the_same_numbers(work, reference, tmp_path):
+def test_interrupted_sweep_resumes_to_the_same_numbers(
+    work, reference, tmp_path, monkeypatch, caplog
+):
+    import calib.io
+
     out = tmp_path / "s"
     seen = []
 
@@ -133,13 +137,26 @@ def test_interrupted_sweep_resumes_to_the_same_numbers(work, reference, tmp_path
         run_sweep(work, out, PLAN, progress=stop_after_five)
     status = _read(out)[0]["results/status"]
     assert np.sum(status == 1) == 5 and not (out / ".lock").exists()
-    summary = run_sweep(work, out, PLAN)
+    # review BI: a resume by other code left the creating run's provenance alone; here
+    # the resume runs as if from another commit
+    first = _read(out)[1]["provenance"]
+    monkeypatch.setattr(
+        calib.io, "_source_revision", lambda: {"commit": "0" * 40, "uncommitted_edits": False}
+    )
+    with caplog.at_level("WARNING", logger="calib.workflows.sweep"):
+        summary = run_sweep(work, out, PLAN)
     assert summary["this_run"]["solved"] == 19 and summary["solved"] == 24
+    attrs = _read(out)[1]
+    assert attrs["provenance"] == first  # the creating run's
+    (resume,) = attrs["resumes"]
+    assert resume["source"]["commit"] == "0" * 40 and resume["parameters"]["chunk_size"] == 4
+    assert "resumed with another phantom-calib commit" in caplog.text
     # the same warm starts from the same stored states: the same bits (1e-9 mm asked)
     a, b = _read(out)[0], _read(reference[0])[0]
     assert np.abs(a["results/displacement_mm"] - b["results/displacement_mm"]).max() <= 1e-9
-    # a third run has nothing to do
+    # a third run has nothing to do, and adds no record
     assert run_sweep(work, out, PLAN)["this_run"]["solved"] == 0
+    assert len(_read(out)[1]["resumes"]) == 1
 
 
 def test_a_damaged_store_is_named_on_resume(work, reference, tmp_path):

@@ -24,6 +24,22 @@ def model_file(box_sweep, tmp_path_factory):
     return out
 
 
+def test_the_model_file_records_its_provenance_and_its_training_data(model_file, box_sweep):
+    # review BI: surrogate.json had no versions, commit, command or options, and named
+    # its store by the path alone (a store written again there was still "its" store)
+    meta = nn.load_surrogate(model_file).meta
+    prov = meta["provenance"]
+    assert prov["parameters"] == {"kind": "ours", "device": "cpu", "seed": 0, "iterations": None}
+    assert prov["versions"]["torch"] and "cpu_count" in prov["thread_pools"]
+    data = nn.load_sweep(box_sweep)
+    assert meta["store"]["created_utc"] == data.attrs["provenance"]["created_utc"]
+    train = data.subset(data.role == "train")
+    assert meta["store"]["training_sha256"] == nn.surrogate._training_digest(train)
+    # the digest follows the numbers: one displacement moved by 1e-12 mm changes it
+    train.displacement_mm[0, 0, 0] += 1e-12
+    assert meta["store"]["training_sha256"] != nn.surrogate._training_digest(train)
+
+
 def test_predict_vtu_and_ply(model_file, tmp_path):
     import meshio
 

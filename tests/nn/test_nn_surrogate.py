@@ -268,6 +268,8 @@ def test_baseline_training_is_seeded_and_learns(box_data):
     assert torch.equal(w0, w0b) and not torch.equal(w0, w1)
     # the 80 / 20 hold-out of the 46 training scenarios
     assert (f0.report["n_train"], f0.report["n_test"]) == (37, 9)
+    # review BI: bitwise only at one thread count, which the report says
+    assert f0.report["torch_threads"] == torch.get_num_threads()
     # the MAEs fall, slowly (Adam's steps are ~lr = 1e-5 per weight): ~2 % in 1000 steps
     f, w = weights(0, iterations=1000)
     hist = np.array(f.report["loss_history"])  # iteration, surface MAE, tumour MAE
