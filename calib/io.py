@@ -31,6 +31,7 @@ __all__ = [
     "check_run",
     "clean_stale",
     "file_sha256",
+    "input_records",
     "locking_work",
     "provenance",
     "run_id_of",
@@ -282,8 +283,40 @@ def _thread_pools() -> dict:
     return {"cpu_count": os.cpu_count(), "pools": pools}
 
 
-def provenance(*, inputs: dict[str, str | os.PathLike] | None = None, parameters=None) -> dict:
+def input_records(inputs: dict[str, str | os.PathLike]) -> dict[str, dict]:
+    """Each input file's absolute ``path`` and ``sha256``, taken now.
+
+    Take them when the inputs are read and give them to :func:`provenance` (review BI: a
+    record hashed at the end of a long run claimed the bytes of an input edited during
+    it, and called results of the old bytes current).
+
+    Parameters
+    ----------
+    inputs : dict of str to path
+        Files by the names the record gives them.
+
+    Returns
+    -------
+    dict of str to dict
+        ``{"path": absolute path, "sha256": hex digest}`` per name.
+
+    Raises
+    ------
+    FileNotFoundError
+        An input is missing.
+    """
+    return {
+        k: {"path": str(Path(v).resolve()), "sha256": file_sha256(v)} for k, v in inputs.items()
+    }
+
+
+def provenance(
+    *, inputs: dict[str, str | os.PathLike | dict] | None = None, parameters=None
+) -> dict:
     """A provenance record: time, versions, input file hashes and parameters.
+
+    ``inputs`` maps names to paths (hashed now) or to :func:`input_records` entries
+    (hashed when they were read).
 
     Paths are absolute and the working folder is recorded, so that the command can be
     run again from the record (review AN); ``source`` is the git commit the package runs
@@ -301,7 +334,7 @@ def provenance(*, inputs: dict[str, str | os.PathLike] | None = None, parameters
         "threads": {k: os.environ.get(k) for k in _THREAD_VARIABLES},
         "thread_pools": _thread_pools(),
         "inputs": {
-            k: {"path": str(Path(v).resolve()), "sha256": file_sha256(v)}
+            k: v if isinstance(v, dict) else input_records({k: v})[k]
             for k, v in (inputs or {}).items()
         },
         "parameters": parameters or {},

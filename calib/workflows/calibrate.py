@@ -28,6 +28,7 @@ from ..io import (
     StaleOutputError,
     check_out_apart,
     check_out_folder,
+    input_records,
     locking_work,
     provenance,
     run_id_of,
@@ -134,7 +135,9 @@ def write_calibration(
 ) -> dict:
     """Write ``WORK/calibration.json`` and ``WORK/calibration/`` as one run; return the record.
 
-    ``ingest_run_id`` is the ``WORK/scans`` run the measurements were read from (default:
+    ``inputs`` maps names to input paths or to :func:`calib.io.input_records` entries
+    taken when they were read. ``ingest_run_id`` is the ``WORK/scans`` run the
+    measurements were read from (default:
     the one there now); a WORK whose scans were ingested again since is refused
     (:class:`calib.io.StaleOutputError`: review AN, the record named scans it never
     fitted).
@@ -282,14 +285,16 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
         say(ingested.summary_table)  # as `phantom-calib ingest` prints it (review AX)
     meas = load_measurements(work, session)
     fitted_run = run_id_of(work / "scans")
+    # review BI: hashed as read, not when the record is written
+    inputs = input_records(
+        {"session": session.folder / "session.toml"}
+        | {f"{s.name}/ingest.json": work / "scans" / s.name / "ingest.json" for s in session.scans}
+    )
     calibration = fit(meas, options, density_kg_m3=session.density_kg_m3, progress=say)
     targets = [n for n, s in meas.scans.items() if s.role != "reference"]
     say(f"final state of {len(targets)} scans, error maps")
     evaluations = evaluate(calibration, meas, scans=targets)
     calibration = _with_posture_check(calibration, evaluations, say)
-    inputs = {"session": session.folder / "session.toml"} | {
-        f"{s.name}/ingest.json": work / "scans" / s.name / "ingest.json" for s in session.scans
-    }
     return write_calibration(
         work,
         calibration,

@@ -16,6 +16,7 @@ from ..io import (
     RunOutputs,
     check_out_apart,
     check_out_folder,
+    input_records,
     locking_work,
     provenance,
     write_json_atomic,
@@ -83,7 +84,9 @@ def _add_tracking(doc: dict, tracking, choice) -> None:
     }
 
 
-def write_ingest(work: str | Path, result: IngestResult) -> dict:
+def write_ingest(
+    work: str | Path, result: IngestResult, *, inputs: dict | None = None, session_record=None
+) -> dict:
     """Write an :class:`~calib.data.ingest.IngestResult` into ``work`` as one run.
 
     ``WORK/scans/`` is staged and swapped in whole, and ``WORK/ingest_summary.json`` (with
@@ -91,12 +94,28 @@ def write_ingest(work: str | Path, result: IngestResult) -> dict:
     is written last (:class:`calib.io.RunOutputs`): a failed or killed ingest leaves the
     previous results as they were, never a mix.
 
+    Parameters
+    ----------
+    work : str or Path
+        The work folder.
+    result : IngestResult
+        What :func:`calib.data.ingest.ingest_scans` made.
+    inputs : dict, optional
+        :func:`calib.data.ingest.ingest_inputs` of the session, taken before its scans
+        were read (default: now).
+    session_record : dict, optional
+        :func:`calib.io.input_records` of ``session.toml``, taken when it was read
+        (default: now).
+
     Returns
     -------
     dict
         The ``ingest_summary.json`` record.
     """
-    inputs = ingest_inputs(result.session)
+    if inputs is None:
+        inputs = ingest_inputs(result.session)
+    if session_record is None:
+        session_record = input_records({"session": result.session.folder / "session.toml"})
     with RunOutputs(work, folder="scans", record="ingest_summary.json") as run:
         for name, res in result.scans.items():
             _write_scan(
@@ -113,9 +132,7 @@ def write_ingest(work: str | Path, result: IngestResult) -> dict:
             {
                 "scans": {n: r.to_json() for n, r in result.registrations.items()},
                 "inputs": inputs,
-                "provenance": provenance(
-                    inputs={"session": result.session.folder / "session.toml"}
-                ),
+                "provenance": provenance(inputs=session_record),
             }
         )
 
@@ -140,6 +157,10 @@ def run_ingest(scans_dir: str | Path, work: str | Path, *, progress=None) -> Ing
     check_out_folder(work)  # before the work, not after it
     session = load_session(scans_dir)
     check_out_apart(work, session_inputs(session), what="the scan data")
+    # review BI: fingerprinted before they are read, so that a source changed during the
+    # run leaves results that later commands call stale (after, they were called current)
+    inputs = ingest_inputs(session)
+    session_record = input_records({"session": session.folder / "session.toml"})
     result = ingest_scans(session, progress=progress)
-    write_ingest(work, result)
+    write_ingest(work, result, inputs=inputs, session_record=session_record)
     return result

@@ -17,7 +17,7 @@ from fem.units import DEFAULT_DENSITY_KG_M3, STANDARD_GRAVITY_M_S2
 
 from ..choices import BackSupport
 from ..data.session import checked_density_kg_m3
-from ..io import atomic_write, provenance, write_json_atomic
+from ..io import atomic_write, input_records, provenance, write_json_atomic
 
 __all__ = ["SimulateOptions", "parse_back_plane", "parse_vector", "run_simulate"]
 
@@ -318,6 +318,7 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
     t0 = time.perf_counter()
     try:
         mesh, points = read_mesh(mesh_path, orient=False, return_input_points=True)
+        read = input_records({"mesh": mesh_path})  # review BI: hashed as read
         inverted = check_orientation(mesh, mesh_path)
         mesh = mesh.oriented()
         if mesh.n_tets == 0:
@@ -377,7 +378,7 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
         "dofs": sol.dofs,
         "wall_s": time.perf_counter() - t0,
         "formulation": sol.formulation,
-        "provenance": provenance(inputs={"mesh": mesh_path}, parameters=opts.__dict__),
+        "provenance": provenance(inputs=read, parameters=opts.__dict__),
     }
     json_path = out_path.with_suffix(".json")
     deformed, u = _in_file_numbering(mesh, points, sol.displacement_mm)

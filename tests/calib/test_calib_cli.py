@@ -69,6 +69,33 @@ def simulated(mesh_file, tmp_path_factory):
     return mesh_file, out, result
 
 
+def test_simulate_records_the_mesh_it_read_not_the_file_after_the_solve(
+    mesh_file, tmp_path, monkeypatch
+):
+    # review BI: inputs were hashed when the record was written; a mesh edited during the
+    # solve was recorded with its new bytes
+    import shutil
+
+    import fem
+    from calib.io import file_sha256
+
+    mesh = tmp_path / "phantom.vtu"
+    shutil.copy(mesh_file, mesh)
+    read_sha, real = file_sha256(mesh), fem.solve
+
+    def solve_then_edit(*args, **kw):
+        mesh.write_bytes(mesh.read_bytes() + b"\n<!-- edited -->\n")
+        return real(*args, **kw)
+
+    monkeypatch.setattr(fem, "solve", solve_then_edit)
+    out = tmp_path / "RESULT.vtu"
+    args = ["simulate", str(mesh), "--c1", "420", "--gravity", "1,0,0", "--out", str(out)]
+    assert CliRunner().invoke(app, args).exit_code == 0
+    recorded = json.loads(out.with_suffix(".json").read_text())["provenance"]["inputs"]["mesh"]
+    assert recorded == {"path": str(mesh.resolve()), "sha256": read_sha}
+    assert file_sha256(mesh) != read_sha
+
+
 def test_simulate_writes_result_and_summary(simulated):
     import meshio
 

@@ -202,3 +202,29 @@ def test_a_file_system_without_flock_runs_unlocked_and_says_so(tmp_path, monkeyp
     with work_lock(tmp_path, "validate"):
         pass
     assert "not locked" in caplog.text and not (tmp_path / ".lock").exists()
+
+
+def test_ingest_fingerprints_its_sources_before_it_reads_them(tmp_path, monkeypatch):
+    # review BI: the sources were hashed after the scans were processed, so a source
+    # changed during ingest was recorded with its new bytes and its results (made from the
+    # old ones) were called current by calibrate
+    from calib_helpers import make_scan_folder
+
+    import calib.workflows.ingest as ingest
+
+    calls = []
+    real = ingest.ingest_inputs
+
+    def inputs(session):
+        calls.append("fingerprint")
+        return real(session)
+
+    def scans(session, progress=None):
+        calls.append("read the scans")
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(ingest, "ingest_inputs", inputs)
+    monkeypatch.setattr(ingest, "ingest_scans", scans)
+    with pytest.raises(RuntimeError, match="stop here"):
+        ingest.run_ingest(make_scan_folder(tmp_path / "scans"), tmp_path / "work")
+    assert calls == ["fingerprint", "read the scans"]
