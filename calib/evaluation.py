@@ -22,7 +22,7 @@ import numpy as np
 import fem
 
 from .data.measurements import Measurements, ScanMeasurement
-from .stats.consistency import POSTURE_ALPHA
+from .stats.consistency import POSTURE_ALPHA, PostureConsistency
 from .stats.intervals import MIN_SERIES_POINTS, _json_number
 
 __all__ = [
@@ -331,7 +331,9 @@ MIN_SCAN_POINTS = MIN_SERIES_POINTS
 MIN_POSTURE_SENSITIVITY_SHARE = 0.01
 
 
-def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALPHA):
+def check_postures(
+    calibration, evaluations: dict, *, alpha: float = POSTURE_ALPHA
+) -> tuple[PostureConsistency, dict[int, str]] | None:
     """Posture consistency of a surface calibration: every solved scan's own c1.
 
     The residual of every scan with an FE solution (calibration and validation) at the
@@ -364,13 +366,16 @@ def check_postures(calibration, evaluations: dict, *, alpha: float = POSTURE_ALP
     ValueError
         A solved scan evaluated without its derivative (``gradient=False``).
     calib.stats.consistency.ConsistencyError
-        ``alpha`` outside (0, 1), or a scan whose c1 estimate has no interval (a
-        ``ValueError``); raised only once two scans are tested.
+        ``alpha`` outside (0, 1), whatever the scans (review BJ: it was found only once
+        two scans were tested); a scan whose c1 estimate has no interval (a
+        ``ValueError``).
     """
     from .model.residuals import scan_residuals
     from .stats import SurfaceSample
-    from .stats.consistency import posture_consistency
+    from .stats.consistency import ConsistencyError, posture_consistency
 
+    if not 0.0 < alpha < 1.0:
+        raise ConsistencyError(f"alpha must lie in (0, 1), got {alpha}")
     cal = _calibrator(calibration, "check_postures")
     if cal is None or calibration.objective != "surface":
         return None

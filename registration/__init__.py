@@ -12,8 +12,10 @@ from registration.correspondence import (
 )
 from registration.distances import (
     DistanceSummary,
-    PointError,
-    SurfaceError,
+    PointDistance,
+    PointError,  # noqa: F401  (former name, kept importable)
+    SurfaceDistances,
+    SurfaceError,  # noqa: F401  (former name, kept importable)
     closest_point_distances,
     hausdorff_mm,
     landmark_errors,
@@ -56,14 +58,14 @@ __all__ = [
     "IcpLevel",
     "IcpResult",
     "MarkerCountError",
-    "PointError",
+    "PointDistance",
     "PostureCheck",
     "PostureMismatchError",
     "PostureMismatchWarning",
     "RegistrationError",
     "RigidFit",
     "ScanRegistration",
-    "SurfaceError",
+    "SurfaceDistances",
     "angle_between_deg",
     "apply_transform",
     "check_marker_geometry",

@@ -31,8 +31,8 @@ __all__ = [
     "FRAMES",
     "DistanceSummary",
     "Frame",
-    "PointError",
-    "SurfaceError",
+    "PointDistance",
+    "SurfaceDistances",
     "closest_point_distances",
     "hausdorff_mm",
     "landmark_errors",
@@ -44,7 +44,7 @@ __all__ = [
 
 
 @dataclass(frozen=True, eq=False)
-class SurfaceError:
+class SurfaceDistances:
     """Distances from a moving surface's points to a fixed surface, in one frame.
 
     Attributes
@@ -72,7 +72,7 @@ class SurfaceError:
 
 
 @dataclass(frozen=True)
-class PointError:
+class PointDistance:
     """Error of one point (nipple, tumour, ...) in one frame.
 
     Attributes
@@ -116,7 +116,7 @@ def surface_errors(
     T_icp: np.ndarray | None = None,
     fixed_mask: np.ndarray | None = None,
     icp_options: dict | None = None,
-) -> dict[str, SurfaceError]:
+) -> dict[str, SurfaceDistances]:
     """Surface error of a moving point set against a fixed surface, in one or both frames.
 
     Parameters
@@ -141,7 +141,7 @@ def surface_errors(
 
     Returns
     -------
-    dict of str to SurfaceError
+    dict of str to SurfaceDistances
         Keyed by frame.
 
     Raises
@@ -177,7 +177,7 @@ def surface_errors(
             d, method = closest_point_distances(moved, fix), "point_to_point"
         else:
             d, method = point_to_surface_distances(moved, fix, fixed_faces), "point_to_surface"
-        out[fr] = SurfaceError(
+        out[fr] = SurfaceDistances(
             frame=fr,
             method=method,
             summary=summarise(np.abs(d), frame=fr),
@@ -194,7 +194,7 @@ def nipple_error(
     *,
     frames: Sequence[Frame] = FRAMES,
     T_icp: np.ndarray | None = None,
-) -> dict[str, PointError]:
+) -> dict[str, PointDistance]:
     """Compute the dissertation's nipple error: closest point-to-point distance of the nipple.
 
     Parameters
@@ -210,7 +210,7 @@ def nipple_error(
 
     Returns
     -------
-    dict of str to PointError
+    dict of str to PointDistance
         Keyed by frame.
 
     Raises
@@ -219,11 +219,14 @@ def nipple_error(
         A frame is unknown, ``"icp"`` is requested without ``T_icp``, or ``nipple_mm`` or
         ``surface_points_mm`` is not finite or not of its shape.
     """
-    p = _pts(np.reshape(nipple_mm, (1, 3)), "nipple_mm")
+    nipple = np.asarray(nipple_mm, dtype=float)
+    if nipple.size != 3:  # review BJ: the reshape's own ValueError came first
+        raise RegistrationError(f"nipple_mm must be one point (3,), got shape {nipple.shape}")
+    p = _pts(nipple.reshape(1, 3), "nipple_mm")
     out = {}
     for fr, T in _transforms(frames, T_icp).items():
         d = float(closest_point_distances(apply_transform(T, p), surface_points_mm)[0])
-        out[fr] = PointError("nipple", fr, "closest_point", d)
+        out[fr] = PointDistance("nipple", fr, "closest_point", d)
     return out
 
 
@@ -233,7 +236,7 @@ def landmark_errors(
     *,
     frames: Sequence[Frame] = ("fiducial",),
     T_icp: np.ndarray | None = None,
-) -> dict[str, dict[str, PointError]]:
+) -> dict[str, dict[str, PointDistance]]:
     """Landmark-to-landmark distances (e.g. nipple and tumour centre) for common names.
 
     Parameters
@@ -249,7 +252,7 @@ def landmark_errors(
 
     Returns
     -------
-    dict of str to dict of str to PointError
+    dict of str to dict of str to PointDistance
         ``result[frame][name]``.
 
     Raises
@@ -258,11 +261,17 @@ def landmark_errors(
         A frame is unknown, or ``"icp"`` is requested without ``T_icp``.
     """
     names = [n for n in moving_by_name if n in fixed_by_name]
-    out: dict[str, dict[str, PointError]] = {}
+    out: dict[str, dict[str, PointDistance]] = {}
     for fr, T in _transforms(frames, T_icp).items():
         out[fr] = {}
         for n in names:
             a = apply_transform(T, np.asarray(moving_by_name[n], dtype=float).reshape(3))
             b = np.asarray(fixed_by_name[n], dtype=float).reshape(3)
-            out[fr][n] = PointError(n, fr, "landmark", float(np.linalg.norm(a - b)))
+            out[fr][n] = PointDistance(n, fr, "landmark", float(np.linalg.norm(a - b)))
     return out
+
+
+#: Former names of :class:`SurfaceDistances` and :class:`PointDistance`, kept importable
+#: (review BJ: records named like exceptions, beside ``imaging.SurfaceError``, which is one)
+SurfaceError = SurfaceDistances
+PointError = PointDistance

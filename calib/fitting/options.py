@@ -7,6 +7,7 @@ import numbers
 from dataclasses import dataclass
 from typing import Literal, get_args
 
+from fem.discretize import Formulation
 from fem.meshing import check_max_dihedral_deg
 
 from ..model.residuals import OBJECTIVES
@@ -118,7 +119,7 @@ class CalibrationOptions:
     mesh_size_mm: float = 12.0
     mesh_retry_mm: tuple[float, ...] = (14.0, 16.0)  # when the reference cannot be unloaded
     mesh_max_dihedral_deg: float | None = None
-    formulation: str = "taylor-hood"
+    formulation: Formulation = "taylor-hood"
     nu: float = 0.499
     max_points: int = 3000
     c1_guess_pa: float = 500.0

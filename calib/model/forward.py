@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import fem
+from fem.discretize import Formulation
 from fem.fields import gravity_vector, vertex_displacement_mm
 from fem.prestress import (
     prestress_sensitivity,
@@ -122,7 +123,7 @@ class ForwardModel:
     nu: float = 0.499
     density_kg_m3: float = DEFAULT_DENSITY_KG_M3
     reference_state: str = "unload"
-    formulation: str = "taylor-hood"
+    formulation: Formulation = "taylor-hood"
     g_m_s2: float = STANDARD_GRAVITY_M_S2
     unload_method: str = "newton"
     spatial_fallback: bool = False

@@ -6,10 +6,12 @@ measured coverage; ``profile``: a noise level by height band; ``scores``: the mi
 test and effect screening; ``coverage``: cheap linear models on phantom-like geometry
 for the studies in ``benchmarks/bench_coverage.py``.
 
-Errors (all ``ValueError`` subclasses): :class:`NoiseModelError`, :class:`IntervalError`,
-:class:`ScreeningError`, :class:`SampleError`, :class:`UnknownKernelError`.
+Errors (all ``ValueError`` subclasses): :class:`ConsistencyError`, :class:`NoiseModelError`,
+:class:`IntervalError`, :class:`ScreeningError`, :class:`SampleError`,
+:class:`UnknownKernelError`.
 """
 
+from .consistency import ConsistencyError
 from .intervals import IntervalError, ParameterInterval, parameter_intervals, sandwich_covariance
 from .kernels import KERNELS, UnknownKernelError, correlation
 from .noise import NoiseFit, NoiseModel, NoiseModelError, Variogram, estimate_noise, whitener
@@ -18,6 +20,7 @@ from .sample import SampleError, SurfaceSample
 from .scores import EffectScreening, ModelFit, ScreeningError, misfit_test, screen_effects
 
 __all__ = [
+    "ConsistencyError",
     "KERNELS",
     "EffectScreening",
     "HeightProfile",

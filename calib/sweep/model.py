@@ -275,6 +275,9 @@ def load_sweep_model(work: str | Path) -> SweepModel:
         (:func:`calib.data.work.check_record`).
     calib.io.StaleOutputError
         ``calibration/`` is not from the run recorded in ``calibration.json``.
+    UnsupportedReferenceError
+        A prestressed reference whose record names no prestress files (a calibration
+        of an older version).
     """
     from ..data.work import check_record, not_a_folder
     from ..io import check_run

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 import fem
+from fem.discretize import Formulation
 from fem.geometry import PhantomSpec, build_phantom, sphere_surface
 from fem.meshing import mesh_phantom
 from fem.postures import random_scanner_pose
@@ -29,7 +30,15 @@ from ..choices import PresetName
 from ..io import check_out_folder, clean_stale, provenance, write_json_atomic
 from ..model.effects import TruthEffects, truth_model
 
-__all__ = ["PRESETS", "Posture", "PresetName", "TwinPreset", "scanner_poses", "synthesize"]
+__all__ = [
+    "DISSERTATION_POSTURES",
+    "PRESETS",
+    "Posture",
+    "PresetName",
+    "TwinPreset",
+    "scanner_poses",
+    "synthesize",
+]
 
 log = logging.getLogger(__name__)
 G_SCANNER = np.array([0.0, 1.0, 0.0])
@@ -68,7 +77,7 @@ class TwinPreset:
     snr: float = 30.0
     bias_amplitude: float = 0.2
     c1_pa: float = 420.0
-    formulation: str = "taylor-hood"
+    formulation: Formulation = "taylor-hood"
     postures: tuple[Posture, ...] = DISSERTATION_POSTURES
     effects: TruthEffects = field(
         default_factory=lambda: TruthEffects(skin_thickness_mm=1.5, skin_ratio=8.0)
@@ -212,7 +221,7 @@ def _write_truth_surface(path: Path, truth: _Truth, T) -> None:
 def synthesize(
     out: str | os.PathLike,
     *,
-    preset: str | TwinPreset = "quick",
+    preset: PresetName | TwinPreset = "quick",
     seed: int = 0,
     effects: TruthEffects | None = None,
     overwrite: bool = False,
@@ -223,10 +232,38 @@ def synthesize(
     The folder is assembled beside ``out`` and moved into place only when complete,
     so an interrupted run leaves no scan folder that looks complete.
 
+    Parameters
+    ----------
+    out : str or PathLike
+        The folder to write: ``OUT/scans/`` (DICOM series and ``session.toml``) and
+        ``OUT/truth/`` (``truth.json`` and each scan's true surface, ``.ply``).
+    preset : {"quick", "dissertation"} or TwinPreset
+        A named preset of :data:`PRESETS`, or a preset of one's own (recorded as
+        ``custom`` with its ``preset_settings``).
+    seed : int
+        Seed of the phantom's shape, the scanner poses, the tumour hint and the MR
+        renderer's noise and bias.
+    effects : TruthEffects, optional
+        The hidden effects (default: the preset's, a 1.5 mm skin 8 times stiffer).
+    overwrite : bool
+        Replace an existing ``out`` (else :class:`FileExistsError`).
+    progress : callable, optional
+        Called with a line of text at each step (default: the module's logger).
+
     Returns
     -------
     dict
         The truth record written to ``OUT/truth/truth.json``.
+
+    Raises
+    ------
+    ValueError
+        An unknown preset name.
+    FileExistsError
+        ``out`` exists and ``overwrite`` is false.
+    PermissionError, NotADirectoryError
+        ``out`` cannot be written (:func:`calib.io.check_out_folder`), checked before
+        the truth solves.
     """
     if isinstance(preset, TwinPreset):
         p, preset = preset, "custom"

@@ -141,6 +141,11 @@ def write_calibration(
     the one there now); a WORK whose scans were ingested again since is refused
     (:class:`calib.io.StaleOutputError`: review AN, the record named scans it never
     fitted).
+
+    Raises
+    ------
+    calib.io.StaleOutputError
+        ``WORK/scans`` holds another ingest run than ``ingest_run_id``; nothing written.
     """
     from fem.io import write_mesh
 

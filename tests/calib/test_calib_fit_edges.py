@@ -313,6 +313,12 @@ def test_a_scan_of_the_reference_posture_is_left_out_of_the_posture_test(measure
         evaluate(cal, scans=[])
     with pytest.raises(ValueError, match="without its derivative in ln c1"):
         check_postures(cal, plain)
+    # review BJ: an alpha outside (0, 1) returned None where fewer than two scans were
+    # tested (here none), as where no posture test applies
+    from calib.stats import ConsistencyError
+
+    with pytest.raises(ConsistencyError, match=r"alpha must lie in \(0, 1\), got 1.5"):
+        check_postures(cal, {}, alpha=1.5)
 
 
 def test_a_nipple_patch_too_small_is_refused_before_any_fe_work(measurements, monkeypatch):

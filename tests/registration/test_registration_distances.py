@@ -122,6 +122,9 @@ def test_surface_errors_in_both_frames(dome):
     assert ptp["icp"].method == "point_to_point" and ptp["icp"].summary.max_mm < 1e-3
     with pytest.raises(RegistrationError, match="no T_icp"):
         nipple_error(vertices[0], vertices, frames=("icp",))
+    # review BJ: two points for the nipple gave numpy's reshape error
+    with pytest.raises(RegistrationError, match=r"one point \(3,\), got shape \(2, 3\)"):
+        nipple_error(vertices[:2], vertices)
 
 
 def test_nipple_and_landmark_errors(dome):
