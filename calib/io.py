@@ -266,21 +266,20 @@ def _thread_pools() -> dict:
 
     Review BI: ``threads`` records the environment variables only, null where unset,
     when MKL and OpenMP take every core; the FE results' last bits depend on the counts
-    in use. ``pools`` maps each library's ``internal_api`` (mkl, openblas, openmp) to its
-    largest ``num_threads`` (threadpoolctl's view of the libraries loaded so far); null
-    where threadpoolctl is not installed.
+    in use. ``pools`` maps each library loaded so far, by threadpoolctl's ``prefix``
+    (``libmkl_rt``, ``libscipy_openblas``, ``libgomp``, ``libiomp``, ...), to its
+    ``internal_api`` and largest ``num_threads`` (review BK: keyed by the API, MKL's and
+    torch's OpenMP runtimes were one entry).
     """
-    try:
-        from threadpoolctl import threadpool_info
-    except ImportError:
-        pools = None
-    else:
-        pools = {}
-        for lib in threadpool_info():
-            api = str(lib.get("internal_api"))
-            pools[api] = max(pools.get(api, 0), int(lib.get("num_threads") or 0))
-        pools = dict(sorted(pools.items()))
-    return {"cpu_count": os.cpu_count(), "pools": pools}
+    from threadpoolctl import threadpool_info
+
+    pools: dict[str, dict] = {}
+    for lib in threadpool_info():
+        entry = pools.setdefault(
+            str(lib.get("prefix")), {"api": str(lib.get("internal_api")), "num_threads": 0}
+        )
+        entry["num_threads"] = max(entry["num_threads"], int(lib.get("num_threads") or 0))
+    return {"cpu_count": os.cpu_count(), "pools": dict(sorted(pools.items()))}
 
 
 def input_records(inputs: dict[str, str | os.PathLike]) -> dict[str, dict]:

@@ -205,6 +205,8 @@ def point_to_surface_distances(
     f = np.asarray(faces)
     if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0:
         raise RegistrationError(f"faces: expected a non-empty (f, 3) array, got shape {f.shape}")
+    if not np.issubdtype(f.dtype, np.integer):  # review BK: an IndexError from open3d's side
+        raise RegistrationError(f"faces: expected integer vertex indices, got {f.dtype}")
     if f.min() < 0 or f.max() >= v.shape[0]:
         raise RegistrationError(f"faces: indices must lie in [0, {v.shape[0]})")
     origin = v.mean(axis=0)  # centre before float32 to keep precision

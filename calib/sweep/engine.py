@@ -201,10 +201,8 @@ def _init_worker(threads: int) -> None:
     """
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[var] = str(threads)
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        return
+    from threadpoolctl import threadpool_limits  # a dependency
+
     threadpool_limits(limits=threads)  # for the life of the worker process
 
 

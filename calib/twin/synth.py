@@ -271,6 +271,7 @@ def synthesize(
         p = PRESETS[preset]
     else:
         raise ValueError(f"unknown preset {preset!r}; choose {sorted(PRESETS)}")
+    settings = _preset_settings(p)  # a value truth.json cannot hold fails before any work
     out = Path(out)
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out} exists; choose another folder or pass --overwrite")
@@ -280,13 +281,38 @@ def synthesize(
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        record = _build(tmp, p, preset, seed, eff, progress or (lambda msg: log.info(msg)))
+        record = _build(
+            tmp, p, preset, seed, eff, progress or (lambda msg: log.info(msg)), settings
+        )
         if out.exists():
             shutil.rmtree(out)
         os.replace(tmp, out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return record
+
+
+def _preset_settings(p: TwinPreset) -> dict:
+    """The preset's fields but its effects, as JSON values (numpy numbers as Python's).
+
+    Raises
+    ------
+    ValueError
+        A field that is not finite, or of a type JSON cannot hold (review BK: found when
+        ``truth.json`` was written, after every solve).
+    """
+    import json
+
+    def plain(value):
+        if isinstance(value, np.generic | np.ndarray):
+            return value.tolist()
+        raise TypeError(f"{type(value).__name__} is not a JSON value")
+
+    raw = {k: v for k, v in asdict(p).items() if k != "effects"}
+    try:
+        return json.loads(json.dumps(raw, default=plain, allow_nan=False))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"preset: a TwinPreset field truth.json cannot record ({exc})") from exc
 
 
 def _pose_rng(seed: int) -> np.random.Generator:
@@ -321,7 +347,9 @@ def scanner_poses(p: TwinPreset, seed: int) -> dict[str, np.ndarray]:
     )
 
 
-def _build(tmp: Path, p: TwinPreset, preset: str, seed: int, eff: TruthEffects, say) -> dict:
+def _build(
+    tmp: Path, p: TwinPreset, preset: str, seed: int, eff: TruthEffects, say, settings: dict
+) -> dict:
     import imaging
 
     t0 = time.perf_counter()
@@ -349,7 +377,9 @@ def _build(tmp: Path, p: TwinPreset, preset: str, seed: int, eff: TruthEffects, 
     ref = next(n for n, post in zip(scans, p.postures, strict=True) if post.role == "reference")
     hint = np.asarray(scans[ref]["tumour_lps_mm"]) + rng.normal(scale=1.5, size=3)
     (tmp / "scans" / "session.toml").write_text(_session_toml(p, hint))
-    record = _record(preset, p, seed, eff, phantom, mesh, disc, scans)
+    record = _record(preset, p, seed, eff, phantom, mesh, disc, scans) | {
+        "preset_settings": settings
+    }
     write_json_atomic(tmp / "truth" / "truth.json", record)
     say(f"done in {time.perf_counter() - t0:.1f} s")
     return record
@@ -390,5 +420,4 @@ def _record(preset, p, seed, eff, phantom, mesh, disc, scans) -> dict:
         # review BI: twins of two commits (each phantom-calib 0.1.0) read alike, and a
         # custom preset's settings were written as "custom" alone
         "source": prov["source"],
-        "preset_settings": {k: v for k, v in asdict(p).items() if k != "effects"},
     }

@@ -275,6 +275,8 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     work = Path(work)
     check_out_folder(work)
     session = load_session(scans_dir)
+    # review BI, BK: hashed as read, not when the record is written
+    session_read = input_records({"session": session.folder / "session.toml"})
     check_out_apart(work, session_inputs(session), what="the scan data")
     if not session.by_role("calibration"):
         raise SessionError(
@@ -290,10 +292,8 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
         say(ingested.summary_table)  # as `phantom-calib ingest` prints it (review AX)
     meas = load_measurements(work, session)
     fitted_run = run_id_of(work / "scans")
-    # review BI: hashed as read, not when the record is written
-    inputs = input_records(
-        {"session": session.folder / "session.toml"}
-        | {f"{s.name}/ingest.json": work / "scans" / s.name / "ingest.json" for s in session.scans}
+    inputs = session_read | input_records(
+        {f"{s.name}/ingest.json": work / "scans" / s.name / "ingest.json" for s in session.scans}
     )
     calibration = fit(meas, options, density_kg_m3=session.density_kg_m3, progress=say)
     targets = [n for n, s in meas.scans.items() if s.role != "reference"]

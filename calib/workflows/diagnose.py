@@ -22,7 +22,14 @@ import numpy as np
 
 from ..data.work import read_work
 from ..discrepancy import Diagnosis, DiagnosisOptions, diagnose
-from ..io import RunOutputs, atomic_write, check_work_writable, locking_work, provenance
+from ..io import (
+    RunOutputs,
+    atomic_write,
+    check_work_writable,
+    input_records,
+    locking_work,
+    provenance,
+)
 from ..report.diagnosis import (
     diagnosis_html,
     gap_figure,
@@ -45,8 +52,11 @@ def _law(values) -> str:
     return "neo-hookean (uncoupled), W = c1 (I1bar - 3) + U(J)"
 
 
-def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
+def write_refit(folder: Path, d: Diagnosis, doc: dict, *, calibration_record=None) -> dict:
     """The final model as a work folder (``calibration.json`` + ``calibration/`` + ``scans/``).
+
+    ``calibration_record`` is :func:`calib.io.input_records`' entry of the diagnosed
+    ``calibration.json``, taken when it was read (default: now).
 
     Returns
     -------
@@ -200,7 +210,7 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict) -> dict:
         }
         record["model"] = model
         record["provenance"] = provenance(
-            inputs={"calibration": Path(work.path) / "calibration.json"},
+            inputs={"calibration": calibration_record or Path(work.path) / "calibration.json"},
             parameters=(work.record.get("provenance") or {}).get("parameters", {}),
         )
         return run.commit(record)
@@ -253,21 +263,20 @@ def run_diagnosis(work, options: DiagnosisOptions | None = None, *, progress=Non
     say = progress or log.info
     t0 = time.perf_counter()
     wf = read_work(work)
+    read = input_records({"calibration": wf.path / "calibration.json"})  # review BK: as read
     check_work_writable(wf.path, f"{FOLDER}/ and {RECORD}")
     d = diagnose(wf, options, progress=say)
     doc = d.to_json()
     with RunOutputs(wf.path, folder=FOLDER, record=RECORD) as run:
         say("figures, report and the refitted model (diagnosis/refit/)")
         figures = _figures(run, d, doc)
-        write_refit(run.path("refit"), d, doc)
+        write_refit(run.path("refit"), d, doc, calibration_record=read["calibration"])
         atomic_write(run.path("report.html"), lambda p: p.write_text(diagnosis_html(doc, figures)))
         doc |= {
             "files": [f"{FOLDER}/report.html", f"{FOLDER}/refit/calibration.json"]
             + [f"{FOLDER}/{f}" for fs in figures.values() for f in fs],
             "calibration_run_id": wf.record.get("run_id"),
             "wall_s": time.perf_counter() - t0,
-            "provenance": provenance(
-                inputs={"calibration": wf.path / "calibration.json"}, parameters=doc["options"]
-            ),  # fmt: skip
+            "provenance": provenance(inputs=read, parameters=doc["options"]),
         }
         return run.commit(doc)

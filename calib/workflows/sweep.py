@@ -98,7 +98,8 @@ class SweepOptions:
         Raises
         ------
         ValueError
-            An unknown backend, fewer than 1 worker, thread or scenario per chunk, or a
+            An unknown backend, fewer than 1 worker, thread or scenario per chunk, a
+            ``max_angle_deg`` outside [0, 180] (or NaN), or a
             ``dask`` that is neither ``local`` nor a ``tcp://HOST:PORT`` address (its
             form only: whether a scheduler answers there is known when it is reached).
         calib.sweep.PlanError
@@ -131,6 +132,10 @@ class SweepOptions:
                     f"--dask must be 'local' or a scheduler address tcp://HOST:PORT, "
                     f"got {self.dask!r}"
                 )
+        if not 0.0 <= float(self.max_angle_deg) <= 180.0:  # review BK: NaN was accepted
+            raise ValueError(
+                f"max_angle_deg must be an angle in [0, 180] degrees, got {self.max_angle_deg!r}"
+            )
         if self.dask is not None and self.backend != "dask":  # review AW: it was ignored
             raise ValueError(f"--dask goes with backend 'dask', not {self.backend!r}")
         if self.dask not in (None, "local") and self.workers is not None:
@@ -361,8 +366,6 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
             # review BF: a resume that found lost chunks, killed, left "complete" with
             # scenarios pending
             store.mark_running()
-            if resumed:  # an existing store's run: its record beside the first
-                _record_resume(store, opts, model)
         if progress is not None:
             progress({"start": True, "done": 0, "total": pending})
         info = {"backend": opts.backend, "workers": 0}
@@ -371,6 +374,8 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
             if backend is None:
                 backend = start_backend()
             info = backend.describe()
+            if resumed:  # review BK: once its backend runs (a failed start solves nothing)
+                _record_resume(store, opts, model)
             run = run_scenarios(
                 model, store, backend, retry_failed=opts.retry_failed, progress=progress
             )
@@ -386,11 +391,21 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
             old.unlock()
 
 
+#: The distributions that set a sweep's numbers (the FE solve); a resume with other
+#: versions of these is said (review BK: torch or dask are not among them)
+_FE_PACKAGES = (
+    *("phantom-calib", "numpy", "scipy", "scikit-fem", "tetgen", "meshio", "pypardiso"),
+    "mkl",
+)
+
+
 def _record_resume(store, opts: SweepOptions, model) -> None:
     """Add this run's provenance to the store's ``resumes``; warn where its code differs.
 
-    The scenarios the store holds then come from runs of other commits or library
-    versions: equal to round-off where the solver is the same, but not one run's numbers.
+    The scenarios the store holds then come from runs of other commits, of uncommitted
+    edits, or of other versions of the FE's libraries (:data:`_FE_PACKAGES`): equal to
+    round-off where the solver is the same, but not one run's numbers. What the creating
+    run did not record (an older store's) is not compared.
     """
     from ..io import provenance
 
@@ -398,17 +413,22 @@ def _record_resume(store, opts: SweepOptions, model) -> None:
     prov["versions"] |= _versions()
     first = store.attrs.get("provenance") or {}
     said = []
-    if (first.get("source") or {}).get("commit") != (prov["source"] or {}).get("commit"):
+    was, now = first.get("source"), prov["source"]
+    if was and now and was.get("commit") != now.get("commit"):
         said.append("another phantom-calib commit")
-    if first.get("versions") is not None and first["versions"] != prov["versions"]:
-        changed = sorted(k for k, v in prov["versions"].items() if first["versions"].get(k, v) != v)
-        if changed:
-            said.append("other versions of " + ", ".join(changed))
+    elif was and now and (was.get("uncommitted_edits") or now.get("uncommitted_edits")):
+        said.append("uncommitted edits in a run (the code may differ)")
+    elif bool(was) != bool(now) and "source" in first:
+        said.append("phantom-calib from a checkout in one run and installed in the other")
+    old = first.get("versions") or {}
+    changed = [k for k in _FE_PACKAGES if k in old and old[k] != prov["versions"].get(k)]
+    if changed:
+        said.append("other versions of " + ", ".join(changed))
     if said:
         log.warning(
-            "%s: resumed with %s than the run that created it: its scenarios come from "
-            "both (each run's record is in the store's `resumes`)",
-            *(store.path, " and ".join(said)),
+            "%s: resumed by a run that differs from the one that created the store (%s): "
+            "its scenarios come from both (each run's record is in the store's `resumes`)",
+            *(store.path, "; ".join(said)),
         )
     store.record_resume(prov)
 

@@ -14,7 +14,14 @@ from pathlib import Path
 import numpy as np
 
 from ..data.work import WorkFolder, read_work
-from ..io import RunOutputs, atomic_write, check_work_writable, locking_work, provenance
+from ..io import (
+    RunOutputs,
+    atomic_write,
+    check_work_writable,
+    input_records,
+    locking_work,
+    provenance,
+)
 from ..report.maps import save_figure
 from ..report.validation import (
     error_by_displacement_figure,
@@ -106,6 +113,7 @@ def run_validation(work: str | Path, *, progress=None) -> dict:
     say = progress or log.info
     t0 = time.perf_counter()
     wf = read_work(work)
+    read = input_records({"calibration": wf.path / "calibration.json"})  # review BK: as read
     check_work_writable(wf.path, f"{FOLDER}/ and {RECORD}")
     say(f"validating {len(wf.states)} scans at c1 = {wf.c1_pa:.1f} Pa (saved states, no FE)")
     v = validate_work(wf)
@@ -121,6 +129,6 @@ def run_validation(work: str | Path, *, progress=None) -> dict:
             + [f"{FOLDER}/{f}" for fs in figures.values() for f in fs],
             "calibration_run_id": wf.record.get("run_id"),
             "wall_s": time.perf_counter() - t0,
-            "provenance": provenance(inputs={"calibration": wf.path / "calibration.json"}),
+            "provenance": provenance(inputs=read),
         }
         return run.commit(doc)

@@ -111,8 +111,9 @@ def test_recovers_known_c1(measurements, reference_state):
     assert hi - lo > unc.c1_ci95_pa[1] - unc.c1_ci95_pa[0]
 
 
-# the shortcut's column is slow (22 s in CI): the default suite's budget (~15 min) keeps
-# the unload one, which checks the same sensitivity code; `make test-all` runs both
+# the shortcut's column is slow (22 s in CI): for the default suite's budget (~15 min) its
+# derivative is checked there through the objective's gradient
+# (test_gradient_matches_central_differences[shortcut-surface]); `make test-all` runs both
 @pytest.mark.parametrize(
     "reference_state", ["unload", pytest.param("shortcut", marks=pytest.mark.slow)]
 )

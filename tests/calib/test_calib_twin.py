@@ -245,6 +245,23 @@ def test_unknown_preset(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_custom_preset_is_recorded_as_json_or_refused_before_any_work(tmp_path):
+    # review BK: preset_settings were written after every solve, and a NaN or a value JSON
+    # cannot hold failed there; numpy numbers are recorded as numbers
+    from dataclasses import replace
+
+    from calib.twin.synth import _preset_settings
+
+    p = replace(SMALL_PRESET, c1_pa=np.float64(420.0), spacing_mm=np.array([2.0, 2.0, 2.0]))
+    settings = _preset_settings(p)
+    assert settings["c1_pa"] == 420.0 and settings["spacing_mm"] == [2.0, 2.0, 2.0]
+    with pytest.raises(ValueError, match="a TwinPreset field truth.json cannot record"):
+        synthesize(tmp_path / "twin", preset=replace(SMALL_PRESET, snr=float("nan")))
+    with pytest.raises(ValueError, match="Path is not a JSON value"):
+        synthesize(tmp_path / "twin", preset=replace(SMALL_PRESET, snr=tmp_path))
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize(
     ("args", "pattern"),
     [

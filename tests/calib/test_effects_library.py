@@ -297,7 +297,6 @@ def test_recoveries_are_kept_by_effect_values_and_a_failed_warm_start_is_retried
     assert np.abs(X2 - X0).max() < np.abs(X1 - X0).max()
 
 
-@pytest.mark.slow  # 25 s in CI: the default suite's budget (~15 min); `make test-all`
 def test_a_recovery_after_the_support_changes_starts_from_rest(phantom, monkeypatch):
     # the clamped rim's stress-free reference is not unique: a recovery warm-started from
     # a plate on springs converged to another one (README), so a change of support drops

@@ -64,6 +64,9 @@ def no_reading(monkeypatch):
         ({"plan": "sphere:10", "holdout": 0.04}, "holds 0 out"),
         ({"c1_axis": "300:600"}, "--c1 must be LO:HI:N"),
         ({"c1_axis": "600:300:3"}, "need 0 < LO <= HI"),
+        # review BK: NaN was taken, and its store never matched itself on resume
+        ({"max_angle_deg": float("nan")}, r"max_angle_deg must be an angle in \[0, 180\]"),
+        ({"max_angle_deg": -1.0}, "got -1.0"),
     ],
 )
 def test_bad_options_are_refused_when_built(kw, match):

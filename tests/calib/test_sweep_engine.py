@@ -150,7 +150,9 @@ def test_interrupted_sweep_resumes_to_the_same_numbers(
     assert attrs["provenance"] == first  # the creating run's
     (resume,) = attrs["resumes"]
     assert resume["source"]["commit"] == "0" * 40 and resume["parameters"]["chunk_size"] == 4
-    assert "resumed with another phantom-calib commit" in caplog.text
+    assert "differs from the one that created the store (another phantom-calib commit)" in (
+        caplog.text
+    )
     # the same warm starts from the same stored states: the same bits (1e-9 mm asked)
     a, b = _read(out)[0], _read(reference[0])[0]
     assert np.abs(a["results/displacement_mm"] - b["results/displacement_mm"]).max() <= 1e-9
@@ -366,3 +368,60 @@ def test_cli_sweep(work, tmp_path):
         app, ["sweep", str(work), "--out", str(tmp_path / "s"), "--plan", "sphere:7", "--serial"]
     )
     assert res.exit_code == 2 and "another plan" in res.output
+
+
+class _FakeStore:
+    path = Path("store")
+
+    def __init__(self, first):
+        self.attrs, self.records = ({"provenance": first} if first is not None else {}), []
+
+    def record_resume(self, record):
+        self.records.append(record)
+
+
+@pytest.mark.parametrize(
+    ("first", "now", "said"),
+    [
+        # review BK: an older store's record (no source, fewer packages) is not compared
+        ({"versions": {}}, {"commit": "a", "uncommitted_edits": False}, None),
+        (None, {"commit": "a", "uncommitted_edits": False}, None),
+        # only the FE's libraries are compared (torch sets no sweep number)
+        (
+            {"source": {"commit": "a", "uncommitted_edits": False}, "versions": {"torch": "0"}},
+            {"commit": "a", "uncommitted_edits": False},
+            None,
+        ),
+        (
+            {"source": {"commit": "a", "uncommitted_edits": False}, "versions": {"numpy": "0"}},
+            {"commit": "a", "uncommitted_edits": False},
+            "other versions of numpy",
+        ),
+        # the same commit with edits may be other code
+        (
+            {"source": {"commit": "a", "uncommitted_edits": True}},
+            {"commit": "a", "uncommitted_edits": False},
+            "uncommitted edits in a run",
+        ),
+        ({"source": {"commit": "a", "uncommitted_edits": False}}, None, "installed in the other"),
+    ],
+)
+def test_a_resume_is_recorded_and_said_only_where_its_code_may_differ(
+    first, now, said, monkeypatch, caplog
+):
+    from types import SimpleNamespace
+
+    import calib.io
+    from calib.workflows.sweep import _record_resume
+
+    monkeypatch.setattr(calib.io, "_source_revision", lambda: now)
+    store = _FakeStore(first)
+    with caplog.at_level("WARNING", logger="calib.workflows.sweep"):
+        _record_resume(store, PLAN, SimpleNamespace(source={}))
+    (record,) = store.records
+    assert record["source"] == now and record["parameters"]["plan"] == "sphere:12"
+    if said is None:
+        assert not caplog.records
+    else:
+        (warning,) = caplog.records
+        assert said in warning.getMessage()

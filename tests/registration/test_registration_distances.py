@@ -78,6 +78,9 @@ def test_offset_planes():
     np.testing.assert_allclose(
         point_to_surface_distances(below, verts, faces[:, ::-1]), 4.5, atol=1e-5
     )  # the sign follows the winding
+    # review BK: float faces gave an IndexError, not the documented RegistrationError
+    with pytest.raises(RegistrationError, match="integer vertex indices, got float64"):
+        point_to_surface_distances(q, verts, faces + 0.5)
     upper = verts + [0.0, 0.0, 4.5]
     np.testing.assert_allclose(closest_point_distances(upper, verts), 4.5, atol=1e-12)
 
