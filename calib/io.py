@@ -227,8 +227,8 @@ def _version(name: str) -> str | None:
         return None
 
 
-#: Environment variables that set the thread counts (the FE results are bitwise
-#: reproducible at equal counts, README)
+#: Environment variables that set the thread counts (the FE results are reproducible to
+#: round-off at equal counts, bitwise for one sequence of solves: README)
 _THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 

@@ -8,7 +8,9 @@ writes the store, scenario by scenario (:class:`SweepStore.commit`). Pool worker
 one thread each (set when they start); Dask's nanny starts its workers with one thread
 each by default (``distributed.nanny.pre-spawn-environ``); the serial backend keeps the
 thread count of its process. PARDISO's results are bitwise reproducible for a fixed
-thread count (:mod:`fem.linalg`); across thread counts they differ in the last bits
+thread count and one sequence of solves (:mod:`fem.linalg`; a worker reuses the analysis
+of the first matrix it solved, so a scenario solved by another worker after others may
+differ in its last bits: review BI); across thread counts they differ in the last bits
 (1e-16 mm on the quick twin).
 
 Backends (:func:`make_backend`):
