@@ -41,7 +41,54 @@ FORMULATIONS = {
 
 @dataclass(frozen=True)
 class Discretization:
-    """Mesh-dependent data of one formulation (see module docstring for frames)."""
+    """Mesh-dependent data of one formulation (see module docstring for frames).
+
+    ``E`` elements, ``Q`` quadrature points per element, ``Au`` displacement and ``Ap``
+    pressure shape functions per element. The full unknown vector (``n_dofs``) holds the
+    displacements node-major (``3 * scalar dof + component``, solver frame, m), then the
+    pressures (Pa).
+
+    Attributes
+    ----------
+    mesh : TetMesh
+        The mesh the data belong to, model frame, mm (in a copy made by
+        :meth:`with_nodes`, on the moved nodes).
+    formulation : {"p1", "p2", "mini", "taylor-hood"}
+    R_solver_from_model : numpy.ndarray, shape (3, 3)
+        Rotation from the model frame to the solver frame: a plane support's outward
+        normal goes to -z; the identity without a plane support.
+    grad_u : numpy.ndarray, shape (E, Q, Au, 3)
+        Gradients of the displacement shape functions at the quadrature points, with
+        respect to the mesh's (undeformed) coordinates, solver frame, 1/m.
+    shape_u : numpy.ndarray, shape (E, Q, Au)
+        Values of the displacement shape functions at the quadrature points.
+    shape_p : numpy.ndarray, shape (E, Q, Ap), or None
+        Values of the pressure shape functions; None for ``p1`` and ``p2``.
+    weights : numpy.ndarray, shape (E, Q)
+        Quadrature weights times ``|det J|``, m^3.
+    udofs : numpy.ndarray of int, shape (E, Au)
+        Scalar displacement dof of each element's shape functions.
+    pdofs : numpy.ndarray of int, shape (E, Ap), or None
+        Pressure dof of each element's pressure functions (offset by ``3 * n_scalar_u``
+        in the full vector); None for ``p1`` and ``p2``.
+    n_scalar_u : int
+        Scalar displacement dofs (three unknowns each).
+    n_p : int
+        Pressure dofs (0 for ``p1`` and ``p2``).
+    fixed : numpy.ndarray of bool, shape (n_dofs,)
+        The Dirichlet (support) unknowns of the full vector.
+    pattern : Pattern
+        Sparsity of the reduced (free-unknown) matrix and the scatter map into it.
+    spring : scipy.sparse.csr_matrix, shape (n_dofs, n_dofs), or None
+        Summed spring matrix of the supports with springs, N/m (solver frame); None
+        without springs.
+    skfem_basis : skfem.Basis
+        Scalar displacement basis on the nodes given to :func:`discretize` (solver frame,
+        m; not moved by :meth:`with_nodes`: :meth:`basis` is on the current nodes).
+    spring_faces : tuple of (numpy.ndarray, Support)
+        The scikit-fem boundary facets and the support of every support with springs;
+        their matrix is assembled again on the current nodes by :meth:`with_nodes`.
+    """
 
     mesh: TetMesh
     formulation: str

@@ -154,7 +154,9 @@ class MeshQuality:
     n_tets, n_nodes : int
     min_volume_mm3, max_volume_mm3 : float
     max_radius_edge_ratio : float
-        Circumradius over shortest edge (1/sqrt(8)*sqrt(6)=0.612 for a regular tet).
+        Largest circumradius over shortest edge (sqrt(6)/4 = 0.612 for a regular tet).
+    mean_radius_edge_ratio : float
+        Mean of the same ratio over the elements (dimensionless).
     min_dihedral_deg, max_dihedral_deg : float
     n_inverted : int
         Elements with non-positive volume.

@@ -23,7 +23,14 @@ __all__ = ["Clamped", "Constrained", "ElasticSupport", "Model", "Sliding", "Supp
 
 @dataclass(frozen=True)
 class Clamped:
-    """All displacement components fixed on a node set (the dissertation's back plane)."""
+    """All displacement components fixed on a node set (the dissertation's back plane).
+
+    Attributes
+    ----------
+    node_set : str
+        Name of the mesh's node set whose boundary faces are held (every displacement
+        dof on those faces, P2 mid-side ones included).
+    """
 
     node_set: str = "back"
 
@@ -36,6 +43,19 @@ class Sliding:
     face (its boundary edge) is held in the plane as well (``hold="rim"``), as a
     phantom glued at its perimeter. ``hold="none"`` leaves the in-plane motion to
     ``tangent_stiffness_pa_per_mm`` springs, which must then be positive.
+
+    Attributes
+    ----------
+    node_set : str
+        Name of the mesh's node set holding the (planar) face; its least-squares plane's
+        outward normal is the direction held.
+    hold : {"rim", "none"}
+        ``"rim"``: the face's rim (its boundary edge, P2 mid-side dofs included) is held
+        in the plane too, so it does not move; ``"none"``: only the springs resist
+        in-plane motion.
+    tangent_stiffness_pa_per_mm : float
+        In-plane springs on the face per unit area (traction in Pa per mm of tangential
+        displacement); 0 for none (only with ``hold="rim"``).
     """
 
     node_set: str = "back"
@@ -51,7 +71,19 @@ class Sliding:
 
 @dataclass(frozen=True)
 class ElasticSupport:
-    """Distributed springs on a face: traction = -k u (stiffness per area, Pa/mm)."""
+    """Distributed springs on a face: traction = -k u (stiffness per area, Pa/mm).
+
+    Attributes
+    ----------
+    node_set : str
+        Name of the mesh's node set holding the (planar) face; normal and tangent are
+        those of its least-squares plane.
+    normal_stiffness_pa_per_mm : float
+        Spring stiffness per unit area along the face's normal: traction in Pa per mm of
+        normal displacement (> 0).
+    tangent_stiffness_pa_per_mm : float
+        The same in the face's plane, Pa/mm (>= 0).
+    """
 
     node_set: str = "back"
     normal_stiffness_pa_per_mm: float = 1.0e3
@@ -67,6 +99,15 @@ class Constrained:
     """Chosen displacement components (model-frame axes 0, 1, 2) fixed on a node set.
 
     Used for symmetry planes and for prescribed displacements (see ``fem.solve``).
+
+    Attributes
+    ----------
+    node_set : str
+        Name of the mesh's node set (its vertices and the P2 mid-side dofs of the edges
+        between them are held).
+    components : tuple of int
+        The fixed displacement components, a non-empty subset of (0, 1, 2): the model
+        frame's x, y, z (the mesh's own axes).
     """
 
     node_set: str

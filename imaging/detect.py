@@ -38,6 +38,23 @@ class FiducialDetection:
     ``centres_lps_mm`` (k, 3), ``radii_mm`` (k,) volume-equivalent,
     ``peak`` (k,) normalised peak intensity, and ``quality`` (``n_candidates``, ``threshold``,
     ``n_found``, ``n_dropped``).
+
+    Attributes
+    ----------
+    centres_lps_mm : numpy.ndarray, shape (k, 3)
+        Marker centres, scan LPS, mm: centroids weighted by the partial-volume fractions
+        above the blob's surroundings; sorted by L, then P, then S.
+    radii_mm : numpy.ndarray, shape (k,)
+        Volume-equivalent radius of each marker (from its summed partial-volume
+        fractions), mm.
+    peak : numpy.ndarray, shape (k,)
+        Highest value of the smoothed normalised image in each marker (body level = 1).
+    quality : dict
+        ``n_candidates`` (blobs over the threshold, not enclosed by tissue; with
+        ``apart``, those apart from the body),
+        ``threshold`` (the marker threshold used, times the body level), ``n_found``
+        (markers kept), ``n_dropped`` (a surplus left out by brightness), and ``apart``
+        (True, only where dim markers apart from the body were taken).
     """
 
     centres_lps_mm: np.ndarray
@@ -52,6 +69,24 @@ class InclusionDetection:
 
     ``centres_lps_mm`` (n, 3), ``diameters_mm`` (n,) volume-equivalent,
     ``contrast`` (n,) relative to the body level (positive: brighter), ``quality``.
+
+    Attributes
+    ----------
+    centres_lps_mm : numpy.ndarray, shape (n, 3)
+        Inclusion centres, scan LPS, mm: centroids weighted by the partial-volume
+        fractions; in the order found (bright ones before dark ones with
+        ``polarity="both"``).
+    diameters_mm : numpy.ndarray, shape (n,)
+        Volume-equivalent diameter of each inclusion, ``(6 V / pi)^(1/3)``, mm.
+    contrast : numpy.ndarray, shape (n,)
+        Signed difference of each inclusion's level from the body level on the normalised
+        image (body level about 1): a fraction of the body level, positive brighter.
+    quality : dict
+        ``body_level`` (median of the smoothed normalised image inside the body),
+        ``min_contrast``, ``noise_sd`` (robust sd of that image inside the body),
+        ``threshold`` (the contrast threshold used), ``n_found``, ``n_surface_layer``
+        (candidates left out as a surface layer's inner tail) and ``n_too_large``
+        (candidates past the largest diameter).
     """
 
     centres_lps_mm: np.ndarray
@@ -404,6 +439,19 @@ class InclusionMask:
 
     ``mask`` (uint8 Volume on the scan grid),
     ``centre_lps_mm`` (3,), ``diameter_mm`` (volume-equivalent), ``threshold`` (raw units).
+
+    Attributes
+    ----------
+    mask : Volume
+        uint8 volume on the scan's grid (its affine and source): 1 in the object, 0
+        elsewhere.
+    centre_lps_mm : numpy.ndarray, shape (3,)
+        Centroid of the object's voxels (unweighted), scan LPS, mm.
+    diameter_mm : float
+        Volume-equivalent diameter of the object's voxels, ``(6 V / pi)^(1/3)``, mm.
+    threshold : float
+        The local threshold on the lightly smoothed image, in the scan's own intensity
+        units: half-way between the seed's neighbourhood level and the box's median.
     """
 
     mask: Volume

@@ -33,6 +33,26 @@ class BackPlane:
     surface's largest plane (the flat back face), or None where none was checked;
     ``voxel_depth_mm``: the scan's slice thickness across the plate
     (:func:`voxel_depth_mm`; None where the volume is not known).
+
+    Attributes
+    ----------
+    point_lps_mm : numpy.ndarray, shape (3,)
+        A point of the plane on the body's flat back face, scan LPS, mm (the markers' or
+        the face band's centroid moved along the normal to the 1st percentile of the
+        surface vertices' heights).
+    normal : numpy.ndarray, shape (3,)
+        Unit normal, scan LPS, pointing from the plate into the body.
+    method : {"fiducials", "ransac"}
+        Whether the normal is the fiducials' plane's or the surface's largest plane's.
+    beyond_face : int
+        Surface vertices more than ``face_tol_mm`` past the flat back face, left out of
+        the plane's height.
+    fiducials_off_face_deg : float or None
+        Angle between the fiducials' plane and the surface's largest plane, degrees;
+        None where no (non-collinear) fiducials were given.
+    voxel_depth_mm : float or None
+        The scan's slice thickness across the plate, mm; None without the scan's voxel
+        matrix.
     """
 
     point_lps_mm: np.ndarray
@@ -49,6 +69,19 @@ class Nipple:
 
     ``position_lps_mm`` (3,), ``height_mm`` above the back plane,
     ``quality`` (``refined``, ``fit_rms_mm``, ``n_cap_vertices``, ``shift_from_apex_mm``).
+
+    Attributes
+    ----------
+    position_lps_mm : numpy.ndarray, shape (3,)
+        The nipple, scan LPS, mm.
+    height_mm : float
+        Its height above the back plane (along the plane's normal), mm.
+    quality : dict
+        ``method`` (``"protrusion"``, ``"far protrusion"`` or ``"apex"``),
+        ``protrusion_mm``, the quadratic fit's ``refined``, ``fit_rms_mm`` (mm),
+        ``n_cap_vertices`` and (where it was fitted) ``fall_mm``, ``cap_radius_mm`` (apex
+        only) and ``shift_from_apex_mm`` (from the highest vertex, mm); see
+        :func:`find_nipple`.
     """
 
     position_lps_mm: np.ndarray

@@ -39,6 +39,19 @@ class MRIntensities:
     moves the surface inward (mean 0.6 mm at 0.4 times); brighter than twice it (the
     marker level) its fragments that tissue does not enclose are cut out with the markers
     (review AF: 0.36 mm at 2.5 times, 0.77 before enclosed blobs were kept).
+
+    Attributes
+    ----------
+    background : float
+        Outside the body (air).
+    body : float
+        Bulk tissue; also the reference of the noise level (``snr``).
+    skin : float
+        The skin band (``skin_thickness_mm`` inside the body surface).
+    inclusion : float
+        Inside the inclusion surfaces.
+    marker : float
+        Inside the fiducial marker spheres.
     """
 
     background: float = 0.0
@@ -50,7 +63,17 @@ class MRIntensities:
 
 @dataclass(frozen=True, eq=False)
 class ScanGrid:
-    """Voxel grid of a scan: ``shape`` (ni, nj, nk) and ``affine_lps_from_index`` (4 x 4)."""
+    """Voxel grid of a scan: ``shape`` (ni, nj, nk) and ``affine_lps_from_index`` (4 x 4).
+
+    Attributes
+    ----------
+    shape : tuple of int, shape (3,)
+        Number of voxels along the index axes i, j (in-plane) and k (slices).
+    affine_lps_from_index : numpy.ndarray, shape (4, 4)
+        Maps voxel indices (i, j, k, 1) of voxel centres to scanner LPS, mm: direction
+        cosines times spacing (mm per voxel) in its columns, the centre of voxel (0, 0, 0)
+        as translation.
+    """
 
     shape: tuple[int, int, int]
     affine_lps_from_index: np.ndarray

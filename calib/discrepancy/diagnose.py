@@ -476,6 +476,9 @@ class Diagnosis:
     explained_floor_mm2 : float
         The noise floor on those points (the lowest any model tried leaves).
     unavailable : dict of str to str
+    options : DiagnosisOptions
+        The options the diagnosis ran with (the defaults where none were given), as
+        recorded in :meth:`to_json`'s ``options``.
     wall_s : float
     fe_solves : int
     final_states : dict

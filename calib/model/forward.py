@@ -75,7 +75,22 @@ class ReferenceRecoveryFailed(fem.ConvergenceError):
 
 @dataclass
 class ScanState:
-    """Converged state of one posture at the current theta (reused as warm start)."""
+    """Converged state of one posture at the current theta (reused as warm start).
+
+    Attributes
+    ----------
+    state : numpy.ndarray, shape (n_dofs,)
+        The solver's full unknown vector (:attr:`fem.Solution.state`: solver frame, SI;
+        displacement from the stress-free nodes, or from the loaded reference mesh when
+        the model is prestressed).
+    positions_mm : numpy.ndarray, shape (n_nodes, 3)
+        Deformed vertex positions, reference frame (the reference scan's LPS), mm.
+    dpositions_mm : numpy.ndarray, shape (n_nodes, 3), or None
+        ``d positions_mm / d theta``, mm per unit ``ln c1`` (reference frame), including
+        the stress-free geometry's own derivative; None where no gradient was asked for.
+    dstate : numpy.ndarray, shape (n_dofs,), or None
+        ``d state / d theta`` (solver frame, SI per unit ``ln c1``); None without gradient.
+    """
 
     state: np.ndarray
     positions_mm: np.ndarray  # deformed vertex positions, reference frame
@@ -93,13 +108,24 @@ class ForwardModel:
         The reference scan's mesh (loaded geometry, reference frame, mm).
     gravity_ref : ndarray, shape (3,)
         Gravity of the reference scan (unit, reference frame).
-    nu, density_kg_m3 : float
+    nu : float
+        Poisson's ratio of the homogeneous material (dimensionless).
+    density_kg_m3 : float
+        Density of the homogeneous material, kg/m^3.
     reference_state : {"unload", "prestress", "shortcut"}
         ``unload``: stress-free mesh with straight elements (inverse Newton);
         ``prestress``: the loaded mesh with the compatible prestress of a stress-free
         state with curved elements (:mod:`fem.prestress`, ``inverse``); ``shortcut``:
         the loaded scan taken as stress-free.
-    formulation : str
+    formulation : {"p1", "p2", "mini", "taylor-hood"}
+        Finite element formulation (:func:`fem.discretize`).
+    g_m_s2 : float
+        Magnitude of gravity, m/s^2, for the reference recovery and every posture.
+    unload_method : {"newton", "spatial", "fixed-point"}
+        How the stress-free reference is recovered: the inverse Newton with straight
+        elements, curved elements on the prestressed loaded mesh, or the fixed point.
+        Set to ``"spatial"`` by ``reference_state="prestress"``, and changed by the
+        fallbacks (logged); not used with ``"shortcut"``.
     spatial_fallback : bool
         ``unload``: when the inverse Newton fails, switch to the ``prestress``
         formulation for this and every later theta (logged; ``unload_method`` becomes
@@ -116,6 +142,20 @@ class ForwardModel:
         Whether the warning on vertex tetrahedra inverted at the clamped rim has been said
         in full; later recoveries say theirs in one line (review AX: three paragraphs in
         one calibration). The calibration's check meshes take the calibration's.
+
+    Attributes
+    ----------
+    solves : int
+        FE solves so far: one per posture solve, plus the forward solves of every
+        stress-free recovery (``ReferenceRecovery.iterations``).
+    inverted_reference_elements : int
+        Vertex tetrahedra with non-positive volume in the last recovered (or cached)
+        stress-free mesh (:attr:`fem.unload.ReferenceRecovery.inverted_elements`); 0
+        before any recovery.
+    current_dX : numpy.ndarray, shape (n_nodes, 3), or None
+        ``d stress-free vertex positions / d theta`` of the last :meth:`evaluate`, mm per
+        unit ``ln c1`` (reference frame); zeros without a gradient, for ``"shortcut"`` and
+        on the prestressed loaded mesh; None before any evaluation.
     """
 
     mesh: fem.TetMesh

@@ -155,7 +155,26 @@ class SimulatedSurface:
 
 @dataclass(frozen=True)
 class Residuals:
-    """Residuals ``r`` (mm) of one scan and ``dr/dtheta`` (mm per unit ln c1)."""
+    """Residuals ``r`` (mm) of one scan and ``dr/dtheta`` (mm per unit ln c1).
+
+    Attributes
+    ----------
+    r : numpy.ndarray, shape (k,)
+        The residuals, mm. ``surface``: signed distance of each measured point from the
+        simulated surface (positive outside it), plus the chord gap of a curved
+        :class:`SimulatedSurface`; ``nipple``: signed distance of the simulated nipple
+        node from the measured surface (positive outside it), k = 1; ``landmarks``:
+        simulated minus measured nipple, then tumour centre (where both are known), three
+        components each (reference frame).
+    dr : numpy.ndarray, shape (k,), or None
+        ``dr/dtheta``, mm per unit ``ln c1``; None where no position derivatives were
+        given.
+    points_mm : numpy.ndarray, shape (k, 3)
+        Where each residual lives, reference frame (the reference scan's LPS), mm: the
+        measured surface points (``surface``), the simulated nipple node (``nipple``), or
+        the simulated nipple and tumour centre, each repeated for its three components
+        (``landmarks``). For maps and correlation lengths.
+    """
 
     r: np.ndarray
     dr: np.ndarray | None

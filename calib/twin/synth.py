@@ -51,7 +51,20 @@ RENDERED_SPHERE_SUBDIVISIONS = 2
 
 @dataclass(frozen=True)
 class Posture:
-    """One scan of the experiment: name, nominal angle (deg) and session role."""
+    """One scan of the experiment: name, nominal angle (deg) and session role.
+
+    Attributes
+    ----------
+    name : str
+        The scan's name: its folder under ``OUT/scans/``, its DICOM series description
+        and its key in ``session.toml`` and ``truth.json``.
+    angle_deg : float
+        Nominal posture angle, degrees, in the transverse plane: the phantom-frame gravity
+        direction is ``(cos a, 0, sin a)`` (:func:`fem.postures.gravity_for_angle`) before
+        the random roll and tilt of :func:`fem.postures.random_scanner_pose`.
+    role : {"reference", "calibration", "validation"}
+        The scan's role in ``session.toml`` (:data:`calib.data.session.ROLES`).
+    """
 
     name: str
     angle_deg: float
@@ -68,7 +81,36 @@ DISSERTATION_POSTURES = (
 
 @dataclass(frozen=True)
 class TwinPreset:
-    """Resolution and imaging settings of a twin (see ``PRESETS``)."""
+    """Resolution and imaging settings of a twin (see ``PRESETS``).
+
+    Attributes
+    ----------
+    phantom_resolution_mm : float
+        Target edge length of the stress-free phantom's surface triangulation, mm
+        (:attr:`fem.geometry.PhantomSpec.resolution_mm`).
+    truth_mesh_mm : float
+        Element size of the truth model's tetrahedral mesh, mm.
+    spacing_mm : tuple of float, shape (3,)
+        Voxel spacing of the rendered scans along i, j (in-plane) and k (slices), mm; the
+        grid's axes are the scanner's L, P and S.
+    min_shape : tuple of int, shape (3,)
+        Smallest grid size in voxels along i, j, k (grown symmetrically); 0: no minimum.
+    snr : float
+        Body intensity over the standard deviation of the Rician noise; ``inf`` or 0 for
+        none.
+    bias_amplitude : float
+        Amplitude of the smooth multiplicative bias field (1 +- amplitude over the
+        phantom's bounding box; dimensionless).
+    c1_pa : float
+        The truth model's bulk ``c1``, Pa.
+    formulation : {"p1", "p2", "mini", "taylor-hood"}
+        Finite element formulation of the truth solves.
+    postures : tuple of Posture
+        The scans, in order (one of them the ``"reference"``).
+    effects : TruthEffects
+        The hidden effects of the truth model where :func:`synthesize` is given none
+        (default: a 1.5 mm skin 8 times stiffer than the bulk).
+    """
 
     phantom_resolution_mm: float
     truth_mesh_mm: float

@@ -39,6 +39,29 @@ class SimulateOptions:
 
     Every number is checked at construction (finite, in range), so a bad option fails
     before any file is read.
+
+    Attributes
+    ----------
+    c1_pa : float
+        Neo-Hookean ``c1`` of the homogeneous material, Pa (``--c1``; positive).
+    nu : float
+        Poisson's ratio, in (0, 0.5) (``--nu``; dimensionless).
+    density_kg_m3 : float
+        Density, kg/m^3 (``--density``; within the session's range).
+    gravity : tuple of float, shape (3,)
+        Gravity direction in the mesh file's frame (normalised by the solve; any length)
+        (``--gravity``).
+    g_m_s2 : float
+        Gravity's magnitude, m/s^2 (``--g``; positive).
+    bc : {"clamped", "sliding"}
+        Support of the back face: :class:`fem.Clamped`, or :class:`fem.Sliding` with its
+        rim held (``--bc``).
+    back_plane : str
+        ``"auto"`` (the mesh's own ``set:back``, else the detected flat face) or
+        ``"z=MM"`` (the boundary nodes at that z, mm, in the mesh file's frame)
+        (``--back-plane``).
+    formulation : {"p1", "p2", "mini", "taylor-hood"}
+        Finite element formulation (``--formulation``).
     """
 
     c1_pa: float
@@ -65,6 +88,15 @@ class SimulateOptions:
             if not np.isfinite(value) or not ok:
                 raise ValueError(f"{name} must be {expected}, got {value}")
         checked_density_kg_m3(self.density_kg_m3, "--density")  # the session's range
+        # found documenting its fields: the Python API's gravity was checked only in the solve,
+        # after the mesh was read (the command line's parse_vector checks it first)
+        try:
+            parse_vector(",".join(str(float(v)) for v in self.gravity))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(
+                f"--gravity must be a non-zero direction X,Y,Z of finite length, got "
+                f"{self.gravity!r}"
+            ) from exc
         if self.bc not in get_args(BackSupport):
             raise ValueError(f"--bc must be 'clamped' or 'sliding', got {self.bc!r}")
         if self.formulation not in fem.FORMULATIONS:

@@ -272,6 +272,10 @@ def test_simulate_options_name_the_flag_of_a_wrong_word():
         SimulateOptions(c1_pa=420.0, bc="glued")
     with pytest.raises(ValueError, match=r"--formulation must be one of"):
         SimulateOptions(c1_pa=420.0, formulation="q3")
+    # a gravity the solve cannot normalise is refused here, before the mesh is read
+    for gravity in [(0.0, 0.0, 0.0), (0.0, float("nan"), 1.0), (1.0, 0.0), "down"]:
+        with pytest.raises(ValueError, match=r"--gravity must be a non-zero direction"):
+            SimulateOptions(c1_pa=420.0, gravity=gravity)
 
 
 def test_simulate_missing_mesh(tmp_path):
