@@ -32,7 +32,8 @@ apart and shown in the table.
         [--rim-profile] [--model-error]
         [--mesh-series MM,...]
         [--mesh-size MM] [--mesh-max-dihedral DEG] [--parameter-limits]
-        [--sliding-springs PA_PER_MM] [--inclusion-ratio R]
+        [--sliding-springs PA_PER_MM] [--inclusion-ratio R] [--explained-margin MM|element]
+        [--inclusion-mesh MM]
 
 ``--mesh-size MM`` calibrates on that model mesh (default 14 mm, MM + 2 the retry);
 ``--mesh-max-dihedral DEG`` calibrates with TetGen's bound on the largest dihedral angle

@@ -26,8 +26,8 @@ the defaults and validated; the table gives the true and the recovered c1, wheth
 surface errors. The generator's own discretisation error (``--mesh-study``: its mesh at
 three sizes) bounds how close c1 can come.
 
-usage: python benchmarks/bench_independent.py --out DIR [--sets full,bare] [--seed 1]
-       [--seeds 1,2,3] [--mesh-study]
+usage: python benchmarks/bench_independent.py --out DIR [--sets full,bare]
+       [--seed 1 | --seeds 1,2,3] [--mesh-study]
 
 With ``--seeds`` each set is made and calibrated once per seed (``DIR/SET-seedK``; the
 postures' tilts, the scanner poses, the noise and the tumour hint change with it, the

@@ -48,7 +48,7 @@ def _spacings(text: str) -> list[tuple[float, float, float]]:
 def run_one(out: Path, spacing, seed: int, size_mm: float) -> dict:
     """Synthesize, ingest and calibrate one spacing; the figures of its table row."""
     name = "x".join(f"{s:g}" for s in spacing)
-    folder = out / name
+    folder = out / f"{name}-seed{seed}"  # review BL: another seed reused this seed's twin
     preset = replace(PRESETS["quick"], spacing_mm=spacing)
     truth = preset.c1_pa
     if not (folder / "twin" / "scans" / "session.toml").is_file():
