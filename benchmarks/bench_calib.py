@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _provenance import FE, IMAGING, print_header, short_commit
 
 from calib.fitting import CalibrationOptions
 from calib.fitting.options import mesh_check_ratios, parse_mesh_check
@@ -50,11 +51,19 @@ def _case_name(preset: str, effect: str, seed: int, o: CalibrationOptions) -> st
 
 
 def run_case(root: Path, preset: str, effect: str, seed: int, o: CalibrationOptions) -> dict:
-    """One synth -> ingest -> calibrate -> validate, with the truth beside (cached JSON)."""
+    """One synth -> ingest -> calibrate -> validate, with the truth beside (cached JSON).
+
+    A new case records ``source``, the commit it ran from (``calib.io.provenance``); a case
+    read back from ``root`` comes with ``cached: True`` (the table marks it: it was not
+    measured by this run, and may be from another commit).
+    """
     name = _case_name(preset, effect, seed, o)
     record = root / f"{name}.json"
     if record.is_file():
-        return json.loads(record.read_text())
+        return {**json.loads(record.read_text()), "cached": True}
+    from calib.io import provenance
+
+    source = provenance()["source"]  # the code this case runs (review BL)
     effects = parse_effects(effect.split(",") if effect else [], default=PRESETS[preset].effects)
     twin = root / f"{preset}-{effect or 'default'}-seed{seed}"
     t0 = time.perf_counter()
@@ -100,6 +109,7 @@ def run_case(root: Path, preset: str, effect: str, seed: int, o: CalibrationOpti
             for n, s in val["scans"].items()
         },
         "roles": {n: s["role"] for n, s in val["scans"].items()},
+        "source": source,
     }
     record.write_text(json.dumps(out, indent=2) + "\n")
     return out
@@ -119,8 +129,12 @@ def _print_case(r: dict) -> None:
     surf = " / ".join(f"{v:.2f}" for v in r["surface_mean_mm"].values())
     tumour = " / ".join("–" if v is None else f"{v:.2f}" for v in r.get("tumour_mm", {}).values())
     mesh = r["mesh"]
+    # a reused case is marked with the commit it was measured at (review BL)
+    case = r["case"] + (
+        f" (cached, commit {short_commit(r.get('source'))})" if r.get("cached") else ""
+    )
     print(
-        f"| {r['case']} | {mesh['n_tets']} ({mesh['size_mm']:g} mm) | {_recovery_cell(r)} "
+        f"| {case} | {mesh['n_tets']} ({mesh['size_mm']:g} mm) | {_recovery_cell(r)} "
         f"| {r['c1_pa']:.1f} ({ci_txt}) | {100 * r['relative_error']:+.1f} % | "
         f"{'yes' if r['covered'] else 'no'} | {_mesh_check_cell(r.get('mesh_check'))} | {fit} "
         f"| {opt} | {r['fe_solves']} | {r['ingest_s']:.0f} | {r['calibration_s']:.0f} | {surf} "
@@ -207,7 +221,7 @@ def main() -> None:
         mesh_check_ratio=args.mesh_check,
         profile_points=args.profile,
     )
-    print("command: python " + " ".join(shlex.quote(a) for a in sys.argv))
+    print_header((*FE, *IMAGING), command="python " + " ".join(shlex.quote(a) for a in sys.argv))
     print(
         "| case | model tets (size) | reference: recovery | c1 Pa (95 %) | error | truth inside "
         "| mesh check Pa | model fit | optimiser | FE solves | ingest s | calibration s "
@@ -224,6 +238,12 @@ def main() -> None:
                 _print_case(r)
                 rows.append(r)
     _summary(rows)
+    cached = [r for r in rows if r.get("cached")]
+    if cached:  # their times and results are not this run's (review BL)
+        print(
+            f"\n{len(cached)} of {len(rows)} cases reused from {args.twins} (cached): "
+            "measured by an earlier run, at the commit their row names"
+        )
 
 
 if __name__ == "__main__":

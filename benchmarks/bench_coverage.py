@@ -64,6 +64,7 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np
+from _provenance import print_header
 
 from calib.stats.consistency import posture_consistency
 from calib.stats.coverage import (
@@ -647,6 +648,7 @@ def main() -> None:
     args = ap.parse_args()
     draws = 200 if args.quick else args.draws
     tables = list(TABLES) if args.table == "all" else [args.table]
+    print_header(("numpy", "scipy"))
     t0 = time.perf_counter()
     print(f"bench_coverage: tables {tables}, {draws} draws per cell, seed {args.seed}, "
           f"numpy {np.__version__}")  # fmt: skip

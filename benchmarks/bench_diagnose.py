@@ -62,6 +62,10 @@ from pathlib import Path
 
 import numpy as np
 
+# benchmarks/_provenance.py: on the path when run as a script, not when imported by a test
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _provenance import FE, IMAGING, print_header, saved_commits
+
 TWIN_EFFECTS = ("skin", "inclusions", "mooney", "poisson", "density", "sliding")
 #: The sliding twin's plate rides on tangential springs of this stiffness (Pa/mm): the
 #: quick twin with a frictionless plate (``--effect sliding``) has no FE solution (on
@@ -957,7 +961,12 @@ def main() -> None:
         ap.error(f"{store} does not exist: run the matrix into --out first")
     if sizes and args.only and not args.out.is_dir():
         ap.error(f"--out {args.out} does not exist (--mesh-series --only reads case folders there)")
-    print("command:", " ".join([sys.executable, *sys.argv]))
+    saved = None
+    if args.table:  # the table only: every row was measured by an earlier run
+        saved = f"{store}/*.json: " + saved_commits(
+            json.loads(p.read_text()) for p in sorted(store.glob("*.json"))
+        )
+    prov = print_header((*FE, *IMAGING), command=" ".join([sys.executable, *sys.argv]), saved=saved)
     if not (reads or sizes):  # the matrix: its results go to OUT/cases
         store.mkdir(parents=True, exist_ok=True)
     if args.rim_profile:
@@ -976,11 +985,13 @@ def main() -> None:
         rows = [r for r in rows if keep is None or r["case"] in keep]
         _model_error_table(args.out, rows, args.inclusion_mesh)
         return
+    ran = set()  # the cases this run ran (the table also shows the earlier ones)
     if not args.table:
         for name, specs, seed, hidden in _cases(args):
             path = store / f"{name}.json"
             if path.is_file():
                 continue
+            ran.add(name)
             print(f"case {name}: synth -> calibrate -> diagnose", flush=True)
             row = run_case(
                 args.out,
@@ -997,6 +1008,7 @@ def main() -> None:
                 args.inclusion_mesh,
                 args.mesh_error,
             )
+            row["source"] = prov["source"]  # the code this case ran (review BL)
             path.write_text(json.dumps(row, indent=1))
             if row.get("failed"):
                 print(f"  FAILED {row['failed']}", flush=True)
@@ -1004,6 +1016,10 @@ def main() -> None:
             print(f"  {row['verdict']}; c1 {row['c1_refit_pa']:.1f} Pa; "
                   f"{row['diagnose_s']:.0f} s", flush=True)  # fmt: skip
     rows = [json.loads(p.read_text()) for p in sorted(store.glob("*.json"))]
+    earlier = [r for r in rows if r.get("case") not in ran]
+    if earlier and not args.table:  # finished cases read back, not run again (review BL)
+        print(f"{len(earlier)} of {len(rows)} cases below were run earlier, not by this run: "
+              f"{saved_commits(earlier)}")  # fmt: skip
     _table(rows)
 
 

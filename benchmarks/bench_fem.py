@@ -61,6 +61,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _provenance import FE, print_header
 
 import fem
 from fem.geometry import PhantomSpec, build_phantom
@@ -282,6 +283,7 @@ def main() -> None:
         ap.error("--peer-increments must be at least 1")
     if args.repeat < 1:
         ap.error("--repeat must be at least 1")
+    print_header((*FE, "felupe"))
     forms = _formulations(args.formulations.split(","), args.peers)
     ref = json.loads(REFERENCE.read_text())["nipple_mm"] if REFERENCE.exists() else None
     print(

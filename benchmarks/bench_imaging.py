@@ -18,6 +18,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_provenance.py
+
+from _provenance import IMAGING, print_header
 
 from imaging import (
     process_scan,
@@ -42,13 +45,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.repeat < 1:
         parser.error("--repeat must be >= 1")
-    from calib.io import provenance
-
-    prov = provenance()
-    print(f"command: {' '.join(sys.argv)}")
-    v = prov["versions"]
-    print(f"source: {prov['source']}; numpy {v['numpy']}, SimpleITK {v['SimpleITK']}, "
-          f"open3d-cpu {v['open3d-cpu']}; thread pools {prov['thread_pools']}")  # fmt: skip
+    print_header(("numpy", "scipy", *IMAGING))
     ph = make_test_phantom(semi_axes_mm=(70.0, 55.0, 50.0), n_inclusions=19, seed=args.seed)
     T = np.eye(4)
     T[:3, :3] = Rotation.from_euler("xyz", [5.0, -8.0, 20.0], degrees=True).as_matrix()

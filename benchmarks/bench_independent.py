@@ -44,6 +44,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _provenance import FE, IMAGING, print_header
 from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
@@ -391,6 +392,7 @@ def main() -> None:
         sys.exit("felupe is not installed: pip install .[bench] (GPL-3.0, a benchmark peer)")
     import calib
 
+    print_header((*FE, "felupe", *IMAGING))
     seeds = args.seeds or [args.seed]
     rows = []
     for name, seed in ((n, k) for n in args.sets for k in seeds):

@@ -25,6 +25,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from _provenance import FE, IMAGING, print_header
+
 from calib.fitting.options import CalibrationOptions
 from calib.model.effects import TruthEffects
 from calib.twin import PRESETS, synthesize
@@ -86,6 +88,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--mesh-size", type=float, default=14.0)
     args = ap.parse_args()
+    print_header((*FE, *IMAGING))
     rows = [run_one(args.out, sp, args.seed, args.mesh_size) for sp in args.spacings]
     print(f"null twin, seed {args.seed}, truth c1 420 Pa, {args.mesh_size:g} mm model mesh")
     print("spacing mm     c1 Pa   95 % interval      error  holds  sd mm  support  tol mm")

@@ -29,6 +29,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from _provenance import FE, print_header
 from bench_sweep import calibrated_twin, machine
 
 from fem.units import STANDARD_GRAVITY_M_S2
@@ -151,6 +152,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
     torch.set_num_threads(1)
+    print_header(("torch", "zarr", *FE))
     print(machine() + "; torch " + torch.__version__ + ", 1 thread")
     with tempfile.TemporaryDirectory() as tmp:
         root = args.root or Path(tmp)

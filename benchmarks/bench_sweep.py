@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _provenance import FE, print_header
 
 
 def calibrated_twin(root: Path) -> Path:
@@ -88,6 +89,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=2, help="runs of the warm-started pool")
     ap.add_argument("--skip-dask", action="store_true")
     args = ap.parse_args()
+    print_header((*FE, "zarr", "dask", "distributed"))
     print(machine())
     with tempfile.TemporaryDirectory() as tmp:
         root = args.root or Path(tmp)

@@ -36,6 +36,7 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+from _provenance import FE, IMAGING, print_header
 
 import calib.twin.synth as synth
 from calib.data.ingest import SIZE_SD_MM
@@ -267,6 +268,7 @@ def main() -> None:
         "--synthetic", type=int, metavar="N", help="instead: N random constellations per variant"
     )
     args = ap.parse_args()
+    print_header((*FE, *IMAGING))
     if args.synthetic:
         synthetic(100, args.synthetic)
         return

@@ -24,6 +24,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from _provenance import FE, IMAGING, print_header
 from scipy.spatial import cKDTree
 
 import fem
@@ -91,6 +92,7 @@ def main() -> None:
     ap.add_argument("--homogeneous", action="store_true", help="check the --effect none truth")
     ap.add_argument("--postures", default="", help="comma-separated subset (default: all)")
     args = ap.parse_args()
+    print_header((*FE, "meshio", *IMAGING))
     for preset in args.presets.split(","):
         if not args.skip_synth:
             print(f"{preset}: synth {time_synth(preset):.1f} s", flush=True)

@@ -31,6 +31,7 @@ import argparse
 import time
 
 import numpy as np
+from _provenance import FE, print_header
 
 import fem
 from calib.model.effects import TruthEffects, truth_model
@@ -72,6 +73,7 @@ def main() -> None:
         help="compare the twin's conforming mesh with a conforming one of this size (mm)",
     )
     args = ap.parse_args()
+    print_header(FE)
     p = PRESETS["quick"]
     print(f"quick twin, inclusions {args.ratio:g} x the bulk, c1 = {p.c1_pa:g} Pa")
     meshes = [("tagged", False, p.truth_mesh_mm), ("conforming", True, p.truth_mesh_mm)]

@@ -35,6 +35,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _provenance import print_header
 
 from fem.units import STANDARD_GRAVITY_M_S2
 
@@ -93,6 +94,10 @@ def main(argv=None) -> None:
         "--aa", choices=["0", "1"], help="force multisampling off/on (default: the page's choice)"
     )
     args = ap.parse_args(argv)
+    print_header(
+        ("numpy", "torch", "websocket-client"),
+        command=" ".join([sys.argv[0], *(sys.argv[1:] if argv is None else argv)]),
+    )
     from calib.viewer import load_scene, make_server
     from calib.viewer.headless import HeadlessBrowser
 
