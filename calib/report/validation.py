@@ -219,7 +219,7 @@ def outline_figure(
         mt = to_index(np.asarray(model_tumour_lps_mm, float)[None])[0]
     arr = np.asarray(mask.array) > 0
     sp = np.asarray(mask.spacing_mm, float)
-    fig = Figure(figsize=(12, 4.4), layout="constrained")
+    fig = Figure(figsize=(12, 5.0), layout="constrained")
     axes = fig.subplots(1, 3)
     for ax, axis in zip(axes, (2, 1, 0), strict=True):
         k = int(np.clip(round(c[axis]), 0, arr.shape[axis] - 1))
@@ -249,7 +249,9 @@ def outline_figure(
         ax.plot(*(c[rest] * sp[rest]), "+", color="#1f77b4", ms=11, mew=1.6)
         if mt is not None:
             ax.plot(*(mt[rest] * sp[rest]), "x", color="#d62728", ms=8, mew=1.6)
-        ax.set_aspect("equal")
+        # equal scales by the data limits: the boxes keep the layout's sizes, so the labels
+        # stay clear of the legend below (an adjusted box moved the first panel's)
+        ax.set_aspect("equal", adjustable="datalim")
         ax.set_title(f"slice {'ijk'[axis]} = {k} of the scan")
         # voxel index times spacing along the volume's axes, not patient directions
         ax.set_xlabel(f"along {'ijk'[rest[0]]} (mm)")
@@ -265,7 +267,10 @@ def outline_figure(
     if mt is not None:
         axes[0].plot([], [], "x", color="#d62728", ms=7, mew=1.6, label="simulated tumour "
                      "(projected on each slice)")  # fmt: skip
-    axes[0].legend(loc="lower left", fontsize=8)
+    # below the panels: inside the first one it hid part of the outlines it explains
+    fig.legend(
+        *axes[0].get_legend_handles_labels(), loc="outside lower center", ncols=4, fontsize=8
+    )
     fig.suptitle(f"{sv.name}: measured and simulated outlines through {centre} (scan frame)")
     return fig
 
