@@ -22,17 +22,6 @@ FE = ("numpy", "scipy", "scikit-fem", "tetgen", "pypardiso", "mkl")
 IMAGING = ("SimpleITK", "pydicom", "scikit-image", "open3d-cpu")
 
 
-def _version(name: str, known: dict) -> str | None:
-    if name in known:
-        return known[name]
-    from importlib import metadata
-
-    try:
-        return metadata.version(name)
-    except metadata.PackageNotFoundError:
-        return None
-
-
 def short_commit(source: dict | None) -> str:
     """``abc1234`` (``+edits`` where the tree had uncommitted edits), or ``unknown``."""
     if not source or not source.get("commit"):
@@ -75,13 +64,12 @@ def print_header(
     a mode that prints rows measured earlier, where they come from and their commits
     (the commit printed is then the printing code's, not the measuring code's).
     """
-    from calib.io import provenance
+    from calib.io import _version, provenance
 
     prov = provenance()
     print(f"command: {command if command is not None else ' '.join(sys.argv)}")
     print(f"source: {source_line(prov['source'])}")
-    v = prov["versions"]
-    libs = ", ".join(f"{n} {_version(n, v) or 'not installed'}" for n in names)
+    libs = ", ".join(f"{n} {_version(n) or 'not installed'}" for n in names)
     print(f"versions: python {prov['python']}, {libs}")
     pools = prov["thread_pools"]
     env = ", ".join(f"{k}={x}" for k, x in prov["threads"].items() if x is not None)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 from scipy import ndimage
@@ -23,12 +23,16 @@ __all__ = [
     "FiducialDetection",
     "InclusionDetection",
     "InclusionMask",
+    "Polarity",
     "detect_fiducials",
     "detect_inclusions",
     "segment_inclusion_at",
 ]
 
 log = logging.getLogger(__name__)
+#: Which inclusions :func:`detect_inclusions` looks for: brighter or darker than the body,
+#: or both.
+Polarity = Literal["bright", "dark", "both"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -323,7 +327,7 @@ def detect_inclusions(
     noise_sigmas: float = 4.5,
     diameter_range_mm: tuple[float, float] = (2.0, 15.0),
     edge_margin_mm: float = 2.0,
-    polarity: Literal["bright", "dark", "both"] = "bright",
+    polarity: Polarity = "bright",
 ) -> InclusionDetection:
     """Find compact regions of distinct intensity inside the body.
 
@@ -363,7 +367,7 @@ def detect_inclusions(
     ValueError
         ``polarity`` is not one of the three choices.
     """
-    if polarity not in ("bright", "dark", "both"):
+    if polarity not in get_args(Polarity):
         raise ValueError(f"polarity must be 'bright', 'dark' or 'both', got {polarity!r}")
     from skimage.segmentation import expand_labels
 

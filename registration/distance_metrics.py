@@ -7,7 +7,7 @@ name here; all distances are in millimetres, measured in the frame the inputs sh
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -26,7 +26,7 @@ __all__ = [
 #: A frame an error can be measured in (see :mod:`registration.distances`).
 Frame = Literal["fiducial", "icp"]
 #: Frames an error can be measured in.
-FRAMES: tuple[Frame, ...] = ("fiducial", "icp")
+FRAMES: tuple[Frame, ...] = get_args(Frame)
 
 
 def _check_frame(frame: str) -> Frame:

@@ -25,7 +25,11 @@ from registration.errors import (
     RegistrationError,
 )
 
-__all__ = ["RigidFit", "apply_transform", "check_marker_geometry", "fit_rigid"]
+__all__ = ["Correspondence", "RigidFit", "apply_transform", "check_marker_geometry", "fit_rigid"]
+
+#: How a scan's markers are paired with the reference's: in the order given, or by the
+#: best-fitting permutation.
+Correspondence = Literal["given", "auto"]
 
 log = logging.getLogger(__name__)
 
@@ -343,7 +347,7 @@ def fit_rigid(
     target_points: np.ndarray,
     *,
     weights: np.ndarray | None = None,
-    correspondence: Literal["given", "auto"] = "given",
+    correspondence: Correspondence = "given",
     ambiguity_margin_mm: float = 1.0,
     max_fre_mm: float | None = None,
     min_separation_mm: float = 1.0,

@@ -6,14 +6,13 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 
 from registration.distance_metrics import closest_point_distances, point_to_surface_distances
 from registration.errors import MarkerCountError, RegistrationError
 from registration.gravity import angle_between_deg, check_posture, gravity_in_reference
-from registration.rigid import apply_transform, fit_rigid
+from registration.rigid import Correspondence, apply_transform, fit_rigid
 
 __all__ = [
     "ScanRegistration",
@@ -168,7 +167,7 @@ def register_scans(
     landmarks_by_scan: dict[str, dict[str, np.ndarray]] | None = None,
     plate_normals_by_scan: dict[str, np.ndarray] | None = None,
     footprints_by_scan: dict[str, np.ndarray | tuple] | None = None,
-    correspondence: Literal["given", "auto"] = "auto",
+    correspondence: Correspondence = "auto",
     fle_mm: float | None = None,
     max_fre_mm: float | None = 2.0,
     ambiguity_margin_mm: float = 1.0,

@@ -91,12 +91,14 @@ class SimulateOptions:
         # found documenting its fields: the Python API's gravity was checked only in the solve,
         # after the mesh was read (the command line's parse_vector checks it first)
         try:
-            parse_vector(",".join(str(float(v)) for v in self.gravity))
-        except (TypeError, ValueError) as exc:
+            vec = tuple(float(v) for v in self.gravity)
+        except (TypeError, ValueError):
+            vec = ()
+        if not _nonzero_direction(vec):
             raise ValueError(
                 f"--gravity must be a non-zero direction X,Y,Z of finite length, got "
                 f"{self.gravity!r}"
-            ) from exc
+            )
         if self.bc not in get_args(BackSupport):
             raise ValueError(f"--bc must be 'clamped' or 'sliding', got {self.bc!r}")
         if self.formulation not in fem.FORMULATIONS:
@@ -106,17 +108,21 @@ class SimulateOptions:
         parse_back_plane(self.back_plane)
 
 
-def parse_vector(text: str) -> tuple[float, float, float]:
-    """Parse ``"X,Y,Z"`` into a non-zero 3-vector."""
-    parts = text.split(",")
-    try:
-        vec = tuple(float(p) for p in parts)
-    except ValueError:
-        vec = ()
+def _nonzero_direction(vec: tuple) -> bool:
+    """Whether ``vec`` is three finite numbers, not all zero, whose length is finite too."""
     # its length finite too: 0,0,1e300 passed, and a normalised load came out zero
     with np.errstate(over="ignore"):
         finite = len(vec) == 3 and np.all(np.isfinite(vec)) and np.isfinite(np.linalg.norm(vec))
-    if not finite or not np.any(vec):
+    return bool(finite and np.any(vec))
+
+
+def parse_vector(text: str) -> tuple[float, float, float]:
+    """Parse ``"X,Y,Z"`` into a non-zero 3-vector."""
+    try:
+        vec = tuple(float(p) for p in text.split(","))
+    except ValueError:
+        vec = ()
+    if not _nonzero_direction(vec):
         raise ValueError(f"expected a non-zero vector 'X,Y,Z' of finite length, got {text!r}")
     return vec  # type: ignore[return-value]
 

@@ -15,7 +15,6 @@ import re
 import shutil
 import time
 from dataclasses import asdict, dataclass
-from importlib import metadata
 from pathlib import Path
 from typing import Literal, get_args
 
@@ -145,14 +144,17 @@ class SweepOptions:
             )
 
 
-def _versions() -> dict:
-    out = {}
-    for p in ("zarr", "dask", "distributed", "torch", "threadpoolctl"):
-        try:
-            out[p] = metadata.version(p)
-        except metadata.PackageNotFoundError:
-            out[p] = None
-    return out
+#: The sweep's backends, whose versions its records add to :func:`calib.io.provenance`'s
+_BACKEND_PACKAGES = ("dask", "distributed", "threadpoolctl")
+
+
+def _provenance(**kw) -> dict:
+    """:func:`calib.io.provenance` with the versions of the sweep's backends too."""
+    from ..io import _version, provenance
+
+    prov = provenance(**kw)
+    prov["versions"] |= {p: _version(p) for p in _BACKEND_PACKAGES}
+    return prov
 
 
 def _has_distributed() -> bool:
@@ -407,10 +409,7 @@ def _record_resume(store, opts: SweepOptions, model) -> None:
     round-off where the solver is the same, but not one run's numbers. What the creating
     run did not record (an older store's) is not compared.
     """
-    from ..io import provenance
-
-    prov = provenance(inputs=model.source, parameters=asdict(opts))
-    prov["versions"] |= _versions()
+    prov = _provenance(inputs=model.source, parameters=asdict(opts))
     first = store.attrs.get("provenance") or {}
     said = []
     was, now = first.get("source"), prov["source"]
@@ -440,14 +439,11 @@ def _create_new_store(out: Path, model, plan, cont, opts: SweepOptions):
     """
     import fem
 
-    from ..io import provenance
-
     made = [p for p in (out.parent, *out.parent.parents) if not p.exists()]
     out.parent.mkdir(parents=True, exist_ok=True)
     try:
         disc = fem.discretize(model.tet_mesh(), fem.Clamped(), formulation=model.formulation)
-        prov = provenance(inputs=model.source, parameters=asdict(opts))
-        prov["versions"] |= _versions()
+        prov = _provenance(inputs=model.source, parameters=asdict(opts))
         return _create_store(out, model, plan, cont, disc.n_dofs, opts, prov)
     except BaseException:
         for p in made:  # deepest first
@@ -503,7 +499,7 @@ def run_surrogate_train(
     """
     import nn
 
-    from ..io import atomic_write, check_out_file, provenance
+    from ..io import atomic_write, check_out_file
 
     if kind not in _KINDS:
         raise ValueError(f"unknown surrogate kind {kind!r}; choose ours or dissertation")
@@ -525,10 +521,9 @@ def run_surrogate_train(
         fit = nn.fit_dissertation_mlps(data, device=device, seed=seed, progress=progress, **kw)
     sur = nn.Surrogate.from_fit(fit, data)
     # review BI: surrogate.json had no provenance (versions, commit, command, thread counts)
-    sur.meta["provenance"] = provenance(
+    sur.meta["provenance"] = _provenance(
         parameters={"kind": kind, "device": device, "seed": seed, "iterations": iterations}
     )
-    sur.meta["provenance"]["versions"] |= _versions()
     atomic_write(out, lambda p: nn.save_surrogate(sur, p))
     return sur.report
 
