@@ -309,6 +309,22 @@ def input_records(inputs: dict[str, str | os.PathLike]) -> dict[str, dict]:
     }
 
 
+def _entry() -> str:
+    """How this process was started: ``phantom-calib``, ``jupyter kernel`` or ``python``.
+
+    Review BI: in a notebook ``command`` (``sys.argv``) is the kernel's launcher and its
+    connection file, which runs nothing again; ``entry`` tells a reader so. ``python`` is
+    a script (``command`` is then its path and arguments) or an interactive interpreter.
+    """
+    argv0 = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else ""
+    main = sys.modules.get("__main__")
+    if argv0 == "phantom-calib" or getattr(main, "__package__", None) == "calib":
+        return "phantom-calib"
+    if "ipykernel" in sys.modules or argv0 == "ipykernel_launcher.py":
+        return "jupyter kernel"
+    return "python"
+
+
 def provenance(
     *, inputs: dict[str, str | os.PathLike | dict] | None = None, parameters=None
 ) -> dict:
@@ -318,7 +334,8 @@ def provenance(
     (hashed when they were read).
 
     Paths are absolute and the working folder is recorded, so that the command can be
-    run again from the record (review AN); ``source`` is the git commit the package runs
+    run again from the record (review AN); ``entry`` says whether ``command`` is
+    ``phantom-calib``'s, a script's or a Jupyter kernel's launcher (:func:`_entry`); ``source`` is the git commit the package runs
     from (None outside a checkout), ``threads`` the thread-count variables,
     ``thread_pools`` the counts in use (:func:`_thread_pools`).
     """
@@ -329,6 +346,7 @@ def provenance(
         "versions": {p: _version(p) for p in _PACKAGES},
         "source": _source_revision(),
         "command": sys.argv,
+        "entry": _entry(),
         "cwd": os.getcwd(),
         "threads": {k: os.environ.get(k) for k in _THREAD_VARIABLES},
         "thread_pools": _thread_pools(),

@@ -431,6 +431,7 @@ def _record(preset, p, seed, eff, phantom, mesh, disc, scans) -> dict:
     prov = provenance(parameters={"preset": preset, "seed": seed})
     prov.pop("created_utc")  # the truth must be identical for identical seeds
     prov.pop("command")
+    prov.pop("entry")  # CLI or API: the same truth
     return {
         "preset": preset,
         "seed": seed,

@@ -144,6 +144,30 @@ def test_provenance_can_run_the_command_again(tmp_path, monkeypatch):
         assert isinstance(p["source"]["uncommitted_edits"], bool)
 
 
+@pytest.mark.parametrize(
+    ("argv", "kernel", "entry"),
+    [
+        (["/venv/bin/phantom-calib", "calibrate", "scans", "work"], False, "phantom-calib"),
+        (["/home/u/run_all.py", "--fast"], False, "python"),
+        (["/venv/lib/ipykernel_launcher.py", "-f", "/run/kernel-1.json"], True, "jupyter kernel"),
+    ],
+)
+def test_provenance_says_whether_its_command_can_be_run_again(monkeypatch, argv, kernel, entry):
+    # review BI: in a notebook `command` is the kernel's launcher, which runs nothing again
+    import sys
+    import types
+
+    from calib.io import provenance
+
+    monkeypatch.setattr(sys, "argv", argv)
+    if kernel:
+        monkeypatch.setitem(sys.modules, "ipykernel", types.ModuleType("ipykernel"))
+    else:
+        monkeypatch.delitem(sys.modules, "ipykernel", raising=False)
+    p = provenance()
+    assert p["command"] == argv and p["entry"] == entry
+
+
 def test_provenance_names_the_libraries_and_thread_counts_that_set_the_numbers():
     # review BI: mkl (PARDISO's last bits), the ingest chain, torch and zarr were missing
     # from `versions`, and `threads` held the environment only (null where unset)
