@@ -334,6 +334,19 @@ def _in_file_numbering(mesh: fem.TetMesh, points, u_mm: np.ndarray):
     return out, u
 
 
+def _mesh_files(mesh_path: str | Path) -> dict[str, Path]:
+    """The files a mesh is read from: ``mesh``, and a TetGen mesh's other file.
+
+    Review BK: a TetGen mesh is a ``.node`` and an ``.ele`` file, and only the one named
+    was hashed (``mesh_companion`` is the other).
+    """
+    path = Path(mesh_path)
+    other = {".node": ".ele", ".ele": ".node"}.get(path.suffix.lower())
+    if other is None:
+        return {"mesh": path}
+    return {"mesh": path, "mesh_companion": path.with_name(path.stem + other)}
+
+
 def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict:
     """Solve the gravity load on a mesh file and write ``out_path`` and its ``.json``.
 
@@ -356,7 +369,7 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
     t0 = time.perf_counter()
     try:
         mesh, points = read_mesh(mesh_path, orient=False, return_input_points=True)
-        read = input_records({"mesh": mesh_path})  # review BI: hashed as read
+        read = input_records(_mesh_files(mesh_path))  # review BI: hashed as read
         inverted = check_orientation(mesh, mesh_path)
         mesh = mesh.oriented()
         if mesh.n_tets == 0:

@@ -96,6 +96,24 @@ def test_simulate_records_the_mesh_it_read_not_the_file_after_the_solve(
     assert file_sha256(mesh) != read_sha
 
 
+def test_simulate_records_both_files_of_a_tetgen_mesh(mesh_file, tmp_path):
+    # review BK: of a TetGen mesh only the named file was hashed; the .ele holds the tets
+    from calib.io import file_sha256
+    from fem.io import read_mesh, write_mesh
+
+    write_mesh(read_mesh(mesh_file), tmp_path / "phantom.node")
+    node, ele = tmp_path / "phantom.node", tmp_path / "phantom.ele"
+    out = tmp_path / "RESULT.vtu"
+    args = ["simulate", str(ele), "--c1", "420", "--gravity", "1,0,0", "--out", str(out)]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    inputs = json.loads(out.with_suffix(".json").read_text())["provenance"]["inputs"]
+    assert inputs == {
+        "mesh": {"path": str(ele.resolve()), "sha256": file_sha256(ele)},
+        "mesh_companion": {"path": str(node.resolve()), "sha256": file_sha256(node)},
+    }
+
+
 def test_simulate_writes_result_and_summary(simulated):
     import meshio
 
