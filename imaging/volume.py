@@ -125,7 +125,8 @@ class Volume:
         Parameters
         ----------
         points_lps_mm : (N, 3) float
-            Points in the patient LPS frame, mm; a single ``(3,)`` point is accepted too.
+            Points in the patient LPS frame, mm. Any shape ``(..., 3)`` is accepted, as
+            by :meth:`index_to_lps`.
 
         Returns
         -------
@@ -136,7 +137,8 @@ class Volume:
         """
         p = np.asarray(points_lps_mm, dtype=float)
         A = self.affine_lps_from_index
-        return np.linalg.solve(A[:3, :3], (p - A[:3, 3]).T).T
+        # review BJ: solve() on the transposed points took (3,) and (N, 3) only
+        return (p - A[:3, 3]) @ np.linalg.inv(A[:3, :3]).T
 
     def with_array(self, array: np.ndarray, *, source: str | None = None) -> Volume:
         """Return a volume on the same grid with another array of the same shape."""

@@ -38,6 +38,13 @@ def test_index_lps_round_trip(small_volume):
     np.testing.assert_allclose(p[0], [1.0, -2.0, 3.0])
     np.testing.assert_allclose(small_volume.lps_to_index(p), ijk, atol=1e-12)
     np.testing.assert_allclose(small_volume.spacing_mm, [0.8, 0.9, 1.5])
+    # both ways take any (..., 3) (review BJ: lps_to_index took (3,) and (N, 3) only);
+    # the tolerance: round-off of a 3x3 inverse on indices of order 10
+    grid = np.stack(np.meshgrid([0.0, 2.5], [1.0, 4.0, 7.5], [3.0], indexing="ij"), -1)
+    back = small_volume.lps_to_index(small_volume.index_to_lps(grid))
+    assert back.shape == grid.shape == (2, 3, 1, 3)
+    np.testing.assert_allclose(back, grid, atol=1e-12)
+    np.testing.assert_allclose(small_volume.lps_to_index(p[1]), ijk[1], atol=1e-12)
 
 
 def test_dicom_round_trip_and_determinism(small_volume, tmp_path):
