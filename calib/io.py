@@ -335,8 +335,9 @@ def provenance(
 
     Paths are absolute and the working folder is recorded, so that the command can be
     run again from the record (review AN); ``entry`` says whether ``command`` is
-    ``phantom-calib``'s, a script's or a Jupyter kernel's launcher (:func:`_entry`); ``source`` is the git commit the package runs
-    from (None outside a checkout), ``threads`` the thread-count variables,
+    ``phantom-calib``'s, a script's or a Jupyter kernel's launcher (:func:`_entry`);
+    ``source`` is the git commit the package runs from (None outside a checkout),
+    ``threads`` the thread-count variables,
     ``thread_pools`` the counts in use (:func:`_thread_pools`).
     """
     return {

@@ -470,6 +470,39 @@ def enclosed_blobs(normalised: np.ndarray, bright: np.ndarray) -> np.ndarray:
     return out
 
 
+#: Segmentations at most, each from the bias-corrected body of the one before, while the
+#: body reaches a face of its crop inside the volume (review BM).
+CROP_PASSES = 3
+
+
+def _cut_faces(body: np.ndarray, crop, shape) -> list[str]:
+    """The faces of ``crop`` inside the volume that ``body`` (crop coordinates) reaches.
+
+    Named ``"axis 1 low"`` and so on; a face that is the volume's own is the field of
+    view's (``imaging.pipeline`` reports those), not the crop's.
+    """
+    out = []
+    for ax, (c, n) in enumerate(zip(crop, shape, strict=True)):
+        if c.start > 0 and np.take(body, 0, axis=ax).any():
+            out.append(f"axis {ax} low")
+        if c.stop < n and np.take(body, -1, axis=ax).any():
+            out.append(f"axis {ax} high")
+    return out
+
+
+def _union(a, b):
+    """The smallest box holding the boxes (tuples of slices) ``a`` and ``b``."""
+    return tuple(
+        slice(min(x.start, y.start), max(x.stop, y.stop)) for x, y in zip(a, b, strict=True)
+    )
+
+
+def _held_beyond(field: np.ndarray, crop, shape) -> np.ndarray:
+    """``field`` (on ``crop``) over the whole volume, held at the crop's faces beyond it."""
+    widths = [(c.start, n - c.stop) for c, n in zip(crop, shape, strict=True)]
+    return np.pad(field, widths, mode="edge")
+
+
 def segment_body(
     volume: Volume,
     *,
@@ -520,21 +553,60 @@ def segment_body(
         msg = "%s: the background lies at %.3g (%.2f of the body's %.3g), not at 0: subtracted"
         log.warning(msg, src, offset, offset / level, level)
         arr, smooth = arr - offset, smooth - offset
-    crop = _with_far_markers(
-        _crop_box(coarse, np.ceil(margin_mm / sp).astype(int)),
-        smooth > marker_ratio * float(np.median(smooth[coarse])),
-        volume.voxel_volume_mm3,
-        np.ceil(MARKER_PAD_MM / sp).astype(int),
-        src,
-    )
-    a = arr[crop]
-    g = ndimage.gaussian_filter(a, sigma)
-    inner = _eroded(coarse[crop], sp)
-    if inner.sum() < 50:
-        inner = coarse[crop]
+    # review BM: the crop and the bias fit's region came from the uncorrected Otsu mask, so
+    # under a coil bias the contract accepts (a field of 4-8 over the body) the dim end
+    # fell out of it and the body was cut flat at the crop's face, scored as surface. The
+    # segmentation is made again from the corrected body while it touches a face of its
+    # crop that is not one of the volume's.
+    # Markers beyond the margin are looked for again on the corrected image (the field held
+    # at its value on the crop's faces beyond them): one the bias dims under twice the
+    # body's raw level was cut off, and ingest said too few markers were bright enough.
+    region, grown = coarse, None
+    pad = np.ceil(MARKER_PAD_MM / sp).astype(int)
+    for passes in range(1, CROP_PASSES + 1):  # noqa: B007 (recorded in quality)
+        crop = _with_far_markers(
+            _crop_box(region, np.ceil(margin_mm / sp).astype(int)),
+            smooth > marker_ratio * float(np.median(smooth[region])),
+            volume.voxel_volume_mm3,
+            pad,
+            src,
+        )
+        if grown is not None:
+            crop = _union(crop, grown)
+        a = arr[crop]
+        g = ndimage.gaussian_filter(a, sigma)
+        inner = _eroded(region[crop], sp)
+        if inner.sum() < 50:
+            inner = region[crop]
+        if bias_degree > 0:
+            field_ = fit_bias_field(g, inner, degree=bias_degree, seed=seed)
+        else:
+            field_ = np.full(a.shape, np.median(g[inner]), np.float32)
+        n = a / field_
+        ns = g / field_
+        bright = ns > marker_ratio
+        markers = ndimage.binary_dilation(bright & ~enclosed_blobs(n, bright), iterations=2)
+        body = (ns > 0.5) & ~markers
+        body, _ = _largest_component(body)
+        body = ndimage.binary_fill_holes(body)
+        cut = _cut_faces(body, crop, arr.shape)
+        corrected = smooth > marker_ratio * _held_beyond(field_, crop, arr.shape)
+        grown = _with_far_markers(crop, corrected, volume.voxel_volume_mm3, pad, src)
+        if (not cut and grown == crop) or body.sum() < 100:
+            break
+        region = np.zeros(arr.shape, bool)
+        region[crop] = body
+    else:
+        raise SegmentationError(
+            f"{src}: the body still reaches the segmentation's crop ({', '.join(cut)}) after "
+            f"{CROP_PASSES} passes that grew it from the bias-corrected body; a bias field "
+            "stronger than the segmentation corrects"
+        )
     if bias_degree > 0:
-        field_ = fit_bias_field(g, inner, degree=bias_degree, seed=seed)
-        inside = field_[coarse[crop]]
+        # the spread over the body found, not over the region the field was fitted on
+        # (review BM: that region lost the body's dim end first, and the warning said 4.07
+        # of a field spanning 7.0)
+        inside = field_[body if body.sum() >= 100 else inner]
         spread = float(inside.max() / inside.min()) if inside.min() > 0 else float("inf")
         if np.isfinite(spread) and BIAS_RANGE_WARN < spread <= BIAS_RANGE_MAX:
             log.warning(
@@ -553,15 +625,6 @@ def segment_body(
                 f"(voxels {', '.join(f'{s:g}' for s in sp)} mm): too few to fit the field "
                 "on, or a coil bias stronger than the segmentation corrects"
             )
-    else:
-        field_ = np.full(a.shape, np.median(g[inner]), np.float32)
-    n = a / field_
-    ns = g / field_
-    bright = ns > marker_ratio
-    markers = ndimage.binary_dilation(bright & ~enclosed_blobs(n, bright), iterations=2)
-    body = (ns > 0.5) & ~markers
-    body, _ = _largest_component(body)
-    body = ndimage.binary_fill_holes(body)
     if body.sum() < 100:
         raise SegmentationError(f"{src}: empty segmentation after bias correction")
     mask = np.zeros(arr.shape, np.uint8)
@@ -572,7 +635,7 @@ def segment_body(
     full_s[crop] = ns
     vals = n[ndimage.binary_erosion(body, iterations=2)]
     med = float(np.median(vals)) if vals.size else 1.0
-    bg = arr[~ndimage.binary_dilation(coarse, iterations=3)]
+    bg = arr[~ndimage.binary_dilation(coarse | mask.astype(bool), iterations=3)]
     # the background's median, not its mean of squares: the markers read the twins' noise
     # 17-32 % high, by a share that changes with the field of view
     level = float(np.median(field_[inner]))
@@ -589,6 +652,7 @@ def segment_body(
         "volume_ml": float(body.sum() * volume.voxel_volume_mm3 / 1000.0),
         "n_components": int(n_comp),
         "background_offset": offset,
+        "crop_passes": passes,
     }
     A = volume.affine_lps_from_index
     return BodySegmentation(
