@@ -597,11 +597,12 @@ def segment_body(
         region = np.zeros(arr.shape, bool)
         region[crop] = body
     else:
-        raise SegmentationError(
-            f"{src}: the body still reaches the segmentation's crop ({', '.join(cut)}) after "
-            f"{CROP_PASSES} passes that grew it from the bias-corrected body; a bias field "
-            "stronger than the segmentation corrects"
-        )
+        if cut:  # (a crop that would only grow for a far marker once more is kept)
+            raise SegmentationError(
+                f"{src}: the body still reaches the segmentation's crop ({', '.join(cut)}) "
+                f"after {CROP_PASSES} segmentations, each cropped around the bias-corrected "
+                "body of the one before; a bias field stronger than the segmentation corrects"
+            )
     if bias_degree > 0:
         # the spread over the body found, not over the region the field was fitted on
         # (review BM: that region lost the body's dim end first, and the warning said 4.07

@@ -304,3 +304,15 @@ def test_a_strong_coil_bias_keeps_the_body_whole_and_its_markers(twin, slope, ca
     np.testing.assert_allclose(biased.fiducials_lps_mm, plain.fiducials_lps_mm, atol=0.2)
     # made again from the corrected body; the unbiased scan once
     assert (plain.quality["seg_crop_passes"], q["seg_crop_passes"]) == (1, 2)
+
+
+def test_a_body_still_cut_after_the_last_segmentation_is_refused(twin, monkeypatch):
+    # review BM: with one segmentation allowed, the biased scan above is cut at its crop
+    import imaging.segment
+
+    monkeypatch.setattr(imaging.segment, "CROP_PASSES", 1)
+    volume = imaging.read_volume(twin["out"] / "scans" / _reference(twin["truth"]))
+    a = np.asarray(volume.array, np.float32)
+    ramp = np.exp(1.2 * np.linspace(-1.0, 1.0, a.shape[1]))[None, :, None]
+    with pytest.raises(imaging.SegmentationError, match=r"still reaches .*crop \(axis 1 low\)"):
+        imaging.segment.segment_body(volume.with_array(a * ramp))
