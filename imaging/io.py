@@ -69,14 +69,14 @@ def read_volume(path: str | os.PathLike) -> Volume:
     if p.is_dir():
         from imaging.dicom import read_dicom_series
 
-        return read_dicom_series(p)
+        return _check_voxel_size(read_dicom_series(p))
     if not p.is_file():
         raise VolumeReadError(f"{p}: no such file or folder")
     suffix = _suffix(p)
     if suffix in (".nii", ".nii.gz"):
-        return _read_nifti(p)
+        return _check_voxel_size(_read_nifti(p))
     if suffix in _ITK_SUFFIXES:
-        return _read_itk(p)
+        return _check_voxel_size(_read_itk(p))
     if suffix in DICOM_SUFFIXES:
         raise VolumeReadError(
             f"{p}: a single DICOM file; a DICOM scan is read as a whole series: point `path` "
@@ -86,6 +86,24 @@ def read_volume(path: str | os.PathLike) -> Volume:
         f"{p}: unsupported volume format {suffix!r} (expected a DICOM folder, .nii, .nii.gz, "
         ".nrrd, .nhdr, .mha or .mhd)"
     )
+
+
+#: Voxel edges under this (mm) are taken for lengths in metres: MR voxels are 0.1 mm and
+#: more, and a 1 mm voxel written in metres is 0.001 (review BM: a MetaImage stores no
+#: unit, and such a volume failed later, in the marker detection, without a word of units)
+MIN_VOXEL_MM = 0.01
+
+
+def _check_voxel_size(volume: Volume) -> Volume:
+    """``volume``, unless its voxel edges are too small to be millimetres."""
+    sp = volume.spacing_mm
+    if float(sp.min()) < MIN_VOXEL_MM:
+        raise VolumeReadError(
+            f"{volume.source}: voxel edges of {', '.join(f'{v:.3g}' for v in sp)} mm, under "
+            f"{MIN_VOXEL_MM:g} mm: lengths in metres? phantom-calib reads millimetres (a "
+            "MetaImage stores no unit); write the scan with its spacing and origin in mm"
+        )
+    return volume
 
 
 def _read_nifti(path: Path) -> Volume:
@@ -237,12 +255,16 @@ def _check_nrrd_geometry(path: Path) -> None:
         if line.startswith("#") or not sep or value.startswith("="):  # comment, key:=value
             continue
         fields[name.strip()] = value.strip()
+    # review BM: `space dimension: 3` is NRRD's form of a space that names no axes (what
+    # some exporters write); it places the volume as a non-anatomical `space` does
+    if "space" not in fields and fields.get("space dimension") == "3":
+        fields["space"] = "space dimension: 3"
     missing = [f"`{name}`" for name in ("space", "space directions") if name not in fields]
     if missing:
         raise VolumeReadError(
             f"{path}: the NRRD header has no {' or '.join(missing)} field, so its orientation "
-            "in the scanner is unknown; write it with its scanner geometry (`space`, "
-            "`space directions`, `space origin`)"
+            "in the scanner is unknown; write it with its scanner geometry (`space` or "
+            "`space dimension: 3`, `space directions`, `space origin`)"
         )
     if fields["space"].lower() not in _ANATOMICAL_SPACES:
         log.warning(
