@@ -251,6 +251,7 @@ def process_scan(
         n_inclusions=len(inc.diameters_mm),
         inclusion_threshold=float(inc.quality["threshold"]),
         inclusions_too_large=int(inc.quality["n_too_large"]),
+        inclusions_surface_layer=int(inc.quality["n_surface_layer"]),
         back_plate_fraction=float(flags.mean()),
         nipple_height_mm=nipple.height_mm,
         nipple_refined=bool(nipple.quality["refined"]),

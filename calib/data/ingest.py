@@ -585,8 +585,12 @@ class StaleIngestError(RuntimeError):
 #: (inclusions over twice the body's level were counted as markers and cut from the body);
 #: the image noise from the body's interior where the background is no Rayleigh floor
 #: (``quality.seg_noise_method``). 8: that interior noise at the lag where correlated
-#: neighbours (an interpolated image) stop reading it low.
-INGEST_REVISION = 8
+#: neighbours (an interpolated image) stop reading it low. 9: the segmentation made again
+#: from the bias-corrected body where it reached its crop (``quality.seg_crop_passes``),
+#: far markers looked for on the corrected image too, the bias spread measured over the
+#: body found; an inclusion's extreme near the surface left out as a skin's tail only
+#: where the contrast rises towards the surface (``quality.inclusions_surface_layer``).
+INGEST_REVISION = 9
 
 
 def ingest_inputs(session: Session) -> dict:

@@ -254,6 +254,8 @@ def test_a_visible_skin_layer_keeps_the_accuracy_bars(skin):
     _check_accuracy(scan, res)  # issue 3's bars, the 5 inclusions and nothing spurious
     if skin > 1.0:
         assert res.inclusions.quality["n_surface_layer"] > 0  # the fragments were there
+    # in the scan's record (review BM: counted, not written)
+    assert res.quality["inclusions_surface_layer"] == res.inclusions.quality["n_surface_layer"]
 
 
 def test_a_field_of_view_that_cuts_the_body_is_said(oblique_scan, oblique_result, caplog, tmp_path):
