@@ -94,9 +94,32 @@ def read_volume(path: str | os.PathLike) -> Volume:
 MIN_VOXEL_MM = 0.01
 
 
+#: Direction cosines of two voxel axes whose dot product exceeds this are sheared: about
+#: 0.06 degrees off a right angle (oblique scans' direction matrices are orthonormal to
+#: round-off; a written float32 affine to about 1e-7)
+SHEAR_TOLERANCE = 1e-3
+
+
 def _check_voxel_size(volume: Volume) -> Volume:
-    """``volume``, unless its voxel edges are too small to be millimetres."""
+    """``volume``, unless its voxel edges are too small to be millimetres; shear is said.
+
+    Review BM: a sheared affine (a gantry tilt kept in the affine, or an oblique resample
+    written as an sform) was read without a word, while the segmentation's smoothing and
+    erosion and the inclusions' depths take the voxel axes as orthogonal (the surface,
+    mapped through the whole affine, is right).
+    """
     sp = volume.spacing_mm
+    d = volume.direction
+    cos = np.abs(d.T @ d - np.eye(3)).max()
+    if cos > SHEAR_TOLERANCE:
+        log.warning(
+            "%s: the voxel axes are sheared (%.2f degrees off square at most): the surface "
+            "is placed through the whole affine, but the segmentation's smoothing and "
+            "erosion and the inclusions' depths take the axes as square; resample the scan "
+            "onto a square grid for full accuracy",
+            volume.source,
+            float(np.degrees(np.arcsin(min(cos, 1.0)))),
+        )
     if float(sp.min()) < MIN_VOXEL_MM:
         raise VolumeReadError(
             f"{volume.source}: voxel edges of {', '.join(f'{v:.3g}' for v in sp)} mm, under "

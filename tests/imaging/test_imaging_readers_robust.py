@@ -396,6 +396,23 @@ def test_metaimage_without_placement_is_refused(tmp_path):
         read_volume(tmp_path / "d.mhd")
 
 
+@pytest.mark.parametrize(("shear", "warned"), [(0.0, False), (0.0005, False), (0.2, True)])
+def test_a_sheared_affine_is_read_and_said(tmp_path, caplog, shear, warned):
+    # review BM: read without a word; the segmentation takes the axes as square
+    import nibabel as nib
+
+    A = np.diag([0.8, 0.9, 1.5, 1.0])
+    A[0, 2] = shear * 1.5  # the k axis leans along x (RAS), as a kept gantry tilt does
+    img = nib.Nifti1Image(np.zeros((4, 5, 6), np.float32), A)
+    img.set_sform(A, code=1)
+    img.header.set_xyzt_units("mm")
+    nib.save(img, tmp_path / "s.nii.gz")
+    with caplog.at_level(logging.WARNING, logger="imaging.io"):
+        v = read_volume(tmp_path / "s.nii.gz")
+    np.testing.assert_allclose(v.affine_lps_from_index[2, 2], 1.5)  # placed as written
+    assert ("s.nii.gz: the voxel axes are sheared" in caplog.text) is warned, caplog.text
+
+
 @pytest.mark.parametrize(
     ("spacing", "refused"), [("0.0005 0.0006 0.0007", True), ("0.1 0.1 2", False)]
 )
