@@ -63,8 +63,9 @@ class ScanMetrics:
         ``fitness`` and ``inlier_rmse_mm`` of the ICP, ``converged``, the size of its
         ``rotation_deg`` and ``translation_mm``, and ``target_spacing_mm`` (the simulated
         surface is sampled that finely as its target).
-    T_icp : ndarray, shape (4, 4)
-        ICP transform, measured points -> simulated surface.
+    T_sim_from_measured : ndarray, shape (4, 4)
+        ICP transform, measured points -> simulated surface (``T_icp``, its former name,
+        reads it too).
     vertex_error_mm : ndarray, shape (n_vertices,)
         Signed distance of every measured vertex to the simulated surface, fiducial frame
         (0 on the back plate, which is not compared).
@@ -75,8 +76,13 @@ class ScanMetrics:
     surface_error_mm: dict
     tumour_error_mm: dict | None
     icp: dict
-    T_icp: np.ndarray
+    T_sim_from_measured: np.ndarray
     vertex_error_mm: np.ndarray
+
+    @property
+    def T_icp(self) -> np.ndarray:
+        """Former name of :attr:`T_sim_from_measured`."""
+        return self.T_sim_from_measured
 
     def to_json(self) -> dict:
         """The per-scan error block of ``calibration.json``."""
@@ -141,11 +147,16 @@ def scan_metrics(
             icp.iterations,
         )
     T_inv = np.linalg.inv(T)
-    surf = registration.surface_errors(pts, pos, faces, frames=("fiducial", "icp"), T_icp=T)
+    surf = registration.surface_errors(
+        pts, pos, faces, frames=("fiducial", "icp"), T_fixed_from_moving=T
+    )
     # the measured surface without a cut field of view's edge (the back plate stays:
     # it is surface, though far from the nipple)
     nipple = registration.nipple_error(
-        pos[nipple_node], scan.vertices_mm[scan.in_view], frames=("fiducial", "icp"), T_icp=T_inv
+        pos[nipple_node],
+        scan.vertices_mm[scan.in_view],
+        frames=("fiducial", "icp"),
+        T_fixed_from_moving=T_inv,
     )
     tumour = None
     if tumour_mm is not None and scan.tumour_mm is not None:
@@ -173,7 +184,7 @@ def scan_metrics(
             "translation_mm": float(np.linalg.norm(T[:3, 3])),
             "target_spacing_mm": ICP_TARGET_SPACING_MM,
         },
-        T_icp=T,
+        T_sim_from_measured=T,
         vertex_error_mm=vertex_error,
     )
 

@@ -8,6 +8,7 @@ low; report both.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -92,18 +93,32 @@ class PointDistance:
     error_mm: float
 
 
-def _transforms(frames: Sequence[Frame], T_icp: np.ndarray | None, icp=None) -> dict:
+def _fixed_from_moving(T_fixed_from_moving, T_icp) -> np.ndarray | None:
+    """The ICP transform given by its name, or by its former name ``T_icp`` (deprecated)."""
+    if T_icp is None:
+        return T_fixed_from_moving
+    if T_fixed_from_moving is not None:
+        raise RegistrationError("give T_fixed_from_moving, not also T_icp (its former name)")
+    warnings.warn(
+        "T_icp is now T_fixed_from_moving (the frames in its name)",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    return T_icp
+
+
+def _transforms(frames: Sequence[Frame], T_fixed_from_moving: np.ndarray | None, icp=None) -> dict:
     out = {}
     for fr in frames:
         _check_frame(fr)
         if fr == "fiducial":
             out[fr] = np.eye(4)
-        elif T_icp is not None:
-            out[fr] = np.asarray(T_icp, dtype=float)
+        elif T_fixed_from_moving is not None:
+            out[fr] = np.asarray(T_fixed_from_moving, dtype=float)
         elif icp is not None:
             out[fr] = icp()
         else:
-            raise RegistrationError("frame 'icp' requested but no T_icp given")
+            raise RegistrationError("frame 'icp' requested but no T_fixed_from_moving given")
     return out
 
 
@@ -113,6 +128,7 @@ def surface_errors(
     fixed_faces: np.ndarray | None = None,
     *,
     frames: Sequence[Frame] = FRAMES,
+    T_fixed_from_moving: np.ndarray | None = None,
     T_icp: np.ndarray | None = None,
     fixed_mask: np.ndarray | None = None,
     icp_options: dict | None = None,
@@ -130,9 +146,11 @@ def surface_errors(
         Fixed triangles; given: signed point-to-surface distances, else closest point.
     frames : sequence of {"fiducial", "icp"}
         Frames to report.
-    T_icp : array_like, shape (4, 4), optional
+    T_fixed_from_moving : array_like, shape (4, 4), optional
         ICP transform moving -> fixed; computed by :func:`registration.icp.icp_refine` from
         the identity when ``"icp"`` is requested and this is None.
+    T_icp : array_like, shape (4, 4), optional
+        Its former name (deprecated: a DeprecationWarning).
     fixed_mask : array_like of bool, shape (m,), optional
         Fixed vertices that the Hausdorff distance may reach (e.g. False on the back plate
         when the moving points exclude it); distances and ICP use the whole fixed surface.
@@ -171,7 +189,8 @@ def surface_errors(
         return np.asarray(res.T_target_from_source)
 
     out = {}
-    for fr, T in _transforms(frames, T_icp, run_icp).items():
+    T_given = _fixed_from_moving(T_fixed_from_moving, T_icp)
+    for fr, T in _transforms(frames, T_given, run_icp).items():
         moved = apply_transform(T, mov)
         if fixed_faces is None:
             d, method = closest_point_distances(moved, fix), "point_to_point"
@@ -193,6 +212,7 @@ def nipple_error(
     surface_points_mm: np.ndarray,
     *,
     frames: Sequence[Frame] = FRAMES,
+    T_fixed_from_moving: np.ndarray | None = None,
     T_icp: np.ndarray | None = None,
 ) -> dict[str, PointDistance]:
     """Compute the dissertation's nipple error: closest point-to-point distance of the nipple.
@@ -205,8 +225,10 @@ def nipple_error(
         Points of the fixed surface (e.g. the measured surface), same frame, millimetres.
     frames : sequence of {"fiducial", "icp"}
         Frames to report.
-    T_icp : array_like, shape (4, 4), optional
+    T_fixed_from_moving : array_like, shape (4, 4), optional
         ICP transform moving -> fixed (required for ``"icp"``), applied to the nipple.
+    T_icp : array_like, shape (4, 4), optional
+        Its former name (deprecated: a DeprecationWarning).
 
     Returns
     -------
@@ -216,7 +238,8 @@ def nipple_error(
     Raises
     ------
     RegistrationError
-        A frame is unknown, ``"icp"`` is requested without ``T_icp``, or ``nipple_mm`` or
+        A frame is unknown, ``"icp"`` is requested without ``T_fixed_from_moving``, both
+        it and ``T_icp`` are given, or ``nipple_mm`` or
         ``surface_points_mm`` is not finite or not of its shape.
     """
     nipple = np.asarray(nipple_mm, dtype=float)
@@ -224,7 +247,7 @@ def nipple_error(
         raise RegistrationError(f"nipple_mm must be one point (3,), got shape {nipple.shape}")
     p = _pts(nipple.reshape(1, 3), "nipple_mm")
     out = {}
-    for fr, T in _transforms(frames, T_icp).items():
+    for fr, T in _transforms(frames, _fixed_from_moving(T_fixed_from_moving, T_icp)).items():
         d = float(closest_point_distances(apply_transform(T, p), surface_points_mm)[0])
         out[fr] = PointDistance("nipple", fr, "closest_point", d)
     return out
@@ -235,6 +258,7 @@ def landmark_errors(
     fixed_by_name: dict[str, np.ndarray],
     *,
     frames: Sequence[Frame] = ("fiducial",),
+    T_fixed_from_moving: np.ndarray | None = None,
     T_icp: np.ndarray | None = None,
 ) -> dict[str, dict[str, PointDistance]]:
     """Landmark-to-landmark distances (e.g. nipple and tumour centre) for common names.
@@ -247,8 +271,10 @@ def landmark_errors(
         Fixed landmarks (e.g. measured), same frame, millimetres.
     frames : sequence of {"fiducial", "icp"}
         Frames to report.
-    T_icp : array_like, shape (4, 4), optional
+    T_fixed_from_moving : array_like, shape (4, 4), optional
         ICP transform moving -> fixed (required for ``"icp"``).
+    T_icp : array_like, shape (4, 4), optional
+        Its former name (deprecated: a DeprecationWarning).
 
     Returns
     -------
@@ -258,11 +284,12 @@ def landmark_errors(
     Raises
     ------
     RegistrationError
-        A frame is unknown, or ``"icp"`` is requested without ``T_icp``.
+        A frame is unknown, ``"icp"`` is requested without ``T_fixed_from_moving``, or
+        both it and ``T_icp`` are given.
     """
     names = [n for n in moving_by_name if n in fixed_by_name]
     out: dict[str, dict[str, PointDistance]] = {}
-    for fr, T in _transforms(frames, T_icp).items():
+    for fr, T in _transforms(frames, _fixed_from_moving(T_fixed_from_moving, T_icp)).items():
         out[fr] = {}
         for n in names:
             a = apply_transform(T, np.asarray(moving_by_name[n], dtype=float).reshape(3))

@@ -123,7 +123,7 @@ def test_surface_errors_in_both_frames(dome):
     # point-to-point path agrees on the ICP side (same vertices)
     ptp = surface_errors(measured, vertices, frames=("icp",))
     assert ptp["icp"].method == "point_to_point" and ptp["icp"].summary.max_mm < 1e-3
-    with pytest.raises(RegistrationError, match="no T_icp"):
+    with pytest.raises(RegistrationError, match="no T_fixed_from_moving"):
         nipple_error(vertices[0], vertices, frames=("icp",))
     # review BJ: two points for the nipple gave numpy's reshape error
     with pytest.raises(RegistrationError, match=r"one point \(3,\), got shape \(2, 3\)"):
@@ -135,7 +135,7 @@ def test_nipple_and_landmark_errors(dome):
     shift = np.eye(4)
     shift[:3, 3] = [0.0, 0.0, 3.0]
     predicted = nipple - [0.0, 0.0, 3.0]  # the prediction sinks 3 mm into the apex
-    err = nipple_error(predicted, vertices, T_icp=shift)
+    err = nipple_error(predicted, vertices, T_fixed_from_moving=shift)
     # the apex is a vertex and the surface is horizontal there: exactly 3 mm, then 0 after
     # the ICP shift (round-off)
     assert err["fiducial"].error_mm == pytest.approx(3.0, abs=1e-9)
@@ -147,9 +147,15 @@ def test_nipple_and_landmark_errors(dome):
         {"nipple": predicted, "tumour": tumour_pred},
         {"nipple": nipple, "tumour": tumour_meas},
         frames=("fiducial", "icp"),
-        T_icp=shift,
+        T_fixed_from_moving=shift,
     )
     assert lm["fiducial"]["tumour"].error_mm == pytest.approx(5.0, abs=1e-12)  # 3-4-5
     assert lm["icp"]["tumour"].error_mm == pytest.approx(np.sqrt(34.0), abs=1e-12)
     assert lm["icp"]["nipple"].error_mm == pytest.approx(0.0, abs=1e-12)
     assert lm["fiducial"]["nipple"].frame == "fiducial"
+    # the former name still reads, said deprecated; both at once are refused
+    with pytest.warns(DeprecationWarning, match="T_icp is now T_fixed_from_moving"):
+        old = nipple_error(predicted, vertices, T_icp=shift)
+    assert old["icp"].error_mm == err["icp"].error_mm
+    with pytest.raises(RegistrationError, match="not also T_icp"):
+        nipple_error(predicted, vertices, T_fixed_from_moving=shift, T_icp=shift)
