@@ -35,6 +35,11 @@ def _uncertainty_lines(unc: dict, objective: str) -> list[str]:
     lo, hi = unc["c1_ci95_pa"]
     found, how = describe_mesh_check(check)
     lines.append(f"  noise alone: {lo:.1f} - {hi:.1f} Pa; mesh check: {found}")
+    if check.get("gci_ln_c1") is None:  # review BN: said nowhere but in that line
+        lines.append(
+            "  WARNING: no mesh check solved: the interval covers the residuals' noise only, "
+            "not the mesh's discretisation error, and may miss c1"
+        )
     if check.get("gci_ln_c1") is not None:
         lines.append(f"  discretisation bound (GCI) {100 * check['gci_ln_c1']:.2g} % ({how})")
     if check.get("convergence", "assumed order") == "assumed order" and check.get("gci_ln_c1"):

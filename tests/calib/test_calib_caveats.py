@@ -52,6 +52,32 @@ def test_each_caveat_is_said_once():
     assert calibration_caveats(CLEAN | {"mesh": {"size_mm": 12.0, "failed_sizes": []}}) == []
 
 
+def test_a_mesh_check_that_failed_is_a_caveat_and_a_warning():
+    # review BN: the interval was then the noise's alone (5-10 times narrower than with a
+    # discretisation bound) and only a failure string deep in the record said so
+    from calib.report.tables import _uncertainty_lines
+
+    failed = {
+        "mesh_size_mm": 12.0,
+        "gci_ln_c1": None,
+        "convergence": "assumed order",
+        "meshes": [{"mesh_size_mm": 16.8, "c1_pa": None, "failure": "ConvergenceError: x"}],
+    }
+    unc = {"method": "series", "c1_ci95_pa": [411.9, 415.1], "mesh_check": failed}
+    (said,) = calibration_caveats(CLEAN | {"uncertainty": unc})
+    assert said.startswith("no mesh check solved") and "noise only" in said
+    assert any(
+        line.startswith("  WARNING: no mesh check solved")
+        for line in _uncertainty_lines(unc, "surface")
+    )
+    solved = failed | {"gci_ln_c1": 0.02}
+    solved["meshes"] = [{"mesh_size_mm": 16.8, "c1_pa": 418.0, "failure": None}]
+    assert calibration_caveats(CLEAN | {"uncertainty": unc | {"mesh_check": solved}}) == []
+    assert not any(
+        "WARNING" in x for x in _uncertainty_lines(unc | {"mesh_check": solved}, "surface")
+    )
+
+
 def test_the_validation_table_warns_with_each_caveat():
     doc = {"scans": {}, "calibration_caveats": ["model misfit (x)", "c1 ended on a bound"]}
     lines = format_validation(doc).splitlines()
