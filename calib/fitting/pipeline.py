@@ -20,6 +20,7 @@ import numpy as np
 
 from ..data.measurements import Measurements
 from ..data.session import checked_density_kg_m3
+from ..model.reference import body_height_mm
 from ..model.residuals import surface_area_mm2
 from ..stats.intervals import MIN_SERIES_POINTS
 from ..stats.noise import SMOOTH_TAKEN_FOR_NOISE
@@ -348,6 +349,9 @@ def fit(
             "n_nodes": cal.mesh.n_nodes,
             "size_mm": o.mesh_size_mm,
             "failed_sizes": failed_sizes,
+            # review BN: a body few elements tall is a caveat (calibration_caveats)
+            "height_mm": (height := body_height_mm(cal.measurements.reference, cal.mesh)),
+            "elements_in_height": height / o.mesh_size_mm,
             "formulation": o.formulation,
             "support": cal.support.as_dict(),
         },

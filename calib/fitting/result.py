@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ..data.work import SCHEMA_VERSION
+from ..model.reference import MIN_ELEMENTS_IN_HEIGHT
 from .meshcheck import MeshCheck
 from .optimise import OptimiserStatus
 from .options import CalibrationOptions
@@ -40,8 +41,9 @@ def calibration_caveats(record: dict) -> list[str]:
 
     A model misfit (the interval is an effective c1's), an optimiser that did not converge
     or ended on a bound, a retry mesh (its discretisation error may outrun the mesh
-    check's bound), a mesh check that failed on every check mesh (the interval is the
-    noise's alone), and a surface interval that is not the series one.
+    check's bound), a model mesh few elements tall for the body, a mesh check that failed
+    on every check mesh (the interval is the noise's alone), and a surface interval that is
+    not the series one.
 
     Parameters
     ----------
@@ -68,6 +70,15 @@ def calibration_caveats(record: dict) -> list[str]:
             f"{tried} mm): a coarser mesh's discretisation error can exceed the mesh "
             "check's bound, so the interval may miss c1 (README, the independent "
             "generator's benchmark); a finer --mesh-size may solve where the default did not"
+        )
+    k = mesh.get("elements_in_height")
+    if k is not None and k < MIN_ELEMENTS_IN_HEIGHT:  # review BN: said in the log only
+        said.append(
+            f"the model mesh has {k:.1f} elements of {mesh.get('size_mm', 0):g} mm through "
+            f"the body's {mesh.get('height_mm', 0):.0f} mm height, fewer than "
+            f"{MIN_ELEMENTS_IN_HEIGHT:g} (the twins': about 6): its discretisation error "
+            "may exceed the mesh check's bound, on meshes as coarse; a --mesh-size of about "
+            f"{mesh.get('height_mm', 0) / 6:.0f} mm meshes it as the twins are"
         )
     unc = record.get("uncertainty") or {}
     check = unc.get("mesh_check")

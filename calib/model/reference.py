@@ -26,6 +26,7 @@ from .residuals import surface_area_mm2
 __all__ = [
     "MeshSupport",
     "meshed_spheres",
+    "body_height_mm",
     "model_mesh_notes",
     "reference_mesh",
     "reference_mesh_with_support",
@@ -332,6 +333,23 @@ MIN_ELEMENTS_IN_HEIGHT = 4.0
 MAX_ELEMENTS_IN_HEIGHT = 12.0
 
 
+def body_height_mm(ref, mesh) -> float:
+    """The model mesh's height above the reference scan's back plane, mm.
+
+    Parameters
+    ----------
+    ref : ScanMeasurement
+        The reference scan (its ``back_point_mm`` and ``back_normal``, into the body).
+    mesh : fem.TetMesh
+        Its model mesh.
+
+    Returns
+    -------
+    float
+    """
+    return float(np.max((ref.back_point_mm - mesh.nodes_mm) @ ref.back_normal))
+
+
 def model_mesh_notes(ref, mesh, size_mm: float, *, asked: bool = False) -> list[str]:
     """What a user should know about a calibration's model mesh of ``ref`` (may be empty).
 
@@ -366,7 +384,7 @@ def model_mesh_notes(ref, mesh, size_mm: float, *, asked: bool = False) -> list[
             f"{size_mm:g} mm mesh's nearest surface node): nipple errors carry that offset; "
             "a smaller --mesh-size brings a node nearer"
         )
-    height = float(np.max((ref.back_point_mm - mesh.nodes_mm) @ ref.back_normal))
+    height = body_height_mm(ref, mesh)
     if height < MIN_ELEMENTS_IN_HEIGHT * size_mm:
         notes.append(
             f"the body is {height:.0f} mm tall: {height / size_mm:.1f} elements of "

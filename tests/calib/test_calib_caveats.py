@@ -52,6 +52,17 @@ def test_each_caveat_is_said_once():
     assert calibration_caveats(CLEAN | {"mesh": {"size_mm": 12.0, "failed_sizes": []}}) == []
 
 
+def test_a_body_few_elements_tall_is_a_caveat():
+    # review BN: a body half the twins' size gets 3 elements of the default 12 mm through
+    # its height, and the check meshes are coarser still; said in the log only
+    few = CLEAN | {"mesh": {"size_mm": 12.0, "height_mm": 37.3, "elements_in_height": 3.1}}
+    (said,) = calibration_caveats(few)
+    assert said.startswith("the model mesh has 3.1 elements of 12 mm through the body's 37 mm")
+    assert "--mesh-size of about 6 mm" in said
+    twin = CLEAN | {"mesh": {"size_mm": 12.0, "height_mm": 74.5, "elements_in_height": 6.2}}
+    assert calibration_caveats(twin) == []
+
+
 def test_a_mesh_check_that_failed_is_a_caveat_and_a_warning():
     # review BN: the interval was then the noise's alone (5-10 times narrower than with a
     # discretisation bound) and only a failure string deep in the record said so

@@ -73,7 +73,8 @@ SCAN_KEYS_0_1 = {"role", "gravity_ref", "nipple_error_mm", "nipple_landmark_erro
 UNCERTAINTY_KEYS_0_1 = {"se_ln_c1", "c1_ci95_pa", "residual_sd_mm", "n_residuals",
                         "n_effective", "correlation_length_mm", "method", "mesh_check"}  # fmt: skip
 MESH_KEYS_0_1 = {"n_tets", "n_nodes", "size_mm", "failed_sizes", "formulation"}
-MESH_KEYS_ADDED = {"support"}  # the clamped back face (review U)
+# the clamped back face (review U); the body's height in the mesh's elements (review BN)
+MESH_KEYS_ADDED = {"support", "height_mm", "elements_in_height"}
 
 
 def test_calibration_json_keys_are_those_of_0_1_plus_the_documented_additions(nipple_run):
@@ -87,6 +88,9 @@ def test_calibration_json_keys_are_those_of_0_1_plus_the_documented_additions(ni
     assert set(doc["uncertainty"]) == UNCERTAINTY_KEYS_0_1 | {"interval"}
     assert doc["model_fit"] is None  # the misfit test is the surface objective's
     assert set(doc["mesh"]) == MESH_KEYS_0_1 | MESH_KEYS_ADDED
+    mesh = doc["mesh"]  # the small twin, about 60-75 mm tall, on its 14 mm retry mesh
+    assert mesh["elements_in_height"] == pytest.approx(mesh["height_mm"] / mesh["size_mm"])
+    assert 4.0 < mesh["elements_in_height"] < 6.5 and 55.0 < mesh["height_mm"] < 80.0
     support = doc["mesh"]["support"]
     assert support["back_tol_mm"] == 1.0  # the twin's flat face: the default tolerance
     assert support["surface"] == "decimated"  # and TetGen takes its decimated surface
