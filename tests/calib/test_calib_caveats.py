@@ -63,6 +63,16 @@ def test_a_body_few_elements_tall_is_a_caveat():
     assert calibration_caveats(twin) == []
 
 
+def test_a_repaired_reference_surface_is_a_caveat():
+    # review BN: clamped within size/5 (2.4 mm at 12 mm), the rim's wall with it
+    support = {"surface": "repaired", "back_tol_mm": 2.4, "clamped_mm2": 7461.0}
+    (said,) = calibration_caveats(CLEAN | {"mesh": {"size_mm": 12.0, "support": support}})
+    assert "after TetGen's repair" in said and "within 2.4 mm of the plate" in said
+    for surface in ("decimated", "remeshed"):
+        kept = CLEAN | {"mesh": {"size_mm": 12.0, "support": support | {"surface": surface}}}
+        assert calibration_caveats(kept) == []
+
+
 def test_a_mesh_check_that_failed_is_a_caveat_and_a_warning():
     # review BN: the interval was then the noise's alone (5-10 times narrower than with a
     # discretisation bound) and only a failure string deep in the record said so
