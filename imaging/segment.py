@@ -514,6 +514,14 @@ def segment_body(
 ) -> BodySegmentation:
     """Segment the phantom body.
 
+    An Otsu threshold of the smoothed image gives a first body; the image is cropped
+    ``margin_mm`` around it (grown for far markers), its intensity bias fitted inside it
+    (a polynomial of ``bias_degree``) and divided out, and the body is what lies over half
+    the body level, markers cut from it. Where that body reaches a face of the crop inside
+    the volume (a bias that dimmed one end of it under the Otsu threshold), the
+    segmentation is made again around it, at most :data:`CROP_PASSES` times
+    (``quality["crop_passes"]``).
+
     Parameters
     ----------
     volume : Volume
