@@ -69,14 +69,14 @@ def read_volume(path: str | os.PathLike) -> Volume:
     if p.is_dir():
         from imaging.dicom import read_dicom_series
 
-        return _check_voxel_size(read_dicom_series(p))
+        return _check_geometry(read_dicom_series(p))
     if not p.is_file():
         raise VolumeReadError(f"{p}: no such file or folder")
     suffix = _suffix(p)
     if suffix in (".nii", ".nii.gz"):
-        return _check_voxel_size(_read_nifti(p))
+        return _check_geometry(_read_nifti(p))
     if suffix in _ITK_SUFFIXES:
-        return _check_voxel_size(_read_itk(p))
+        return _check_geometry(_read_itk(p))
     if suffix in DICOM_SUFFIXES:
         raise VolumeReadError(
             f"{p}: a single DICOM file; a DICOM scan is read as a whole series: point `path` "
@@ -100,7 +100,7 @@ MIN_VOXEL_MM = 0.01
 SHEAR_TOLERANCE = 1e-3
 
 
-def _check_voxel_size(volume: Volume) -> Volume:
+def _check_geometry(volume: Volume) -> Volume:
     """``volume``, unless its voxel edges are too small to be millimetres; shear is said.
 
     Review BM: a sheared affine (a gantry tilt kept in the affine, or an oblique resample

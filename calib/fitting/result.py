@@ -42,9 +42,9 @@ def calibration_caveats(record: dict) -> list[str]:
     A model misfit (the interval is an effective c1's), an optimiser that did not converge
     or ended on a bound, a retry mesh (its discretisation error may outrun the mesh
     check's bound), a repaired reference surface (its back clamped within size/5), a
-    model mesh few elements tall for the body, a mesh check that failed
-    on every check mesh (the interval is the noise's alone), and a surface interval that is
-    not the series one.
+    model mesh few elements tall for the body, a mesh check that failed on every check
+    mesh (the interval is the noise's alone), and a surface interval that is not the
+    series one.
 
     Parameters
     ----------
