@@ -1370,6 +1370,17 @@ def test_the_share_explained_is_judged_beyond_one_element_of_the_plate():
     assert abs(rim_off) < 0.05 and rim_all > 0.6
     slid = _judge(prob, "sliding", 1, ("sliding", 5.0, 1e-4), b, a_rim, (floor, floor, keep), o)
     assert slid.explained == pytest.approx(rim_all)
+    # review BO: one that removes the rim's misfit but leaves the print 20 % larger beyond
+    # the element (its mean square (1.2^2 - 1) = 0.44 of the excess worse, closed form
+    # but for the noise's sampling) is not named, for any physical effect, though it
+    # explains more than half on every point
+    worse = {n: 1.2 * signal[n] + noise[n] for n in prob.scans}
+    for eff in ("sliding", "poisson"):
+        a_bad = _fit_of(prob, worse, {eff: {n: -rim[n] for n in prob.scans}}, [6.0, 1.0])
+        assert _explained(b.fields, a_bad.fields, floor, keep) == pytest.approx(-0.44, abs=0.1)
+        assert _explained(b.fields, a_bad.fields, floor, None) > 0.5
+        bad = _judge(prob, eff, 1, (eff, 5.0, 1e-4), b, a_bad, (floor, floor, keep), o)
+        assert not bad.passes and "worsens the fit beyond the plate's element" in bad.reason
     a_nuis = _fit_of(prob, after, {"gravity[a].a0": col}, [6.0, 0.01])
     nuis = _judge(prob, "gravity", 1, ("gravity", 5.0, 1e-4), b, a_nuis, (floor, floor, keep), o)
     assert nuis.explained == pytest.approx(every) and "explains" in nuis.reason
