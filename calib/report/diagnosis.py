@@ -482,6 +482,9 @@ def format_diagnosis(doc: dict) -> str:
             "the residuals are measured to the curved surface"
         )
     lines.extend(_caveats(doc))
+    if unavailable := doc.get("unavailable"):  # review BO: the HTML report's alone
+        why = "; ".join(f"{e} ({reason})" for e, reason in unavailable.items())
+        lines.append(f"not tested, so not part of the verdict: {why}")
     if profile := _profile(doc):
         lines.append(profile)
     if mesh_error := _mesh_error(doc):
@@ -624,6 +627,19 @@ def _caveats(doc: dict) -> list[str]:
         out.append(
             f"the noise model's correlation length ({length:.0f} mm) reaches past "
             f"{past}: {SMOOTH_TAKEN_FOR_NOISE} (the screen still tests the library's effects)"
+        )
+    # review BO: a verdict on scans it could not check on a posture left out, or on one
+    # posture, was said in the log only
+    scans = doc["scans"]
+    if len(scans.get("diagnosis") or ()) == 1:
+        out.append(
+            f"a single scan fitted ({scans['diagnosis'][0]}): leave-one-posture-out cannot "
+            "run, so no effect can be named, and 'no missing effect' rests on one posture"
+        )
+    if "holdout" in scans and scans["holdout"] is None:
+        out.append(
+            "no scan held out (no validation scan to spare, or --holdout none): the refit's "
+            "gap is not checked on a posture it never saw"
         )
     if left := doc["model_mesh"].get("inclusions_left_out"):
         out.append(

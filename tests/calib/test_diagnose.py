@@ -1082,6 +1082,38 @@ def test_refit_parameters_are_said_in_their_quantity_and_unit():
     assert "\n  its 95 % interval, inclusions ratio from -132 to 191, is cut" in said
 
 
+def test_the_summary_says_what_the_verdict_does_not_rest_on():
+    # review BO: effects not tested (no inclusions found, a probe without an FE solution),
+    # no scan held out, and a single scan fitted were said in the HTML report or the log
+    # only, beside a bare "no missing effect"
+    from calib.report.diagnosis import format_diagnosis
+
+    doc = {
+        "verdict": "no missing effect",
+        "named": [],
+        "calibration": {"c1_pa": 420.0},
+        "c1_pa": 420.0,
+        "refit": {"intervals": {}},
+        "gap": {},
+        "noise": {"floor_mean_abs_mm": 0.079},
+        "scans": {"diagnosis": ["right_lateral", "tilt_25"], "holdout": "tilt_50"},
+        "effects": {},
+        "model_mesh": {},
+        "unavailable": {},
+    }
+    plain = format_diagnosis(doc)
+    assert "not tested" not in plain and "held out" not in plain and "single scan" not in plain
+    doc["unavailable"] = {"inclusions": "ingest found none", "sliding": "no FE solution"}
+    doc["scans"] = {"diagnosis": ["right_lateral"], "holdout": None}
+    said = format_diagnosis(doc)
+    assert (
+        "not tested, so not part of the verdict: inclusions (ingest found none); sliding "
+        "(no FE solution)"
+    ) in said
+    assert "a single scan fitted (right_lateral): leave-one-posture-out cannot run" in said
+    assert "no scan held out" in said
+
+
 def test_the_console_says_the_leave_one_posture_out_rule_as_judged():
     # review BC: a nuisance passes leave-one-posture-out where its prediction is not worse
     # (_judge: la <= lb), a physical effect where it is better; the line said "better" of both
