@@ -91,7 +91,7 @@ from .problem import (
     plate_height_mm,
     rim_margin_of,
 )
-from .refit import PHYSICAL, Refit, lopo, refit
+from .refit import PHYSICAL, Refit, lopo, refit, sliding_ln_k_bounds
 from .screen import (
     Screen,
     mesh_error_check,
@@ -1202,7 +1202,19 @@ def _judge(prob, eff, rnd, sig_row, before: Refit, after: Refit, floors: tuple, 
         what = "gets worse" if nuisance else "does not improve"
         reasons.append(f"leave-one-posture-out prediction {what}"
                        if la is not None else "leave-one-posture-out needs >= 2 scans")  # fmt: skip
-    if bound:
+    if (
+        eff == "sliding"
+        and "sliding" in bound
+        and after.parameter("sliding") < np.mean(sliding_ln_k_bounds(prob.sliding_probe_pa_per_mm))
+    ):
+        # review BO: the refit's softest springs are where the model stops solving, not the
+        # end of the effect's range (a frictionless plate, k = 0, lies past them)
+        reasons.append(
+            f"springs at the refit's softest, {np.exp(after.parameter('sliding')):.3g} Pa/mm "
+            "(the probe / 100, where the model stops solving): the data ask for a plate as "
+            "free or freer, which the model cannot fit"
+        )
+    elif bound:
         reasons.append(f"parameter at a bound of its physical range ({', '.join(bound)})")
     if implausible:
         reasons.append("implausible (" + "; ".join(implausible) + ")")

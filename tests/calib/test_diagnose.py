@@ -1430,6 +1430,35 @@ def test_the_share_explained_is_judged_beyond_one_element_of_the_plate():
         DiagnosisOptions(explained_margin_mm="two")
 
 
+def test_sliding_springs_at_the_refit_s_softest_are_said_as_such():
+    # review BO: the refit's softest springs (the probe / 100) are where the model stops
+    # solving, not the end of the effect's range (a frictionless plate lies past them);
+    # "at a bound of its physical range" said the wrong thing. The stiffest end is one.
+    from dataclasses import replace
+
+    from calib.discrepancy.diagnose import _judge
+    from calib.discrepancy.refit import sliding_ln_k_bounds
+
+    prob, rng = _dome_problem()
+    prob.body_height_mm = 60.0  # the dome's
+    lo, hi = sliding_ln_k_bounds(prob.sliding_probe_pa_per_mm)
+    h = {n: prob.points[n][:, 2] for n in prob.scans}
+    r = {n: 0.1 * np.cos(prob.points[n][:, 0] / 15.0) + rng.normal(scale=0.05, size=len(h[n]))
+         for n in prob.scans}  # fmt: skip
+    b = _fit_of(prob, r, {}, [6.0])
+    o = DiagnosisOptions()
+    said = {}
+    for end in (lo, hi):
+        a = _fit_of(prob, r, {"sliding": {n: 0 * h[n] for n in prob.scans}}, [6.0, end])
+        a = replace(a, lower=np.array([-np.inf, lo]), upper=np.array([np.inf, hi]))
+        row = ("sliding", 5.0, 1e-4)
+        said[end] = _judge(prob, "sliding", 1, row, b, a, (0.0025, 0.0025, None), o).reason
+    probe = prob.sliding_probe_pa_per_mm
+    assert f"springs at the refit's softest, {probe / 100:.3g} Pa/mm" in said[lo]
+    assert "physical range" not in said[lo]
+    assert "parameter at a bound of its physical range (sliding)" in said[hi]
+
+
 def test_a_nuisance_beyond_the_registration_is_implausible():
     # closed form: the scan's points lie on a sphere of 50 mm about its centre and its
     # registration allows 0.5 mm, so a rigid offset may move them 0.5 mm and gravity may
