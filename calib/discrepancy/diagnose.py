@@ -1214,6 +1214,15 @@ def _judge(prob, eff, rnd, sig_row, before: Refit, after: Refit, floors: tuple, 
             "(the probe / 100, where the model stops solving): the data ask for a plate as "
             "free or freer, which the model cannot fit"
         )
+    elif eff == "skin" and "skin" in bound and after.parameter("skin") > 0:
+        # review BO: a skin stiffer or thicker than the band's range holds (an excess of
+        # 99 x the band) has no way out but another band; say which
+        t = prob.skin_thickness_mm
+        reasons.append(
+            f"skin ratio at the top of its range ({1 + after.parameter('skin'):.3g} on the "
+            f"assumed {t:g} mm band): a thicker, stiffer skin than the band holds; "
+            f"--skin-thickness {2 * t:g} doubles what it can fit"
+        )
     elif bound:
         reasons.append(f"parameter at a bound of its physical range ({', '.join(bound)})")
     if implausible:
