@@ -1218,10 +1218,14 @@ def _judge(prob, eff, rnd, sig_row, before: Refit, after: Refit, floors: tuple, 
         # review BO: a skin stiffer or thicker than the band's range holds (an excess of
         # 99 x the band) has no way out but another band; say which
         t = prob.skin_thickness_mm
+        wider = (
+            f"--skin-thickness {min(2 * t, 10.0):g} widens what it can fit"
+            if t < 10.0
+            else "the band is at its widest (10 mm)"
+        )
         reasons.append(
             f"skin ratio at the top of its range ({1 + after.parameter('skin'):.3g} on the "
-            f"assumed {t:g} mm band): a thicker, stiffer skin than the band holds; "
-            f"--skin-thickness {2 * t:g} doubles what it can fit"
+            f"assumed {t:g} mm band): a thicker, stiffer skin than the band holds; {wider}"
         )
     elif bound:
         reasons.append(f"parameter at a bound of its physical range ({', '.join(bound)})")

@@ -1459,7 +1459,7 @@ def test_sliding_springs_at_the_refit_s_softest_are_said_as_such():
     assert "parameter at a bound of its physical range (sliding)" in said[hi]
     # a skin at the top of its range: a thicker band, said (review BO); at the bottom, a
     # bound of the range
-    for end, words in ((99.0, "--skin-thickness 3 doubles"), (-0.9, "physical range (skin)")):
+    for end, words in ((99.0, "--skin-thickness 3 widens"), (-0.9, "physical range (skin)")):
         a = _fit_of(prob, r, {"skin": {n: 0 * h[n] for n in prob.scans}}, [6.0, end])
         a = replace(a, lower=np.array([-np.inf, -0.9]), upper=np.array([np.inf, 99.0]))
         cand = _judge(prob, "skin", 1, ("skin", 5.0, 1e-4), b, a, (0.0025, 0.0025, None), o)
