@@ -91,7 +91,7 @@ from .problem import (
     plate_height_mm,
     rim_margin_of,
 )
-from .refit import PHYSICAL, Refit, lopo, refit, sliding_ln_k_bounds
+from .refit import PHYSICAL, SLIDING_PROBE_MULTIPLES, Refit, lopo, refit, sliding_ln_k_bounds
 from .screen import (
     Screen,
     mesh_error_check,
@@ -1211,8 +1211,8 @@ def _judge(prob, eff, rnd, sig_row, before: Refit, after: Refit, floors: tuple, 
         # end of the effect's range (a frictionless plate, k = 0, lies past them)
         reasons.append(
             f"springs at the refit's softest, {np.exp(after.parameter('sliding')):.3g} Pa/mm "
-            "(the probe / 100, where the model stops solving): the data ask for a plate as "
-            "free or freer, which the model cannot fit"
+            f"(the probe x {SLIDING_PROBE_MULTIPLES[0]:g}, where the model stops solving): "
+            "the data ask for a plate as free or freer, which the model cannot fit"
         )
     elif eff == "skin" and "skin" in bound and after.parameter("skin") > 0:
         # review BO: a skin stiffer or thicker than the band's range holds (an excess of
