@@ -91,7 +91,7 @@ from .problem import (
     plate_height_mm,
     rim_margin_of,
 )
-from .refit import PHYSICAL, SLIDING_PROBE_MULTIPLES, Refit, lopo, refit, sliding_ln_k_bounds
+from .refit import PHYSICAL, SLIDING_PROBE_MULTIPLES, Refit, lopo, refit
 from .screen import (
     Screen,
     mesh_error_check,
@@ -1202,11 +1202,8 @@ def _judge(prob, eff, rnd, sig_row, before: Refit, after: Refit, floors: tuple, 
         what = "gets worse" if nuisance else "does not improve"
         reasons.append(f"leave-one-posture-out prediction {what}"
                        if la is not None else "leave-one-posture-out needs >= 2 scans")  # fmt: skip
-    if (
-        eff == "sliding"
-        and "sliding" in bound
-        and after.parameter("sliding") < np.mean(sliding_ln_k_bounds(prob.sliding_probe_pa_per_mm))
-    ):
+    low = after.at_lower_bound()
+    if eff == "sliding" and "sliding" in low:
         # review BO: the refit's softest springs are where the model stops solving, not the
         # end of the effect's range (a frictionless plate, k = 0, lies past them)
         reasons.append(
@@ -1214,7 +1211,7 @@ def _judge(prob, eff, rnd, sig_row, before: Refit, after: Refit, floors: tuple, 
             f"(the probe x {SLIDING_PROBE_MULTIPLES[0]:g}, where the model stops solving): "
             "the data ask for a plate as free or freer, which the model cannot fit"
         )
-    elif eff == "skin" and "skin" in bound and after.parameter("skin") > 0:
+    elif eff == "skin" and "skin" in bound and "skin" not in low:
         # review BO: a skin stiffer or thicker than the band's range holds (an excess of
         # 99 x the band) has no way out but another band; say which
         t = prob.skin_thickness_mm

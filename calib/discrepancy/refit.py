@@ -244,11 +244,20 @@ class Refit:
         cols = [f.stack(f.jacobian)] + [f.stack(_column(f, n).values) for n in self.names[1:]]
         return np.column_stack(cols)
 
+    def _on_bounds(self, tol: float) -> tuple[np.ndarray, np.ndarray]:
+        """Which parameters lie on their lower and which on their upper bound."""
+        span = np.where(np.isfinite(self.upper - self.lower), self.upper - self.lower, 1.0)
+        return self.x - self.lower < tol * span, self.upper - self.x < tol * span
+
     def at_bound(self, tol: float = 1e-6) -> tuple[str, ...]:
         """Parameters that ended on a bound of their physical range."""
-        span = np.where(np.isfinite(self.upper - self.lower), self.upper - self.lower, 1.0)
-        on = (self.x - self.lower < tol * span) | (self.upper - self.x < tol * span)
-        return tuple(n for n, b in zip(self.names, on, strict=True) if b)
+        low, high = self._on_bounds(tol)
+        return tuple(n for n, b in zip(self.names, low | high, strict=True) if b)
+
+    def at_lower_bound(self, tol: float = 1e-6) -> tuple[str, ...]:
+        """Parameters that ended on the lower bound of their range (of :meth:`at_bound`)."""
+        low, _ = self._on_bounds(tol)
+        return tuple(n for n, b in zip(self.names, low, strict=True) if b)
 
     def parameter(self, name: str) -> float:
         """Value of a parameter by name."""
