@@ -102,12 +102,15 @@ def _fixed_from_moving(T_fixed_from_moving, T_icp) -> np.ndarray | None:
     warnings.warn(
         "T_icp is now T_fixed_from_moving (the frames in its name)",
         DeprecationWarning,
-        stacklevel=3,
+        stacklevel=4,  # the caller of the public function (through _transforms)
     )
     return T_icp
 
 
-def _transforms(frames: Sequence[Frame], T_fixed_from_moving: np.ndarray | None, icp=None) -> dict:
+def _transforms(
+    frames: Sequence[Frame], T_fixed_from_moving: np.ndarray | None, T_icp=None, icp=None
+) -> dict:
+    T_fixed_from_moving = _fixed_from_moving(T_fixed_from_moving, T_icp)
     out = {}
     for fr in frames:
         _check_frame(fr)
@@ -189,8 +192,7 @@ def surface_errors(
         return np.asarray(res.T_target_from_source)
 
     out = {}
-    T_given = _fixed_from_moving(T_fixed_from_moving, T_icp)
-    for fr, T in _transforms(frames, T_given, run_icp).items():
+    for fr, T in _transforms(frames, T_fixed_from_moving, T_icp, run_icp).items():
         moved = apply_transform(T, mov)
         if fixed_faces is None:
             d, method = closest_point_distances(moved, fix), "point_to_point"
@@ -247,7 +249,7 @@ def nipple_error(
         raise RegistrationError(f"nipple_mm must be one point (3,), got shape {nipple.shape}")
     p = _pts(nipple.reshape(1, 3), "nipple_mm")
     out = {}
-    for fr, T in _transforms(frames, _fixed_from_moving(T_fixed_from_moving, T_icp)).items():
+    for fr, T in _transforms(frames, T_fixed_from_moving, T_icp).items():
         d = float(closest_point_distances(apply_transform(T, p), surface_points_mm)[0])
         out[fr] = PointDistance("nipple", fr, "closest_point", d)
     return out
@@ -289,7 +291,7 @@ def landmark_errors(
     """
     names = [n for n in moving_by_name if n in fixed_by_name]
     out: dict[str, dict[str, PointDistance]] = {}
-    for fr, T in _transforms(frames, _fixed_from_moving(T_fixed_from_moving, T_icp)).items():
+    for fr, T in _transforms(frames, T_fixed_from_moving, T_icp).items():
         out[fr] = {}
         for n in names:
             a = apply_transform(T, np.asarray(moving_by_name[n], dtype=float).reshape(3))
