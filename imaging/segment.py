@@ -571,9 +571,10 @@ def segment_body(
     # body's raw level was cut off, and ingest said too few markers were bright enough.
     region, grown = coarse, None
     pad = np.ceil(MARKER_PAD_MM / sp).astype(int)
+    margin = np.ceil(margin_mm / sp).astype(int)
     for passes in range(1, CROP_PASSES + 1):  # noqa: B007 (recorded in quality)
         crop = _with_far_markers(
-            _crop_box(region, np.ceil(margin_mm / sp).astype(int)),
+            _crop_box(region, margin),
             smooth > marker_ratio * float(np.median(smooth[region])),
             volume.voxel_volume_mm3,
             pad,
