@@ -381,9 +381,11 @@ def check_postures(
         two scans were tested); a scan whose c1 estimate has no interval (a
         ``ValueError``).
     """
+    from .model.reference import body_height_mm, body_scale
     from .model.residuals import scan_residuals
     from .stats import SurfaceSample
     from .stats.consistency import ConsistencyError, posture_consistency
+    from .stats.noise import MAX_LAG_MM
 
     if not 0.0 < alpha < 1.0:
         raise ConsistencyError(f"alpha must lie in (0, 1), got {alpha}")
@@ -436,6 +438,8 @@ def check_postures(
         sample,
         alpha=alpha,
         seed=cal.options.seed,
+        # review BN N4: the variogram's reach scales with the body, as calibrate's
+        max_lag_mm=MAX_LAG_MM * body_scale(body_height_mm(cal.measurements.reference, cal.mesh)),
     )
     return test, names
 

@@ -13,8 +13,8 @@ Region summary: each measured point goes to the first region it belongs to — `
 plane), ``inclusions`` (within ``over_mm`` of the surface of an inclusion or the
 tumour that ingest found in this scan), else ``bulk`` — and each region's mean residual
 gets a z-score from the same covariance (``1' Sigma 1 / n^2`` its variance). The
-radii are sized for a body as tall as the twins' (:data:`REGION_BODY_HEIGHT_MM`) and
-scale with the body's height (:func:`region_scale`).
+radii are sized for a body as tall as the twins' and scale with the body's height
+(:func:`calib.model.reference.body_scale`).
 """
 
 from __future__ import annotations
@@ -30,23 +30,20 @@ __all__ = [
     "APEX_MM",
     "OVER_MM",
     "REGIONS",
-    "REGION_BODY_HEIGHT_MM",
     "RIM_MM",
     "SIGNIFICANT_Z",
     "TUMOUR_MM",
     "RegionSummary",
     "ScanMap",
     "region_labels",
-    "region_scale",
     "significance_map",
 ]
 
 REGIONS = ("apex", "rim", "inclusions", "bulk")
-#: The body height (above the back plate, mm) the regions' radii are sized for: the twins'
-#: (74.5 mm). On a body 0.7 times as tall the unscaled radii put 61 % of the diagnosed
-#: points "over inclusions" against 22 % on the twin (audit M).
-REGION_BODY_HEIGHT_MM = 75.0
-#: The regions' radii (mm) on a body :data:`REGION_BODY_HEIGHT_MM` tall: around the
+#: The regions' radii (mm) on a body
+#: :data:`calib.model.reference.BODY_SCALE_HEIGHT_MM` tall (on a body 0.7 times as tall
+#: the unscaled radii put 61 % of the diagnosed points "over inclusions" against 22 % on
+#: the twin, audit M): around the
 #: measured nipple, above the back plate, beyond an inclusion's surface; and the
 #: diameter given a tumour landmark (a 10 mm sphere).
 APEX_MM = 20.0
@@ -55,25 +52,6 @@ OVER_MM = 15.0
 TUMOUR_MM = 10.0
 #: A point of the map is significant where ``|z_i|`` exceeds this (two-sided 5 %).
 SIGNIFICANT_Z = 1.96
-
-
-def region_scale(body_height_mm: float) -> float:
-    """Factor on the regions' radii for a body of this height, to one decimal.
-
-    Parameters
-    ----------
-    body_height_mm : float
-        The reference surface's greatest height above the back plate (mm).
-
-    Returns
-    -------
-    float
-        ``body_height_mm / REGION_BODY_HEIGHT_MM`` rounded to one decimal (at least 0.1):
-        1 for every twin (heights 71.3-78.7 mm), so their regions are as before.
-    """
-    if not (np.isfinite(body_height_mm) and body_height_mm > 0):
-        raise ValueError(f"body height must be positive, got {body_height_mm!r} mm")
-    return max(0.1, round(float(body_height_mm) / REGION_BODY_HEIGHT_MM, 1))
 
 
 @dataclass(frozen=True)

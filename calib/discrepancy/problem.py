@@ -36,7 +36,6 @@ from ..model.effects import SKIN_THICKNESS_MM, EffectValues, tag_effect_regions
 from ..model.forward import ForwardModel, ScanState
 from ..model.residuals import Residuals, SimulatedSurface, scan_residuals
 from ..stats.profile import HeightProfile
-from .localise import region_scale
 
 __all__ = [
     "RIM_MARGIN_MM",
@@ -245,10 +244,12 @@ class Problem:
     def region_scale(self) -> float:
         """The body's size relative to the twins' (1 where its height is not measured).
 
-        :func:`calib.discrepancy.localise.region_scale` of :attr:`body_height_mm`: the
+        :func:`calib.model.reference.body_scale` of :attr:`body_height_mm`: the
         factor on the localisation's radii and on the noise model's lags.
         """
-        return region_scale(self.body_height_mm) if self.body_height_mm > 0 else 1.0
+        from ..model.reference import body_scale
+
+        return body_scale(self.body_height_mm) if self.body_height_mm > 0 else 1.0
 
     @property
     def sliding_probe_pa_per_mm(self) -> float:

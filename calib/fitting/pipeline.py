@@ -20,7 +20,7 @@ import numpy as np
 
 from ..data.measurements import Measurements
 from ..data.session import checked_density_kg_m3
-from ..model.reference import body_height_mm
+from ..model.reference import body_height_mm, body_scale
 from ..model.residuals import surface_area_mm2
 from ..stats.intervals import MIN_SERIES_POINTS
 from ..stats.noise import SMOOTH_TAKEN_FOR_NOISE
@@ -195,11 +195,15 @@ def _uncertainty(cal: Calibrator, theta: float, say):
         log.warning(why)
     elif cal.options.objective == "surface":
         from ..stats.intervals import IntervalError
-        from ..stats.noise import NoiseModelError
+        from ..stats.noise import MAX_LAG_MM, NoiseModelError
 
         labels = np.concatenate([np.full(len(v.r), i) for i, v in enumerate(final.values())])
         try:
-            unc, fit_test = series_uncertainty(c1, r, dr, pts, labels, seed=cal.options.seed)
+            # review BN N4: the variogram's reach scales with the body, as the diagnosis'
+            reach = MAX_LAG_MM * body_scale(body_height_mm(cal.measurements.reference, cal.mesh))
+            unc, fit_test = series_uncertainty(
+                c1, r, dr, pts, labels, seed=cal.options.seed, max_lag_mm=reach
+            )
         except (NoiseModelError, IntervalError) as exc:
             # after the whole fit: say it and keep the run, with the interval that needs
             # no noise model (no misfit test then)

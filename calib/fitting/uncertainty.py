@@ -146,13 +146,14 @@ def series_uncertainty(
     *,
     seed: int = 0,
     misfit_alpha: float = MISFIT_ALPHA,
+    max_lag_mm: float | None = None,
 ):
     """Interval of ln c1 under a spatially correlated noise model, and the misfit test.
 
     The residuals' short-range variogram gives the noise model
     (:func:`calib.stats.estimate_noise`, pooled over the calibration scans, pairs within
-    a scan); the interval is the series-variance estimator with its exact (Imhof)
-    reference distribution, the widest over the plausible kernels
+    a scan, up to ``max_lag_mm``); the interval is the series-variance estimator with its
+    exact (Imhof) reference distribution, the widest over the plausible kernels
     (:func:`calib.stats.parameter_intervals`; measured coverage 93.5-96.0 % of nominal
     95 % in 20 cells, ``python benchmarks/bench_coverage.py``). The band-F misfit test
     (:func:`calib.stats.misfit_test`) asks whether the residual holds large-scale
@@ -171,6 +172,10 @@ def series_uncertainty(
         Seed of the variogram's pair sample.
     misfit_alpha : float
         False-alarm rate of the misfit test.
+    max_lag_mm : float, optional
+        The variogram's reach (mm); None: :data:`calib.stats.noise.MAX_LAG_MM`, sized
+        for a twin-tall body (the calibration passes it times
+        :func:`calib.model.reference.body_scale`).
 
     Returns
     -------
@@ -181,7 +186,9 @@ def series_uncertainty(
 
     base = gauss_newton_uncertainty(c1_pa, r, dr, points_mm, area_mm2=None)
     sample = SurfaceSample(points_mm, np.asarray(scan_labels, dtype=np.int64))
-    noise = estimate_noise(sample, r, seed=seed)
+    if max_lag_mm is None:
+        from ..stats.noise import MAX_LAG_MM as max_lag_mm
+    noise = estimate_noise(sample, r, seed=seed, max_lag_mm=max_lag_mm)
     alt = tuple(noise.plausible[1:])
     theta = float(np.log(c1_pa))
     (iv,) = parameter_intervals([theta], dr, r, sample, noise.best, alternatives=alt)

@@ -26,7 +26,9 @@ from .residuals import surface_area_mm2
 __all__ = [
     "MeshSupport",
     "meshed_spheres",
+    "BODY_SCALE_HEIGHT_MM",
     "body_height_mm",
+    "body_scale",
     "model_mesh_notes",
     "reference_mesh",
     "reference_mesh_with_support",
@@ -331,6 +333,40 @@ MIN_ELEMENTS_IN_HEIGHT = 4.0
 #: body (slow to solve): a body twice the twins' size gets 12.6 elements of the default 12
 #: mm, 30,089 tetrahedra and 81 s per FE solve against the twins' 4 s.
 MAX_ELEMENTS_IN_HEIGHT = 12.0
+
+
+#: The body height (above the back plate, mm) the lengths of the noise models and the
+#: diagnosis' regions are sized for: the twins' (heights 71.3-78.7 mm, 74.5 mm typical).
+BODY_SCALE_HEIGHT_MM = 75.0
+
+
+def body_scale(body_height_mm: float) -> float:
+    """Factor on the lengths sized for a twin-tall body, for a body of this height.
+
+    The noise models' variogram reach (calibrate's and the diagnosis') and the
+    diagnosis' region radii are sized for a body :data:`BODY_SCALE_HEIGHT_MM` tall and
+    scale with the body's height: on a body half as tall an unscaled 40 mm reach spans
+    most of it, and fits its smooth misfit as correlated noise (review BN, N4).
+
+    Parameters
+    ----------
+    body_height_mm : float
+        The body's greatest height above the back plate (mm).
+
+    Returns
+    -------
+    float
+        ``body_height_mm / BODY_SCALE_HEIGHT_MM`` rounded to one decimal (at least 0.1):
+        1 for every twin, so their lengths are as before.
+
+    Raises
+    ------
+    ValueError
+        ``body_height_mm`` not a positive finite number.
+    """
+    if not (np.isfinite(body_height_mm) and body_height_mm > 0):
+        raise ValueError(f"body height must be positive, got {body_height_mm!r} mm")
+    return max(0.1, round(float(body_height_mm) / BODY_SCALE_HEIGHT_MM, 1))
 
 
 def body_height_mm(ref, mesh) -> float:

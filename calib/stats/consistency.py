@@ -49,7 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .intervals import IntervalError, _json_number, parameter_intervals
-from .noise import NoiseFit, session_noise
+from .noise import MAX_LAG_MM, NoiseFit, session_noise
 from .sample import SurfaceSample
 
 __all__ = [
@@ -182,6 +182,7 @@ def posture_consistency(
     *,
     alpha: float = POSTURE_ALPHA,
     seed: int = 0,
+    max_lag_mm: float = MAX_LAG_MM,
 ) -> PostureConsistency:
     """Test whether every scan, fitted alone, asks for the same ``theta``.
 
@@ -203,6 +204,9 @@ def posture_consistency(
         False-alarm rate of the verdict.
     seed : int
         Seed of the variogram's pair sample (default noise model only).
+    max_lag_mm : float
+        The variogram's reach (default noise model only; mm): sized for a twin-tall body,
+        :func:`calib.evaluation.check_postures` scales it with the body's height.
 
     Returns
     -------
@@ -228,7 +232,7 @@ def posture_consistency(
         offsets = np.zeros_like(r)
         for idx in sample.blocks:
             offsets[idx] = r[idx].mean()
-        noise = session_noise(sample, r - offsets, seed=seed)
+        noise = session_noise(sample, r - offsets, seed=seed, max_lag_mm=max_lag_mm)
     est = tuple(
         _scan_estimate(float(theta), lab, r[idx], J[idx], sample.points_mm[idx], noise)
         for lab, idx in zip(sample.labels, sample.blocks, strict=True)

@@ -10,6 +10,7 @@ and the summary say that this test cannot tell a smooth misfit from noise here.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from calib.fitting.pipeline import LENGTH_AT_BOUND_NOTE, _model_fit_line
 from calib.fitting.uncertainty import series_uncertainty
@@ -47,3 +48,46 @@ def test_white_noise_alone_gets_no_note():
     assert not fit.noise.length_at_bound
     assert "search bound" not in _model_fit_line(fit)
     assert not any("search bound" in line for line in _model_fit_lines(fit.as_json(), None))
+
+
+def test_the_interval_and_misfit_test_do_not_depend_on_the_body_s_size():
+    # review BN, N4: calibrate's variogram reached 40 mm whatever the body's size; on a body
+    # half the twins' height (37.5 mm) that spans most of it, and the same residual pattern
+    # gave an interval 5 times narrower than on a twin-tall body. The reach now scales with
+    # the body's height (calib.model.reference.body_scale), so a body scaled by 0.5 with
+    # its residuals unchanged gets the same interval and p-value (exactly: every length of
+    # the noise model scales with it; the 0.1 rounding of the scale is exact at 75/37.5 mm)
+    from types import SimpleNamespace as NS
+
+    from calib.fitting import pipeline
+
+    rng = np.random.default_rng(0)
+    unit = _dome(1500, 1.0, rng)
+    dr = 10.0 * unit[:, 2] + 2.0 * unit[:, 0]
+    r = 0.1 * np.sin(3.0 * unit[:, 0]) * np.cos(2.5 * unit[:, 1])
+    r = r + 0.05 * rng.standard_normal(len(r))
+    r -= dr * (dr @ r) / (dr @ dr)
+    scan = NS(vertices_mm=np.eye(3), faces=np.array([[0, 1, 2]]), scored=np.ones(3, bool))
+    ref = NS(back_point_mm=np.zeros(3), back_normal=np.array([0.0, 0.0, -1.0]))
+    out = {}
+    for height in (75.0, 37.5):
+        p = height * unit
+        cal = NS(
+            options=NS(objective="surface", seed=0, mesh_check_ratio=0.0, profile_points=0),
+            residuals=lambda theta, scans, gradient, p=p: {"s": NS(r=r, dr=dr, points_mm=p)},
+            calibration_scans=[scan],
+            measurements=NS(reference=ref),
+            mesh=NS(nodes_mm=p),
+        )
+        unc, _, ci95, _, model_fit = pipeline._uncertainty(cal, np.log(420.0), lambda s: None)
+        out[height] = (ci95, model_fit["p_value"], unc.correlation_length_mm)
+        assert model_fit["noise"]["max_lag_mm"] == pytest.approx(40.0 * height / 75.0)
+    (ci_1, p_1, length_1), (ci_half, p_half, length_half) = out[75.0], out[37.5]
+    assert ci_half == pytest.approx(ci_1, rel=1e-9) and p_half == pytest.approx(p_1, rel=1e-9)
+    assert length_half == pytest.approx(0.5 * length_1, rel=1e-9)
+    # with a twin's 40 mm reach on the small body (before), the interval was far narrower
+    from calib.fitting.uncertainty import series_uncertainty
+
+    lab = np.zeros(len(r), dtype=np.int64)
+    before, _ = series_uncertainty(420.0, r, dr, 37.5 * unit, lab, max_lag_mm=40.0)
+    assert np.diff(before.c1_ci95_pa)[0] < 0.5 * np.diff(ci_1)[0]

@@ -108,7 +108,7 @@ def test_the_regions_scale_with_the_body_s_height(monkeypatch):
     # before), 0.7 and 1.4 for the 0.7x and 1.4x twins (52.3 and 103.7 mm)
     import importlib
 
-    from calib.discrepancy.localise import region_scale
+    from calib.model.reference import body_scale as region_scale
 
     dg = importlib.import_module("calib.discrepancy.diagnose")
 
