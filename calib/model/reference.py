@@ -32,6 +32,7 @@ __all__ = [
     "model_mesh_notes",
     "reference_mesh",
     "reference_mesh_with_support",
+    "remesh_grids_mm",
 ]
 
 log = logging.getLogger(__name__)
@@ -212,8 +213,8 @@ def _without_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane):
         except fem.MeshError as exc:  # which scan, which size: TetGen's words say neither
             raise fem.MeshError(
                 f"reference scan {ref.name!r} at {size_mm:g} mm: its surface decimated to "
-                f"{len(f)} faces was rejected, and remeshed on {REMESH_GRID_MM:g} and "
-                f"{REMESH_GRID_RETRY_MM:g} mm grids "
+                f"{len(f)} faces was rejected, and remeshed on "
+                f"{' and '.join(f'{g:g}' for g in remesh_grids_mm(ref))} mm grids "
                 f"gave no mesh; {exc}"
             ) from exc
         surface, tol = "repaired", plane[2]
@@ -537,7 +538,7 @@ def _with_spheres(ref, size_mm, back_tol_mm, max_dihedral_deg, plane, spheres, h
     errors = []
     outers = (
         ("decimated", decimated),
-        *(("remeshed", partial(remeshed, grid)) for grid in (REMESH_GRID_MM, REMESH_GRID_RETRY_MM)),
+        *(("remeshed", partial(remeshed, grid)) for grid in remesh_grids_mm(ref)),
     )
     for label, outer in outers:
         try:
@@ -586,6 +587,31 @@ REMESH_GRID_MM = 1.0
 #: on 1 mm, meshed on 0.7, 1.3, 1.6 and 2 mm; the decimation's repair that followed left
 #: 0.45-0.54 mm surface errors against 0.14-0.22 on its other seeds).
 REMESH_GRID_RETRY_MM = 1.3
+
+
+def remesh_grids_mm(ref: ScanMeasurement) -> tuple[float, float]:
+    """The remesh's grid steps for this reference scan's body (mm).
+
+    :data:`REMESH_GRID_MM` and :data:`REMESH_GRID_RETRY_MM` on a body no taller than the
+    twins; on a taller one both times :func:`body_scale` of its height above the back
+    plane, so the grid holds as many steps across it as across a twin: the occupancy grid
+    grows with the cube of the body's size (a body twice the twins' on a 1 mm grid: about
+    12 million points, minutes and a gigabyte; review BN, N6). A smaller body keeps the
+    twins' steps, finer for its size (the grid's cost falls with it).
+
+    Parameters
+    ----------
+    ref : ScanMeasurement
+        The reference scan (``vertices_mm``, ``back_point_mm``, ``back_normal``).
+
+    Returns
+    -------
+    tuple of float
+        The first and the retry grid step, mm.
+    """
+    height = float(np.max((ref.back_point_mm - ref.vertices_mm) @ ref.back_normal))
+    k = max(1.0, body_scale(height)) if height > 0 else 1.0
+    return REMESH_GRID_MM * k, REMESH_GRID_RETRY_MM * k
 
 
 def _onto_plane(v: np.ndarray, plane) -> tuple[np.ndarray, int]:
@@ -660,7 +686,7 @@ def _remeshed(ref: ScanMeasurement, plane, sizing: dict, back_tol_mm: float):
         The mesh and the tolerance its back was put onto the plane with; ``(None, None)``
         when TetGen rejects it too.
     """
-    for grid_mm in (REMESH_GRID_MM, REMESH_GRID_RETRY_MM):
+    for grid_mm in remesh_grids_mm(ref):
         try:
             w, g, tol, on = _remeshed_onto_plane(
                 ref, plane, sizing["size_mm"], back_tol_mm, grid_mm

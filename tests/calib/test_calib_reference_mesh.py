@@ -386,3 +386,33 @@ def test_a_surface_tetgen_rejects_every_way_names_the_scan_and_size(monkeypatch)
     ref = _dome_reference()
     with pytest.raises(fem.MeshError, match=rf"reference scan {ref.name!r} at 12 mm: its surface"):
         reference_mesh(ref, size_mm=12.0)
+
+
+def test_the_remesh_grid_grows_with_a_body_taller_than_the_twins(monkeypatch):
+    # review BN, N6: the remesh's occupancy grid grows with the cube of the body's size; a
+    # body twice the twins' on the 1 mm grid is about 12 million points (minutes, a
+    # gigabyte). Closed form: the twins' steps up to a twin-tall body (the 40 mm dome
+    # keeps them, finer for its size), times the height over 75 mm to one decimal above
+    from calib.model import reference
+
+    def dome(height_mm):
+        ref = _dome_reference()
+        ref.vertices_mm = ref.vertices_mm * (height_mm / 40.0)
+        return ref
+
+    assert reference.remesh_grids_mm(dome(40.0)) == (1.0, 1.3)
+    assert reference.remesh_grids_mm(dome(75.0)) == (1.0, 1.3)
+    assert reference.remesh_grids_mm(dome(150.0)) == pytest.approx((2.0, 2.6))
+    # and the remesh is tried on those grids
+    tried = []
+
+    def record(ref, plane, size_mm, back_tol_mm, grid_mm):
+        tried.append(grid_mm)
+        raise ValueError("not meshed here")
+
+    monkeypatch.setattr(reference, "_remeshed_onto_plane", record)
+    ref = dome(150.0)
+    plane = (ref.back_point_mm, ref.back_normal, 1.0)
+    sizing = {"max_volume_mm3": 1.0, "size_mm": 24.0, "max_dihedral_deg": None}
+    assert reference._remeshed(ref, plane, sizing, 1.0) == (None, None)
+    assert tried == pytest.approx([2.0, 2.6])
