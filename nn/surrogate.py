@@ -377,6 +377,21 @@ class Surrogate:
                 stacklevel=4,
             )
 
+    def _trained_magnitude_c1(self, g: np.ndarray, c1: np.ndarray) -> np.ndarray:
+        """The c1 that gives each query's load ``rho g / c1`` at the sweep's magnitude.
+
+        The dissertation baseline's input is the gravity's direction (and c1): its
+        magnitude is the sweep's ``g_m_s2``. The solution depends on the load ``rho g / c1``
+        only (:mod:`calib.sweep.plans`), so a query at another magnitude is the trained
+        one at ``c1 * g_m_s2 / |g|``; it was answered at the sweep's magnitude (half the
+        gravity gave twice its load's displacement, review BP P2). Zero gravity keeps its c1
+        (the module answers zero displacement there).
+        """
+        norm = np.linalg.norm(g, axis=1)
+        g_trained = float(self.meta["model"]["g_m_s2"])
+        scale = np.divide(g_trained, norm, out=np.ones_like(norm), where=norm > 0)
+        return c1 * scale
+
     def _warn_range(self, g: np.ndarray, c1: np.ndarray) -> None:
         lo, hi = self.meta["trained"]["c1_pa"]
         loaded = np.linalg.norm(g, axis=1) > 0  # no load: zero displacement at any c1
@@ -386,13 +401,23 @@ class Surrogate:
         qlo, qhi = self.meta["trained"]["load_per_m"]
         # one warning of the c1 or the load below: far from the trained range, it says so
         far = np.any((q > qhi * FAR_LOAD_FACTOR) | ((q > 0) & (q < qlo / FAR_LOAD_FACTOR)))
-        category = FarExtrapolationWarning if far else ExtrapolationWarning
         beyond = (
             f" (its load rho g / c1 lies beyond {FAR_LOAD_FACTOR:g} times the trained range: "
             "not to be trusted, the kernel grows without bound)"
             if far
             else ""
         )
+        if self.surface_only and lo == hi:
+            # review BP P2: without a c1 axis the baseline's input is the direction alone,
+            # so it answers the one trained load whatever the query's c1 or magnitude
+            far = np.any(loaded & (np.abs(q / qlo - 1.0) > _REL_TOL)) if qlo > 0 else far
+            if far:
+                beyond = (
+                    " (the dissertation baseline trained without a c1 axis knows one load, "
+                    "rho g / c1 at the sweep's c1 and magnitude: it answers that load's "
+                    "displacement whatever the query's)"
+                )
+        category = FarExtrapolationWarning if far else ExtrapolationWarning
         if np.any(out):
             warnings.warn(
                 f"c1 = {c1[out][0]:.6g} Pa lies outside the trained range "
@@ -470,8 +495,9 @@ class Surrogate:
         import torch
 
         g, c1 = self._checked(gravity_m_s2, c1_pa, frame)
+        c1_in = self._trained_magnitude_c1(g, c1) if self.surface_only else c1
         with torch.inference_mode():
-            out = self.module(torch.as_tensor(g), torch.as_tensor(c1))
+            out = self.module(torch.as_tensor(g), torch.as_tensor(c1_in))
         out = {k: v.numpy().astype(np.float64) for k, v in out.items()}
         nodes = out.get("nodes_mm")
         surface = nodes[:, self.mesh.surface_nodes] if nodes is not None else out["surface_mm"]

@@ -403,3 +403,58 @@ def test_a_load_nearer_a_failed_scenario_than_any_trained_one_warns(box_sweep, t
         warnings.simplefilter("error")  # a trained scenario's own load: silent
         trained = int(failed.index[failed.role == "train"][0])
         sur.predict(9.81 * data.gravity_ref[data.index == trained][0], c1_pa=c1, frame="ref")
+
+
+def _c1_axis_data():
+    """A synthetic sweep with a c1 axis: 20 directions times c1 300-1200 Pa, at 9.81 m/s^2."""
+    from nn.data import SweepData
+
+    rng = np.random.default_rng(1)
+    dirs = rng.normal(size=(20, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    c1 = np.repeat([300.0, 600.0, 1200.0], 20)
+    dirs = np.tile(dirs, (3, 1))
+    b = 1000 * 9.81 * dirs / c1[:, None]
+    u = np.einsum("nij,bj->bni", rng.normal(size=(5, 3, 3)), b) * 1e-3
+    n = len(c1)
+    return SweepData(
+        path=None, nodes_mm=np.zeros((5, 3)), tets=np.zeros((0, 4), int),
+        surface_nodes=np.arange(5), back_nodes=np.zeros(0, int),
+        boundary_faces=np.zeros((0, 3), int), index=np.arange(n), gravity_ref=dirs,
+        gravity_phantom=dirs, c1_pa=c1, load_per_m=b, role=np.full(n, "train"),
+        plane=np.full(n, "sphere"), angle_deg=np.full(n, np.nan), displacement_mm=u,
+        tumour_mm=u[:, 0], nipple_mm=u[:, 1], mesh_sha256="",
+        model={"density_kg_m3": 1000.0, "g_m_s2": 9.81, "c1_pa": 600.0, "nipple_node": 1,
+               "R_ref_from_phantom": np.eye(3).tolist(), "support": "clamped"},
+    )  # fmt: skip
+
+
+def test_the_baseline_answers_a_gravity_of_another_magnitude_by_its_load():
+    # review BP, P2: the dissertation MLPs' input is the direction (and c1 / c1_ref), so a
+    # query at half the sweep's 9.81 m/s^2 was answered for 9.81 (twice its load), without
+    # a warning. The solution depends on rho g / c1 only: half the gravity at c1 = 300 Pa
+    # is the full gravity at 600 Pa, bit for bit (the same network input)
+    data = _c1_axis_data()
+    sur = nn.Surrogate.from_fit(nn.fit_dissertation_mlps(data, device="cpu", iterations=50), data)
+    g = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8]) * 9.81
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # directions off the 20 trained: not the point here
+        half = sur.predict(g / 2, c1_pa=300.0, frame="ref").surface_mm
+        same_load = sur.predict(g, c1_pa=600.0, frame="ref").surface_mm
+        full = sur.predict(g, c1_pa=300.0, frame="ref").surface_mm
+    np.testing.assert_array_equal(half, same_load)
+    assert np.abs(half - full).max() > 1e-3 * np.abs(full).max()
+
+
+def test_the_baseline_without_a_c1_axis_refuses_another_load(baseline, box_data):
+    # review BP, P2: trained on one c1 and 9.81 m/s^2, the baseline knows one load; a
+    # query at 0.7 times the magnitude (or another c1) got the trained load's answer with a
+    # plain ExtrapolationWarning, which `surrogate predict` writes. Now it is far
+    c1 = float(box_data.model["c1_pa"])
+    with pytest.warns(nn.FarExtrapolationWarning, match="knows one load"):
+        baseline.predict([0.0, 0.0, 0.7 * 9.81], c1_pa=c1)
+    with pytest.warns(nn.FarExtrapolationWarning, match="knows one load"):
+        baseline.predict([0.0, 0.0, 9.81], c1_pa=1.2 * c1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # its own load: silent
+        baseline.predict([0.0, 0.0, 9.81], c1_pa=c1)
