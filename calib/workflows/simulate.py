@@ -19,7 +19,15 @@ from ..choices import BackSupport
 from ..data.session import checked_density_kg_m3
 from ..io import atomic_write, input_records, provenance, write_json_atomic
 
-__all__ = ["SimulateOptions", "parse_back_plane", "parse_vector", "run_simulate"]
+__all__ = [
+    "CALIBRATED_OPTIONS",
+    "SimulateOptions",
+    "calibrated_model",
+    "parse_back_plane",
+    "parse_vector",
+    "run_simulate",
+    "say_calibrated_model",
+]
 
 log = logging.getLogger(__name__)
 
@@ -188,6 +196,120 @@ def _own_back(mesh: fem.TetMesh, own: np.ndarray):
         normal = -normal  # outward: away from the body
     log.info("clamping the mesh's own back face (`set:back`, %d nodes)", len(own))
     return own, normal
+
+
+#: What ``simulate``'s options set that calibrate's model records (``calibration.json``
+#: ``model``): the option's name on the command line, its attribute and the model's key.
+CALIBRATED_OPTIONS = (
+    ("--density", "density_kg_m3", "density_kg_m3"),
+    ("--nu", "nu", "nu"),
+    ("--formulation", "formulation", "formulation"),
+    ("--g", "g_m_s2", "g_m_s2"),
+    ("--bc", "bc", "support"),
+)
+
+
+def calibrated_model(mesh_path: Path) -> tuple[Path, dict] | None:
+    """Calibrate's record of a mesh that is a calibration's ``reference_mesh.vtu``, or None.
+
+    Review BP, P1: ``simulate`` of calibrate's own mesh solved the defaults (1000 kg/m^3)
+    whatever the calibration had (an independent generator's 1200 kg/m^3 phantom: 17 %
+    less displacement than the calibrated model's, without a word). The mesh file carries
+    no physics; its ``calibration.json`` does (its ``model.reference_mesh`` names it).
+
+    Parameters
+    ----------
+    mesh_path : Path
+        The mesh ``simulate`` reads.
+
+    Returns
+    -------
+    (Path, dict) or None
+        ``calibration.json``'s path and the whole record, where the mesh is the one its
+        ``model.reference_mesh`` names; None otherwise (any other mesh, or a record that
+        cannot be read: ``simulate`` needs none).
+    """
+    import json
+
+    path = Path(mesh_path).resolve()
+    record_path = path.parent.parent / "calibration.json"
+    if not record_path.is_file():
+        return None
+    try:
+        record = json.loads(record_path.read_text())
+        named = (record_path.parent / record["model"]["reference_mesh"]).resolve()
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return (record_path, record) if named == path else None
+
+
+def say_calibrated_model(mesh_path: Path, opts: SimulateOptions, found) -> dict | None:
+    """Warn where a solve of calibrate's mesh is not the calibrated model; the record's part.
+
+    Each option of :data:`CALIBRATED_OPTIONS` that differs from the calibration's model
+    (``--c1``, required, is the user's choice: not compared) and a reference the solve
+    cannot reproduce (curved stress-free elements, or a prestressed loaded mesh:
+    ``simulate`` solves straight elements from
+    zero stress) are named in one warning, with the options that give the calibrated model.
+
+    Parameters
+    ----------
+    mesh_path : Path
+        The mesh solved (named in the warning).
+    opts : SimulateOptions
+        The solve's options.
+    found : (Path, dict) or None
+        :func:`calibrated_model` of ``mesh_path``.
+
+    Returns
+    -------
+    dict or None
+        ``RESULT.json``'s ``calibration``: its ``path``, ``differences`` (option to
+        ``[calibrated, used]``) and ``reference`` (null, or why the solve differs from the
+        calibrated model whatever the options); None for another mesh.
+    """
+    if found is None:
+        return None
+    record_path, record = found
+    model = record.get("model") or {}
+    diffs = {}
+    for flag, attr, key in CALIBRATED_OPTIONS:
+        want, used = model.get(key), getattr(opts, attr)
+        if want is None:
+            continue
+        if isinstance(used, str):
+            same = want == used
+        else:
+            same = bool(np.isclose(float(want), float(used), rtol=1e-9))
+        if not same:
+            diffs[flag] = [want, used]
+    method = (record.get("reference_recovery") or {}).get("method")
+    reference = None
+    if method != "spatial" and model.get("prestress"):
+        reference = (
+            "the calibrated reference is prestressed (the loaded reference scan's mesh with "
+            "its stress): simulate solves this mesh from zero stress"
+        )
+    elif method == "spatial":
+        reference = (
+            "the calibrated stress-free reference has curved elements (its recovery's "
+            "`spatial` method): simulate solves straight ones on its vertices"
+        )
+    if diffs or reference:
+        said = [f"{flag} {used} (calibrated: {want})" for flag, (want, used) in diffs.items()]
+        fix = " ".join(f"{flag} {want}" for flag, (want, _) in diffs.items())
+        log.warning(
+            "%s is the model mesh of %s; this solve is not the calibrated model's: %s%s",
+            mesh_path,
+            record_path,
+            "; ".join(said + ([reference] if reference else [])),
+            f" (for the calibrated model: {fix})" if fix else "",
+        )
+    return {
+        "path": str(record_path),
+        "differences": diffs,
+        "reference": reference,
+    }
 
 
 def _model(mesh: fem.TetMesh, opts: SimulateOptions) -> fem.Model:
@@ -377,7 +499,22 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
         check_mesh(mesh, mesh_path)
         back, normal, back_source = _back_nodes(mesh, parse_back_plane(opts.back_plane))
         say_inverted(mesh, mesh_path, inverted, back)
+        own_nipple = mesh.node_sets.get("nipple")
         mesh = tag_node_sets(mesh, back, normal)
+        nipple_source = "apex"
+        on_surface = own_nipple is not None and np.isin(own_nipple, mesh.node_set("surface"))
+        if own_nipple is not None and not (len(own_nipple) == 1 and on_surface.all()):
+            log.warning(
+                "%s: its `set:nipple` point data (%d nodes) is not one surface node: the "
+                "nipple is the apex, the surface node farthest from the back face",
+                mesh_path,
+                len(own_nipple),
+            )
+        elif own_nipple is not None:
+            # review BP, P4: calibrate's `set:nipple` is the node nearest the measured
+            # nipple, which need not be the apex; it was overwritten by the apex
+            mesh = mesh.with_node_sets(nipple=np.asarray(own_nipple, dtype=np.int64))
+            nipple_source = "set:nipple"
     except fem.MeshError as exc:  # every mesh problem names the mesh file
         if str(mesh_path) in str(exc):
             raise
@@ -391,6 +528,7 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
             ", ".join(sorted(mesh.region_names)[:4])
             + (", ..." if len(mesh.region_names) > 4 else ""),
         )
+    calibration = say_calibrated_model(mesh_path, opts, calibrated_model(mesh_path))
     model = _model(mesh, opts)
     sol = fem.solve(
         model, gravity=np.array(opts.gravity), g_m_s2=opts.g_m_s2, formulation=opts.formulation
@@ -419,6 +557,7 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
         "max_displacement_mm": sol.max_displacement_mm,
         "nipple_displacement_mm": float(np.linalg.norm(sol.displacement_mm[nipple])),
         "nipple_node": int(points.node_index[nipple]),  # the input file's numbering
+        "nipple_source": nipple_source,
         "back": {"source": back_source, "nodes": len(back)},  # the clamped (or sliding) face
         "inverted_elements_flipped": len(inverted),
         "points": points.n_points,
@@ -429,6 +568,7 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
         "dofs": sol.dofs,
         "wall_s": time.perf_counter() - t0,
         "formulation": sol.formulation,
+        "calibration": calibration,
         "provenance": provenance(inputs=read, parameters=opts.__dict__),
     }
     json_path = out_path.with_suffix(".json")

@@ -562,3 +562,66 @@ def test_a_negative_seed_is_refused_by_its_option(args):
     # review AC: numpy's "expected non-negative integer", naming no option
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 2 and "'--seed'" in result.stderr, result.output
+
+
+def test_simulate_takes_the_mesh_s_own_nipple(mesh_file, tmp_path, caplog):
+    # review BP, P4: calibrate's `set:nipple` (the surface node nearest the measured
+    # nipple, which the contract lets lie away from the top) was overwritten by the apex,
+    # so simulate and calibrate named different nipples on one mesh
+    import meshio
+
+    m = meshio.read(mesh_file)
+    pts, tets = m.points, m.cells_dict["tetra"]
+    apex = int(np.argmax(pts[:, 2]))
+    up = np.flatnonzero(pts[:, 2] > 0.5 * pts[:, 2].max())
+    side = int(up[np.argmax(pts[up, 0])])  # a surface node on the flank, not the apex
+    assert side != apex
+    own = tmp_path / "own.vtu"
+    flags = (np.arange(len(pts)) == side).astype(np.int8)
+    meshio.write(own, meshio.Mesh(pts, [("tetra", tets)], point_data={"set:nipple": flags}))
+    assert _simulate(own, tmp_path / "own_out.vtu").exit_code == 0
+    result = json.loads((tmp_path / "own_out.json").read_text())
+    assert (result["nipple_source"], result["nipple_node"]) == ("set:nipple", side)
+    assert result["calibration"] is None  # no calibration.json beside it
+    u = meshio.read(tmp_path / "own_out.vtu").point_data["displacement_mm"]
+    assert result["nipple_displacement_mm"] == pytest.approx(np.linalg.norm(u[side]), rel=1e-9)
+    # a set of two nodes is no nipple: the apex, said
+    flags[apex] = 1
+    meshio.write(own, meshio.Mesh(pts, [("tetra", tets)], point_data={"set:nipple": flags}))
+    with caplog.at_level("WARNING"):
+        assert _simulate(own, tmp_path / "two_out.vtu").exit_code == 0
+    assert "`set:nipple` point data (2 nodes) is not one surface node" in caplog.text
+    result = json.loads((tmp_path / "two_out.json").read_text())
+    assert (result["nipple_source"], result["nipple_node"]) == ("apex", apex)
+    assert _simulate(mesh_file, tmp_path / "plain.vtu").exit_code == 0  # no set: the apex
+    assert json.loads((tmp_path / "plain.json").read_text())["nipple_source"] == "apex"
+
+
+def test_simulate_says_where_calibrate_s_mesh_is_not_solved_as_calibrated(
+    mesh_file, tmp_path, caplog
+):
+    # review BP, P1: an independent generator's calibration with curved stress-free
+    # elements (`spatial` recovery) was solved on straight ones without a word (0.58 mm
+    # off the calibrated state); its record two folders up is read, any other json ignored
+    import shutil
+
+    work = tmp_path / "work"
+    (work / "calibration").mkdir(parents=True)
+    mesh = work / "calibration" / "reference_mesh.vtu"
+    shutil.copy(mesh_file, mesh)
+    model = {"nu": 0.499, "density_kg_m3": 1000.0, "formulation": "taylor-hood",
+             "g_m_s2": 9.81, "support": "clamped",
+             "reference_mesh": "calibration/reference_mesh.vtu",
+             "prestress": {"method": "inverse (spatial; curved stress-free elements)"}}  # fmt: skip
+    record = {"c1_pa": 420.0, "model": model, "reference_recovery": {"method": "spatial"}}
+    (work / "calibration.json").write_text(json.dumps(record))
+    with caplog.at_level("WARNING"):
+        assert _simulate(mesh, tmp_path / "s.vtu").exit_code == 0
+    assert "this solve is not the calibrated model's: the calibrated stress-free" in caplog.text
+    said = json.loads((tmp_path / "s.json").read_text())["calibration"]
+    assert said["differences"] == {} and "curved elements" in said["reference"]
+    # a record naming another mesh is not this mesh's
+    model["reference_mesh"] = "calibration/other.vtu"
+    (work / "calibration.json").write_text(json.dumps(record))
+    assert _simulate(mesh, tmp_path / "t.vtu").exit_code == 0
+    assert json.loads((tmp_path / "t.json").read_text())["calibration"] is None

@@ -291,7 +291,7 @@ def test_a_work_folder_ingested_again_after_its_calibration_is_refused(nipple_ru
     assert (copy / "validation.json").read_text() == before  # nothing written
 
 
-def test_simulate_on_the_calibrated_mesh_gives_calibrate_s_own_state(nipple_run, tmp_path):
+def test_simulate_on_the_calibrated_mesh_gives_calibrate_s_own_state(nipple_run, tmp_path, caplog):
     # make demo's last step: simulate on calibrate's stress-free reference_mesh.vtu at
     # the calibrated c1 and a scan's gravity_ref. Review AT: the back plane simulate
     # detected clamped 3 nodes the calibration left free (0.59 mm off its state); with
@@ -312,7 +312,28 @@ def test_simulate_on_the_calibrated_mesh_gives_calibrate_s_own_state(nipple_run,
     state = meshio.read(work / "calibration" / f"{name}_deformed.vtu")
     assert np.linalg.norm(state.point_data["displacement_mm"], axis=1).max() > 5.0
     assert np.abs(u - state.point_data["displacement_mm"]).max() < 1e-6
-    assert json.loads(out.with_suffix(".json").read_text())["back"]["source"] == "set:back"
+    result = json.loads(out.with_suffix(".json").read_text())
+    assert result["back"]["source"] == "set:back"
+    # review BP: the calibration's record beside its mesh is read; the same model, no word
+    assert result["calibration"] == {
+        "path": str((work / "calibration.json").resolve()), "differences": {}, "reference": None
+    }  # fmt: skip
+    assert (result["nipple_source"], result["nipple_node"]) == (
+        "set:nipple",
+        doc["model"]["nipple_node"],
+    )
+    # review BP, P1: another density (a phantom of 1200 kg/m^3 solved at the default 1000
+    # moved 17 % less than its calibrated model, silently) is said, with the option to give
+    other = tmp_path / "other.vtu"
+    with caplog.at_level("WARNING"):
+        res = CliRunner().invoke(app, ["simulate", str(work / "calibration" / "reference_mesh.vtu"),
+                                       "--c1", str(doc["c1_pa"]), f"--gravity={gravity}",
+                                       "--density", "1200", "--out", str(other)])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    said = "this solve is not the calibrated model's: --density 1200.0 (calibrated: 1000.0)"
+    assert said in caplog.text and "(for the calibrated model: --density 1000.0)" in caplog.text
+    differences = json.loads(other.with_suffix(".json").read_text())["calibration"]["differences"]
+    assert differences == {"--density": [1000.0, 1200.0]}
 
 
 def test_hand_edited_arrays_of_a_work_folder_are_named(nipple_run, tmp_path):
