@@ -181,6 +181,15 @@ class Validation:
         """Scans with role ``validation``."""
         return [s for s in self.scans.values() if s.role == "validation"]
 
+    @property
+    def notes(self) -> tuple[str, ...]:
+        """What these figures are not, said beside the calibration's caveats.
+
+        Review BP, P5: a session without a validation scan got a "Validation" report of
+        the scans c1 was fitted to, and nothing said so.
+        """
+        return no_validation_scan_note(s.role for s in self.scans.values())
+
     def to_json(self) -> dict:
         """``validation.json`` (without provenance)."""
         return {
@@ -206,6 +215,19 @@ class Validation:
 DISSERTATION_MATCH_DEG = 2.5
 
 
+#: Said where a validation holds scans but none of role ``validation``.
+NO_VALIDATION_SCAN = (
+    "no scan of role `validation`: every figure is of a scan c1 was fitted to (its fit, "
+    "biased low), not a prediction of a posture the calibration never saw"
+)
+
+
+def no_validation_scan_note(roles) -> tuple[str, ...]:
+    """:data:`NO_VALIDATION_SCAN` where ``roles`` has some but no ``validation``, else ()."""
+    roles = list(roles)
+    return (NO_VALIDATION_SCAN,) if roles and "validation" not in roles else ()
+
+
 def _posture(work: WorkFolder, scan) -> tuple[float, str]:
     """The measured posture angle (deg) of a scan in its plane, and the plane."""
     R = np.asarray(work.record["model"]["R_ref_from_phantom"], float)
@@ -216,7 +238,15 @@ def _posture(work: WorkFolder, scan) -> tuple[float, str]:
         plane = "sagittal" if near_y else "transverse"
     in_plane, up = PLANES[plane]  # the axes of fem.postures.gravity_for_angle's plane
     angle = float(np.degrees(np.arctan2(g[up], g[in_plane])))
+    if scan.posture_angle_deg is not None:  # on the nominal angle's own branch (review BP
+        nominal = float(scan.posture_angle_deg)  # P7: a right lateral read -179 deg)
+        return nominal + _wrapped_deg(angle - nominal), plane
     return (angle + 360.0 if angle <= -179.5 else angle), plane  # in (-179.5, 180.5]
+
+
+def _wrapped_deg(angle_deg: float) -> float:
+    """An angle in (-180, 180] degrees."""
+    return float(180.0 - (180.0 - angle_deg) % 360.0)
 
 
 def _reference_figures(scan, angle_deg: float, plane: str) -> dict | None:
@@ -230,7 +260,7 @@ def _reference_figures(scan, angle_deg: float, plane: str) -> dict | None:
         return None
     angle = angle_deg if scan.posture_angle_deg is None else scan.posture_angle_deg
     for nominal, figures in DISSERTATION.items():
-        if abs(angle - nominal) <= DISSERTATION_MATCH_DEG:
+        if abs(_wrapped_deg(angle - nominal)) <= DISSERTATION_MATCH_DEG:  # -335 is 25
             return {"posture_angle_deg": nominal, "c1_pa": DISSERTATION_C1_PA} | figures
     return None
 

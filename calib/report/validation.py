@@ -347,6 +347,7 @@ def _intro(v: Validation) -> str:
         for n, why in v.failed.items()
     )
     caveats = "".join(f"WARNING (calibration): {said}. " for said in v.caveats)
+    caveats += "".join(f"WARNING: {said}. " for said in v.notes)
     return (
         f"{caveats}c1 = {v.c1_pa:.1f} Pa ({band}). All distances in mm. Posture: "
         f"{POSTURE_NOTE}. Error maps: "

@@ -8,6 +8,9 @@ word. The caveats are read from the record alone, so the checks are exact.
 
 from __future__ import annotations
 
+import numpy as np
+import pytest
+
 from calib.fitting.result import calibration_caveats
 from calib.report.tables import format_validation
 
@@ -152,3 +155,56 @@ def test_calib_validate_warns_of_each_caveat_in_a_notebook(monkeypatch, caplog):
     with caplog.at_level("WARNING"):
         assert calib.validate("w") is record
     assert "calibration: model misfit (x)" in caplog.text
+
+
+def test_a_validation_without_a_validation_scan_says_its_figures_are_fits():
+    # review BP, P5: a session of a reference and calibration scans only got a
+    # "Validation" table of the scans c1 was fitted to, exit 0, and nothing said so
+    from types import SimpleNamespace
+
+    from calib.report.validation import _intro
+    from calib.validation import NO_VALIDATION_SCAN, Validation
+
+    fig = {"value": 0.3, "ci95": [0.29, 0.31]}
+    scan = {"role": "calibration", "posture_angle_deg": 180.0, "posture_plane": "transverse",
+            "surface_error_mm": {"fiducial": {"mean": fig, "sd": fig}},
+            "nipple_error_mm": {"fiducial": fig}, "tumour_error_mm": None}  # fmt: skip
+    fitted = {"scans": {"right": scan, "tilt": scan}}
+    assert f"WARNING: {NO_VALIDATION_SCAN}" in format_validation(fitted).splitlines()
+    held = {"scans": {"right": scan, "tilt": scan | {"role": "validation"}}}
+    assert "WARNING" not in format_validation(held)
+    assert "WARNING" not in format_validation({"scans": {}})  # nothing to say of no scan
+    # the HTML and Markdown report's introduction too
+    roles = [SimpleNamespace(role="calibration")]
+    v = Validation(c1_pa=420.0, c1_ci95_pa=None, scans={"right": roles[0]})
+    assert v.notes == (NO_VALIDATION_SCAN,) and NO_VALIDATION_SCAN in _intro(v)
+    v = Validation(c1_pa=420.0, c1_ci95_pa=None, scans={"tilt": SimpleNamespace(role="validation")})
+    assert v.notes == () and NO_VALIDATION_SCAN not in _intro(v)
+
+
+def test_a_posture_angle_is_said_on_its_nominal_angle_s_branch():
+    # review BP, P7: an independent generator's right lateral, 0.5 deg off, read -179 deg;
+    # a nominal angle written -335 (the contract allows -360...360) got no dissertation
+    # figures where 25 got them
+    from types import SimpleNamespace
+
+    from calib.validation import _posture, _reference_figures
+
+    work = SimpleNamespace(record={"model": {"R_ref_from_phantom": np.eye(3).tolist()}})
+
+    def scan(angle_deg, nominal, role="validation"):
+        a = np.radians(angle_deg)
+        return SimpleNamespace(gravity_ref=np.array([np.cos(a), 0.0, np.sin(a)]), role=role,
+                               posture_plane="transverse", posture_angle_deg=nominal)  # fmt: skip
+
+    for measured in (179.2, -179.2, 180.8):
+        angle, plane = _posture(work, scan(measured, 180.0))
+        assert abs(angle - 180.0) < 1.0 and plane == "transverse", (measured, angle)
+    assert _posture(work, scan(0.3, 0.0))[0] == pytest.approx(0.3)
+    assert _posture(work, scan(-0.3, 0.0))[0] == pytest.approx(-0.3)  # not 359.7
+    # no nominal angle: in (-179.5, 180.5] as before
+    assert _posture(work, scan(-179.8, None))[0] == pytest.approx(180.2)
+    for nominal in (25.0, -335.0):
+        s = scan(25.0, nominal)
+        figures = _reference_figures(s, _posture(work, s)[0], "transverse")
+        assert figures is not None and figures["posture_angle_deg"] == 25, nominal
