@@ -26,7 +26,20 @@ __all__ = [
 
 
 class ConvergenceError(RuntimeError):
-    """The load could not be applied: Newton failed even at the smallest load step."""
+    """The load could not be applied: Newton failed even at the smallest load step.
+
+    Attributes
+    ----------
+    element : int or None
+        The element that lost the most volume at the last converged state (the one
+        :func:`stall_note` names), where the solve knows it; None otherwise.
+    """
+
+    # a default, so that a process pool's worker can pickle it (the attribute travels in
+    # the exception's __dict__)
+    def __init__(self, message: str = "", *, element: int | None = None):
+        super().__init__(message)
+        self.element = element
 
 
 @dataclass(frozen=True)
@@ -310,8 +323,13 @@ def stall_note(
     -------
     str
     """
+    return _stall(disc, model, x, lam, load)[0]
+
+
+def _stall(disc: Discretization, model: Model, x: np.ndarray, lam: float, load: str):
+    """:func:`stall_note`'s text and its element (None where no step converged)."""
     if lam <= 0.0:
-        return f"no step of {load} converged"
+        return f"no step of {load} converged", None
     mesh = disc.mesh
     moved = mesh.with_nodes(mesh.nodes_mm + vertex_displacement_mm(disc, x))
     ratio = moved.volumes_mm3() / mesh.volumes_mm3()
@@ -331,7 +349,7 @@ def stall_note(
     return (
         f"it reached {lam:.1%} of {load}; there the most squeezed vertex tetrahedron "
         f"(element {e}, {d_mm:.1f} mm from the support's nodes) {state}"
-    )
+    ), e
 
 
 def _load_steps(prob: _Problem, x, prescribed, opts: SolverOptions):
@@ -448,11 +466,12 @@ def solve(
         prob.f_scale = max(prob.f_scale, _reaction_scale(prob, pres))
     x, lam, steps, cuts, ok = _warm_or_stepped(prob, x0, pres, opts)
     if not ok and raise_on_failure:
+        note, element = _stall(disc, model, x, lam, "the load")
         raise ConvergenceError(
             f"load not applied: Newton failed at a load step below {opts.min_step:g} "
-            f"after {stats.newton} iterations ({cuts} cut-backs); "
-            f"{stall_note(disc, model, x, lam)}; "
-            f"{_failure_cause(stats, lam, opts.rtol, float(np.ptp(disc.mesh.nodes_mm, 0).max()))}"
+            f"after {stats.newton} iterations ({cuts} cut-backs); {note}; "
+            f"{_failure_cause(stats, lam, opts.rtol, float(np.ptp(disc.mesh.nodes_mm, 0).max()))}",
+            element=element,
         )
     total = time.perf_counter() - t_start
     return Solution(

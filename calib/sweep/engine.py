@@ -130,6 +130,26 @@ def _prepared(model: SweepModel, key: str):
     return _CACHE[key]
 
 
+def _flipped_note(model: SweepModel, exc: Exception) -> str:
+    """What a failure at an element inverted in the stress-free mesh means ("" otherwise).
+
+    fem's message says the load may be too large or the support leave the body free; at
+    one of :attr:`SweepModel.flipped_elements` it is the recovered reference instead
+    (review BP, P3).
+    """
+    element = getattr(exc, "element", None)
+    flipped = model.flipped_elements if element is not None else ()
+    if element is None or element not in flipped:
+        return ""
+    return (
+        f" (element {element} is one of the {len(flipped)} the stress-free reference holds "
+        "inverted at the clamped rim, calibration.json's reference_recovery."
+        "inverted_elements: near the reference scan's own posture they turn right side out, "
+        "which no forward solve from the stress-free mesh reaches; a calibration with "
+        "--reference-state prestress or another --mesh-size has none)"
+    )
+
+
 def solve_scenario(model: SweepModel, key: str, task: ScenarioTask):
     """Solve one scenario (runs on a worker; never raises for a failed solve).
 
@@ -161,7 +181,7 @@ def solve_scenario(model: SweepModel, key: str, task: ScenarioTask):
         return ScenarioResult(
             task.index,
             False,
-            message=f"{type(exc).__name__}: {exc}",
+            message=f"{type(exc).__name__}: {exc}{_flipped_note(model, exc)}",
             worker=worker,
             stats={
                 "wall_s": time.perf_counter() - t0,

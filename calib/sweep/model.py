@@ -129,6 +129,29 @@ class SweepModel:
     source: dict = field(default_factory=dict, compare=False)
 
     @property
+    def flipped_elements(self) -> np.ndarray:
+        """Elements of the stress-free mesh inverted against the rest (flipped for solving).
+
+        A straight stress-free reference that calibrate recovered may hold a few at the
+        clamped rim (``calibration.json`` ``reference_recovery.inverted_elements``): in the
+        reference scan's own posture they are right side out again, a state no forward
+        solve from the stress-free mesh reaches (their volume would pass through zero),
+        so scenarios near that posture fail there (review BP, P3: an independent
+        generator's calibration with 9 failed at 0, 10, 345 and 355 degrees). Empty for a
+        prestressed reference or a mesh of one orientation.
+        """
+        from fem.mesh import TetMesh
+
+        if self.prestress_state is not None:
+            return np.zeros(0, dtype=np.int64)
+        one = np.ones(len(self.tets), dtype=np.int64)
+        vol = TetMesh(self.nodes_mm, self.tets, one, {"bulk": 1}, {}).volumes_mm3()
+        neg, pos = np.flatnonzero(vol < 0), np.flatnonzero(vol > 0)
+        if not (len(neg) and len(pos)):
+            return np.zeros(0, dtype=np.int64)
+        return neg if len(neg) <= len(pos) else pos
+
+    @property
     def scales_with_c1(self) -> bool:
         """Whether a solve at c1 equals one at the calibrated c1 with gravity scaled.
 

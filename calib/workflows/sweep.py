@@ -307,6 +307,19 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
             "scan taken as stress-free",
             work,
         )
+    flipped = len(model.flipped_elements)
+    if flipped:  # review BP, P3: a failed scenario at one of them says so too
+        log.info(
+            "%s: the stress-free reference holds %d element%s inverted at the clamped rim "
+            "(calibration.json reference_recovery.inverted_elements): scenarios near the "
+            "reference scan's own posture, where %s right side out again, may have no "
+            "forward solution from it (a calibration with --reference-state prestress, or "
+            "another --mesh-size, has none)",
+            work,
+            flipped,
+            "" if flipped == 1 else "s",
+            "it is" if flipped == 1 else "they are",
+        )
     plan = make_plan(
         opts.plan, c1_cal_pa=model.c1_pa, c1_axis=opts.c1_axis, holdout=opts.holdout, seed=opts.seed
     )

@@ -425,3 +425,28 @@ def test_a_resume_is_recorded_and_said_only_where_its_code_may_differ(
     else:
         (warning,) = caplog.records
         assert said in warning.getMessage()
+
+
+def test_a_failure_at_an_element_the_reference_holds_inverted_says_so(work):
+    # review BP, P3: an independent generator's calibration holds 9 elements inverted at
+    # the clamped rim; its scenarios at and near the reference posture failed at one of
+    # them, with fem's words "the load may be too large for the material", and nothing
+    # pointed at the recovered reference
+    import dataclasses
+
+    import fem
+    from calib.sweep.engine import _flipped_note
+
+    model = load_sweep_model(work)
+    assert len(model.flipped_elements) == 0  # the box: one orientation
+    tets = model.tets.copy()
+    tets[[3, 7]] = tets[[3, 7]][:, [1, 0, 2, 3]]  # two elements turned inside out
+    folded = dataclasses.replace(model, tets=tets)
+    assert folded.flipped_elements.tolist() == [3, 7]
+    at = fem.ConvergenceError("load not applied: ... (element 7, ...)", element=7)
+    note = _flipped_note(folded, at)
+    assert "element 7 is one of the 2 the stress-free reference holds inverted" in note
+    assert "--reference-state prestress" in note
+    assert _flipped_note(folded, fem.ConvergenceError("x", element=5)) == ""
+    assert _flipped_note(folded, fem.ConvergenceError("no step converged")) == ""
+    assert _flipped_note(folded, ValueError("x")) == ""

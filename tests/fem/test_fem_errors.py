@@ -175,6 +175,7 @@ def test_a_failed_solve_says_how_far_it_got_and_where_the_mesh_gave():
     assert found, str(err.value)
     share, element, d_mm, kept = (float(v) for v in found.groups())
     assert 0.0 < share < 100.0
+    assert err.value.element == int(element)  # the element said, for callers (review BP)
     # the converged state at that share (rounded to 0.1 % of the load)
     disc = discretize(mesh, Clamped("z1"), formulation="p1")
     sol = solve(model, gravity=[1.0, 0.0, 0.0], g_m_s2=share, formulation="p1", disc=disc)
