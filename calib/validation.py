@@ -147,6 +147,7 @@ class ScanValidation:
             if self.tumour is None
             else {f: b.to_json() for f, b in self.tumour.items()},
             "registration": self.registration,
+            "icp": self.metrics.icp,  # review BP, P8: the ICP frame's figures' own fit
             "dissertation": self.reference,
         }
 
@@ -371,6 +372,9 @@ def _scan_validation(work: WorkFolder, name: str, faces: np.ndarray) -> ScanVali
         }
     ing = ingest_record(work, name)
     angle, plane = _posture(work, scan)
+    reference = _reference_figures(scan, angle, plane)
+    if reference is not None and tumour_b is None:  # review BP, P8: "tumour 3.65" was shown
+        reference.pop("tumour_mm", None)  # beside a phantom without a tumour
     return ScanValidation(
         name=name,
         role=scan.role,
@@ -381,7 +385,7 @@ def _scan_validation(work: WorkFolder, name: str, faces: np.ndarray) -> ScanVali
         nipple_landmark=landmark_b,
         tumour=tumour_b,
         registration={k: ing.get(k) for k in ("fre_mm", "tre_nipple_mm", "tre_tumour_mm")},
-        reference=_reference_figures(scan, angle, plane),
+        reference=reference,
         metrics=m,
         displacement_mm=_displacement_near(work, name, scan),
     )

@@ -275,6 +275,18 @@ def outline_figure(
     return fig
 
 
+def _icp_fit(icp: dict) -> str:
+    """The ICP's fitness (share of points within its last gate), and whether it settled.
+
+    Review BP, P8: with errors beyond the 1 mm final gate (a larger, softer or misfitting
+    body) the ICP frame's figures rest on few points, and nothing said so.
+    """
+    fitness = icp.get("fitness")
+    if fitness is None:
+        return "–"
+    return f"{fitness:.2f}" + ("" if icp.get("settled", True) else " (not settled)")
+
+
 def _row(sv: ScanValidation) -> list[str]:
     fid, icp = sv.surface["fiducial"], sv.surface["icp"]
     t = sv.tumour or {}
@@ -300,6 +312,7 @@ def _row(sv: ScanValidation) -> list[str]:
         fid["p95"].text(),
         fid["max"].text(),
         f"{icp['mean'].text()} ± {icp['sd'].value:.2f}",
+        _icp_fit(sv.metrics.icp),
         sv.nipple["fiducial"].text(),
         sv.nipple["icp"].text(),
         sv.nipple_landmark.text(),
@@ -321,6 +334,7 @@ HEADER = [
     "p95",
     "max",
     "surface mean ± sd (ICP)",
+    "ICP fitness",
     "nipple (fiducial)",
     "nipple (ICP)",
     "nipple tip (fiducial)",

@@ -151,6 +151,10 @@ def test_calibrate_ends_with_the_validation_report(nipple_run):
     lo, hi = mean["ci95"]
     assert lo <= mean["value"] <= hi and hi > lo  # a c1 interval of non-zero width moves it
     assert tilt["dissertation"]["surface_mean_mm"] == 2.69  # the 50 deg row of Table 4.1
+    # the ICP frame's own fit, as calibration.json has it (review BP, P8)
+    icp = doc["scans"]["tilt_50"]["icp"]
+    assert tilt["icp"]["fitness"] == pytest.approx(icp["fitness"], rel=1e-9)
+    assert tilt["icp"]["settled"] == icp["settled"] and 0 < icp["fitness"] <= 1
     # the landmark distance, as calibration.json has it (the same saved state)
     landmark = tilt["nipple_landmark_error_mm"]["fiducial"]
     assert landmark["value"] == pytest.approx(
