@@ -283,8 +283,9 @@ def calibrate(
         typer.Option(
             "--c1-guess",
             help="c1 (Pa) of the first linear solve that scales to the first estimate; the "
-            "estimate itself where the nipple moved < 0.5 mm in every calibration scan (a "
-            "stiff phantom), and the search spans x/÷ 4 around the estimate.",
+            "estimate itself where the nipple moved < 0.5 mm (or 3 times its expected "
+            "registration error, where more) in every calibration scan (a stiff phantom), "
+            "and the search spans x/÷ 4 around the estimate.",
         ),
     ] = 500.0,
 ) -> None:

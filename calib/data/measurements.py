@@ -40,6 +40,10 @@ class ScanMeasurement:
     back_voxel_depth_mm : float or None
         The slice thickness across the back plane (``ingest.json``
         ``back_plane.voxel_depth_mm``; None where not recorded).
+    tre_nipple_mm : float or None
+        The expected target registration error at the nipple (``ingest.json``
+        ``tre_nipple_mm``, Fitzpatrick's; 0 for the reference scan; None where not
+        recorded).
     """
 
     name: str
@@ -57,6 +61,7 @@ class ScanMeasurement:
     posture_angle_deg: float | None = None
     fov_edge: np.ndarray | None = None
     back_voxel_depth_mm: float | None = None
+    tre_nipple_mm: float | None = None
 
     @property
     def in_view(self) -> np.ndarray:
@@ -206,6 +211,7 @@ def read_scan(work: Path, entry: ScanEntry) -> ScanMeasurement:
         posture_angle_deg=entry.posture_angle_deg,
         fov_edge=surf.fov_edge,
         back_voxel_depth_mm=plane.get("voxel_depth_mm"),
+        tre_nipple_mm=doc.get("tre_nipple_mm"),
     )
 
 

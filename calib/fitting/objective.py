@@ -51,6 +51,29 @@ log = logging.getLogger(__name__)
 #: A calibration scan's measured nipple displacement (mm) below which the first estimate
 #: does not use it: a few times the nipple's measured noise (0.1-0.2 mm on the twins).
 MIN_NIPPLE_DISPLACEMENT_MM = 0.5
+#: ... or below this many times the scan's expected registration error at the nipple
+#: (``tre_nipple_mm``), where that is more: with a 1 mm TRE a 0.6 mm "displacement" is
+#: mostly error (review BN, N5). The twins' TREs are 0.03-0.04 mm.
+NIPPLE_TRE_FACTOR = 3.0
+
+
+def nipple_threshold_mm(scan) -> float:
+    """The measured nipple displacement (mm) a scan needs for the first estimate to use it.
+
+    :data:`MIN_NIPPLE_DISPLACEMENT_MM`, or :data:`NIPPLE_TRE_FACTOR` times the scan's
+    ``tre_nipple_mm`` where that is more.
+
+    Parameters
+    ----------
+    scan : ScanMeasurement
+
+    Returns
+    -------
+    float
+    """
+    tre = getattr(scan, "tre_nipple_mm", None)
+    tre = float(tre) if tre is not None and np.isfinite(tre) else 0.0
+    return max(MIN_NIPPLE_DISPLACEMENT_MM, NIPPLE_TRE_FACTOR * tre)
 
 
 @dataclass
@@ -220,7 +243,7 @@ class Calibrator:
         for s in self.calibration_scans:
             d_sim = np.linalg.norm(states[s.name].positions_mm[nipple] - x_ref) / load_fraction
             d_meas = np.linalg.norm(s.nipple_mm - ref_n)
-            if d_meas > MIN_NIPPLE_DISPLACEMENT_MM:
+            if d_meas > nipple_threshold_mm(s):
                 ratios.append(d_sim / d_meas)
         est = self.options.c1_guess_pa * (float(np.median(ratios)) if ratios else 1.0)
         if not 20.0 <= est <= 1e5:
@@ -241,10 +264,12 @@ class Calibrator:
         self.first_estimate_from_guess = not ratios
         if not ratios:
             log.warning(
-                "the nipple moved less than %.1f mm in every calibration scan: the first "
-                "estimate is the guess (--c1-guess), c1 = %.0f Pa, and the search spans "
-                "x/÷ 4 around it",
+                "the nipple moved less than %.1f mm (or %g times the scan's expected "
+                "registration error there, where that is more) in every calibration scan: "
+                "the first estimate is the guess (--c1-guess), c1 = %.0f Pa, and the "
+                "search spans x/÷ 4 around it",
                 MIN_NIPPLE_DISPLACEMENT_MM,
+                NIPPLE_TRE_FACTOR,
                 est,
             )
         return est

@@ -377,6 +377,38 @@ def test_a_phantom_whose_nipple_barely_moves_starts_at_the_guess_and_says_so(
     assert cal.first_estimate_from_guess
 
 
+def test_a_nipple_displacement_within_its_registration_error_is_not_used(measurements, caplog):
+    # review BN, N5: the first estimate's 0.5 mm threshold ignored the scan's expected
+    # registration error at the nipple; with a TRE of 1 mm a 0.6 mm "displacement" is
+    # mostly error. Closed form: max(0.5, 3 x TRE). The small twin's calibration scans,
+    # their nipples moved by 10 mm or more, given a TRE a third above that, start at the
+    # guess as a phantom whose nipple barely moved
+    import dataclasses
+
+    import calib.fitting.objective as objective
+
+    scan = measurements.with_role("calibration")[0]
+    for tre, want in ((None, 0.5), (0.0, 0.5), (0.1, 0.5), (1.0, 3.0), (float("nan"), 0.5)):
+        threshold = objective.nipple_threshold_mm(dataclasses.replace(scan, tre_nipple_mm=tre))
+        assert threshold == pytest.approx(want), tre
+    moved = max(
+        float(np.linalg.norm(s.nipple_mm - measurements.reference.nipple_mm))
+        for s in measurements.with_role("calibration")
+    )
+    assert moved > 10.0
+    scans = {
+        n: dataclasses.replace(s, tre_nipple_mm=moved / 2.9) if s.role == "calibration" else s
+        for n, s in measurements.scans.items()
+    }
+    blurred = dataclasses.replace(measurements, scans=scans)
+    opts = CalibrationOptions(mesh_size_mm=16.0, mesh_retry_mm=(), c1_guess_pa=2500.0)
+    cal = objective.Calibrator(blurred, opts, density_kg_m3=1000.0)
+    with caplog.at_level("WARNING"):
+        assert cal.first_estimate() == 2500.0
+    assert "3 times the scan's expected registration error" in caplog.text
+    assert cal.first_estimate_from_guess
+
+
 @pytest.mark.parametrize("guess", ["0", "-5", "nan", "inf"])
 def test_a_bad_c1_guess_is_refused_first(tmp_path, guess):
     from typer.testing import CliRunner
