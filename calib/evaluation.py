@@ -27,6 +27,7 @@ from .stats.intervals import MIN_SERIES_POINTS, _json_number
 
 __all__ = [
     "POSTURE_ALPHA",
+    "EvaluationError",
     "ScanEvaluation",
     "ScanMetrics",
     "check_postures",
@@ -37,6 +38,15 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+
+class EvaluationError(ValueError):
+    """A Calibration, scan names or evaluations that cannot be evaluated as asked.
+
+    The message says what was given and what to pass instead.
+    """
+
+
 #: Spacing of the simulated surface's samples that ICP aligns the scan to (mm): the finest
 #: of :func:`registration.icp_refine`'s correspondence gates.
 ICP_TARGET_SPACING_MM = 1.0
@@ -237,8 +247,8 @@ def scan_names(scans, known: dict) -> list[str]:
 
     Raises
     ------
-    ValueError
-        An empty list, or names not in ``known``.
+    EvaluationError
+        An empty list, or names not in ``known`` (a ``ValueError``).
     """
     if scans is None:
         return [n for n, s in known.items() if s.role != "reference"]
@@ -246,10 +256,10 @@ def scan_names(scans, known: dict) -> list[str]:
         raise TypeError(f"scans must be a scan name or names, got {scans!r}")
     names = [scans] if isinstance(scans, str) else list(scans)
     if not names:
-        raise ValueError("no scan named: pass scan names, or None for every scan")
+        raise EvaluationError("no scan named: pass scan names, or None for every scan")
     unknown = sorted(set(names) - set(known))
     if unknown:
-        raise ValueError(f"unknown scan(s) {unknown}; the session has {sorted(known)}")
+        raise EvaluationError(f"unknown scan(s) {unknown}; the session has {sorted(known)}")
     return names
 
 
@@ -298,13 +308,13 @@ def evaluate(
     ------
     TypeError
         ``calibration`` is not a Calibration.
-    ValueError
+    EvaluationError
         A Calibration without its model (from JSON), an unknown scan name or an empty
-        list of names.
+        list of names (a ``ValueError``).
     """
     cal = _calibrator(calibration, "evaluate")
     if cal is None:
-        raise ValueError(
+        raise EvaluationError(
             "this Calibration carries no calibrator (the model to solve): evaluate takes the "
             "result of calib.fit"
         )
@@ -374,8 +384,9 @@ def check_postures(
     ------
     TypeError
         ``calibration`` is not the :class:`Calibration` that :func:`calib.fit` returns.
-    ValueError
-        A solved scan evaluated without its derivative (``gradient=False``).
+    EvaluationError
+        A solved scan evaluated without its derivative (``gradient=False``; a
+        ``ValueError``).
     calib.stats.consistency.ConsistencyError
         ``alpha`` outside (0, 1), whatever the scans (review BJ: it was found only once
         two scans were tested); a scan whose c1 estimate has no interval (a
@@ -397,7 +408,7 @@ def check_postures(
         if ev.failed is not None:
             continue
         if ev.dpositions_mm is None:  # review AI: this returned None, as "no test applies"
-            raise ValueError(
+            raise EvaluationError(
                 f"scan {name} was evaluated without its derivative in ln c1, which the "
                 "posture test needs: evaluate(calibration, gradient=True)"
             )

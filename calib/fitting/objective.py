@@ -20,6 +20,7 @@ from fem.probe import MaterialPoint
 from fem.units import DEFAULT_DENSITY_KG_M3
 
 from ..data.measurements import Measurements, ScanMeasurement
+from ..data.session import SessionError
 from ..model.forward import ForwardModel, ReferenceRecoveryFailed
 from ..model.reference import reference_mesh_with_support
 from ..model.residuals import Residuals, SimulatedSurface, scan_residuals
@@ -89,7 +90,7 @@ class Calibrator:
         o = self.options
         self.calibration_scans = self.measurements.with_role("calibration")
         if not self.calibration_scans:
-            raise ValueError("the session has no scan with role 'calibration'")
+            raise SessionError("the session has no scan with role 'calibration'")
         ref = self.measurements.reference
         self.mesh, self.support = reference_mesh_with_support(
             ref, size_mm=o.mesh_size_mm, max_dihedral_deg=o.mesh_max_dihedral_deg

@@ -15,6 +15,7 @@ from ..model.residuals import OBJECTIVES
 __all__ = [
     "MESH_SIZE_RANGE_MM",
     "CalibrationOptions",
+    "OptionsError",
     "check_mesh_check_ratio",
     "mesh_check_ratios",
     "parse_mesh_check",
@@ -23,14 +24,25 @@ __all__ = [
 Objective = Literal["surface", "nipple", "landmarks"]
 ReferenceState = Literal["unload", "prestress", "shortcut"]
 
+
+class OptionsError(ValueError):
+    """An option of a calibration out of range or of the wrong kind.
+
+    The message names the option (its command-line flag) and what was expected.
+    """
+
+
 #: Element edge lengths a model mesh may take, mm (calibrate's and diagnose's alike).
 MESH_SIZE_RANGE_MM = (1.0, 50.0)
 
 
 def check_mesh_check_ratio(ratio: float) -> None:
-    """Raise ``ValueError`` unless ``ratio`` lies in [0.5, 0.9] (finer) or [1.1, 3] (coarser)."""
+    """Raise :class:`OptionsError` unless ``ratio`` lies in [0.5, 0.9] or [1.1, 3].
+
+    A finer check mesh or a coarser one (their sizes over the model mesh's).
+    """
     if not (0.5 <= ratio <= 0.9 or 1.1 <= ratio <= 3.0):
-        raise ValueError(
+        raise OptionsError(
             f"mesh check ratio (--mesh-check) must lie in [0.5, 0.9] or [1.1, 3], got {ratio}"
         )
 
@@ -46,13 +58,13 @@ def mesh_check_ratios(ratio: float | tuple[float, ...]) -> tuple[float, ...]:
     if ratios in ((), (0.0,)):
         return ()
     if len(ratios) > 2:
-        raise ValueError(f"a mesh check takes one or two ratios, got {len(ratios)}: {ratios}")
+        raise OptionsError(f"a mesh check takes one or two ratios, got {len(ratios)}: {ratios}")
     for q in ratios:
         check_mesh_check_ratio(q)
     if len(ratios) == 2:
         hi, lo = max(ratios), min(ratios)
         if not (hi > 1.0 > lo and abs(hi * lo - 1.0) < 0.02):
-            raise ValueError(
+            raise OptionsError(
                 "two mesh check ratios must be reciprocal, a coarser r and a finer 1/r "
                 f"(e.g. 1.4,0.714), got {ratios}"
             )
@@ -64,7 +76,7 @@ def parse_mesh_check(text: str) -> float | tuple[float, ...]:
     try:
         values = tuple(float(t) for t in text.split(","))
     except ValueError:
-        raise ValueError(
+        raise OptionsError(
             f"--mesh-check takes a ratio or two (e.g. 1.4 or 1.4,0.714), got {text!r}"
         ) from None
     mesh_check_ratios(values)
@@ -112,6 +124,12 @@ class CalibrationOptions:
         (``(1.4, 1/1.4)``): a coarser and a finer check mesh, the observed order.
     seed : int
         Seed of the surface subsample.
+
+    Raises
+    ------
+    OptionsError
+        An option of the wrong kind or out of range, as the options are made (a
+        ``ValueError``; the message names the option).
     """
 
     objective: Objective = "surface"
@@ -134,13 +152,13 @@ class CalibrationOptions:
         for name, least in least_of.items():
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-                raise ValueError(f"{name} must be an integer, got {value!r}")
+                raise OptionsError(f"{name} must be an integer, got {value!r}")
             if value < least:
-                raise ValueError(f"{name} must be >= {least}, got {value}")
+                raise OptionsError(f"{name} must be >= {least}, got {value}")
         if isinstance(self.mesh_retry_mm, list):
             object.__setattr__(self, "mesh_retry_mm", tuple(self.mesh_retry_mm))
         if not isinstance(self.mesh_retry_mm, tuple):
-            raise ValueError(
+            raise OptionsError(
                 f"mesh_retry_mm must be a tuple of sizes in mm, got {self.mesh_retry_mm!r}"
             )
         numbers_of = [
@@ -151,36 +169,39 @@ class CalibrationOptions:
         ]
         for name, value in numbers_of:
             if isinstance(value, bool) or not isinstance(value, numbers.Real):
-                raise ValueError(f"{name} must be a number, got {value!r}")
+                raise OptionsError(f"{name} must be a number, got {value!r}")
         from fem import FORMULATIONS
 
         if self.formulation not in FORMULATIONS:
-            raise ValueError(
+            raise OptionsError(
                 f"formulation must be one of {', '.join(FORMULATIONS)}, got {self.formulation!r}"
             )
         if self.objective not in OBJECTIVES:
-            raise ValueError(
+            raise OptionsError(
                 f"objective (--objective) must be one of {', '.join(OBJECTIVES)}, got "
                 f"{self.objective!r}"
             )
         if self.reference_state not in get_args(ReferenceState):
-            raise ValueError(
+            raise OptionsError(
                 "reference_state (--reference-state) must be unload, prestress or shortcut, "
                 f"not {self.reference_state!r}"
             )
         lo, hi = MESH_SIZE_RANGE_MM
         for size in (self.mesh_size_mm, *self.mesh_retry_mm):
             if not lo <= size <= hi:
-                raise ValueError(
+                raise OptionsError(
                     f"mesh size (--mesh-size) must lie in [{lo:g}, {hi:g}] mm, got {size}"
                 )
-        check_max_dihedral_deg(
-            self.mesh_max_dihedral_deg, "mesh max dihedral angle (--mesh-max-dihedral)"
-        )
+        try:
+            check_max_dihedral_deg(
+                self.mesh_max_dihedral_deg, "mesh max dihedral angle (--mesh-max-dihedral)"
+            )
+        except ValueError as exc:  # fem's words, as one of the options' errors
+            raise OptionsError(str(exc)) from None
         if not 0.0 < self.nu < 0.5:
-            raise ValueError(f"Poisson's ratio (--nu) must lie in (0, 0.5), got {self.nu}")
+            raise OptionsError(f"Poisson's ratio (--nu) must lie in (0, 0.5), got {self.nu}")
         if not (self.c1_guess_pa > 0 and math.isfinite(self.c1_guess_pa)):
-            raise ValueError(
+            raise OptionsError(
                 f"c1_guess_pa (--c1-guess) must be a positive c1 in Pa, got {self.c1_guess_pa}"
             )
         if isinstance(self.mesh_check_ratio, list):

@@ -19,7 +19,7 @@ from dataclasses import asdict, replace
 import numpy as np
 
 from ..data.measurements import Measurements
-from ..data.session import checked_density_kg_m3
+from ..data.session import SessionError, checked_density_kg_m3
 from ..model.reference import body_height_mm, body_scale
 from ..model.residuals import surface_area_mm2
 from ..stats.intervals import MIN_SERIES_POINTS
@@ -258,7 +258,7 @@ def _density(measurements: Measurements, density_kg_m3: float | None) -> float:
     """
     density = measurements.density_kg_m3 if density_kg_m3 is None else density_kg_m3
     if density is None:
-        raise ValueError(
+        raise SessionError(
             "no phantom density: these measurements carry none (not from "
             "calib.data.load_measurements); pass density_kg_m3 (kg/m^3)"
         )
@@ -295,9 +295,11 @@ def fit(
     TypeError
         ``measurements`` not :class:`Measurements` or ``options`` not
         :class:`CalibrationOptions`.
+    calib.data.session.SessionError
+        No density (neither given nor in the measurements); no scan with role
+        ``calibration`` (a ``ValueError``).
     ValueError
-        No density (neither given nor in the measurements) or one outside
-        :data:`calib.data.session.DENSITY_RANGE_KG_M3`; no scan with role ``calibration``;
+        A density outside :data:`calib.data.session.DENSITY_RANGE_KG_M3`;
         no scan whose gravity defines the phantom
         frame's axes (:func:`calib.fitting.result.phantom_frame`), said before any FE work;
         for the ``nipple`` objective, a calibration scan with too few measured points near

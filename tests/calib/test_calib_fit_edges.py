@@ -309,9 +309,11 @@ def test_a_scan_of_the_reference_posture_is_left_out_of_the_posture_test(measure
     other = next(n for n in evs if n != ref)
     plain = evaluate(cal, scans=other, gradient=False)
     assert list(plain) == [other] and plain[other].dpositions_mm is None
-    with pytest.raises(ValueError, match="no scan named"):
+    from calib.evaluation import EvaluationError
+
+    with pytest.raises(EvaluationError, match="no scan named"):  # a ValueError too
         evaluate(cal, scans=[])
-    with pytest.raises(ValueError, match="without its derivative in ln c1"):
+    with pytest.raises(EvaluationError, match="without its derivative in ln c1"):
         check_postures(cal, plain)
     # review BJ: an alpha outside (0, 1) returned None where fewer than two scans were
     # tested (here none), as where no posture test applies
@@ -485,3 +487,25 @@ def test_a_failed_series_interval_keeps_the_fit_and_says_so(measurements, monkey
     assert "the series interval failed (the variogram is zero" in caplog.text
     # ... and in the progress, where a notebook reads it (review R: the log alone)
     assert any(m.startswith("the series interval failed (the variogram is zero") for m in said)
+
+
+def test_the_fit_s_input_errors_are_named(measurements):
+    # one named exception per failure (the house's registration.rigid), each a ValueError
+    # as before: a bad option, a session without a calibration scan
+    import dataclasses
+
+    from calib.data.session import SessionError
+    from calib.fitting import OptionsError
+    from calib.fitting.objective import Calibrator
+
+    for bad in ({"max_points": 5}, {"nu": 0.5}, {"mesh_max_dihedral_deg": 60.0}):
+        with pytest.raises(OptionsError) as err:
+            CalibrationOptions(**bad)
+        assert isinstance(err.value, ValueError)
+    scans = {
+        n: dataclasses.replace(s, role="validation") if s.role == "calibration" else s
+        for n, s in measurements.scans.items()
+    }
+    none = dataclasses.replace(measurements, scans=scans)
+    with pytest.raises(SessionError, match="no scan with role 'calibration'"):
+        Calibrator(none, CalibrationOptions(mesh_size_mm=16.0), density_kg_m3=1000.0)

@@ -100,7 +100,9 @@ def test_the_fit_takes_the_measurements_density_and_refuses_none_or_g_per_cm3():
 
     assert _density(Measurements(None, {}, 1050.0), None) == 1050.0
     assert _density(Measurements(None, {}, 1050.0), 980.0) == 980.0  # the caller's wins
-    with pytest.raises(ValueError, match="no phantom density"):
+    from calib.data.session import SessionError
+
+    with pytest.raises(SessionError, match="no phantom density"):
         _density(Measurements(None, {}), None)
     for bad in (1.05, 0.0, -1000.0, float("nan"), True, "1000"):
         with pytest.raises(ValueError, match=r"must lie in \[500, 3000\] kg/m\^3"):
