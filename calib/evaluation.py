@@ -392,7 +392,7 @@ def check_postures(
         two scans were tested); a scan whose c1 estimate has no interval (a
         ``ValueError``).
     """
-    from .model.reference import body_height_mm, body_scale
+    from .model.reference import scale_of
     from .model.residuals import scan_residuals
     from .stats import SurfaceSample
     from .stats.consistency import ConsistencyError, posture_consistency
@@ -450,7 +450,7 @@ def check_postures(
         alpha=alpha,
         seed=cal.options.seed,
         # review BN N4: the variogram's reach scales with the body, as calibrate's
-        max_lag_mm=MAX_LAG_MM * body_scale(body_height_mm(cal.measurements.reference, cal.mesh)),
+        max_lag_mm=MAX_LAG_MM * scale_of(cal.measurements.reference),
     )
     return test, names
 

@@ -218,8 +218,9 @@ DISSERTATION_MATCH_DEG = 2.5
 
 #: Said where a validation holds scans but none of role ``validation``.
 NO_VALIDATION_SCAN = (
-    "no scan of role `validation`: every figure is of a scan c1 was fitted to (its fit, "
-    "biased low), not a prediction of a posture the calibration never saw"
+    "no scan of role `validation` validated (none in the session, or none with an FE "
+    "solution: `failed`): every figure is of a scan c1 was fitted to (its fit, biased "
+    "low), not a prediction of a posture the calibration never saw"
 )
 
 

@@ -37,8 +37,8 @@ class ConvergenceError(RuntimeError):
 
     # a default, so that a process pool's worker can pickle it (the attribute travels in
     # the exception's __dict__)
-    def __init__(self, message: str = "", *, element: int | None = None):
-        super().__init__(message)
+    def __init__(self, *args, element: int | None = None):
+        super().__init__(*args)
         self.element = element
 
 

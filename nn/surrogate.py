@@ -395,7 +395,10 @@ class Surrogate:
     def _warn_range(self, g: np.ndarray, c1: np.ndarray) -> None:
         lo, hi = self.meta["trained"]["c1_pa"]
         loaded = np.linalg.norm(g, axis=1) > 0  # no load: zero displacement at any c1
-        out = loaded & ((c1 < lo * (1 - _REL_TOL)) | (c1 > hi * (1 + _REL_TOL)))
+        # review BQ, Q3: the dissertation baseline is fed the c1 of the query's load at the
+        # sweep's magnitude; that is the c1 its training range bounds
+        fed = self._trained_magnitude_c1(g, c1) if self.surface_only else c1
+        out = loaded & ((fed < lo * (1 - _REL_TOL)) | (fed > hi * (1 + _REL_TOL)))
         rho = float(self.meta["model"]["density_kg_m3"])
         q = rho * np.linalg.norm(g, axis=1) / c1
         qlo, qhi = self.meta["trained"]["load_per_m"]
@@ -419,8 +422,15 @@ class Surrogate:
                 )
         category = FarExtrapolationWarning if far else ExtrapolationWarning
         if np.any(out):
+            k = int(np.flatnonzero(out)[0])
+            at = (
+                f" (the c1 of its load at the sweep's {self.meta['model']['g_m_s2']:g} m/s^2: "
+                f"{fed[k]:.6g} Pa)"
+                if fed[k] != c1[k]
+                else ""
+            )
             warnings.warn(
-                f"c1 = {c1[out][0]:.6g} Pa lies outside the trained range "
+                f"c1 = {c1[k]:.6g} Pa{at} lies outside the trained range "
                 f"[{lo:.6g}, {hi:.6g}] Pa: the surrogate extrapolates{beyond}",
                 category,
                 stacklevel=3,

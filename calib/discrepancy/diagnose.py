@@ -1347,7 +1347,7 @@ def _scan_regions(prob: Problem, name: str, points_mm: np.ndarray) -> np.ndarray
     10 mm sphere; the rim: the band the diagnosis leaves out, or 10 mm where the margin
     is narrower (:func:`calib.discrepancy.localise.region_labels`). Every length but the
     margin and the inclusions' own diameters is scaled by the body's height
-    (:func:`calib.discrepancy.localise.region_scale`). Shape (n,) of str.
+    (:func:`calib.model.reference.body_scale`). Shape (n,) of str.
     """
     s = prob.measurement(name)
     doc = ingest_record(prob.work, name)

@@ -1084,7 +1084,9 @@ def build_problem(
     sim = SimulatedSurface.of(mesh).curved(mesh.nodes_mm, ref.vertices_mm, ref.faces)
     tolerance = {n: _registration_tolerance(work, n) for n in points}
     imaging = comparable_imaging_noise(work, scans)
-    height = float(plate_height_mm(ref, ref.vertices_mm).max())
+    from ..model.reference import scan_height_mm
+
+    height = scan_height_mm(ref)  # as calibrate's noise model and the remesh take it
     if size != calibration_mesh_mm(record):  # calibrate said so of its own size
         _say_coarse(work.path, size, height)
     return Problem(

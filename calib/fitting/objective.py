@@ -72,8 +72,11 @@ def nipple_threshold_mm(scan) -> float:
     -------
     float
     """
-    tre = getattr(scan, "tre_nipple_mm", None)
-    tre = float(tre) if tre is not None and np.isfinite(tre) else 0.0
+    try:
+        tre = float(getattr(scan, "tre_nipple_mm", None))
+    except (TypeError, ValueError):  # not recorded (or not a number): the floor alone
+        tre = 0.0
+    tre = tre if np.isfinite(tre) else 0.0
     return max(MIN_NIPPLE_DISPLACEMENT_MM, NIPPLE_TRE_FACTOR * tre)
 
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..data.measurements import Measurements
 from ..data.session import SessionError, checked_density_kg_m3
-from ..model.reference import body_height_mm, body_scale
+from ..model.reference import body_height_mm, scale_of
 from ..model.residuals import surface_area_mm2
 from ..stats.intervals import MIN_SERIES_POINTS
 from ..stats.noise import SMOOTH_TAKEN_FOR_NOISE
@@ -200,7 +200,7 @@ def _uncertainty(cal: Calibrator, theta: float, say):
         labels = np.concatenate([np.full(len(v.r), i) for i, v in enumerate(final.values())])
         try:
             # review BN N4: the variogram's reach scales with the body, as the diagnosis'
-            reach = MAX_LAG_MM * body_scale(body_height_mm(cal.measurements.reference, cal.mesh))
+            reach = MAX_LAG_MM * scale_of(cal.measurements.reference)
             unc, fit_test = series_uncertainty(
                 c1, r, dr, pts, labels, seed=cal.options.seed, max_lag_mm=reach
             )

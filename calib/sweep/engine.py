@@ -144,9 +144,10 @@ def _flipped_note(model: SweepModel, exc: Exception) -> str:
     return (
         f" (element {element} is one of the {len(flipped)} the stress-free reference holds "
         "inverted at the clamped rim, calibration.json's reference_recovery."
-        "inverted_elements: near the reference scan's own posture they turn right side out, "
-        "which no forward solve from the stress-free mesh reaches; a calibration with "
-        "--reference-state prestress or another --mesh-size has none)"
+        "inverted_elements: near the reference scan's own posture they may have to turn "
+        "right side out, which no forward solve from the stress-free mesh reaches; a "
+        "calibration with --reference-state prestress has none, another --mesh-size may "
+        "have none)"
     )
 
 

@@ -273,9 +273,10 @@ def say_calibrated_model(mesh_path: Path, opts: SimulateOptions, found) -> dict 
     record_path, record = found
     model = record.get("model") or {}
     diffs = {}
+    effects = model.get("effects") or {}
     for flag, attr, key in CALIBRATED_OPTIONS:
         want, used = model.get(key), getattr(opts, attr)
-        if want is None:
+        if want is None or (effects and attr == "bc"):  # a refit's support: said below
             continue
         if isinstance(used, str):
             same = want == used
@@ -285,7 +286,14 @@ def say_calibrated_model(mesh_path: Path, opts: SimulateOptions, found) -> dict 
             diffs[flag] = [want, used]
     method = (record.get("reference_recovery") or {}).get("method")
     reference = None
-    if method != "spatial" and model.get("prestress"):
+    if effects:  # review BQ, Q2: a diagnosis refit (its springs have no --bc)
+        named = ", ".join(effects.get("named") or []) or "none named"
+        reference = (
+            f"the calibration is a diagnosis refit with its effects ({named}; "
+            "model.effects: skin, inclusions, c2, springs at the plate), which simulate, "
+            "one neo-Hookean body, does not solve: phantom-calib sweep solves them"
+        )
+    elif method != "spatial" and model.get("prestress"):
         reference = (
             "the calibrated reference is prestressed (the loaded reference scan's mesh with "
             "its stress): simulate solves this mesh from zero stress"

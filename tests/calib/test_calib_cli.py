@@ -620,6 +620,15 @@ def test_simulate_says_where_calibrate_s_mesh_is_not_solved_as_calibrated(
     assert "this solve is not the calibrated model's: the calibrated stress-free" in caplog.text
     said = json.loads((tmp_path / "s.json").read_text())["calibration"]
     assert said["differences"] == {} and "curved elements" in said["reference"]
+    # review BQ, Q2: a diagnosis refit on tangential springs has support "sliding", which
+    # --bc sliding does not reproduce (a frictionless plate): its effects are said instead
+    springs = {"named": ["sliding"], "values": {"support_stiffness_pa_per_mm": 1e3}}
+    refit = dict(model, support="sliding", prestress=None, effects=springs)
+    (work / "calibration.json").write_text(json.dumps({"c1_pa": 420.0, "model": refit}))
+    assert _simulate(mesh, tmp_path / "r.vtu").exit_code == 0
+    said = json.loads((tmp_path / "r.json").read_text())["calibration"]
+    assert said["differences"] == {}
+    assert "a diagnosis refit with its effects (sliding" in said["reference"]
     # a record naming another mesh is not this mesh's
     model["reference_mesh"] = "calibration/other.vtu"
     (work / "calibration.json").write_text(json.dumps(record))

@@ -68,16 +68,15 @@ def test_the_interval_and_misfit_test_do_not_depend_on_the_body_s_size():
     r = r + 0.05 * rng.standard_normal(len(r))
     r -= dr * (dr @ r) / (dr @ dr)
     scan = NS(vertices_mm=np.eye(3), faces=np.array([[0, 1, 2]]), scored=np.ones(3, bool))
-    ref = NS(back_point_mm=np.zeros(3), back_normal=np.array([0.0, 0.0, -1.0]))
     out = {}
     for height in (75.0, 37.5):
         p = height * unit
+        ref = NS(back_point_mm=np.zeros(3), back_normal=np.array([0.0, 0.0, -1.0]), vertices_mm=p)
         cal = NS(
             options=NS(objective="surface", seed=0, mesh_check_ratio=0.0, profile_points=0),
             residuals=lambda theta, scans, gradient, p=p: {"s": NS(r=r, dr=dr, points_mm=p)},
             calibration_scans=[scan],
             measurements=NS(reference=ref),
-            mesh=NS(nodes_mm=p),
         )
         unc, _, ci95, _, model_fit = pipeline._uncertainty(cal, np.log(420.0), lambda s: None)
         out[height] = (ci95, model_fit["p_value"], unc.correlation_length_mm)

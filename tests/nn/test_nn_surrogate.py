@@ -444,6 +444,17 @@ def test_the_baseline_answers_a_gravity_of_another_magnitude_by_its_load():
         full = sur.predict(g, c1_pa=300.0, frame="ref").surface_mm
     np.testing.assert_array_equal(half, same_load)
     assert np.abs(half - full).max() > 1e-3 * np.abs(full).max()
+    # review BQ, Q3: the range warning bounds the c1 the network is fed: 200 Pa at half
+    # the magnitude is fed 400 Pa, inside the trained 300-1200 Pa (it warned); twice the
+    # magnitude at 400 Pa is fed 200 Pa, outside (said with both c1s)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", nn.ExtrapolationWarning)
+        warnings.filterwarnings("ignore", message=".*training direction")
+        sur.predict(g / 2, c1_pa=200.0, frame="ref")
+    with pytest.warns(
+        nn.ExtrapolationWarning, match=r"c1 = 400 Pa \(the c1 of its load .*: 200 Pa\)"
+    ):
+        sur.predict(2 * g, c1_pa=400.0, frame="ref")
 
 
 def test_the_baseline_without_a_c1_axis_refuses_another_load(baseline, box_data):
