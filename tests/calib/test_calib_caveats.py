@@ -208,3 +208,13 @@ def test_a_posture_angle_is_said_on_its_nominal_angle_s_branch():
         s = scan(25.0, nominal)
         figures = _reference_figures(s, _posture(work, s)[0], "transverse")
         assert figures is not None and figures["posture_angle_deg"] == 25, nominal
+
+
+def test_the_validation_table_prints_the_icp_fitness():
+    # review BP, P8: the ICP frame's figures travelled without the ICP's own fit
+    from calib.report.validation import HEADER, _icp_fit
+
+    assert "ICP fitness" in HEADER
+    assert _icp_fit({"fitness": 0.9942, "settled": True}) == "0.99"
+    assert _icp_fit({"fitness": 0.41, "settled": False}) == "0.41 (not settled)"
+    assert _icp_fit({}) == "–"
