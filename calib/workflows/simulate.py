@@ -226,8 +226,10 @@ def calibrated_model(mesh_path: Path) -> tuple[Path, dict] | None:
     -------
     (Path, dict) or None
         ``calibration.json``'s path and the whole record, where the mesh is the one its
-        ``model.reference_mesh`` names; None otherwise (any other mesh, or a record that
-        cannot be read: ``simulate`` needs none).
+        ``model.reference_mesh`` names, or the loaded reference mesh of its prestress
+        (``model.prestress.mesh``: then the record's ``model.prestress`` gains
+        ``"solved": true``); None otherwise (any other mesh, or a record that cannot be
+        read: ``simulate`` needs none).
     """
     import json
 
@@ -237,9 +239,15 @@ def calibrated_model(mesh_path: Path) -> tuple[Path, dict] | None:
         return None
     try:
         record = json.loads(record_path.read_text())
-        named = (record_path.parent / record["model"]["reference_mesh"]).resolve()
-    except (OSError, ValueError, KeyError, TypeError):
+        model = record["model"]
+        named = (record_path.parent / model["reference_mesh"]).resolve()
+        loaded = (model.get("prestress") or {}).get("mesh")
+        loaded = None if loaded is None else (record_path.parent / loaded).resolve()
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return None
+    if path == loaded:  # review BQ, Q11: the other mesh a user may try
+        model["prestress"] = dict(model["prestress"], solved=True)
+        return record_path, record
     return (record_path, record) if named == path else None
 
 
@@ -286,7 +294,14 @@ def say_calibrated_model(mesh_path: Path, opts: SimulateOptions, found) -> dict 
             diffs[flag] = [want, used]
     method = (record.get("reference_recovery") or {}).get("method")
     reference = None
-    if effects:  # review BQ, Q2: a diagnosis refit (its springs have no --bc)
+    if (model.get("prestress") or {}).get("solved"):
+        reference = (
+            "this is the loaded reference mesh of the calibration's prestress (the reference "
+            "scan's shape, stressed by its own gravity: model.prestress.state): simulate "
+            "solves it from zero stress; the calibrated model's stress-free mesh is "
+            f"{model.get('reference_mesh')}"
+        )
+    elif effects:  # review BQ, Q2: a diagnosis refit (its springs have no --bc)
         named = ", ".join(effects.get("named") or []) or "none named"
         reference = (
             f"the calibration is a diagnosis refit with its effects ({named}; "

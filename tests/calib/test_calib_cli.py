@@ -620,6 +620,14 @@ def test_simulate_says_where_calibrate_s_mesh_is_not_solved_as_calibrated(
     assert "this solve is not the calibrated model's: the calibrated stress-free" in caplog.text
     said = json.loads((tmp_path / "s.json").read_text())["calibration"]
     assert said["differences"] == {} and "curved elements" in said["reference"]
+    # review BQ, Q11: the prestress's loaded mesh, the other mesh a user may try
+    model["prestress"]["mesh"] = "calibration/loaded_reference_mesh.vtu"
+    (work / "calibration.json").write_text(json.dumps(record))
+    loaded = work / "calibration" / "loaded_reference_mesh.vtu"
+    shutil.copy(mesh_file, loaded)
+    assert _simulate(loaded, tmp_path / "l.vtu").exit_code == 0
+    said = json.loads((tmp_path / "l.json").read_text())["calibration"]
+    assert "the loaded reference mesh of the calibration's prestress" in said["reference"]
     # review BQ, Q2: a diagnosis refit on tangential springs has support "sliding", which
     # --bc sliding does not reproduce (a frictionless plate): its effects are said instead
     springs = {"named": ["sliding"], "values": {"support_stiffness_pa_per_mm": 1e3}}
