@@ -256,9 +256,10 @@ def say_calibrated_model(mesh_path: Path, opts: SimulateOptions, found) -> dict 
 
     Each option of :data:`CALIBRATED_OPTIONS` that differs from the calibration's model
     (``--c1``, required, is the user's choice: not compared) and a reference the solve
-    cannot reproduce (curved stress-free elements, or a prestressed loaded mesh:
-    ``simulate`` solves straight elements from
-    zero stress) are named in one warning, with the options that give the calibrated model.
+    cannot reproduce (curved stress-free elements, a prestressed reference or its loaded
+    mesh, a diagnosis refit's effects: ``simulate`` solves one neo-Hookean body of straight
+    elements from zero stress) are named in one warning, with the options that give the
+    calibrated model.
 
     Parameters
     ----------
@@ -286,10 +287,14 @@ def say_calibrated_model(mesh_path: Path, opts: SimulateOptions, found) -> dict 
         want, used = model.get(key), getattr(opts, attr)
         if want is None or (effects and attr == "bc"):  # a refit's support: said below
             continue
-        if isinstance(used, str):
-            same = want == used
-        else:
-            same = bool(np.isclose(float(want), float(used), rtol=1e-9))
+        try:
+            same = (
+                want == used
+                if isinstance(used, str)
+                else bool(np.isclose(float(want), float(used), rtol=1e-9))
+            )
+        except (TypeError, ValueError):  # a hand-edited record's value: not the same
+            same = False
         if not same:
             diffs[flag] = [want, used]
     method = (record.get("reference_recovery") or {}).get("method")
