@@ -134,11 +134,12 @@ class SweepModel:
 
         A straight stress-free reference that calibrate recovered may hold a few at the
         clamped rim (``calibration.json`` ``reference_recovery.inverted_elements``): in the
-        reference scan's own posture they are right side out again, a state no forward
-        solve from the stress-free mesh reaches (their volume would pass through zero),
-        so scenarios near that posture fail there (review BP, P3: an independent
-        generator's calibration with 9 failed at 0, 10, 345 and 355 degrees). Empty for a
-        prestressed reference or a mesh of one orientation.
+        reference scan's own posture they are right side out, a state no forward solve
+        from the stress-free mesh reaches (their volume would pass through zero), so
+        scenarios near that posture may fail there (review BP, P3: an independent
+        generator's calibration with 9 failed at 0, 10, 345 and 355 degrees, each at one of
+        them; the twins' with 1-3 solve it). Empty for a prestressed reference or a mesh of
+        one orientation.
         """
         from fem.mesh import TetMesh
 

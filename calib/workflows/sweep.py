@@ -313,8 +313,8 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
             "%s: the stress-free reference holds %d element%s inverted at the clamped rim "
             "(calibration.json reference_recovery.inverted_elements): scenarios near the "
             "reference scan's own posture, where %s right side out again, may have no "
-            "forward solution from it (a calibration with --reference-state prestress, or "
-            "another --mesh-size, has none)",
+            "forward solution from it (a calibration with --reference-state prestress has "
+            "none; another --mesh-size may have none)",
             work,
             flipped,
             "" if flipped == 1 else "s",
