@@ -138,8 +138,8 @@ class SweepModel:
         from the stress-free mesh reaches (their volume would pass through zero), so
         scenarios near that posture may fail there (review BP, P3: an independent
         generator's calibration with 9 failed at 0, 10, 345 and 355 degrees, each at one of
-        them; the twins' with 1-3 solve it). Empty for a prestressed reference or a mesh of
-        one orientation.
+        them; the README's sweep of the quick twin, whose reference holds 3, reports no such
+        failure). Empty for a prestressed reference or a mesh of one orientation.
         """
         from fem.mesh import TetMesh
 
