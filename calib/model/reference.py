@@ -376,8 +376,8 @@ def scan_height_mm(ref) -> float:
     """The reference scan's surface height above its back plane, mm (0 without vertices).
 
     The height :func:`body_scale` is taken of, everywhere (calibrate's noise model, the
-    remesh grid, the diagnosis): the scan's own, not a model mesh's, which stands up to a
-    few tenths of a mm taller (review BQ: 75.31 against 74.51 mm on the quick twin).
+    remesh grid, the diagnosis): the scan's own, not a model mesh's, which can stand about
+    a millimetre taller (review BQ: 75.31 against 74.51 mm on the quick twin).
 
     Parameters
     ----------
