@@ -101,6 +101,24 @@ class TetMesh:
         """A copy with new region tags."""
         return replace(self, region=region, region_names=region_names)
 
+    def against_the_rest(self) -> np.ndarray:
+        """Elements oriented against the rest: the smaller of the two orientations.
+
+        Empty where every element has one orientation (either one). A recovered
+        stress-free mesh may hold a few inverted at a clamped rim; a tangled mesh holds
+        them elsewhere.
+
+        Returns
+        -------
+        ndarray of int
+            Element indices.
+        """
+        vol = self.volumes_mm3()
+        neg, pos = np.flatnonzero(vol < 0), np.flatnonzero(vol > 0)
+        if not (len(neg) and len(pos)):
+            return neg[:0]
+        return neg if len(neg) <= len(pos) else pos
+
     def oriented(self) -> TetMesh:
         """A copy with negatively oriented elements flipped; raises on degenerate ones.
 

@@ -34,6 +34,7 @@ from ..data.work import WorkFolder, ingest_record
 from ..fitting import CalibrationOptions
 from ..model.effects import SKIN_THICKNESS_MM, EffectValues, tag_effect_regions
 from ..model.forward import ForwardModel, ScanState
+from ..model.reference import plate_height_mm, scan_height_mm
 from ..model.residuals import Residuals, SimulatedSurface, scan_residuals
 from ..stats.profile import HeightProfile
 
@@ -891,11 +892,6 @@ def sliding_probe_pa_per_mm(c1_pa: float, height_mm: float) -> float:
     return float(10.0 ** round(np.log10(SLIDING_PROBE_TISSUE_MULTIPLE * tissue)))
 
 
-def plate_height_mm(scan, points_mm: np.ndarray) -> np.ndarray:
-    """Distance of points (reference frame, mm) from a scan's back plate, shape (n,)."""
-    return np.abs((points_mm - scan.back_point_mm) @ scan.back_normal)
-
-
 #: A scan's slice thickness across the plate (``back_plane.voxel_depth_mm``) plus this
 #: (mm) beyond the rim margin, the margin is said to be narrow for it: the terraced,
 #: partial-volume junction with the plate reaches past it (review W).
@@ -1084,8 +1080,6 @@ def build_problem(
     sim = SimulatedSurface.of(mesh).curved(mesh.nodes_mm, ref.vertices_mm, ref.faces)
     tolerance = {n: _registration_tolerance(work, n) for n in points}
     imaging = comparable_imaging_noise(work, scans)
-    from ..model.reference import scan_height_mm
-
     height = scan_height_mm(ref)  # as calibrate's noise model and the remesh take it
     if size != calibration_mesh_mm(record):  # calibrate said so of its own size
         _say_coarse(work.path, size, height)

@@ -32,6 +32,7 @@ __all__ = [
     "scale_of",
     "scan_height_mm",
     "model_mesh_notes",
+    "plate_height_mm",
     "reference_mesh",
     "reference_mesh_with_support",
     "remesh_grids_mm",
@@ -389,9 +390,12 @@ def scan_height_mm(ref) -> float:
     float
     """
     v = np.asarray(ref.vertices_mm, float)
-    if not len(v):
-        return 0.0
-    return float(np.abs((v - ref.back_point_mm) @ ref.back_normal).max())
+    return float(plate_height_mm(ref, v).max()) if len(v) else 0.0
+
+
+def plate_height_mm(scan, points_mm: np.ndarray) -> np.ndarray:
+    """Distance of points (reference frame, mm) from a scan's back plate, shape (n,)."""
+    return np.abs((points_mm - scan.back_point_mm) @ scan.back_normal)
 
 
 def scale_of(ref) -> float:

@@ -146,11 +146,7 @@ class SweepModel:
         if self.prestress_state is not None:
             return np.zeros(0, dtype=np.int64)
         one = np.ones(len(self.tets), dtype=np.int64)
-        vol = TetMesh(self.nodes_mm, self.tets, one, {"bulk": 1}, {}).volumes_mm3()
-        neg, pos = np.flatnonzero(vol < 0), np.flatnonzero(vol > 0)
-        if not (len(neg) and len(pos)):
-            return np.zeros(0, dtype=np.int64)
-        return neg if len(neg) <= len(pos) else pos
+        return TetMesh(self.nodes_mm, self.tets, one, {"bulk": 1}, {}).against_the_rest()
 
     @property
     def scales_with_c1(self) -> bool:

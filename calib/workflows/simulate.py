@@ -387,11 +387,7 @@ def check_orientation(mesh: fem.TetMesh, path: Path) -> np.ndarray:
             f"{path}: {len(bad)} points have non-finite coordinates, e.g. point {bad[0]} "
             f"{mesh.nodes_mm[bad[0]].tolist()}"
         )
-    vol = mesh.volumes_mm3()
-    neg, pos = np.flatnonzero(vol < 0), np.flatnonzero(vol > 0)
-    if not (len(neg) and len(pos)):
-        return neg[:0]
-    return neg if len(neg) <= len(pos) else pos
+    return mesh.against_the_rest()
 
 
 def say_inverted(mesh: fem.TetMesh, path: Path, few: np.ndarray, back: np.ndarray) -> None:

@@ -363,6 +363,16 @@ def test_a_sparse_nipple_patch_reaches_its_tenth_point_up_to_twice_its_radius(ca
         profile.nipple_patches(cal)
 
 
+def _first_estimate_from_a_guess_of_2500(measurements, caplog):
+    """A 16 mm Calibrator's first estimate from --c1-guess 2500, its warnings captured."""
+    from calib.fitting.objective import Calibrator
+
+    opts = CalibrationOptions(mesh_size_mm=16.0, mesh_retry_mm=(), c1_guess_pa=2500.0)
+    cal = Calibrator(measurements, opts, density_kg_m3=1000.0)
+    with caplog.at_level("WARNING"):
+        return cal, cal.first_estimate()
+
+
 def test_a_phantom_whose_nipple_barely_moves_starts_at_the_guess_and_says_so(
     measurements, monkeypatch, caplog
 ):
@@ -371,10 +381,8 @@ def test_a_phantom_whose_nipple_barely_moves_starts_at_the_guess_and_says_so(
     import calib.fitting.objective as objective
 
     monkeypatch.setattr(objective, "MIN_NIPPLE_DISPLACEMENT_MM", 1e6)
-    opts = CalibrationOptions(mesh_size_mm=16.0, mesh_retry_mm=(), c1_guess_pa=2500.0)
-    cal = objective.Calibrator(measurements, opts, density_kg_m3=1000.0)
-    with caplog.at_level("WARNING"):
-        assert cal.first_estimate() == 2500.0
+    cal, estimate = _first_estimate_from_a_guess_of_2500(measurements, caplog)
+    assert estimate == 2500.0
     assert "the first estimate is the guess (--c1-guess), c1 = 2500 Pa" in caplog.text
     assert cal.first_estimate_from_guess
 
@@ -403,10 +411,8 @@ def test_a_nipple_displacement_within_its_registration_error_is_not_used(measure
         for n, s in measurements.scans.items()
     }
     blurred = dataclasses.replace(measurements, scans=scans)
-    opts = CalibrationOptions(mesh_size_mm=16.0, mesh_retry_mm=(), c1_guess_pa=2500.0)
-    cal = objective.Calibrator(blurred, opts, density_kg_m3=1000.0)
-    with caplog.at_level("WARNING"):
-        assert cal.first_estimate() == 2500.0
+    cal, estimate = _first_estimate_from_a_guess_of_2500(blurred, caplog)
+    assert estimate == 2500.0
     assert "3 times the scan's expected registration error" in caplog.text
     assert cal.first_estimate_from_guess
 
