@@ -30,6 +30,8 @@ __all__ = [
     "Prediction",
     "Surrogate",
     "SurrogateFileError",
+    "direction_limit_deg",
+    "outside_hull_deg",
     "evaluate",
     "load_surrogate",
     "quiet_jit",
@@ -39,12 +41,37 @@ __all__ = [
 FORMAT, FORMAT_VERSION = "phantom-calib.surrogate", 1
 _EXTRA = "surrogate.json"
 _REL_TOL = 1e-3  # range checks: 0.1 % slack (rounded user input, e.g. 6.9367,0,6.9367)
-#: A query direction farther than this from every training direction, or than twice the
-#: training directions' median spacing where that is wider, is an extrapolation: one
-#: great circle (``--plan dissertation:transverse``) answers a direction 90 degrees off it
-#: without a word otherwise. 5 degrees: the plans' own rounding and a few degrees of
-#: posture error stay inside (the reduced model's kernel varies smoothly over ~1 degree).
+#: A query direction farther than this from every training direction, or than
+#: :data:`DIRECTION_SPACING_FACTOR` times the training directions' median spacing where
+#: that is wider (:func:`direction_limit_deg`), is an extrapolation: one great circle
+#: (``--plan dissertation:transverse``) answers a direction 90 degrees off it without a
+#: word otherwise. 5 degrees: the plans' own rounding and a few degrees of posture error
+#: stay inside (the reduced model's kernel varies smoothly over ~1 degree).
 DIRECTION_SLACK_DEG = 5.0
+#: The direction limit in units of the training directions' median spacing. Review BP
+#: (P6): at twice the spacing the dissertation plan (two circles, 15 degrees apart on
+#: each) answered a direction 29 degrees off both circles without a word, 0.17-0.19 mm
+#: off FE on the surface's mean (2.3 % of the displacement; max 0.25-0.46 mm) where its
+#: validation directions read 7e-6 mm (``python benchmarks/bench_surrogate_trust.py``).
+#: One spacing keeps every direction of a quasi-uniform sphere plan inside (a Fibonacci
+#: lattice's farthest hole lies 0.81 spacings from its nearest direction) and every
+#: direction of a circle in its plane (half a spacing), and warns 15 degrees off the
+#: dissertation plan's circles.
+DIRECTION_SPACING_FACTOR = 1.0
+#: A query direction farther than this (degrees) outside the hull of its nearest
+#: training directions is an extrapolation, however near the nearest lies. Review BP
+#: (P6), measured on the quick twin's dissertation plan (``python
+#: benchmarks/bench_surrogate_trust.py``): a transverse posture tilted out of its circle
+#: errs by about 0.011 mm on the surface's mean per degree (0.023 mm at 2 degrees, 0.11
+#: mm at 10, where the nearest training direction lies 7.8-12.5 degrees off and the
+#: spacing check said nothing), against 7e-6 mm on the plan's own validation
+#: directions; between the circles near their shared axis, and in a sphere plan's holes,
+#: a query is surrounded by training directions and this check is silent. One degree
+#: keeps a registered scan's gravity (a few tenths of a degree off its nominal plane)
+#: inside.
+HULL_SLACK_DEG = 1.0
+#: How many nearest training directions make the hull a query is measured against.
+HULL_NEIGHBOURS = 8
 #: Training directions that span a plane or a line only (one great circle, one direction)
 #: leave the linear term no response out of their span (least squares' minimum norm): a
 #: query farther out of the span than this is an extrapolation, whatever its nearest
@@ -56,6 +83,23 @@ DIRECTION_SLACK_DEG = 5.0
 #: typed direction's rounding inside (6.9367,0,6.9367: 0.006 degrees) and warns of a
 #: registered scan's gravity half a degree off the plane.
 SPAN_SLACK_DEG = 0.25
+
+
+def direction_limit_deg(spacing_deg: float) -> float:
+    """How far (degrees) a query direction may lie from every training direction.
+
+    Parameters
+    ----------
+    spacing_deg : float
+        The training directions' median spacing (``trained.direction_spacing_deg``).
+
+    Returns
+    -------
+    float
+        ``max(DIRECTION_SLACK_DEG, DIRECTION_SPACING_FACTOR * spacing_deg)``; a query
+        farther from every training direction is an :class:`ExtrapolationWarning`.
+    """
+    return max(DIRECTION_SLACK_DEG, DIRECTION_SPACING_FACTOR * float(spacing_deg))
 
 
 class ExtrapolationWarning(UserWarning):
@@ -133,6 +177,62 @@ def _span(directions: np.ndarray) -> np.ndarray | None:
     _, sv, vt = np.linalg.svd(directions, full_matrices=False)
     rank = int(np.sum(sv > 1e-6 * sv[0]))
     return vt[:rank] if rank < 3 else None
+
+
+def outside_hull_deg(u: np.ndarray, directions: np.ndarray, spacing_deg: float) -> np.ndarray:
+    """How far (degrees) each query lies outside the hull of its nearest directions.
+
+    Of the :data:`HULL_NEIGHBOURS` training directions nearest each query, those within
+    the nearest one's angle plus two spacings (the query's neighbourhood: a direction far
+    across the sphere surrounds nothing; with one spacing a query near a Fibonacci
+    lattice's direction missed part of the ring around it) are projected gnomonically
+    onto the plane tangent to the sphere at the query (great circles map to straight
+    lines, so a circle's directions stay on one line). The query, the plane's origin,
+    lies inside their convex hull where no gap between the neighbours' bearings reaches
+    180 degrees (distance 0); otherwise its distance to the hull is the least distance to
+    a segment between two neighbours, turned back into an angle.
+
+    Parameters
+    ----------
+    u : ndarray, shape (B, 3)
+        Unit query directions.
+    directions : ndarray, shape (M, 3)
+        Unit training directions, M >= 1.
+    spacing_deg : float
+        Their median spacing (``trained.direction_spacing_deg``).
+
+    Returns
+    -------
+    ndarray, shape (B,)
+        Degrees; 90 where no neighbour lies in the query's hemisphere.
+    """
+    from scipy.spatial import cKDTree
+
+    d = np.asarray(directions, float)
+    u = np.asarray(u, float)
+    k = min(HULL_NEIGHBOURS, len(d))
+    idx = cKDTree(d).query(u, k=k)[1].reshape(len(u), k)
+    nb = d[idx]  # (B, k, 3), nearest first
+    cos = np.einsum("bkj,bj->bk", nb, u)
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    use = (angle <= angle[:, :1] + 2.0 * spacing_deg + 1e-9) & (cos > 1e-3)  # a hemisphere
+    seed = np.where(np.abs(u[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    e1 = np.cross(u, seed)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(u, e1)
+    p = nb / np.where(use, cos, 1.0)[..., None]  # on the tangent plane at u
+    xy = np.stack([np.einsum("bkj,bj->bk", p, e1), np.einsum("bkj,bj->bk", p, e2)], axis=-1)
+    xy = np.where(use[..., None], xy, xy[:, :1])  # an unused neighbour repeats the nearest
+    bearing = np.sort(np.arctan2(xy[..., 1], xy[..., 0]), axis=1)
+    gaps = np.diff(np.concatenate([bearing, bearing[:, :1] + 2 * np.pi], axis=1), axis=1)
+    inside = gaps.max(axis=1) < np.pi - 1e-12
+    a, b = xy[:, :, None, :], xy[:, None, :, :]  # every segment a-b (a point where a = b)
+    ab = b - a
+    den = np.einsum("bijc,bijc->bij", ab, ab)
+    t = np.clip(-np.einsum("bijc,bijc->bij", a, ab) / np.where(den > 0, den, 1.0), 0.0, 1.0)
+    gap = np.linalg.norm(a + t[..., None] * ab, axis=-1).min(axis=(1, 2))
+    out = np.where(inside, 0.0, np.degrees(np.arctan(gap)))
+    return np.where(use[:, 0], out, 90.0)
 
 
 def _directions(gravity_ref: np.ndarray) -> tuple[list, float]:
@@ -338,9 +438,22 @@ class Surrogate:
                     stacklevel=4,
                 )
                 return
+        spacing = float(trained["direction_spacing_deg"])
+        outside = outside_hull_deg(u, np.asarray(dirs, float), spacing)
+        if np.any(outside > HULL_SLACK_DEG):
+            k = int(np.argmax(outside))
+            warnings.warn(
+                f"gravity direction {np.round(u[k], 3).tolist()} (reference frame) lies "
+                f"{outside[k]:.1f} degrees outside the training directions around it (limit "
+                f"{HULL_SLACK_DEG:g}): the surrogate extrapolates (train on a sphere:N plan "
+                "to answer directions anywhere)",
+                ExtrapolationWarning,
+                stacklevel=4,
+            )
+            return
         angle = _chord_deg(cKDTree(np.asarray(dirs, float)).query(u)[0])
-        limit = max(DIRECTION_SLACK_DEG, 2.0 * float(trained["direction_spacing_deg"]))
-        if np.any(angle > limit):
+        limit = direction_limit_deg(spacing)
+        if np.any(angle > limit * (1 + _REL_TOL)):  # a gap of one missing direction: inside
             k = int(np.argmax(angle))
             warnings.warn(
                 f"gravity direction {np.round(u[k], 3).tolist()} (reference frame) lies "

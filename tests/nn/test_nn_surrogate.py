@@ -179,7 +179,9 @@ def test_torchscript_file_round_trip(ours, baseline, tmp_path):
         nn.save_surrogate(sur, path)
         loaded = nn.load_surrogate(path)
         assert loaded.kind == sur.kind and loaded.mesh_sha256 == sur.mesh_sha256
-        g = 9.81 * np.array([[3.0, -5.0, 7.0], [0.0, 1.0, 0.0]]) / [[np.sqrt(83.0)], [1.0]]
+        # on the sweep's circles (phantom frame): a direction 19 degrees off both is an
+        # extrapolation since review BP's P6 (one spacing, 15 degrees)
+        g = 9.81 * np.array([[np.cos(0.35), 0.0, np.sin(0.35)], [0.0, 1.0, 0.0]])
         a, b = sur.predict(g), loaded.predict(g)
         assert np.array_equal(a.surface_mm, b.surface_mm)
         assert np.array_equal(a.tumour_mm, b.tumour_mm)
@@ -316,8 +318,12 @@ def test_gpu_training_agrees_with_cpu(box_data):
 def test_a_direction_off_the_training_circles_warns(ours, box_data):
     # the dissertation plan trains on two orthogonal great circles, 15 degrees apart on
     # each: a direction away from both answered without a word (audit F, item 4). The
-    # farthest from both is (n1 + n2 + n1 x n2) / sqrt(3), n1, n2 their planes' normals:
-    # arcsin(1 / sqrt(3)) = 35.3 degrees off each, beyond the limit of 2 x 15 degrees.
+    # direction (n1 + n2 + n1 x n2) / sqrt(3), n1, n2 their planes' normals, lies
+    # arcsin(1 / sqrt(3)) = 35.3 degrees off each. Review BP (P6): the limit was twice the
+    # spacing, 30 degrees, and a direction 20 degrees off both circles passed in silence
+    # (on the quick twin 29 degrees off read 0.17-0.19 mm mean error against FE where the
+    # validation directions read 7e-6 mm: `python benchmarks/bench_surrogate_trust.py`);
+    # the limit is now one spacing, 15 degrees.
     train = box_data.subset(box_data.role == "train")
     dirs = np.unique(np.round(train.gravity_ref, 9), axis=0)
     n1, n2 = (
@@ -334,11 +340,74 @@ def test_a_direction_off_the_training_circles_warns(ours, box_data):
     off = (n1 + n2 + np.cross(n1, n2)) / np.sqrt(3.0)
     with pytest.warns(nn.ExtrapolationWarning, match=r"35\.3 degrees from the nearest training"):
         ours.predict(9.81 * off, c1_pa=c1, frame="ref")
+    s = np.sin(np.radians(20.0))  # 20 degrees off each circle, beside their shared axis
+    twenty = s * n1 + s * n2 + np.sqrt(1.0 - 2.0 * s * s) * np.cross(n1, n2)
+    with pytest.warns(nn.ExtrapolationWarning, match=r"limit 15\.0\)"):
+        ours.predict(9.81 * twenty, c1_pa=c1, frame="ref")
+    # review BP (P6): a posture between two training angles of one circle (52.5 degrees
+    # from the shared axis), tilted out of that circle, had its nearest training direction
+    # 7.8 degrees off at a 2 degree tilt and was silent; it lies outside the training
+    # directions around it (on the quick twin 0.023 mm mean error at 2 degrees, 0.11 mm at
+    # 10, against 7e-6 mm on the plan's validation directions: the bench). Half a degree
+    # (a registered scan's gravity) stays silent
+    axis = np.cross(n1, n2)
+    on = np.cos(np.radians(52.5)) * axis + np.sin(np.radians(52.5)) * n2  # on circle 1
+
+    def tilted(deg):
+        e = np.radians(deg)
+        return 9.81 * (np.cos(e) * on + np.sin(e) * n1)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ours.predict(tilted(0.5), c1_pa=c1, frame="ref")
+    with pytest.warns(nn.ExtrapolationWarning, match=r"2\.0 degrees outside the training"):
+        ours.predict(tilted(2.0), c1_pa=c1, frame="ref")
+
+
+@pytest.mark.parametrize("n", [20, 100, 500])
+def test_the_direction_limit_keeps_a_sphere_plan_s_holes_inside(n):
+    # one spacing (review BP, P6) must not warn of any direction a quasi-uniform sphere
+    # plan covers: a Fibonacci lattice's holes lie 0.81 of its median spacing from its
+    # nearest direction (the bench's sphere:100 holes, 15 degrees: 0.0002 mm mean error);
+    # 20,000 seeded random directions find each hole to well under a degree
+    from scipy.spatial import cKDTree
+
+    from fem.postures import fibonacci_sphere
+    from nn.surrogate import _directions, direction_limit_deg, outside_hull_deg
+
+    dirs, spacing = _directions(fibonacci_sphere(n))
+    q = np.random.default_rng(0).normal(size=(20_000, 3))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    chord = cKDTree(np.asarray(dirs)).query(q)[0]
+    farthest = np.degrees(2.0 * np.arcsin(chord / 2.0)).max()
+    assert 0.7 * spacing < farthest < 0.9 * spacing
+    assert farthest < direction_limit_deg(spacing)
+    # and every direction lies inside the hull of the lattice's directions around it
+    assert outside_hull_deg(q, np.asarray(dirs), spacing).max() == 0.0
+
+
+def test_outside_hull_deg_is_the_angle_out_of_a_circle():
+    # closed form: directions every 15 degrees on the x-z great circle; a query tilted
+    # by phi out of it, between two of them, lies phi off the circle's line in the
+    # gnomonic plane (great circles project to lines); on the circle, and at its pole of
+    # symmetry between two circles' directions, it is inside (0)
+    from nn.surrogate import outside_hull_deg
+
+    a = np.radians(np.arange(0.0, 360.0, 15.0))
+    circle = np.c_[np.cos(a), np.zeros_like(a), np.sin(a)]
+    phi = np.array([0.0, 0.5, 2.0, 10.0])
+    b, p = np.radians(37.5), np.radians(phi)
+    q = np.c_[np.cos(p) * np.cos(b), np.sin(p), np.cos(p) * np.sin(b)]
+    np.testing.assert_allclose(outside_hull_deg(q, circle, 15.0), phi, atol=1e-9)
+    two = np.r_[circle, np.c_[np.zeros_like(a), np.cos(a), np.sin(a)]]
+    s = np.sin(np.radians(10.0))
+    between = np.array([[s, s, np.sqrt(1 - 2 * s * s)]])  # near the shared axis z
+    assert outside_hull_deg(between, np.unique(two.round(9), axis=0), 15.0)[0] == 0.0
 
 
 def test_a_direction_out_of_one_training_circle_warns(ours, box_data):
     # review AD: trained on one great circle, the linear term has no response out of its
-    # plane (least squares' minimum norm), and the nearest-direction check (limit 2 x 15
+    # plane (least squares' minimum norm), and the nearest-direction check (limit then 2 x 15
     # degrees) was silent. The two-circle surrogate erred by 0.084 mm at most off the
     # plane (review AD's FE comparison); the one-circle one departs from it by 1.6 % of
     # the largest displacement per degree out (measured, per node: 0.03, 0.11, 0.56 mm at
@@ -361,8 +430,9 @@ def test_a_direction_out_of_one_training_circle_warns(ours, box_data):
         circle.predict(tilted(1.0), c1_pa=c1, frame="ref")
     with pytest.warns(nn.ExtrapolationWarning, match=r"5\.0 degrees out of the plane"):
         off = circle.predict(tilted(5.0), c1_pa=c1, frame="ref").nodes_mm.reshape(-1, 3)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # two circles span all three dimensions: no span check
+    # two circles span all three dimensions: no span check; the direction lies outside
+    # the training directions around it (review BP, P6), not outside their span
+    with pytest.warns(nn.ExtrapolationWarning, match=r"5\.0 degrees outside the training"):
         both = ours.predict(tilted(5.0), c1_pa=c1, frame="ref").nodes_mm.reshape(-1, 3)
     disp = np.linalg.norm(both, axis=1).max()
     assert np.linalg.norm(off - both, axis=1).max() > 5 * 0.01 * disp
@@ -451,9 +521,13 @@ def test_the_baseline_answers_a_gravity_of_another_magnitude_by_its_load():
         warnings.simplefilter("error", nn.ExtrapolationWarning)
         warnings.filterwarnings("ignore", message=".*training direction")
         sur.predict(g / 2, c1_pa=200.0, frame="ref")
-    with pytest.warns(
-        nn.ExtrapolationWarning, match=r"c1 = 400 Pa \(the c1 of its load .*: 200 Pa\)"
+    with (
+        warnings.catch_warnings(),
+        pytest.warns(
+            nn.ExtrapolationWarning, match=r"c1 = 400 Pa \(the c1 of its load .*: 200 Pa\)"
+        ),
     ):
+        warnings.filterwarnings("ignore", message=".*training direction")
         sur.predict(2 * g, c1_pa=400.0, frame="ref")
 
 
