@@ -76,8 +76,11 @@ def measure(work: Path, data, surrogate, directions_phantom: list[np.ndarray]) -
     for k, u in enumerate(directions_phantom):
         u = u / np.linalg.norm(u)
         near = float(np.degrees(np.arccos(np.clip(train @ u, -1.0, 1.0))).min())
-        spacing = surrogate.meta["trained"]["direction_spacing_deg"]
-        outside = float(outside_hull_deg(u[None], np.unique(train.round(9), axis=0), spacing)[0])
+        trained = surrogate.meta["trained"]  # the surrogate's own frame and directions
+        dirs_ref = np.asarray(trained["directions_ref"], float)
+        outside = float(
+            outside_hull_deg((R @ u)[None], dirs_ref, trained["direction_spacing_deg"])[0]
+        )
         task = ScenarioTask(index=k, gravity_ref=R @ u, g_m_s2=model.g_m_s2, x0=None)
         r = solve_scenario(model, model.key, task)
         if not r.ok:
@@ -149,7 +152,10 @@ def main() -> None:
         print("|---|---|---|---|---|---|---|---|---|")
         for name, data in (("dissertation", diss), (f"sphere:{args.sphere}", sph)):
             sur = nn.Surrogate.from_fit(nn.fit_reduced_kernel(data, device="cpu"), data)
-            limit = direction_limit_deg(sur.meta["trained"]["direction_spacing_deg"])
+            trained = sur.meta["trained"]
+            limit = direction_limit_deg(
+                trained["direction_spacing_deg"], trained.get("validated_direction_deg")
+            )
             e = sur.report["errors"].get("validation")
             if e and e.get("n"):
                 print(

@@ -53,13 +53,16 @@ DIRECTION_SLACK_DEG = 5.0
 #: each) answered a direction 29 degrees off both circles without a word, 0.17-0.19 mm
 #: off FE on the surface's mean (2.3 % of the displacement; max 0.25-0.46 mm) where its
 #: validation directions read 7e-6 mm (``python benchmarks/bench_surrogate_trust.py``).
-#: One spacing keeps every direction of a quasi-uniform sphere plan inside (a Fibonacci
-#: lattice's farthest hole lies 0.81 spacings from its nearest direction) and every
-#: direction of a circle in its plane (half a spacing), and warns 15 degrees off the
-#: dissertation plan's circles.
+#: One spacing keeps every direction of a full quasi-uniform sphere plan inside (a
+#: Fibonacci lattice's farthest hole lies 0.75-0.82 spacings from its nearest direction)
+#: and every direction of a circle in its plane (half a spacing), and warns beyond 15
+#: degrees off the dissertation plan's circles. A plan with held-out directions also
+#: keeps its validated reach (:func:`direction_limit_deg`): a held-out lattice point lies
+#: about one spacing from the training directions, half of them beyond it (review BR).
 DIRECTION_SPACING_FACTOR = 1.0
-#: A query direction farther than this (degrees) outside the hull of its nearest
-#: training directions is an extrapolation, however near the nearest lies. Review BP
+#: A query direction farther than this (degrees) outside the hull of the training
+#: directions around it (:func:`outside_hull_deg`) is an extrapolation, however near the
+#: nearest lies. Review BP
 #: (P6), measured on the quick twin's dissertation plan (``python
 #: benchmarks/bench_surrogate_trust.py``): a transverse posture tilted out of its circle
 #: errs by about 0.011 mm on the surface's mean per degree (0.023 mm at 2 degrees, 0.11
@@ -68,10 +71,8 @@ DIRECTION_SPACING_FACTOR = 1.0
 #: directions; between the circles near their shared axis, and in a sphere plan's holes,
 #: a query is surrounded by training directions and this check is silent. One degree
 #: keeps a registered scan's gravity (a few tenths of a degree off its nominal plane)
-#: inside.
+#: inside; a query exactly 1 degree out is inside, beyond it warns.
 HULL_SLACK_DEG = 1.0
-#: How many nearest training directions make the hull a query is measured against.
-HULL_NEIGHBOURS = 8
 #: Training directions that span a plane or a line only (one great circle, one direction)
 #: leave the linear term no response out of their span (least squares' minimum norm): a
 #: query farther out of the span than this is an extrapolation, whatever its nearest
@@ -85,21 +86,27 @@ HULL_NEIGHBOURS = 8
 SPAN_SLACK_DEG = 0.25
 
 
-def direction_limit_deg(spacing_deg: float) -> float:
+def direction_limit_deg(spacing_deg: float, validated_deg: float | None = None) -> float:
     """How far (degrees) a query direction may lie from every training direction.
 
     Parameters
     ----------
     spacing_deg : float
         The training directions' median spacing (``trained.direction_spacing_deg``).
+    validated_deg : float, optional
+        How far the surrogate's validation directions lie from the training ones, at
+        most (``trained.validated_direction_deg``): its validation error was measured
+        that far out.
 
     Returns
     -------
     float
-        ``max(DIRECTION_SLACK_DEG, DIRECTION_SPACING_FACTOR * spacing_deg)``; a query
-        farther from every training direction is an :class:`ExtrapolationWarning`.
+        ``max(DIRECTION_SLACK_DEG, DIRECTION_SPACING_FACTOR * spacing_deg,
+        validated_deg)``; a query farther from every training direction (0.1 % slack) is
+        an :class:`ExtrapolationWarning`.
     """
-    return max(DIRECTION_SLACK_DEG, DIRECTION_SPACING_FACTOR * float(spacing_deg))
+    limit = max(DIRECTION_SLACK_DEG, DIRECTION_SPACING_FACTOR * float(spacing_deg))
+    return max(limit, float(validated_deg)) if validated_deg is not None else limit
 
 
 class ExtrapolationWarning(UserWarning):
@@ -180,22 +187,23 @@ def _span(directions: np.ndarray) -> np.ndarray | None:
 
 
 def outside_hull_deg(u: np.ndarray, directions: np.ndarray, spacing_deg: float) -> np.ndarray:
-    """How far (degrees) each query lies outside the hull of its nearest directions.
+    """How far (degrees) each query lies outside the hull of the directions around it.
 
-    Of the :data:`HULL_NEIGHBOURS` training directions nearest each query, those within
-    the nearest one's angle plus two spacings (the query's neighbourhood: a direction far
-    across the sphere surrounds nothing; with one spacing a query near a Fibonacci
-    lattice's direction missed part of the ring around it) are projected gnomonically
-    onto the plane tangent to the sphere at the query (great circles map to straight
-    lines, so a circle's directions stay on one line). The query, the plane's origin,
-    lies inside their convex hull where no gap between the neighbours' bearings reaches
-    180 degrees (distance 0); otherwise its distance to the hull is the least distance to
-    a segment between two neighbours, turned back into an angle.
+    Every training direction within the nearest one's angle plus two spacings (the
+    query's neighbourhood: a direction far across the sphere surrounds nothing; with one
+    spacing a query near a Fibonacci lattice's direction missed part of the ring around
+    it) and in the query's hemisphere is projected gnomonically onto the plane tangent to
+    the sphere at the query (great circles map to straight lines, so a circle's
+    directions stay on one line). The query, the plane's origin, lies inside their convex
+    hull where no gap between their bearings reaches 180 degrees (distance 0); otherwise
+    its distance to the hull is the least distance to a segment between two of them,
+    turned back into an angle. The hull holds the nearest direction, so a query within
+    ``d`` degrees of one lies at most ``d`` outside.
 
     Parameters
     ----------
-    u : ndarray, shape (B, 3)
-        Unit query directions.
+    u : array_like, shape (B, 3) or (3,)
+        Query directions (normalised here; non-zero).
     directions : ndarray, shape (M, 3)
         Unit training directions, M >= 1.
     spacing_deg : float
@@ -204,34 +212,62 @@ def outside_hull_deg(u: np.ndarray, directions: np.ndarray, spacing_deg: float) 
     Returns
     -------
     ndarray, shape (B,)
-        Degrees; 90 where no neighbour lies in the query's hemisphere.
+        Degrees; 90 where no training direction lies in the query's hemisphere.
     """
     from scipy.spatial import cKDTree
 
     d = np.asarray(directions, float)
-    u = np.asarray(u, float)
-    k = min(HULL_NEIGHBOURS, len(d))
-    idx = cKDTree(d).query(u, k=k)[1].reshape(len(u), k)
+    u = np.atleast_2d(np.asarray(u, float))
+    u = u / np.linalg.norm(u, axis=1, keepdims=True)
+    tree = cKDTree(d)
+    return _outside_hull_deg(u, d, tree, _chord_deg(tree.query(u)[0]), spacing_deg)
+
+
+def _outside_hull_deg(u, d, tree, nearest, spacing_deg) -> np.ndarray:
+    """:func:`outside_hull_deg` of unit queries with their nearest angles (degrees)."""
+    reach = np.minimum(nearest + 2.0 * spacing_deg, 90.0)
+    out = np.zeros(len(u))
+    k = min(len(d), 32)
+    for start in range(0, len(u), 256):  # bounded memory: (256, k, k, 2) segments at most
+        rows = np.arange(start, min(start + 256, len(u)))
+        chord, idx = tree.query(u[rows], k=k)
+        chord, idx = chord.reshape(len(rows), k), idx.reshape(len(rows), k)
+        full = _chord_deg(chord[:, -1]) <= reach[rows] + 1e-9  # maybe more within reach
+        if k < len(d) and np.any(full):  # every direction within reach: no tie decides
+            chord_all, idx_all = tree.query(u[rows[full]], k=len(d))
+            out[rows[full]] = _hull_gap_deg(u[rows[full]], d, idx_all, chord_all, reach[rows[full]])
+            rows, chord, idx = rows[~full], chord[~full], idx[~full]
+        out[rows] = _hull_gap_deg(u[rows], d, idx, chord, reach[rows])
+    return out
+
+
+def _hull_gap_deg(u, d, idx, chord, reach) -> np.ndarray:
+    """:func:`outside_hull_deg` for queries ``u`` (B, 3) and their neighbours (B, k)."""
     nb = d[idx]  # (B, k, 3), nearest first
     cos = np.einsum("bkj,bj->bk", nb, u)
-    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    use = (angle <= angle[:, :1] + 2.0 * spacing_deg + 1e-9) & (cos > 1e-3)  # a hemisphere
-    seed = np.where(np.abs(u[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    e1 = np.cross(u, seed)
+    use = (_chord_deg(chord) <= reach[:, None] + 1e-9) & (cos > 1e-3)  # one hemisphere
+    # a basis of the tangent plane: u x (1, 0, 0), or u x (0, 1, 0) near the x axis
+    x, y, z = u.T
+    near_x = np.abs(x) >= 0.9
+    e1 = np.where(near_x[:, None], np.c_[-z, np.zeros_like(x), x], np.c_[np.zeros_like(x), z, -y])
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(u, e1)
+    ex, ey, ez = e1.T
+    e2 = np.c_[y * ez - z * ey, z * ex - x * ez, x * ey - y * ex]  # u x e1
     p = nb / np.where(use, cos, 1.0)[..., None]  # on the tangent plane at u
     xy = np.stack([np.einsum("bkj,bj->bk", p, e1), np.einsum("bkj,bj->bk", p, e2)], axis=-1)
     xy = np.where(use[..., None], xy, xy[:, :1])  # an unused neighbour repeats the nearest
     bearing = np.sort(np.arctan2(xy[..., 1], xy[..., 0]), axis=1)
     gaps = np.diff(np.concatenate([bearing, bearing[:, :1] + 2 * np.pi], axis=1), axis=1)
-    inside = gaps.max(axis=1) < np.pi - 1e-12
-    a, b = xy[:, :, None, :], xy[:, None, :, :]  # every segment a-b (a point where a = b)
-    ab = b - a
-    den = np.einsum("bijc,bijc->bij", ab, ab)
-    t = np.clip(-np.einsum("bijc,bijc->bij", a, ab) / np.where(den > 0, den, 1.0), 0.0, 1.0)
-    gap = np.linalg.norm(a + t[..., None] * ab, axis=-1).min(axis=(1, 2))
-    out = np.where(inside, 0.0, np.degrees(np.arctan(gap)))
+    out = np.zeros(len(u))
+    outside = np.flatnonzero(gaps.max(axis=1) >= np.pi - 1e-12)
+    if len(outside):  # every segment a-b (a point where a = b) of the queries outside
+        a, b = xy[outside, :, None, :], xy[outside, None, :, :]
+        ab = b - a
+        den = np.einsum("bijc,bijc->bij", ab, ab)
+        t = np.einsum("bijc,bijc->bij", a, ab) / np.where(den > 0, den, 1.0)
+        t = np.clip(-t, 0.0, 1.0)
+        gap = np.linalg.norm(a + t[..., None] * ab, axis=-1).min(axis=(1, 2))
+        out[outside] = np.degrees(np.arctan(gap))
     return np.where(use[:, 0], out, 90.0)
 
 
@@ -257,6 +293,7 @@ def _fit_meta(fit, data: SweepData) -> dict:
     train = data.subset(data.role == "train")
     q = np.linalg.norm(train.load_per_m, axis=1)
     directions, spacing = _directions(train.gravity_ref)
+    valid = data.subset(data.role == "validation")
     return {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -268,6 +305,7 @@ def _fit_meta(fit, data: SweepData) -> dict:
             "load_per_m": [float(q.min()), float(q.max())],
             "directions_ref": directions,
             "direction_spacing_deg": spacing,
+            "validated_direction_deg": _validated_deg(valid.gravity_ref, directions),
             "loads_per_m": train.load_per_m.tolist(),
             "failed_loads_per_m": data.failed_load_per_m.tolist(),
         },
@@ -280,6 +318,21 @@ def _fit_meta(fit, data: SweepData) -> dict:
         },
         "report": fit.report,
     }
+
+
+def _validated_deg(gravity_ref: np.ndarray, directions: list) -> float | None:
+    """The farthest (degrees) a validation direction lies from every training direction.
+
+    None without validation directions (or without training ones).
+    """
+    from scipy.spatial import cKDTree
+
+    g = np.asarray(gravity_ref, float).reshape(-1, 3)
+    g = g[np.linalg.norm(g, axis=1) > 0]
+    if not len(g) or not len(directions):
+        return None
+    u = g / np.linalg.norm(g, axis=1, keepdims=True)
+    return float(_chord_deg(cKDTree(np.asarray(directions, float)).query(u)[0]).max())
 
 
 def _training_digest(train: SweepData) -> str:
@@ -416,8 +469,6 @@ class Surrogate:
 
         Surrogates saved before the directions were recorded are not checked.
         """
-        from scipy.spatial import cKDTree
-
         trained = self.meta["trained"]
         dirs = trained.get("directions_ref")
         if dirs is None or not len(g) or not len(dirs):
@@ -438,21 +489,13 @@ class Surrogate:
                     stacklevel=4,
                 )
                 return
+        # review BR: the distance first (a far query is told how far), then the hull of
+        # the directions around the queries within the distance limit
+        d = np.asarray(dirs, float)
+        tree = self._direction_tree(d)
         spacing = float(trained["direction_spacing_deg"])
-        outside = outside_hull_deg(u, np.asarray(dirs, float), spacing)
-        if np.any(outside > HULL_SLACK_DEG):
-            k = int(np.argmax(outside))
-            warnings.warn(
-                f"gravity direction {np.round(u[k], 3).tolist()} (reference frame) lies "
-                f"{outside[k]:.1f} degrees outside the training directions around it (limit "
-                f"{HULL_SLACK_DEG:g}): the surrogate extrapolates (train on a sphere:N plan "
-                "to answer directions anywhere)",
-                ExtrapolationWarning,
-                stacklevel=4,
-            )
-            return
-        angle = _chord_deg(cKDTree(np.asarray(dirs, float)).query(u)[0])
-        limit = direction_limit_deg(spacing)
+        angle = _chord_deg(tree.query(u)[0])
+        limit = direction_limit_deg(spacing, trained.get("validated_direction_deg"))
         if np.any(angle > limit * (1 + _REL_TOL)):  # a gap of one missing direction: inside
             k = int(np.argmax(angle))
             warnings.warn(
@@ -462,6 +505,31 @@ class Surrogate:
                 ExtrapolationWarning,
                 stacklevel=4,
             )
+            return
+        # a query within HULL_SLACK_DEG of a training direction lies at most that far out
+        near = np.flatnonzero(angle > HULL_SLACK_DEG)
+        if not len(near):
+            return
+        outside = _outside_hull_deg(u[near], d, tree, angle[near], spacing)
+        if np.any(outside > HULL_SLACK_DEG):
+            k = int(near[np.argmax(outside)])
+            warnings.warn(
+                f"gravity direction {np.round(u[k], 3).tolist()} (reference frame) lies "
+                f"{outside.max():.1f} degrees outside the training directions around it "
+                f"(limit {HULL_SLACK_DEG:g}): the surrogate extrapolates (a sphere:N plan "
+                "trains on directions all round)",
+                ExtrapolationWarning,
+                stacklevel=4,
+            )
+
+    def _direction_tree(self, directions: np.ndarray):
+        """A k-d tree of the training directions, built once per surrogate."""
+        from scipy.spatial import cKDTree
+
+        tree = getattr(self, "_tree", None)
+        if tree is None:
+            tree = self._tree = cKDTree(directions)
+        return tree
 
     def _warn_failed(self, load_per_m: np.ndarray) -> None:
         """Warn when a load lies nearer a scenario the sweep could not solve than any trained.
@@ -612,7 +680,11 @@ class Surrogate:
         -----
         ExtrapolationWarning
             c1, or the load ``rho g / c1``, outside the range of the training scenarios;
-            on a :attr:`prestressed` reference also zero gravity, whose true answer (the
+            a direction farther from every training direction than
+            :func:`direction_limit_deg`, or beyond :data:`HULL_SLACK_DEG` outside the
+            training directions around it (:func:`outside_hull_deg`), or out of the span
+            of training directions that span a plane or a line; on a
+            :attr:`prestressed` reference also zero gravity, whose true answer (the
             stress-free shape) the sweep never solved.
         """
         import torch
