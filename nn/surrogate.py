@@ -62,8 +62,7 @@ DIRECTION_SLACK_DEG = 5.0
 DIRECTION_SPACING_FACTOR = 1.0
 #: A query direction farther than this (degrees) outside the hull of the training
 #: directions around it (:func:`outside_hull_deg`) is an extrapolation, however near the
-#: nearest lies. Review BP
-#: (P6), measured on the quick twin's dissertation plan (``python
+#: nearest lies. Review BP (P6), measured on the quick twin's dissertation plan (``python
 #: benchmarks/bench_surrogate_trust.py``): a transverse posture tilted out of its circle
 #: errs by about 0.011 mm on the surface's mean per degree (0.023 mm at 2 degrees, 0.11
 #: mm at 10, where the nearest training direction lies 7.8-12.5 degrees off and the
@@ -235,7 +234,12 @@ def _outside_hull_deg(u, d, tree, nearest, spacing_deg) -> np.ndarray:
         full = _chord_deg(chord[:, -1]) <= reach[rows] + 1e-9  # maybe more within reach
         if k < len(d) and np.any(full):  # every direction within reach: no tie decides
             chord_all, idx_all = tree.query(u[rows[full]], k=len(d))
-            out[rows[full]] = _hull_gap_deg(u[rows[full]], d, idx_all, chord_all, reach[rows[full]])
+            chord_all, idx_all = chord_all.reshape(-1, len(d)), idx_all.reshape(-1, len(d))
+            within = _chord_deg(chord_all) <= reach[rows[full], None] + 1e-9
+            m = int(within.sum(axis=1).max())  # nearest first: those within reach lead
+            out[rows[full]] = _hull_gap_deg(
+                u[rows[full]], d, idx_all[:, :m], chord_all[:, :m], reach[rows[full]]
+            )
             rows, chord, idx = rows[~full], chord[~full], idx[~full]
         out[rows] = _hull_gap_deg(u[rows], d, idx, chord, reach[rows])
     return out
