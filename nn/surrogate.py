@@ -94,7 +94,8 @@ def direction_limit_deg(spacing_deg: float, validated_deg: float | None = None) 
         The training directions' median spacing (``trained.direction_spacing_deg``).
     validated_deg : float, optional
         How far the surrogate's validation directions lie from the training ones, at
-        most (``trained.validated_direction_deg``): its validation error was measured
+        most, up to two spacings (``trained.validated_direction_deg``; None where the
+        training directions span a plane or a line): its validation error was measured
         that far out.
 
     Returns
@@ -227,7 +228,7 @@ def _outside_hull_deg(u, d, tree, nearest, spacing_deg) -> np.ndarray:
     reach = np.minimum(nearest + 2.0 * spacing_deg, 90.0)
     out = np.zeros(len(u))
     k = min(len(d), 32)
-    for start in range(0, len(u), 256):  # bounded memory: (256, k, k, 2) segments at most
+    for start in range(0, len(u), 256):  # bounded memory: (256, k, k, 2) segments, or m x m
         rows = np.arange(start, min(start + 256, len(u)))
         chord, idx = tree.query(u[rows], k=k)
         chord, idx = chord.reshape(len(rows), k), idx.reshape(len(rows), k)
@@ -298,6 +299,13 @@ def _fit_meta(fit, data: SweepData) -> dict:
     q = np.linalg.norm(train.load_per_m, axis=1)
     directions, spacing = _directions(train.gravity_ref)
     valid = data.subset(data.role == "validation")
+    # review BS: only where the training directions span three dimensions (a plane's
+    # validation directions off it, dissertation:transverse's sagittal circle, are the
+    # span check's), and up to two spacings (a sparse hold-out widens it no further)
+    validated = None
+    if _span(np.asarray(directions, float)) is None:
+        validated = _validated_deg(valid.gravity_ref, directions)
+        validated = None if validated is None else min(validated, 2.0 * spacing)
     return {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -309,7 +317,7 @@ def _fit_meta(fit, data: SweepData) -> dict:
             "load_per_m": [float(q.min()), float(q.max())],
             "directions_ref": directions,
             "direction_spacing_deg": spacing,
-            "validated_direction_deg": _validated_deg(valid.gravity_ref, directions),
+            "validated_direction_deg": validated,
             "loads_per_m": train.load_per_m.tolist(),
             "failed_loads_per_m": data.failed_load_per_m.tolist(),
         },
