@@ -3,8 +3,9 @@
 Review BP (P6): the direction checks warn of a query farther from every training
 direction than a limit (:func:`nn.surrogate.direction_limit_deg`) or outside the hull of
 the training directions around it (:func:`nn.surrogate.outside_hull_deg`); the first was
-measured on twin stores only. This prints, for the calibrated quick twin, what a query
-costs as it moves away from the training directions, and whether it is warned of:
+measured on twin stores only. This prints, for a calibrated work folder (by default
+the quick twin), what a query costs as it moves away from the training directions, and
+whether it is warned of:
 
 - on the ``dissertation`` plan (two great circles 15 degrees apart on each), directions
   an angle ``theta`` off both circles (``|u_x| = |u_y| = sin theta`` in the phantom frame,
