@@ -311,7 +311,10 @@ def surrogate_predict(
         bool,
         typer.Option(
             "--extrapolate",
-            help="Write a prediction outside what the surrogate was trained on (else refused).",
+            help="Write a prediction not to be trusted at all (a load beyond 1.5 times the "
+            "trained range, or nearer a scenario the sweep could not solve; else refused). "
+            "Other extrapolations (a c1, load or gravity direction off the training "
+            "scenarios) are written with a warning.",
         ),
     ] = False,
 ) -> None:

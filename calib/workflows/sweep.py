@@ -582,7 +582,7 @@ def run_surrogate_predict(
     ------
     ValueError
         ``out`` not ``.vtu`` or ``.ply``, or ``frame`` unknown (checked before the model
-        is loaded); bad ``gravity`` or ``c1_pa``; a ``.vtu`` of a surface-only model; an
+        is loaded); bad ``gravity`` or ``c1_pa``; a ``.vtu`` of a surface-only model; a
         far extrapolation without ``extrapolate``.
     IsADirectoryError
         ``out`` is a folder.
@@ -592,8 +592,9 @@ def run_surrogate_predict(
     Warns
     -----
     nn.ExtrapolationWarning
-        With ``extrapolate``: a query outside the trained range (see
-        :meth:`nn.Surrogate.predict`).
+        A query outside the trained range or directions (see
+        :meth:`nn.Surrogate.predict`), written with its warning; a
+        :class:`nn.FarExtrapolationWarning` only with ``extrapolate``.
     """
     import warnings
 
