@@ -276,6 +276,13 @@ def _hull_gap_deg(u, d, idx, chord, reach) -> np.ndarray:
     return np.where(use[:, 0], out, 90.0)
 
 
+def _unit_directions(gravity_ref: np.ndarray) -> np.ndarray:
+    """The distinct unit directions (rounded to 1e-9) of non-zero gravities, shape (n, 3)."""
+    g = np.asarray(gravity_ref, float).reshape(-1, 3)
+    g = g[np.linalg.norm(g, axis=1) > 0]
+    return np.unique(np.round(g / np.linalg.norm(g, axis=1, keepdims=True), 9), axis=0)
+
+
 def _directions(gravity_ref: np.ndarray) -> tuple[list, float]:
     """The distinct unit directions of the training gravities and their median spacing.
 
@@ -284,10 +291,7 @@ def _directions(gravity_ref: np.ndarray) -> tuple[list, float]:
     """
     from scipy.spatial import cKDTree
 
-    g = np.asarray(gravity_ref, float)
-    g = g[np.linalg.norm(g, axis=1) > 0]
-    d = g / np.linalg.norm(g, axis=1, keepdims=True)
-    d = np.unique(np.round(d, 9), axis=0)
+    d = _unit_directions(gravity_ref)
     if len(d) < 2:
         return d.tolist(), 0.0
     spacing = _chord_deg(cKDTree(d).query(d, k=2)[0][:, 1])
@@ -339,11 +343,9 @@ def _validated_deg(gravity_ref: np.ndarray, directions: list) -> float | None:
     """
     from scipy.spatial import cKDTree
 
-    g = np.asarray(gravity_ref, float).reshape(-1, 3)
-    g = g[np.linalg.norm(g, axis=1) > 0]
-    if not len(g) or not len(directions):
+    u = _unit_directions(gravity_ref)
+    if not len(u) or not len(directions):
         return None
-    u = g / np.linalg.norm(g, axis=1, keepdims=True)
     return float(_chord_deg(cKDTree(np.asarray(directions, float)).query(u)[0]).max())
 
 
@@ -486,7 +488,7 @@ class Surrogate:
         if dirs is None or not len(g) or not len(dirs):
             return
         u = g / np.linalg.norm(g, axis=1, keepdims=True)
-        span = _span(np.asarray(dirs, float))
+        d, span, tree = self._trained_directions()
         if span is not None:
             out = np.linalg.norm(u - (u @ span.T) @ span, axis=1)
             off = np.degrees(np.arcsin(np.clip(out, 0.0, 1.0)))
@@ -503,8 +505,6 @@ class Surrogate:
                 return
         # review BR: the distance first (a far query is told how far), then the hull of
         # the directions around the queries within the distance limit
-        d = np.asarray(dirs, float)
-        tree = self._direction_tree(d)
         spacing = float(trained["direction_spacing_deg"])
         angle = _chord_deg(tree.query(u)[0])
         limit = direction_limit_deg(spacing, trained.get("validated_direction_deg"))
@@ -534,14 +534,19 @@ class Surrogate:
                 stacklevel=4,
             )
 
-    def _direction_tree(self, directions: np.ndarray):
-        """A k-d tree of the training directions, built once per surrogate."""
+    def _trained_directions(self):
+        """The training directions (M, 3), their span (:func:`_span`) and a k-d tree.
+
+        Worked out once per surrogate from ``trained.directions_ref``: every query's
+        direction checks read them.
+        """
         from scipy.spatial import cKDTree
 
-        tree = getattr(self, "_tree", None)
-        if tree is None:
-            tree = self._tree = cKDTree(directions)
-        return tree
+        cached = getattr(self, "_directions_cache", None)
+        if cached is None:
+            d = np.asarray(self.meta["trained"]["directions_ref"], float)
+            cached = self._directions_cache = (d, _span(d), cKDTree(d))
+        return cached
 
     def _warn_failed(self, load_per_m: np.ndarray) -> None:
         """Warn when a load lies nearer a scenario the sweep could not solve than any trained.
