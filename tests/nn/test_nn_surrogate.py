@@ -315,6 +315,12 @@ def test_gpu_training_agrees_with_cpu(box_data):
     assert fit.report["device"].startswith("cuda")
 
 
+def _tilted(direction, normal, deg):
+    """9.81 m/s^2 along a unit ``direction`` turned ``deg`` degrees toward ``normal``."""
+    e = np.radians(deg)
+    return 9.81 * (np.cos(e) * direction + np.sin(e) * normal)
+
+
 def test_a_direction_off_the_training_circles_warns(ours, box_data):
     # the dissertation plan trains on two orthogonal great circles, 15 degrees apart on
     # each: a direction away from both answered without a word (audit F, item 4). The
@@ -355,15 +361,11 @@ def test_a_direction_off_the_training_circles_warns(ours, box_data):
     axis = np.cross(n1, n2)
     on = np.cos(np.radians(52.5)) * axis + np.sin(np.radians(52.5)) * n2  # on circle 1
 
-    def tilted(deg):
-        e = np.radians(deg)
-        return 9.81 * (np.cos(e) * on + np.sin(e) * n1)
-
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        ours.predict(tilted(0.5), c1_pa=c1, frame="ref")
+        ours.predict(_tilted(on, n1, 0.5), c1_pa=c1, frame="ref")
     with pytest.warns(nn.ExtrapolationWarning, match=r"2\.0 degrees outside the training"):
-        ours.predict(tilted(2.0), c1_pa=c1, frame="ref")
+        ours.predict(_tilted(on, n1, 2.0), c1_pa=c1, frame="ref")
 
 
 @pytest.mark.parametrize("n", [20, 100, 500])
@@ -457,21 +459,19 @@ def test_a_direction_out_of_one_training_circle_warns(ours, box_data):
     d0 = one.gravity_ref[0] / np.linalg.norm(one.gravity_ref[0])
     c1 = float(box_data.model["c1_pa"])
 
-    def tilted(deg):
-        e = np.radians(deg)
-        return 9.81 * (np.cos(e) * d0 + np.sin(e) * normal)
-
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # inside the 0.25 degree slack: silent
-        circle.predict(tilted(0.1), c1_pa=c1, frame="ref")
+        circle.predict(_tilted(d0, normal, 0.1), c1_pa=c1, frame="ref")
     with pytest.warns(nn.ExtrapolationWarning, match=r"1\.0 degrees out of the plane"):
-        circle.predict(tilted(1.0), c1_pa=c1, frame="ref")
+        circle.predict(_tilted(d0, normal, 1.0), c1_pa=c1, frame="ref")
     with pytest.warns(nn.ExtrapolationWarning, match=r"5\.0 degrees out of the plane"):
-        off = circle.predict(tilted(5.0), c1_pa=c1, frame="ref").nodes_mm.reshape(-1, 3)
+        off = circle.predict(_tilted(d0, normal, 5.0), c1_pa=c1, frame="ref").nodes_mm.reshape(
+            -1, 3
+        )
     # two circles span all three dimensions: no span check; the direction lies outside
     # the training directions around it (review BP, P6), not outside their span
     with pytest.warns(nn.ExtrapolationWarning, match=r"5\.0 degrees outside the training"):
-        both = ours.predict(tilted(5.0), c1_pa=c1, frame="ref").nodes_mm.reshape(-1, 3)
+        both = ours.predict(_tilted(d0, normal, 5.0), c1_pa=c1, frame="ref").nodes_mm.reshape(-1, 3)
     disp = np.linalg.norm(both, axis=1).max()
     assert np.linalg.norm(off - both, axis=1).max() > 5 * 0.01 * disp
 
