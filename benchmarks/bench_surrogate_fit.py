@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from functools import partial
 
 import numpy as np
 from _provenance import print_header
@@ -85,12 +86,12 @@ def refit_per_scenario(X, C, V, Y, gamma: float, ridge: float) -> float:
     return float(np.mean(errs))
 
 
-def timed(fn, repeat: int) -> tuple[float, float, float, object]:
-    """Median, min and max wall time (s) of ``repeat`` calls, and the last value."""
+def timed(fn, args: tuple, repeat: int) -> tuple[float, float, float, object]:
+    """Median, min and max wall time (s) of ``repeat`` calls ``fn(*args)``, the last value."""
     times, value = [], None
     for _ in range(repeat):
         t = time.perf_counter()
-        value = fn()
+        value = fn(*args)
         times.append(time.perf_counter() - t)
     return float(np.median(times)), min(times), max(times), value
 
@@ -123,18 +124,18 @@ def main() -> None:
         Y = data.displacement_mm.reshape(S, -1)
         V = fit.basis
         C = Y @ V
-        ours = timed(lambda: _loo_model_error(X, C, V, Y, fit.gamma, fit.ridge), args.repeat)
-        whole = timed(lambda: fit_reduced_kernel(data, device="cpu"), args.repeat)
+        ours = timed(_loo_model_error, (X, C, V, Y, fit.gamma, fit.ridge), args.repeat)
+        whole = timed(partial(fit_reduced_kernel, device="cpu"), (data,), args.repeat)
         if S <= args.peer_max:
-            peer = timed(lambda: refit_per_scenario(X, C, V, Y, fit.gamma, fit.ridge), args.repeat)
+            peer = timed(refit_per_scenario, (X, C, V, Y, fit.gamma, fit.ridge), args.repeat)
             peer_s = f"{peer[0]:.3g} ({peer[1]:.3g}-{peer[2]:.3g})"
             ratio = f"{peer[0] / ours[0]:.0f}"
             diff = f"{abs(ours[3] - peer[3]):.1e}"
         else:
             peer_s, ratio, diff = "not run", "", ""
         print(
-            f"| {S} | {V.shape[1]} | {ours[3]:.2g} | {ours[0]:.3g} ({ours[1]:.3g}-{ours[2]:.3g}) | {peer_s} | "
-            f"{ratio} | {diff} | {whole[0]:.3g} ({whole[1]:.3g}-{whole[2]:.3g}) |",
+            f"| {S} | {V.shape[1]} | {ours[3]:.2g} | {ours[0]:.3g} ({ours[1]:.3g}-{ours[2]:.3g}) "
+            f"| {peer_s} | {ratio} | {diff} | {whole[0]:.3g} ({whole[1]:.3g}-{whole[2]:.3g}) |",
             flush=True,
         )
 
