@@ -5,13 +5,18 @@ small and picklable), the gravity of the solve and the warm start (the parent's 
 solver vector, :mod:`calib.sweep.continuation`). Workers build the FE model once per
 process (cached by the model's key) and return the result; only the driving process
 writes the store, scenario by scenario (:class:`SweepStore.commit`). Pool workers run
-one thread each (set when they start); Dask's nanny starts its workers with one thread
-each by default (``distributed.nanny.pre-spawn-environ``); the serial backend keeps the
-thread count of its process. PARDISO's results are bitwise reproducible for a fixed
-thread count and one sequence of solves (:mod:`fem.linalg`; a worker reuses the analysis
-of the first matrix it solved, so a scenario solved by another worker after others may
-differ in its last bits: review BI); across thread counts they differ in the last bits
-(1e-16 mm on the quick twin).
+one OpenMP/MKL thread each (set when they start); Dask's nanny starts its workers with
+one such thread each by default (``distributed.nanny.pre-spawn-environ``); the serial
+backend keeps the thread count of its process. A process solves one scenario at a time
+(:data:`_SOLVE_LOCK`): a Dask worker of several task threads (``dask worker`` starts one
+per core by default) would otherwise run two solves at once on the process's one FE
+model cache and PARDISO instance, which failed them (review BT: 11 of 12 scenarios
+recorded as failed solves on a worker of two threads).
+
+PARDISO's results are bitwise reproducible for a fixed thread count and one sequence of
+solves (:mod:`fem.linalg`; a worker reuses the analysis of the first matrix it solved, so
+a scenario solved by another worker after others may differ in its last bits: review
+BI); across thread counts they differ in the last bits (1e-16 mm on the quick twin).
 
 Backends (:func:`make_backend`):
 
@@ -36,6 +41,7 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future
@@ -113,6 +119,9 @@ class ScenarioResult:
 
 # -- worker side ---------------------------------------------------------------------------
 _CACHE: dict = {}  # model key -> (fem.Model, Discretization, MaterialPoint or None, Prestress)
+#: Held by a solve: the model cache and fem's PARDISO instances are per process, not per
+#: thread, so the threads of one worker process take turns.
+_SOLVE_LOCK = threading.Lock()
 
 
 def _prepared(model: SweepModel, key: str):
@@ -164,7 +173,14 @@ def solve_scenario(model: SweepModel, key: str, task: ScenarioTask):
     Returns
     -------
     ScenarioResult
+        Solved, or failed with its message; threads of one process take turns
+        (:data:`_SOLVE_LOCK`).
     """
+    with _SOLVE_LOCK:  # one solve per process at a time (module docstring)
+        return _solve_scenario(model, key, task)
+
+
+def _solve_scenario(model: SweepModel, key: str, task: ScenarioTask) -> ScenarioResult:
     import fem
 
     t0, c0 = time.perf_counter(), time.process_time()
