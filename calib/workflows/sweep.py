@@ -171,9 +171,19 @@ def _is_store(path: Path) -> bool:
         return False
 
 
-def _create_store(out: Path, model, plan, cont, n_dofs: int, opts: SweepOptions, prov: dict):
-    """Build the empty store beside ``out`` and move it into place when complete."""
-    from ..sweep.store import SweepStore
+def _create_store(
+    out: Path, model, plan, cont, n_dofs: int, opts: SweepOptions, prov: dict, *, replacing: bool
+):
+    """Build the empty store beside ``out`` and move it into place when complete.
+
+    ``replacing``: the caller holds the lock of the store at ``out`` and replaces it
+    (``--overwrite``). Otherwise ``out`` must still be absent or empty when the new store
+    moves in: a store another sweep made there meanwhile is never replaced (review BT:
+    it was, and that sweep then wrote its scenarios into this store).
+    """
+    import errno
+
+    from ..sweep.store import StoreError, SweepStore
 
     stage = out.parent / f".{out.name}.staging-{os.getpid()}"
     shutil.rmtree(stage, ignore_errors=True)
@@ -191,7 +201,7 @@ def _create_store(out: Path, model, plan, cont, n_dofs: int, opts: SweepOptions,
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)  # a half-written store goes with it
         raise
-    if out.exists() and any(out.iterdir()):  # --overwrite: the old store goes only now
+    if replacing and out.exists() and any(out.iterdir()):  # the old store goes only now
         old = out.parent / f".{out.name}.old-{os.getpid()}"
         os.replace(out, old)
         try:
@@ -201,9 +211,17 @@ def _create_store(out: Path, model, plan, cont, n_dofs: int, opts: SweepOptions,
             raise
         shutil.rmtree(old, ignore_errors=True)
     else:
-        if out.exists():
-            out.rmdir()  # an empty folder (checked by the caller)
-        os.replace(stage, out)
+        try:  # onto nothing or an empty folder; a folder filled meanwhile refuses it
+            os.replace(stage, out)
+        except OSError as exc:
+            shutil.rmtree(stage, ignore_errors=True)
+            if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+                raise
+            raise StoreError(
+                f"--out {out}: a store appeared there while this one was being created "
+                "(another sweep with the same --out?); it is left as it is: run again to "
+                "resume it, or with --overwrite to replace it"
+            ) from exc
     return SweepStore.open(out)
 
 
@@ -361,7 +379,7 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
             # the backend first: one that cannot start (no scheduler at --dask) leaves the
             # old store and the file system as they were
             backend = start_backend()
-            store = _create_new_store(out, model, plan, cont, opts)
+            store = _create_new_store(out, model, plan, cont, opts, replacing=replacing)
             old = None  # replaced, lock and all
         store.lock()
         removed = store.clean_partial()
@@ -445,7 +463,7 @@ def _record_resume(store, opts: SweepOptions, model) -> None:
     store.record_resume(prov)
 
 
-def _create_new_store(out: Path, model, plan, cont, opts: SweepOptions):
+def _create_new_store(out: Path, model, plan, cont, opts: SweepOptions, *, replacing: bool):
     """Create the store at ``out`` (replacing a store there), with any missing parents.
 
     Parent folders this call made are removed again if the creation fails.
@@ -457,7 +475,7 @@ def _create_new_store(out: Path, model, plan, cont, opts: SweepOptions):
     try:
         disc = fem.discretize(model.tet_mesh(), fem.Clamped(), formulation=model.formulation)
         prov = _provenance(inputs=model.source, parameters=asdict(opts))
-        return _create_store(out, model, plan, cont, disc.n_dofs, opts, prov)
+        return _create_store(out, model, plan, cont, disc.n_dofs, opts, prov, replacing=replacing)
     except BaseException:
         for p in made:  # deepest first
             try:

@@ -184,6 +184,28 @@ def test_parent_folders_made_for_out_go_when_the_creation_fails(tmp_path, monkey
     assert sorted(p.name for p in tmp_path.iterdir()) == ["work"]
 
 
+def test_a_store_made_at_out_by_another_sweep_meanwhile_is_not_replaced(tmp_path, monkeypatch):
+    # review BT: two sweeps started together on one --out (a job array); the second found
+    # no store, and while it created its own the first made and locked one there; the
+    # second then replaced it without --overwrite, and the first wrote into its store
+    from calib.sweep.store import StoreError, SweepStore
+
+    work = make_box_work(tmp_path / "work")
+    out = tmp_path / "SWEEP"
+    real_create = SweepStore.create
+
+    def raced(path, *args, **kw):
+        real_create(path, *args, **kw)
+        out.mkdir(exist_ok=True)  # the other sweep's store, just before ours moves in
+        (out / "theirs").write_text("a store being written")
+
+    monkeypatch.setattr(SweepStore, "create", staticmethod(raced))
+    with pytest.raises(StoreError, match="a store appeared there while this one was being"):
+        run_sweep(work, out, SweepOptions(plan="sphere:6"))
+    assert sorted(p.name for p in out.iterdir()) == ["theirs"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["SWEEP", "work"]  # no staging left
+
+
 @pytest.mark.parametrize("c1", [-5.0, float("nan"), "abc"])
 def test_a_calibration_without_a_physical_c1_is_refused_before_sweeping(tmp_path, c1):
     # review AC: c1 -5 or NaN swept every scenario to a failure and exited 0
