@@ -88,7 +88,12 @@ def sweep(
         int, typer.Option("--chunk-size", help="Scenarios per continuation chunk.")
     ] = 12,
     overwrite: Annotated[
-        bool, typer.Option("--overwrite", help="Replace a store of another model or plan.")
+        bool,
+        typer.Option(
+            "--overwrite",
+            help="Replace the store at --out, whatever it holds (its solved scenarios are "
+            "lost); without it a store of this model and plan is resumed, another refused.",
+        ),
     ] = False,
     retry_failed: Annotated[
         bool, typer.Option("--retry-failed", help="Solve failed scenarios again.")

@@ -73,7 +73,8 @@ class SweepOptions:
     threads : int
         Threads of each pool worker (the serial backend keeps its process's).
     overwrite : bool
-        Replace an existing store of another model or plan.
+        Replace the store at ``out``, whatever it holds: its solved scenarios are lost
+        (without it a store of this model and plan is resumed, another refused).
     retry_failed : bool
         Solve the scenarios recorded as failed again.
     """
@@ -306,7 +307,7 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     from ..io import check_out_folder, clean_stale
     from ..sweep import PlanError, load_sweep_model, make_plan, plan_continuation
     from ..sweep.engine import make_backend, run_scenarios
-    from ..sweep.store import StoreError, SweepStore
+    from ..sweep.store import SOLVED, StoreError, SweepStore
 
     opts = options or SweepOptions()  # SweepOptions checks itself when built
     t0 = time.perf_counter()
@@ -357,6 +358,9 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
             raise StoreError(f"--out {out}: not a sweep store; --overwrite removes only stores")
         old = SweepStore.open(out)
         old.lock()  # refuses a store that a live sweep is writing
+        solved = int(np.sum(old.status() == SOLVED))
+        if solved:  # review BT: a matching store too, which a plain run would resume
+            log.warning("%s: --overwrite discards its %d solved scenario(s)", out, solved)
     store, backend = None, None
 
     def start_backend():

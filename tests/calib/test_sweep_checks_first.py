@@ -144,7 +144,7 @@ def _tree(path: Path) -> dict[str, bytes]:
     }
 
 
-def test_overwrite_keeps_the_old_store_when_the_backend_cannot_start(tmp_path, monkeypatch):
+def test_overwrite_keeps_the_old_store_when_the_backend_cannot_start(tmp_path, monkeypatch, caplog):
     # the old store used to be removed before the scheduler was reached: an unreachable
     # --dask with --overwrite lost it
     work = make_box_work(tmp_path / "work")
@@ -164,6 +164,10 @@ def test_overwrite_keeps_the_old_store_when_the_backend_cannot_start(tmp_path, m
     monkeypatch.undo()
     summary = run_sweep(work, store, SweepOptions(plan="sphere:8", overwrite=True))
     assert summary["pending"] == 0 and summary["solved"] == 8
+    # review BT: a store of this very plan is replaced too, and says what it discards
+    with caplog.at_level("WARNING", logger="calib.workflows.sweep"):
+        run_sweep(work, store, SweepOptions(plan="sphere:8", overwrite=True))
+    assert "--overwrite discards its 8 solved scenario(s)" in caplog.text
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s", "work"]
 
 
