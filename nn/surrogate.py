@@ -328,8 +328,10 @@ def _fit_meta(fit, data: SweepData) -> dict:
         "store": {
             "path": str(data.path),
             "plan": data.attrs.get("plan", {}),
-            # review BI: a store written again at the same path was still "the" store
-            "created_utc": (data.attrs.get("provenance") or {}).get("created_utc"),
+            # review BI: a store written again at the same path was still "the" store;
+            # review BT: its root created_utc (the README's), not its provenance record's
+            "created_utc": data.attrs.get("created_utc")
+            or (data.attrs.get("provenance") or {}).get("created_utc"),
             "training_sha256": _training_digest(train),
         },
         "report": fit.report,

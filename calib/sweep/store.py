@@ -117,6 +117,30 @@ CONVERGENCE_COLUMNS = (
 )
 STATUS = ("pending", "solved", "failed")
 PENDING, SOLVED, FAILED = 0, 1, 2
+
+
+def _model_differences(have: dict, want: dict, prefix: str = "model.") -> str:
+    """The keys of two ``model`` blocks that differ, with both values where short.
+
+    Review BT: a store of another model was refused without saying what differed.
+    Nested blocks (``prestress``, ``effects``) are compared key by key; arrays are named
+    only.
+    """
+    want = json.loads(json.dumps(want))  # JSON numbers and lists, as the store holds them
+    said = []
+    for k in sorted(set(have) | set(want)):
+        x, y = have.get(k), want.get(k)
+        if x == y:
+            continue
+        if isinstance(x, dict) and isinstance(y, dict):
+            said.append(_model_differences(x, y, f"{prefix}{k}."))
+        elif isinstance(x, list) or isinstance(y, list):
+            said.append(f"{prefix}{k} differs")
+        else:
+            said.append(f"{prefix}{k}: {x!r} in the store, {y!r} now")
+    return "; ".join(t for t in said if t)
+
+
 FRAMES = {
     "reference": "the reference scan's LPS frame, mm (the model's frame)",
     "phantom": "posture-angle frame: transverse angle a -> (cos a, 0, sin a), "
@@ -328,9 +352,10 @@ class SweepStore:
                 "choose another --out, or --overwrite"
             )
         if a.get("model_key") != model.key:
+            differ = _model_differences(a.get("model") or {}, model.physics())
             raise StoreMismatchError(
                 f"{meta}: the store holds another calibrated model "
-                "(c1, nu, density, support ...); choose another --out, "
+                f"({differ or 'c1, nu, density, support ...'}); choose another --out, "
                 "or --overwrite"
             )
         want = plan.describe() | {

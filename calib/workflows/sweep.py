@@ -307,7 +307,7 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     from ..io import check_out_folder, clean_stale
     from ..sweep import PlanError, load_sweep_model, make_plan, plan_continuation
     from ..sweep.engine import make_backend, run_scenarios
-    from ..sweep.store import SOLVED, StoreError, SweepStore
+    from ..sweep.store import PENDING, SOLVED, StoreError, SweepStore
 
     opts = options or SweepOptions()  # SweepOptions checks itself when built
     t0 = time.perf_counter()
@@ -399,6 +399,7 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
         pending = int(np.sum(store.status() == 0)) + (
             int(np.sum(store.status() == 2)) if opts.retry_failed else 0
         )
+        before = store.attrs.get("status")
         if pending:
             # review BF: a resume that found lost chunks, killed, left "complete" with
             # scenarios pending
@@ -409,7 +410,14 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
         run = {"solved": 0, "failed": 0, "retried": 0}
         if pending:
             if backend is None:
-                backend = start_backend()
+                try:
+                    backend = start_backend()
+                except BaseException:
+                    # review BT: a --retry-failed resume whose backend could not start left
+                    # a store with none pending marked running
+                    if before is not None and not np.any(store.status() == PENDING):
+                        store.set_status_attrs(before, store.attrs.get("summary", {}))
+                    raise
             info = backend.describe()
             if resumed:  # review BK: once its backend runs (a failed start solves nothing)
                 _record_resume(store, opts, model)

@@ -7,6 +7,7 @@ malformed ``--dask`` used to fail only after the store had been created (audit i
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -136,6 +137,27 @@ def test_a_backend_that_cannot_start_leaves_no_store(tmp_path, monkeypatch):
         run_sweep(work, tmp_path / "empty", opts)
     assert not any((tmp_path / "empty").iterdir())
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "work"]
+
+
+def test_a_resume_whose_backend_cannot_start_keeps_the_store_s_status(tmp_path, monkeypatch):
+    # review BT: `--retry-failed` on a complete store with a failed scenario marked it
+    # running before its backend failed to start, and left it so, none pending
+    import zarr
+
+    work = make_box_work(tmp_path / "work")
+    store = tmp_path / "s"
+    run_sweep(work, store, SweepOptions(plan="sphere:6"))
+    zarr.open_group(store, mode="r+")["results/status"][0] = 2  # as a failed solve leaves it
+    assert zarr.open_group(store, mode="r").attrs["status"] == "complete"
+
+    def unreachable(*args, **kw):
+        raise RuntimeError("cannot reach the Dask scheduler at tcp://10.0.0.5:8786")
+
+    monkeypatch.setattr(calib.sweep.engine, "make_backend", unreachable)
+    opts = SweepOptions(plan="sphere:6", backend="dask", dask="tcp://10.0.0.5:8786")
+    with pytest.raises(RuntimeError, match="cannot reach"):
+        run_sweep(work, store, replace(opts, retry_failed=True))
+    assert zarr.open_group(store, mode="r").attrs["status"] == "complete"
 
 
 def _tree(path: Path) -> dict[str, bytes]:

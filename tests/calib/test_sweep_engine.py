@@ -226,7 +226,9 @@ def test_store_of_another_model_or_plan_is_refused(work, reference, tmp_path):
     ):
         run_sweep(other, out, PLAN)
     stiffer = make_box_work(tmp_path / "stiffer", c1_pa=2 * BOX_C1_PA)
-    with pytest.raises(StoreMismatchError, match="another calibrated model"):
+    # review BT: the message names what differs, with both values
+    said = rf"another calibrated model \(model\.c1_pa: {BOX_C1_PA!r} in the store, "
+    with pytest.raises(StoreMismatchError, match=said + rf"{2 * BOX_C1_PA!r} now\)"):
         run_sweep(stiffer, out, PLAN)
 
 
