@@ -389,7 +389,14 @@ def load_sweep_model(work: str | Path) -> SweepModel:
         region_names=None if effects is None else dict(mesh.region_names),
         effects=effects,
         law=str(model.get("law") or _NEO_HOOKEAN) if effects else _NEO_HOOKEAN,
-        source={"calibration.json": record, "reference_mesh.vtu": mesh_path},
+        # review BT: a prestressed model is solved on the loaded mesh and its inverse
+        # state, which its provenance then names (the stress-free mesh is not read)
+        source={"calibration.json": record}
+        | (
+            {"reference_mesh.vtu": mesh_path}
+            if not pre
+            else {loaded_path.name: loaded_path, state_path.name: state_path}
+        ),
     )
 
 

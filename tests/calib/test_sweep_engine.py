@@ -452,3 +452,31 @@ def test_a_failure_at_an_element_the_reference_holds_inverted_says_so(work):
     assert _flipped_note(folded, fem.ConvergenceError("x", element=5)) == ""
     assert _flipped_note(folded, fem.ConvergenceError("no step converged")) == ""
     assert _flipped_note(folded, ValueError("x")) == ""
+
+
+def test_a_prestressed_model_s_provenance_names_the_files_it_is_solved_on(tmp_path):
+    # review BT: a prestressed reference is solved on the loaded mesh and its inverse state,
+    # but the store's provenance named the stress-free reference_mesh.vtu as its input
+    import shutil
+
+    from calib.sweep import load_sweep_model
+
+    work = make_box_work(tmp_path / "work")
+    cal = work / "calibration"
+    shutil.copy(cal / "reference_mesh.vtu", cal / "loaded_reference_mesh.vtu")
+    np.savez(cal / "reference_prestress.npz", inverse_state=np.zeros(3), gravity_m_s2=[0, 0, 9.81])
+    doc = json.loads((work / "calibration.json").read_text())
+    doc["model"]["prestress"] = {
+        "mesh": "calibration/loaded_reference_mesh.vtu",
+        "state": "calibration/reference_prestress.npz",
+    }
+    (work / "calibration.json").write_text(json.dumps(doc))
+    assert sorted(load_sweep_model(work).source) == [
+        "calibration.json",
+        "loaded_reference_mesh.vtu",
+        "reference_prestress.npz",
+    ]
+    assert sorted(load_sweep_model(make_box_work(tmp_path / "plain")).source) == [
+        "calibration.json",
+        "reference_mesh.vtu",
+    ]
