@@ -208,9 +208,9 @@ def _format_summary(s: dict) -> str:
     ]
     for kind in ("warm", "cold"):
         k = s[kind]
-        if k.get("n"):
+        if k.get("n"):  # review BT: every solved scenario of the store, not this run's
             lines.append(
-                f"  {kind} starts: {k['n']}, Newton iterations per solve mean "
+                f"  the store's {kind} starts: {k['n']}, Newton iterations per solve mean "
                 f"{k['newton_mean']:.1f} (median {k['newton_median']:.0f}, max "
                 f"{k['newton_max']}), median {k['wall_s_median']:.2f} s per solve"
             )

@@ -314,4 +314,8 @@ def test_a_sweep_says_which_model_it_solved(tmp_path):
     assert res.exit_code == 0, res.output
     # review AX: it said "0 solved in 0.0 s on pool (0 workers)"
     assert "6 of 6 scenarios solved, 0 failed, 0 pending; this run: nothing to solve" in res.output
+    # review BT: the Newton statistics are the store's, solved by an earlier run
+    assert (
+        "  the store's cold starts: " in res.output or "  the store's warm starts: " in res.output
+    )
     assert f"diagnosis.json names skin: {work / 'diagnosis' / 'refit'} holds" in res.output
