@@ -208,12 +208,16 @@ def training_scenarios(data: SweepData) -> SweepData:
     train = data.subset(data.role == "train")
     if len(train) < 2:
         raise ValueError(f"{data.path}: {len(train)} training scenario(s); need at least 2")
+    from scipy.spatial import cKDTree
+
     q = train.load_per_m / np.linalg.norm(train.load_per_m, axis=1).max()
-    _, first, count = np.unique(np.round(q, 12), axis=0, return_index=True, return_counts=True)
-    if np.any(count > 1):
-        k = int(train.index[first[np.argmax(count)]])
+    # within 1e-12 of each other (review BT: rounding to 12 decimals let two loads 2.5e-16
+    # apart on either side of a rounding boundary through)
+    pairs = cKDTree(q).query_pairs(1e-12, output_type="ndarray")
+    if len(pairs):
+        k = int(train.index[pairs[:, 1].min()])
         raise ValueError(
-            f"{data.path}: {int(np.sum(count - 1))} training scenario(s) repeat another's "
+            f"{data.path}: {len(np.unique(pairs[:, 1]))} training scenario(s) repeat another's "
             f"load rho g gravity / c1 (scenario {k} among them): sweep without repeats"
         )
     return train

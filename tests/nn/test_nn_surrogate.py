@@ -517,6 +517,13 @@ def test_repeated_training_loads_are_refused(box_data):
     for fit in (nn.fit_reduced_kernel, nn.fit_dissertation_mlps):
         with pytest.raises(ValueError, match=r"1 training scenario\(s\) repeat another's load"):
             fit(twice, device="cpu")
+    # review BT: a repeat within 1e-12 that rounding to 12 decimals split (0.3 + 4e-13 and
+    # 0.3 + 6e-13 of the largest load lie either side of a rounding boundary)
+    M = np.linalg.norm(twice.load_per_m[twice.role == "train"], axis=1).max()
+    for j, x in ((train[0], 0.3 + 4e-13), (len(twice) - 1, 0.3 + 6e-13)):
+        twice.load_per_m[j] = M * np.array([x, 0.2, 0.1])
+    with pytest.raises(ValueError, match=r"1 training scenario\(s\) repeat another's load"):
+        nn.fit_reduced_kernel(twice, device="cpu")
 
 
 def test_a_load_nearer_a_failed_scenario_than_any_trained_one_warns(box_sweep, tmp_path):
