@@ -77,7 +77,7 @@ chunk says 1 (solved) or 2 (failed): that chunk is written after the others, so 
 reader trusts the ``results`` of scenario ``i`` only when ``status[i] == 1``; a
 missing chunk of a solved scenario (which Zarr would read as the NaN fill value) means
 a truncated store. Re-running the sweep solves the pending scenarios only.
-A running sweep holds ``SWEEP/.lock`` (its process id).
+A running sweep holds ``SWEEP/.lock`` (``HOST:PID``; one of another host is never taken over).
 """
 
 from __future__ import annotations
@@ -378,22 +378,37 @@ class SweepStore:
 
     # -- locking --------------------------------------------------------------------------
     def lock(self) -> None:
-        """Take ``SWEEP/.lock`` (a dead holder's lock is taken over)."""
+        """Take ``SWEEP/.lock`` (a dead holder's lock is taken over).
+
+        The lock holds ``HOST:PID``. A holder on another host (a store on a shared file
+        system) cannot be seen to have died from here: its lock is refused, naming it
+        (review BT: a bare pid read as dead there, and a second host's run took the lock
+        of a store being written). A lock of a bare pid (older versions) is this host's.
+        """
+        import socket
+
         lock = self.path / ".lock"
+        here = socket.gethostname()
         for _ in range(2):
             try:
                 fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
             except FileExistsError:
                 try:
-                    pid = int(lock.read_text().strip() or 0)
+                    host, _, pid_text = lock.read_text().strip().rpartition(":")
+                    pid = int(pid_text or 0)
                 except (OSError, ValueError):
-                    pid = 0
+                    host, pid = "", 0
+                if pid and host and host != here:
+                    raise StoreLockedError(
+                        f"{lock}: process {pid} on host {host} holds this store's lock (a sweep "
+                        "running there, or one that died: remove the file if none runs)"
+                    ) from None
                 if pid and pid != os.getpid() and _pid_alive(pid):
                     raise StoreLockedError(f"{lock}: process {pid} is writing this store") from None
                 lock.unlink(missing_ok=True)
                 continue
             with os.fdopen(fd, "w") as f:
-                f.write(str(os.getpid()))
+                f.write(f"{here}:{os.getpid()}")
             self._locked = True
             return
         raise StoreLockedError(f"{lock}: cannot take the lock")

@@ -480,3 +480,21 @@ def test_a_prestressed_model_s_provenance_names_the_files_it_is_solved_on(tmp_pa
         "calibration.json",
         "reference_mesh.vtu",
     ]
+
+
+def test_a_lock_of_another_host_is_refused_and_a_dead_one_here_taken_over(work, tmp_path):
+    # review BT: the lock held a bare pid, which a run on another host of a shared file
+    # system read as dead, and took over the lock of a store being written
+    import shutil
+
+    from calib.sweep.store import StoreLockedError
+
+    out = tmp_path / "s"
+    run_sweep(work, out, PLAN)
+    (out / ".lock").write_text("node17.cluster:4242")
+    with pytest.raises(StoreLockedError, match=r"process 4242 on host node17\.cluster holds"):
+        run_sweep(work, out, PLAN)
+    assert (out / ".lock").read_text() == "node17.cluster:4242"
+    (out / ".lock").write_text(str(2**22 + 17))  # a bare pid (older versions), no process
+    assert run_sweep(work, out, PLAN)["pending"] == 0 and not (out / ".lock").exists()
+    shutil.rmtree(out)
