@@ -351,6 +351,15 @@ class SweepStore:
                 f"{meta}: the store holds a sweep of another mesh (mesh_sha256 differs); "
                 "choose another --out, or --overwrite"
             )
+        for name in ("back_nodes", "surface_nodes"):  # not in the key (review BT)
+            have = np.sort(np.asarray(self.group[f"mesh/{name}"][:]))
+            now = np.sort(np.asarray(getattr(model, name)))
+            if not np.array_equal(have, now):
+                raise StoreMismatchError(
+                    f"{meta}: the store was swept with another node set mesh/{name} "
+                    f"({len(have)} nodes, {len(now)} now): the support or the surface of the "
+                    "model differs; choose another --out, or --overwrite"
+                )
         if a.get("model_key") != model.key:
             differ = _model_differences(a.get("model") or {}, model.physics())
             raise StoreMismatchError(

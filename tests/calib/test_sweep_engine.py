@@ -498,3 +498,24 @@ def test_a_lock_of_another_host_is_refused_and_a_dead_one_here_taken_over(work, 
     (out / ".lock").write_text(str(2**22 + 17))  # a bare pid (older versions), no process
     assert run_sweep(work, out, PLAN)["pending"] == 0 and not (out / ".lock").exists()
     shutil.rmtree(out)
+
+
+def test_a_store_swept_with_another_support_node_set_is_refused(work, tmp_path, monkeypatch):
+    # review BT: the model key covers the mesh and the physics, not the clamped node set:
+    # a resume with half the back nodes would have solved on another support unseen
+    from dataclasses import replace as with_
+
+    import calib.sweep
+    from calib.sweep.store import StoreMismatchError
+
+    out = tmp_path / "s"
+    run_sweep(work, out, PLAN)
+    real = calib.sweep.load_sweep_model
+
+    def half_the_back(w):
+        model = real(w)
+        return with_(model, back_nodes=model.back_nodes[: len(model.back_nodes) // 2])
+
+    monkeypatch.setattr(calib.sweep, "load_sweep_model", half_the_back)
+    with pytest.raises(StoreMismatchError, match=r"another node set mesh/back_nodes"):
+        run_sweep(work, out, PLAN)
