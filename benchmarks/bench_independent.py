@@ -19,14 +19,16 @@ contract alone (review AO), and runs the chain on its scans:
   Gaussian blur, Rician noise (SNR 35), int16 NIfTI written in RAS as NIfTI is.
 
 Sets: ``full`` (c1 420 Pa, 1000 kg/m^3, the default ``scanner.gravity``, a tumour hint,
-every posture given) and ``bare`` (c1 300 Pa, 1200 kg/m^3, ``scanner.gravity`` -P, no
-``[landmarks]``, no posture on the validation scans). Each is ingested, calibrated with
+every posture given), ``bare`` (c1 300 Pa, 1200 kg/m^3, ``scanner.gravity`` -P, no
+``[landmarks]``, no posture on the validation scans) and ``large`` (the body, its
+inclusions and markers 1.5 times larger: 84 mm tall against the twin's 75 and the
+others' 56, c1 600 Pa, otherwise as ``full``). Each is ingested, calibrated with
 the defaults and validated; the table gives the true and the recovered c1, whether the
 95 % interval holds the truth, the mesh check's bound and the validation scans' mean
 surface errors. The generator's own discretisation error (``--mesh-study``: its mesh at
 three sizes) bounds how close c1 can come.
 
-usage: python benchmarks/bench_independent.py --out DIR [--sets full,bare]
+usage: python benchmarks/bench_independent.py --out DIR [--sets full,bare,large]
        [--seed 1 | --seeds 1,2,3] [--mesh-study]
 
 With ``--seeds`` each set is made and calibrated once per seed (``DIR/SET-seedK``; the
@@ -76,26 +78,33 @@ NOISE_SD = BODY / 35.0
 SETS = {
     "full": dict(c1_pa=420.0, density_kg_m3=1000.0, gravity=(0.0, 1.0, 0.0), bare=False),
     "bare": dict(c1_pa=300.0, density_kg_m3=1200.0, gravity=(0.0, -1.0, 0.0), bare=True),
+    "large": dict(
+        c1_pa=600.0, density_kg_m3=1000.0, gravity=(0.0, 1.0, 0.0), bare=False, scale=1.5
+    ),
 }
 NU = 0.499
 
 
 # -- FE (felupe) ----------------------------------------------------------------------------
-def top_height_mm(x, y):
-    """Height of the stress-free body's top over the plate at (x, y), mm."""
-    a, b = SEMI_AXES_MM
-    dome = DOME_MM * np.sqrt(np.clip(1 - (x / a) ** 2 - (y / b) ** 2, 0, None))
-    d2 = (x - NIPPLE_XY_MM[0]) ** 2 + (y - NIPPLE_XY_MM[1]) ** 2
-    return WALL_MM + dome + NIPPLE_HEIGHT_MM * np.exp(-d2 / (2 * NIPPLE_SD_MM**2))
+def top_height_mm(x, y, scale: float = 1.0):
+    """Height of the stress-free body's top over the plate at (x, y), mm.
+
+    ``scale``: every length of the body times this (the ``large`` set).
+    """
+    a, b = scale * np.asarray(SEMI_AXES_MM)
+    dome = scale * DOME_MM * np.sqrt(np.clip(1 - (x / a) ** 2 - (y / b) ** 2, 0, None))
+    d2 = (x - scale * NIPPLE_XY_MM[0]) ** 2 + (y - scale * NIPPLE_XY_MM[1]) ** 2
+    bump = NIPPLE_HEIGHT_MM * np.exp(-d2 / (2 * (scale * NIPPLE_SD_MM) ** 2))
+    return scale * (WALL_MM + bump) + dome
 
 
-def make_mesh(n: int, nz: int):
+def make_mesh(n: int, nz: int, scale: float = 1.0):
     """A hex mesh of the body: a disc of ``n`` cells across, ``nz`` layers up to the top."""
     import felupe
 
     mesh = felupe.Circle(radius=1.0, n=n).expand(n=nz + 1, z=1.0)
-    x, y = mesh.points[:, 0] * SEMI_AXES_MM[0], mesh.points[:, 1] * SEMI_AXES_MM[1]
-    mesh.update(points=np.c_[x, y, mesh.points[:, 2] * top_height_mm(x, y)])
+    x, y = (mesh.points[:, :2] * scale * np.asarray(SEMI_AXES_MM)).T
+    mesh.update(points=np.c_[x, y, mesh.points[:, 2] * top_height_mm(x, y, scale)])
     return mesh
 
 
@@ -242,13 +251,16 @@ def spheres(centres_ijk, radii_mm, A, shape, sub: int = 3) -> np.ndarray:
     return occupancy
 
 
-def render(surface_lps, triangles, inclusions_lps, markers_lps, A, shape, rng) -> np.ndarray:
+def render(
+    surface_lps, triangles, inclusions_lps, markers_lps, A, shape, rng, scale: float = 1.0
+) -> np.ndarray:
     """A magnitude MR-like image of the body, its inclusions and the markers."""
     A_inv = np.linalg.inv(A)
     body = voxelise(_apply(A_inv, surface_lps), triangles, shape)
-    radii = [d / 2 for _, d in INCLUSIONS]
+    radii = [scale * d / 2 for _, d in INCLUSIONS]
     inclusions = spheres(_apply(A_inv, inclusions_lps), radii, A, shape)
-    markers = spheres(_apply(A_inv, markers_lps), [MARKER_RADIUS_MM] * len(markers_lps), A, shape)
+    marker_radii = [scale * MARKER_RADIUS_MM] * len(markers_lps)
+    markers = spheres(_apply(A_inv, markers_lps), marker_radii, A, shape)
     i, j, k = np.meshgrid(*[np.linspace(-1, 1, s) for s in shape], indexing="ij")
     bias = 1 + 0.10 * i - 0.06 * j + 0.05 * k * k
     image = BODY * body + (INCLUSION - BODY) * np.minimum(inclusions, body) + MARKER * markers
@@ -308,7 +320,9 @@ def generate(out: Path, spec: dict, *, seed: int, n: int = 10, nz: int = 10) -> 
     """Write a scan set (``out/scans``) and its truth; return the truth."""
     rng = np.random.default_rng(seed)
     scanner_gravity = np.asarray(spec["gravity"], float)
-    mesh = make_mesh(n, nz)
+    scale = spec.get("scale", 1.0)
+    markers = scale * MARKERS_MM
+    mesh = make_mesh(n, nz, scale)
     triangles = boundary_triangles(mesh)
     (out / "scans").mkdir(parents=True, exist_ok=True)
     truth = {"c1_pa": spec["c1_pa"], "nodes": int(mesh.npoints), "scans": {}}
@@ -317,12 +331,12 @@ def generate(out: Path, spec: dict, *, seed: int, n: int = 10, nz: int = 10) -> 
         T, g = scanner_pose(angle, scanner_gravity, rng)
         u = solve(mesh, g, c1_pa=spec["c1_pa"], density_kg_m3=spec["density_kg_m3"])
         x = mesh.points + u
-        centres = np.array([c for c, _ in INCLUSIONS])
+        centres = scale * np.array([c for c, _ in INCLUSIONS])
         inclusions = centres + displacement_at(mesh, u, centres)
         truth["scans"][name] = {"gravity_phantom": g.tolist()}
-        A, shape = oblique_grid(_apply(T, np.vstack([x, MARKERS_MM])))
+        A, shape = oblique_grid(_apply(T, np.vstack([x, markers])))
         image = render(
-            _apply(T, x), triangles, _apply(T, inclusions), _apply(T, MARKERS_MM), A, shape, rng
+            _apply(T, x), triangles, _apply(T, inclusions), _apply(T, markers), A, shape, rng, scale
         )
         write_nifti(out / "scans" / f"{name}.nii.gz", image, A)
         if hint is None:  # the reference: a tumour hint 1.5 mm off, as a user's click
