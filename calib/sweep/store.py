@@ -117,6 +117,11 @@ CONVERGENCE_COLUMNS = (
 )
 STATUS = ("pending", "solved", "failed")
 PENDING, SOLVED, FAILED = 0, 1, 2
+FRAMES = {
+    "reference": "the reference scan's LPS frame, mm (the model's frame)",
+    "phantom": "posture-angle frame: transverse angle a -> (cos a, 0, sin a), "
+    "sagittal -> (0, cos a, sin a); gravity_ref = R_ref_from_phantom @ gravity_phantom",
+}
 
 
 def _model_differences(have: dict, want: dict, prefix: str = "model.") -> str:
@@ -139,13 +144,6 @@ def _model_differences(have: dict, want: dict, prefix: str = "model.") -> str:
         else:
             said.append(f"{prefix}{k}: {x!r} in the store, {y!r} now")
     return "; ".join(t for t in said if t)
-
-
-FRAMES = {
-    "reference": "the reference scan's LPS frame, mm (the model's frame)",
-    "phantom": "posture-angle frame: transverse angle a -> (cos a, 0, sin a), "
-    "sagittal -> (0, cos a, sin a); gravity_ref = R_ref_from_phantom @ gravity_phantom",
-}
 
 
 class StoreError(RuntimeError):
