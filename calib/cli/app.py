@@ -115,6 +115,11 @@ def simulate(
         f"{summary['newton_iterations']} Newton iterations, {summary['load_steps']} load steps, "
         f"{summary['dofs']} dofs, {summary['wall_s']:.1f} s -> {out}"
     )
+    back = summary["back"]  # review BU: which face was held, not only how many nodes
+    typer.echo(
+        f"  back face ({bc}): {back['source']}, {back['nodes']} nodes, outward normal "
+        f"({', '.join(f'{v:.3g}' for v in back['normal'])}), offset {back['offset_mm']:.4g} mm"
+    )
     # review AX: --gravity 0,4.9,0 and 0,1,0 gave one answer without a word (predict's
     # --gravity is m/s^2 in the phantom frame): say how it was read
     length = math.hypot(*opts.gravity)

@@ -156,12 +156,20 @@ def _back_nodes(mesh: fem.TetMesh, z_mm: float | None):
     if z_mm is None:
         nodes, normal, _ = find_back_plane(mesh)
         return nodes, normal, "detected"
+    from fem.meshing import flat_tolerance_mm, warn_left_near_plane
+
     bnodes = np.unique(fem.boundary_faces(mesh.tets))
-    scale = float(np.ptp(mesh.nodes_mm, axis=0).max())
-    nodes = bnodes[np.abs(mesh.nodes_mm[bnodes, 2] - z_mm) < 1e-6 * scale + 1e-9]
+    # within the flat-face tolerance (review BU: within 1e-6 of the extent, a face off by
+    # 0.01 mm on half its nodes was held on the other half, without a word)
+    tol = flat_tolerance_mm(mesh)
+    nodes = bnodes[np.abs(mesh.nodes_mm[bnodes, 2] - z_mm) < tol]
     if len(nodes) < 3:
-        raise fem.MeshError(f"no back face found at z={z_mm} mm (found {len(nodes)} nodes)")
+        raise fem.MeshError(
+            f"no back face found at z={z_mm} mm (found {len(nodes)} boundary nodes within "
+            f"{tol:.3g} mm of it)"
+        )
     normal = np.array([0.0, 0.0, -1.0 if mesh.nodes_mm[:, 2].mean() > z_mm else 1.0])
+    warn_left_near_plane(mesh, nodes, normal, float(normal[2] * z_mm), tol, f"z={z_mm:g}")
     return nodes, normal, f"z={z_mm:g}"
 
 
@@ -439,6 +447,7 @@ def check_mesh(mesh: fem.TetMesh, path: Path) -> None:
             path,
             extent,
         )
+    _check_repeats(mesh, path, extent)
     labels = _components(mesh)
     counts = np.bincount(labels)
     if len(counts) > 1:
@@ -446,6 +455,38 @@ def check_mesh(mesh: fem.TetMesh, path: Path) -> None:
             f"{path}: the mesh has {len(counts)} disconnected parts "
             f"({sorted(counts.tolist(), reverse=True)} elements); a floating "
             "part has no support: remove it"
+        )
+
+
+def _check_repeats(mesh: fem.TetMesh, path: Path, extent_mm: float) -> None:
+    """Refuse repeated tetrahedra and coincident nodes (review BU).
+
+    A tetrahedron twice (Gmsh's MSH 2 writes an element once per physical group it is in)
+    was solved with twice its stiffness and weight, and its faces counted as interior; two
+    parts meshed apart and not merged share coordinates but no nodes, so the body was
+    solved cut along the seam (a half-way crack: 25 % more displacement, no word).
+    """
+    from scipy.spatial import cKDTree
+
+    _, first, count = np.unique(
+        np.sort(mesh.tets, axis=1), axis=0, return_index=True, return_counts=True
+    )
+    if np.any(count > 1):
+        k = int(first[np.argmax(count)])
+        raise fem.MeshError(
+            f"{path}: {int(np.sum(count - 1))} tetrahedra repeat another's four nodes (e.g. "
+            f"element {k} of the file's tetrahedra): one copy of each is a body (Gmsh's MSH "
+            "2 writes an element once per physical group it is in; export one group, or "
+            "MSH 4)"
+        )
+    pairs = cKDTree(mesh.nodes_mm).query_pairs(1e-6 * extent_mm, output_type="ndarray")
+    if len(pairs):
+        at = ", ".join(f"{v:.4g}" for v in mesh.nodes_mm[pairs[0, 0]])
+        raise fem.MeshError(
+            f"{path}: {len(pairs)} pairs of nodes share their coordinates (e.g. at ({at}) "
+            "mm): parts meshed apart and not merged, which the solve would take as cut "
+            "along the seam; merge duplicate nodes (Gmsh: Coherence; meshio or pyvista: "
+            "clean) and give the merged mesh"
         )
 
 
@@ -554,6 +595,14 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
         )
     calibration = say_calibrated_model(mesh_path, opts, calibrated_model(mesh_path))
     model = _model(mesh, opts)
+    if opts.formulation == "p1" and opts.nu > 0.45:  # review BU: 54 % of the answer, unsaid
+        log.warning(
+            "%s: linear tetrahedra (p1) lock at nu %g: the body comes out too stiff (about "
+            "half the displacement of the default taylor-hood on a model mesh); use "
+            "taylor-hood, mini or p2",
+            mesh_path,
+            opts.nu,
+        )
     sol = fem.solve(
         model, gravity=np.array(opts.gravity), g_m_s2=opts.g_m_s2, formulation=opts.formulation
     )
@@ -582,7 +631,13 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
         "nipple_displacement_mm": float(np.linalg.norm(sol.displacement_mm[nipple])),
         "nipple_node": int(points.node_index[nipple]),  # the input file's numbering
         "nipple_source": nipple_source,
-        "back": {"source": back_source, "nodes": len(back)},  # the clamped (or sliding) face
+        # the clamped (or sliding) face; review BU: which plane it is, too
+        "back": {
+            "source": back_source,
+            "nodes": len(back),
+            "normal": [float(v) + 0.0 for v in np.round(normal, 6)],
+            "offset_mm": float(np.mean(mesh.nodes_mm[back] @ normal)),
+        },
         "inverted_elements_flipped": len(inverted),
         "points": points.n_points,
         "unsolved_points": unsolved,

@@ -494,6 +494,8 @@ def test_simulate_clamps_the_mesh_s_own_back_set(mesh_file, tmp_path):
     assert json.loads((tmp_path / "own_out.json").read_text())["back"] == {
         "source": "set:back",
         "nodes": len(plane) - 3,
+        "normal": [0.0, 0.0, -1.0],  # review BU: which plane it is, too
+        "offset_mm": 0.0,
     }
     assert _simulate(mesh_file, tmp_path / "auto.vtu").exit_code == 0  # no set: detected
     u = meshio.read(tmp_path / "auto.vtu").point_data["displacement_mm"]
