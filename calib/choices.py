@@ -22,7 +22,8 @@ __all__ = [
 ]
 
 #: ``simulate --bc``: how the back plate holds the body: ``clamped`` (every back node
-#: fixed) or ``sliding`` (frictionless: only the normal displacement fixed).
+#: fixed) or ``sliding`` (frictionless: the normal displacement fixed, and the rim held in
+#: the plane, :class:`fem.Sliding`).
 BackSupport = Literal["clamped", "sliding"]
 #: ``synth --preset``: the keys of :data:`calib.twin.PRESETS`.
 PresetName = Literal["quick", "dissertation"]

@@ -253,13 +253,38 @@ def read_mesh(
     said = io.StringIO()
     try:
         with contextlib.redirect_stderr(said), contextlib.redirect_stdout(said):
-            m = meshio.read(path)
+            m = _read_hybrid_abaqus(path) if path.suffix.lower() == ".inp" else None
+            m = meshio.read(path) if m is None else m
     # meshio raises many kinds for bad files, and calls sys.exit when no reader succeeds
     except (Exception, SystemExit) as exc:
         why = " ".join(said.getvalue().split()) or f"{type(exc).__name__}: {exc}"
         raise MeshError(f"{path}: cannot read mesh ({why})") from exc
     mesh, points = _to_tetmesh(m, path, orient=orient)
     return (mesh, points) if return_input_points else mesh
+
+
+def _read_hybrid_abaqus(path: Path):
+    """An Abaqus file of hybrid tetrahedra (``C3D4H``, ``C3D10H``) read as plain ones.
+
+    Hybrid elements are what an Abaqus model of nearly incompressible tissue uses; meshio
+    reads their type as ``tetra4`` and then fails on it (review BU: "cannot read mesh
+    (KeyError: 'tetra4')"). The nodes are the same: the solve picks its own formulation
+    (``--formulation``). None where the file has none (read as it is).
+    """
+    import re
+    import tempfile
+
+    import meshio
+
+    text = path.read_text(errors="replace")
+    plain, n = re.subn(r"(?i)(type\s*=\s*c3d(?:4|10))h\b", r"\1", text)
+    if not n:
+        return None
+    log.info("%s: hybrid tetrahedra (C3D4H/C3D10H) read as C3D4/C3D10", path)
+    with tempfile.TemporaryDirectory() as tmp:
+        plain_path = Path(tmp) / path.name
+        plain_path.write_text(plain)
+        return meshio.read(plain_path)
 
 
 def _meshio_mesh(mesh: TetMesh, path: Path, fmt: str, point_data, cell_data):

@@ -78,7 +78,11 @@ def simulate(
     ] = STANDARD_GRAVITY_M_S2,
     bc: Annotated[
         BackSupport,
-        typer.Option("--bc", help="Back plate support: every back node fixed, or frictionless."),
+        typer.Option(
+            "--bc",
+            help="Back plate support: every back node fixed, or sliding (frictionless in "
+            "the back plane, its rim held: the rim line carries the in-plane load).",
+        ),
     ] = "clamped",
     back_plane: Annotated[
         str,

@@ -88,8 +88,9 @@ class SimulateOptions:
             (
                 "--g",
                 self.g_m_s2,
-                self.g_m_s2 > 0,
-                "a positive magnitude in m/s^2 (the direction is --gravity)",
+                0 < self.g_m_s2 <= MAX_G_M_S2,  # review BU: 9810 (mm/s^2) failed in the solve
+                f"a positive magnitude in m/s^2 up to {MAX_G_M_S2:g} (the direction is "
+                "--gravity; 9810 would be mm/s^2)",
             ),
         )
         for name, value, ok, expected in checks:
@@ -122,6 +123,10 @@ def _nonzero_direction(vec: tuple) -> bool:
     with np.errstate(over="ignore"):
         finite = len(vec) == 3 and np.all(np.isfinite(vec)) and np.isfinite(np.linalg.norm(vec))
     return bool(finite and np.any(vec))
+
+
+#: The largest gravity magnitude ``--g`` takes, m/s^2 (a centrifuge's 100 g).
+MAX_G_M_S2 = 1000.0
 
 
 def parse_vector(text: str) -> tuple[float, float, float]:

@@ -101,3 +101,28 @@ def test_p1_at_near_incompressibility_is_warned_of(tmp_path, caplog):
         res = _run(mesh, tmp_path / "o.vtu", "--back-plane", "z=0", "--formulation", "p1")
     assert res.exit_code == 0, res.output
     assert "linear tetrahedra (p1) lock" in caplog.text
+
+
+def test_abaqus_hybrid_tetrahedra_are_read_as_plain_ones(tmp_path):
+    # review BU: C3D4H, what an Abaqus model of tissue uses, ended in "KeyError: 'tetra4'"
+    box = box_mesh(SIZE_MM, POINTS)
+    plain = _write(tmp_path / "plain.inp", box.nodes_mm, box.tets)
+    text = plain.read_text()
+    assert "C3D4" in text and "C3D4H" not in text
+    hybrid = tmp_path / "hybrid.inp"
+    hybrid.write_text(text.replace("C3D4", "C3D4H"))
+    answers = []
+    for mesh in (plain, hybrid):
+        res = _run(mesh, tmp_path / f"{mesh.stem}.vtu", "--back-plane", "z=0")
+        assert res.exit_code == 0, res.output
+        answers.append(json.loads((tmp_path / f"{mesh.stem}.json").read_text()))
+    assert answers[1]["max_displacement_mm"] == answers[0]["max_displacement_mm"]  # one mesh
+
+
+def test_a_gravity_in_mm_per_s2_and_the_sliding_rim_are_said(tmp_path):
+    box = box_mesh(SIZE_MM, POINTS)
+    mesh = _write(tmp_path / "box.vtu", box.nodes_mm, box.tets)
+    res = _run(mesh, tmp_path / "o.vtu", "--back-plane", "z=0", "--g", "9810")
+    assert res.exit_code == 2 and "9810 would be mm/s^2" in res.output  # was a failed solve
+    help_text = " ".join(CliRunner().invoke(app, ["simulate", "--help"]).output.split())
+    assert "its rim held" in help_text  # review BU: "frictionless" alone
