@@ -126,3 +126,20 @@ def test_a_gravity_in_mm_per_s2_and_the_sliding_rim_are_said(tmp_path):
     assert res.exit_code == 2 and "9810 would be mm/s^2" in res.output  # was a failed solve
     help_text = " ".join(CliRunner().invoke(app, ["simulate", "--help"]).output.split())
     assert "its rim held" in help_text  # review BU: "frictionless" alone
+
+
+def test_tetgen_files_with_unused_nodes_solve_in_their_own_numbering(tmp_path):
+    # review BU: a .node with points no element uses (tetgen -J keeps them) failed after
+    # the whole solve: "expected one row per mesh node (630), got shape (628, 3)"
+    from fem.io import write_tetgen
+
+    box = box_mesh(SIZE_MM, POINTS)
+    node, *_ = write_tetgen(box, tmp_path / "box", faces=False)
+    rows = [r for r in node.read_text().splitlines() if not r.startswith("#")]
+    n = int(rows[0].split()[0])
+    rows[0] = " ".join([str(n + 2), *rows[0].split()[1:]])
+    node.write_text("\n".join([*rows, f"{n + 1} 0 0 0", f"{n + 2} 10 10 10"]) + "\n")
+    res = _run(node.with_suffix(".ele"), tmp_path / "o.vtu", "--back-plane", "z=0")
+    assert res.exit_code == 0, res.output
+    result = json.loads((tmp_path / "o.json").read_text())
+    assert result["points"] == n + 2 and result["unsolved_points"] == 2
