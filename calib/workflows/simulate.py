@@ -135,8 +135,10 @@ def parse_vector(text: str) -> tuple[float, float, float]:
         vec = tuple(float(p) for p in text.split(","))
     except ValueError:
         vec = ()
-    if not _nonzero_direction(vec):
-        raise ValueError(f"expected a non-zero vector 'X,Y,Z' of finite length, got {text!r}")
+    if not _nonzero_direction(vec):  # review BU: the option unnamed
+        raise ValueError(
+            f"--gravity: expected a non-zero vector 'X,Y,Z' of finite length, got {text!r}"
+        )
     return vec  # type: ignore[return-value]
 
 
@@ -608,9 +610,12 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
             mesh_path,
             opts.nu,
         )
-    sol = fem.solve(
-        model, gravity=np.array(opts.gravity), g_m_s2=opts.g_m_s2, formulation=opts.formulation
-    )
+    try:
+        sol = fem.solve(
+            model, gravity=np.array(opts.gravity), g_m_s2=opts.g_m_s2, formulation=opts.formulation
+        )
+    except fem.ConvergenceError as exc:  # review BU: the error named no mesh
+        raise fem.ConvergenceError(f"{mesh_path}: {exc}", element=exc.element) from exc
     nipple = int(mesh.node_set("nipple")[0])
     unsolved = points.n_points - mesh.n_nodes
     if unsolved:

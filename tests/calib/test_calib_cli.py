@@ -201,7 +201,7 @@ BAD = [
     # review AK: the session's density range (1.0, g/cm^3 by mistake) did not apply here
     (["--density", "1.0"], r"1\.0 would be g/cm\^3\), got 1\.0"),
     # issue 15: a negative g silently reversed gravity; nan gave a scipy dtype message
-    (["--g", "-9.81"], r"--g must be a positive magnitude .* \(the direction is --gravity\)"),
+    (["--g", "-9.81"], r"--g must be a positive magnitude .* \(the direction is --gravity;"),
     (["--g", "nan"], r"--g must be a positive magnitude .* got nan"),
     (["--c1", "inf"], r"--c1 must be a positive stress in Pa, got inf"),
     # checked before the solve, naming the file the user gave (not a hidden temp file)

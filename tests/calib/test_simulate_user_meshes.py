@@ -143,3 +143,17 @@ def test_tetgen_files_with_unused_nodes_solve_in_their_own_numbering(tmp_path):
     assert res.exit_code == 0, res.output
     result = json.loads((tmp_path / "o.json").read_text())
     assert result["points"] == n + 2 and result["unsolved_points"] == 2
+
+
+def test_a_failed_solve_and_a_zero_gravity_name_the_mesh_and_the_option(tmp_path):
+    # review BU: "error: load not applied: ..." named no mesh; "expected a non-zero vector"
+    # no option (the README: every error names the file and the problem)
+    box = box_mesh(SIZE_MM, POINTS)
+    mesh = _write(tmp_path / "box.vtu", box.nodes_mm, box.tets)
+    out = str(tmp_path / "o.vtu")
+    args = ["simulate", str(mesh), "--c1", "1", "--gravity", "1,0,0", "--out", out]
+    res = CliRunner().invoke(app, [*args, "--back-plane", "z=0"])
+    assert res.exit_code == 2 and f"{mesh}: load not applied" in res.output
+    args = ["simulate", str(mesh), "--c1", "500", "--gravity", "0,0,0", "--out", out]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2 and "--gravity: expected a non-zero vector" in res.output
