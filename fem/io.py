@@ -154,6 +154,10 @@ def _tags_from_cell_sets(m, tet_blocks: list[int], n_tets: int):
     return region, names
 
 
+#: Node sets read from a file's own labels under any case, and from labelled surfaces.
+_KNOWN_SETS = ("back", "nipple")
+
+
 def _node_sets(m, keep: np.ndarray) -> dict[str, np.ndarray]:
     """Node sets from ``set:<name>`` point data masks and meshio point sets (new numbering)."""
     new_index = np.full(len(m.points), -1, dtype=np.int64)
@@ -163,7 +167,31 @@ def _node_sets(m, keep: np.ndarray) -> dict[str, np.ndarray]:
         if key.startswith(_SET_PREFIX):
             sets[key[len(_SET_PREFIX) :]] = np.flatnonzero(np.asarray(values) > 0)
     for name, ids in m.point_sets.items():
-        sets[name] = np.asarray(ids, dtype=np.int64)
+        # Abaqus names are case-insensitive and usually upper case (NSET=BACK): review BU
+        sets[name.lower() if name.lower() in _KNOWN_SETS else name] = np.asarray(ids, np.int64)
+    for name, blocks in m.cell_sets.items():
+        # a labelled surface (a Gmsh physical surface "back"): its triangles' nodes
+        if name.lower() not in _KNOWN_SETS or name.lower() in sets:
+            continue
+        nodes = [
+            np.asarray(c.data)[np.asarray(idx, dtype=np.int64)].ravel()
+            for c, idx in zip(m.cells, blocks, strict=False)
+            if c.type in ("triangle", "triangle6", "vertex") and idx is not None and len(idx)
+        ]
+        if nodes:
+            sets[name.lower()] = np.unique(np.concatenate(nodes))
+    tags = m.cell_data.get("gmsh:physical")  # MSH 2: physical names in field_data only
+    for name, (tag, *_dim) in (m.field_data or {}).items() if tags is not None else ():
+        if name.lower() not in _KNOWN_SETS or name.lower() in sets:
+            continue
+        nodes = [
+            np.asarray(c.data)[np.asarray(t) == tag].ravel()
+            for c, t in zip(m.cells, tags, strict=False)
+            if c.type in ("triangle", "triangle6", "vertex")
+        ]
+        nodes = [n for n in nodes if len(n)]
+        if nodes:
+            sets[name.lower()] = np.unique(np.concatenate(nodes))
     out = {}
     for name, ids in sets.items():
         ids = new_index[ids]

@@ -157,3 +157,39 @@ def test_a_failed_solve_and_a_zero_gravity_name_the_mesh_and_the_option(tmp_path
     args = ["simulate", str(mesh), "--c1", "500", "--gravity", "0,0,0", "--out", out]
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 2 and "--gravity: expected a non-zero vector" in res.output
+
+
+def test_a_back_labelled_as_other_tools_label_it_is_held(tmp_path):
+    # review BU: an Abaqus NSET=BACK and a Gmsh physical surface "back" were ignored (only
+    # a point-data mask `set:back` or a point set "back" were read), and the detection
+    # took over (on a box: refused, two faces)
+    import meshio
+
+    box = box_mesh(SIZE_MM, POINTS)
+    base = np.flatnonzero(box.nodes_mm[:, 2] == 0.0)
+    tri = np.array([f for f in _boundary(box) if np.all(np.isin(f, base))])
+    meshes = {
+        "abaqus.inp": meshio.Mesh(box.nodes_mm, [("tetra", box.tets)], point_sets={"BACK": base}),
+        "gmsh22.msh": meshio.Mesh(
+            box.nodes_mm,
+            [("tetra", box.tets), ("triangle", tri)],
+            cell_data={
+                "gmsh:physical": [np.full(len(box.tets), 1), np.full(len(tri), 2)],
+                "gmsh:geometrical": [np.full(len(box.tets), 1), np.full(len(tri), 2)],
+            },
+            field_data={"body": np.array([1, 3]), "back": np.array([2, 2])},
+        ),
+    }
+    for name, m in meshes.items():
+        path = tmp_path / name
+        meshio.write(path, m, **({"file_format": "gmsh22"} if name.endswith(".msh") else {}))
+        res = _run(path, tmp_path / f"{path.stem}_out.vtu")
+        assert res.exit_code == 0, (name, res.output)
+        back = json.loads((tmp_path / f"{path.stem}_out.json").read_text())["back"]
+        assert back["source"] == "set:back" and back["nodes"] == len(base), name
+
+
+def _boundary(mesh):
+    from fem import boundary_faces
+
+    return boundary_faces(mesh.tets)
