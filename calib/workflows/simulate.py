@@ -375,7 +375,9 @@ def _components(mesh: fem.TetMesh) -> np.ndarray:
     return labels
 
 
-def check_orientation(mesh: fem.TetMesh, path: Path) -> np.ndarray:
+def check_orientation(
+    mesh: fem.TetMesh, path: Path, node_index: np.ndarray | None = None
+) -> np.ndarray:
     """Elements inverted against the rest (before any flipping), or none.
 
     One convention throughout (every element positive, or every one negative, as some
@@ -394,13 +396,17 @@ def check_orientation(mesh: fem.TetMesh, path: Path) -> np.ndarray:
     Raises
     ------
     fem.MeshError
-        A point with a non-finite coordinate.
+        A point with a non-finite coordinate (named by ``node_index``, the file's point
+        number of each node, where given).
     """
     bad = np.flatnonzero(~np.isfinite(mesh.nodes_mm).all(axis=1))
     if len(bad):
+        # the file's own point number (review BU: the node's, with unused points before it
+        # the wrong one)
+        k = int(bad[0] if node_index is None else node_index[bad[0]])
         raise fem.MeshError(
-            f"{path}: {len(bad)} points have non-finite coordinates, e.g. point {bad[0]} "
-            f"{mesh.nodes_mm[bad[0]].tolist()}"
+            f"{path}: {len(bad)} points have non-finite coordinates, e.g. point {k} (0-based, "
+            f"in the file's order) {mesh.nodes_mm[bad[0]].tolist()}"
         )
     return mesh.against_the_rest()
 
@@ -564,7 +570,7 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
     try:
         mesh, points = read_mesh(mesh_path, orient=False, return_input_points=True)
         read = input_records(_mesh_files(mesh_path))  # review BI: hashed as read
-        inverted = check_orientation(mesh, mesh_path)
+        inverted = check_orientation(mesh, mesh_path, points.node_index)
         mesh = mesh.oriented()
         if mesh.n_tets == 0:
             raise fem.MeshError("the mesh has no tetrahedra")

@@ -193,3 +193,16 @@ def _boundary(mesh):
     from fem import boundary_faces
 
     return boundary_faces(mesh.tets)
+
+
+def test_a_non_finite_point_is_named_by_the_file_s_point_number(tmp_path):
+    # review BU: with unused points before it, the error named the node's index, not the
+    # file's point (NaN at file point 15 was "point 5")
+    box = box_mesh(SIZE_MM, POINTS)
+    unused = np.array([[200.0, 0.0, 0.0], [0.0, 200.0, 0.0], [0.0, 0.0, 200.0]])
+    x = np.vstack([unused, box.nodes_mm])
+    x[3 + 7] = [np.nan, 0.0, 0.0]
+    res = _run(
+        _write(tmp_path / "n.vtu", x, box.tets + 3), tmp_path / "o.vtu", "--back-plane", "z=0"
+    )
+    assert res.exit_code == 2 and "e.g. point 10 (0-based, in the file's order)" in res.output
