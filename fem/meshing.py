@@ -328,16 +328,19 @@ def find_back_plane(mesh: TetMesh, *, angle_tol_deg: float = 2.0, dist_tol_mm: f
             continue
         member = members(n[seed], n[seed] @ x[seed, 0])
         tried |= member
-        if area[member].sum() >= 0.05 * area.sum():
+        if area[member].sum() >= 0.01 * area.sum():  # a seed's patch may grow to the face
             member, normal, offset = grown(member)
             tried |= member
-            groups.append((float(area[member].sum()), member, normal, offset))
+            if area[member].sum() >= 0.05 * area.sum():
+                groups.append((float(area[member].sum()), member, normal, offset))
     if not groups:
         raise MeshError("no flat back face found: no planar part covers 5 % of the boundary")
     groups.sort(key=lambda g: -g[0])
     best_area, best, normal, offset = groups[0]
     for other_area, _, other_normal, other_offset in groups[1:]:
-        same = other_normal @ normal > cos_tol and abs(other_offset - offset) < tol
+        # a patch of the same face bowed beyond the tolerance is no rival (warned below)
+        near = other_normal @ normal > np.cos(np.radians(10.0))
+        same = near and abs(other_offset - offset) < 10.0 * tol
         if not same and other_area >= FLAT_TIE_RATIO * best_area:
             raise MeshError(
                 "two flat faces of nearly the same area could each be the back face: "
