@@ -91,22 +91,27 @@ def test_pool_with_a_killed_worker_matches_serial(work, serial, tmp_path):
     assert np.abs(_disp(tmp_path / "pool") - serial).max() <= TOL_MM
 
 
-def test_dask_cluster_at_an_address_with_a_killed_worker_matches_serial(work, serial, tmp_path):
-    # a running two-worker LocalCluster reached by its address (--dask tcp://HOST:PORT,
-    # the HPC path); `--dask local` starts the same cluster itself (benchmarks/bench_sweep)
-    distributed = pytest.importorskip("distributed")
+def _local_cluster(*, n_workers: int, threads_per_worker: int):
+    """A running LocalCluster of worker processes, to be reached by its address."""
     import logging
 
-    with distributed.LocalCluster(
-        n_workers=2,
-        threads_per_worker=1,
+    distributed = pytest.importorskip("distributed")
+    return distributed.LocalCluster(
+        n_workers=n_workers,
+        threads_per_worker=threads_per_worker,
         processes=True,
         dashboard_address=None,
         # the scheduler's HTTP server (health routes) starts even without a dashboard and
         # would ask for port 8787 first; a free port instead
         scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
         silence_logs=logging.ERROR,
-    ) as cluster:
+    )
+
+
+def test_dask_cluster_at_an_address_with_a_killed_worker_matches_serial(work, serial, tmp_path):
+    # a running two-worker LocalCluster reached by its address (--dask tcp://HOST:PORT,
+    # the HPC path); `--dask local` starts the same cluster itself (benchmarks/bench_sweep)
+    with _local_cluster(n_workers=2, threads_per_worker=1) as cluster:
         progress, state = _killer(3)
         opts = SweepOptions(backend="dask", dask=cluster.scheduler_address, **PLAN)
         s = run_sweep(work, tmp_path / "dask", opts, progress=progress)
@@ -123,17 +128,7 @@ def test_a_dask_worker_of_two_threads_matches_serial(work, serial, tmp_path):
     # review BT: `dask worker ADDR` starts a thread per core; two solves at once in one
     # process shared its model cache and PARDISO instance and failed (11 of 12 recorded
     # as failed solves); the worker's threads now take turns
-    distributed = pytest.importorskip("distributed")
-    import logging
-
-    with distributed.LocalCluster(
-        n_workers=1,
-        threads_per_worker=2,
-        processes=True,
-        dashboard_address=None,
-        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
-        silence_logs=logging.ERROR,
-    ) as cluster:
+    with _local_cluster(n_workers=1, threads_per_worker=2) as cluster:
         opts = SweepOptions(backend="dask", dask=cluster.scheduler_address, **PLAN)
         s = run_sweep(work, tmp_path / "dask2", opts)
     assert s["solved"] == 24 and s["failed"] == 0
