@@ -206,3 +206,23 @@ def test_a_non_finite_point_is_named_by_the_file_s_point_number(tmp_path):
         _write(tmp_path / "n.vtu", x, box.tets + 3), tmp_path / "o.vtu", "--back-plane", "z=0"
     )
     assert res.exit_code == 2 and "e.g. point 10 (0-based, in the file's order)" in res.output
+
+
+def test_a_large_mesh_is_said_and_running_out_of_memory_is_an_error(tmp_path, monkeypatch, caplog):
+    # review BU: nothing was said before a large solve, and a MemoryError would have ended
+    # in a traceback (exit 1), not the documented error (exit 2)
+    import fem
+    from calib.workflows import simulate
+
+    box = box_mesh(SIZE_MM, POINTS)
+    mesh = _write(tmp_path / "box.vtu", box.nodes_mm, box.tets)
+    monkeypatch.setattr(simulate, "LARGE_MESH_TETS", len(box.tets) - 1)
+
+    def no_memory(*args, **kw):
+        raise MemoryError
+
+    monkeypatch.setattr(fem, "solve", no_memory)
+    with caplog.at_level(logging.WARNING):
+        res = _run(mesh, tmp_path / "o.vtu", "--back-plane", "z=0")
+    assert f"{len(box.tets)} tetrahedra: the direct solve's memory grows" in caplog.text
+    assert res.exit_code == 2 and "out of memory in the solve" in res.output
