@@ -505,6 +505,27 @@ def _check_repeats(mesh: fem.TetMesh, path: Path, extent_mm: float) -> None:
         )
 
 
+def _say_a_flat_top(mesh: fem.TetMesh, path: Path, back_normal: np.ndarray) -> None:
+    """Warn where the apex is one of several surface nodes at the top height (review BU).
+
+    A flat-topped body (a box, a slab) has no apex: its "nipple" is one node of the tie,
+    and ``nipple_displacement_mm`` that one node's (a box's corner moved 1.66 mm where its
+    top moved 1.42-1.97 mm).
+    """
+    surface = mesh.node_set("surface")
+    height = -(mesh.nodes_mm[surface] @ back_normal)
+    extent = float(np.ptp(mesh.nodes_mm, axis=0).max())
+    tie = int(np.sum(height >= height.max() - 1e-6 * extent))
+    if tie > 1:
+        log.warning(
+            "%s: %d surface nodes share the top height (a flat top): the nipple is one of "
+            "them and its displacement that node's; give a `set:nipple` point-data mask of "
+            "the node to follow",
+            path,
+            tie,
+        )
+
+
 def check_output(out_path: Path) -> None:
     """Fail before any work when ``out_path`` cannot be written as a mesh."""
     from fem.io import mesh_format_for
@@ -595,6 +616,8 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
             # nipple, which need not be the apex; it was overwritten by the apex
             mesh = mesh.with_node_sets(nipple=np.asarray(own_nipple, dtype=np.int64))
             nipple_source = "set:nipple"
+        if nipple_source == "apex":
+            _say_a_flat_top(mesh, mesh_path, normal)
     except fem.MeshError as exc:  # every mesh problem names the mesh file
         if str(mesh_path) in str(exc):
             raise

@@ -226,3 +226,14 @@ def test_a_large_mesh_is_said_and_running_out_of_memory_is_an_error(tmp_path, mo
         res = _run(mesh, tmp_path / "o.vtu", "--back-plane", "z=0")
     assert f"{len(box.tets)} tetrahedra: the direct solve's memory grows" in caplog.text
     assert res.exit_code == 2 and "out of memory in the solve" in res.output
+
+
+def test_the_apex_of_a_flat_topped_body_is_said_to_be_one_of_a_tie(tmp_path, caplog):
+    # review BU: a box's "nipple" was a corner of its flat top, its displacement the
+    # console's headline number, unsaid
+    box = box_mesh(SIZE_MM, POINTS)
+    mesh = _write(tmp_path / "box.vtu", box.nodes_mm, box.tets)
+    with caplog.at_level(logging.WARNING):
+        res = _run(mesh, tmp_path / "o.vtu", "--back-plane", "z=0")
+    assert res.exit_code == 0, res.output
+    assert "20 surface nodes share the top height (a flat top)" in caplog.text
