@@ -489,10 +489,10 @@ def _check_repeats(mesh: fem.TetMesh, path: Path, extent_mm: float) -> None:
     if np.any(count > 1):
         k = int(first[np.argmax(count)])
         raise fem.MeshError(
-            f"{path}: {int(np.sum(count - 1))} tetrahedra repeat another's four nodes (e.g. "
-            f"element {k} of the file's tetrahedra): one copy of each is a body (Gmsh's MSH "
-            "2 writes an element once per physical group it is in; export one group, or "
-            "MSH 4)"
+            f"{path}: {int(np.sum(count - 1))} duplicate tetrahedra, each repeating another's "
+            f"four nodes (e.g. element {k} of the file's tetrahedra): one copy of each is a "
+            "body (Gmsh's MSH 2 writes an element once per physical group it is in; export "
+            "one group, or MSH 4)"
         )
     pairs = cKDTree(mesh.nodes_mm).query_pairs(1e-6 * extent_mm, output_type="ndarray")
     if len(pairs):
