@@ -169,29 +169,21 @@ def _node_sets(m, keep: np.ndarray) -> dict[str, np.ndarray]:
     for name, ids in m.point_sets.items():
         # Abaqus names are case-insensitive and usually upper case (NSET=BACK): review BU
         sets[name.lower() if name.lower() in _KNOWN_SETS else name] = np.asarray(ids, np.int64)
-    for name, blocks in m.cell_sets.items():
-        # a labelled surface (a Gmsh physical surface "back"): its triangles' nodes
-        if name.lower() not in _KNOWN_SETS or name.lower() in sets:
-            continue
-        nodes = [
-            np.asarray(c.data)[np.asarray(idx, dtype=np.int64)].ravel()
-            for c, idx in zip(m.cells, blocks, strict=False)
-            if c.type in ("triangle", "triangle6", "vertex") and idx is not None and len(idx)
-        ]
-        if nodes:
-            sets[name.lower()] = np.unique(np.concatenate(nodes))
-    tags = m.cell_data.get("gmsh:physical")  # MSH 2: physical names in field_data only
+    # a labelled surface (a Gmsh physical surface "back"): its triangles' nodes, by cell set
+    # (MSH 4) or by physical tag (MSH 2: the names in field_data only)
+    labels = dict(m.cell_sets)
+    tags = m.cell_data.get("gmsh:physical")
     for name, (tag, *_dim) in (m.field_data or {}).items() if tags is not None else ():
-        if name.lower() not in _KNOWN_SETS or name.lower() in sets:
-            continue
-        nodes = [
-            np.asarray(c.data)[np.asarray(t) == tag].ravel()
-            for c, t in zip(m.cells, tags, strict=False)
-            if c.type in ("triangle", "triangle6", "vertex")
-        ]
-        nodes = [n for n in nodes if len(n)]
-        if nodes:
-            sets[name.lower()] = np.unique(np.concatenate(nodes))
+        labels.setdefault(name, [np.flatnonzero(np.asarray(t) == tag) for t in tags])
+    for name, blocks in labels.items():
+        if name.lower() in _KNOWN_SETS and name.lower() not in sets:
+            nodes = [
+                np.asarray(c.data)[np.asarray(idx, dtype=np.int64)].ravel()
+                for c, idx in zip(m.cells, blocks, strict=False)
+                if c.type in ("triangle", "triangle6", "vertex") and idx is not None
+            ]
+            if any(len(n) for n in nodes):
+                sets[name.lower()] = np.unique(np.concatenate(nodes))
     out = {}
     for name, ids in sets.items():
         ids = new_index[ids]

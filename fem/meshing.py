@@ -267,6 +267,22 @@ FLAT_REL_TOL = 2e-3
 #: A runner-up flat face at least this share of the largest one's area: which is the back
 #: cannot be told from the mesh (review BU: a box's base or its top, by element order).
 FLAT_TIE_RATIO = 0.9
+#: Near a flat face: boundary triangles facing its way within this angle (degrees), every
+#: vertex within this many tolerances of its plane. A patch of the same face bowed beyond
+#: the tolerance lies near it (no rival face; its nodes left free are warned of).
+NEAR_ANGLE_DEG, NEAR_TOLERANCES = 10.0, 10.0
+
+
+def _boundary_triangles(mesh: TetMesh):
+    """Boundary triangles: nodes (k, 3), vertices (k, 3, 3) mm, unit normals, areas mm^2.
+
+    The normals (k, 3) point outward for positive tets; the areas have shape (k,).
+    """
+    faces = boundary_faces(mesh.tets)
+    x = mesh.nodes_mm[faces]
+    n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    area = np.linalg.norm(n, axis=1) / 2
+    return faces, x, n / (2 * area[:, None]), area
 
 
 def find_back_plane(mesh: TetMesh, *, angle_tol_deg: float = 2.0, dist_tol_mm: float = 0.05):
@@ -299,11 +315,7 @@ def find_back_plane(mesh: TetMesh, *, angle_tol_deg: float = 2.0, dist_tol_mm: f
         No flat part covers 5 % of the boundary, or two distinct flat parts have nearly
         the same area (:data:`FLAT_TIE_RATIO`; both named).
     """
-    faces = boundary_faces(mesh.tets)
-    x = mesh.nodes_mm[faces]
-    n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
-    area = np.linalg.norm(n, axis=1) / 2
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    faces, x, n, area = _boundary_triangles(mesh)
     cos_tol = np.cos(np.radians(angle_tol_deg))
     tol = flat_tolerance_mm(mesh, dist_tol_mm)
 
@@ -339,8 +351,8 @@ def find_back_plane(mesh: TetMesh, *, angle_tol_deg: float = 2.0, dist_tol_mm: f
     best_area, best, normal, offset = groups[0]
     for other_area, _, other_normal, other_offset in groups[1:]:
         # a patch of the same face bowed beyond the tolerance is no rival (warned below)
-        near = other_normal @ normal > np.cos(np.radians(10.0))
-        same = near and abs(other_offset - offset) < 10.0 * tol
+        near = other_normal @ normal > np.cos(np.radians(NEAR_ANGLE_DEG))
+        same = near and abs(other_offset - offset) < NEAR_TOLERANCES * tol
         if not same and other_area >= FLAT_TIE_RATIO * best_area:
             raise MeshError(
                 "two flat faces of nearly the same area could each be the back face: "
@@ -349,7 +361,7 @@ def find_back_plane(mesh: TetMesh, *, angle_tol_deg: float = 2.0, dist_tol_mm: f
                 "z=MM, or a `set:back` point-data mask of the back face's nodes"
             )
     nodes = np.unique(faces[best])
-    warn_left_near_plane(mesh, nodes, normal, offset, tol, "the detected back face")
+    _warn_left_near_plane((faces, x, n), nodes, normal, offset, tol, "the detected back face")
     return nodes, normal, offset
 
 
@@ -367,16 +379,19 @@ def warn_left_near_plane(
     """Warn of boundary nodes left out of a held face that lie near its plane; their count.
 
     A face rougher or more bowed than ``tol`` is found in part: the boundary triangles
-    facing the same way (within 10 degrees) with every vertex within ``10 tol`` of the
-    plane, whose nodes are not held, are counted (review BU: such a patch was clamped
-    without a word, the rest of the face left free).
+    near the plane (:data:`NEAR_ANGLE_DEG`, :data:`NEAR_TOLERANCES`) whose nodes are not
+    held are counted (review BU: such a patch was clamped without a word, the rest of the
+    face left free).
     """
-    faces = boundary_faces(mesh.tets)
-    x = mesh.nodes_mm[faces]
-    n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    near = (n @ normal > np.cos(np.radians(10.0))) & (
-        np.abs(x @ normal - offset).max(axis=1) < 10.0 * tol
+    faces, x, n, _ = _boundary_triangles(mesh)
+    return _warn_left_near_plane((faces, x, n), nodes, normal, offset, tol, what)
+
+
+def _warn_left_near_plane(triangles, nodes, normal, offset, tol, what) -> int:
+    """:func:`warn_left_near_plane` of the boundary ``(faces, vertices, unit normals)``."""
+    faces, x, n = triangles
+    near = (n @ normal > np.cos(np.radians(NEAR_ANGLE_DEG))) & (
+        np.abs(x @ normal - offset).max(axis=1) < NEAR_TOLERANCES * tol
     )
     left = np.setdiff1d(np.unique(faces[near]), nodes)
     if len(left):
@@ -389,7 +404,7 @@ def warn_left_near_plane(
             len(nodes),
             tol,
             len(left),
-            10.0 * tol,
+            NEAR_TOLERANCES * tol,
         )
     return len(left)
 
