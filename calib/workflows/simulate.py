@@ -12,7 +12,12 @@ import numpy as np
 
 import fem
 from fem.discretize import Formulation
-from fem.meshing import find_back_plane, tag_node_sets
+from fem.meshing import (
+    find_back_plane,
+    flat_tolerance_mm,
+    tag_node_sets,
+    warn_left_near_plane,
+)
 from fem.units import DEFAULT_DENSITY_KG_M3, STANDARD_GRAVITY_M_S2
 
 from ..choices import BackSupport
@@ -165,8 +170,6 @@ def _back_nodes(mesh: fem.TetMesh, z_mm: float | None):
     if z_mm is None:
         nodes, normal, _ = find_back_plane(mesh)
         return nodes, normal, "detected"
-    from fem.meshing import flat_tolerance_mm, warn_left_near_plane
-
     bnodes = np.unique(fem.boundary_faces(mesh.tets))
     # within the flat-face tolerance (review BU: within 1e-6 of the extent, a face off by
     # 0.01 mm on half its nodes was held on the other half, without a word)

@@ -307,7 +307,7 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     from ..io import check_out_folder, clean_stale
     from ..sweep import PlanError, load_sweep_model, make_plan, plan_continuation
     from ..sweep.engine import make_backend, run_scenarios
-    from ..sweep.store import PENDING, SOLVED, StoreError, SweepStore
+    from ..sweep.store import FAILED, PENDING, SOLVED, StoreError, SweepStore
 
     opts = options or SweepOptions()  # SweepOptions checks itself when built
     t0 = time.perf_counter()
@@ -396,8 +396,8 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
                 "solving them again (scenario %d first)",
                 *(out, len(lost), lost[0]),
             )
-        pending = int(np.sum(store.status() == 0)) + (
-            int(np.sum(store.status() == 2)) if opts.retry_failed else 0
+        pending = int(np.sum(store.status() == PENDING)) + (
+            int(np.sum(store.status() == FAILED)) if opts.retry_failed else 0
         )
         before = store.attrs.get("status")
         if pending:

@@ -19,6 +19,7 @@ import pytest
 from typer.testing import CliRunner
 
 from calib.cli import app
+from fem import boundary_faces
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fem"))
 from femtest_meshes import box_mesh
@@ -167,7 +168,8 @@ def test_a_back_labelled_as_other_tools_label_it_is_held(tmp_path):
 
     box = box_mesh(SIZE_MM, POINTS)
     base = np.flatnonzero(box.nodes_mm[:, 2] == 0.0)
-    tri = np.array([f for f in _boundary(box) if np.all(np.isin(f, base))])
+    faces = boundary_faces(box.tets)
+    tri = faces[np.isin(faces, base).all(axis=1)]
     meshes = {
         "abaqus.inp": meshio.Mesh(box.nodes_mm, [("tetra", box.tets)], point_sets={"BACK": base}),
         "gmsh22.msh": meshio.Mesh(
@@ -187,12 +189,6 @@ def test_a_back_labelled_as_other_tools_label_it_is_held(tmp_path):
         assert res.exit_code == 0, (name, res.output)
         back = json.loads((tmp_path / f"{path.stem}_out.json").read_text())["back"]
         assert back["source"] == "set:back" and back["nodes"] == len(base), name
-
-
-def _boundary(mesh):
-    from fem import boundary_faces
-
-    return boundary_faces(mesh.tets)
 
 
 def test_a_non_finite_point_is_named_by_the_file_s_point_number(tmp_path):
