@@ -8,6 +8,11 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 DEMO_OUT ?= demo-out
 PYTEST_ARGS ?=
+# the suite runs on TEST_WORKERS pytest-xdist workers of one BLAS/OpenMP thread each (CI's
+# 2 cores; each test file on one worker, tests/conftest.py); TEST_WORKERS=0: one process
+TEST_WORKERS ?= 2
+XDIST := $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile)
+ONE_THREAD := $(if $(XDIST),OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1)
 
 .PHONY: all venv demo test test-all validate notebooks lab bench lint clean sysdeps
 
@@ -38,10 +43,10 @@ demo: $(STAMP)
 	bash examples/demo.sh $(DEMO_OUT)
 
 test: $(STAMP)
-	$(PY) -m pytest -q $(PYTEST_ARGS)
+	$(ONE_THREAD) $(PY) -m pytest -q $(XDIST) $(PYTEST_ARGS)
 
 test-all: $(STAMP)
-	$(PY) -m pytest -q -m "slow or not slow" $(PYTEST_ARGS)
+	$(ONE_THREAD) $(PY) -m pytest -q -m "slow or not slow" $(XDIST) $(PYTEST_ARGS)
 
 # the reproducible validation suite: the whole chain on fixed-seed twins, asserted bars,
 # a JSON artefact of every figure in validation-out/

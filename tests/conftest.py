@@ -18,6 +18,8 @@ import pytest
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 #: The notebooks of the tiny chain, in the order they share their output folder.
 CHAIN_NOTEBOOKS = ("01_twin_to_c1.py", "02_validation.py")
+#: The test files that read the tiny chain (``tiny_chain_notebooks``).
+CHAIN_FILES = ("test_notebooks.py", "test_chain.py")
 
 
 def notebooks_available() -> bool:
@@ -63,6 +65,27 @@ class NotebookChain:
         for nb in CHAIN_NOTEBOOKS[: CHAIN_NOTEBOOKS.index(name) + 1]:
             if nb in self.errors:
                 raise AssertionError(f"notebook {nb} failed") from self.errors[nb]
+
+
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist, where it is installed
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile``, with the two files of the tiny chain sent to one worker.
+
+    ``make test`` runs the suite on two workers. Each file's tests go to one worker, so its
+    module fixtures are built once; the notebook and validation files share the session's
+    tiny chain (:func:`tiny_chain_notebooks`, minutes), so they go to one worker together.
+    (xdist's own ``loadgroup`` marks do not reach its scheduler under pytest 9.2.)
+    """
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class ChainTogether(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            scope = super()._split_scope(nodeid)
+            return "tiny chain" if Path(scope).name in CHAIN_FILES else scope
+
+    return ChainTogether(config, log)
 
 
 @pytest.fixture
