@@ -232,16 +232,20 @@ def _version(name: str) -> str | None:
 _THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 
-def _source_revision() -> dict | None:
+def _source_revision(root: Path | None = None) -> dict | None:
     """The git commit of the source tree this package runs from, and whether it has edits.
 
-    None where it is not a git checkout (an installed wheel) or git is missing. Asked at
-    every record (review BI: a cached answer kept a long-lived kernel's first commit and
-    edits after the tree changed under it).
+    ``{"commit": SHA, "uncommitted_edits": bool}``, and where there are edits to tracked
+    files, ``"edits_sha256"``: the digest of ``git diff HEAD --binary``, so that two runs of
+    the same edited tree can be told to be the same code (review BT, F12). None where it is
+    not a git checkout (an installed wheel) or git is missing. Asked at every record
+    (review BI: a cached answer kept a long-lived kernel's first commit and edits after the
+    tree changed under it).
     """
+    import hashlib
     import subprocess
 
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parent.parent if root is None else root
     if not (root / ".git").exists():
         return None
     try:
@@ -256,9 +260,15 @@ def _source_revision() -> dict | None:
             timeout=10,
             check=True,
         ).stdout.strip()
+        out = {"commit": commit, "uncommitted_edits": bool(edits)}
+        if edits:
+            diff = subprocess.run(
+                [*git, "diff", "HEAD", "--binary"], capture_output=True, timeout=60, check=True
+            ).stdout
+            out["edits_sha256"] = hashlib.sha256(diff).hexdigest()
     except (OSError, subprocess.SubprocessError):
         return None
-    return {"commit": commit, "uncommitted_edits": bool(edits)}
+    return out
 
 
 def _thread_pools() -> dict:

@@ -444,11 +444,24 @@ _FE_PACKAGES = (
 )
 
 
+def _other_edits(was: dict, now: dict) -> bool:
+    """Whether two runs of one commit may run other code: edits not known to be the same.
+
+    Both edited with one digest of their edits (``edits_sha256``) is the same code; a
+    record without a digest (an older store's) is taken to differ.
+    """
+    if not (was.get("uncommitted_edits") or now.get("uncommitted_edits")):
+        return False
+    digest = was.get("edits_sha256")
+    return not (was.get("uncommitted_edits") and digest and digest == now.get("edits_sha256"))
+
+
 def _record_resume(store, opts: SweepOptions, model) -> None:
     """Add this run's provenance to the store's ``resumes``; warn where its code differs.
 
     The scenarios the store holds then come from runs of other commits, of uncommitted
-    edits, or of other versions of the FE's libraries (:data:`_FE_PACKAGES`): equal to
+    edits (not known to be the same: :func:`_other_edits`), or of other versions of the FE's
+    libraries (:data:`_FE_PACKAGES`): equal to
     round-off where the solver is the same, but not one run's numbers. What the creating
     run did not record (an older store's) is not compared.
     """
@@ -458,7 +471,7 @@ def _record_resume(store, opts: SweepOptions, model) -> None:
     was, now = first.get("source"), prov["source"]
     if was and now and was.get("commit") != now.get("commit"):
         said.append("another phantom-calib commit")
-    elif was and now and (was.get("uncommitted_edits") or now.get("uncommitted_edits")):
+    elif was and now and _other_edits(was, now):
         said.append("uncommitted edits in a run (the code may differ)")
     elif bool(was) != bool(now) and "source" in first:
         said.append("phantom-calib from a checkout in one run and installed in the other")

@@ -192,6 +192,31 @@ def test_provenance_names_the_libraries_and_thread_counts_that_set_the_numbers()
         assert entry["api"] == lib["internal_api"] and entry["num_threads"] >= 1
 
 
+def test_the_source_revision_tells_one_tree_s_edits_from_another_s(tmp_path):
+    # review BT, F12: every resume from an edited checkout warned that its code may differ;
+    # a digest of the edits tells the same edited tree from another
+    import subprocess
+
+    from calib.io import _source_revision
+
+    def git(*args):
+        subprocess.run(["git", "-C", str(tmp_path), *args], check=True, capture_output=True)
+
+    git("init", "-q")
+    (tmp_path / "a.py").write_text("x = 1\n")
+    git("add", "a.py")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "a")
+    clean = _source_revision(tmp_path)
+    assert clean["uncommitted_edits"] is False and "edits_sha256" not in clean
+    (tmp_path / "a.py").write_text("x = 2\n")
+    (tmp_path / "untracked.txt").write_text("not code")  # not an edit to the tree
+    one, again = _source_revision(tmp_path), _source_revision(tmp_path)
+    assert one["uncommitted_edits"] and one == again and one["commit"] == clean["commit"]
+    (tmp_path / "a.py").write_text("x = 3\n")
+    other = _source_revision(tmp_path)
+    assert other["edits_sha256"] != one["edits_sha256"]
+
+
 def test_an_interrupted_command_says_what_was_kept(monkeypatch, capsys):
     # review AN, AM: typer turns Ctrl-C into a silent exit 130
     import importlib

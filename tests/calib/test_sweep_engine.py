@@ -405,6 +405,22 @@ class _FakeStore:
             {"commit": "a", "uncommitted_edits": False},
             "uncommitted edits in a run",
         ),
+        # review BT, F12: the same edits (one digest) are the same code; others are not
+        (
+            {"source": {"commit": "a", "uncommitted_edits": True, "edits_sha256": "d1"}},
+            {"commit": "a", "uncommitted_edits": True, "edits_sha256": "d1"},
+            None,
+        ),
+        (
+            {"source": {"commit": "a", "uncommitted_edits": True, "edits_sha256": "d1"}},
+            {"commit": "a", "uncommitted_edits": True, "edits_sha256": "d2"},
+            "uncommitted edits in a run",
+        ),
+        (  # an older record without a digest
+            {"source": {"commit": "a", "uncommitted_edits": True}},
+            {"commit": "a", "uncommitted_edits": True, "edits_sha256": "d1"},
+            "uncommitted edits in a run",
+        ),
         ({"source": {"commit": "a", "uncommitted_edits": False}}, None, "installed in the other"),
     ],
 )
