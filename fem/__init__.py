@@ -1,6 +1,7 @@
 """Tetrahedral meshes and a nearly-incompressible hyperelastic gravity solver."""
 
 from .discretize import FORMULATIONS, Discretization, discretize
+from .fields import edge_midpoint_displacement_mm
 from .materials import FebioNeoHookean, MooneyRivlin, NeoHookean, Volumetric
 from .mesh import MeshError, MeshQuality, TetMesh, boundary_faces, mesh_quality
 from .model import Clamped, Constrained, ElasticSupport, Model, Sliding
@@ -39,6 +40,7 @@ __all__ = [
     "compute_prestress",
     "discretize",
     "displacement_at",
+    "edge_midpoint_displacement_mm",
     "mesh_quality",
     "solve",
     "solve_posture",

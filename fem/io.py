@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -68,10 +68,16 @@ class InputPoints:
         Every point of the file, in the file's order, mm.
     node_index : ndarray of int, shape (n_nodes,)
         The file's point number of each node of the read :class:`TetMesh`.
+    midside : ndarray of int, shape (n_midside, 3)
+        The mid-side points of quadratic tetrahedra the read mesh dropped, one row
+        ``[point, a, b]`` each: the point lies on the edge between the file's points ``a``
+        and ``b`` (matched by position, whatever the format's node order); empty for
+        linear input.
     """
 
     points_mm: np.ndarray
     node_index: np.ndarray
+    midside: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))
 
     @property
     def n_points(self) -> int:
@@ -219,7 +225,38 @@ def _to_tetmesh(m, path: Path, *, orient: bool) -> tuple[TetMesh, InputPoints]:
     if points.shape[1] != 3:
         raise MeshError(f"{path}: expected 3-D points, got {points.shape[1]} coordinates")
     mesh = TetMesh(points[keep], remap[tets], region, names, _node_sets(m, keep))
-    return (mesh.oriented() if orient else mesh), InputPoints(points, keep)
+    tet10 = [np.asarray(m.cells[i].data) for i in tet_blocks if types[i] == "tetra10"]
+    midside = _midside_points(points, np.vstack(tet10)) if tet10 else None
+    inputs = InputPoints(points, keep) if midside is None else InputPoints(points, keep, midside)
+    return (mesh.oriented() if orient else mesh), inputs
+
+
+#: The six edges of a tetrahedron, as pairs of its corners
+_TET_EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
+
+
+def _midside_points(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """``[point, a, b]`` of each mid-side point of quadratic tetrahedra (rows of 10 points).
+
+    Each of a cell's six mid-side points is matched to the edge whose midpoint is nearest,
+    so the formats' different orders of the last six points (VTK's and Abaqus's, Gmsh's)
+    need not be known; a cell whose six points do not match six distinct edges (a badly
+    curved element) gives none. Points shared by cells appear once.
+    """
+    corners = cells[:, :4]
+    mid = 0.5 * (points[corners[:, _TET_EDGES[:, 0]]] + points[corners[:, _TET_EDGES[:, 1]]])
+    extra = points[cells[:, 4:10]]  # (C, 6, 3)
+    dist = np.linalg.norm(extra[:, :, None, :] - mid[:, None, :, :], axis=-1)  # (C, 6, 6)
+    nearest = dist.argmin(axis=2)
+    ok = (np.sort(nearest, axis=1) == np.arange(6)).all(axis=1)
+    c = np.flatnonzero(ok)
+    edge = _TET_EDGES[nearest[c]]  # (c, 6, 2) corner positions
+    a = np.take_along_axis(corners[c], edge[..., 0], axis=1)
+    b = np.take_along_axis(corners[c], edge[..., 1], axis=1)
+    ends = np.sort(np.stack([a, b], axis=-1), axis=-1)
+    rows = np.concatenate([cells[c, 4:10, None], ends], axis=-1).reshape(-1, 3)
+    _, first = np.unique(rows[:, 0], return_index=True)  # a point shared by cells: once
+    return rows[first].astype(np.int64)
 
 
 def read_mesh(

@@ -137,7 +137,10 @@ class TetMesh:
         scale = np.ptp(self.nodes_mm, axis=0).max() ** 3 if self.n_nodes else 1.0
         if np.any(np.abs(vol) <= 1e-14 * scale):
             bad = np.flatnonzero(np.abs(vol) <= 1e-14 * scale)
-            raise MeshError(f"{bad.size} degenerate (zero-volume) elements, e.g. element {bad[0]}")
+            raise MeshError(
+                f"{bad.size} degenerate (zero-volume) elements, e.g. tetrahedron {bad[0]} "
+                "(0-based, counting tetrahedra only)"
+            )
         tets = self.tets.copy()
         neg = vol < 0
         tets[neg] = tets[neg][:, [0, 2, 1, 3]]

@@ -416,16 +416,20 @@ def check_orientation(
     return mesh.against_the_rest()
 
 
-def say_inverted(mesh: fem.TetMesh, path: Path, few: np.ndarray, back: np.ndarray) -> None:
+def say_inverted(
+    mesh: fem.TetMesh, path: Path, few: np.ndarray, back: np.ndarray, *, recovered: bool
+) -> None:
     """Warn of the elements :func:`check_orientation` found, flipped for the solve.
 
-    Every one touching the clamped back face: as a recovered stress-free mesh holds them;
-    any other: a tangled mesh, whose answer is wrong.
+    Every one touching the clamped back face of a stress-free mesh calibrate recovered
+    (``recovered``: :func:`calibrated_model` found its record): as such a mesh holds them;
+    any other, or any in another mesh: a tangled mesh, whose answer is wrong (review BU,
+    F12: a user's mesh tangled at its back face was told it looked like calibrate's).
     """
     if not len(few):
         return
     at_back = np.isin(mesh.tets[few], back).any(axis=1)
-    if at_back.all():
+    if at_back.all() and recovered:
         log.warning(
             "%s: %d of %d elements, all at the back face, are inverted against the rest "
             "and are flipped (a stress-free mesh calibrate recovered holds such at the "
@@ -435,11 +439,21 @@ def say_inverted(mesh: fem.TetMesh, path: Path, few: np.ndarray, back: np.ndarra
             mesh.n_tets,
         )
         return
+    if at_back.all():
+        log.warning(
+            "%s: %d of %d elements, all at the back face, are inverted against the rest and "
+            "are flipped: a tangled mesh, whose elements overlap, gives a wrong answer near "
+            "them (and where --bc sliding lets them move); untangle it",
+            path,
+            len(few),
+            mesh.n_tets,
+        )
+        return
     inner = few[~at_back]
     log.warning(
         "%s: %d of %d elements are inverted against the rest, %d of them away from the "
-        "back face (e.g. element %d), and are flipped: a tangled mesh, whose elements "
-        "overlap, gives a wrong answer; untangle it",
+        "back face (e.g. tetrahedron %d, 0-based among the file's tetrahedra), and are "
+        "flipped: a tangled mesh, whose elements overlap, gives a wrong answer; untangle it",
         path,
         len(few),
         mesh.n_tets,
@@ -545,16 +559,36 @@ def check_output(out_path: Path) -> None:
     check_out_file(out_path.with_suffix(".json"))  # RESULT.json, written beside it
 
 
-def _in_file_numbering(mesh: fem.TetMesh, points, u_mm: np.ndarray):
+def _midside_displacement_mm(disc, state: np.ndarray, points) -> np.ndarray:
+    """The displacement of the input's quadratic mid-side points, (n_midside, 3) mm.
+
+    Review BU, F14: they were NaN, 85 % of a quadratic file's points, though the default
+    taylor-hood solve holds the displacement at every edge's midpoint. Each takes its
+    edge's midpoint value (:func:`fem.edge_midpoint_displacement_mm`): exact for straight
+    edges; a curved edge is solved straight (``read_mesh`` warns).
+    """
+    if not len(points.midside):
+        return np.zeros((0, 3))
+    node_of = np.full(points.n_points, -1, dtype=np.int64)
+    node_of[points.node_index] = np.arange(len(points.node_index))
+    return fem.edge_midpoint_displacement_mm(disc, state, node_of[points.midside[:, 1:]])
+
+
+def _in_file_numbering(mesh: fem.TetMesh, points, u_mm: np.ndarray, midside_u_mm: np.ndarray):
     """The deformed mesh and its displacement on every point of the input file.
 
-    Points the solve did not use (in no tetrahedron, or mid-side nodes of quadratic
-    tetrahedra) keep their input position and get a NaN displacement.
+    Quadratic mid-side points take ``midside_u_mm`` (rows of ``points.midside``); points
+    the solve did not use (in no tetrahedron) keep their input position and get a NaN
+    displacement.
     """
     k = points.node_index
     u = points.scatter(u_mm)
     x = points.points_mm.copy()
     x[k] += u_mm
+    if len(midside_u_mm):
+        mid = points.midside[:, 0]
+        u[mid] = midside_u_mm
+        x[mid] += midside_u_mm
     sets = {name: k[ids] for name, ids in mesh.node_sets.items()}
     out = fem.TetMesh(x, k[mesh.tets], mesh.region, mesh.region_names, sets)
     return out, u
@@ -578,8 +612,9 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
 
     The result is written in the input file's point numbering: point ``i`` of
     ``out_path`` is point ``i`` of ``mesh_path``. Points the solve does not use (in no
-    tetrahedron, or mid-side nodes of quadratic tetrahedra) keep their input position
-    with a NaN ``displacement_mm``; ``RESULT.json`` counts them (``unsolved_points``).
+    tetrahedron) keep their input position with a NaN ``displacement_mm``;
+    ``RESULT.json`` counts them (``unsolved_points``). The mid-side points of quadratic
+    tetrahedra take the displacement at their edge's midpoint.
 
     Returns
     -------
@@ -602,7 +637,8 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
             raise fem.MeshError("the mesh has no tetrahedra")
         check_mesh(mesh, mesh_path)
         back, normal, back_source = _back_nodes(mesh, parse_back_plane(opts.back_plane))
-        say_inverted(mesh, mesh_path, inverted, back)
+        found = calibrated_model(mesh_path)
+        say_inverted(mesh, mesh_path, inverted, back, recovered=found is not None)
         own_nipple = mesh.node_sets.get("nipple")
         mesh = tag_node_sets(mesh, back, normal)
         nipple_source = "apex"
@@ -634,7 +670,7 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
             ", ".join(sorted(mesh.region_names)[:4])
             + (", ..." if len(mesh.region_names) > 4 else ""),
         )
-    calibration = say_calibrated_model(mesh_path, opts, calibrated_model(mesh_path))
+    calibration = say_calibrated_model(mesh_path, opts, found)
     model = _model(mesh, opts)
     if opts.formulation == "p1" and opts.nu > 0.45:  # review BU: 54 % of the answer, unsaid
         log.warning(
@@ -653,9 +689,8 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
             mesh.n_tets,
         )
     try:
-        sol = fem.solve(
-            model, gravity=np.array(opts.gravity), g_m_s2=opts.g_m_s2, formulation=opts.formulation
-        )
+        disc = fem.discretize(model.mesh, model.support, formulation=opts.formulation)
+        sol = fem.solve(model, gravity=np.array(opts.gravity), g_m_s2=opts.g_m_s2, disc=disc)
     except fem.ConvergenceError as exc:  # review BU: the error named no mesh
         raise fem.ConvergenceError(f"{mesh_path}: {exc}", element=exc.element) from exc
     except MemoryError as exc:  # review BU: a traceback (exit 1), not the documented exit 2
@@ -664,11 +699,13 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
             f"({opts.formulation}): coarsen the mesh or use --formulation mini"
         ) from exc
     nipple = int(mesh.node_set("nipple")[0])
-    unsolved = points.n_points - mesh.n_nodes
+    midside_u = _midside_displacement_mm(disc, sol.state, points)
+    unsolved = points.n_points - mesh.n_nodes - len(midside_u)
     if unsolved:
         log.warning(
-            "%s: %d of its %d points are in no tetrahedron (or are mid-side nodes of "
-            "quadratic ones) and were not solved: their displacement_mm in %s is NaN",
+            "%s: %d of its %d points are in no tetrahedron (or are mid-side points of a "
+            "quadratic one too curved to match its edges) and were not solved: their "
+            "displacement_mm in %s is NaN",
             mesh_path,
             unsolved,
             points.n_points,
@@ -708,7 +745,7 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
         "provenance": provenance(inputs=read, parameters=opts.__dict__),
     }
     json_path = out_path.with_suffix(".json")
-    deformed, u = _in_file_numbering(mesh, points, sol.displacement_mm)
+    deformed, u = _in_file_numbering(mesh, points, sol.displacement_mm, midside_u)
     atomic_write(out_path, lambda p: write_mesh(deformed, p, point_data={"displacement_mm": u}))
     write_json_atomic(json_path, summary)
     return summary

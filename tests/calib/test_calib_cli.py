@@ -423,14 +423,20 @@ def test_elements_inverted_at_the_back_face_are_said_as_a_recovered_mesh_s(mesh_
     touching = np.flatnonzero(np.isin(mesh.tets, back).any(axis=1))
     away = np.flatnonzero(~np.isin(mesh.tets, back).any(axis=1))
     with caplog.at_level("WARNING"):
-        say_inverted(mesh, Path("m.vtu"), touching[:2], back)
+        say_inverted(mesh, Path("m.vtu"), touching[:2], back, recovered=True)
     assert "2 of" in caplog.text and "all at the back face" in caplog.text
     assert "tangled" not in caplog.text
     caplog.clear()
     with caplog.at_level("WARNING"):
-        say_inverted(mesh, Path("m.vtu"), np.r_[touching[:2], away[:1]], back)
-    assert f"1 of them away from the back face (e.g. element {away[0]})" in caplog.text
+        say_inverted(mesh, Path("m.vtu"), np.r_[touching[:2], away[:1]], back, recovered=True)
+    assert f"1 of them away from the back face (e.g. tetrahedron {away[0]}, 0-based" in caplog.text
     assert "tangled" in caplog.text
+    # review BU, F12: the same elements in a mesh calibrate did not recover are a tangle
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        say_inverted(mesh, Path("m.vtu"), touching[:2], back, recovered=False)
+    assert "all at the back face" in caplog.text and "tangled" in caplog.text
+    assert "calibrate" not in caplog.text
 
 
 def _boundary(tets):
