@@ -14,7 +14,10 @@ Region tags and node sets travel with the mesh:
 When reading, region tags come from the cell data ``"region"``,
 ``"gmsh:physical"``, ``"medit:ref"``, ``"tetgen:ref"`` or ``"CellEntityIds"``
 (the first present), else from element sets that partition the mesh (Abaqus),
-else every element is ``"bulk"``. Every write is atomic: a temporary file in the
+else every element is ``"bulk"``. Their names come from the ``"region:<name>"`` masks
+(the toolkit's own files), Gmsh's physical names or the element sets; a tag without a
+name is ``"region<tag>"``, or ``"bulk"`` where it is the file's only one (another tool's
+numbers are not :data:`fem.mesh.REGION_IDS`). Every write is atomic: a temporary file in the
 same folder is renamed over the target, so a failed write leaves nothing behind.
 
 The TetGen readers and writers live in :mod:`fem.io_tetgen` and :func:`atomic_write`
@@ -31,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io_common import _region_name_for, atomic_write
+from .io_common import atomic_write
 from .io_tetgen import read_tetgen, read_tetgen_face, write_tetgen
 from .mesh import REGION_IDS, MeshError, TetMesh
 
@@ -134,9 +137,12 @@ def _names_for_tags(m, key: str, tags: np.ndarray, tet_blocks: list[int]) -> dic
         for name, (tag, dim) in ((n, np.asarray(v)[:2]) for n, v in m.field_data.items()):
             if dim == 3:
                 names[name] = int(tag)
-    for tag in np.unique(tags):
-        if int(tag) not in names.values():
-            names[_region_name_for(tag)] = int(tag)
+    bare = [int(t) for t in np.unique(tags) if int(t) not in names.values()]
+    if len(bare) == 1 and not names:  # one material: the bulk, whatever its number
+        return {"bulk": bare[0]}
+    # review BU, F11: another tool's numbers are not the toolkit's (MMG numbers a body 3,
+    # which was read as "skin"); the toolkit's own files name their regions
+    names.update({f"region{t}": t for t in bare})
     return names
 
 

@@ -135,3 +135,26 @@ def test_read_orients_and_reads_gmsh_tags(tmp_path):
     assert np.all(back.volumes_mm3() > 0)
     assert dict(back.region_names) == {"gland": 7} and np.all(back.region == 7)
     assert read_mesh(path, orient=False).volumes_mm3().min() < 0
+
+
+@pytest.mark.parametrize(
+    ("tags", "names"),
+    [
+        ((2, 3), {"region2": 2, "region3": 3}),  # were read as "inclusion" and "skin"
+        ((3, 3), {"bulk": 3}),  # MMG's or CGAL's one domain, numbered 3: the bulk
+    ],
+)
+def test_another_tool_s_bare_region_numbers_are_not_the_toolkit_s_names(tmp_path, tags, names):
+    # review BU, F11: a VTU's CellEntityIds 2 and 3 without names were told to the user as
+    # "its 2 regions (inclusion, skin)"
+    import meshio
+
+    mesh = box_mesh((4.0, 4.0, 4.0), (2, 2, 2))
+    half = len(mesh.tets) // 2
+    ids = np.r_[np.full(half, tags[0]), np.full(len(mesh.tets) - half, tags[1])]
+    path = tmp_path / "ids.vtu"
+    meshio.write(
+        path, meshio.Mesh(mesh.nodes_mm, [("tetra", mesh.tets)], cell_data={"CellEntityIds": [ids]})
+    )
+    back = read_mesh(path)
+    assert dict(back.region_names) == names and np.array_equal(back.region, ids)
