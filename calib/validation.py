@@ -251,7 +251,12 @@ def _wrapped_deg(angle_deg: float) -> float:
     return float(180.0 - (180.0 - angle_deg) % 360.0)
 
 
-def _reference_figures(scan, angle_deg: float, plane: str) -> dict | None:
+def _reference_figures(scan, angle_deg: float, plane: str, *, tumour: bool) -> dict | None:
+    """The dissertation's figures beside a scan, or None: no figure of a tumour without one.
+
+    Review BP, P8: "tumour 3.65" was shown beside a phantom without a tumour (``tumour``:
+    whether this scan's validation has a tumour figure).
+    """
     if scan.role == "calibration":
         return {
             "c1_pa": DISSERTATION_C1_PA,
@@ -263,7 +268,8 @@ def _reference_figures(scan, angle_deg: float, plane: str) -> dict | None:
     angle = angle_deg if scan.posture_angle_deg is None else scan.posture_angle_deg
     for nominal, figures in DISSERTATION.items():
         if abs(_wrapped_deg(angle - nominal)) <= DISSERTATION_MATCH_DEG:  # -335 is 25
-            return {"posture_angle_deg": nominal, "c1_pa": DISSERTATION_C1_PA} | figures
+            out = {"posture_angle_deg": nominal, "c1_pa": DISSERTATION_C1_PA} | figures
+            return out if tumour else {k: v for k, v in out.items() if k != "tumour_mm"}
     return None
 
 
@@ -373,9 +379,7 @@ def _scan_validation(work: WorkFolder, name: str, faces: np.ndarray) -> ScanVali
         }
     ing = ingest_record(work, name)
     angle, plane = _posture(work, scan)
-    reference = _reference_figures(scan, angle, plane)
-    if reference is not None and tumour_b is None:  # review BP, P8: "tumour 3.65" was shown
-        reference.pop("tumour_mm", None)  # beside a phantom without a tumour
+    reference = _reference_figures(scan, angle, plane, tumour=tumour_b is not None)
     return ScanValidation(
         name=name,
         role=scan.role,

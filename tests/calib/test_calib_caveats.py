@@ -206,8 +206,12 @@ def test_a_posture_angle_is_said_on_its_nominal_angle_s_branch():
     assert _posture(work, scan(-179.8, None))[0] == pytest.approx(180.2)
     for nominal in (25.0, -335.0):
         s = scan(25.0, nominal)
-        figures = _reference_figures(s, _posture(work, s)[0], "transverse")
+        figures = _reference_figures(s, _posture(work, s)[0], "transverse", tumour=True)
         assert figures is not None and figures["posture_angle_deg"] == 25, nominal
+        assert figures["tumour_mm"] == 3.647
+        # review BP, P8: no dissertation tumour figure beside a phantom without a tumour
+        bare = _reference_figures(s, _posture(work, s)[0], "transverse", tumour=False)
+        assert "tumour_mm" not in bare and bare["surface_mean_mm"] == 3.63
 
 
 def test_the_validation_table_prints_the_icp_fitness():

@@ -128,7 +128,7 @@ def test_validation_reports_the_angle_in_the_scans_plane(angle_deg, plane, nomin
     measured, plane_of = _posture(work, scan)
     assert plane_of == plane
     assert measured == pytest.approx(angle_deg, abs=1e-9)  # exact geometry: round-off
-    ref = _reference_figures(scan, measured, plane_of)
+    ref = _reference_figures(scan, measured, plane_of, tumour=True)
     assert (ref and ref["posture_angle_deg"]) == figures
 
 
