@@ -443,7 +443,9 @@ def say_inverted(
         log.warning(
             "%s: %d of %d elements, all at the back face, are inverted against the rest and "
             "are flipped: a tangled mesh, whose elements overlap, gives a wrong answer near "
-            "them (and where --bc sliding lets them move); untangle it",
+            "them (and where --bc sliding lets them move); untangle it (a copy of "
+            "calibrate's reference_mesh.vtu, away from its work folder, holds such at the "
+            "clamped rim: simulate it in place to have it checked)",
             path,
             len(few),
             mesh.n_tets,
