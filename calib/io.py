@@ -236,8 +236,10 @@ def _source_revision(root: Path | None = None) -> dict | None:
     """The git commit of the source tree this package runs from, and whether it has edits.
 
     ``{"commit": SHA, "uncommitted_edits": bool}``, and where there are edits to tracked
-    files, ``"edits_sha256"``: the digest of ``git diff HEAD --binary``, so that two runs of
-    the same edited tree can be told to be the same code (review BT, F12). None where it is
+    files, ``"edits_sha256"``: the digest of ``git diff HEAD --binary`` (with the options
+    that fix its text whatever the user's git settings), so that two runs of the same
+    edited tree can be told to be the same code (review BT, F12); without it where that
+    diff fails (the edits are then taken to differ). None where it is
     not a git checkout (an installed wheel) or git is missing. Asked at every record
     (review BI: a cached answer kept a long-lived kernel's first commit and edits after the
     tree changed under it).
@@ -260,14 +262,19 @@ def _source_revision(root: Path | None = None) -> dict | None:
             timeout=10,
             check=True,
         ).stdout.strip()
-        out = {"commit": commit, "uncommitted_edits": bool(edits)}
-        if edits:
-            diff = subprocess.run(
-                [*git, "diff", "HEAD", "--binary"], capture_output=True, timeout=60, check=True
-            ).stdout
-            out["edits_sha256"] = hashlib.sha256(diff).hexdigest()
     except (OSError, subprocess.SubprocessError):
         return None
+    out = {"commit": commit, "uncommitted_edits": bool(edits)}
+    if edits:  # review BV, F3: a digest the user's diff settings (a tool, colour) leave alone
+        fixed = ["--binary", "--no-ext-diff", "--no-textconv", "--no-color", "--no-renames"]
+        fixed += ["--diff-algorithm=myers", "--src-prefix=a/", "--dst-prefix=b/"]
+        try:
+            diff = subprocess.run(
+                [*git, "diff", *fixed, "HEAD"], capture_output=True, timeout=60, check=True
+            ).stdout
+        except (OSError, subprocess.SubprocessError):  # F4: still a checkout, with edits
+            return out
+        out["edits_sha256"] = hashlib.sha256(diff).hexdigest()
     return out
 
 

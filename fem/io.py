@@ -5,7 +5,8 @@ Region tags and node sets travel with the mesh:
 
 * VTU (ParaView) and other meshio formats: cell data ``"region"`` (integer tag)
   and one 0/1 mask per region name, ``"region:<name>"``; node sets as point
-  data masks ``"set:<name>"``.
+  data masks ``"set:<name>"``. Medit ``.mesh`` keeps the tags only (its regions read
+  back as ``"region<tag>"``).
 * Abaqus ``.inp``: one ``*ELSET`` per region name and one ``*NSET`` per node set.
 * TetGen ``.node/.ele``: the region tag as the first element attribute (names
   are not stored, see :data:`fem.mesh.REGION_IDS`); ``.face`` with the boundary
@@ -15,7 +16,7 @@ When reading, region tags come from the cell data ``"region"``,
 ``"gmsh:physical"``, ``"medit:ref"``, ``"tetgen:ref"`` or ``"CellEntityIds"``
 (the first present), else from element sets that partition the mesh (Abaqus),
 else every element is ``"bulk"``. Their names come from the ``"region:<name>"`` masks
-(the toolkit's own files), Gmsh's physical names or the element sets; a tag without a
+(the toolkit's own files but ``.mesh``), Gmsh's physical names or the element sets; a tag without a
 name is ``"region<tag>"``, or ``"bulk"`` where it is the file's only one (another tool's
 numbers are not :data:`fem.mesh.REGION_IDS`). Every write is atomic: a temporary file in the
 same folder is renamed over the target, so a failed write leaves nothing behind.
@@ -73,9 +74,9 @@ class InputPoints:
         The file's point number of each node of the read :class:`TetMesh`.
     midside : ndarray of int, shape (n_midside, 3)
         The mid-side points of quadratic tetrahedra the read mesh dropped, one row
-        ``[point, a, b]`` each: the point lies on the edge between the file's points ``a``
-        and ``b`` (matched by position, whatever the format's node order); empty for
-        linear input.
+        ``[point, a, b]`` each: the point is on the edge between the file's points ``a``
+        and ``b`` (by its slot in meshio's order, checked by position: see
+        ``_midside_points``); empty for linear input.
     """
 
     points_mm: np.ndarray
@@ -211,7 +212,11 @@ def _to_tetmesh(m, path: Path, *, orient: bool) -> tuple[TetMesh, InputPoints]:
         found = ", ".join(sorted(set(types))) or "no cells"
         raise MeshError(f"{path}: expected a tetrahedral mesh, found cell types: {found}")
     if any(types[i] == "tetra10" for i in tet_blocks):
-        log.warning("%s: quadratic tetrahedra read as linear ones (mid-side nodes dropped)", path)
+        log.warning(
+            "%s: quadratic tetrahedra read as linear ones (straight edges; their mid-side "
+            "points are not nodes of the mesh read)",
+            path,
+        )
     tets = np.vstack([np.asarray(m.cells[i].data)[:, :4] for i in tet_blocks]).astype(np.int64)
     if tets.size and (tets.min() < 0 or tets.max() >= len(m.points)):  # was an IndexError
         raise MeshError(
@@ -232,37 +237,64 @@ def _to_tetmesh(m, path: Path, *, orient: bool) -> tuple[TetMesh, InputPoints]:
         raise MeshError(f"{path}: expected 3-D points, got {points.shape[1]} coordinates")
     mesh = TetMesh(points[keep], remap[tets], region, names, _node_sets(m, keep))
     tet10 = [np.asarray(m.cells[i].data) for i in tet_blocks if types[i] == "tetra10"]
-    midside = _midside_points(points, np.vstack(tet10)) if tet10 else None
+    midside = _midside_points(path, points, np.vstack(tet10), keep) if tet10 else None
     inputs = InputPoints(points, keep) if midside is None else InputPoints(points, keep, midside)
     return (mesh.oriented() if orient else mesh), inputs
 
 
-#: The six edges of a tetrahedron, as pairs of its corners
+#: The six edges of a tetrahedron in meshio's (VTK's) order of a quadratic one's mid-side
+#: points, which meshio gives for every format it reads (it reorders Gmsh's)
 _TET_EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
+#: A mid-side point this far from its edge's midpoint (a fraction of the edge's length) is
+#: not taken to be on that edge: the file's order is not meshio's, or the element is folded.
+#: An adjacent edge's midpoint lies half an edge away in a regular tetrahedron.
+MIDSIDE_OFF_EDGE = 0.3
 
 
-def _midside_points(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
+def _midside_points(path, points: np.ndarray, cells: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """``[point, a, b]`` of each mid-side point of quadratic tetrahedra (rows of 10 points).
 
-    Each of a cell's six mid-side points is matched to the edge whose midpoint is nearest,
-    so the formats' different orders of the last six points (VTK's and Abaqus's, Gmsh's)
-    need not be known; a cell whose six points do not match six distinct edges (a badly
-    curved element) gives none. Points shared by cells appear once.
+    Each of a cell's last six points is on the edge of :data:`_TET_EDGES` in its slot
+    (review BV, F1: matching by the nearest midpoint swapped the points of curved slivers,
+    whose opposite edges' midpoints nearly meet). Left out, with a warning: a point farther
+    than :data:`MIDSIDE_OFF_EDGE` of its edge's length from the edge's midpoint, one that
+    cells place on different edges, and one that is also a corner of a tetrahedron (review
+    BV, F2: it was moved twice). Points off their straight edge's midpoint (curved
+    elements, solved straight) are counted in a warning.
     """
     corners = cells[:, :4]
-    mid = 0.5 * (points[corners[:, _TET_EDGES[:, 0]]] + points[corners[:, _TET_EDGES[:, 1]]])
-    extra = points[cells[:, 4:10]]  # (C, 6, 3)
-    dist = np.linalg.norm(extra[:, :, None, :] - mid[:, None, :, :], axis=-1)  # (C, 6, 6)
-    nearest = dist.argmin(axis=2)
-    ok = (np.sort(nearest, axis=1) == np.arange(6)).all(axis=1)
-    c = np.flatnonzero(ok)
-    edge = _TET_EDGES[nearest[c]]  # (c, 6, 2) corner positions
-    a = np.take_along_axis(corners[c], edge[..., 0], axis=1)
-    b = np.take_along_axis(corners[c], edge[..., 1], axis=1)
-    ends = np.sort(np.stack([a, b], axis=-1), axis=-1)
-    rows = np.concatenate([cells[c, 4:10, None], ends], axis=-1).reshape(-1, 3)
-    _, first = np.unique(rows[:, 0], return_index=True)  # a point shared by cells: once
-    return rows[first].astype(np.int64)
+    a, b = corners[:, _TET_EDGES[:, 0]], corners[:, _TET_EDGES[:, 1]]  # (C, 6)
+    length = np.linalg.norm(points[b] - points[a], axis=-1)
+    off = np.linalg.norm(points[cells[:, 4:10]] - 0.5 * (points[a] + points[b]), axis=-1)
+    rel = off / np.where(length > 0, length, np.inf)
+    flat = np.stack([cells[:, 4:10], np.minimum(a, b), np.maximum(a, b)], axis=-1).reshape(-1, 3)
+    rel = rel.ravel()
+    point_ids, n_edges = np.unique(np.unique(flat, axis=0)[:, 0], return_counts=True)
+    refused = np.union1d(flat[rel > MIDSIDE_OFF_EDGE, 0], point_ids[n_edges > 1])
+    refused = np.union1d(refused, np.intersect1d(flat[:, 0], keep))
+    good = ~np.isin(flat[:, 0], refused)
+    _, first = np.unique(flat[good, 0], return_index=True)  # a point shared by cells: once
+    out = flat[good][first].astype(np.int64)
+    curved = np.unique(flat[good & (rel > 1e-6), 0])
+    if len(curved):
+        log.warning(
+            "%s: %d mid-side points lie off their straight edge's midpoint (up to %.2g of the "
+            "edge's length): the elements are solved with straight edges",
+            path,
+            len(curved),
+            float(rel[good].max()),
+        )
+    if len(refused):
+        log.warning(
+            "%s: %d mid-side points are not on their edge in meshio's order of a quadratic "
+            "tetrahedron's points (more than %g of the edge's length from its midpoint, on "
+            "different edges in different cells, or a corner of another tetrahedron): they "
+            "are not solved",
+            path,
+            len(refused),
+            MIDSIDE_OFF_EDGE,
+        )
+    return out
 
 
 def read_mesh(

@@ -212,6 +212,14 @@ def test_the_source_revision_tells_one_tree_s_edits_from_another_s(tmp_path):
     (tmp_path / "untracked.txt").write_text("not code")  # not an edit to the tree
     one, again = _source_revision(tmp_path), _source_revision(tmp_path)
     assert one["uncommitted_edits"] and one == again and one["commit"] == clean["commit"]
+    # review BV, F3: the user's diff settings (an external tool that prints nothing, colour,
+    # no prefixes) neither blank the digest nor change it
+    (tmp_path / "quiet.sh").write_text("#!/bin/sh\nexit 0\n")
+    (tmp_path / "quiet.sh").chmod(0o755)
+    git("config", "diff.external", str(tmp_path / "quiet.sh"))
+    git("config", "color.diff", "always")
+    git("config", "diff.noprefix", "true")
+    assert _source_revision(tmp_path) == one
     (tmp_path / "a.py").write_text("x = 3\n")
     other = _source_revision(tmp_path)
     assert other["edits_sha256"] != one["edits_sha256"]

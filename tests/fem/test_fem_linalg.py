@@ -1,5 +1,6 @@
 """Sparse direct solvers: agreement of PARDISO and SuperLU, bitwise reproducibility."""
 
+import os
 import subprocess
 import sys
 
@@ -8,6 +9,9 @@ import pytest
 import scipy.sparse as sp
 
 from fem import linalg
+
+#: What `make test` sets to one thread per worker
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 
 def _convection_diffusion(m: int) -> sp.csr_matrix:
@@ -107,16 +111,22 @@ def test_pardiso_survives_a_change_of_mkl_thread_count():
                             size_mm=16.0)
         model = fem.Model.homogeneous(mesh, fem.NeoHookean(420.0, nu=0.49))
         disc = fem.discretize(mesh, model.support)
-        u = []
+        from threadpoolctl import threadpool_info
+        u, counts = [], []
         for k in range(3):  # the thread count alternates between solves
-            limit = 1 if k % 2 else None
-            with threadpool_limits(limits=limit):
+            with threadpool_limits(limits=1 if k % 2 else 2):
+                counts.append([p["num_threads"] for p in threadpool_info()
+                               if p["internal_api"] == "mkl"])
                 u.append(fem.solve(model, gravity=[0, 1, 0], disc=disc).displacement_mm)
+        assert counts[0] != counts[1], counts  # the count did change (review BV, F5)
         assert np.allclose(u[0], u[1], atol=1e-9) and np.allclose(u[0], u[2], atol=1e-9)
         print("ok")
         """
     )
+    # without the thread variables `make test` sets (review BV, F5: MKL stayed at 1 thread)
+    env = {k: v for k, v in os.environ.items() if k not in THREAD_VARIABLES}
     proc = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False
-    )
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False,
+        env=env,
+    )  # fmt: skip
     assert proc.returncode == 0 and "ok" in proc.stdout, proc.stderr
