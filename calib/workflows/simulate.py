@@ -706,9 +706,9 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
     unsolved = points.n_points - mesh.n_nodes - len(midside_u)
     if unsolved:
         log.warning(
-            "%s: %d of its %d points are in no tetrahedron (or are mid-side points of a "
-            "quadratic one too curved to match its edges) and were not solved: their "
-            "displacement_mm in %s is NaN",
+            "%s: %d of its %d points are in no tetrahedron (or are mid-side points not on "
+            "their edge, as said above) and were not solved: their displacement_mm in %s "
+            "is NaN",
             mesh_path,
             unsolved,
             points.n_points,
