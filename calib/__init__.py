@@ -9,6 +9,8 @@ same functions)::
     result = calib.calibrate("twin/scans", "work")         # fit c1, write WORK/
     work = calib.load_work("work")                        # everything in WORK/, with plots
     calib.diagnose("work")                                # the missing-effect diagnosis
+    calib.simulate("work/calibration/reference_mesh.vtu", "deformed.vtu",
+                   c1_pa=work.c1_pa, gravity=(0, 1, 0))    # one posture, any mesh
     calib.gravity_sweep("work", "sweep.zarr", plan="sphere:48")   # ``phantom-calib sweep``
     calib.train_surrogate("sweep.zarr", "model.pt")       # then calib.load_surrogate
 
@@ -28,6 +30,7 @@ __all__ = [
     "Calibration",
     "CalibrationOptions",
     "DiagnosisOptions",
+    "SimulateOptions",
     "SweepOptions",
     "calibrate",
     "check_postures",
@@ -40,6 +43,7 @@ __all__ = [
     "load_session",
     "load_surrogate",
     "load_work",
+    "simulate",
     "synthesize",
     "train_surrogate",
     "validate",
@@ -50,6 +54,7 @@ _LAZY = {
     "Calibration": ("calib.fitting", "Calibration"),
     "CalibrationOptions": ("calib.fitting", "CalibrationOptions"),
     "DiagnosisOptions": ("calib.discrepancy", "DiagnosisOptions"),
+    "SimulateOptions": ("calib.workflows.simulate", "SimulateOptions"),
     "SweepOptions": ("calib.workflows.sweep", "SweepOptions"),
     "fit": ("calib.fitting", "fit"),
     "evaluate": ("calib.evaluation", "evaluate"),
@@ -62,6 +67,7 @@ _LAZY = {
     "validate": ("calib.api", "validate"),
     "load_work": ("calib.api", "load_work"),
     "diagnose": ("calib.api", "diagnose"),
+    "simulate": ("calib.api", "simulate"),
     "gravity_sweep": ("calib.api", "gravity_sweep"),
     "train_surrogate": ("calib.api", "train_surrogate"),
     "load_surrogate": ("calib.api", "load_surrogate"),

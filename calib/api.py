@@ -2,7 +2,8 @@
 
 They wrap :mod:`calib.workflows` (which write WORK/ exactly as the command line does):
 ``ingest`` returns an :class:`calib.data.ingest.IngestResult`, ``calibrate``,
-``validate``, ``diagnose``, ``gravity_sweep`` and ``train_surrogate`` their records (dicts),
+``validate``, ``diagnose``, ``simulate``, ``gravity_sweep`` and ``train_surrogate`` their
+records (dicts),
 ``load_work`` a :class:`calib.notebook.Work` and ``load_surrogate`` an
 :class:`nn.Surrogate`. ``gravity_sweep`` is the ``sweep`` command (``calib.sweep`` is the
 subpackage of its plans and store).
@@ -24,6 +25,7 @@ if TYPE_CHECKING:  # annotations only: ``import calib`` stays light
     from .discrepancy import DiagnosisOptions
     from .fitting import CalibrationOptions
     from .notebook import Work
+    from .workflows.simulate import SimulateOptions
     from .workflows.sweep import SweepOptions
 
 __all__ = [
@@ -33,6 +35,7 @@ __all__ = [
     "ingest",
     "load_surrogate",
     "load_work",
+    "simulate",
     "train_surrogate",
     "validate",
 ]
@@ -213,6 +216,51 @@ def diagnose(
     from .workflows.diagnose import run_diagnosis
 
     return run_diagnosis(work, _options(DiagnosisOptions, options, fields), progress=progress)
+
+
+def simulate(
+    mesh: str | Path,
+    out: str | Path,
+    *,
+    options: SimulateOptions | None = None,
+    **fields: Any,
+) -> dict:
+    """Deform a mesh under gravity at a given c1 (``phantom-calib simulate``).
+
+    Parameters
+    ----------
+    mesh : str or Path
+        A tetrahedral mesh, mm (any format meshio reads, or TetGen ``.node``/``.ele``):
+        a calibration's ``WORK/calibration/reference_mesh.vtu``, or one of your own.
+    out : str or Path
+        The deformed mesh to write (its format from the suffix), in the input's point
+        numbering, with ``RESULT.json``'s record beside it (``out`` with ``.json``).
+    options : calib.SimulateOptions, optional
+        The options; or give their fields as keywords (``c1_pa=550.0,
+        gravity=(0, 1, 0)``), not both. ``c1_pa`` has no default.
+    **fields
+        :class:`calib.SimulateOptions` fields by name, when ``options`` is not given.
+
+    Returns
+    -------
+    dict
+        The ``RESULT.json`` record (``max_displacement_mm``, ``nipple_displacement_mm``,
+        ``back``, ``converged``, ...; README, "simulate").
+
+    Raises
+    ------
+    TypeError
+        Both ``options`` and ``fields`` are given, ``options`` is not a
+        ``SimulateOptions``, or a field name is unknown (or ``c1_pa`` missing).
+    ValueError
+        An option out of range; ``fem.MeshError`` (a ``ValueError``) for a mesh that
+        cannot be solved, naming the file.
+    fem.ConvergenceError
+        The load could not be applied.
+    """
+    from .workflows.simulate import SimulateOptions, run_simulate
+
+    return run_simulate(mesh, out, _options(SimulateOptions, options, fields))
 
 
 def gravity_sweep(

@@ -176,9 +176,23 @@ class Work:
         return fig
 
     def _scan(self, name: str):
+        """The validation of scan ``name``; ``EvaluationError`` for another name.
+
+        Review BW, F2: a ``KeyError`` where ``plot_error_by_displacement`` and the README
+        give ``EvaluationError`` for the same mistake; the reference scan is said to be it.
+        """
+        from .evaluation import EvaluationError
+
         if name not in self.validation.scans:
-            raise KeyError(
-                f"no saved state for scan {name!r}; scans: {sorted(self.validation.scans)}"
+            role = self.scans.get(name)
+            why = (
+                "it is the reference scan: the model's stress-free geometry, no error map"
+                if role == "reference"
+                else "unknown scan"
+            )
+            raise EvaluationError(
+                f"no error map of scan {name!r} ({why}); scans with one: "
+                f"{sorted(self.validation.scans)}"
             )
         return self.validation.scans[name]
 

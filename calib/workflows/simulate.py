@@ -610,7 +610,7 @@ def _mesh_files(mesh_path: str | Path) -> dict[str, Path]:
     return {"mesh": path, "mesh_companion": path.with_name(path.stem + other)}
 
 
-def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict:
+def run_simulate(mesh_path: str | Path, out_path: str | Path, opts: SimulateOptions) -> dict:
     """Solve the gravity load on a mesh file and write ``out_path`` and its ``.json``.
 
     The result is written in the input file's point numbering: point ``i`` of
@@ -625,6 +625,9 @@ def run_simulate(mesh_path: Path, out_path: Path, opts: SimulateOptions) -> dict
         The summary written to ``RESULT.json``.
     """
     from fem.io import read_mesh, write_mesh
+
+    # review BW, F1: a str out_path solved the whole posture, then failed writing
+    mesh_path, out_path = Path(mesh_path), Path(out_path)
 
     check_output(Path(out_path))
     written = {Path(out_path).resolve(), Path(out_path).with_suffix(".json").resolve()}

@@ -178,8 +178,13 @@ def test_work_folder_api(nipple_run):
     assert "<table>" in w._repr_html_() and "| tilt_50 |" in w.validation_table()
     for fig in (w.plot_error_map("tilt_50"), w.plot_error_by_displacement(), w.plot_profile()):
         assert fig.axes
-    with pytest.raises(KeyError, match="left_lateral"):
+    from calib.evaluation import EvaluationError
+
+    # review BW, F2: a KeyError, where the README says EvaluationError
+    with pytest.raises(EvaluationError, match="'left_lateral' .it is the reference scan"):
         w.plot_error_map("left_lateral")  # the reference has no simulated state
+    with pytest.raises(EvaluationError, match="'tilt_99' .unknown scan"):
+        w.plot_error_map("tilt_99")
     # review AI: Work == Work raised on the arrays, which a caller could overwrite
     assert w == w and w != calib.load_work(work) and w.folder == w.folder
     state = w.folder.states["tilt_50"]

@@ -325,3 +325,25 @@ def test_mid_side_points_off_their_slot_s_edge_or_at_a_corner_are_not_solved(tmp
     assert summary["unsolved_points"] == 0  # the corner is a node: solved as one
     out = meshio.read(tmp_path / "m_out.vtu")
     np.testing.assert_allclose(out.points[k], points[k] + out.point_data["displacement_mm"][k])
+
+
+def test_calib_simulate_is_the_command_from_python_with_str_paths(tmp_path):
+    # review BW, F1: no calib.* function simulated a posture, and the workflow given a str
+    # --out solved the whole posture, then failed writing (AttributeError)
+    import calib
+
+    box = box_mesh(SIZE_MM, POINTS)
+    mesh = _write(tmp_path / "box.vtu", box.nodes_mm, box.tets)
+    record = calib.simulate(
+        str(mesh), str(tmp_path / "py.vtu"), c1_pa=500.0, gravity=(1, 0, 0), back_plane="z=0"
+    )
+    assert record["converged"] and (tmp_path / "py.vtu").is_file()
+    assert (
+        json.loads((tmp_path / "py.json").read_text())["max_displacement_mm"]
+        == (record["max_displacement_mm"])
+    )
+    assert _run(mesh, tmp_path / "cli.vtu", "--back-plane", "z=0").exit_code == 0
+    cli = json.loads((tmp_path / "cli.json").read_text())
+    assert cli["max_displacement_mm"] == pytest.approx(record["max_displacement_mm"], rel=1e-12)
+    with pytest.raises(TypeError, match="not both"):
+        calib.simulate(mesh, tmp_path / "x.vtu", options=calib.SimulateOptions(500.0), nu=0.4)
