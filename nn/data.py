@@ -109,6 +109,13 @@ class SweepData:
     attrs: dict = field(repr=False, default_factory=dict)
     failed_load_per_m: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 3)))
 
+    def __repr__(self) -> str:  # review BW, F4: 39,000 characters of arrays
+        roles = ", ".join(f"{int(np.sum(self.role == r))} {r}" for r in np.unique(self.role))
+        return (
+            f"SweepData({len(self)} scenarios: {roles or 'none'}; {len(self.nodes_mm)} nodes, "
+            f"{len(self.tets)} tetrahedra; {str(self.path)!r})"
+        )
+
     def __len__(self) -> int:
         return len(self.index)
 

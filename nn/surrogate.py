@@ -169,6 +169,16 @@ class Prediction:
     tumour_mm: np.ndarray | None
     nipple_mm: np.ndarray | None
 
+    def __repr__(self) -> str:  # review BW, F4: 17,000 characters of arrays in a notebook
+        b, n_surface = self.surface_mm.shape[:2]
+        nodes = "surface only" if self.nodes_mm is None else f"{self.nodes_mm.shape[1]} nodes"
+        largest = float(np.linalg.norm(self.surface_mm, axis=-1).max(initial=0.0))
+        tumour = "" if self.tumour_mm is None else ", tumour"
+        return (
+            f"Prediction({b} queries, {nodes}, {n_surface} surface vertices{tumour}; "
+            f"largest surface displacement {largest:.3g} mm)"
+        )
+
 
 def _chord_deg(chord: np.ndarray) -> np.ndarray:
     """The angle (degrees) between unit vectors a chord ``|a - b|`` apart."""
@@ -388,6 +398,17 @@ class Surrogate:
             b["back_nodes"],
         )
         self.R_ref_from_phantom = np.asarray(meta["model"]["R_ref_from_phantom"], float)
+
+    def __repr__(self) -> str:  # review BW, F4: the default <object at 0x...>
+        trained = self.meta.get("trained") or {}
+        lo, hi = trained.get("c1_pa", [float("nan")] * 2)
+        valid = ((self.report.get("errors") or {}).get("validation") or {}).get("surface_mean_mm")
+        where = "" if self.path is None else f", {Path(self.path).name}"
+        said = "" if valid is None else f", validation surface mean {valid:.2g} mm"
+        return (
+            f"Surrogate({self.kind!r}, {len(trained.get('directions_ref', []))} training "
+            f"directions, c1 {lo:.1f}–{hi:.1f} Pa{said}{where})"
+        )
 
     @classmethod
     def from_fit(cls, fit, data: SweepData) -> Surrogate:

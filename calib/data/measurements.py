@@ -125,6 +125,11 @@ class Measurements:
     scans: dict[str, ScanMeasurement]
     density_kg_m3: float | None = None
 
+    def __repr__(self) -> str:  # review BW, F4: thousands of characters of arrays
+        scans = ", ".join(f"{n} ({s.role})" for n, s in self.scans.items())
+        density = "" if self.density_kg_m3 is None else f"; {self.density_kg_m3:g} kg/m^3"
+        return f"Measurements({scans}{density})"
+
     def with_role(self, role: str) -> list[ScanMeasurement]:
         """Scans of one role.
 

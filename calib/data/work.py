@@ -95,6 +95,12 @@ class WorkFolder:
     mesh: object
     states: dict
 
+    def __repr__(self) -> str:  # review BW, F4: 25,000 characters of record and arrays
+        return (
+            f"WorkFolder({str(self.path)!r}: c1 = {self.c1_pa:.1f} Pa, "
+            f"{len(self.measurements.scans)} scans, {len(self.states)} solved states)"
+        )
+
     @property
     def c1_pa(self) -> float:
         """The calibrated c1 (Pa)."""

@@ -175,6 +175,10 @@ def test_work_folder_api(nipple_run):
     doc, _, work = nipple_run
     w = calib.load_work(work)
     assert w.c1_pa == doc["c1_pa"] and "tilt_50 (validation)" in repr(w)
+    # review BW, F4: the folder's and the measurements' reprs dumped records and arrays
+    assert repr(w.folder).startswith(f"WorkFolder({str(w.folder.path)!r}: c1 = ")
+    assert "tilt_50 (validation)" in repr(w.folder.measurements)
+    assert len(repr(w.folder)) < 300 and len(repr(w.folder.measurements)) < 300
     assert "<table>" in w._repr_html_() and "| tilt_50 |" in w.validation_table()
     for fig in (w.plot_error_map("tilt_50"), w.plot_error_by_displacement(), w.plot_profile()):
         assert fig.axes

@@ -243,6 +243,21 @@ def test_torchscript_file_round_trip(ours, baseline, tmp_path):
         nn.load_surrogate(tmp_path / "bare.pt")
 
 
+def test_a_notebook_shows_surrogates_predictions_and_sweeps_in_one_line(ours, baseline, box_data):
+    # review BW, F4: a Surrogate showed <... object at 0x...>, a Prediction 17,000
+    # characters of arrays, a SweepData 39,000
+    for sur in (ours, baseline):
+        text = repr(sur)
+        assert text.startswith(f"Surrogate('{sur.kind}', 46 training directions, c1 ")
+        assert "object at 0x" not in text and len(text) < 200
+    p = ours.predict(9.81 * np.array([[np.cos(0.35), 0.0, np.sin(0.35)], [0.0, 1.0, 0.0]]))
+    assert repr(p).startswith(f"Prediction(2 queries, {len(box_data.nodes_mm)} nodes, ")
+    assert len(repr(baseline.predict([0.0, 0.0, 0.0]))) < 200
+    text = repr(box_data)
+    assert text.startswith(f"SweepData({len(box_data)} scenarios: 46 train, 48 validation; ")
+    assert len(text) < 300
+
+
 def test_bad_queries(ours, box_data):
     with pytest.raises(ValueError, match="NaN"):
         ours.predict([np.nan, 0.0, 9.81])
