@@ -283,7 +283,8 @@ def gravity_sweep(
         The options; or give their fields as keywords (``plan="sphere:24"``), not both.
     progress : callable, optional
         Called with a dict after each solved scenario (see
-        :func:`calib.workflows.sweep.run_sweep`).
+        :func:`calib.workflows.sweep.run_sweep`); ``calib.sweep.progress_lines(print)``
+        turns them into lines of text, as the other stages' callbacks get.
     **fields
         :class:`calib.SweepOptions` fields by name, when ``options`` is not given.
 

@@ -60,7 +60,9 @@ print(f"size {_settings.SIZE}, work folder {work}")
 # leaves a few sagittal directions unsolved (README, Status): the cell says how many.
 
 # %%
-summary = calib.gravity_sweep(work, out / "sweep", plan="dissertation", workers=2)
+summary = calib.gravity_sweep(
+    work, out / "sweep", plan="dissertation", workers=2, progress=calib.sweep.progress_lines(print)
+)
 print(
     f"{summary['solved']} of {summary['n_scenarios']} scenarios solved, "
     f"{summary['failed']} with no FE solution, {summary['pending']} pending"

@@ -9,6 +9,7 @@ store (:mod:`calib.sweep.store`, whose docstring documents the format) that
 from .continuation import Continuation, plan_continuation
 from .model import CalibrationMissingError, SweepModel, load_sweep_model
 from .plans import Plan, PlanError, make_plan, parse_c1_axis
+from .progress import progress_lines
 
 __all__ = [
     "CalibrationMissingError",
@@ -20,4 +21,5 @@ __all__ = [
     "make_plan",
     "parse_c1_axis",
     "plan_continuation",
+    "progress_lines",
 ]

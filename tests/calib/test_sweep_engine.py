@@ -535,3 +535,25 @@ def test_a_store_swept_with_another_support_node_set_is_refused(work, tmp_path, 
     monkeypatch.setattr(calib.sweep, "load_sweep_model", half_the_back)
     with pytest.raises(StoreMismatchError, match=r"another node set mesh/back_nodes"):
         run_sweep(work, out, PLAN)
+
+
+def test_progress_lines_give_a_notebook_text_from_the_sweep_s_events():
+    # review BW, F5: progress=print printed the sweep's raw dicts; the other stages' lines
+    import doctest
+
+    import calib.sweep.progress
+    from calib.sweep import progress_lines
+
+    assert doctest.testmod(calib.sweep.progress).failed == 0
+    lines = []
+    cb = progress_lines(lines.append)
+    cb({"start": True, "done": 0, "total": 40})  # about every 5 %: every 2nd
+    ev = {"ok": True, "newton_iterations": 3, "wall_s": 0.25, "worker": "w", "message": ""}
+    for k in range(1, 41):
+        ok = k != 7
+        cb(ev | {"done": k, "total": 40, "index": 100 + k, "ok": ok, "message": "no FE"})
+    assert lines[0] == "sweep: 40 scenarios to solve"
+    assert "7/40: scenario 107 FAILED: no FE" in lines
+    assert len(lines) == 1 + 20 + 1 and lines[-1].startswith("40/40: scenario 140 solved, 3 ")
+    with pytest.raises(ValueError, match="every must be a positive number"):
+        progress_lines(print, every=0)
