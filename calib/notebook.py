@@ -75,7 +75,25 @@ class Work:
 
     @classmethod
     def load(cls, path: str | Path) -> Work:
-        """Read a work folder that ``phantom-calib calibrate`` wrote."""
+        """Read a work folder that ``phantom-calib calibrate`` wrote (``calib.load_work``).
+
+        Parameters
+        ----------
+        path : str or Path
+            The work folder.
+
+        Returns
+        -------
+        Work
+
+        Raises
+        ------
+        FileNotFoundError
+            No ``calibration.json``, or a file it names is missing.
+        calib.io.StaleOutputError
+            The folder's parts come from different runs (see
+            :func:`calib.data.work.read_work`).
+        """
         show_figures_in_jupyter()
         return cls(read_work(path))
 
@@ -108,13 +126,26 @@ class Work:
         return self._validation
 
     def validation_table(self) -> str:
-        """The validation table as Markdown (Jupyter: ``display(Markdown(...))``)."""
+        """The validation table as Markdown (Jupyter: ``display(Markdown(...))``).
+
+        Returns
+        -------
+        str
+            One row per scan: surface, nipple and tumour errors (mm) with their 95 % bands
+            and the dissertation's figures beside them, as ``validate`` prints them.
+        """
         from .report.validation import validation_markdown
 
         return validation_markdown(self.validation)
 
     def error_scale_mm(self) -> float:
-        """The colour-scale top (mm) that validate's error maps share (pass it as ``vmax``)."""
+        """The colour-scale top (mm) that validate's error maps share.
+
+        Returns
+        -------
+        float
+            mm; pass it as :meth:`plot_error_map`'s ``vmax`` to compare scans on one scale.
+        """
         from .report.validation import validation_error_scale_mm
 
         return validation_error_scale_mm(self.validation, self.folder.measurements.scans)
@@ -123,6 +154,26 @@ class Work:
         """The measured surface of ``scan`` coloured by its signed error (matplotlib Figure).
 
         Red where the scan lies outside the model, blue inside (the reports' maps).
+
+        Parameters
+        ----------
+        scan : str
+            A calibration or validation scan (not the reference: the model's geometry).
+        vmax : float, optional
+            The colour scale's top, mm (default: the scan's own; :meth:`error_scale_mm`
+            gives validate's shared one).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            Made without pyplot (display it, or ``fig.savefig``).
+
+        Raises
+        ------
+        calib.evaluation.EvaluationError
+            ``scan`` has no error map (an unknown name, or the reference scan).
+        ValueError
+            ``vmax`` is not a positive number.
         """
         from .report.validation import error_surface_figure
 
@@ -135,7 +186,22 @@ class Work:
     def plot_error_by_displacement(self, scans: str | list[str] | None = None):
         """Error histograms by displacement magnitude (matplotlib Figure).
 
-        ``scans``: a name or names of validated scans; default every one.
+        Parameters
+        ----------
+        scans : str or list of str, optional
+            A name or names of validated scans; default every one.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            Made without pyplot.
+
+        Raises
+        ------
+        calib.evaluation.EvaluationError
+            A name that is not a validated scan.
+        TypeError
+            ``scans`` is neither a name nor a list of names.
         """
         from .evaluation import scan_names
         from .report.validation import error_by_displacement_figure
@@ -144,7 +210,14 @@ class Work:
         return error_by_displacement_figure([self._scan(n) for n in names])
 
     def plot_profile(self):
-        """The objective over c1 (the likelihood profile's points), matplotlib Figure."""
+        """The objective over c1: the optimiser's evaluations and the likelihood profile.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            Made without pyplot; c1 (Pa) against the objective (mm^2), with the fitted c1
+            and its 95 % interval.
+        """
         from matplotlib.figure import Figure
 
         rows = [r for r in self.record.get("profile", []) if not r.get("failed")]
