@@ -22,6 +22,7 @@ import numpy as np
 from ..discrepancy.refit import interval_text, parameter_text
 from ..stats.noise import SMOOTH_TAKEN_FOR_NOISE
 from .maps import (
+    VIEWS,
     draw_surface_views,
     face_error_mm,
     map_figure,
@@ -83,10 +84,14 @@ def residual_maps_figure(name: str, role: str, scan, before_mm, after_mm, R, *, 
         # review AX: before and after looked alike where the mean moved 0.207 -> 0.202 mm
         change = np.asarray(after_mm, float) - np.asarray(before_mm, float)
         d = face_error_mm(change, faces, scan.scored, signed=True)
-        top = max(float(np.percentile(np.abs(d), 99)) if d.size else 0.0, 1e-3)
+        # review BY, F4: a scale floored at 1 micrometre painted changes far below the
+        # imaging noise at full colour; now at least a tenth of the errors' shared scale
+        largest = float(np.abs(d).max()) if d.size else 0.0
+        top = max(float(np.percentile(np.abs(d), 99)) if d.size else 0.0, vmax / 10.0)
         moved = signed_error_mapper(top)
         ax = draw_surface_views(fig, (n_rows, 2, 2 * n_rows - 1), surface, d, moved,
-                                "change, after - before (its own scale)")  # fmt: skip
+                                f"change, after - before (its own scale, at least a tenth "
+                                f"of the errors'; max |change| {largest:.3f} mm)")  # fmt: skip
         signed_colorbar(fig, moved, ax, saturated=bool(np.any(np.abs(d) > top)), shrink=0.6,
                         label="change of the distance (mm)\n-: the final model moved outward "
                         "here")  # fmt: skip
@@ -107,17 +112,28 @@ def localisation_figure(scan_map, R):
     p = np.asarray(scan_map.points_mm, float) @ np.asarray(R, float)
     fig = Figure(figsize=(10, 4.6), layout="constrained")
     axes = fig.subplots(1, 2)
-    for ax, (i, j), lab in zip(axes, ((0, 1), (0, 2)), (("x", "y"), ("x", "z")), strict=True):
-        order = np.argsort(p[:, 3 - i - j])
+    # the surface maps' two views (VIEWS): from +z, x right and y up; from -y, x right and
+    # z up. The points nearest the eye are drawn last (review BY, F2: the side view sorted
+    # by +y and so showed the +y flank, the maps the -y one)
+    nearest_last = (p[:, 2], -p[:, 1])
+    panels = zip(axes, ((0, 1), (0, 2)), nearest_last, VIEWS, strict=True)
+    for ax, (i, j), depth, (title, *_view) in panels:
+        order = np.argsort(depth, kind="stable")
         sc = ax.scatter(p[order, i], p[order, j], c=scan_map.z[order], s=5, cmap=Z_CMAP,
                         vmin=-Z_LIMIT, vmax=Z_LIMIT)  # fmt: skip
         ax.set_aspect("equal")
-        ax.set_xlabel(f"{lab[0]} (mm, phantom frame)")
-        ax.set_ylabel(f"{lab[1]} (mm)")
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel(f"{'xyz'[i]} (mm, phantom frame)")
+        ax.set_ylabel(f"{'xyz'[j]} (mm, phantom frame)")
     # the sign said (review AX): the residual is the scan's distance along the model
-    # surface's outward normal (calib.model.residuals)
+    # surface's outward normal (calib.model.residuals); beyond the scale, arrows (BY, F3)
+    top = float(np.nanmax(np.abs(scan_map.z))) if np.size(scan_map.z) else 0.0
     fig.colorbar(
-        sc, ax=axes, label="local z of the smoothed residual\n(+: the scan lies outside the model)"
+        sc,
+        ax=axes,
+        extend="both" if top > Z_LIMIT else "neither",
+        label=f"local z of the smoothed residual (largest |z| {top:.1f})\n"
+        "(+: the scan lies outside the model)",
     )
     worst = max(scan_map.regions, key=lambda r: abs(r.z) if math.isfinite(r.z) else -1)
     fig.suptitle(f"{scan_map.name}: where model and scan disagree (kernel "
@@ -148,20 +164,31 @@ def gap_figure(gap_json: dict, floor_mm: float, named: tuple[str, ...] = ()):
     fig = Figure(figsize=(7, 3.8), layout="constrained")
     ax = fig.subplots()
     x = np.arange(len(names))
-    ax.bar(x - 0.2, before, 0.4, label="c1 alone (before)", color="0.6")
-    bars = ax.bar(x + 0.2, after, 0.4, label="final model (after)", color="#3b6ea8")
+    # review BY, F5: with nothing named, "final model" suggested something was added
+    after_label = f"with {' + '.join(named)} (after)" if named else "c1 re-fitted (after)"
+    ax.bar(x - 0.2, before, 0.4, label="c1 alone, calibrated (before)", color="0.6")
+    bars = ax.bar(x + 0.2, after, 0.4, label=after_label, color="#3b6ea8")
+    held = False
     for k, n in enumerate(names):
         if gap_json[n]["role"] == "holdout":
+            held = True
             bars[k].set_hatch("//")
             bars[k].set_edgecolor("white")
-    ax.axhline(floor_mm, color="k", ls="--", lw=1, label="noise floor (mean |e|)")
+    ax.axhline(floor_mm, color="k", ls="--", lw=1,
+               label="noise floor (mean |e|, pooled over the diagnosis scans)")  # fmt: skip
+    handles = ax.get_legend_handles_labels()[0]
+    if held:  # review BY, F6: the hatch was in no legend
+        from matplotlib.patches import Patch
+
+        handles.append(Patch(facecolor="#3b6ea8", hatch="//", edgecolor="white",
+                             label="hatched: held out (never fitted)"))  # fmt: skip
     ax.set_xticks(x, [f"{n}\n({gap_json[n]['role']})" for n in names])
     ax.set_ylabel("mean |residual| (mm, curved model surface)")
-    ax.legend(fontsize=8)
+    ax.legend(handles=handles, fontsize=8)
     ax.set_title(
         f"the gap before and after adding {' + '.join(named)}"
         if named
-        else "nothing named: c1 alone (before) and refitted (after)"
+        else "nothing named: c1 alone, calibrated (before) and re-fitted (after)"
     )
     return fig
 
@@ -410,6 +437,11 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
         f"<details><summary>every column</summary>{columns}</details>"
         f"<h2>Confirmation (full FE refits)</h2>{cands}"
         f"<h2>Localisation (at the c1-only refit)</h2>{loc}"
+        # review BY, F1: a null set's rim read z -23, p 7e-121, beside `no missing effect`
+        "<p>z and p here are pointwise, of the kernel-smoothed residual: they say where "
+        "model and scan disagree, not whether an effect is missing; they do not enter the "
+        "verdict, which the screening and the confirmation above decide. The rim band also "
+        "carries the model mesh's own discretisation error at the clamped edge.</p>"
         f"<p>{esc(_rim(doc))}</p>"
         f"{'<p>' + esc(_profile(doc)) + '</p>' if _profile(doc) else ''}"
         f"<h2>Figures</h2>{figs}"

@@ -899,7 +899,39 @@ def test_the_gap_figure_says_what_after_adds():
     assert [b.get_height() for b in before] == [0.2, 0.2]
     assert [b.get_height() for b in after] == [0.1, 0.1]
     assert after[1].get_hatch() == "//" and after[0].get_hatch() is None  # the holdout
-    assert gap_figure(gap, 0.05).axes[0].get_title().startswith("nothing named")
+    legend = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert "with skin (after)" in legend and "hatched: held out (never fitted)" in legend
+    plain = gap_figure(gap, 0.05).axes[0]
+    assert plain.get_title().startswith("nothing named")
+    # review BY, F5: nothing was added, so "after" is c1 re-fitted, not a "final model"
+    assert "c1 re-fitted (after)" in [t.get_text() for t in plain.get_legend().get_texts()]
+
+
+def test_the_localisation_map_shows_the_maps_flank_and_says_it_saturates():
+    # review BY: the side panel drew the +y points over the -y ones (the surface maps show
+    # the -y flank: a view from -y), and |z| beyond the scale's 4 looked like 4
+    from types import SimpleNamespace
+
+    from calib.report.diagnosis import Z_LIMIT, localisation_figure
+
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(400, 3))
+    points = 30.0 * u / np.linalg.norm(u, axis=1)[:, None]  # a sphere
+    z = np.where(points[:, 1] < 0, 6.0, -1.0)  # the -y flank far out, the +y one not
+    region = SimpleNamespace(region="rim", z=6.0, mean_mm=0.3)
+    m = SimpleNamespace(name="s", points_mm=points, z=z, regions=(region,), bandwidth_mm=8.0)
+    fig = localisation_figure(m, np.eye(3))
+    front, side = fig.axes[:2]
+    assert (front.get_title(), side.get_title()) == ("front (from the apex)", "side (lateral)")
+    drawn = side.collections[0]
+    last = drawn.get_offsets()[-50:]  # the points drawn last: the -y flank's
+    on_top = np.isin(points[:, [0, 2]].round(9), np.asarray(last).round(9)).all(axis=1)
+    assert np.all(points[on_top, 1] < 0)
+    assert np.all(np.asarray(drawn.get_array())[-50:] == 6.0)
+    assert drawn.colorbar.ax.get_ylabel().startswith(
+        "local z of the smoothed residual (largest |z| 6.0)"
+    )
+    assert max(abs(z)) > Z_LIMIT and drawn.colorbar.extend == "both"
 
 
 def test_an_unexplained_verdict_from_nuisances_alone_says_what_to_try():

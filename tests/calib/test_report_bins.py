@@ -101,3 +101,22 @@ def test_maps_of_a_scan_with_nothing_scored_are_drawn_not_raised():
                          displacement_mm=np.full(4, np.nan))  # fmt: skip
     fig = error_by_displacement_figure([sv])
     assert fig.axes[0].get_title() == "s (validation): no measured point off the back plate"
+
+
+def test_errors_beyond_the_shared_axis_are_in_its_last_bin_and_said():
+    # review BY, F8: the axis stops at the 99.5th percentile and np.histogram dropped the
+    # points beyond it: a panel's bars summed to less than 100 % without a mark
+    from types import SimpleNamespace
+
+    from calib.report.validation import error_by_displacement_figure
+
+    err = np.r_[np.linspace(0.01, 1.0, 999), 5.0]  # one point far out
+    sv = SimpleNamespace(name="s", role="validation", posture_label="25°",
+                         metrics=SimpleNamespace(vertex_error_mm=err),
+                         displacement_mm=np.full(err.size, 3.0))  # fmt: skip
+    ax = error_by_displacement_figure([sv]).axes[0]
+    heights = sum(p.get_height() for p in ax.patches)
+    assert heights == pytest.approx(100.0, rel=1e-12)  # every point counted
+    top = np.percentile(err, 99.5)  # the shared axis's end
+    said = f"the last bin holds the {100 * np.mean(err > top):.1f} % beyond {top:.2f} mm"
+    assert ax.get_xlabel().endswith(said) and said == "the last bin holds the 0.5 % beyond 1.00 mm"
