@@ -367,16 +367,24 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
                          rb, ra, _cut_text(cut)])  # fmt: skip
     gap = _table(["scan", "role", "mean before", "mean after", "p95 before", "p95 after",
                   "mean |residual| before", "after", "cut above floor"], gap_rows)  # fmt: skip
-    eff_rows = [[k, v.get("status"), v.get("statistic"), v.get("p_value"), v.get("p_holm"),
-                 v.get("significant"), v.get("retained_fraction"), v.get("reason") or
-                 v.get("note") or ""] for k, v in doc["effects"].items()]  # fmt: skip
-    effects = _table(["effect", "status", "score t", "p", "p (Holm)", "significant",
+    # review BY, F7: a one-sided p beside a two-sided one read as a larger |t| with a
+    # larger p; each row now says its test
+    sides = {}
+    for c in doc["screening"]["columns"]:
+        sides.setdefault(c.get("effect"), c.get("alternative") or "")
+    eff_rows = [[k, v.get("status"), sides.get(k, ""), v.get("statistic"), v.get("p_value"),
+                 v.get("p_holm"), v.get("significant"), v.get("retained_fraction"),
+                 v.get("reason") or v.get("note") or ""]
+                for k, v in doc["effects"].items()]  # fmt: skip
+    effects = _table(["effect", "status", "test", "score t", "p", "p (Holm)", "significant",
                       "retained", "note"], eff_rows)  # fmt: skip
-    col_rows = [[c["name"], c["statistic"], c["p_value"], c["p_holm"], c["significant"],
-                 c["estimate"], c["standard_error"], c.get("detectable"),
-                 c["retained_fraction"]] for c in doc["screening"]["columns"]]  # fmt: skip
-    columns = _table(["column", "score t", "p", "p (Holm)", "significant", "one-step estimate",
-                      "se", "detectable (80 % power)", "retained"], col_rows)  # fmt: skip
+    col_rows = [[c["name"], c.get("alternative") or "", c["statistic"], c["p_value"],
+                 c["p_holm"], c["significant"], c["estimate"], c["standard_error"],
+                 c.get("detectable"), c["retained_fraction"]]
+                for c in doc["screening"]["columns"]]  # fmt: skip
+    columns = _table(["column", "test", "score t", "p", "p (adjusted)", "significant",
+                      "one-step estimate", "se", "detectable (80 % power)", "retained"],
+                     col_rows)  # fmt: skip
     beyond = doc["scans"].get("explained_margin_mm")
     judged = "explained" if beyond is None else f"explained beyond {beyond:.3g} mm"
     cand_rows = [
@@ -431,7 +439,14 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
         f"{_mesh_paragraph(doc)}"
         "<h2>Screening (score tests, what c1 absorbs projected out, Holm across effects)</h2>"
         "<p>An effect with several columns (per-scan nuisances) is one test: its smallest "
-        "p times its number of columns; Holm runs over the effects.</p>"
+        "p times its number of columns; Holm runs over the effects (a column's adjusted p: "
+        "the larger of its effect's Holm p and its own within-effect one). Test: two-sided, "
+        "or greater / less where the effect's neutral value ends its physical range (the "
+        "physical side only). Retained: the share of the effect's signature left once what "
+        "c1 absorbs is projected out. The one-step estimate is in the effect's screening "
+        "unit (<code>diagnosis.json</code>'s <code>effects.*.screen_unit</code>). Cut above "
+        "floor (the gap table): how much of the mean |residual| above the noise floor the "
+        "final model removes.</p>"
         f"{'<p>' + esc(_mesh_error(doc)) + '</p>' if _mesh_error(doc) else ''}"
         f"{effects}"
         f"<details><summary>every column</summary>{columns}</details>"

@@ -110,7 +110,9 @@ def test_the_hidden_skin_is_named(skin):
     for name in doc["scans"]["diagnosis"]:
         e = doc["gap"][name]["surface_error_mm"]
         assert e["after"]["mean"] < e["before"]["mean"]
-    assert (out / "work" / "diagnosis" / "report.html").is_file()
+    page = (out / "work" / "diagnosis" / "report.html").read_text()
+    # review BY: each screening row says its test; the localisation's z is said pointwise
+    assert "<th>test</th>" in page and "they do not enter the verdict" in page
     assert json.loads(json.dumps(doc, allow_nan=False))["effects"]["density"]["status"] == (
         "not identifiable"
     )
