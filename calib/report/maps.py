@@ -35,7 +35,7 @@ SIGNED_CMAP = "RdBu_r"
 #: What the sign of a surface error means (every signed map's colour bar says it).
 SIGN_NOTE = "+: the scan lies outside the model"
 #: The two views of a surface map: (title, elevation, azimuth), phantom frame.
-VIEWS = (("front (from the apex)", 90.0, -90.0), ("side (lateral)", 0.0, -90.0))
+VIEWS = (("front (from the apex)", 90.0, -90.0), ("side (lateral, from -y)", 0.0, -90.0))
 
 
 def face_error_mm(

@@ -100,7 +100,8 @@ def error_surface_figure(
         sv.metrics.vertex_error_mm,
         R_ref_from_phantom,
         f"{sv.name} ({sv.role}, posture {sv.posture_label}): surface error, mean |e| "
-        f"{mean:.2f} mm (fiducial registration)",
+        f"{mean:.2f} mm (fiducial registration"
+        + ("; colour scale shared by the scans)" if vmax is not None else ")"),
         vmax=vmax,
     )
 

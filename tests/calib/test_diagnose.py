@@ -922,7 +922,10 @@ def test_the_localisation_map_shows_the_maps_flank_and_says_it_saturates():
     m = SimpleNamespace(name="s", points_mm=points, z=z, regions=(region,), bandwidth_mm=8.0)
     fig = localisation_figure(m, np.eye(3))
     front, side = fig.axes[:2]
-    assert (front.get_title(), side.get_title()) == ("front (from the apex)", "side (lateral)")
+    assert (front.get_title(), side.get_title()) == (
+        "front (from the apex)",
+        "side (lateral, from -y)",
+    )
     drawn = side.collections[0]
     last = drawn.get_offsets()[-50:]  # the points drawn last: the -y flank's
     on_top = np.isin(points[:, [0, 2]].round(9), np.asarray(last).round(9)).all(axis=1)
