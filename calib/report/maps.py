@@ -117,6 +117,7 @@ def draw_surface_views(fig, grid: tuple[int, int, int], surface, face_values, ma
     -------
     list of Axes3D
     """
+    from matplotlib.ticker import MaxNLocator
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     v, faces, shade = surface
@@ -138,8 +139,11 @@ def draw_surface_views(fig, grid: tuple[int, int, int], surface, face_values, ma
         ax.set_box_aspect(hi - lo)
         ax.view_init(elev=elev, azim=azim)
         hidden = ax.zaxis if elev == 90.0 else ax.yaxis  # the axis along the line of sight
-        hidden.set_ticklabels([])
+        hidden.set_ticks([])  # review BY, F9: its tick lines combed into the next label
         hidden.label.set_visible(False)
+        for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+            if axis is not hidden:  # review BY, F9: x labels ran together at 20 mm steps
+                axis.set_major_locator(MaxNLocator(5))
         axes.append(ax)
     return axes
 

@@ -120,3 +120,17 @@ def test_errors_beyond_the_shared_axis_are_in_its_last_bin_and_said():
     top = np.percentile(err, 99.5)  # the shared axis's end
     said = f"the last bin holds the {100 * np.mean(err > top):.1f} % beyond {top:.2f} mm"
     assert ax.get_xlabel().endswith(said) and said == "the last bin holds the 0.5 % beyond 1.00 mm"
+
+
+def test_the_axis_along_each_view_s_line_of_sight_has_no_ticks():
+    # review BY, F9: the hidden axis kept its tick lines, a comb running into the next
+    # axis's labels; the visible axes keep at most six ticks (labels ran together)
+    from calib.report.maps import surface_error_figure
+
+    scan = _square_scan()
+    scan.vertices_mm = scan.vertices_mm * 10.0 + np.array([0.0, 0.0, 1.0]) * np.arange(4)[:, None]
+    fig = surface_error_figure(scan, np.zeros(4), np.eye(3), "t")
+    front, side = fig.axes[:2]
+    assert len(front.zaxis.get_ticklocs()) == 0 and len(side.yaxis.get_ticklocs()) == 0
+    for axis in (front.xaxis, front.yaxis, side.xaxis, side.zaxis):
+        assert 0 < len(axis.get_ticklocs()) <= 6
