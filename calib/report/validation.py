@@ -260,10 +260,15 @@ def outline_figure(
         # equal scales by the data limits: the boxes keep the layout's sizes, so the labels
         # stay clear of the legend below (an adjusted box moved the first panel's)
         ax.set_aspect("equal", adjustable="datalim")
-        ax.set_title(f"slice {'ijk'[axis]} = {k} of the scan")
+        # review BY, F12: the slice by its index only
+        ax.set_title(
+            f"slice {'ijk'[axis]} = {k} of the scan ({k * sp[axis]:.1f} mm along {'ijk'[axis]})"
+        )
         # voxel index times spacing along the volume's axes, not patient directions
         ax.set_xlabel(f"along {'ijk'[rest[0]]} (mm)")
         ax.set_ylabel(f"along {'ijk'[rest[1]]} (mm)")
+    from matplotlib.patches import Patch
+
     axes[0].plot([], [], color="#1f77b4", label="measured (segmentation)")
     axes[0].plot(
         [],
@@ -276,9 +281,10 @@ def outline_figure(
         axes[0].plot([], [], "x", color="#d62728", ms=7, mew=1.6, label="simulated tumour "
                      "(projected on each slice)")  # fmt: skip
     # below the panels: inside the first one it hid part of the outlines it explains
-    fig.legend(
-        *axes[0].get_legend_handles_labels(), loc="outside lower center", ncols=4, fontsize=8
-    )
+    handles = axes[0].get_legend_handles_labels()[0]
+    # review BY, F12: the light and dark grey were in no legend
+    handles.insert(0, Patch(facecolor="white", edgecolor="0.6", label="segmented body (light)"))
+    fig.legend(handles=handles, loc="outside lower center", ncols=5, fontsize=8)
     fig.suptitle(f"{sv.name}: measured and simulated outlines through {centre} (scan frame)")
     return fig
 
