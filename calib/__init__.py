@@ -74,12 +74,22 @@ _LAZY = {
 }
 
 
+#: subpackages reachable as ``calib.<name>`` after ``import calib`` alone (imported on
+#: first access: ``calib.sweep.progress_lines`` raised AttributeError without an import)
+_SUBPACKAGES = frozenset(
+    {"stats", "data", "model", "fitting", "discrepancy", "sweep", "report", "twin", "viewer",
+     "workflows", "cli", "evaluation", "validation", "notebook", "io", "api"}
+)  # fmt: skip
+
+
 def __getattr__(name: str):
     if name in _LAZY:
         module, attr = _LAZY[name]
         value = getattr(importlib.import_module(module), attr)
         globals()[name] = value
         return value
+    if name in _SUBPACKAGES:
+        return importlib.import_module(f"calib.{name}")
     raise AttributeError(f"module 'calib' has no attribute {name!r}")
 
 

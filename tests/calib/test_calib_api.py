@@ -15,11 +15,15 @@ def test_every_public_name_resolves_and_import_calib_loads_nothing_heavy():
         "print(heavy)\n"
         "missing = [n for n in calib.__all__ if not callable(getattr(calib, n))]\n"
         "print(missing)\n"
+        # review BW's mend showed `calib.sweep.progress_lines(print)` (README, notebook 03):
+        # a subpackage after `import calib` alone raised AttributeError
+        "print(callable(calib.sweep.progress_lines), calib.stats.__name__)\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    heavy, missing = out.stdout.splitlines()[:2]
+    heavy, missing, sub = out.stdout.splitlines()[:3]
     assert heavy.strip() == "[]", out.stdout
     assert missing.strip() == "[]", out.stdout
+    assert sub.strip() == "True calib.stats", out.stdout
 
 
 def test_diagnose_and_gravity_sweep_take_their_options_or_their_fields(tmp_path, monkeypatch):
