@@ -225,21 +225,31 @@ def _to_tetmesh(m, path: Path, *, orient: bool) -> tuple[TetMesh, InputPoints]:
         )
     tagged = _tags_from_cell_data(m, tet_blocks) or _tags_from_cell_sets(m, tet_blocks, len(tets))
     region, names = tagged or (np.full(len(tets), REGION_IDS["bulk"]), {"bulk": REGION_IDS["bulk"]})
-    keep = np.unique(tets)
-    if keep.size < len(m.points):
-        log.info(
-            "%s: %d nodes not used by any tetrahedron dropped", path, len(m.points) - keep.size
-        )
-    remap = np.full(len(m.points), -1, dtype=np.int64)
-    remap[keep] = np.arange(keep.size)
+    keep, remap = _used_points(path, len(m.points), tets)
     points = np.asarray(m.points, dtype=float)
     if points.shape[1] != 3:
         raise MeshError(f"{path}: expected 3-D points, got {points.shape[1]} coordinates")
     mesh = TetMesh(points[keep], remap[tets], region, names, _node_sets(m, keep))
     tet10 = [np.asarray(m.cells[i].data) for i in tet_blocks if types[i] == "tetra10"]
-    midside = _midside_points(path, points, np.vstack(tet10), keep) if tet10 else None
-    inputs = InputPoints(points, keep) if midside is None else InputPoints(points, keep, midside)
+    if tet10:
+        inputs = InputPoints(points, keep, _midside_points(path, points, np.vstack(tet10), keep))
+    else:
+        inputs = InputPoints(points, keep)
     return (mesh.oriented() if orient else mesh), inputs
+
+
+def _used_points(path, n_points: int, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points some tetrahedron uses, and each point's new number (-1: dropped).
+
+    The file's unused points are dropped, said at info level; ``keep`` is
+    :attr:`InputPoints.node_index`.
+    """
+    keep = np.unique(tets)
+    if keep.size < n_points:
+        log.info("%s: %d nodes not used by any tetrahedron dropped", path, n_points - keep.size)
+    remap = np.full(n_points, -1, dtype=np.int64)
+    remap[keep] = np.arange(keep.size)
+    return keep, remap
 
 
 #: The six edges of a tetrahedron in meshio's (VTK's) order of a quadratic one's mid-side
@@ -332,15 +342,9 @@ def read_mesh(
     path = Path(path)
     if path.suffix.lower() in (".node", ".ele"):
         mesh = read_tetgen(path, orient=orient)
-        points, keep = mesh.nodes_mm.copy(), np.unique(mesh.tets)
+        points = mesh.nodes_mm.copy()
+        keep, remap = _used_points(path, mesh.n_nodes, mesh.tets)
         if keep.size < mesh.n_nodes:  # review BU: they failed after the solve, unnamed
-            log.info(
-                "%s: %d nodes not used by any tetrahedron dropped",
-                path,
-                points.shape[0] - keep.size,
-            )
-            remap = np.full(mesh.n_nodes, -1, dtype=np.int64)
-            remap[keep] = np.arange(keep.size)
             mesh = TetMesh(points[keep], remap[mesh.tets], mesh.region, mesh.region_names)
         return (mesh, InputPoints(points, keep)) if return_input_points else mesh
     if not path.is_file():
