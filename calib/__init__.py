@@ -25,6 +25,7 @@ same c1?). Subpackages, one job each (lowest first): ``stats``, ``data``, ``mode
 from __future__ import annotations
 
 import importlib
+import importlib.util
 
 __all__ = [
     "Calibration",
@@ -74,22 +75,16 @@ _LAZY = {
 }
 
 
-#: subpackages reachable as ``calib.<name>`` after ``import calib`` alone (imported on
-#: first access: ``calib.sweep.progress_lines`` raised AttributeError without an import)
-_SUBPACKAGES = frozenset(
-    {"stats", "data", "model", "fitting", "discrepancy", "sweep", "report", "twin", "viewer",
-     "workflows", "cli", "evaluation", "validation", "notebook", "io", "api"}
-)  # fmt: skip
-
-
 def __getattr__(name: str):
     if name in _LAZY:
         module, attr = _LAZY[name]
         value = getattr(importlib.import_module(module), attr)
         globals()[name] = value
         return value
-    if name in _SUBPACKAGES:
-        return importlib.import_module(f"calib.{name}")
+    # a subpackage or module, imported on first access (``calib.sweep.progress_lines``
+    # raised AttributeError after ``import calib`` alone); private names are not looked up
+    if not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}") is not None:
+        return importlib.import_module(f"{__name__}.{name}")
     raise AttributeError(f"module 'calib' has no attribute {name!r}")
 
 

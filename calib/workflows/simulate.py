@@ -726,11 +726,10 @@ def run_simulate(mesh_path: str | Path, out_path: str | Path, opts: SimulateOpti
             sol.max_displacement_mm,
             extent,
         )
+    deformed, u = _in_file_numbering(mesh, points, sol.displacement_mm, midside_u)
     summary = {
         # over every point written (review BV, F7: the vertices' was below RESULT.vtu's)
-        "max_displacement_mm": max(
-            sol.max_displacement_mm, float(np.linalg.norm(midside_u, axis=1).max(initial=0.0))
-        ),
+        "max_displacement_mm": float(np.nanmax(np.linalg.norm(u, axis=1))),
         "nipple_displacement_mm": float(np.linalg.norm(sol.displacement_mm[nipple])),
         "nipple_node": int(points.node_index[nipple]),  # the input file's numbering
         "nipple_source": nipple_source,
@@ -754,7 +753,6 @@ def run_simulate(mesh_path: str | Path, out_path: str | Path, opts: SimulateOpti
         "provenance": provenance(inputs=read, parameters=opts.__dict__),
     }
     json_path = out_path.with_suffix(".json")
-    deformed, u = _in_file_numbering(mesh, points, sol.displacement_mm, midside_u)
     atomic_write(out_path, lambda p: write_mesh(deformed, p, point_data={"displacement_mm": u}))
     write_json_atomic(json_path, summary)
     return summary

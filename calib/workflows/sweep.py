@@ -396,8 +396,9 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
                 "solving them again (scenario %d first)",
                 *(out, len(lost), lost[0]),
             )
-        pending = int(np.sum(store.status() == PENDING)) + (
-            int(np.sum(store.status() == FAILED)) if opts.retry_failed else 0
+        status = store.status()
+        pending = int(np.sum(status == PENDING)) + (
+            int(np.sum(status == FAILED)) if opts.retry_failed else 0
         )
         before = store.attrs.get("status")
         if pending:
@@ -452,8 +453,8 @@ def _other_edits(was: dict, now: dict) -> bool:
     """
     if not (was.get("uncommitted_edits") or now.get("uncommitted_edits")):
         return False
-    digest = was.get("edits_sha256")
-    return not (was.get("uncommitted_edits") and digest and digest == now.get("edits_sha256"))
+    digest = was.get("edits_sha256")  # present only where the first run had edits
+    return digest is None or digest != now.get("edits_sha256")
 
 
 def _record_resume(store, opts: SweepOptions, model) -> None:
