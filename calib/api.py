@@ -123,13 +123,15 @@ def calibrate(
     )
 
 
-def validate(work: str | Path, *, progress: Callable[[str], Any] | None = None) -> dict:
+def validate(work: str | Path | Work, *, progress: Callable[[str], Any] | None = None) -> dict:
     """Write the validation report of a calibrated work folder (``phantom-calib validate``).
 
     Parameters
     ----------
-    work : str or Path
-        A work folder ``calibrate`` wrote; the report goes into it.
+    work : str, Path or calib.notebook.Work
+        A work folder ``calibrate`` wrote; the report goes into it. Given a loaded
+        :class:`~calib.notebook.Work`, it keeps the figures computed, so that its
+        ``validation_table()`` and plots do not compute them again (review BW, F8).
     progress : callable, optional
         Called with a line of text at every step.
 
@@ -146,9 +148,22 @@ def validate(work: str | Path, *, progress: Callable[[str], Any] | None = None) 
         ``work``'s calibration does not match its ``calibration/`` or its scans were
         ingested again after it.
     """
+    from .notebook import Work
     from .workflows.validate import run_validation
 
-    record = run_validation(work, progress=progress)
+    keep = None
+    if isinstance(work, Work):
+        loaded, work = work, work.folder.path
+
+        def keep(v, written):
+            if not loaded.keep_validation(v, written.get("calibration_run_id")):
+                log.warning(
+                    "%s was calibrated again since it was loaded: its report is of the new "
+                    "calibration, the loaded object keeps the old one's states (load it again)",
+                    work,
+                )
+
+    record = run_validation(work, progress=progress, on_validation=keep)
     for said in record.get("calibration_caveats") or []:  # the command prints them
         log.warning("calibration: %s", said)
     return record

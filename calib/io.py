@@ -61,14 +61,14 @@ def write_json_atomic(path: str | os.PathLike, data: dict) -> Path:
 
 def _check_writable(out: Path, folder: Path) -> None:
     if not os.access(folder, os.W_OK | os.X_OK):
-        raise PermissionError(f"--out {out}: {folder} is not writable")
+        raise PermissionError(f"out (--out) {out}: {folder} is not writable")
 
 
 def _check_parents(out: Path) -> None:
     """The nearest existing path above ``out`` must be a writable folder."""
     parent = next((p for p in out.parents if p.exists()), Path("."))
     if not parent.is_dir():
-        raise NotADirectoryError(f"--out {out}: {parent} is a file, not a folder")
+        raise NotADirectoryError(f"out (--out) {out}: {parent} is a file, not a folder")
     _check_writable(out, parent)
 
 
@@ -110,7 +110,7 @@ def check_not_in_run_folder(out: str | os.PathLike) -> None:
         record, command = RUN_FOLDERS.get(folder.name, (None, None))
         if record is not None and (folder.parent / record).is_file():
             raise InsideRunFolderError(
-                f"--out {out}: inside {folder}, which the next `phantom-calib {command}` of "
+                f"out (--out) {out}: inside {folder}, which the next `phantom-calib {command}` of "
                 f"{folder.parent} replaces as a whole; write it outside"
             )
 
@@ -132,7 +132,7 @@ def check_out_file(out: str | os.PathLike) -> None:
     out = Path(out)
     check_not_in_run_folder(out)
     if out.is_dir():
-        raise IsADirectoryError(f"--out {out}: is a folder; name the file to write")
+        raise IsADirectoryError(f"out (--out) {out}: is a folder; name the file to write")
     _check_parents(out)
 
 
@@ -153,9 +153,9 @@ def check_out_folder(out: str | os.PathLike) -> None:
     out = Path(out)
     check_not_in_run_folder(out)
     if out.is_symlink() and not out.exists():
-        raise FileExistsError(f"--out {out}: a link to nothing ({os.readlink(out)})")
+        raise FileExistsError(f"out (--out) {out}: a link to nothing ({os.readlink(out)})")
     if out.exists() and not out.is_dir():
-        raise NotADirectoryError(f"--out {out}: exists and is not a folder")
+        raise NotADirectoryError(f"out (--out) {out}: exists and is not a folder")
     if out.exists():
         _check_writable(out, out)
     else:
@@ -189,7 +189,7 @@ def check_out_apart(out: str | os.PathLike, inputs, *, what: str = "the input") 
         if q == o or o in q.parents:
             where = "is" if q == o else "holds"
             raise ValueError(
-                f"--out {out} {where} {what} {p}: each run replaces its folders under --out "
+                f"out (--out) {out} {where} {what} {p}: each run replaces its folders under it "
                 "as a whole, so it would delete or mix into the input; choose an output "
                 "folder outside it (e.g. next to it)"
             )

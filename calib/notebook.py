@@ -60,9 +60,12 @@ def show_figures_in_jupyter() -> None:
         png.for_type(Figure, _png)
 
 
-@dataclass(eq=False)
+@dataclass(frozen=True, eq=False)
 class Work:
     """A calibrated ``WORK/`` folder (:func:`calib.load_work`; equal only to itself).
+
+    Read-only: its record, states and arrays refuse changes (review BW, F3: a changed
+    ``record`` changed what it reported).
 
     Attributes
     ----------
@@ -72,6 +75,28 @@ class Work:
 
     folder: WorkFolder
     _validation: Validation | None = field(default=None, repr=False)
+
+    def keep_validation(self, validation: Validation, calibration_run_id: str | None) -> bool:
+        """Keep a validation computed elsewhere of this folder (``calib.validate(work)``).
+
+        Parameters
+        ----------
+        validation : Validation
+            What :func:`calib.validation.validate_work` returned for this folder.
+        calibration_run_id : str or None
+            The run id of the calibration it validated (``validation.json``'s
+            ``calibration_run_id``).
+
+        Returns
+        -------
+        bool
+            Whether it was kept: only a validation of the calibration this object holds
+            (another one, written since it was loaded, is not its states').
+        """
+        if calibration_run_id is None or calibration_run_id != self.record.get("run_id"):
+            return False
+        object.__setattr__(self, "_validation", validation)
+        return True
 
     @classmethod
     def load(cls, path: str | Path) -> Work:
@@ -99,7 +124,7 @@ class Work:
 
     @property
     def record(self) -> dict:
-        """``calibration.json``."""
+        """``calibration.json``, read-only (``copy.deepcopy`` gives an editable copy)."""
         return self.folder.record
 
     @property
@@ -120,9 +145,9 @@ class Work:
 
     @property
     def validation(self) -> Validation:
-        """Validation figures of every scan (computed once)."""
+        """Validation figures of every scan (computed once, or kept by ``calib.validate``)."""
         if self._validation is None:
-            self._validation = validate_work(self.folder)
+            object.__setattr__(self, "_validation", validate_work(self.folder))
         return self._validation
 
     def validation_table(self) -> str:

@@ -169,6 +169,9 @@ class Validation:
         What the calibration's record says a reader of these figures must know
         (:func:`calib.fitting.result.calibration_caveats`: a model misfit, an optimiser
         that did not converge or ended on a bound, an interval of unmeasured coverage).
+    scans_source : dict or None
+        The session's ``[source]`` as calibrate recorded it (``simulated``,
+        ``generator``); None where the session did not say.
     """
 
     c1_pa: float
@@ -176,6 +179,7 @@ class Validation:
     scans: dict
     failed: dict = field(default_factory=dict)
     caveats: tuple[str, ...] = ()
+    scans_source: dict | None = None
 
     @property
     def validation_scans(self) -> list[ScanValidation]:
@@ -189,7 +193,9 @@ class Validation:
         Review BP, P5: a session without a validation scan got a "Validation" report of
         the scans c1 was fitted to, and nothing said so.
         """
-        return no_validation_scan_note(s.role for s in self.scans.values())
+        return simulated_scans_note(self.scans_source) + no_validation_scan_note(
+            s.role for s in self.scans.values()
+        )
 
     def to_json(self) -> dict:
         """``validation.json`` (without provenance)."""
@@ -207,6 +213,7 @@ class Validation:
             "scans": {n: s.to_json() for n, s in self.scans.items()},
             "failed": dict(self.failed),
             "calibration_caveats": list(self.caveats),
+            "scans_source": None if self.scans_source is None else dict(self.scans_source),
         }
 
 
@@ -222,6 +229,34 @@ NO_VALIDATION_SCAN = (
     "solution: `failed`): every figure is of a scan c1 was fitted to (its fit, biased "
     "low), not a prediction of a posture the calibration never saw"
 )
+
+
+def simulated_scans_note(source: dict | None) -> tuple[str, ...]:
+    """What a reader must know of scans the session says were simulated, else ().
+
+    Review BY, F13: the twin's figures (0.15 mm) stood beside the dissertation's real MRI
+    ones (3.63 mm) without a word that the scans were simulated.
+
+    Parameters
+    ----------
+    source : dict or None
+        ``session.toml``'s ``[source]`` as calibrate recorded it (``scans_source``).
+
+    Returns
+    -------
+    tuple of str
+        One note where ``source["simulated"]`` is true, else empty.
+    """
+    if not (source or {}).get("simulated"):
+        return ()
+    by = source.get("generator")
+    return (
+        "the scans were simulated (session.toml [source]"
+        + (f": {by}" if by else "")
+        + "): these errors measure the model against simulated images of a simulated "
+        "phantom, not against a physical phantom's MRI, and are not comparable with the "
+        "dissertation's measured figures",
+    )
 
 
 def no_validation_scan_note(roles) -> tuple[str, ...]:
@@ -452,4 +487,5 @@ def validate_work(
         scans={n: _scan_validation(work, n, faces) for n in names},
         failed=failed,
         caveats=caveats,
+        scans_source=work.record.get("scans_source"),
     )

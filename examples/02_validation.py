@@ -36,8 +36,8 @@ from IPython.display import Markdown, display
 import calib
 
 work_folder = _settings.OUT / "work"
-record = calib.validate(work_folder)
 work = calib.load_work(work_folder)
+record = calib.validate(work)  # writes WORK/validation/; `work` keeps its figures
 Markdown(work.validation_table())
 
 # %% [markdown]

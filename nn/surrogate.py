@@ -151,9 +151,12 @@ class SurrogateMesh:
     back_nodes: np.ndarray
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Prediction:
     """Displacements (mm, reference frame) predicted for a batch of B queries.
+
+    Its arrays are read-only (review BW, F3), and two predictions are equal only if they
+    are the same object (``==`` on the arrays raised).
 
     Attributes
     ----------
@@ -168,6 +171,11 @@ class Prediction:
     surface_mm: np.ndarray
     tumour_mm: np.ndarray | None
     nipple_mm: np.ndarray | None
+
+    def __post_init__(self) -> None:
+        for array in (self.nodes_mm, self.surface_mm, self.tumour_mm, self.nipple_mm):
+            if array is not None:
+                array.setflags(write=False)
 
     def __repr__(self) -> str:  # review BW, F4: 17,000 characters of arrays in a notebook
         b, n_surface = self.surface_mm.shape[:2]

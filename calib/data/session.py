@@ -80,6 +80,9 @@ class Session:
     tumour_hint_lps_mm : ndarray or None
         Landmark override: the tracked tumour near this point of the reference scan.
     scans : tuple of ScanEntry
+    source : dict
+        ``[source]``: ``simulated`` (bool) and ``generator`` (str) where given; empty
+        where the file does not say where its scans come from.
     """
 
     folder: Path
@@ -88,6 +91,7 @@ class Session:
     expected_fiducials: int
     tumour_hint_lps_mm: np.ndarray | None
     scans: tuple[ScanEntry, ...] = field(default_factory=tuple)
+    source: dict = field(default_factory=dict)
 
     @property
     def reference(self) -> ScanEntry:
@@ -167,11 +171,37 @@ def _vector(value, where: str) -> np.ndarray:
 
 
 _KEYS = {
-    "": {"scanner", "phantom", "landmarks", "scans"},
+    "": {"scanner", "phantom", "landmarks", "scans", "source"},
     "scanner": {"gravity"},
     "phantom": {"density_kg_m3", "fiducials"},
     "landmarks": {"tumour"},
+    "source": {"simulated", "generator"},
 }
+
+#: The longest ``[source] generator`` text (it is printed in reports).
+MAX_GENERATOR_CHARS = 200
+
+
+def _source(table: dict, toml: Path) -> dict:
+    """``[source]`` checked: ``simulated`` a boolean, ``generator`` one short line of text."""
+    simulated = table.get("simulated")
+    if simulated is not None and not isinstance(simulated, bool):
+        raise SessionError(
+            f"{toml}: source.simulated must be true or false (whether the scans were "
+            f"simulated rather than acquired), got {simulated!r}"
+        )
+    generator = table.get("generator")
+    if generator is not None and (
+        not isinstance(generator, str)
+        or not generator.strip()
+        or len(generator) > MAX_GENERATOR_CHARS
+        or not generator.isprintable()
+    ):
+        raise SessionError(
+            f"{toml}: source.generator must be one line of text of 1 to "
+            f"{MAX_GENERATOR_CHARS} characters (what made the scans), got {generator!r}"
+        )
+    return {k: v for k, v in (("simulated", simulated), ("generator", generator)) if v is not None}
 
 
 def _names(items, *, order: bool = True) -> str:
@@ -325,6 +355,7 @@ def load_session(folder: str | Path) -> Session:
                            f"expected {_names(_KEYS[''])}")  # fmt: skip
     scanner, phantom = _table(doc, "scanner", toml), _table(doc, "phantom", toml)
     landmarks = _table(doc, "landmarks", toml)
+    source = _source(_table(doc, "source", toml), toml)
     g = _vector(scanner.get("gravity", [0.0, 1.0, 0.0]), f"{toml}: scanner.gravity")
     with np.errstate(over="ignore"):  # [1e308, 1e308, 0] was normalised to zeros
         length = np.linalg.norm(g)
@@ -350,7 +381,7 @@ def load_session(folder: str | Path) -> Session:
         raise SessionError(f"{toml}: no [[scans]] entries")
     scans = tuple(_scan(e, i, folder, toml) for i, e in enumerate(raw))
     _check_scans(scans, toml)
-    return Session(folder, g / np.linalg.norm(g), float(density), nfid, hint, scans)
+    return Session(folder, g / np.linalg.norm(g), float(density), nfid, hint, scans, source)
 
 
 def _check_scans(scans: tuple[ScanEntry, ...], toml: Path) -> None:

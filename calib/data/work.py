@@ -8,8 +8,10 @@ state (vertex positions and their derivative in ln c1) — with the measurements
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
+from types import MappingProxyType
 
 import numpy as np
 
@@ -19,11 +21,14 @@ from .session import ScanEntry, is_finite_number
 
 __all__ = [
     "SCHEMA_VERSION",
+    "ReadOnlyDict",
+    "ReadOnlyList",
     "SavedState",
     "WorkFolder",
     "as_work_folder",
     "check_record",
     "not_a_folder",
+    "read_only_record",
     "read_work",
 ]
 
@@ -72,6 +77,79 @@ def _read_only(value) -> np.ndarray | None:
     return array
 
 
+def _refuse(self, *args, **kwargs):
+    raise TypeError(
+        "a work folder's calibration.json record is read-only (review BW, F3: changing it "
+        "changed what the folder reports); copy.deepcopy(...) gives a plain copy to edit"
+    )
+
+
+class ReadOnlyDict(dict):
+    """A JSON record's mapping that refuses changes (a ``dict`` to readers and ``json``).
+
+    ``copy.copy`` and ``copy.deepcopy`` give plain, editable ``dict``/``list`` copies.
+    """
+
+    __slots__ = ()
+    __setitem__ = __delitem__ = __ior__ = _refuse
+    clear = pop = popitem = setdefault = update = _refuse
+
+    def __copy__(self) -> dict:
+        return dict(self)
+
+    def __deepcopy__(self, memo) -> dict:
+        return _thawed(self)
+
+    def __reduce__(self):
+        return (read_only_record, (_thawed(self),))
+
+
+class ReadOnlyList(list):
+    """A JSON record's list that refuses changes (a ``list`` to readers and ``json``)."""
+
+    __slots__ = ()
+    __setitem__ = __delitem__ = __iadd__ = __imul__ = _refuse
+    append = clear = extend = insert = pop = remove = reverse = sort = _refuse
+
+    def __copy__(self) -> list:
+        return list(self)
+
+    def __deepcopy__(self, memo) -> list:
+        return _thawed(self)
+
+    def __reduce__(self):
+        return (read_only_record, (_thawed(self),))
+
+
+def _thawed(value):
+    """A plain, editable deep copy of a JSON value."""
+    if isinstance(value, dict):
+        return {k: _thawed(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_thawed(v) for v in value]
+    return value
+
+
+def read_only_record(value):
+    """``value`` (a JSON value) with every mapping and list read-only, at every depth.
+
+    Parameters
+    ----------
+    value : dict, list, str, float, int, bool or None
+        A value as :func:`json.load` returns it.
+
+    Returns
+    -------
+    ReadOnlyDict, ReadOnlyList or the value itself
+        Equal to ``value``; its mappings and lists raise ``TypeError`` when changed.
+    """
+    if isinstance(value, dict):
+        return ReadOnlyDict((k, read_only_record(v)) for k, v in value.items())
+    if isinstance(value, list):
+        return ReadOnlyList(read_only_record(v) for v in value)
+    return value
+
+
 @dataclass(frozen=True, eq=False)
 class WorkFolder:
     """A calibrated ``WORK/`` folder (see :func:`read_work`; equal only to itself).
@@ -79,21 +157,30 @@ class WorkFolder:
     Attributes
     ----------
     path : Path
-    record : dict
-        ``calibration.json``.
+    record : ReadOnlyDict
+        ``calibration.json``, read-only at every depth (``copy.deepcopy`` gives an
+        editable copy).
     measurements : Measurements
         Every scan of the calibration, with the roles it was calibrated with.
     mesh : fem.TetMesh
         The stress-free model mesh (node sets ``back``, ``nipple``, ``surface``).
-    states : dict of str to SavedState
-        Scans with a solution at the calibrated c1.
+    states : mapping of str to SavedState
+        Scans with a solution at the calibrated c1 (a read-only mapping).
     """
 
     path: Path
     record: dict
     measurements: Measurements
     mesh: object
-    states: dict
+    states: Mapping[str, SavedState]
+
+    def __post_init__(self) -> None:  # review BW, F3: the folder changed through these
+        object.__setattr__(self, "record", read_only_record(self.record))
+        object.__setattr__(self, "states", MappingProxyType(dict(self.states)))
+
+    def __reduce__(self):  # a mapping proxy does not pickle: rebuilt from plain copies
+        record, states = _thawed(self.record), dict(self.states)
+        return (WorkFolder, (self.path, record, self.measurements, self.mesh, states))
 
     def __repr__(self) -> str:  # review BW, F4: 25,000 characters of record and arrays
         return (

@@ -802,14 +802,15 @@ def choose_scans(work: WorkFolder, holdout: str | None) -> tuple[list[str], str 
         holdout = None
     elif holdout not in names:
         raise DiagnosisError(
-            f"--holdout {holdout!r}: not a scan with a calibrated state; choose from {names}"
+            f"holdout (--holdout) {holdout!r}: not a scan with a calibrated state; choose "
+            f"from {names}"
         )
     scans = [n for n in names if n != holdout]
     if not scans:
         raise DiagnosisError(f"{work.path}: no scan left to diagnose besides the held-out one")
     if named and len(scans) < MIN_FITTED_SCANS:
         raise DiagnosisError(
-            f"--holdout {holdout}: leaves {scans} to fit, and naming an effect needs "
+            f"holdout (--holdout) {holdout}: leaves {scans} to fit, and naming an effect needs "
             f"leave-one-posture-out over {MIN_FITTED_SCANS} scans (--holdout none fits all)"
         )
     if len(scans) < MIN_FITTED_SCANS:

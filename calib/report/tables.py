@@ -198,10 +198,11 @@ def format_validation(doc: dict) -> str:
     if doc["scans"]:
         lines.append(f"posture: {POSTURE_NOTE}")
     lines += [f"WARNING (calibration): {said}" for said in doc.get("calibration_caveats") or []]
-    from ..validation import no_validation_scan_note
+    from ..validation import no_validation_scan_note, simulated_scans_note
 
     roles = (s["role"] for s in doc["scans"].values())
-    lines += [f"WARNING: {said}" for said in no_validation_scan_note(roles)]
+    notes = simulated_scans_note(doc.get("scans_source")) + no_validation_scan_note(roles)
+    lines += [f"WARNING: {said}" for said in notes]
     if any(s.get("dissertation") for s in doc["scans"].values()):
         lines.append(
             "dissertation: its published figures for the original CIRS phantom's scans (a "

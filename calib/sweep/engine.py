@@ -418,7 +418,7 @@ def make_backend(kind: str, *, workers: int = 2, dask: str | None = None, thread
     Backend
     """
     if workers < 1:
-        raise ValueError(f"--workers must be >= 1, got {workers}")
+        raise ValueError(f"workers (--workers) must be >= 1, got {workers}")
     if kind == "serial":
         return Backend()
     if kind == "pool":

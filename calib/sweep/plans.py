@@ -153,15 +153,15 @@ def parse_c1_axis(text: str | None, c1_cal_pa: float) -> np.ndarray:
         if len(parts) != 3:
             raise ValueError
     except (ValueError, IndexError):
-        raise PlanError(f"--c1 must be LO:HI:N (Pa, Pa, count), got {text!r}") from None
+        raise PlanError(f"c1_axis (--c1) must be LO:HI:N (Pa, Pa, count), got {text!r}") from None
     if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo <= hi) or n < 1:
-        raise PlanError(f"--c1 {text!r}: need 0 < LO <= HI and N >= 1")
+        raise PlanError(f"c1_axis (--c1) {text!r}: need 0 < LO <= HI and N >= 1")
     if n == 1 and lo != hi:
-        raise PlanError(f"--c1 {text!r}: one value needs LO == HI")
+        raise PlanError(f"c1_axis (--c1) {text!r}: one value needs LO == HI")
     if n > 1 and lo == hi:  # review AD: each direction swept N times over (duplicates)
-        raise PlanError(f"--c1 {text!r}: LO == HI repeats one c1 {n} times; give N = 1")
+        raise PlanError(f"c1_axis (--c1) {text!r}: LO == HI repeats one c1 {n} times; give N = 1")
     if n > MAX_SCENARIOS:
-        raise PlanError(f"--c1 {text!r}: at most {MAX_SCENARIOS} values ({_WHY_MAX})")
+        raise PlanError(f"c1_axis (--c1) {text!r}: at most {MAX_SCENARIOS} values ({_WHY_MAX})")
     return np.geomspace(lo, hi, n)
 
 
@@ -194,8 +194,8 @@ def _sphere(n: int, holdout: float, seed: int):
     k = int(round(holdout * n))
     if holdout > 0 and not 1 <= k <= n - 2:  # review AD: 0.04 of 10 held none out, silently
         raise PlanError(
-            f"--holdout {holdout:g} of {n} directions holds {k} out: need at least 1 held "
-            "out and 2 to train on"
+            f"holdout (--holdout) {holdout:g} of {n} directions holds {k} out: need at least 1 "
+            "held out and 2 to train on"
         )
     if k:
         role[np.random.default_rng(seed).choice(n, size=k, replace=False)] = 1
@@ -235,10 +235,12 @@ def make_plan(
         Unknown plan, bad count, or a hold-out on a plan with its own validation set.
     """
     if not 0.0 <= holdout < 1.0:
-        raise PlanError(f"--holdout must lie in [0, 1), got {holdout}")
+        raise PlanError(f"holdout (--holdout) must lie in [0, 1), got {holdout}")
     if spec in ("dissertation", "dissertation:transverse"):
         if holdout:
-            raise PlanError(f"--plan {spec} has its own validation directions; drop --holdout")
+            raise PlanError(
+                f"plan (--plan) {spec} has its own validation directions; drop holdout (--holdout)"
+            )
         dirs, role, plane, angle = _dissertation(spec.endswith(":transverse"))
     elif spec.startswith("sphere:"):
         try:
@@ -246,20 +248,23 @@ def make_plan(
         except ValueError:
             n = 0
         if n < 1:
-            raise PlanError(f"--plan sphere:N needs a positive integer N, got {spec!r}")
+            raise PlanError(f"plan (--plan) sphere:N needs a positive integer N, got {spec!r}")
         if n > MAX_SCENARIOS:  # review AT: sphere:100000000 planned silently for minutes
-            raise PlanError(f"--plan {spec}: at most {MAX_SCENARIOS} directions ({_WHY_MAX})")
+            raise PlanError(
+                f"plan (--plan) {spec}: at most {MAX_SCENARIOS} directions ({_WHY_MAX})"
+            )
         dirs, role, plane, angle = _sphere(n, holdout, seed)
     else:
         raise PlanError(
-            f"unknown --plan {spec!r}; choose dissertation, dissertation:transverse or sphere:N"
+            f"unknown plan (--plan) {spec!r}; choose dissertation, dissertation:transverse or "
+            "sphere:N"
         )
     c1 = parse_c1_axis(c1_axis, c1_cal_pa)
     m = len(c1)
     if len(dirs) * m > MAX_SCENARIOS:
         raise PlanError(
-            f"--plan {spec} --c1 {c1_axis}: {len(dirs)} directions x {m} c1 values is more "
-            f"than {MAX_SCENARIOS} scenarios ({_WHY_MAX})"
+            f"plan (--plan) {spec} with c1_axis (--c1) {c1_axis}: {len(dirs)} directions x {m} "
+            f"c1 values is more than {MAX_SCENARIOS} scenarios ({_WHY_MAX})"
         )
     return Plan(
         spec=spec,

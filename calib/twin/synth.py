@@ -219,17 +219,28 @@ def _render(truth: _Truth, phantom, T: np.ndarray, preset: TwinPreset, seed: int
     )  # fmt: skip
 
 
-def _session_toml(preset: TwinPreset, tumour_hint_lps_mm: np.ndarray) -> str:
+def _session_toml(p: TwinPreset, preset: str, tumour_hint_lps_mm: np.ndarray) -> str:
+    from importlib import metadata
+
     import tomli_w
 
+    try:
+        version = metadata.version("phantom-calib")
+    except metadata.PackageNotFoundError:
+        version = "(not installed)"
+    # review BY, F13: reports set the twin's figures beside the dissertation's MRI ones
+    # without a word that the scans were simulated. The preset is said, the effects not
+    # (the diagnosis is tested on scans whose effect is hidden).
+    generator = f"phantom-calib {version} synth, preset {preset}"
     return tomli_w.dumps({
+        "source": {"simulated": True, "generator": generator},
         "scanner": {"gravity": G_SCANNER.tolist()},
         "phantom": {"density_kg_m3": DEFAULT_DENSITY_KG_M3, "fiducials": 3},
         "landmarks": {"tumour": [round(float(c), 1) for c in tumour_hint_lps_mm]},
         "scans": [
-            {"name": p.name, "path": p.name, "role": p.role,
-             "posture": {"plane": "transverse", "angle_deg": p.angle_deg}}
-            for p in preset.postures
+            {"name": post.name, "path": post.name, "role": post.role,
+             "posture": {"plane": "transverse", "angle_deg": post.angle_deg}}
+            for post in p.postures
         ],
     })  # fmt: skip
 
@@ -418,7 +429,7 @@ def _build(
     # The experimenter names the tracked tumour by a rough point in the reference scan.
     ref = next(n for n, post in zip(scans, p.postures, strict=True) if post.role == "reference")
     hint = np.asarray(scans[ref]["tumour_lps_mm"]) + rng.normal(scale=1.5, size=3)
-    (tmp / "scans" / "session.toml").write_text(_session_toml(p, hint))
+    (tmp / "scans" / "session.toml").write_text(_session_toml(p, preset, hint))
     record = _record(preset, p, seed, eff, phantom, mesh, disc, scans) | {
         "preset_settings": settings
     }

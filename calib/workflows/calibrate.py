@@ -132,6 +132,7 @@ def write_calibration(
     inputs: dict,
     wall_s: float,
     ingest_run_id: str | None = None,
+    scans_source: dict | None = None,
 ) -> dict:
     """Write ``WORK/calibration.json`` and ``WORK/calibration/`` as one run; return the record.
 
@@ -140,7 +141,8 @@ def write_calibration(
     measurements were read from (default:
     the one there now); a WORK whose scans were ingested again since is refused
     (:class:`calib.io.StaleOutputError`: review AN, the record named scans it never
-    fitted).
+    fitted). ``scans_source`` is the session's ``[source]`` (recorded as
+    ``scans_source``; null where it says nothing).
 
     Raises
     ------
@@ -181,6 +183,7 @@ def write_calibration(
         )
         doc["model"]["reference_mesh"] = f"{FOLDER}/reference_mesh.vtu"
         doc["ingest_run_id"] = held
+        doc["scans_source"] = dict(scans_source) if scans_source else None
         prestress = None
         if c.fm.prestressed:
             c.fm.stress_free(calibration.theta)  # the prestress at the calibrated c1 (cached)
@@ -307,4 +310,5 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
         inputs=inputs,
         wall_s=time.perf_counter() - t0,
         ingest_run_id=fitted_run,
+        scans_source=session.source,
     )

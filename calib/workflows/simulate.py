@@ -88,20 +88,22 @@ class SimulateOptions:
 
     def __post_init__(self) -> None:
         checks = (
-            ("--c1", self.c1_pa, self.c1_pa > 0, "a positive stress in Pa"),
-            ("--nu", self.nu, 0 < self.nu < 0.5, "in (0, 0.5)"),
+            ("c1_pa (--c1)", self.c1_pa, self.c1_pa > 0, "a positive stress in Pa"),
+            ("nu (--nu)", self.nu, 0 < self.nu < 0.5, "in (0, 0.5)"),
             (
-                "--g",
+                "g_m_s2 (--g)",
                 self.g_m_s2,
                 0 < self.g_m_s2 <= MAX_G_M_S2,  # review BU: 9810 (mm/s^2) failed in the solve
                 f"a positive magnitude in m/s^2 up to {MAX_G_M_S2:g} (the direction is "
-                "--gravity; 9810 would be mm/s^2)",
+                "gravity, --gravity; 9810 would be mm/s^2)",
             ),
         )
         for name, value, ok, expected in checks:
             if not np.isfinite(value) or not ok:
                 raise ValueError(f"{name} must be {expected}, got {value}")
-        checked_density_kg_m3(self.density_kg_m3, "--density")  # the session's range
+        checked_density_kg_m3(
+            self.density_kg_m3, "density_kg_m3 (--density)"
+        )  # the session's range
         # found documenting its fields: the Python API's gravity was checked only in the solve,
         # after the mesh was read (the command line's parse_vector checks it first)
         try:
@@ -110,14 +112,15 @@ class SimulateOptions:
             vec = ()
         if not _nonzero_direction(vec):
             raise ValueError(
-                f"--gravity must be a non-zero direction X,Y,Z of finite length, got "
+                f"gravity (--gravity) must be a non-zero direction X,Y,Z of finite length, got "
                 f"{self.gravity!r}"
             )
         if self.bc not in get_args(BackSupport):
-            raise ValueError(f"--bc must be 'clamped' or 'sliding', got {self.bc!r}")
+            raise ValueError(f"bc (--bc) must be 'clamped' or 'sliding', got {self.bc!r}")
         if self.formulation not in fem.FORMULATIONS:
             raise ValueError(
-                f"--formulation must be one of {sorted(fem.FORMULATIONS)}, got {self.formulation!r}"
+                f"formulation (--formulation) must be one of {sorted(fem.FORMULATIONS)}, "
+                f"got {self.formulation!r}"
             )
         parse_back_plane(self.back_plane)
 
@@ -158,7 +161,7 @@ def parse_back_plane(text: str) -> float | None:
             return float(text[2:])
         except ValueError:
             pass
-    raise ValueError(f"--back-plane must be 'auto' or 'z=MM', got {text!r}")
+    raise ValueError(f"back_plane (--back-plane) must be 'auto' or 'z=MM', got {text!r}")
 
 
 def _back_nodes(mesh: fem.TetMesh, z_mm: float | None):
@@ -553,7 +556,7 @@ def check_output(out_path: Path) -> None:
 
     if out_path.suffix.lower() not in OUTPUT_SUFFIXES:
         raise ValueError(
-            f"--out {out_path}: use {', '.join(OUTPUT_SUFFIXES)} (formats that keep the "
+            f"out (--out) {out_path}: use {', '.join(OUTPUT_SUFFIXES)} (formats that keep the "
             "tetrahedra and the displacement_mm point data)"
         )
     mesh_format_for(out_path)  # the writer knows it
@@ -632,7 +635,7 @@ def run_simulate(mesh_path: str | Path, out_path: str | Path, opts: SimulateOpti
     check_output(Path(out_path))
     written = {Path(out_path).resolve(), Path(out_path).with_suffix(".json").resolve()}
     if Path(mesh_path).resolve() in written:  # review AC: the input was overwritten
-        raise ValueError(f"--out {out_path}: it (or its .json) is the input mesh {mesh_path}")
+        raise ValueError(f"out (--out) {out_path}: it (or its .json) is the input mesh {mesh_path}")
     t0 = time.perf_counter()
     try:
         mesh, points = read_mesh(mesh_path, orient=False, return_input_points=True)

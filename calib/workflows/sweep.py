@@ -117,10 +117,12 @@ class SweepOptions:
         if self.backend not in _BACKENDS:
             raise ValueError(f"unknown backend {self.backend!r}; choose serial, pool or dask")
         if self.backend == "serial" and self.workers is not None:  # review AT, AU: ignored
-            raise ValueError("--serial (backend 'serial') solves in this process: drop --workers")
+            raise ValueError(
+                "backend 'serial' (--serial) solves in this process: drop workers (--workers)"
+            )
         for name, value in (
-            ("--workers", 2 if self.workers is None else self.workers),
-            ("--chunk-size", self.chunk_size),
+            ("workers (--workers)", 2 if self.workers is None else self.workers),
+            ("chunk_size (--chunk-size)", self.chunk_size),
             ("threads", self.threads),
         ):
             if not isinstance(value, int | np.integer) or value < 1:
@@ -129,7 +131,7 @@ class SweepOptions:
             m = _DASK_ADDRESS.fullmatch(self.dask)
             if m is None or not 1 <= int(m.group(1)) <= 65535:
                 raise ValueError(
-                    f"--dask must be 'local' or a scheduler address tcp://HOST:PORT, "
+                    f"dask (--dask) must be 'local' or a scheduler address tcp://HOST:PORT, "
                     f"got {self.dask!r}"
                 )
         if not 0.0 <= float(self.max_angle_deg) <= 180.0:  # review BK: NaN was accepted
@@ -137,11 +139,11 @@ class SweepOptions:
                 f"max_angle_deg must be an angle in [0, 180] degrees, got {self.max_angle_deg!r}"
             )
         if self.dask is not None and self.backend != "dask":  # review AW: it was ignored
-            raise ValueError(f"--dask goes with backend 'dask', not {self.backend!r}")
+            raise ValueError(f"dask (--dask) goes with backend 'dask', not {self.backend!r}")
         if self.dask not in (None, "local") and self.workers is not None:
             raise ValueError(
-                f"--workers sizes a LocalCluster (--dask local); the scheduler at {self.dask} "
-                "has its own workers: drop --workers"
+                f"workers (--workers) sizes a LocalCluster (dask 'local'); the scheduler at "
+                f"{self.dask} has its own workers: drop workers (--workers)"
             )
 
 
@@ -219,7 +221,7 @@ def _create_store(
             if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST):
                 raise
             raise StoreError(
-                f"--out {out}: a store appeared there while this one was being created "
+                f"out (--out) {out}: a store appeared there while this one was being created "
                 "(another sweep with the same --out?); it is left as it is: run again to "
                 "resume it, or with --overwrite to replace it"
             ) from exc
@@ -313,7 +315,7 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     t0 = time.perf_counter()
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise StoreError(f"--out {out}: exists and is not a folder")
+        raise StoreError(f"out (--out) {out}: exists and is not a folder")
     check_out_folder(out)
     if opts.backend == "dask" and not _has_distributed():
         raise RuntimeError(
@@ -355,7 +357,9 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     old = None
     if replacing:
         if not _is_store(out):
-            raise StoreError(f"--out {out}: not a sweep store; --overwrite removes only stores")
+            raise StoreError(
+                f"out (--out) {out}: not a sweep store; overwrite (--overwrite) removes only stores"
+            )
         old = SweepStore.open(out)
         old.lock()  # refuses a store that a live sweep is writing
         solved = int(np.sum(old.status() == SOLVED))
@@ -562,13 +566,14 @@ def run_surrogate_train(
         raise ValueError(f"unknown surrogate kind {kind!r}; choose ours or dissertation")
     nn.select_device(device)  # an unknown name, or cuda without a GPU, before any reading
     if iterations is not None and iterations < 1:
-        raise ValueError(f"--iterations must be >= 1, got {iterations}")
+        raise ValueError(f"iterations (--iterations) must be >= 1, got {iterations}")
     if iterations is not None and kind == "ours":  # review AD: ignored without a word
         raise ValueError(
-            "--iterations is the dissertation MLPs' (--kind dissertation); ours has none"
+            "iterations (--iterations) are the dissertation MLPs' (kind 'dissertation'); "
+            "ours has none"
         )
     if Path(out).suffix.lower() != ".pt":  # review AM: m.txt was written as a model
-        raise ValueError(f"--out {out}: a surrogate is a TorchScript file, name it .pt")
+        raise ValueError(f"out (--out) {out}: a surrogate is a TorchScript file, name it .pt")
     check_out_file(out)
     data = nn.load_sweep(sweep, allow_pending=False)  # review AM: 4 of 12 read as all
     if kind == "ours":
@@ -649,11 +654,11 @@ def run_surrogate_predict(
     out = Path(out)
     suffix = out.suffix.lower()
     if suffix not in _PREDICT_SUFFIXES:
-        raise ValueError(f"--out {out}: write .vtu or .ply, got suffix {out.suffix!r}")
+        raise ValueError(f"out (--out) {out}: write .vtu or .ply, got suffix {out.suffix!r}")
     if c1_pa is not None and not (np.isfinite(c1_pa) and c1_pa > 0):  # before the model's read
-        raise ValueError(f"--c1 must be a positive stress in Pa, got {c1_pa!r}")
+        raise ValueError(f"c1_pa (--c1) must be a positive stress in Pa, got {c1_pa!r}")
     if frame not in get_args(PredictFrame):
-        raise ValueError(f"--frame must be 'phantom' or 'ref', got {frame!r}")
+        raise ValueError(f"frame (--frame) must be 'phantom' or 'ref', got {frame!r}")
     check_out_file(out)
     sur = nn.load_surrogate(model_path)
     if suffix == ".vtu" and sur.surface_only:  # checked before predicting

@@ -95,7 +95,7 @@ def _figures(run: RunOutputs, work: WorkFolder, v: Validation) -> dict[str, list
 
 
 @locking_work("validate")
-def run_validation(work: str | Path, *, progress=None) -> dict:
+def run_validation(work: str | Path, *, progress=None, on_validation=None) -> dict:
     """Validate a calibrated work folder and write the report.
 
     Parameters
@@ -104,6 +104,9 @@ def run_validation(work: str | Path, *, progress=None) -> dict:
         A folder ``phantom-calib calibrate`` wrote.
     progress : callable, optional
         Called with a line of text at every step.
+    on_validation : callable, optional
+        Called with the :class:`~calib.validation.Validation` computed and the written
+        record, once it is written (``calib.validate`` hands it to a loaded ``Work``).
 
     Returns
     -------
@@ -131,4 +134,7 @@ def run_validation(work: str | Path, *, progress=None) -> dict:
             "wall_s": time.perf_counter() - t0,
             "provenance": provenance(inputs=read),
         }
-        return run.commit(doc)
+        written = run.commit(doc)
+    if on_validation is not None:
+        on_validation(v, written)
+    return written

@@ -194,23 +194,29 @@ BAD = [
     (["--gravity", "0,0,0"], r"expected a non-zero vector"),
     # review AC: a length that overflows normalised to a zero load, "converged" at 0 mm
     (["--gravity", "0,1e300,1e300"], r"of finite length, got '0,1e300,1e300'"),
-    (["--back-plane", "y=3"], r"--back-plane must be 'auto' or 'z=MM', got 'y=3'"),
-    (["--back-plane", "z=abc"], r"--back-plane must be 'auto' or 'z=MM'"),
+    (["--back-plane", "y=3"], r"back_plane \(--back-plane\) must be 'auto' or 'z=MM', got 'y=3'"),
+    (["--back-plane", "z=abc"], r"back_plane \(--back-plane\) must be 'auto' or 'z=MM'"),
     (["--back-plane", "z=40"], r"no back face found at z=40"),
-    (["--density", "-5"], r"--density must lie in \[500, 3000\] kg/m\^3"),
+    (["--density", "-5"], r"density_kg_m3 \(--density\) must lie in \[500, 3000\] kg/m\^3"),
     # review AK: the session's density range (1.0, g/cm^3 by mistake) did not apply here
     (["--density", "1.0"], r"1\.0 would be g/cm\^3\), got 1\.0"),
     # issue 15: a negative g silently reversed gravity; nan gave a scipy dtype message
-    (["--g", "-9.81"], r"--g must be a positive magnitude .* \(the direction is --gravity;"),
-    (["--g", "nan"], r"--g must be a positive magnitude .* got nan"),
-    (["--c1", "inf"], r"--c1 must be a positive stress in Pa, got inf"),
+    (
+        ["--g", "-9.81"],
+        r"g_m_s2 \(--g\) must be a positive magnitude .* \(the direction is gravity, --gravity;",
+    ),
+    (["--g", "nan"], r"g_m_s2 \(--g\) must be a positive magnitude .* got nan"),
+    (["--c1", "inf"], r"c1_pa \(--c1\) must be a positive stress in Pa, got inf"),
     # checked before the solve, naming the file the user gave (not a hidden temp file)
-    (["--out", "RESULT.txt"], r"--out RESULT\.txt: use \.vtu, \.vtk, \.msh"),
+    (["--out", "RESULT.txt"], r"out \(--out\) RESULT\.txt: use \.vtu, \.vtk, \.msh"),
     # review AT: these dropped the tetrahedra or the displacement (exit 0), or failed after
     # the solve with a traceback
-    (["--out", "RESULT.stl"], r"--out RESULT\.stl: use \.vtu, \.vtk, \.msh \(formats that keep"),
-    (["--out", "RESULT.inp"], r"--out RESULT\.inp: use"),
-    (["--out", "RESULT.xdmf"], r"--out RESULT\.xdmf: use"),
+    (
+        ["--out", "RESULT.stl"],
+        r"out \(--out\) RESULT\.stl: use \.vtu, \.vtk, \.msh \(formats that keep",
+    ),
+    (["--out", "RESULT.inp"], r"out \(--out\) RESULT\.inp: use"),
+    (["--out", "RESULT.xdmf"], r"out \(--out\) RESULT\.xdmf: use"),
 ]
 
 
@@ -286,13 +292,17 @@ def test_simulate_options_name_the_flag_of_a_wrong_word():
     # the Python API (SimulateOptions) keeps its own check, in the command's words
     from calib.workflows.simulate import SimulateOptions
 
-    with pytest.raises(ValueError, match=r"--bc must be 'clamped' or 'sliding', got 'glued'"):
+    with pytest.raises(
+        ValueError, match=r"^bc \(--bc\) must be 'clamped' or 'sliding', got 'glued'"
+    ):
         SimulateOptions(c1_pa=420.0, bc="glued")
-    with pytest.raises(ValueError, match=r"--formulation must be one of"):
+    with pytest.raises(ValueError, match=r"^formulation \(--formulation\) must be one of"):
         SimulateOptions(c1_pa=420.0, formulation="q3")
     # a gravity the solve cannot normalise is refused here, before the mesh is read
     for gravity in [(0.0, 0.0, 0.0), (0.0, float("nan"), 1.0), (1.0, 0.0), "down"]:
-        with pytest.raises(ValueError, match=r"--gravity must be a non-zero direction"):
+        with pytest.raises(
+            ValueError, match=r"^gravity \(--gravity\) must be a non-zero direction"
+        ):
             SimulateOptions(c1_pa=420.0, gravity=gravity)
 
 

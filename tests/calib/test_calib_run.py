@@ -67,7 +67,8 @@ def test_failed_mesh_size_is_reported_and_retried(nipple_run):
 KEYS_0_1 = {"c1_pa", "c1_ci95_pa", "objective", "objective_value_mm2", "reference_state",
             "uncertainty", "frames", "scans", "iterations", "fe_solves", "reference_recovery",
             "history", "profile", "mesh", "wall_s", "provenance"}  # fmt: skip
-KEYS_ADDED = {"schema_version", "run_id", "optimiser", "model", "model_fit", "ingest_run_id"}
+KEYS_ADDED = {"schema_version", "run_id", "optimiser", "model", "model_fit", "ingest_run_id",
+              "scans_source"}  # fmt: skip
 SCAN_KEYS_0_1 = {"role", "gravity_ref", "nipple_error_mm", "nipple_landmark_error_mm",
                  "surface_error_mm", "icp", "tumour_error_mm", "files"}  # fmt: skip
 UNCERTAINTY_KEYS_0_1 = {"se_ln_c1", "c1_ci95_pa", "residual_sd_mm", "n_residuals",
@@ -197,6 +198,77 @@ def test_work_folder_api(nipple_run):
     assert not state.tumour_mm.flags.writeable
 
 
+def test_a_loaded_work_folder_refuses_changes_and_copies_edit_freely(nipple_run):
+    # review BW, F3: `w.record["c1_pa"] = 1.0` made the object report c1 = 1 Pa, and
+    # `w.folder.states.clear()` made it say every scan had failed
+    import copy
+    import dataclasses
+    import pickle
+
+    import calib
+
+    doc, _, work = nipple_run
+    w = calib.load_work(work)
+    c1, n_states = w.c1_pa, len(w.folder.states)
+    for change in (
+        lambda: w.record.__setitem__("c1_pa", 1.0),
+        lambda: w.record.update(c1_pa=1.0),
+        lambda: w.record["c1_ci95_pa"].__setitem__(0, 1.0),
+        lambda: w.record["scans"]["tilt_50"].pop("role"),
+        lambda: w.folder.states.clear(),
+        lambda: w.folder.states.__setitem__("tilt_50", None),
+    ):
+        with pytest.raises((TypeError, AttributeError)):
+            change()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        w.folder = None
+    assert w.c1_pa == c1 == doc["c1_pa"] and len(w.folder.states) == n_states
+    # to a reader and to json it is the record; a copy is a plain one to edit
+    assert w.record == doc and json.loads(json.dumps(w.record)) == doc
+    edited = copy.deepcopy(w.record)
+    edited["scans"]["tilt_50"]["role"] = "x"
+    assert type(edited) is dict and w.record["scans"]["tilt_50"]["role"] != "x"
+    again = pickle.loads(pickle.dumps(w.folder))
+    assert again.record == doc and set(again.states) == set(w.folder.states)
+    with pytest.raises(TypeError):
+        again.record["c1_pa"] = 1.0
+    # review BW, F3: a prediction's arrays were writable in its frozen dataclass
+    from nn.surrogate import Prediction
+
+    p = Prediction(np.zeros((1, 4, 3)), np.zeros((1, 2, 3)), None, np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="read-only"):
+        p.surface_mm[0, 0, 0] = 99.0
+
+
+def test_calib_validate_of_a_loaded_work_keeps_its_figures(nipple_run, tmp_path, monkeypatch):
+    # review BW, F8: notebook 02 validated, then its table computed the validation again
+    import shutil
+
+    import calib
+    import calib.notebook
+
+    _, _, work = nipple_run
+    copy = tmp_path / "work"
+    shutil.copytree(work, copy)
+    w = calib.load_work(copy)
+    record = calib.validate(w)
+    assert record["calibration_run_id"] == w.record["run_id"]
+
+    def again(*args):
+        raise AssertionError("the validation was computed again")
+
+    monkeypatch.setattr(calib.notebook, "validate_work", again)
+    table = w.validation_table()
+    mean_mm = record["scans"]["tilt_50"]["surface_error_mm"]["fiducial"]["mean"]["value"]
+    assert "| tilt_50 |" in table and f"{mean_mm:.2f}" in table
+    # a work folder calibrated again since it was loaded: the report is the new one's,
+    # the loaded object keeps (and computes from) its own states
+    old = calib.load_work(copy)
+    rec = json.loads((copy / "calibration.json").read_text())
+    assert not old.keep_validation(w.validation, "another-run")
+    assert old._validation is None and rec["run_id"] == old.record["run_id"]
+
+
 def test_work_figures_show_as_images_in_an_ipython_kernel(nipple_run):
     # review AG: a bare matplotlib Figure (no pyplot) showed as its text in Jupyter until
     # %matplotlib inline had run; load_work registers a PNG formatter in a running shell
@@ -245,6 +317,29 @@ def test_a_scan_without_fe_solution_is_listed_not_dropped_by_validate(nipple_run
         f"Not validated: tilt_50, no FE solution at calibration ({why})"
         in (copy / "validation" / "report.html").read_text()
     )
+
+
+def test_validate_says_where_the_session_says_its_scans_were_simulated(nipple_run, tmp_path):
+    # review BY, F13: the twin's 0.15 mm stood beside the dissertation's MRI 3.63 mm in
+    # the report without a word that the scans were simulated
+    import shutil
+
+    doc, output, work = nipple_run
+    source = doc["scans_source"]
+    assert source["simulated"] is True and "synth, preset custom" in source["generator"]
+    said = "the scans were simulated (session.toml [source]: phantom-calib"
+    assert json.loads((work / "validation.json").read_text())["scans_source"] == source
+    assert said in (work / "validation" / "report.html").read_text()
+    assert f"WARNING: {said}" in " ".join(output.split())  # calibrate's closing validate
+    # a session that does not say: nothing said (the independent generator's, a scanner's)
+    copy = tmp_path / "work"
+    shutil.copytree(work, copy)
+    rec = json.loads((copy / "calibration.json").read_text())
+    (copy / "calibration.json").write_text(json.dumps(rec | {"scans_source": None}))
+    res = CliRunner().invoke(app, ["validate", str(copy)])
+    assert res.exit_code == 0, res.output
+    assert "scans were simulated" not in res.output
+    assert "scans were simulated" not in (copy / "validation" / "report.html").read_text()
 
 
 def test_a_band_is_the_figure_s_range_over_the_whole_interval(nipple_run):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -302,6 +303,35 @@ def test_unknown_key_outside_scans(tmp_path, old, new):
     toml = VALID_TOML.replace(old, new)
     with pytest.raises(SessionError, match="unknown"):
         load_session(make_scan_folder(tmp_path / "scans", toml))
+
+
+def test_the_source_table_says_whether_the_scans_were_simulated(tmp_path):
+    # review BY, F13: reports set a twin's figures beside the dissertation's MRI ones
+    # without a word that its scans were simulated; [source] says so (optional)
+    assert load_session(make_scan_folder(tmp_path / "plain")).source == {}
+    toml = '[source]\nsimulated = true\ngenerator = "another FE code, v2"\n' + VALID_TOML
+    s = load_session(make_scan_folder(tmp_path / "simulated", toml))
+    assert s.source == {"simulated": True, "generator": "another FE code, v2"}
+    for bad, pattern in [
+        ('simulated = "yes"', r"source\.simulated must be true or false.*got 'yes'"),
+        ("simulated = 1", r"source\.simulated must be true or false.*got 1"),
+        ('generator = ""', r"source\.generator must be one line of text of 1 to 200"),
+        (f'generator = "{"x" * 201}"', r"source\.generator must be one line"),
+        ('generator = "a\\nb"', r"source\.generator must be one line"),
+        ("simulate = true", r"unknown key\(s\) simulate in \[source\]"),
+    ]:
+        folder = make_scan_folder(tmp_path / f"bad{len(bad)}", f"[source]\n{bad}\n" + VALID_TOML)
+        with pytest.raises(SessionError, match=pattern):
+            load_session(folder)
+
+
+def test_the_twin_s_session_says_its_scans_were_simulated_and_hides_its_effect():
+    from calib.twin.synth import PRESETS, _session_toml
+
+    text = _session_toml(PRESETS["quick"], "quick", np.array([1.0, 2.0, 3.0]))
+    source = tomllib.loads(text)["source"]
+    assert source["simulated"] is True and source["generator"].endswith("synth, preset quick")
+    assert "skin" not in text and "effect" not in text  # the diagnosis is tested blind
 
 
 # --- scaffold_session and `phantom-calib init` ------------------------------------------------

@@ -2269,7 +2269,9 @@ def test_the_holdout_never_leaves_a_single_scan_to_fit(caplog):
             None,
         )
     assert "holding out tilt would leave 1 scan(s) to fit" in caplog.text
-    with pytest.raises(DiagnosisError, match=r"--holdout tilt: leaves \['lat'\] to fit"):
+    with pytest.raises(
+        DiagnosisError, match=r"^holdout \(--holdout\) tilt: leaves \['lat'\] to fit"
+    ):
         choose_scans(work(lat="calibration", tilt="validation"), "tilt")
     three = work(a="calibration", b="calibration", v="validation")
     assert choose_scans(three, None) == (["a", "b"], "v")

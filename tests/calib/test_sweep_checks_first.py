@@ -36,34 +36,46 @@ def no_reading(monkeypatch):
 @pytest.mark.parametrize(
     ("kw", "match"),
     [
-        ({"workers": 0}, "--workers must be an integer >= 1, got 0"),
-        ({"chunk_size": 0}, "--chunk-size must be an integer >= 1"),
+        ({"workers": 0}, r"^workers \(--workers\) must be an integer >= 1, got 0"),
+        ({"chunk_size": 0}, r"^chunk_size \(--chunk-size\) must be an integer >= 1"),
         ({"threads": 0}, "threads must be an integer >= 1"),
         ({"backend": "mpi"}, "unknown backend 'mpi'"),
-        ({"backend": "dask", "dask": "locall"}, "--dask must be 'local' or .*tcp://HOST:PORT"),
-        ({"backend": "dask", "dask": "tcp//10.0.0.5:8786"}, "--dask must be"),
-        ({"backend": "dask", "dask": "tcp://10.0.0.5"}, "--dask must be"),
-        ({"backend": "dask", "dask": "tcp://10.0.0.5:99999"}, "--dask must be"),
+        (
+            {"backend": "dask", "dask": "locall"},
+            r"^dask \(--dask\) must be 'local' or .*tcp://HOST:PORT",
+        ),
+        ({"backend": "dask", "dask": "tcp//10.0.0.5:8786"}, r"^dask \(--dask\) must be"),
+        ({"backend": "dask", "dask": "tcp://10.0.0.5"}, r"^dask \(--dask\) must be"),
+        ({"backend": "dask", "dask": "tcp://10.0.0.5:99999"}, r"^dask \(--dask\) must be"),
         # review AW: a scheduler's address with another backend, or with --workers (its
         # workers are its own), was ignored without a word
-        ({"backend": "serial", "dask": "local"}, "--dask goes with backend 'dask', not 'serial'"),
-        ({"backend": "pool", "dask": "tcp://10.0.0.5:8786"}, "--dask goes with backend 'dask'"),
+        (
+            {"backend": "serial", "dask": "local"},
+            r"dask \(--dask\) goes with backend 'dask', not 'serial'",
+        ),
+        (
+            {"backend": "pool", "dask": "tcp://10.0.0.5:8786"},
+            r"dask \(--dask\) goes with backend 'dask'",
+        ),
         # its form first (review AY: "LOCAL" was called a scheduler, and "" given on the
         # command line, which picks the pool, was said to need backend dask)
-        ({"backend": "dask", "dask": "LOCAL", "workers": 3}, "--dask must be 'local' or"),
-        ({"backend": "pool", "dask": ""}, "--dask must be 'local' or .*got ''"),
+        (
+            {"backend": "dask", "dask": "LOCAL", "workers": 3},
+            r"^dask \(--dask\) must be 'local' or",
+        ),
+        ({"backend": "pool", "dask": ""}, r"^dask \(--dask\) must be 'local' or .*got ''"),
         (
             {"backend": "dask", "dask": "tcp://10.0.0.5:8786", "workers": 4},
-            "the scheduler at tcp://10.0.0.5:8786 has its own workers: drop --workers",
+            r"the scheduler at tcp://10.0.0.5:8786 has its own workers: drop workers \(--workers\)",
         ),
         # review BD: the plan, c1 axis and hold-out were checked after the calibration
         # was read (its c1 only fills a plan without a c1 axis)
-        ({"plan": "sphere:0"}, "--plan sphere:N needs a positive integer N"),
-        ({"plan": "grid"}, "unknown --plan 'grid'"),
-        ({"holdout": 0.3}, "--plan dissertation has its own validation directions"),
-        ({"plan": "sphere:10", "holdout": 1.0}, r"--holdout must lie in \[0, 1\)"),
+        ({"plan": "sphere:0"}, r"^plan \(--plan\) sphere:N needs a positive integer N"),
+        ({"plan": "grid"}, r"unknown plan \(--plan\) 'grid'"),
+        ({"holdout": 0.3}, r"^plan \(--plan\) dissertation has its own validation directions"),
+        ({"plan": "sphere:10", "holdout": 1.0}, r"^holdout \(--holdout\) must lie in \[0, 1\)"),
         ({"plan": "sphere:10", "holdout": 0.04}, "holds 0 out"),
-        ({"c1_axis": "300:600"}, "--c1 must be LO:HI:N"),
+        ({"c1_axis": "300:600"}, r"^c1_axis \(--c1\) must be LO:HI:N"),
         ({"c1_axis": "600:300:3"}, "need 0 < LO <= HI"),
         # review BK: NaN was taken, and its store never matched itself on resume
         ({"max_angle_deg": float("nan")}, r"max_angle_deg must be an angle in \[0, 180\]"),
@@ -85,10 +97,10 @@ def test_good_dask_addresses_are_accepted(address):
 @pytest.mark.parametrize(
     ("args", "match"),
     [
-        (["--workers", "0"], "--workers must be an integer >= 1, got 0"),
-        (["--dask", "tcp//10.0.0.5:8786"], "--dask must be 'local' or"),
-        (["--chunk-size", "0"], "--chunk-size must be"),
-        (["--plan", "sphere:x"], "--plan sphere:N needs a positive integer N"),
+        (["--workers", "0"], "workers (--workers) must be an integer >= 1, got 0"),
+        (["--dask", "tcp//10.0.0.5:8786"], "dask (--dask) must be 'local' or"),
+        (["--chunk-size", "0"], "chunk_size (--chunk-size) must be"),
+        (["--plan", "sphere:x"], "plan (--plan) sphere:N needs a positive integer N"),
         (["--c1", "0:300:3"], "need 0 < LO <= HI"),
     ],
 )

@@ -332,9 +332,11 @@ def test_serial_with_workers_is_refused(work, tmp_path):
 
     args = ["sweep", str(work), "--out", str(tmp_path / "s"), "--serial", "--workers", "7"]
     res = CliRunner().invoke(app, args)
-    assert res.exit_code == 2 and "solves in this process: drop --workers" in res.stderr
+    assert res.exit_code == 2 and "solves in this process: drop workers (--workers)" in res.stderr
     # and the Python API alike (review AU)
-    with pytest.raises(ValueError, match="solves in this process: drop --workers"):
+    with pytest.raises(
+        ValueError, match=r"^backend 'serial' \(--serial\) solves in this process: drop workers"
+    ):
         SweepOptions(backend="serial", workers=4)
     assert not (tmp_path / "s").exists()
 
@@ -365,7 +367,7 @@ def test_cli_sweep(work, tmp_path):
     res = runner.invoke(app, ["sweep", str(tmp_path), "--out", str(tmp_path / "t")])
     assert res.exit_code == 2 and "calibration.json not found" in res.output
     res = runner.invoke(app, ["sweep", str(work), "--out", str(tmp_path / "t"), "--plan", "ring"])
-    assert res.exit_code == 2 and "unknown --plan" in res.output
+    assert res.exit_code == 2 and "unknown plan (--plan)" in res.output
     res = runner.invoke(
         app, ["sweep", str(work), "--out", str(tmp_path / "s"), "--plan", "sphere:7", "--serial"]
     )

@@ -100,7 +100,7 @@ def test_c1_axis():
 @pytest.mark.parametrize(
     ("spec", "kw", "match"),
     [
-        ("ring", {}, "unknown --plan"),
+        ("ring", {}, "unknown plan"),
         ("sphere:x", {}, "positive integer"),
         ("sphere:0", {}, "positive integer"),
         # review AT: sphere:100000000 planned for minutes without a word

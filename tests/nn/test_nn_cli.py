@@ -143,7 +143,9 @@ def test_train_errors(box_sweep, tmp_path):
     # review AD: --iterations was ignored by ours without a word
     args = ["surrogate", "train", str(box_sweep), "--out", str(tmp_path / "m.pt")]
     res = runner.invoke(app, [*args, "--iterations", "10"])
-    assert res.exit_code == 2 and "--iterations is the dissertation MLPs'" in res.output
+    assert (
+        res.exit_code == 2 and "iterations (--iterations) are the dissertation MLPs'" in res.output
+    )
     assert not (tmp_path / "m.pt").exists()
     res = runner.invoke(
         app,

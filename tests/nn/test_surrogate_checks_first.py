@@ -40,7 +40,11 @@ def _cuda() -> bool:
     [
         ({"kind": "foo"}, ValueError, "unknown surrogate kind 'foo'; choose ours or dissertation"),
         ({"device": "tpu"}, ValueError, "--device must be auto, cpu or cuda, got 'tpu'"),
-        ({"kind": "dissertation", "iterations": 0}, ValueError, "--iterations must be >= 1"),
+        (
+            {"kind": "dissertation", "iterations": 0},
+            ValueError,
+            "iterations \\(--iterations\\) must be >= 1",
+        ),
         pytest.param(
             {"device": "cuda"},
             ValueError,
@@ -57,7 +61,7 @@ def test_train_refuses_bad_options_before_reading_the_store(tmp_path, no_reading
 
 def test_train_refuses_a_folder_as_out_before_reading(tmp_path, no_reading):
     (tmp_path / "m.pt").mkdir()
-    with pytest.raises(IsADirectoryError, match=r"--out .*m\.pt: is a folder"):
+    with pytest.raises(IsADirectoryError, match=r"^out \(--out\) .*m\.pt: is a folder"):
         run_surrogate_train(tmp_path / "SWEEP", tmp_path / "m.pt", device="cpu")
 
 
@@ -70,7 +74,7 @@ def test_train_refuses_an_unwritable_out_before_reading(tmp_path, no_reading, mo
     locked.mkdir()
     real = calib.io.os.access
     monkeypatch.setattr(calib.io.os, "access", lambda p, m: Path(p) != locked and real(p, m))
-    with pytest.raises(PermissionError, match=r"--out .*m\.pt: .*locked is not writable"):
+    with pytest.raises(PermissionError, match=r"^out \(--out\) .*m\.pt: .*locked is not writable"):
         run_surrogate_train(tmp_path / "SWEEP", locked / "sub" / "m.pt", device="cpu")
     with pytest.raises(PermissionError, match="locked is not writable"):
         run_surrogate_predict(tmp_path / "m.pt", locked / "R.vtu", gravity=[0, 0, 9.81])
@@ -89,10 +93,20 @@ def test_cli_train_bad_kind_reads_nothing(tmp_path, no_reading):
     ("out", "kw", "error", "match"),
     [
         ("R.obj", {}, ValueError, r"R\.obj: write \.vtu or \.ply, got suffix '\.obj'"),
-        ("R.vtu", {"frame": "world"}, ValueError, "--frame must be 'phantom' or 'ref'"),
+        ("R.vtu", {"frame": "world"}, ValueError, "frame \\(--frame\\) must be 'phantom' or 'ref'"),
         # review BD: a c1 <= 0 was found by the surrogate, once loaded
-        ("R.vtu", {"c1_pa": 0.0}, ValueError, "--c1 must be a positive stress in Pa, got 0.0"),
-        ("R.ply", {"c1_pa": float("nan")}, ValueError, "--c1 must be a positive stress in Pa"),
+        (
+            "R.vtu",
+            {"c1_pa": 0.0},
+            ValueError,
+            "c1_pa \\(--c1\\) must be a positive stress in Pa, got 0.0",
+        ),
+        (
+            "R.ply",
+            {"c1_pa": float("nan")},
+            ValueError,
+            "c1_pa \\(--c1\\) must be a positive stress in Pa",
+        ),
     ],
 )
 def test_predict_refuses_bad_options_before_loading(tmp_path, no_reading, out, kw, error, match):
