@@ -151,7 +151,7 @@ def validate(work: str | Path | Work, *, progress: Callable[[str], Any] | None =
     from .notebook import Work
     from .workflows.validate import run_validation
 
-    keep = None
+    kept = {}
     if isinstance(work, Work):
         loaded, work = work, work.folder.path
 
@@ -163,7 +163,8 @@ def validate(work: str | Path | Work, *, progress: Callable[[str], Any] | None =
                     work,
                 )
 
-    record = run_validation(work, progress=progress, on_validation=keep)
+        kept["on_validation"] = keep
+    record = run_validation(work, progress=progress, **kept)
     for said in record.get("calibration_caveats") or []:  # the command prints them
         log.warning("calibration: %s", said)
     return record

@@ -355,6 +355,31 @@ def _cut_text(cut: float | None) -> str | None:
     return f"{100 * cut:.0f} %" + (" (after: under the floor)" if cut > 1.0 else "")
 
 
+def _localisation_table(doc: dict) -> str:
+    """The localisation's region summaries, one row per scan and region (HTML)."""
+    from ..discrepancy.localise import APEX_MM, OVER_MM, RIM_MM, SIGNIFICANT_Z
+
+    scans = doc.get("scans") or {}
+    scale = scans.get("region_scale") or 1.0
+    rim_mm = max(RIM_MM * scale, scans.get("rim_margin_mm") or 0.0)  # as diagnose's regions
+    where = {  # review BY, F15: an empty region read as a row of dashes, unexplained
+        "apex": f"within {APEX_MM * scale:.3g} mm of the measured nipple",
+        "rim": f"within {rim_mm:.3g} mm of the back plate",
+        "inclusions": f"within {OVER_MM * scale:.3g} mm of an inclusion's surface",
+    }
+    loc_rows = []
+    for scan, m in doc["localisation"].items():
+        for reg, r in m["regions"].items():
+            if not r["n"]:
+                loc_rows.append([scan, reg, 0, f"no diagnosed point {where.get(reg, 'here')}"]
+                                + [""] * 4)  # fmt: skip
+                continue
+            loc_rows.append([scan, reg, r["n"], r["mean_mm"], r["rms_mm"], r["z"], r["p_value"],
+                             r["share_significant"]])  # fmt: skip
+    share = f"share |z|>{SIGNIFICANT_Z:g}"
+    return _table(["scan", "region", "points", "mean mm", "rms mm", "z", "p", share], loc_rows)
+
+
 def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
     """The report page from ``diagnosis.json``'s document and the figures (relative paths)."""
     esc = html.escape
@@ -406,15 +431,7 @@ def diagnosis_html(doc: dict, figures: dict[str, list[str]]) -> str:
     head += ["leave-one-posture-out better (a nuisance: not worse)"]
     head += ["plausible", "named", "why not"]
     cands = _table(head, cand_rows) if cand_rows else "<p>none</p>"
-    loc_rows = []
-    for scan, m in doc["localisation"].items():
-        for reg, r in m["regions"].items():
-            loc_rows.append([scan, reg, r["n"], r["mean_mm"], r["rms_mm"], r["z"], r["p_value"],
-                             r["share_significant"]])  # fmt: skip
-    from ..discrepancy.localise import SIGNIFICANT_Z
-
-    share = f"share |z|>{SIGNIFICANT_Z:g}"
-    loc = _table(["scan", "region", "points", "mean mm", "rms mm", "z", "p", share], loc_rows)
+    loc = _localisation_table(doc)
     figs = "".join(
         f"<h3>{esc(name)}</h3>"
         + "".join(

@@ -344,9 +344,9 @@ HEADER = [
     "role",
     "posture",
     "surface mean ± sd (fiducial)",
-    "median",
-    "p95",
-    "max",
+    "median (fiducial)",
+    "p95 (fiducial)",
+    "max (fiducial)",
     "surface mean ± sd (ICP)",
     "ICP fitness",
     "nipple (fiducial)",
@@ -361,35 +361,45 @@ HEADER = [
 ]
 
 
-def _intro(v: Validation) -> str:
+def _intro(v: Validation) -> tuple[list[str], str, list[str]]:
+    """The page's warnings, its c1 line and its definitions, one item each (review BY,
+    F14: they were one paragraph of ~1,100 characters that a reader could not parse)."""
     ci = v.c1_ci95_pa
     band = (
         f"95 % interval {ci[0]:.1f}–{ci[1]:.1f} Pa; each figure's band in brackets is "
-        f"its range over that interval (first order in ln c1; fiducial frame: {BAND_POINTS} "
-        "points across it, ICP frame: its ends and the estimate)"
+        "its range over that interval"
         if ci
         else "no c1 interval: figures without bands"
     )
-    failed = "".join(
-        f" Not validated: {n}, no FE solution at calibration ({why})."
-        for n, why in v.failed.items()
-    )
-    caveats = "".join(f"WARNING (calibration): {said}. " for said in v.caveats)
-    caveats += "".join(f"WARNING: {said}. " for said in v.notes)
-    return (
-        f"{caveats}c1 = {v.c1_pa:.1f} Pa ({band}). All distances in mm. Posture: "
-        f"{POSTURE_NOTE}. Error maps: "
-        "red where the scan lies outside the model, blue inside. Fiducial frame: the scan "
-        "mapped by its fiducial registration only; ICP: after a rigid ICP of the measured "
-        "onto the simulated surface (which minimises the surface error: biased low; the "
-        "nipple and tumour errors may rise or fall). Nipple: the dissertation's distance from "
-        "the simulated nipple to the nearest measured vertex (blind to a slide along the "
-        "surface); nipple tip: to the measured nipple tip. FRE/TRE: the scan's fiducial "
-        "registration error and expected target registration error (a model error below "
-        "the TRE cannot be told from registration error). The dissertation's column: its "
-        "published figures for the original CIRS phantom's scans at the nearest posture, "
-        "a baseline to compare with, not figures of this phantom." + failed
-    )
+    warnings = [f"WARNING (calibration): {said}." for said in v.caveats]
+    warnings += [f"WARNING: {said}." for said in v.notes]
+    warnings += [
+        f"Not validated: {n}, no FE solution at calibration ({why})." for n, why in v.failed.items()
+    ]
+    terms = [
+        "All distances in mm.",
+        "Bands: first order in ln c1; in the fiducial frame measured on "
+        f"{BAND_POINTS} points across the interval, in the ICP frame at its ends and the "
+        "estimate."
+        if ci
+        else "Bands: none (no c1 interval).",
+        f"Posture: {POSTURE_NOTE}.",
+        "Error maps: red where the scan lies outside the model, blue inside.",
+        "Fiducial frame: the scan mapped by its fiducial registration only; median, p95 "
+        "and max are of this frame.",
+        "ICP: after a rigid ICP of the measured onto the simulated surface (which "
+        "minimises the surface error: biased low; the nipple and tumour errors may rise "
+        "or fall).",
+        "Nipple: the dissertation's distance from the simulated nipple to the nearest "
+        "measured vertex (blind to a slide along the surface); nipple tip: to the "
+        "measured nipple tip.",
+        "FRE/TRE: the scan's fiducial registration error and expected target registration "
+        "error (a model error below the TRE cannot be told from registration error).",
+        "The dissertation's column: its published figures for the original CIRS "
+        "phantom's scans at the nearest posture, a baseline to compare with, not figures "
+        "of this phantom.",
+    ]
+    return warnings, f"c1 = {v.c1_pa:.1f} Pa ({band}).", terms
 
 
 def validation_markdown(v: Validation, figures: dict[str, list[str]] | None = None) -> str:
@@ -398,7 +408,7 @@ def validation_markdown(v: Validation, figures: dict[str, list[str]] | None = No
     lines = [
         "# Validation",
         "",
-        _intro(v),
+        *_intro_markdown(v),
         "",
         "| " + " | ".join(HEADER) + " |",
         "|" + "---|" * len(HEADER),
@@ -407,6 +417,23 @@ def validation_markdown(v: Validation, figures: dict[str, list[str]] | None = No
     for name, files in (figures or {}).items():
         lines += ["", f"## {name}", ""] + [f"![{Path(f).stem}]({f})" for f in files]
     return "\n".join(lines) + "\n"
+
+
+def _intro_markdown(v: Validation) -> list[str]:
+    warnings, c1, terms = _intro(v)
+    return [*(f"**{w}**" for w in warnings), *([""] if warnings else []), c1, "",
+            *(f"- {t}" for t in terms)]  # fmt: skip
+
+
+def _intro_html(v: Validation) -> str:
+    esc = html.escape
+    warnings, c1, terms = _intro(v)
+    return (
+        "".join(f"<p><strong>{esc(w)}</strong></p>" for w in warnings)
+        + f"<p>{esc(c1)}</p><ul>"
+        + "".join(f"<li>{esc(t)}</li>" for t in terms)
+        + "</ul>"
+    )
 
 
 def validation_html(v: Validation, figures: dict[str, list[str]] | None = None) -> str:
@@ -432,6 +459,6 @@ def validation_html(v: Validation, figures: dict[str, list[str]] | None = None) 
     )
     return (
         f"<!doctype html><html><head><meta charset='utf-8'><title>Validation</title>"
-        f"<style>{style}</style></head><body><h1>Validation</h1><p>{esc(_intro(v))}</p>"
+        f"<style>{style}</style></head><body><h1>Validation</h1>{_intro_html(v)}"
         f"<table><tr>{head}</tr>{body}</table>{figs}</body></html>\n"
     )

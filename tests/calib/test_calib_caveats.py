@@ -177,9 +177,31 @@ def test_a_validation_without_a_validation_scan_says_its_figures_are_fits():
     # the HTML and Markdown report's introduction too
     roles = [SimpleNamespace(role="calibration")]
     v = Validation(c1_pa=420.0, c1_ci95_pa=None, scans={"right": roles[0]})
-    assert v.notes == (NO_VALIDATION_SCAN,) and NO_VALIDATION_SCAN in _intro(v)
+    assert v.notes == (NO_VALIDATION_SCAN,) and NO_VALIDATION_SCAN in "\n".join(_intro(v)[0])
     v = Validation(c1_pa=420.0, c1_ci95_pa=None, scans={"tilt": SimpleNamespace(role="validation")})
-    assert v.notes == () and NO_VALIDATION_SCAN not in _intro(v)
+    assert v.notes == () and NO_VALIDATION_SCAN not in str(_intro(v))
+
+
+def test_the_validation_page_s_introduction_is_a_list_and_its_columns_say_their_frame():
+    # review BY, F14: the introduction was one ~1,100-character paragraph of nested
+    # parentheses, and "median", "p95", "max" did not say they were the fiducial frame's
+    from types import SimpleNamespace
+
+    from calib.report.validation import HEADER, _intro_markdown, validation_html
+    from calib.validation import Validation
+
+    source = {"simulated": True, "generator": "g"}
+    v = Validation(c1_pa=420.0, c1_ci95_pa=(410.0, 430.0), scans={}, caveats=("misfit",),
+                   scans_source=source)  # fmt: skip
+    md = _intro_markdown(v)
+    assert md[0] == "**WARNING (calibration): misfit.**"
+    assert md[1].startswith("**WARNING: the scans were simulated (session.toml [source]: g)")
+    bullets = [line for line in md if line.startswith("- ")]
+    assert len(bullets) >= 8 and all(len(line) < 260 for line in md)
+    assert any(line.startswith("- Fiducial frame:") for line in bullets)
+    assert {"median (fiducial)", "p95 (fiducial)", "max (fiducial)"} <= set(HEADER)
+    page = validation_html(v)
+    assert page.count("<li>") == len(bullets) and "<strong>WARNING: the scans" in page
 
 
 def test_a_posture_angle_is_said_on_its_nominal_angle_s_branch():

@@ -121,7 +121,9 @@ def test_scans_do_not_reveal_the_truth(twin_a):
     assert {p.suffix for p in scans.rglob("*") if p.is_file()} == {".toml", ".dcm"}
     text = (scans / "session.toml").read_text()
     doc = tomllib.loads(text)
-    assert set(doc) == {"scanner", "phantom", "landmarks", "scans"}
+    assert set(doc) == {"source", "scanner", "phantom", "landmarks", "scans"}
+    # that they were simulated, and by what, but not with which effects (review BY, F13)
+    assert doc["source"]["simulated"] is True and set(doc["source"]) == {"simulated", "generator"}
     # the tracked tumour is named by a rough point (as an experimenter would), not the truth
     truth = json.loads((out / "truth" / "truth.json").read_text())
     ref_truth = truth["scans"]["left_lateral"]["tumour_lps_mm"]

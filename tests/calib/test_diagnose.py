@@ -2711,3 +2711,22 @@ def test_a_noise_model_longer_than_its_variogram_is_said_to_blind_the_misfit_tes
     assert said.startswith("the noise model's correlation length (51 mm) reaches past the ")
     assert "variogram's 40 mm" in said and "cannot tell a smooth misfit from noise" in said
     assert _caveats(doc(12.0)) == [] and len(_caveats(doc(12.0, at_bound=True))) == 1
+
+
+def test_an_empty_localisation_region_says_why_it_is_empty():
+    # review BY, F15: "inclusions | 0 | – | – ..." for both scans, though the model had
+    # three inclusions: no diagnosed point lay within the region's radius of one
+    from calib.report.diagnosis import _localisation_table
+
+    full = {"n": 12, "mean_mm": 0.1, "rms_mm": 0.2, "z": 2.5, "p_value": 0.01,
+            "share_significant": 0.5}  # fmt: skip
+    empty = dict.fromkeys(full, None) | {"n": 0}
+    doc = {
+        "scans": {"region_scale": 0.5, "rim_margin_mm": 7.0},
+        "localisation": {"lat": {"regions": {"apex": full, "rim": empty, "inclusions": empty}}},
+    }
+    page = _localisation_table(doc)
+    # the radii as diagnose labels the points: the regions' factor, the rim margin's floor
+    assert "no diagnosed point within 7.5 mm of an inclusion&#x27;s surface" in page
+    assert "no diagnosed point within 7 mm of the back plate" in page
+    assert "–" not in page and "<td>12</td>" in page and "<td>0.01</td>" in page
