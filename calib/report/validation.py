@@ -362,8 +362,10 @@ HEADER = [
 
 
 def _intro(v: Validation) -> tuple[list[str], str, list[str]]:
-    """The page's warnings, its c1 line and its definitions, one item each (review BY,
-    F14: they were one paragraph of ~1,100 characters that a reader could not parse)."""
+    """The page's warnings, its c1 line and its definitions, one item each.
+
+    Review BY, F14: they were one paragraph of ~1,100 characters a reader could not parse.
+    """
     ci = v.c1_ci95_pa
     band = (
         f"95 % interval {ci[0]:.1f}–{ci[1]:.1f} Pa; each figure's band in brackets is "

@@ -185,8 +185,6 @@ def test_a_validation_without_a_validation_scan_says_its_figures_are_fits():
 def test_the_validation_page_s_introduction_is_a_list_and_its_columns_say_their_frame():
     # review BY, F14: the introduction was one ~1,100-character paragraph of nested
     # parentheses, and "median", "p95", "max" did not say they were the fiducial frame's
-    from types import SimpleNamespace
-
     from calib.report.validation import HEADER, _intro_markdown, validation_html
     from calib.validation import Validation
 
