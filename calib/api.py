@@ -22,6 +22,7 @@ if TYPE_CHECKING:  # annotations only: ``import calib`` stays light
 
     from .choices import SurrogateKind
     from .data.ingest import IngestResult
+    from .data.work import WorkFolder
     from .discrepancy import DiagnosisOptions
     from .fitting import CalibrationOptions
     from .notebook import Work
@@ -50,6 +51,21 @@ def _options(cls, options, fields: dict):
     if options is not None and not isinstance(options, cls):
         raise TypeError(f"options must be a {cls.__name__}, got {type(options).__name__}")
     return options if options is not None else cls(**fields)
+
+
+def _work_path(work: str | Path | Work | WorkFolder) -> str | Path:
+    """The path of a work folder given as a path, a ``Work`` or a ``WorkFolder``.
+
+    Review BZ, F6: the loaded objects failed with "expected str, bytes or os.PathLike".
+    """
+    from .data.work import WorkFolder
+    from .notebook import Work
+
+    if isinstance(work, Work):
+        return work.folder.path
+    if isinstance(work, WorkFolder):
+        return work.path
+    return work
 
 
 def ingest(
@@ -152,7 +168,9 @@ def validate(work: str | Path | Work, *, progress: Callable[[str], Any] | None =
     from .workflows.validate import run_validation
 
     kept = {}
-    if isinstance(work, Work):
+    if not isinstance(work, Work):
+        work = _work_path(work)
+    else:
         loaded, work = work, work.folder.path
 
         def keep(v, written):
@@ -197,7 +215,7 @@ def load_work(work: str | Path) -> Work:
 
 
 def diagnose(
-    work: str | Path,
+    work: str | Path | Work,
     *,
     options: DiagnosisOptions | None = None,
     progress: Callable[[str], Any] | None = None,
@@ -207,8 +225,8 @@ def diagnose(
 
     Parameters
     ----------
-    work : str or Path
-        A calibrated work folder.
+    work : str, Path or calib.notebook.Work
+        A calibrated work folder (or one loaded by :func:`load_work`).
     options : calib.discrepancy.DiagnosisOptions, optional
         The options; or give their fields as keywords (``effects=("skin",)``), not both.
     progress : callable, optional
@@ -231,7 +249,8 @@ def diagnose(
     from .discrepancy import DiagnosisOptions
     from .workflows.diagnose import run_diagnosis
 
-    return run_diagnosis(work, _options(DiagnosisOptions, options, fields), progress=progress)
+    opts = _options(DiagnosisOptions, options, fields)
+    return run_diagnosis(_work_path(work), opts, progress=progress)
 
 
 def simulate(
@@ -280,7 +299,7 @@ def simulate(
 
 
 def gravity_sweep(
-    work: str | Path,
+    work: str | Path | Work,
     out: str | Path,
     *,
     options: SweepOptions | None = None,
@@ -291,8 +310,8 @@ def gravity_sweep(
 
     Parameters
     ----------
-    work : str or Path
-        A calibrated work folder.
+    work : str, Path or calib.notebook.Work
+        A calibrated work folder (or one loaded by :func:`load_work`).
     out : str or Path
         The Zarr store to write, or to resume where it holds this model's and plan's sweep.
     options : calib.workflows.sweep.SweepOptions, optional
@@ -317,7 +336,8 @@ def gravity_sweep(
     """
     from .workflows.sweep import SweepOptions, run_sweep
 
-    return run_sweep(work, out, _options(SweepOptions, options, fields), progress=progress)
+    opts = _options(SweepOptions, options, fields)
+    return run_sweep(_work_path(work), out, opts, progress=progress)
 
 
 def train_surrogate(

@@ -20,6 +20,8 @@ from fem.io import atomic_write
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "OUT_OPTION",
+    "WORK_OPTION",
     "InsideRunFolderError",
     "RunOutputs",
     "StaleOutputError",
@@ -59,17 +61,23 @@ def write_json_atomic(path: str | os.PathLike, data: dict) -> Path:
     return atomic_write(path, lambda p: p.write_text(text + "\n"))
 
 
-def _check_writable(out: Path, folder: Path) -> None:
+#: How the output checks name the option they check: a Python parameter, then the
+#: command's flag (review BW, F6; review BZ, F4: ingest and calibrate take ``work``).
+OUT_OPTION = "out (--out)"
+WORK_OPTION = "work (--out)"
+
+
+def _check_writable(out: Path, folder: Path, option: str) -> None:
     if not os.access(folder, os.W_OK | os.X_OK):
-        raise PermissionError(f"out (--out) {out}: {folder} is not writable")
+        raise PermissionError(f"{option} {out}: {folder} is not writable")
 
 
-def _check_parents(out: Path) -> None:
+def _check_parents(out: Path, option: str) -> None:
     """The nearest existing path above ``out`` must be a writable folder."""
     parent = next((p for p in out.parents if p.exists()), Path("."))
     if not parent.is_dir():
-        raise NotADirectoryError(f"out (--out) {out}: {parent} is a file, not a folder")
-    _check_writable(out, parent)
+        raise NotADirectoryError(f"{option} {out}: {parent} is a file, not a folder")
+    _check_writable(out, parent, option)
 
 
 def check_work_writable(work: str | os.PathLike, writes: str) -> None:
@@ -95,7 +103,7 @@ class InsideRunFolderError(ValueError):
     """An ``--out`` inside a work folder's run folder, which a later run replaces whole."""
 
 
-def check_not_in_run_folder(out: str | os.PathLike) -> None:
+def check_not_in_run_folder(out: str | os.PathLike, *, option: str = OUT_OPTION) -> None:
     """Refuse an ``--out`` inside a work folder's ``calibration/``, ``validation/``, ...
 
     Each run replaces its folder as a whole (review AT: a sweep store written into
@@ -110,12 +118,12 @@ def check_not_in_run_folder(out: str | os.PathLike) -> None:
         record, command = RUN_FOLDERS.get(folder.name, (None, None))
         if record is not None and (folder.parent / record).is_file():
             raise InsideRunFolderError(
-                f"out (--out) {out}: inside {folder}, which the next `phantom-calib {command}` of "
+                f"{option} {out}: inside {folder}, which the next `phantom-calib {command}` of "
                 f"{folder.parent} replaces as a whole; write it outside"
             )
 
 
-def check_out_file(out: str | os.PathLike) -> None:
+def check_out_file(out: str | os.PathLike, *, option: str = OUT_OPTION) -> None:
     """Refuse an ``--out`` file that cannot be written, before any work.
 
     Raises
@@ -130,13 +138,13 @@ def check_out_file(out: str | os.PathLike) -> None:
         It lies in a work folder's run folder (:func:`check_not_in_run_folder`).
     """
     out = Path(out)
-    check_not_in_run_folder(out)
+    check_not_in_run_folder(out, option=option)
     if out.is_dir():
-        raise IsADirectoryError(f"out (--out) {out}: is a folder; name the file to write")
-    _check_parents(out)
+        raise IsADirectoryError(f"{option} {out}: is a folder; name the file to write")
+    _check_parents(out, option)
 
 
-def check_out_folder(out: str | os.PathLike) -> None:
+def check_out_folder(out: str | os.PathLike, *, option: str = OUT_OPTION) -> None:
     """Refuse an output folder that cannot be written, before any work.
 
     Raises
@@ -151,18 +159,20 @@ def check_out_folder(out: str | os.PathLike) -> None:
         It lies in a work folder's run folder (:func:`check_not_in_run_folder`).
     """
     out = Path(out)
-    check_not_in_run_folder(out)
+    check_not_in_run_folder(out, option=option)
     if out.is_symlink() and not out.exists():
-        raise FileExistsError(f"out (--out) {out}: a link to nothing ({os.readlink(out)})")
+        raise FileExistsError(f"{option} {out}: a link to nothing ({os.readlink(out)})")
     if out.exists() and not out.is_dir():
-        raise NotADirectoryError(f"out (--out) {out}: exists and is not a folder")
+        raise NotADirectoryError(f"{option} {out}: exists and is not a folder")
     if out.exists():
-        _check_writable(out, out)
+        _check_writable(out, out, option)
     else:
-        _check_parents(out)
+        _check_parents(out, option)
 
 
-def check_out_apart(out: str | os.PathLike, inputs, *, what: str = "the input") -> None:
+def check_out_apart(
+    out: str | os.PathLike, inputs, *, what: str = "the input", option: str = OUT_OPTION
+) -> None:
     """Refuse an output folder that is, or holds, one of the ``inputs``, before any work.
 
     A run replaces its folders under ``out`` (``scans/``, ``calibration/``, ...) as a
@@ -189,7 +199,7 @@ def check_out_apart(out: str | os.PathLike, inputs, *, what: str = "the input") 
         if q == o or o in q.parents:
             where = "is" if q == o else "holds"
             raise ValueError(
-                f"out (--out) {out} {where} {what} {p}: each run replaces its folders under it "
+                f"{option} {out} {where} {what} {p}: each run replaces its folders under it "
                 "as a whole, so it would delete or mix into the input; choose an output "
                 "folder outside it (e.g. next to it)"
             )
@@ -510,7 +520,7 @@ def locking_work(command: str, *, create: bool = False):
             work = Path(signature.bind(*args, **kwargs).arguments["work"])
             made = []
             if create and not work.exists():
-                check_out_folder(work)
+                check_out_folder(work, option=WORK_OPTION)
                 made = [p for p in (work, *work.parents) if not p.exists()]
                 work.mkdir(parents=True, exist_ok=True)  # a racing command: the lock decides
             if not work.is_dir():

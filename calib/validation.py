@@ -247,7 +247,7 @@ def simulated_scans_note(source: dict | None) -> tuple[str, ...]:
     tuple of str
         One note where ``source["simulated"]`` is true, else empty.
     """
-    if not (source or {}).get("simulated"):
+    if (source or {}).get("simulated") is not True:
         return ()
     by = source.get("generator")
     return (

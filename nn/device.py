@@ -40,9 +40,11 @@ def select_device(device: Device | str = "auto"):
         return torch.device("cpu")
     if device == "cuda":
         if not torch.cuda.is_available():
-            raise ValueError("--device cuda: no CUDA device (torch has no GPU here); use auto")
+            raise ValueError(
+                "device (--device) cuda: no CUDA device (torch has no GPU here); use auto"
+            )
         return torch.device("cuda")
-    raise ValueError(f"--device must be auto, cpu or cuda, got {device!r}")
+    raise ValueError(f"device (--device) must be auto, cpu or cuda, got {device!r}")
 
 
 @contextlib.contextmanager

@@ -68,6 +68,16 @@ class SavedState:
             object.__setattr__(self, f.name, _read_only(getattr(self, f.name)))
 
 
+def _arrays_read_only(held) -> None:
+    """Make the arrays of a dataclass (and of its mappings of arrays) read-only in place."""
+    for f in fields(held):
+        value = getattr(held, f.name)
+        values = value.values() if isinstance(value, Mapping) else (value,)
+        for array in values:
+            if isinstance(array, np.ndarray):
+                array.setflags(write=False)
+
+
 def _read_only(value) -> np.ndarray | None:
     """``value`` as a read-only float array (None stays None)."""
     if value is None:
@@ -84,41 +94,42 @@ def _refuse(self, *args, **kwargs):
     )
 
 
-class ReadOnlyDict(dict):
+class _ReadOnly:
+    """Copies of a read-only JSON container: plain and editable; pickles read-only."""
+
+    __slots__ = ()
+    _plain: type
+
+    def __copy__(self):
+        return self._plain(self)
+
+    def __deepcopy__(self, memo):
+        return _thawed(self)
+
+    def __reduce__(self):
+        return (read_only_record, (_thawed(self),))
+
+
+class ReadOnlyDict(_ReadOnly, dict):
     """A JSON record's mapping that refuses changes (a ``dict`` to readers and ``json``).
 
-    ``copy.copy`` and ``copy.deepcopy`` give plain, editable ``dict``/``list`` copies.
+    ``copy.deepcopy`` gives a plain, editable copy at every depth; ``copy.copy`` (like
+    ``dict(record)``) a plain top level whose nested values stay read-only.
     """
 
     __slots__ = ()
+    _plain = dict
     __setitem__ = __delitem__ = __ior__ = _refuse
     clear = pop = popitem = setdefault = update = _refuse
 
-    def __copy__(self) -> dict:
-        return dict(self)
 
-    def __deepcopy__(self, memo) -> dict:
-        return _thawed(self)
-
-    def __reduce__(self):
-        return (read_only_record, (_thawed(self),))
-
-
-class ReadOnlyList(list):
+class ReadOnlyList(_ReadOnly, list):
     """A JSON record's list that refuses changes (a ``list`` to readers and ``json``)."""
 
     __slots__ = ()
+    _plain = list
     __setitem__ = __delitem__ = __iadd__ = __imul__ = _refuse
     append = clear = extend = insert = pop = remove = reverse = sort = _refuse
-
-    def __copy__(self) -> list:
-        return list(self)
-
-    def __deepcopy__(self, memo) -> list:
-        return _thawed(self)
-
-    def __reduce__(self):
-        return (read_only_record, (_thawed(self),))
 
 
 def _thawed(value):
@@ -302,6 +313,9 @@ def read_work(work: str | Path) -> WorkFolder:
     scans = {e.name: read_scan(work, e) for e in entries}
     measurements = Measurements(scans[ref_name], scans, model.get("density_kg_m3"))
     mesh = read_mesh(work / model["reference_mesh"], orient=False)
+    # review BZ, F1: a scan's vertices changed in place changed what validate reported
+    for held in (*scans.values(), mesh):
+        _arrays_read_only(held)
     states = {}
     for name, s in record["scans"].items():
         if s.get("failed"):
@@ -374,7 +388,8 @@ def check_record(record: dict, path: Path) -> None:
         (strings, numbers, the rotation, the prestress files, ``effects``); ``scans``
         not an object of records with the role ``calibration`` or ``validation`` (at
         least one ``calibration``), a posture or model of the wrong shape, or holding
-        ``model.reference_scan``.
+        ``model.reference_scan``; ``scans_source`` neither null nor the session's
+        ``[source]``.
     """
     from .session import ROLES
 
@@ -388,6 +403,18 @@ def check_record(record: dict, path: Path) -> None:
         raise ValueError(
             f"{path}: schema_version {version}, written by a newer phantom-calib; this one "
             f"reads {SCHEMA_VERSION} and earlier: update phantom-calib or recalibrate"
+        )
+    source = record.get("scans_source")  # review BZ, F3: a traceback after validating
+    if source is not None and not (
+        isinstance(source, dict)
+        and set(source) <= {"simulated", "generator"}
+        and isinstance(source.get("simulated", False), bool)
+        and isinstance(source.get("generator", ""), str)
+    ):
+        raise bad(
+            "scans_source",
+            "null or the session's [source]: {simulated: true/false, generator: text}",
+            source,
         )
     c1 = record.get("c1_pa")
     if isinstance(c1, bool) or not isinstance(c1, (int, float)) or not (np.isfinite(c1) and c1 > 0):

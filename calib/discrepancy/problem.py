@@ -810,8 +810,9 @@ def choose_scans(work: WorkFolder, holdout: str | None) -> tuple[list[str], str 
         raise DiagnosisError(f"{work.path}: no scan left to diagnose besides the held-out one")
     if named and len(scans) < MIN_FITTED_SCANS:
         raise DiagnosisError(
-            f"holdout (--holdout) {holdout}: leaves {scans} to fit, and naming an effect needs "
-            f"leave-one-posture-out over {MIN_FITTED_SCANS} scans (--holdout none fits all)"
+            f"holdout (--holdout) {holdout}: leaves {scans} to fit, and naming an effect "
+            f"needs leave-one-posture-out over {MIN_FITTED_SCANS} scans (holdout 'none', "
+            "--holdout none, fits all)"
         )
     if len(scans) < MIN_FITTED_SCANS:
         msg = "%s: a single scan to fit (%s): leave-one-posture-out cannot run, so no effect "

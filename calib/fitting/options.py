@@ -43,7 +43,7 @@ def check_mesh_check_ratio(ratio: float) -> None:
     """
     if not (0.5 <= ratio <= 0.9 or 1.1 <= ratio <= 3.0):
         raise OptionsError(
-            f"mesh check ratio (--mesh-check) must lie in [0.5, 0.9] or [1.1, 3], got {ratio}"
+            f"mesh_check_ratio (--mesh-check) must lie in [0.5, 0.9] or [1.1, 3], got {ratio}"
         )
 
 
@@ -190,16 +190,16 @@ class CalibrationOptions:
         for size in (self.mesh_size_mm, *self.mesh_retry_mm):
             if not lo <= size <= hi:
                 raise OptionsError(
-                    f"mesh size (--mesh-size) must lie in [{lo:g}, {hi:g}] mm, got {size}"
+                    f"mesh_size_mm (--mesh-size) must lie in [{lo:g}, {hi:g}] mm, got {size}"
                 )
         try:
             check_max_dihedral_deg(
-                self.mesh_max_dihedral_deg, "mesh max dihedral angle (--mesh-max-dihedral)"
+                self.mesh_max_dihedral_deg, "mesh_max_dihedral_deg (--mesh-max-dihedral)"
             )
         except ValueError as exc:  # fem's words, as one of the options' errors
             raise OptionsError(str(exc)) from None
         if not 0.0 < self.nu < 0.5:
-            raise OptionsError(f"Poisson's ratio (--nu) must lie in (0, 0.5), got {self.nu}")
+            raise OptionsError(f"nu (--nu), Poisson's ratio, must lie in (0, 0.5), got {self.nu}")
         if not (self.c1_guess_pa > 0 and math.isfinite(self.c1_guess_pa)):
             raise OptionsError(
                 f"c1_guess_pa (--c1-guess) must be a positive c1 in Pa, got {self.c1_guess_pa}"

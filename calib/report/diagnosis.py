@@ -362,10 +362,13 @@ def _localisation_table(doc: dict) -> str:
     scans = doc.get("scans") or {}
     scale = scans.get("region_scale") or 1.0
     rim_mm = max(RIM_MM * scale, scans.get("rim_margin_mm") or 0.0)  # as diagnose's regions
-    where = {  # review BY, F15: an empty region read as a row of dashes, unexplained
+    # review BY, F15: an empty region read as a row of dashes, unexplained; review BZ, F2:
+    # the regions are exclusive, apex first, then rim (localise.region_labels)
+    where = {
         "apex": f"within {APEX_MM * scale:.3g} mm of the measured nipple",
-        "rim": f"within {rim_mm:.3g} mm of the back plate",
-        "inclusions": f"within {OVER_MM * scale:.3g} mm of an inclusion's surface",
+        "rim": f"outside the apex within {rim_mm:.3g} mm of the back plate",
+        "inclusions": f"outside the apex and rim within {OVER_MM * scale:.3g} mm of an "
+        "inclusion ingest segmented in this scan (or of the tumour landmark)",
     }
     loc_rows = []
     for scan, m in doc["localisation"].items():

@@ -327,8 +327,10 @@ def synthesize(
     settings = _preset_settings(p)  # a value truth.json cannot hold fails before any work
     out = Path(out)
     if out.exists() and not overwrite:
-        raise FileExistsError(f"{out} exists; choose another folder or pass --overwrite")
-    check_out_folder(out)  # before the truth solves, not after them
+        raise FileExistsError(
+            f"{out} exists; choose another folder or pass overwrite=True (--overwrite)"
+        )
+    check_out_folder(out, option="out (OUT)")  # before the truth solves, not after them
     eff = p.effects if effects is None else effects
     clean_stale(out.parent, (out.name,))  # partial folders of killed runs
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"

@@ -24,6 +24,7 @@ from ..evaluation import ScanEvaluation, check_postures, evaluate, model_fit_wit
 from ..fitting import Calibration, CalibrationOptions, fit
 from ..fitting.result import phantom_frame
 from ..io import (
+    WORK_OPTION,
     RunOutputs,
     StaleOutputError,
     check_out_apart,
@@ -276,11 +277,11 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     say = progress or log.info
     t0 = time.perf_counter()
     work = Path(work)
-    check_out_folder(work)
+    check_out_folder(work, option=WORK_OPTION)
     session = load_session(scans_dir)
     # review BI, BK: hashed as read, not when the record is written
     session_read = input_records({"session": session.folder / "session.toml"})
-    check_out_apart(work, session_inputs(session), what="the scan data")
+    check_out_apart(work, session_inputs(session), what="the scan data", option=WORK_OPTION)
     if not session.by_role("calibration"):
         raise SessionError(
             f"{session.folder / 'session.toml'}: no scan has role 'calibration' (calibrate "

@@ -13,6 +13,7 @@ from pathlib import Path
 from ..data.ingest import IngestResult, ingest_inputs, ingest_scans
 from ..data.session import Session, load_session, session_inputs
 from ..io import (
+    WORK_OPTION,
     RunOutputs,
     check_out_apart,
     check_out_folder,
@@ -154,9 +155,9 @@ def run_ingest(scans_dir: str | Path, work: str | Path, *, progress=None) -> Ing
     -------
     IngestResult
     """
-    check_out_folder(work)  # before the work, not after it
+    check_out_folder(work, option=WORK_OPTION)  # before the work, not after it
     session = load_session(scans_dir)
-    check_out_apart(work, session_inputs(session), what="the scan data")
+    check_out_apart(work, session_inputs(session), what="the scan data", option=WORK_OPTION)
     # review BI: fingerprinted before they are read, so that a source changed during the
     # run leaves results that later commands call stale (after, they were called current)
     inputs = ingest_inputs(session)

@@ -222,8 +222,8 @@ def _create_store(
                 raise
             raise StoreError(
                 f"out (--out) {out}: a store appeared there while this one was being created "
-                "(another sweep with the same --out?); it is left as it is: run again to "
-                "resume it, or with --overwrite to replace it"
+                "(another sweep with the same out?); it is left as it is: run again to "
+                "resume it, or with overwrite (--overwrite) to replace it"
             ) from exc
     return SweepStore.open(out)
 
@@ -346,9 +346,9 @@ def run_sweep(work, out, options: SweepOptions | None = None, *, progress=None) 
     )
     if not model.scales_with_c1 and np.any(plan.c1_pa != model.c1_pa):
         raise PlanError(
-            f"--c1 {opts.c1_axis}: {work} holds the back plate on tangential springs "
+            f"c1_axis (--c1) {opts.c1_axis}: {work} holds the back plate on tangential springs "
             "(model.effects, a diagnosis refit), whose stiffness does not scale with c1, so "
-            "another c1 is not the calibrated one under scaled gravity; sweep without --c1"
+            "another c1 is not the calibrated one under scaled gravity; sweep without a c1 axis"
         )
     loads = plan.gravity_phantom * (model.c1_pa / plan.c1_pa)[:, None]
     cont = plan_continuation(loads, chunk_size=opts.chunk_size, max_angle_deg=opts.max_angle_deg)

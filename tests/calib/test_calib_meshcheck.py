@@ -25,7 +25,9 @@ def test_combined_interval_adds_in_quadrature():
 def test_bad_ratios_are_refused(ratio):
     from calib.fitting import OptionsError
 
-    with pytest.raises(OptionsError, match="mesh check ratio"):  # a ValueError too
+    with pytest.raises(
+        OptionsError, match=r"^mesh_check_ratio \(--mesh-check\) must lie"
+    ):  # a ValueError too
         check_mesh_check_ratio(ratio)
 
 

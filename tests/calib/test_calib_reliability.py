@@ -205,7 +205,7 @@ def test_a_corrupted_series_is_never_calibrated_on_old_results(scans, tmp_path):
 @pytest.mark.parametrize(
     ("args", "pattern"),
     [
-        (["--nu", "0.5"], r"Poisson's ratio \(--nu\) must lie in \(0, 0\.5\)"),
+        (["--nu", "0.5"], r"nu \(--nu\), Poisson's ratio, must lie in \(0, 0\.5\)"),
         (["--profile", "-3"], r"'--profile'.*greater than or equal to 0"),
         (["--mesh-size", "0.5"], r"'--mesh-size'.*greater than or equal to 1"),
         (
@@ -215,7 +215,7 @@ def test_a_corrupted_series_is_never_calibrated_on_old_results(scans, tmp_path):
         ),
         (
             ["--mesh-max-dihedral", "180"],
-            r"max dihedral angle \(--mesh-max-dihedral\) must lie in \(90, 180\)",
+            r"mesh_max_dihedral_deg \(--mesh-max-dihedral\) must lie in \(90, 180\)",
         ),
     ],
 )
@@ -424,6 +424,11 @@ _CAL = {"role": "calibration"}
             "`model.reference_mesh` must be a string",
         ),
         ({"c1_pa": 420.0, "scans": {}, "model": {"nu": None}}, "`model.nu` must be a number"),
+        # review BZ, F3: a traceback after the whole validation, or a wrong warning
+        ({"c1_pa": 420.0, "scans": {}, "scans_source": "simulated"}, "`scans_source` must be"),
+        ({"c1_pa": 420.0, "scans": {}, "scans_source": ["x"]}, "`scans_source` must be"),
+        ({"c1_pa": 420.0, "scans": {}, "scans_source": {"simulated": "no"}}, "`scans_source`"),
+        ({"c1_pa": 420.0, "scans": {}, "scans_source": {"by": "x"}}, "`scans_source` must be"),
         ({"c1_pa": 420.0, "scans": {}, "model": {"prestress": "yes"}}, "`model.prestress` must"),
         (
             {"c1_pa": 420.0, "scans": {}, "model": {"R_ref_from_phantom": [[1, 0], [0, 1]]}},

@@ -228,6 +228,11 @@ def test_a_loaded_work_folder_refuses_changes_and_copies_edit_freely(nipple_run)
     edited = copy.deepcopy(w.record)
     edited["scans"]["tilt_50"]["role"] = "x"
     assert type(edited) is dict and w.record["scans"]["tilt_50"]["role"] != "x"
+    # review BZ, F1: a scan's vertices changed in place changed what validate reported
+    scan = w.folder.measurements.scans["tilt_50"]
+    for array in (scan.vertices_mm, scan.faces, w.folder.mesh.nodes_mm, w.folder.mesh.tets):
+        with pytest.raises(ValueError, match="read-only"):
+            array[0, 0] = 1
     again = pickle.loads(pickle.dumps(w.folder))
     assert again.record == doc and set(again.states) == set(w.folder.states)
     with pytest.raises(TypeError):
@@ -240,7 +245,9 @@ def test_a_loaded_work_folder_refuses_changes_and_copies_edit_freely(nipple_run)
         p.surface_mm[0, 0, 0] = 99.0
 
 
-def test_calib_validate_of_a_loaded_work_keeps_its_figures(nipple_run, tmp_path, monkeypatch):
+def test_calib_validate_of_a_loaded_work_keeps_its_figures(
+    nipple_run, tmp_path, monkeypatch, caplog
+):
     # review BW, F8: notebook 02 validated, then its table computed the validation again
     import shutil
 
@@ -262,11 +269,43 @@ def test_calib_validate_of_a_loaded_work_keeps_its_figures(nipple_run, tmp_path,
     mean_mm = record["scans"]["tilt_50"]["surface_error_mm"]["fiducial"]["mean"]["value"]
     assert "| tilt_50 |" in table and f"{mean_mm:.2f}" in table
     # a work folder calibrated again since it was loaded: the report is the new one's,
-    # the loaded object keeps (and computes from) its own states
+    # the loaded object keeps (and computes from) its own states (review BZ, F7: this
+    # part called keep_validation alone, and its last check could not fail)
+    import logging
+
     old = calib.load_work(copy)
     rec = json.loads((copy / "calibration.json").read_text())
-    assert not old.keep_validation(w.validation, "another-run")
-    assert old._validation is None and rec["run_id"] == old.record["run_id"]
+    (copy / "calibration.json").write_text(json.dumps(rec | {"run_id": "forged"}))
+    run = json.loads((copy / "calibration" / "RUN").read_text())
+    (copy / "calibration" / "RUN").write_text(json.dumps(run | {"run_id": "forged"}))
+    monkeypatch.undo()  # the new calibration's validation is computed
+    with caplog.at_level(logging.WARNING, logger="calib.api"):
+        again = calib.validate(old)
+    assert again["calibration_run_id"] == "forged" and old._validation is None
+    assert "was calibrated again since it was loaded" in caplog.text
+    # the other entry points take a loaded folder as its path (review BZ, F6: they
+    # failed with "expected str, bytes or os.PathLike object")
+    import calib.workflows.diagnose
+    import calib.workflows.sweep
+
+    seen = []
+    monkeypatch.setattr(
+        calib.workflows.diagnose, "run_diagnosis", lambda p, *a, **k: seen.append(p)
+    )
+    monkeypatch.setattr(calib.workflows.sweep, "run_sweep", lambda p, *a, **k: seen.append(p))
+    calib.diagnose(w)
+    calib.gravity_sweep(w.folder, tmp_path / "sweep.zarr")
+    assert seen == [w.folder.path, w.folder.path]
+
+
+def test_a_work_folder_s_options_are_named_as_python_calls_them(tmp_path):
+    # review BZ, F4: calibrate and ingest take `work`, and were told of `out (--out)`
+    import calib
+
+    (tmp_path / "afile").write_text("")
+    for call in (calib.ingest, calib.calibrate):
+        with pytest.raises(NotADirectoryError, match=r"^work \(--out\) .*afile: exists and is not"):
+            call(tmp_path / "scans", tmp_path / "afile")
 
 
 def test_work_figures_show_as_images_in_an_ipython_kernel(nipple_run):

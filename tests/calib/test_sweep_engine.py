@@ -290,7 +290,9 @@ def test_a_refit_on_springs_has_no_c1_axis_and_bad_effects_are_named(tmp_path):
 
     work = _skin_work(tmp_path / "springs", support_stiffness_pa_per_mm=300.0)
     assert not load_sweep_model(work).scales_with_c1
-    with pytest.raises(PlanError, match="tangential springs.*sweep without --c1"):
+    with pytest.raises(
+        PlanError, match=r"^c1_axis \(--c1\) .*tangential springs.*sweep without a c1 axis"
+    ):
         run_sweep(work, tmp_path / "s", PLAN)
     assert not (tmp_path / "s").exists()
     run_sweep(work, tmp_path / "s", SweepOptions(plan="sphere:2", backend="serial"))

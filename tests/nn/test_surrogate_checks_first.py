@@ -39,7 +39,11 @@ def _cuda() -> bool:
     ("kw", "error", "match"),
     [
         ({"kind": "foo"}, ValueError, "unknown surrogate kind 'foo'; choose ours or dissertation"),
-        ({"device": "tpu"}, ValueError, "--device must be auto, cpu or cuda, got 'tpu'"),
+        (
+            {"device": "tpu"},
+            ValueError,
+            r"^device \(--device\) must be auto, cpu or cuda, got 'tpu'",
+        ),
         (
             {"kind": "dissertation", "iterations": 0},
             ValueError,
@@ -48,7 +52,7 @@ def _cuda() -> bool:
         pytest.param(
             {"device": "cuda"},
             ValueError,
-            "--device cuda: no CUDA device",
+            r"^device \(--device\) cuda: no CUDA device",
             marks=pytest.mark.skipif("_cuda()", reason="a CUDA device is here"),
         ),
     ],
