@@ -246,10 +246,20 @@ class Work:
         """
         from matplotlib.figure import Figure
 
-        rows = [r for r in self.record.get("profile", []) if not r.get("failed")]
-        hist = [h for h in self.record.get("history", []) if not h.get("failed")]
+        # review CB: a diagnosis refit's history holds its parameter vectors (`x`, ln c1
+        # first, then its effects') and sums of squares: a KeyError 'c1_pa' here
+        ok = ("c1_pa", "objective")
+        rows = [r for r in self.record.get("profile") or [] if not r.get("failed")]
+        rows = [r for r in rows if all(k in r for k in ok)]
+        every = [h for h in self.record.get("history") or [] if not h.get("failed")]
+        hist = [h for h in every if all(k in h for k in ok)]
         fig = Figure(figsize=(6, 4), layout="constrained")
         ax = fig.subplots()
+        if every and not hist:
+            ax.set_title(
+                "a joint fit: its evaluations are over c1 and its effects, not drawn here",
+                fontsize=9,
+            )
         if hist:
             ax.plot(
                 [h["c1_pa"] for h in hist],

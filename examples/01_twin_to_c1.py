@@ -89,7 +89,7 @@ work.plot_profile()
 # The measured surface coloured by its signed distance to the model along the model's
 # outward normal (red: the scan lies outside the model, blue: inside), in the phantom
 # frame, on this scan's own scale (±99th percentile of |error|; `WORK/calibration/`'s
-# maps share one scale over the scans: pass `vmax=` for that).
+# maps share one scale over the scans: pass `vmax=work.error_scale_mm()` for that).
 
 # %%
 calibration_scan = next(n for n, r in work.scans.items() if r == "calibration")

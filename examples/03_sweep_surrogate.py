@@ -54,7 +54,10 @@ print(f"size {_settings.SIZE}, work folder {work}")
 # The dissertation plan as we read it: training directions every 15° in the transverse
 # (x–z) and sagittal (y–z) planes of the phantom frame (46 distinct: the planes share
 # prone and supine), and 48 validation directions 10° past them in both planes. Each
-# solve warm-starts from its nearest solved neighbour; the store is resumable
+# solve warm-starts from the nearest direction solved before it in its chunk of 12 of a
+# nearest-neighbour tour (within 45°); the first of each chunk, and one far from the
+# others, starts cold by load stepping (the `warm` and `cold` lines below). The store is
+# resumable
 # (re-running this cell solves only what is pending; a direction with no FE solution is
 # recorded as failed and solved again only with `retry_failed=True`). The tiny size
 # leaves a few sagittal directions unsolved (README, Status): the cell says how many.
@@ -70,8 +73,8 @@ print(
 for kind in ("warm", "cold"):
     k = summary[kind]
     print(
-        f"{kind} starts: {k['n']}, Newton iterations per solve mean "
-        f"{k.get('newton_mean', 0):.1f}, median {k.get('wall_s_median', 0):.2f} s per solve"
+        f"{kind} starts: {k['n']}, mean {k.get('newton_mean', 0):.1f} Newton iterations and "
+        f"median {k.get('wall_s_median', 0):.2f} s per solve"
     )
 data = nn.load_sweep(out / "sweep")
 train, valid = data.subset(data.role == "train"), data.subset(data.role == "validation")
@@ -125,7 +128,7 @@ Markdown(
 )
 
 # %% [markdown]
-# ## 3. Error maps at the worst validation direction
+# ## 3. Error maps at the dissertation MLPs' worst validation direction
 # Surface vertices coloured by the point-to-point error against FE (the dissertation's
 # Fig. 4.17), both surrogates on one colour scale (the larger 99th percentile), in the
 # phantom frame (z from the back plate into the breast, as every other map).
@@ -240,8 +243,11 @@ for name, s in doc["scans"].items():
 nn.save_surrogate(ours, out / "surrogate.pt")
 sur = nn.load_surrogate(out / "surrogate.pt")
 prone = sur.predict([0.0, 0.0, g0])  # phantom frame: gravity towards +z
+# displacements from the sweep's reference mesh: the loaded reference scan's shape where the
+# calibration recovered a prestressed reference (the tiny twin), else the stress-free shape
+origin = "the reference scan's shape" if sur.prestressed else "the stress-free shape"
 print(
-    f"prone: nipple displacement {np.linalg.norm(prone.nipple_mm[0]):.2f} mm, "
+    f"prone, from {origin}: nipple displacement {np.linalg.norm(prone.nipple_mm[0]):.2f} mm, "
     f"largest {np.linalg.norm(prone.nodes_mm[0], axis=1).max():.2f} mm"
 )
 

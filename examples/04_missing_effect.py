@@ -25,7 +25,9 @@
 # with what c1 absorbs projected out, a full FE refit of the candidates, a verdict —
 # and the refitted model on a posture it never saw.
 #
-# Then a twin without any hidden effect, whose answer must be `no missing effect`.
+# Then a twin without any hidden effect, whose right answer is `no missing effect` (seed 0
+# gives it; on other null seeds the diagnosis can say `unexplained`, naming nothing false:
+# README, Status).
 # `PHANTOM_CALIB_SIZE` picks the size (`tiny`, `quick`, `dissertation`); outputs go to
 # `PHANTOM_CALIB_OUT`.
 

@@ -14,8 +14,8 @@ from pathlib import Path
 SIZE = os.environ.get("PHANTOM_CALIB_SIZE", "quick")
 if SIZE not in ("tiny", "quick", "dissertation"):
     raise ValueError(f"PHANTOM_CALIB_SIZE must be tiny, quick or dissertation, not {SIZE!r}")
-# review AG: one folder for every size, and notebook 03's store of another size's model
-# was refused in the command line's words
+# review AG: one folder for all sizes made notebook 03 refuse the sweep store of another
+# size's model; each size now has its own folder
 OUT = Path(os.environ.get("PHANTOM_CALIB_OUT", Path(__file__).resolve().parent / "out" / SIZE))
 
 

@@ -308,6 +308,24 @@ def test_a_work_folder_s_options_are_named_as_python_calls_them(tmp_path):
             call(tmp_path / "scans", tmp_path / "afile")
 
 
+def test_the_profile_of_a_joint_refit_is_drawn_without_its_evaluations(nipple_run, tmp_path):
+    # review CB: a diagnosis refit's history holds parameter vectors and sums of squares,
+    # and plot_profile raised KeyError 'c1_pa' on the folder diagnose says load_work takes
+    import shutil
+
+    import calib
+
+    _, _, work = nipple_run
+    copy = tmp_path / "work"
+    shutil.copytree(work, copy)
+    rec = json.loads((copy / "calibration.json").read_text())
+    rec |= {"history": [{"x": [6.0, 1.5], "sum_sq_mm2": 2.0}], "profile": []}
+    (copy / "calibration.json").write_text(json.dumps(rec))
+    fig = calib.load_work(copy).plot_profile()
+    assert "a joint fit" in fig.axes[0].get_title()
+    assert not calib.load_work(work).plot_profile().axes[0].get_title()
+
+
 def test_work_figures_show_as_images_in_an_ipython_kernel(nipple_run):
     # review AG: a bare matplotlib Figure (no pyplot) showed as its text in Jupyter until
     # %matplotlib inline had run; load_work registers a PNG formatter in a running shell

@@ -339,7 +339,7 @@ def test_device_choice():
 
     assert nn.select_device("cpu").type == "cpu"
     assert nn.select_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
-    with pytest.raises(ValueError, match="--device must be"):
+    with pytest.raises(ValueError, match=r"^device \(--device\) must be"):
         nn.select_device("tpu")
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="no CUDA device"):
