@@ -64,9 +64,9 @@ def show_figures_in_jupyter() -> None:
 class Work:
     """A calibrated ``WORK/`` folder (:func:`calib.load_work`; equal only to itself).
 
-    Read-only: its record (at every depth), its states and the arrays of its scans, mesh
-    and states refuse changes (reviews BW, F3 and BZ, F1: a changed ``record`` or scan
-    changed what it reported).
+    Read-only: its record (at every depth), its states and their arrays refuse changes
+    (review BW, F3: a changed ``record`` changed what it reported). The scans' and the
+    mesh's arrays stay writable, as open3d and TetGen take them (review BZ, F1).
 
     Attributes
     ----------

@@ -68,16 +68,6 @@ class SavedState:
             object.__setattr__(self, f.name, _read_only(getattr(self, f.name)))
 
 
-def _arrays_read_only(held) -> None:
-    """Make the arrays of a dataclass (and of its mappings of arrays) read-only in place."""
-    for f in fields(held):
-        value = getattr(held, f.name)
-        values = value.values() if isinstance(value, Mapping) else (value,)
-        for array in values:
-            if isinstance(array, np.ndarray):
-                array.setflags(write=False)
-
-
 def _read_only(value) -> np.ndarray | None:
     """``value`` as a read-only float array (None stays None)."""
     if value is None:
@@ -313,9 +303,6 @@ def read_work(work: str | Path) -> WorkFolder:
     scans = {e.name: read_scan(work, e) for e in entries}
     measurements = Measurements(scans[ref_name], scans, model.get("density_kg_m3"))
     mesh = read_mesh(work / model["reference_mesh"], orient=False)
-    # review BZ, F1: a scan's vertices changed in place changed what validate reported
-    for held in (*scans.values(), mesh):
-        _arrays_read_only(held)
     states = {}
     for name, s in record["scans"].items():
         if s.get("failed"):

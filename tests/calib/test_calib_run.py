@@ -228,11 +228,6 @@ def test_a_loaded_work_folder_refuses_changes_and_copies_edit_freely(nipple_run)
     edited = copy.deepcopy(w.record)
     edited["scans"]["tilt_50"]["role"] = "x"
     assert type(edited) is dict and w.record["scans"]["tilt_50"]["role"] != "x"
-    # review BZ, F1: a scan's vertices changed in place changed what validate reported
-    scan = w.folder.measurements.scans["tilt_50"]
-    for array in (scan.vertices_mm, scan.faces, w.folder.mesh.nodes_mm, w.folder.mesh.tets):
-        with pytest.raises(ValueError, match="read-only"):
-            array[0, 0] = 1
     again = pickle.loads(pickle.dumps(w.folder))
     assert again.record == doc and set(again.states) == set(w.folder.states)
     with pytest.raises(TypeError):
