@@ -172,10 +172,13 @@ class Prediction:
     tumour_mm: np.ndarray | None
     nipple_mm: np.ndarray | None
 
-    def __post_init__(self) -> None:
-        for array in (self.nodes_mm, self.surface_mm, self.tumour_mm, self.nipple_mm):
+    def __post_init__(self) -> None:  # read-only views: the caller's arrays stay as given
+        for name in ("nodes_mm", "surface_mm", "tumour_mm", "nipple_mm"):
+            array = getattr(self, name)
             if array is not None:
-                array.setflags(write=False)
+                view = np.asarray(array).view()
+                view.setflags(write=False)
+                object.__setattr__(self, name, view)
 
     def __repr__(self) -> str:  # review BW, F4: 17,000 characters of arrays in a notebook
         b, n_surface = self.surface_mm.shape[:2]
@@ -777,7 +780,7 @@ class Surrogate:
             A surface-only prediction of a model whose back plate is not clamped.
         """
         if pred.nodes_mm is not None:
-            return pred.nodes_mm[k]
+            return pred.nodes_mm[k].copy()  # as the surface-only branch: the caller's to change
         if not self.boundary_known:
             raise ValueError(
                 "the dissertation baseline predicts surface nodes only; the back "

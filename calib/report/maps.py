@@ -206,8 +206,24 @@ def surface_error_figure(
     fig = map_figure(10, 4.8)
     axes = draw_surface_views(fig, (1, 2, 1), surface, e, mapper, "")
     signed_colorbar(fig, mapper, axes, saturated=bool(np.any(np.abs(e) > top)))
-    fig.suptitle(title)
+    fig.suptitle(wrapped_title(title, fig))
     return fig
+
+
+def wrapped_title(title: str, fig) -> str:
+    """``title`` in lines that fit the figure's width at a figure title's font size.
+
+    The validation maps' titles (scan, role, posture, mean error, frame, scale: ~130
+    characters) ran past both edges of a 10-inch figure, cut at its borders.
+    """
+    import textwrap
+
+    from matplotlib import rcParams
+    from matplotlib.font_manager import FontProperties
+
+    size_pt = FontProperties(size=rcParams["figure.titlesize"]).get_size_in_points()
+    chars = max(20, int(fig.get_figwidth() * 72.0 / (0.6 * size_pt)))  # ~0.6 em a character
+    return "\n".join(textwrap.fill(line, chars) for line in title.splitlines() or [""])
 
 
 def write_error_ply(path: Path, vertices_mm: np.ndarray, faces: np.ndarray, error_mm) -> Path:

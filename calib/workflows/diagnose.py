@@ -12,6 +12,7 @@ have the role ``calibration`` there, the held-out one ``validation``.
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import shutil
@@ -184,7 +185,7 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict, *, calibration_record=Non
                 "named": list(d.named),
                 "source_work": str(Path(work.path).resolve()),  # wherever it is read from
                 "calibration_run_id": work.record.get("run_id"),
-                "calibration_mesh": work.record.get("mesh"),
+                "calibration_mesh": copy.deepcopy(work.record.get("mesh")),  # a plain copy
             },  # fmt: skip
         }
         model = dict(record["model"])
@@ -211,7 +212,7 @@ def write_refit(folder: Path, d: Diagnosis, doc: dict, *, calibration_record=Non
         record["model"] = model
         record["provenance"] = provenance(
             inputs={"calibration": calibration_record or Path(work.path) / "calibration.json"},
-            parameters=(work.record.get("provenance") or {}).get("parameters", {}),
+            parameters=copy.deepcopy((work.record.get("provenance") or {}).get("parameters", {})),
         )
         return run.commit(record)
 

@@ -235,9 +235,11 @@ def test_a_loaded_work_folder_refuses_changes_and_copies_edit_freely(nipple_run)
     # review BW, F3: a prediction's arrays were writable in its frozen dataclass
     from nn.surrogate import Prediction
 
-    p = Prediction(np.zeros((1, 4, 3)), np.zeros((1, 2, 3)), None, np.zeros((1, 3)))
+    given = np.zeros((1, 2, 3))
+    p = Prediction(np.zeros((1, 4, 3)), given, None, np.zeros((1, 3)))
     with pytest.raises(ValueError, match="read-only"):
         p.surface_mm[0, 0, 0] = 99.0
+    given[0, 0, 0] = 1.0  # review BZ, F9: the caller's own array stays as it was given
 
 
 def test_calib_validate_of_a_loaded_work_keeps_its_figures(

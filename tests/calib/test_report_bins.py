@@ -81,6 +81,22 @@ def test_the_error_maps_show_the_sign_of_the_error():
     assert SIGN_NOTE in fig.axes[-1].get_ylabel()  # the colour bar says what + means
 
 
+def test_a_map_s_long_title_stays_inside_its_figure():
+    # the validation maps' titles (~130 characters) ran past both edges of the figure:
+    # "ht_lateral (calibration, ... colour scale shared by the scan" in make demo's PNG
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from calib.report.maps import surface_error_figure
+
+    title = ("right_lateral (calibration, posture 180°): surface error, mean |e| 0.30 mm "
+             "(fiducial registration; colour scale shared by the scans)")  # fmt: skip
+    fig = surface_error_figure(_square_scan(), np.zeros(4), np.eye(3), title, vmax=1.0)
+    FigureCanvasAgg(fig).draw()
+    box = fig._suptitle.get_window_extent()
+    assert 0 <= box.x0 and box.x1 <= fig.bbox.x1
+    assert fig._suptitle.get_text().replace("\n", " ") == title  # every word kept
+
+
 def test_maps_of_a_scan_with_nothing_scored_are_drawn_not_raised():
     # review BA: with no scored face the scale's percentile of an empty array raised
     # (the notebook's plot_error_map without vmax, diagnose's change row), and the
