@@ -23,5 +23,5 @@ print(d['c1_pa'], d['model']['density_kg_m3'], \
 # mesh holds them at the clamped rim (calibrate said so), expected
 "$BIN" simulate "$OUT/work/calibration/reference_mesh.vtu" --c1 "$C1" --density "$DENSITY" \
     --gravity="$GRAVITY" --out "$OUT/work/simulate/right_lateral.vtu"
-echo "done: see $OUT/work/validation/report.html (calibrate validates at its end), \
-$OUT/work/calibration.json and $OUT/work/calibration/*.png"
+echo "done in ${SECONDS} s: see $OUT/work/validation/report.html (calibrate validates at \
+its end), $OUT/work/calibration.json and $OUT/work/calibration/*.png"
