@@ -167,22 +167,19 @@ def validate(work: str | Path | Work, *, progress: Callable[[str], Any] | None =
     from .notebook import Work
     from .workflows.validate import run_validation
 
-    kept = {}
-    if not isinstance(work, Work):
-        work = _work_path(work)
-    else:
-        loaded, work = work, work.folder.path
+    path, kept = _work_path(work), {}
+    if isinstance(work, Work):
 
         def keep(v, written):
-            if not loaded.keep_validation(v, written.get("calibration_run_id")):
+            if not work.keep_validation(v, written.get("calibration_run_id")):
                 log.warning(
                     "%s was calibrated again since it was loaded: its report is of the new "
                     "calibration, the loaded object keeps the old one's states (load it again)",
-                    work,
+                    path,
                 )
 
         kept["on_validation"] = keep
-    record = run_validation(work, progress=progress, **kept)
+    record = run_validation(path, progress=progress, **kept)
     for said in record.get("calibration_caveats") or []:  # the command prints them
         log.warning("calibration: %s", said)
     return record

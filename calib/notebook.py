@@ -248,11 +248,12 @@ class Work:
 
         # review CB: a diagnosis refit's history holds its parameter vectors (`x`, ln c1
         # first, then its effects') and sums of squares: a KeyError 'c1_pa' here
-        ok = ("c1_pa", "objective")
-        rows = [r for r in self.record.get("profile") or [] if not r.get("failed")]
-        rows = [r for r in rows if all(k in r for k in ok)]
+        def drawn(row) -> bool:
+            return "c1_pa" in row and "objective" in row
+
+        rows = [r for r in self.record.get("profile") or [] if not r.get("failed") and drawn(r)]
         every = [h for h in self.record.get("history") or [] if not h.get("failed")]
-        hist = [h for h in every if all(k in h for k in ok)]
+        hist = [h for h in every if drawn(h)]
         fig = Figure(figsize=(6, 4), layout="constrained")
         ax = fig.subplots()
         if every and not hist:

@@ -101,9 +101,8 @@ class SimulateOptions:
         for name, value, ok, expected in checks:
             if not np.isfinite(value) or not ok:
                 raise ValueError(f"{name} must be {expected}, got {value}")
-        checked_density_kg_m3(
-            self.density_kg_m3, "density_kg_m3 (--density)"
-        )  # the session's range
+        # the session's range
+        checked_density_kg_m3(self.density_kg_m3, "density_kg_m3 (--density)")
         # found documenting its fields: the Python API's gravity was checked only in the solve,
         # after the mesh was read (the command line's parse_vector checks it first)
         try:
@@ -632,9 +631,9 @@ def run_simulate(mesh_path: str | Path, out_path: str | Path, opts: SimulateOpti
     # review BW, F1: a str out_path solved the whole posture, then failed writing
     mesh_path, out_path = Path(mesh_path), Path(out_path)
 
-    check_output(Path(out_path))
-    written = {Path(out_path).resolve(), Path(out_path).with_suffix(".json").resolve()}
-    if Path(mesh_path).resolve() in written:  # review AC: the input was overwritten
+    check_output(out_path)
+    written = {out_path.resolve(), out_path.with_suffix(".json").resolve()}
+    if mesh_path.resolve() in written:  # review AC: the input was overwritten
         raise ValueError(f"out (--out) {out_path}: it (or its .json) is the input mesh {mesh_path}")
     t0 = time.perf_counter()
     try:
