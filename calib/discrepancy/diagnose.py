@@ -80,7 +80,7 @@ from ..stats.noise import MAX_LAG_MM
 from ..stats.scores import MISFIT_ALPHA, SCREEN_ALPHA
 from .fields import COARSER_FACTOR, FieldSet, discretisation_column, discretisation_field
 from .limits import parameter_limits
-from .localise import APEX_MM, OVER_MM, RIM_MM, TUMOUR_MM, region_labels, significance_map
+from .localise import TUMOUR_MM, region_labels, region_radii_mm, significance_map
 from .problem import (
     RIM_MARGIN_MM,
     DiagnosisError,
@@ -1359,15 +1359,16 @@ def _scan_regions(prob: Problem, name: str, points_mm: np.ndarray) -> np.ndarray
     k = prob.region_scale
     if s.tumour_mm is not None:
         spheres.append((s.tumour_mm, TUMOUR_MM * k))
+    radii = region_radii_mm(k, prob.rim_margin_mm)
     return region_labels(
         points_mm,
         nipple_mm=s.nipple_mm,
         back_point_mm=s.back_point_mm,
         back_normal=s.back_normal,
         spheres=spheres,
-        apex_mm=APEX_MM * k,
-        rim_mm=max(RIM_MM * k, prob.rim_margin_mm),
-        over_mm=OVER_MM * k,
+        apex_mm=radii["apex"],
+        rim_mm=radii["rim"],
+        over_mm=radii["inclusions"],
     )
 
 

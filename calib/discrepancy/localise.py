@@ -36,6 +36,7 @@ __all__ = [
     "RegionSummary",
     "ScanMap",
     "region_labels",
+    "region_radii_mm",
     "significance_map",
 ]
 
@@ -121,6 +122,30 @@ class ScanMap:
             "max_abs_z": float(np.max(np.abs(self.z))),
             "regions": {r.region: r.as_json() for r in self.regions},
         }
+
+
+def region_radii_mm(scale: float, rim_margin_mm: float) -> dict[str, float]:
+    """The regions' radii (mm) on a body ``scale`` times the twins' height.
+
+    Parameters
+    ----------
+    scale : float
+        The radii's factor (:func:`calib.model.reference.body_scale`).
+    rim_margin_mm : float
+        The band above the back plate the diagnosis leaves out: the rim is at least that.
+
+    Returns
+    -------
+    dict of str to float
+        ``apex``, ``rim`` and ``inclusions`` (beyond an inclusion's surface), the keyword
+        arguments of :func:`region_labels` by region, as the diagnosis labels its points
+        and its report describes an empty region.
+    """
+    return {
+        "apex": APEX_MM * scale,
+        "rim": max(RIM_MM * scale, rim_margin_mm),
+        "inclusions": OVER_MM * scale,
+    }
 
 
 def region_labels(

@@ -357,17 +357,16 @@ def _cut_text(cut: float | None) -> str | None:
 
 def _localisation_table(doc: dict) -> str:
     """The localisation's region summaries, one row per scan and region (HTML)."""
-    from ..discrepancy.localise import APEX_MM, OVER_MM, RIM_MM, SIGNIFICANT_Z
+    from ..discrepancy.localise import SIGNIFICANT_Z, region_radii_mm
 
     scans = doc.get("scans") or {}
-    scale = scans.get("region_scale") or 1.0
-    rim_mm = max(RIM_MM * scale, scans.get("rim_margin_mm") or 0.0)  # as diagnose's regions
+    r_mm = region_radii_mm(scans.get("region_scale") or 1.0, scans.get("rim_margin_mm") or 0.0)
     # review BY, F15: an empty region read as a row of dashes, unexplained; review BZ, F2:
     # the regions are exclusive, apex first, then rim (localise.region_labels)
     where = {
-        "apex": f"within {APEX_MM * scale:.3g} mm of the measured nipple",
-        "rim": f"outside the apex within {rim_mm:.3g} mm of the back plate",
-        "inclusions": f"outside the apex and rim within {OVER_MM * scale:.3g} mm of an "
+        "apex": f"within {r_mm['apex']:.3g} mm of the measured nipple",
+        "rim": f"outside the apex within {r_mm['rim']:.3g} mm of the back plate",
+        "inclusions": f"outside the apex and rim within {r_mm['inclusions']:.3g} mm of an "
         "inclusion ingest segmented in this scan (or of the tumour landmark)",
     }
     loc_rows = []
