@@ -46,6 +46,11 @@ SMALL_BODY_MM = 40.0
 OUTPUT_SUFFIXES = (".vtu", ".vtk", ".msh")
 
 
+def _extent_mm(mesh: fem.TetMesh) -> float:
+    """The mesh's largest bounding-box side, mm (0 without nodes)."""
+    return float(np.ptp(mesh.nodes_mm, axis=0).max()) if mesh.n_nodes else 0.0
+
+
 @dataclass(frozen=True)
 class SimulateOptions:
     """Options of the ``simulate`` command (see the README for their meaning).
@@ -196,7 +201,7 @@ def _own_back(mesh: fem.TetMesh, own: np.ndarray):
     from fem.discretize import plane_fit
 
     inside = ~np.isin(own, np.unique(fem.boundary_faces(mesh.tets)))
-    extent = float(np.ptp(mesh.nodes_mm, axis=0).max())
+    extent = _extent_mm(mesh)
     why = normal = None
     if len(own) < 3:
         why = f"{len(own)} nodes"
@@ -468,7 +473,7 @@ def say_inverted(
 
 def check_mesh(mesh: fem.TetMesh, path: Path) -> None:
     """Refuse a mesh that cannot be a phantom in mm: wrong units, or several bodies."""
-    extent = float(np.ptp(mesh.nodes_mm, axis=0).max()) if mesh.n_nodes else 0.0
+    extent = _extent_mm(mesh)
     lo, hi = BODY_EXTENT_MM
     if not lo <= extent <= hi:
         unit = "metres (scale it by 1000)" if extent < lo else "micrometres (scale it by 1e-3)"
@@ -535,7 +540,7 @@ def _say_a_flat_top(mesh: fem.TetMesh, path: Path, back_normal: np.ndarray) -> N
     """
     surface = mesh.node_set("surface")
     height = -(mesh.nodes_mm[surface] @ back_normal)
-    extent = float(np.ptp(mesh.nodes_mm, axis=0).max())
+    extent = _extent_mm(mesh)
     tie = int(np.sum(height >= height.max() - 1e-6 * extent))
     if tie > 1:
         log.warning(
@@ -719,7 +724,7 @@ def run_simulate(mesh_path: str | Path, out_path: str | Path, opts: SimulateOpti
             points.n_points,
             out_path,
         )
-    extent = float(np.ptp(mesh.nodes_mm, axis=0).max())
+    extent = _extent_mm(mesh)
     if sol.max_displacement_mm > 0.5 * extent:
         log.warning(
             "%s: the body moved %.0f mm, more than half its size (%.0f mm): check c1 "
