@@ -1,4 +1,7 @@
-"""``phantom-calib view WORK [--model MODEL.pt] [--port 8050]``."""
+"""The browser view: ``phantom-calib view WORK [--model MODEL.pt] [--port 8050] [--scan SCAN]``.
+
+Also ``--screenshot PNG``: save the page with headless Chromium and exit.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +11,17 @@ from typing import Annotated
 import typer
 
 from .app import app, fail
+
+DEFAULT_PORT = 8050
+#: Ports a browser refuses to fetch from: the "bad ports" of the Fetch standard
+#: (https://fetch.spec.whatwg.org/#port-blocking), which Chromium applies.
+BROWSER_BAD_PORTS = frozenset(
+    [1, 7, 9, 11, 13, 15, 17, 19, 20, 21, 22, 23, 25, 37, 42, 43, 53, 69, 77, 79, 87, 95]
+    + [101, 102, 103, 104, 109, 110, 111, 113, 115, 117, 119, 123, 135, 137, 139, 143, 161]
+    + [179, 389, 427, 465, 512, 513, 514, 515, 526, 530, 531, 532, 540, 548, 554, 556, 563]
+    + [587, 601, 636, 989, 990, 993, 995, 1719, 1720, 1723, 2049, 3659, 4045, 4190, 5060]
+    + [5061, 6000, 6566, 6665, 6666, 6667, 6668, 6669, 6679, 6697, 10080]
+)
 
 
 @app.command()
@@ -19,7 +33,14 @@ def view(
         Path | None,
         typer.Option("--model", help="Surrogate (.pt, `surrogate train`): turn gravity freely."),
     ] = None,
-    port: Annotated[int, typer.Option("--port", help="TCP port on 127.0.0.1.")] = 8050,
+    port: Annotated[
+        int | None,
+        typer.Option(
+            "--port",
+            help="TCP port on 127.0.0.1 (0: any free one). Default 8050; with --screenshot, "
+            "any free one.",
+        ),
+    ] = None,
     scan: Annotated[
         str | None,
         typer.Option(
@@ -42,8 +63,17 @@ def view(
 
     from ..viewer import PortInUseError, SurfaceModelMismatchError, load_scene, make_server
 
+    if port is None:  # review CD-3: a screenshot failed where a view held port 8050
+        port = 0 if screenshot is not None else DEFAULT_PORT
     if not 0 <= port <= 65535:  # before any work (a bind error was a traceback)
         fail(ValueError(f"--port must lie in 0-65535, got {port}"))
+    if port in BROWSER_BAD_PORTS:  # review CD-3: --port 22 timed out after 30 s
+        fail(
+            ValueError(
+                f"--port {port}: browsers refuse to load pages from this port (a "
+                f'"bad port" of the Fetch standard); choose another, e.g. {DEFAULT_PORT}'
+            )
+        )
     if screenshot is not None:  # review AG: checked only after the browser had run
         if screenshot.suffix.lower() != ".png":
             fail(ValueError(f"--screenshot {screenshot}: a .png file (it saves PNG data)"))
@@ -56,9 +86,11 @@ def view(
         fail(exc)
     names = [s["name"] for s in scene.info.get("scans", [])]
     if scan is not None and scan not in names:  # before a port is opened
-        # review AG: a folder without scans (no calibration) let any --scan through
+        # review AG: a folder without scans (no calibration) let any --scan through;
+        # review CD-4: and why it has none (a file that could not be read back)
         choose = f"choose from {names}" if names else "it has no calibrated scans"
-        fail(ValueError(f"--scan {scan!r}: no such scan in {work}; {choose}"))
+        why = "" if names else "".join(f" ({line})" for line in scene.missing[:1])
+        fail(ValueError(f"--scan {scan!r}: no such scan in {work}; {choose}{why}"))
     if screenshot is not None and scene.faces is None:  # review AX: an empty PNG, exit 0
         fail(ValueError(f"--screenshot: nothing to draw in {work}: {'; '.join(scene.missing)}"))
     try:
@@ -75,8 +107,13 @@ def view(
         thread = threading.Thread(target=server.serve_forever, daemon=True)
         thread.start()
         try:
-            with HeadlessBrowser() as browser:
+            # review CD-11: tall enough for the panel's marker key
+            with HeadlessBrowser(width=1300, height=900) as browser:
                 browser.goto(shot_url)
+                # review CD-1: a page that failed (no WebGL2) was saved, exit 0
+                error = browser.evaluate("window.viewer.error")
+                if error:
+                    raise BrowserError(f"the page failed, nothing saved: {error}")
                 browser.screenshot(screenshot)
         except (BrowserError, OSError) as exc:
             fail(exc)

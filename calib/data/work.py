@@ -479,15 +479,31 @@ def _check_model_block(model: dict, bad) -> None:
         raise bad("model.effects", "null or an object", model["effects"])
 
 
-def _point_data(path: Path) -> dict:
+def read_meshio(path: Path, what: str = "mesh"):
+    """``meshio.read(path)``, a failure a ``ValueError`` naming the file.
+
+    meshio raises many kinds on a corrupt file and calls ``sys.exit`` where no reader
+    takes it (review CD-2: a truncated ``.vtu`` ended the command with meshio's own
+    "Couldn't read file" and exit 1); what it prints is kept for the message.
+    """
+    import contextlib
+    import io
+
     import meshio
 
+    said = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(said), contextlib.redirect_stdout(said):
+            return meshio.read(path)
+    except (Exception, SystemExit) as exc:
+        why = " ".join(said.getvalue().split()) or f"{type(exc).__name__}: {exc}"
+        raise ValueError(f"{path}: not a readable {what} ({why})") from exc
+
+
+def _point_data(path: Path) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"{path} not found (named by calibration.json)")
-    try:
-        m = meshio.read(path)
-    except Exception as exc:  # meshio raises many kinds on a corrupt file
-        raise ValueError(f"{path}: not a readable mesh ({exc})") from exc
+    m = read_meshio(path)
     return {k: np.asarray(v, float) for k, v in m.point_data.items() if not k.startswith("set:")}
 
 

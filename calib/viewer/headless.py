@@ -125,15 +125,29 @@ class HeadlessBrowser:
         self.call("Runtime.enable")
 
     def call(self, method: str, **params) -> dict:
-        """Send one DevTools command and return its ``result``."""
+        """Send one DevTools command and return its ``result``.
+
+        Raises
+        ------
+        BrowserError
+            The command failed, or the page's socket timed out or closed (review CD-7:
+            websocket-client's own exceptions escaped as tracebacks).
+        """
+        import websocket
+
         msg_id = next(self._ids)
-        self.ws.send(json.dumps({"id": msg_id, "method": method, "params": params}))
-        while True:
-            msg = json.loads(self.ws.recv())
-            if msg.get("id") == msg_id:
-                if "error" in msg:
-                    raise BrowserError(f"{method}: {msg['error']}")
-                return msg["result"]
+        try:
+            self.ws.send(json.dumps({"id": msg_id, "method": method, "params": params}))
+            while True:
+                msg = json.loads(self.ws.recv())
+                if msg.get("id") == msg_id:
+                    break
+        except websocket.WebSocketException as exc:
+            why = str(exc) or type(exc).__name__
+            raise BrowserError(f"{method}: no answer from the browser ({why})") from exc
+        if "error" in msg:
+            raise BrowserError(f"{method}: {msg['error']}")
+        return msg["result"]
 
     def goto(self, url: str, *, ready: str = "window.viewer && window.viewer.ready") -> None:
         """Load ``url`` and wait for the promise ``ready`` to settle."""

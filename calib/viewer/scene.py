@@ -11,7 +11,8 @@ predict --frame phantom``):
   scan's gravity;
 * each scan's measured surface (``scans/<scan>/surface_ref.ply``, already registered into
   the reference frame by ``ingest``) and its per-vertex error (``calibration/<scan>_error.ply``,
-  ``error_mm``, signed, shown as its magnitude as the project's PNG maps do); after
+  ``error_mm``, signed, shown signed in the colours of the project's PNG maps, on the
+  scan's own scale, review CD-10); after
   ``diagnose``, the same error of its refitted model (``diagnosis/refit/``, a work folder
   of saved states). The faces whose vertices are all scored
   (:attr:`calib.data.measurements.ScanMeasurement.scored`) come first, their number in
@@ -169,15 +170,32 @@ def _boundary(tets: np.ndarray, faces: np.ndarray | None = None):
     return nodes, inverse.reshape(faces.shape)
 
 
-def _error_ply(path: Path) -> np.ndarray | None:
-    """The ``error_mm`` vertex scalar of an error PLY (``calib.report.write_error_ply``)."""
-    import meshio
+def _error_ply(path: Path, n_vertices: int, missing: list) -> np.ndarray | None:
+    """The ``error_mm`` vertex scalar of an error PLY (``calib.report.write_error_ply``).
+
+    None where the file is absent; where it cannot be read, has no ``error_mm`` or not
+    ``n_vertices`` values (the scan's measured surface's), None with a line in
+    ``missing`` naming it (review CD-2, CD-5: a corrupt file was a traceback, a
+    mismatched one dropped without a word).
+    """
+    from ..data.work import read_meshio
 
     if not path.is_file():
         return None
-    m = meshio.read(path)
+    try:
+        m = read_meshio(path, "error map")
+    except ValueError as exc:
+        missing.append(f"{exc}: its scan is shown without it")
+        return None
     e = m.point_data.get("error_mm")
-    return None if e is None else np.asarray(e, float).reshape(-1)
+    if e is None or np.size(e) != n_vertices:
+        has = "no `error_mm`" if e is None else f"{np.size(e)} values of `error_mm`"
+        missing.append(
+            f"{path} has {has}, where its scan's measured surface has {n_vertices} "
+            "vertices (written for another calibration?): its scan is shown without it"
+        )
+        return None
+    return np.asarray(e, float).reshape(-1)
 
 
 def _command_hint(work: Path) -> dict:
@@ -375,9 +393,12 @@ def _add_work(scene: Scene, folder, info: dict, vnodes: np.ndarray, hint: dict) 
             "faces": np.concatenate([faces[whole], faces[~whole]]),
             "n_scored_faces": int(whole.sum()),
         }
-        err = _error_ply(work / "calibration" / f"{name}_error.ply")
-        if err is not None and len(err) == len(scan.vertices_mm):
+        err_path = work / "calibration" / f"{name}_error.ply"
+        err = _error_ply(err_path, len(scan.vertices_mm), scene.missing)
+        if err is not None:
             overlay["error_mm"] = err.astype(np.float32)
+        elif name in folder.states and not err_path.exists():  # review CD-5: unsaid
+            scene.missing.append(f"{err_path} is missing: {name} is shown without its map")
         after = refit_maps.get(name)
         if after is not None and len(after) == len(scan.vertices_mm):
             overlay["error_after_mm"] = after.astype(np.float32)

@@ -508,3 +508,106 @@ def test_the_view_never_writes_into_work(scans_work, box):
             with urllib.request.urlopen(server.url + path) as r:
                 assert r.status == 200
     assert snapshot() == before
+
+
+@pytest.fixture
+def never_served(monkeypatch):
+    """A refusal that regressed would serve forever (the test hung); now it fails."""
+    from calib.viewer.server import ViewerServer
+
+    def served(self, *args, **kwargs):
+        raise AssertionError("the view was served: it should have been refused first")
+
+    monkeypatch.setattr(ViewerServer, "serve_forever", served)
+
+
+def test_an_unknown_scan_is_refused_before_its_taken_port(scans_work, never_served):
+    # review CD-8: with --port 0 the order was not tested; on a taken port the --scan
+    # error comes first, not the port's
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = str(taken.getsockname()[1])
+        res = CliRunner().invoke(app, ["view", str(scans_work[0]), "--scan", "x", "--port", port])
+    assert res.exit_code == 2 and "--scan 'x': no such scan" in res.output, res.output
+    assert "in use" not in res.output
+
+
+def test_a_port_browsers_refuse_is_refused_first(tmp_path, never_served):
+    # review CD-3: --port 22 served, and the browser (and --screenshot, after 30 s) could
+    # not load the page
+    res = CliRunner().invoke(app, ["view", str(tmp_path), "--port", "22"])
+    assert res.exit_code == 2
+    assert res.output.startswith("error: --port 22: browsers refuse to load pages"), res.output
+
+
+def test_corrupt_or_mismatched_files_in_work_are_named_not_a_traceback(
+    scans_work, box, tmp_path, never_served
+):
+    # review CD-2: a truncated error map was a traceback, a truncated FE state ended the
+    # command through meshio's sys.exit (exit 1, "Couldn't read file"); review CD-5: a
+    # missing or mismatched map was dropped without a word; review CD-4: --scan hid why
+    # the folder had no scans
+    def copy(name):
+        work = tmp_path / name
+        shutil.copytree(scans_work[0], work)
+        return work, work / "calibration"
+
+    work, cal = copy("truncated_map")
+    data = (cal / "tilt_50_error.ply").read_bytes()
+    (cal / "tilt_50_error.ply").write_bytes(data[: len(data) // 2])
+    scene = load_scene(work, box[1])
+    assert "error_mm" not in scene.overlays["tilt_50"]
+    assert any("tilt_50_error.ply: not a readable error map" in m for m in scene.missing)
+
+    work, cal = copy("no_map")
+    (cal / "tilt_50_error.ply").unlink()
+    scene = load_scene(work, box[1])
+    assert any("tilt_50_error.ply is missing: tilt_50 is shown without" in m for m in scene.missing)
+
+    work, cal = copy("other_map")
+    from calib.report.maps import write_error_ply
+
+    vertices = scans_work[1]["measured"][:3]
+    write_error_ply(cal / "tilt_50_error.ply", vertices, np.array([[0, 1, 2]]), np.zeros(3))
+    scene = load_scene(work, box[1])
+    assert any("has 3 values of `error_mm`" in m for m in scene.missing), scene.missing
+
+    work, cal = copy("truncated_state")
+    data = (cal / "tilt_50_deformed.vtu").read_bytes()
+    (cal / "tilt_50_deformed.vtu").write_bytes(data[: len(data) // 3])
+    scene = load_scene(work)
+    said = [m for m in scene.missing if "could not be read back" in m]
+    assert said and "tilt_50_deformed.vtu: not a readable mesh" in said[0], scene.missing
+    res = CliRunner().invoke(app, ["view", str(work), "--scan", "tilt_50"])
+    assert res.exit_code == 2 and "tilt_50_deformed.vtu: not a readable mesh" in res.output
+
+
+def test_a_screenshot_is_saved_and_a_failed_page_is_not(scans_work, box, tmp_path):
+    # review CD-1: a page that failed (no WebGL2) was saved and the command exited 0;
+    # review CD-3: a screenshot took port 8050, and failed where a view held it
+    _need_chromium()
+    work, _ = scans_work
+    shot = tmp_path / "ok.png"
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as held:
+        try:
+            held.bind(("127.0.0.1", 8050))
+            held.listen()
+        except OSError:
+            pass  # taken already: the screenshot must not need it either way
+        args = ["view", str(work), "--model", str(box[1]), "--scan", "tilt_50"]
+        res = CliRunner().invoke(app, [*args, "--screenshot", str(shot)])
+    assert res.exit_code == 0, res.output
+    assert f"wrote {shot}" in res.output and shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    no_webgl = tmp_path / "chromium-no-webgl"
+    no_webgl.write_text(
+        f'#!/bin/sh\nexec "{find_chromium()}" "$@" --disable-webgl --disable-3d-apis\n'
+    )
+    no_webgl.chmod(0o755)
+    failed = tmp_path / "failed.png"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("CHROMIUM", str(no_webgl))
+        res = CliRunner().invoke(app, [*args, "--screenshot", str(failed)])
+    assert res.exit_code == 2, res.output
+    assert "the page failed, nothing saved" in res.output and "WebGL2" in res.output
+    assert not failed.exists()

@@ -282,6 +282,17 @@
   }
   async function pump() {
     inflight = true;
+    try { await pumpAll(); } catch (e) {
+      // review CD-7: a failed fetch left `inflight` set, and every later control change
+      // was dropped without a word
+      pending = null;
+      $("warn").textContent = `the view's server did not answer (${e && e.message ? e.message : e}): is phantom-calib view still running?`;
+    } finally {
+      inflight = false;
+      if (V._waiters) { const w = V._waiters; V._waiters = []; w.forEach((f) => f()); }
+    }
+  }
+  async function pumpAll() {
     while (pending) {
       const q = pending; pending = null;
       const tf = performance.now();
@@ -308,8 +319,6 @@
         res();
       }));
     }
-    inflight = false;
-    if (V._waiters) { const w = V._waiters; V._waiters = []; w.forEach((f) => f()); }
   }
   // Resolves once every pending control change has been drawn.
   V.settled = () => new Promise((res) => { if (!inflight && !pending) res(); else (V._waiters ||= []).push(res); });
@@ -465,5 +474,6 @@
       else { await scanChanged({ target: $("scan"), timeStamp: performance.now() }); if (sc.model) await V.settled(); }
     }
   }
-  V.ready = init().catch((e) => { V.error = String(e); $("warn").textContent = "error: " + e; });
+  // review CD-12: "error: Error: ..." said its prefix twice
+  V.ready = init().catch((e) => { V.error = e && e.message ? e.message : String(e); $("warn").textContent = "error: " + V.error; });
 })();
