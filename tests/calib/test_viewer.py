@@ -84,6 +84,17 @@ def browser():
         yield b
 
 
+@pytest.fixture
+def never_served(monkeypatch):
+    """A refusal that regressed would serve forever (the test hung); now it fails."""
+    from calib.viewer.server import ViewerServer
+
+    def served(self, *args, **kwargs):
+        raise AssertionError("the view was served: it should have been refused first")
+
+    monkeypatch.setattr(ViewerServer, "serve_forever", served)
+
+
 def _expected_phantom_mm(model: Path, gravity, c1_pa: float) -> np.ndarray:
     """Boundary vertex positions from nn alone (not the viewer's code), phantom frame."""
     import nn
@@ -248,7 +259,7 @@ def test_port_in_use_names_the_port_and_a_free_one(tmp_path):
         assert f"port {port}" in res.output and "try --port" in res.output
 
 
-def test_bad_model_file_is_a_one_line_error(tmp_path):
+def test_bad_model_file_is_a_one_line_error(tmp_path, never_served):
     bad = tmp_path / "model.pt"
     bad.write_text("not a model")
     res = CliRunner().invoke(app, ["view", str(tmp_path), "--model", str(bad), "--port", "0"])
@@ -383,14 +394,14 @@ def test_a_diagnosis_of_an_earlier_calibration_is_not_shown(scans_work, box, tmp
     assert any("is of an earlier calibration (run 20260101T000000" in m for m in scene.missing)
 
 
-def test_an_unknown_scan_is_refused_before_a_port_is_opened(scans_work):
+def test_an_unknown_scan_is_refused_before_a_port_is_opened(scans_work, never_served):
     # it was a note on the page, and --screenshot saved the default view and exited 0
     res = CliRunner().invoke(app, ["view", str(scans_work[0]), "--scan", "tilt_25", "--port", "0"])
     assert res.exit_code == 2
     assert "--scan 'tilt_25': no such scan" in res.output and "tilt_50" in res.output
 
 
-def test_view_options_are_checked_before_the_page(tmp_path, monkeypatch):
+def test_view_options_are_checked_before_the_page(tmp_path, monkeypatch, never_served):
     # review AG: --scan on a folder without calibrated scans exited 0; a --screenshot path
     # was checked only after chromium had run; a bad $CHROMIUM did not name it
     from calib.viewer.headless import BrowserError, HeadlessBrowser
@@ -478,7 +489,7 @@ def test_page_without_surrogate_shows_the_saved_fe_states(scans_work, browser):
         assert "left_lateral: no saved FE state" in status
 
 
-def test_surrogate_of_another_mesh_is_refused(box, tmp_path):
+def test_surrogate_of_another_mesh_is_refused(box, tmp_path, never_served):
     other = make_box_work(tmp_path / "other", shift_mm=1.0)  # same block, moved 1 mm
     with pytest.raises(SurfaceModelMismatchError, match="reference_mesh.vtu"):
         load_scene(other, box[1])
@@ -508,17 +519,6 @@ def test_the_view_never_writes_into_work(scans_work, box):
             with urllib.request.urlopen(server.url + path) as r:
                 assert r.status == 200
     assert snapshot() == before
-
-
-@pytest.fixture
-def never_served(monkeypatch):
-    """A refusal that regressed would serve forever (the test hung); now it fails."""
-    from calib.viewer.server import ViewerServer
-
-    def served(self, *args, **kwargs):
-        raise AssertionError("the view was served: it should have been refused first")
-
-    monkeypatch.setattr(ViewerServer, "serve_forever", served)
 
 
 def test_an_unknown_scan_is_refused_before_its_taken_port(scans_work, never_served):
