@@ -177,18 +177,31 @@ def figures(request, tmp_path_factory):
 #: quick twin (1.5 mm voxels). The tiny twin's 2 mm voxels and 14 mm model leave a bias
 #: the interval (noise and mesh) does not hold: seed 0 calibrates to 433.4 Pa
 #: (423.6-443.5) against 420 (+3.2 %; a 16 mm model gives 432.3, so not the mesh or the
-#: prestressed reference) with no misfit flagged (band-F p = 0.42). Its bar is 5 %.
-C1_BAR = {"tiny": (0.05, False), "quick": (0.03, True)}
+#: prestressed reference; its cause is not known) with no misfit flagged (band-F p =
+#: 0.42). Its bar is 5 %, and its interval's miss is a known failure (below).
+C1_BAR = {"tiny": 0.05, "quick": 0.03}
 
 
-def test_c1_within_its_bar_of_the_truth_and_inside_its_interval(figures):
+def test_c1_within_its_bar_of_the_truth(figures):
     u = figures["unload"]
-    bar, interval_holds_truth = C1_BAR[figures["case"]]
-    assert abs(u["c1_relative_error"]) <= bar, u
+    assert abs(u["c1_relative_error"]) <= C1_BAR[figures["case"]], u
+
+
+def test_the_95_interval_holds_the_truth(figures, request):
+    # review CC-01: the tiny case's check was switched off and what stayed, the estimate
+    # inside its own interval, holds by construction; its miss is now a strict expected
+    # failure, so that the day the interval holds the truth this test says so
+    if figures["case"] == "tiny":
+        request.applymarker(
+            pytest.mark.xfail(
+                strict=True,
+                reason="the tiny twin's +3.2 % bias (2 mm voxels; cause not known) lies "
+                "outside its interval, which holds noise and the mesh check only",
+            )
+        )
+    u = figures["unload"]
     lo, hi = u["c1_ci95_pa"]
-    assert lo < u["c1_pa"] < hi, u
-    if interval_holds_truth:
-        assert lo <= figures["c1_true_pa"] <= hi, u
+    assert lo <= figures["c1_true_pa"] <= hi, u
 
 
 def test_model_fit_stays_quiet_on_the_homogeneous_twin(figures):
