@@ -52,6 +52,14 @@ def test_pardiso_is_bitwise_reproducible():
         busy.kill()
         busy.wait()
     assert all(np.array_equal(answers[0], x) for x in answers[1:])
+    # review CC-04: whether the busy process provokes MKL's change of thread count
+    # depends on the scheduler, so the settings that make the bits reproducible are
+    # checked on the solver itself too: the sequential METIS ordering and conditional
+    # numerical reproducibility at the current thread count (MKL's iparm[1], iparm[33])
+    for mtype in (11, -2):
+        solver = linalg._reproducible_pardiso(mtype)
+        assert solver.iparm[1] == 2
+        assert solver.iparm[33] == max(int(solver.libmkl.MKL_Get_Max_Threads()), 1) >= 1
     np.testing.assert_allclose(A @ answers[0], b, rtol=0, atol=1e-10)
     # the symmetric indefinite path (forward Newton) agrees with the unsymmetric one
     S = (A + A.T).tocsr()

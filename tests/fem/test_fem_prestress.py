@@ -100,7 +100,10 @@ def test_inverse_recovers_the_truth_at_first_order():
         ps = compute_prestress(scan, gravity=G0, method="inverse")
         errors.append(_rms(ps.stress_free_nodes_mm - truth.mesh.nodes_mm))
     assert errors[0] < 0.5  # mm, of 17 mm displacement (measured 0.33)
-    assert errors[0] / errors[1] > 1.5  # halving h (measured 1.81)
+    # halving h: the observed order (measured 0.86). Two problems with different limits
+    # would stall at order 0; first order less the corner singularity's loss passes
+    # (review CC-08: the ratio's bar of 1.5 let order 0.58 through)
+    assert np.log2(errors[0] / errors[1]) >= 0.75
 
 
 def test_prestress_and_unload_agree_where_both_apply(box):
@@ -262,7 +265,13 @@ def test_prestressed_residual_is_the_solved_equilibrium(box):
     scale = np.linalg.norm(external_force(disc, scan, g1))
     # the solve stops where the free residual force is below 1e-8 of the external load's
     # norm (SolverOptions.rtol): the public residual, recomputed, within ten times that
-    assert np.linalg.norm(r[: (disc.free < 3 * disc.n_scalar_u).sum()]) <= 1e-7 * scale
+    n_u = (disc.free < 3 * disc.n_scalar_u).sum()
+    assert np.linalg.norm(r[:n_u]) <= 1e-7 * scale
+    # and at the reference state: the inverse's state under the reference scan's gravity
+    # (review CC-06: the docstring said so, the body did not check it); same bar
+    g0 = gravity_vector(G0, 9.81)
+    r0 = prestressed_residual(disc, scan, inverse.F0, inverse.state, g0)[disc.free]
+    assert np.linalg.norm(r0[:n_u]) <= 1e-7 * np.linalg.norm(external_force(disc, scan, g0))
 
 
 def test_recover_stress_free_spatial_wraps_the_inverse(box):

@@ -37,8 +37,13 @@ def test_round_trip(phantom, formulation, method, gravity):
     # issue 2's bar: 0.01 mm. The inverse Newton satisfies X + u(X) = x_m by construction
     # (to its residual tolerance); the fixed point stops at tol_mm = 0.01 mm.
     assert rec.max_error_mm <= 0.01
-    # the truth is the original stress-free mesh (same FE space): recovered to the same order
-    assert np.abs(rec.nodes_mm - phantom.mesh.nodes_mm).max() <= 0.02
+    # the truth is the original stress-free mesh (same FE space): recovered to the same
+    # order. Review CC-09: the Newton paths solve the truth's own discrete equations, so
+    # they recover it to their residual tolerance (rtol 1e-8 of a ~20 mm displacement:
+    # 1e-4 mm, as the springs test below argues; measured 2e-11 and 4e-14 mm); the fixed
+    # point to twice its tol_mm step (0.02 mm; measured 0.002)
+    bar = 1e-4 if method == "newton" else 0.02
+    assert np.abs(rec.nodes_mm - phantom.mesh.nodes_mm).max() <= bar
     # the truth's mesh is valid, so a recovery close to it has no inverted element
     assert rec.inverted_elements == 0
 

@@ -133,8 +133,12 @@ def test_a_marker_sunk_into_the_body_is_still_found():
     seg = segment_body(scan.volume)
     found = detect_fiducials(seg).centres_lps_mm
     truth = np.array([scan.to_scanner(p) for p in fid])
-    # each marker within half a voxel (1.5 mm) of its centre
-    assert np.linalg.norm(found[:, None] - truth[None], axis=2).min(axis=0).max() < 0.75
+    # review CC-10: the comment said half a voxel (1.5 mm), the bar was 0.75 mm. The
+    # plate's markers, whole: issue 3's 0.2 mm (measured 0.004, 0.019); the sunk one,
+    # whose lower third the body mask takes: found at its own centre, within half the
+    # smallest voxel edge (1.0 x 1.0 x 1.3 mm voxels: 0.5 mm; measured 0.185)
+    err = np.linalg.norm(found[:, None] - truth[None], axis=2).min(axis=0)
+    assert err[:2].max() <= 0.2 and err[2] <= 0.5, err
     i, j, k = np.round(seg.mask.lps_to_index(truth[2][None])[0]).astype(int)
     assert not np.asarray(seg.mask.array)[i, j, k]  # its centre is no body
 
@@ -401,8 +405,12 @@ def test_a_body_in_few_thick_slices_keeps_a_flat_bias_field_and_its_volume():
     # no bias rendered: the fitted field is flat to the noise's few per cent (SNR 30)
     assert 0.9 <= q["bias_min"] and q["bias_max"] <= 1.1, q
     true_ml = 2.0 / 3.0 * np.pi * 45.0 * 35.0 * 30.0 / 1000.0
-    # half a 5 mm slice of partial volume at the 30 mm dome's top: up to 8 % of its volume
-    assert abs(q["volume_ml"] / true_ml - 1.0) <= 0.12, (q["volume_ml"], true_ml)
+    # partial volume of half a 5 mm slice at the dome's base, where its cross-section is
+    # largest: pi 45 35 2.5 mm^3 = 12.4 ml, 12.5 % of its 99 ml (the top's half slice
+    # cuts a small cap; review CC-11: the comment had said 8 % there, under the bar and
+    # under the measured +9.7 %)
+    bar = np.pi * 45.0 * 35.0 * 2.5 / 1000.0 / true_ml
+    assert abs(q["volume_ml"] / true_ml - 1.0) <= bar, (q["volume_ml"], true_ml)
 
 
 def test_a_bias_field_that_swings_beyond_the_range_is_said_or_refused(caplog):
