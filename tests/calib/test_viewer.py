@@ -112,6 +112,14 @@ def test_page_follows_the_gravity_and_c1_controls(box, browser, tmp_path):
     with _Serving(load_scene(work, model)) as server:
         browser.goto(server.url)
         assert browser.evaluate("window.viewer.error") is None
+        # review CD-12: the first frame said it was drawn "after the control moved"
+        status = browser.evaluate("document.getElementById('status').textContent")
+        assert status.startswith("surrogate ours prediction drawn; trained c1 "), status
+        # review CD-9: the frame's axes are drawn as the camera turns them; its default
+        # puts -z up on the screen (the plate above the breast), as the key says
+        z_end = browser.evaluate("document.querySelectorAll('#axes line')[2].getAttribute('y2')")
+        assert float(z_end) > 34.0  # +z points down (SVG y grows downwards)
+        assert "screen up: −z" in browser.evaluate("document.getElementById('axesbox').innerText")
         n = browser.evaluate("window.viewer.nVertices()")
         # this block's phantom frame is turned against its back face (frame mistakes show,
         # tests/nn/sweep_helpers.py): no plate is drawn, and the page says why

@@ -129,7 +129,7 @@
     const r = norm3(cross(fwd, up0)), u = cross(r, fwd);
     const W = new Float32Array([r[0], u[0], -fwd[0], 0, r[1], u[1], -fwd[1], 0, r[2], u[2], -fwd[2], 0,
       -dot(r, eye), -dot(u, eye), dot(fwd, eye), 1]);
-    const M = mat4mul(P, W); M.fwd = fwd; return M;
+    const M = mat4mul(P, W); M.fwd = fwd; M.right = r; M.up = u; return M;
   }
   const dot = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
   const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
@@ -162,6 +162,19 @@
     return { z, spacing_mm: PLATE_MM, x_mm: [a[0], b[0]], y_mm: [a[1], b[1]], pos: new Float32Array(v) };
   }
   const marks = { nipple: null, tumour: null, fiducials: [], mNipple: null, mTumour: null };
+  // review CD-9: the phantom frame's axes as the camera turns them (the panel speaks of
+  // the x-z plane and +y; the camera puts -z up, the plate above the breast)
+  function drawAxes(M) {
+    const L = 20, c = 34, colours = ["#c0392b", "#27ae60", "#2c6fbb"];
+    let svg = "";
+    for (let i = 0; i < 3; i++) {
+      const e = [0, 0, 0]; e[i] = 1;
+      const x = c + L * dot(M.right, e), y = c - L * dot(M.up, e);
+      svg += `<line x1="${c}" y1="${c}" x2="${x.toFixed(1)}" y2="${y.toFixed(1)}" stroke="${colours[i]}" stroke-width="2"/>`;
+      svg += `<text x="${(c + 1.3 * (x - c)).toFixed(1)}" y="${(c + 1.3 * (y - c) + 4).toFixed(1)}" fill="${colours[i]}" font-size="12" text-anchor="middle">${"xyz"[i]}</text>`;
+    }
+    $("axes").innerHTML = svg;
+  }
   function draw() {
     const w = Math.round(canvas.clientWidth * devicePixelRatio), h = Math.round(canvas.clientHeight * devicePixelRatio);
     if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
@@ -169,6 +182,7 @@
     gl.clearColor(0.96, 0.96, 0.95, 1); gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
     if (!model && !overlay) return;
     const M = viewProj();
+    drawAxes(M);
     gl.useProgram(prog);
     gl.uniformMatrix4fv(loc.mvp, false, M);
     gl.uniform3fv(loc.light, M.fwd);
@@ -272,12 +286,12 @@
   }
 
   // One request in flight; the newest control state wins.
-  let inflight = false, pending = null;
+  let inflight = false, pending = null, trainedC1 = "";
   function onControl(ev) {
     const t0 = ev && ev.timeStamp > 0 ? ev.timeStamp : performance.now();
     readControls();
     if (!V.scene.model) return;
-    pending = { g: V.state.gravity.slice(), c1: V.state.c1, t0 };
+    pending = { g: V.state.gravity.slice(), c1: V.state.c1, t0, moved: !!ev };
     if (!inflight) pump();
   }
   async function pump() {
@@ -314,7 +328,8 @@
         const dt = performance.now() - q.t0;
         V.latencies.push(dt);
         V.lastFrame = { gravity: q.g, c1: q.c1, latency_ms: dt, fetch_ms: fetchMs, draw_ms: drawMs, extrapolating: extra };
-        $("status").textContent = `surrogate prediction drawn ${dt.toFixed(0)} ms after the control moved`;
+        // review CD-12: the first frame said "after the control moved" with nothing moved
+        $("status").textContent = q.moved ? `surrogate prediction drawn ${dt.toFixed(0)} ms after the control moved` : `surrogate ${V.scene.model.kind} prediction drawn; ${trainedC1}`;
         $("warn").textContent = [extra ? "outside the surrogate's trained range: it extrapolates" : "", overlayNote].filter(Boolean).join("; ");
         res();
       }));
@@ -430,7 +445,10 @@
       const r = sc.model.c1_range_pa;
       $("c1").disabled = r[0] === r[1];
       $("c1").value = r[0] === r[1] ? 500 : String(Math.round(1000 * Math.log(sc.model.c1_pa / r[0]) / Math.log(r[1] / r[0])));
-      $("status").textContent = `surrogate ${sc.model.kind}: ${sc.model.path}; trained c1 ${r[0].toFixed(1)}–${r[1].toFixed(1)} Pa`;
+      // review CD-12: a fixed c1 was a greyed slider with no reason given
+      trainedC1 = r[0] === r[1] ? `c1 fixed at ${r[0].toFixed(1)} Pa (the sweep had no --c1 axis)` : `trained c1 ${r[0].toFixed(1)}–${r[1].toFixed(1)} Pa`;
+      $("c1").title = r[0] === r[1] ? trainedC1 : "";
+      $("status").textContent = `surrogate ${sc.model.kind}: ${sc.model.path}; ${trainedC1}`;
     } else {
       for (const id of ["angle_a", "angle_s", "c1"]) $(id).disabled = true;
       $("status").textContent = sc.has_surface ? "no surrogate: pick a scan to see its saved FE state" : "nothing to draw";
