@@ -243,13 +243,18 @@ def not_a_folder(work: Path, *, missing: str = "no such work folder") -> str | N
     return "is a file: pass the work folder that holds it" if work.exists() else missing
 
 
-def read_work(work: str | Path) -> WorkFolder:
+def read_work(work: str | Path, *, unreadable_states: list | None = None) -> WorkFolder:
     """Read a calibrated work folder.
 
     Parameters
     ----------
     work : str or Path
         A work folder ``phantom-calib calibrate`` wrote.
+    unreadable_states : list, optional
+        Where given, a scan's saved FE state that is missing or cannot be read is left
+        out of ``states`` and its error message appended here, instead of raised (the
+        browser view shows the other scans: review CD-6); the folder's other files are
+        read as without it.
 
     Returns
     -------
@@ -308,12 +313,18 @@ def read_work(work: str | Path) -> WorkFolder:
         if s.get("failed"):
             continue
         deformed = work / "calibration" / f"{name}_deformed.vtu"
-        data = _point_data(deformed)
-        if data.get("displacement_mm", np.empty(0)).shape != mesh.nodes_mm.shape:
-            raise ValueError(
-                f"{deformed}: no `displacement_mm` point data of the reference mesh's "
-                f"{mesh.n_nodes} nodes (calibrate writes it)"
-            )
+        try:
+            data = _point_data(deformed)
+            if data.get("displacement_mm", np.empty(0)).shape != mesh.nodes_mm.shape:
+                raise ValueError(
+                    f"{deformed}: no `displacement_mm` point data of the reference mesh's "
+                    f"{mesh.n_nodes} nodes (calibrate writes it)"
+                )
+        except (OSError, ValueError) as exc:
+            if unreadable_states is None:
+                raise
+            unreadable_states.append(str(exc))
+            continue
         positions = mesh.nodes_mm + data["displacement_mm"]
         ref = data.get("displacement_from_reference_mm")
         states[name] = SavedState(

@@ -272,8 +272,11 @@ def load_scene(work: str | Path, model: str | Path | None = None) -> Scene:
         from ..data.work import read_work
         from ..io import StaleOutputError
 
+        unreadable: list[str] = []
         try:
-            folder = read_work(work)
+            folder = read_work(work, unreadable_states=unreadable)
+            for why in unreadable:  # review CD-6: one bad state hid every scan
+                scene.missing.append(f"{why}: its scan is shown without its FE state")
         except KeyError as exc:
             scene.missing.append(
                 f"{work / 'calibration.json'} has no {exc} entry: no scans, FE states or "

@@ -552,6 +552,8 @@ def test_a_port_browsers_refuse_is_refused_first(tmp_path, never_served):
 def test_corrupt_or_mismatched_files_in_work_are_named_not_a_traceback(
     scans_work, box, tmp_path, never_served
 ):
+    from calib.data.work import read_work
+
     # review CD-2: a truncated error map was a traceback, a truncated FE state ended the
     # command through meshio's sys.exit (exit 1, "Couldn't read file"); review CD-5: a
     # missing or mismatched map was dropped without a word; review CD-4: --scan hid why
@@ -581,14 +583,23 @@ def test_corrupt_or_mismatched_files_in_work_are_named_not_a_traceback(
     scene = load_scene(work, box[1])
     assert any("has 3 values of `error_mm`" in m for m in scene.missing), scene.missing
 
+    # review CD-6: one unreadable FE state hid every scan; now only its state is left out
     work, cal = copy("truncated_state")
     data = (cal / "tilt_50_deformed.vtu").read_bytes()
     (cal / "tilt_50_deformed.vtu").write_bytes(data[: len(data) // 3])
     scene = load_scene(work)
-    said = [m for m in scene.missing if "could not be read back" in m]
-    assert said and "tilt_50_deformed.vtu: not a readable mesh" in said[0], scene.missing
+    assert {s["name"] for s in scene.info["scans"]} == {"left_lateral", "tilt_50"}
+    assert "tilt_50" not in scene.states and "error_mm" in scene.overlays["tilt_50"]
+    said = [m for m in scene.missing if "tilt_50_deformed.vtu: not a readable mesh" in m]
+    assert said and said[0].endswith("its scan is shown without its FE state"), scene.missing
+    with pytest.raises(ValueError, match="tilt_50_deformed.vtu: not a readable mesh"):
+        read_work(work)  # without the view's list, the folder is refused as before
+
+    work, _ = copy("broken_record")
+    (work / "calibration.json").write_text("{")
     res = CliRunner().invoke(app, ["view", str(work), "--scan", "tilt_50"])
-    assert res.exit_code == 2 and "tilt_50_deformed.vtu: not a readable mesh" in res.output
+    assert res.exit_code == 2 and "it has no calibrated scans (" in res.output, res.output
+    assert "calibration.json" in res.output.split("it has no calibrated scans", 1)[1]
 
 
 def test_a_screenshot_is_saved_and_a_failed_page_is_not(scans_work, box, tmp_path):
