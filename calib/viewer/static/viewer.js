@@ -404,7 +404,7 @@
     $("barticks").innerHTML = at("top: 0", `+${vmax.toFixed(2)} mm: the scan<br>outside the model`) +
       at("top: 50%; transform: translateY(-50%)", "0 mm") +
       at("bottom: 0", `−${vmax.toFixed(2)} mm: inside`);
-    $("barlabel").innerHTML = `scale: p99 of |error|<br>(1 % beyond: the end colours)<br>${k === "error_mm" ? "model vs measured" : "after diagnose's refit"}<br>at the scan's posture and c1<br>(not the sliders')<br>dark grey: not scored`;
+    $("barlabel").innerHTML = `scale: p99 of this scan's |error|<br>(1 % beyond: the end colours;<br>the reports' maps share one<br>scale across the scans)<br>${k === "error_mm" ? "model vs measured" : "after diagnose's refit"}<br>at the scan's posture and c1<br>(not the sliders')<br>dark grey: not scored`;
     $("bar").style.display = "block";
   }
 
