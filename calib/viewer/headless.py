@@ -116,13 +116,28 @@ class HeadlessBrowser:
                 raise BrowserError(f"{self.executable}: no DevTools port after {self.timeout_s} s")
             time.sleep(0.05)
         port = int(port_file.read_text().split()[0])
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as r:
-            pages = [t for t in json.load(r) if t["type"] == "page"]
-        self.ws = websocket.create_connection(
-            pages[0]["webSocketDebuggerUrl"], timeout=self.timeout_s, suppress_origin=True
-        )
+        try:  # review CE-5: a refused connection or no page was a traceback
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as r:
+                pages = [t for t in json.load(r) if t["type"] == "page"]
+            if not pages:
+                raise BrowserError(f"{self.executable}: no page to drive (DevTools lists none)")
+            self.ws = websocket.create_connection(
+                pages[0]["webSocketDebuggerUrl"], timeout=self.timeout_s, suppress_origin=True
+            )
+        except (websocket.WebSocketException, OSError, ValueError) as exc:
+            raise BrowserError(f"{self.executable}: cannot reach its DevTools ({exc})") from exc
         self.call("Page.enable")
         self.call("Runtime.enable")
+        # review CE-1: under --headless=new the window size is the window's, and the page
+        # was 1300 x 757 of a 1300 x 900 window; the page itself is sized here
+        width, height = self.size
+        self.call(
+            "Emulation.setDeviceMetricsOverride",
+            width=width,
+            height=height,
+            deviceScaleFactor=1,
+            mobile=False,
+        )
 
     def call(self, method: str, **params) -> dict:
         """Send one DevTools command and return its ``result``.
@@ -139,10 +154,13 @@ class HeadlessBrowser:
         try:
             self.ws.send(json.dumps({"id": msg_id, "method": method, "params": params}))
             while True:
-                msg = json.loads(self.ws.recv())
+                text = self.ws.recv()
+                if not text:  # review CE-5: a close frame reads as ""
+                    raise websocket.WebSocketConnectionClosedException("the socket closed")
+                msg = json.loads(text)
                 if msg.get("id") == msg_id:
                     break
-        except websocket.WebSocketException as exc:
+        except (websocket.WebSocketException, OSError, ValueError) as exc:
             why = str(exc) or type(exc).__name__
             raise BrowserError(f"{method}: no answer from the browser ({why})") from exc
         if "error" in msg:

@@ -56,10 +56,10 @@ def test_pardiso_is_bitwise_reproducible():
     # depends on the scheduler, so the settings that make the bits reproducible are
     # checked on the solver itself too: the sequential METIS ordering and conditional
     # numerical reproducibility at the current thread count (MKL's iparm[1], iparm[33])
-    for mtype in (11, -2):
-        solver = linalg._reproducible_pardiso(mtype)
-        assert solver.iparm[1] == 2
-        assert solver.iparm[33] == max(int(solver.libmkl.MKL_Get_Max_Threads()), 1) >= 1
+    # (review CE-8: on the solver the solves used, the cached one, not a fresh one)
+    solver = linalg._PardisoCache.solvers[11][0]
+    assert solver.iparm[1] == 2
+    assert solver.iparm[33] == max(int(solver.libmkl.MKL_Get_Max_Threads()), 1)
     np.testing.assert_allclose(A @ answers[0], b, rtol=0, atol=1e-10)
     # the symmetric indefinite path (forward Newton) agrees with the unsymmetric one
     S = (A + A.T).tocsr()

@@ -298,9 +298,11 @@
     inflight = true;
     try { await pumpAll(); } catch (e) {
       // review CD-7: a failed fetch left `inflight` set, and every later control change
-      // was dropped without a word
+      // was dropped without a word; review CE-9: only a failed fetch (a TypeError) is
+      // the server's silence
       pending = null;
-      $("warn").textContent = `the view's server did not answer (${e && e.message ? e.message : e}): is phantom-calib view still running?`;
+      const why = e && e.message ? e.message : String(e);
+      $("warn").textContent = e instanceof TypeError ? `the view's server did not answer (${why}): is phantom-calib view still running?` : `error: ${why}`;
     } finally {
       inflight = false;
       if (V._waiters) { const w = V._waiters; V._waiters = []; w.forEach((f) => f()); }
@@ -329,7 +331,9 @@
         V.latencies.push(dt);
         V.lastFrame = { gravity: q.g, c1: q.c1, latency_ms: dt, fetch_ms: fetchMs, draw_ms: drawMs, extrapolating: extra };
         // review CD-12: the first frame said "after the control moved" with nothing moved
-        $("status").textContent = q.moved ? `surrogate prediction drawn ${dt.toFixed(0)} ms after the control moved` : `surrogate ${V.scene.model.kind} prediction drawn; ${trainedC1}`;
+        // review CE-10: a fixed c1 keeps saying why after a slider moved
+        const fixed = V.scene.model.c1_range_pa[0] === V.scene.model.c1_range_pa[1] ? `; ${trainedC1}` : "";
+        $("status").textContent = q.moved ? `surrogate prediction drawn ${dt.toFixed(0)} ms after the control moved${fixed}` : `surrogate ${V.scene.model.kind} prediction drawn; ${trainedC1}`;
         $("warn").textContent = [extra ? "outside the surrogate's trained range: it extrapolates" : "", overlayNote].filter(Boolean).join("; ");
         res();
       }));
