@@ -135,7 +135,7 @@ def draw_surface_views(fig, grid: tuple[int, int, int], surface, face_values, ma
         for axis, name in ((ax.xaxis, "x"), (ax.yaxis, "y"), (ax.zaxis, "z")):
             axis.set_label_text(f"{name} (mm, phantom frame)")
             axis.labelpad = 10
-        ax.set_title(f"{title}\n{view}" if title else view, fontsize=10)
+        ax.set_title(f"{_panel_title(title, fig, grid[1])}\n{view}" if title else view, fontsize=10)
         ax.set_box_aspect(hi - lo)
         ax.view_init(elev=elev, azim=azim)
         hidden = ax.zaxis if elev == 90.0 else ax.yaxis  # the axis along the line of sight
@@ -208,6 +208,17 @@ def surface_error_figure(
     signed_colorbar(fig, mapper, axes, saturated=bool(np.any(np.abs(e) > top)))
     fig.suptitle(wrapped_title(title, fig))
     return fig
+
+
+def _panel_title(title: str, fig, columns: int, size_pt: float = 10.0) -> str:
+    """``title`` in lines that fit one of ``columns`` panels across ``fig`` at ``size_pt``.
+
+    The diagnosis maps' change row (~95 characters a panel) ran into its neighbour's.
+    """
+    import textwrap
+
+    chars = max(20, int(fig.get_figwidth() / columns * 72.0 / (0.6 * size_pt)))
+    return textwrap.fill(title, chars)
 
 
 def wrapped_title(title: str, fig) -> str:

@@ -97,6 +97,23 @@ def test_a_map_s_long_title_stays_inside_its_figure():
     assert fig._suptitle.get_text().replace("\n", " ") == title  # every word kept
 
 
+def test_the_panels_titles_of_the_diagnosis_maps_do_not_run_into_each_other():
+    # the change row's titles (~95 characters each, fontsize 10 on a 5-inch panel) ran
+    # into each other in diagnose's residual maps
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from calib.report.diagnosis import residual_maps_figure
+
+    scan = _square_scan()
+    fig = residual_maps_figure("s", "diagnosis", scan, np.zeros(4), np.ones(4), np.eye(3), vmax=1.0)
+    FigureCanvasAgg(fig).draw()
+    row = [ax for ax in fig.axes if "change" in ax.get_title()]
+    assert len(row) == 2
+    left, right = (ax.title.get_window_extent() for ax in row)
+    assert left.x1 <= right.x0, (left, right)
+    assert 0 <= left.x0 and right.x1 <= fig.bbox.x1
+
+
 def test_maps_of_a_scan_with_nothing_scored_are_drawn_not_raised():
     # review BA: with no scored face the scale's percentile of an empty array raised
     # (the notebook's plot_error_map without vmax, diagnose's change row), and the
