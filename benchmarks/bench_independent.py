@@ -25,7 +25,10 @@ inclusions and markers 1.5 times larger: 84 mm tall against the twin's 75 and th
 others' 56, c1 600 Pa, otherwise as ``full``) and ``skin`` (as ``full``, with its top
 layer of cells 1.5 mm thick along the surface's normal and 8 times as stiff: a skin for
 ``phantom-calib diagnose`` to name, made by another FE code on another shape than the
-twin's; the twin's skin is a volume mix in its elements, the diagnosis model's too).
+twin's; the twin's skin is a volume mix in its elements, the diagnosis model's too), and
+``skin-collar`` (``skin`` with a stiff collar at the clamped rim under the dome's skin:
+the outermost ring of cells, about 2.5 mm wide, as a 1.5 mm layer mixed into its width,
+:func:`collar_cells`).
 Each is ingested, calibrated with the defaults and validated; the table gives the true
 and the recovered c1, whether the 95 % interval holds the truth (not for ``skin``: its
 homogeneous c1 has no truth), the mesh check's bound and the validation scans' mean
@@ -34,7 +37,7 @@ a second table gives the verdict, c1 alone, the first candidate's refit and the 
 the residual above the noise floor it explains. The generator's own discretisation error
 (``--mesh-study``: its mesh at three sizes) bounds how close c1 can come.
 
-usage: python benchmarks/bench_independent.py --out DIR [--sets full,bare,large,skin]
+usage: python benchmarks/bench_independent.py --out DIR [--sets full,bare,large,skin,...]
        [--seed 1 | --seeds 1,2,3] [--mesh-study] [--diagnose]
 
 With ``--seeds`` each set is made and calibrated once per seed (``DIR/SET-seedK``; the
@@ -86,6 +89,16 @@ SETS = {
     "bare": dict(c1_pa=300.0, density_kg_m3=1200.0, gravity=(0.0, -1.0, 0.0), bare=True),
     "large": dict(
         c1_pa=600.0, density_kg_m3=1000.0, gravity=(0.0, 1.0, 0.0), bare=False, scale=1.5
+    ),
+    # as skin, with a stiff collar at the clamped rim under the dome's skin
+    "skin-collar": dict(
+        c1_pa=420.0,
+        density_kg_m3=1000.0,
+        gravity=(0.0, 1.0, 0.0),
+        bare=False,
+        skin_mm=1.5,
+        skin_ratio=8.0,
+        collar=True,
     ),
     # as full, with a stiffer outer layer the diagnosis should name (issue 13)
     "skin": dict(
@@ -146,6 +159,34 @@ def make_mesh(n: int, nz: int, scale: float = 1.0, skin_mm: float = 0.0):
     return mesh
 
 
+def collar_cells(mesh, top: np.ndarray, skin_mm: float, ratio: float) -> list:
+    """The outermost ring of cells under the top layer, as a skin's volume mix.
+
+    The ``skin-collar`` set: each cell of the ring (about 2.5 mm wide, from the plate up
+    to the top layer) takes the stiffness of a ``skin_mm`` layer mixed into its width
+    (``1 + (ratio - 1) min(1, skin_mm / width)``, in steps of 0.05): a stiff collar at the
+    clamped rim, under the dome's skin. Returns (cell mask, ratio) pairs.
+    """
+    p = mesh.points
+    r = np.hypot(p[:, 0] / SEMI_AXES_MM[0], p[:, 1] / SEMI_AXES_MM[1])
+    outer = np.isclose(r, r.max(), atol=1e-6)
+    ring = (outer[mesh.cells].sum(1) >= 4) & ~top
+    idx = np.flatnonzero(ring)
+    width = np.array(
+        [
+            np.linalg.norm(p[c][outer[c], :2].mean(0) - p[c][~outer[c], :2].mean(0))
+            for c in mesh.cells[idx]
+        ]
+    )
+    share = np.round(np.minimum(1.0, skin_mm / width) * 20) / 20
+    out = []
+    for f in np.unique(share):
+        cells = np.zeros(len(mesh.cells), bool)
+        cells[idx[share == f]] = True
+        out.append((cells, 1.0 + (ratio - 1.0) * f))
+    return out
+
+
 def skin_cells(mesh, scale: float = 1.0) -> np.ndarray:
     """Cells with a face on the top surface (the top layer), a boolean mask."""
     on_top = np.isclose(mesh.points[:, 2], top_height_mm(*mesh.points[:, :2].T, scale))
@@ -159,12 +200,12 @@ def solve(
     c1_pa: float,
     density_kg_m3: float,
     steps: int = 2,
-    skin: tuple[np.ndarray, float] | None = None,
+    stiffer: list[tuple[np.ndarray, float]] | None = None,
 ):
     """Displacements (mm) under gravity from the stress-free mesh; units mm, Pa, Pa/mm.
 
-    ``skin``: (cell mask, stiffness ratio): those cells' c1 is ``ratio * c1_pa`` (a
-    second solid body on a field linked to the whole mesh's).
+    ``stiffer``: (cell mask, stiffness ratio) pairs: those cells' c1 is ``ratio * c1_pa``
+    (a solid body each, on fields linked to the whole mesh's).
     """
     import felupe
 
@@ -186,10 +227,12 @@ def solve(
 
     field = felupe.FieldContainer([felupe.Field(felupe.RegionHexahedron(mesh), dim=3)])
     clamped = {"back": felupe.Boundary(field[0], mask=mesh.points[:, 2] < 1e-9)}
-    cells = np.ones(len(mesh.cells), bool) if skin is None else ~skin[0]
-    bodies = [body_on(cells, 2 * c1_pa)]
-    if skin is not None:
-        bodies.append(body_on(skin[0], 2 * c1_pa * skin[1]))
+    stiffer = stiffer or []
+    rest = np.ones(len(mesh.cells), bool)
+    for cells, _ in stiffer:
+        rest &= ~cells
+    bodies = [body_on(rest, 2 * c1_pa)]
+    bodies += [body_on(cells, 2 * c1_pa * ratio) for cells, ratio in stiffer if cells.any()]
     # rho g in Pa/mm: kg/m^3 * m/s^2 = N/m^3 = 1e-3 Pa/mm
     force = felupe.SolidBodyForce(field, values=np.zeros(3), scale=density_kg_m3 * 9.81e-3)
     ramp = np.outer(np.linspace(0, 1, steps + 1)[1:], gravity_unit)
@@ -386,16 +429,20 @@ def generate(out: Path, spec: dict, *, seed: int, n: int = 10, nz: int = 10) -> 
     scale = spec.get("scale", 1.0)
     markers = scale * MARKERS_MM
     mesh = make_mesh(n, nz, scale, spec.get("skin_mm", 0.0))
-    skin = None
+    stiffer = []
     if spec.get("skin_mm"):
-        skin = (skin_cells(mesh, scale), spec["skin_ratio"])
+        stiffer = [(skin_cells(mesh, scale), spec["skin_ratio"])]
+        if spec.get("collar"):
+            stiffer += collar_cells(mesh, stiffer[0][0], spec["skin_mm"], spec["skin_ratio"])
     triangles = boundary_triangles(mesh)
     (out / "scans").mkdir(parents=True, exist_ok=True)
     truth = {"c1_pa": spec["c1_pa"], "nodes": int(mesh.npoints), "scans": {}}
     hint = None
     for name, angle, _ in POSTURES:
         T, g = scanner_pose(angle, scanner_gravity, rng)
-        u = solve(mesh, g, c1_pa=spec["c1_pa"], density_kg_m3=spec["density_kg_m3"], skin=skin)
+        u = solve(
+            mesh, g, c1_pa=spec["c1_pa"], density_kg_m3=spec["density_kg_m3"], stiffer=stiffer
+        )
         x = mesh.points + u
         centres = scale * np.array([c for c, _ in INCLUSIONS])
         inclusions = centres + displacement_at(mesh, u, centres)
@@ -447,6 +494,7 @@ def _print_diagnoses(diagnoses) -> None:
         hidden = (
             f"skin {spec['skin_mm']} mm x{spec['skin_ratio']:g}" if "skin_mm" in spec else "none"
         )
+        hidden += " + collar" if spec.get("collar") else ""
         cand = (d.get("candidates") or [None])[0]
         if cand is None:
             first, share = "none refitted", "–"
