@@ -90,16 +90,6 @@ SETS = {
     "large": dict(
         c1_pa=600.0, density_kg_m3=1000.0, gravity=(0.0, 1.0, 0.0), bare=False, scale=1.5
     ),
-    # as skin, with a stiff collar at the clamped rim under the dome's skin
-    "skin-collar": dict(
-        c1_pa=420.0,
-        density_kg_m3=1000.0,
-        gravity=(0.0, 1.0, 0.0),
-        bare=False,
-        skin_mm=1.5,
-        skin_ratio=8.0,
-        collar=True,
-    ),
     # as full, with a stiffer outer layer the diagnosis should name (issue 13)
     "skin": dict(
         c1_pa=420.0,
@@ -110,6 +100,8 @@ SETS = {
         skin_ratio=8.0,
     ),
 }
+# as skin, with a stiff collar at the clamped rim under the dome's skin
+SETS["skin-collar"] = dict(SETS["skin"], collar=True)
 NU = 0.499
 
 
