@@ -712,6 +712,20 @@ def _caveats(doc: dict) -> list[str]:
             f"the inclusions effect leaves out {left} region(s) of inclusion contrast too large "
             "for ingest (more than 15 mm)"
         )
+    if "skin" in (doc.get("named") or ()):
+        # measured on the independent generator's skin sets (README, "A skin hidden by the
+        # other FE code"): the named skin's c1 and ratio hold for the model's form only
+        band = ((doc.get("refit") or {}).get("intervals") or {}).get("skin", {})
+        thick = band.get("thickness_mm")
+        out.append(
+            "the skin is the model's band"
+            + (f" of {thick:g} mm" if thick is not None else "")
+            + " over every surface but the back, down to the clamped plate, one stiffness "
+            "throughout: its ratio, and the c1 refitted with it, hold for a skin of that form; "
+            "a layer spread otherwise trades the two (another FE code's 1.5 mm skin 8 times "
+            "stiffer: ratio 3-4, c1 within 1 %; with a stiff collar at the clamp: ratio 25, "
+            "c1 27 % low)"
+        )
     return out
 
 
