@@ -304,34 +304,32 @@ def _unit_directions(gravity_ref: np.ndarray) -> np.ndarray:
     return np.unique(np.round(g / np.linalg.norm(g, axis=1, keepdims=True), 9), axis=0)
 
 
-def _directions(gravity_ref: np.ndarray, *, tree: bool = False) -> tuple:
+def _directions(gravity_ref: np.ndarray) -> tuple[list, float]:
     """The distinct unit directions of the training gravities and their median spacing.
 
     The spacing is the median angle (degrees) from each direction to its nearest other;
-    0 for a single direction. With ``tree``, also their k-d tree (None without
-    directions), for :func:`_validated_deg`.
+    0 for a single direction.
     """
     from scipy.spatial import cKDTree
 
     d = _unit_directions(gravity_ref)
-    kd = cKDTree(d) if len(d) else None
-    spacing = 0.0
-    if len(d) >= 2:
-        spacing = float(np.median(_chord_deg(kd.query(d, k=2)[0][:, 1])))
-    return (d.tolist(), spacing, kd) if tree else (d.tolist(), spacing)
+    if len(d) < 2:
+        return d.tolist(), 0.0
+    spacing = _chord_deg(cKDTree(d).query(d, k=2)[0][:, 1])
+    return d.tolist(), float(np.median(spacing))
 
 
 def _fit_meta(fit, data: SweepData) -> dict:
     train = data.subset(data.role == "train")
     q = np.linalg.norm(train.load_per_m, axis=1)
-    directions, spacing, tree = _directions(train.gravity_ref, tree=True)
+    directions, spacing = _directions(train.gravity_ref)
     valid = data.subset(data.role == "validation")
     # review BS: only where the training directions span three dimensions (a plane's
     # validation directions off it, dissertation:transverse's sagittal circle, are the
     # span check's), and up to two spacings (a sparse hold-out widens it no further)
     validated = None
     if _span(np.asarray(directions, float)) is None:
-        validated = _validated_deg(valid.gravity_ref, tree)
+        validated = _validated_deg(valid.gravity_ref, directions)
         validated = None if validated is None else min(validated, 2.0 * spacing)
     return {
         "format": FORMAT,
@@ -361,16 +359,17 @@ def _fit_meta(fit, data: SweepData) -> dict:
     }
 
 
-def _validated_deg(gravity_ref: np.ndarray, tree) -> float | None:
+def _validated_deg(gravity_ref: np.ndarray, directions: list) -> float | None:
     """The farthest (degrees) a validation direction lies from every training direction.
 
-    ``tree`` is the training directions' k-d tree (:func:`_directions`). None without
-    validation directions (or without training ones).
+    None without validation directions (or without training ones).
     """
+    from scipy.spatial import cKDTree
+
     u = _unit_directions(gravity_ref)
-    if not len(u) or tree is None:
+    if not len(u) or not len(directions):
         return None
-    return float(_chord_deg(tree.query(u)[0]).max())
+    return float(_chord_deg(cKDTree(np.asarray(directions, float)).query(u)[0]).max())
 
 
 def _training_digest(train: SweepData) -> str:
