@@ -210,15 +210,20 @@ def surface_error_figure(
     return fig
 
 
+def _wrapped(title: str, width_in: float, size_pt: float) -> str:
+    """``title`` in lines that fit ``width_in`` inches at ``size_pt`` (~0.6 em a character)."""
+    import textwrap
+
+    chars = max(20, int(width_in * 72.0 / (0.6 * size_pt)))
+    return "\n".join(textwrap.fill(line, chars) for line in title.splitlines() or [""])
+
+
 def _panel_title(title: str, fig, columns: int, size_pt: float = 10.0) -> str:
     """``title`` in lines that fit one of ``columns`` panels across ``fig`` at ``size_pt``.
 
     The diagnosis maps' change row (~95 characters a panel) ran into its neighbour's.
     """
-    import textwrap
-
-    chars = max(20, int(fig.get_figwidth() / columns * 72.0 / (0.6 * size_pt)))
-    return textwrap.fill(title, chars)
+    return _wrapped(title, fig.get_figwidth() / columns, size_pt)
 
 
 def wrapped_title(title: str, fig) -> str:
@@ -227,14 +232,11 @@ def wrapped_title(title: str, fig) -> str:
     The validation maps' titles (scan, role, posture, mean error, frame, scale: ~130
     characters) ran past both edges of a 10-inch figure, cut at its borders.
     """
-    import textwrap
-
     from matplotlib import rcParams
     from matplotlib.font_manager import FontProperties
 
     size_pt = FontProperties(size=rcParams["figure.titlesize"]).get_size_in_points()
-    chars = max(20, int(fig.get_figwidth() * 72.0 / (0.6 * size_pt)))  # ~0.6 em a character
-    return "\n".join(textwrap.fill(line, chars) for line in title.splitlines() or [""])
+    return _wrapped(title, fig.get_figwidth(), size_pt)
 
 
 def write_error_ply(path: Path, vertices_mm: np.ndarray, faces: np.ndarray, error_mm) -> Path:
