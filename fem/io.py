@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,6 +44,7 @@ __all__ = [
     "atomic_write",
     "mesh_format_for",
     "read_mesh",
+    "read_meshio",
     "read_tetgen",
     "read_tetgen_face",
     "write_mesh",
@@ -351,22 +352,48 @@ def read_mesh(
         raise FileNotFoundError(f"mesh file not found: {path}")
     if path.stat().st_size == 0:
         raise MeshError(f"{path}: the file is empty")
+
+    def read(p: Path):
+        import meshio
+
+        m = _read_hybrid_abaqus(p) if p.suffix.lower() == ".inp" else None
+        return meshio.read(p) if m is None else m
+
+    mesh, points = _to_tetmesh(read_meshio(path, read=read), path, orient=orient)
+    return (mesh, points) if return_input_points else mesh
+
+
+def read_meshio(path: str | Path, *, read: Callable | None = None, error: Callable | None = None):
+    """A file read by meshio, every failure one exception that names the file.
+
+    meshio raises many kinds for bad files and calls ``sys.exit`` when no reader takes
+    one; what it prints is kept for the message.
+
+    Parameters
+    ----------
+    path : str or Path
+    read : callable, optional
+        ``read(path)`` in place of ``meshio.read``.
+    error : callable, optional
+        ``error(why)`` gives the exception to raise (default a :class:`MeshError`
+        "``path``: cannot read mesh (why)").
+
+    Returns
+    -------
+    meshio.Mesh
+    """
     import contextlib
     import io
 
     import meshio
 
-    said = io.StringIO()
+    path, said = Path(path), io.StringIO()
     try:
         with contextlib.redirect_stderr(said), contextlib.redirect_stdout(said):
-            m = _read_hybrid_abaqus(path) if path.suffix.lower() == ".inp" else None
-            m = meshio.read(path) if m is None else m
-    # meshio raises many kinds for bad files, and calls sys.exit when no reader succeeds
+            return (read or meshio.read)(path)
     except (Exception, SystemExit) as exc:
         why = " ".join(said.getvalue().split()) or f"{type(exc).__name__}: {exc}"
-        raise MeshError(f"{path}: cannot read mesh ({why})") from exc
-    mesh, points = _to_tetmesh(m, path, orient=orient)
-    return (mesh, points) if return_input_points else mesh
+        raise (error or (lambda w: MeshError(f"{path}: cannot read mesh ({w})")))(why) from exc
 
 
 def _read_hybrid_abaqus(path: Path):
