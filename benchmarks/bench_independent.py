@@ -179,10 +179,14 @@ def collar_cells(mesh, top: np.ndarray, skin_mm: float, ratio: float) -> list:
     return out
 
 
+def top_nodes(mesh, scale: float = 1.0) -> np.ndarray:
+    """The mesh's nodes on the body's top surface, a boolean mask."""
+    return np.isclose(mesh.points[:, 2], top_height_mm(*mesh.points[:, :2].T, scale))
+
+
 def skin_cells(mesh, scale: float = 1.0) -> np.ndarray:
     """Cells with a face on the top surface (the top layer), a boolean mask."""
-    on_top = np.isclose(mesh.points[:, 2], top_height_mm(*mesh.points[:, :2].T, scale))
-    return on_top[mesh.cells].sum(1) >= 4
+    return top_nodes(mesh, scale)[mesh.cells].sum(1) >= 4
 
 
 def solve(
@@ -457,7 +461,7 @@ def mesh_study(spec: dict) -> list[tuple[int, float]]:
     for n in (7, 10, 15):
         mesh = make_mesh(n, n)
         u = solve(mesh, g, c1_pa=spec["c1_pa"], density_kg_m3=spec["density_kg_m3"])
-        top = np.isclose(mesh.points[:, 2], top_height_mm(*mesh.points[:, :2].T))
+        top = top_nodes(mesh)
         d = np.linalg.norm(mesh.points[:, :2] - NIPPLE_XY_MM, axis=1) + np.where(top, 0, np.inf)
         rows.append((int(mesh.npoints), float(np.linalg.norm(u[np.argmin(d)]))))
     return rows

@@ -89,7 +89,7 @@ def view(
         # review AG: a folder without scans (no calibration) let any --scan through;
         # review CD-4: and why it has none (a file that could not be read back)
         choose = f"choose from {names}" if names else "it has no calibrated scans"
-        why = "" if names else "".join(f" ({line})" for line in scene.missing[:1])
+        why = f" ({scene.missing[0]})" if scene.missing and not names else ""
         fail(ValueError(f"--scan {scan!r}: no such scan in {work}; {choose}{why}"))
     if screenshot is not None and scene.faces is None:  # review AX: an empty PNG, exit 0
         fail(ValueError(f"--screenshot: nothing to draw in {work}: {'; '.join(scene.missing)}"))

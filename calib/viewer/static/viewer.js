@@ -286,7 +286,9 @@
   }
 
   // One request in flight; the newest control state wins.
-  let inflight = false, pending = null, trainedC1 = "";
+  // the status line's c1 words: its trained range, or why it is fixed (c1Fixed, else "")
+  let inflight = false, pending = null, trainedC1 = "", c1Fixed = "";
+  const errorText = (e) => (e && e.message ? e.message : String(e));
   function onControl(ev) {
     const t0 = ev && ev.timeStamp > 0 ? ev.timeStamp : performance.now();
     readControls();
@@ -301,7 +303,7 @@
       // was dropped without a word; review CE-9: only a failed fetch (a TypeError) is
       // the server's silence
       pending = null;
-      const why = e && e.message ? e.message : String(e);
+      const why = errorText(e);
       $("warn").textContent = e instanceof TypeError ? `the view's server did not answer (${why}): is phantom-calib view still running?` : `error: ${why}`;
     } finally {
       inflight = false;
@@ -332,8 +334,7 @@
         V.lastFrame = { gravity: q.g, c1: q.c1, latency_ms: dt, fetch_ms: fetchMs, draw_ms: drawMs, extrapolating: extra };
         // review CD-12: the first frame said "after the control moved" with nothing moved
         // review CE-10: a fixed c1 keeps saying why after a slider moved
-        const fixed = V.scene.model.c1_range_pa[0] === V.scene.model.c1_range_pa[1] ? `; ${trainedC1}` : "";
-        $("status").textContent = q.moved ? `surrogate prediction drawn ${dt.toFixed(0)} ms after the control moved${fixed}` : `surrogate ${V.scene.model.kind} prediction drawn; ${trainedC1}`;
+        $("status").textContent = q.moved ? `surrogate prediction drawn ${dt.toFixed(0)} ms after the control moved${c1Fixed && "; " + c1Fixed}` : `surrogate ${V.scene.model.kind} prediction drawn; ${trainedC1}`;
         $("warn").textContent = [extra ? "outside the surrogate's trained range: it extrapolates" : "", overlayNote].filter(Boolean).join("; ");
         res();
       }));
@@ -450,8 +451,9 @@
       $("c1").disabled = r[0] === r[1];
       $("c1").value = r[0] === r[1] ? 500 : String(Math.round(1000 * Math.log(sc.model.c1_pa / r[0]) / Math.log(r[1] / r[0])));
       // review CD-12: a fixed c1 was a greyed slider with no reason given
-      trainedC1 = r[0] === r[1] ? `c1 fixed at ${r[0].toFixed(1)} Pa (the sweep had no --c1 axis)` : `trained c1 ${r[0].toFixed(1)}–${r[1].toFixed(1)} Pa`;
-      $("c1").title = r[0] === r[1] ? trainedC1 : "";
+      c1Fixed = r[0] === r[1] ? `c1 fixed at ${r[0].toFixed(1)} Pa (the sweep had no --c1 axis)` : "";
+      trainedC1 = c1Fixed || `trained c1 ${r[0].toFixed(1)}–${r[1].toFixed(1)} Pa`;
+      $("c1").title = c1Fixed;
       $("status").textContent = `surrogate ${sc.model.kind}: ${sc.model.path}; ${trainedC1}`;
     } else {
       for (const id of ["angle_a", "angle_s", "c1"]) $(id).disabled = true;
@@ -497,5 +499,5 @@
     }
   }
   // review CD-12: "error: Error: ..." said its prefix twice
-  V.ready = init().catch((e) => { V.error = e && e.message ? e.message : String(e); $("warn").textContent = "error: " + V.error; });
+  V.ready = init().catch((e) => { V.error = errorText(e); $("warn").textContent = "error: " + V.error; });
 })();
