@@ -41,13 +41,17 @@ def test_observed_order_of_convergence(taylor_hood):
     # monotone approach: successive changes shrink
     assert abs(f3 - f2) < abs(f2 - f1)
     p = np.log(abs(f2 - f1) / abs(f3 - f2)) / np.log(np.sqrt(2.0))
-    # Expected order: 2 from the straight-sided (piecewise linear) geometry, which the
-    # quadratic field cannot beat; the singular stress where the free surface meets the
-    # clamped rim lowers point values towards ~1.2. A fitted order outside [1, 4] means the
-    # meshes are not in the asymptotic range or the solver does not converge.
-    assert 1.0 <= p <= 4.0, p
+    # Expected order: at most 2, from the straight-sided (piecewise linear) geometry, which
+    # the quadratic field cannot beat; the singular stress where the free surface meets the
+    # clamped rim lowers point values towards ~1.2 (measured here 1.6; the calibration's
+    # three-mesh checks of the quick twins observed 1.15 and 1.70,
+    # docs/calibration-evidence.md). The bracket is that range with 0.1 below for the
+    # singular limit and 0.2 above for three unstructured meshes' pre-asymptotic scatter
+    # (review CC-07: the former [1, 4] let through orders no argument gives).
+    assert 1.1 <= p <= 2.2, p
     f_inf = f3 + (f3 - f2) / (np.sqrt(2.0) ** p - 1.0)
-    # the finest mesh is already within 2 % of the extrapolated answer
+    # the finest mesh's Richardson error estimate (f3 - f2) / (sqrt 2^p - 1), relative:
+    # measured 0.95 % (24.05 against 24.28 mm); the bar twice that
     assert abs(f3 / f_inf - 1.0) < 0.02
 
 
