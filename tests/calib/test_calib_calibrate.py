@@ -97,9 +97,13 @@ def test_recovers_known_c1(measurements, reference_state):
     assert np.exp(theta) == pytest.approx(C1_TRUE, rel=0.03)
     res = cal.residuals(theta, cal.calibration_scans, gradient=True)
     r = np.concatenate([v.r for v in res.values()])
-    assert np.sqrt(np.mean(r**2)) < 0.5  # mm: remeshing error of a 12 mm surface
+    # mm: the remeshing error of a 12 mm surface, measured 0.084 mm; the bar twice that
+    assert np.sqrt(np.mean(r**2)) < 0.17
     # Here the model error is discretisation alone, so the 95 % interval with the grid
-    # convergence check must contain the truth (issue 6), and the check must widen it.
+    # convergence check must contain the truth (issue 6), and the check's GCI must bound the
+    # error it estimates: measured |ln(c1 / 420)| 0.0083 against a GCI of 0.039, where the
+    # noise-only interval (422.5-424.5 Pa) misses the truth (review CF-4: "the check
+    # widens the interval" held by construction, hypot(crit se, gci) > crit se).
     dr = np.concatenate([v.dr for v in res.values()])
     pts = np.concatenate([v.points_mm for v in res.values()])
     unc = gauss_newton_uncertainty(np.exp(theta), r, dr, pts, area_mm2=_measured_area_mm2(cal))
@@ -108,7 +112,7 @@ def test_recovers_known_c1(measurements, reference_state):
     crit = unc.interval["critical_value"]  # as the pipeline combines them
     lo, hi = combined_ci95(float(np.exp(theta)), unc.se_ln_c1, check.gci_ln_c1, critical_value=crit)
     assert lo <= C1_TRUE <= hi, (lo, hi, unc.c1_ci95_pa, check)
-    assert hi - lo > unc.c1_ci95_pa[1] - unc.c1_ci95_pa[0]
+    assert abs(theta - np.log(C1_TRUE)) <= check.gci_ln_c1, (theta, check)
 
 
 # the shortcut's column is slow (22 s in CI): for the default suite's budget (~15 min) its

@@ -73,7 +73,15 @@ def test_a_failed_solve_halves_the_step_and_is_recorded():
     theta, _, status = optimise(cal, said.append, np.log(800.0))
     assert status.failed_evaluations >= 1
     assert any("no FE solution" in s for s in said)
-    assert theta == pytest.approx(cal.minimiser(), abs=2e-3)  # 0.2 % in c1
+    # each retry from 800 Pa is half the step before it (here 201 Pa, 401 Pa, then 566 Pa
+    # solved): review CF-23, the halving had not been checked
+    ln_c1 = np.log([h["c1_pa"] for h in cal.history[:4]])
+    steps = ln_c1[1:] - ln_c1[0]
+    assert cal.history[1].get("failed") and cal.history[2].get("failed")
+    assert steps[1:] == pytest.approx([steps[0] / 2, steps[0] / 4], rel=1e-9)
+    # the stopping rule leaves a step below 1e-3 / sqrt(H) = 1.5e-4 in ln c1, off by at most
+    # the curvature's factor 1 / 0.4 here: 3.7e-4 (measured 0: the last step is exact)
+    assert theta == pytest.approx(cal.minimiser(), abs=4e-4)
     assert status.success, status
 
 

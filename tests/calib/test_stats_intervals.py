@@ -24,7 +24,6 @@ from calib.stats.intervals import (
     sandwich_covariance,
     series_design,
     series_interval,
-    series_statistic,
 )
 from calib.stats.noise import NoiseModel, covariance_matrix, estimate_noise
 from calib.stats.quadform import imhof_sf, ratio_critical_value, ratio_tail, satterthwaite
@@ -201,9 +200,15 @@ def test_alternatives_only_widen(geometry):
     d = series_design(sample, J)
     one = series_interval(d, r, fit.best, estimate=0.0)
     alt = series_interval(d, r, fit.best, estimate=0.0, alternatives=tuple(fit.candidates))
-    assert alt.upper - alt.lower >= one.upper - one.lower
-    st = series_statistic(d, r, fit.best)
-    assert st.standard_error == pytest.approx(one.standard_error)
+    # the interval over alternatives is the widest of each model's own interval (review
+    # CF-3: a ">=" held where the alternatives were ignored); on this draw 1.87 times
+    # the best model's, so the alternatives did act
+    widths = [
+        series_interval(d, r, m, estimate=0.0).upper - series_interval(d, r, m, estimate=0.0).lower
+        for m in (fit.best, *fit.candidates)
+    ]
+    assert alt.upper - alt.lower == pytest.approx(max(widths), rel=1e-12)
+    assert alt.upper - alt.lower > 1.5 * (one.upper - one.lower)
     assert one.as_json()["noise"]["kernel"] == fit.best.kernel
 
 
