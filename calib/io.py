@@ -22,6 +22,7 @@ log = logging.getLogger(__name__)
 __all__ = [
     "OUT_OPTION",
     "WORK_OPTION",
+    "ForeignFolderError",
     "InsideRunFolderError",
     "RunOutputs",
     "StaleOutputError",
@@ -30,6 +31,7 @@ __all__ = [
     "check_not_in_run_folder",
     "check_out_file",
     "check_out_folder",
+    "check_replaceable",
     "check_run",
     "clean_stale",
     "file_sha256",
@@ -101,6 +103,49 @@ RUN_FOLDERS = {
 
 class InsideRunFolderError(ValueError):
     """An ``--out`` inside a work folder's run folder, which a later run replaces whole."""
+
+
+class ForeignFolderError(FileExistsError):
+    """A run folder's place in WORK (``calibration/``, ...) holds something no run wrote."""
+
+
+def check_replaceable(work: str | os.PathLike, folders, *, option: str = WORK_OPTION) -> None:
+    """Refuse a WORK whose run folders a command would replace but no run wrote, before work.
+
+    A run swaps its folder in whole (:class:`RunOutputs`): whatever ``WORK/calibration/``
+    held went with it. A folder is a run's where it has a ``RUN`` marker or its record
+    lies beside it (``calibration.json``: an interrupted run, or one of an older version);
+    an empty folder loses nothing. Anything else there — a user's own ``calibration/``
+    folder of notes, a file of that name — is refused (review CG-7: it was deleted
+    without a word).
+
+    Parameters
+    ----------
+    work : path-like
+    folders : iterable of str
+        The run folders the command writes (keys of :data:`RUN_FOLDERS`).
+    option : str
+        How the message names WORK.
+
+    Raises
+    ------
+    ForeignFolderError
+    """
+    work = Path(work)
+    for name in folders:
+        path, (record, command) = work / name, RUN_FOLDERS[name]
+        if not (path.exists() or path.is_symlink()):
+            continue
+        if path.is_dir() and not path.is_symlink():
+            if (path / "RUN").is_file() or (work / record).is_file() or not any(path.iterdir()):
+                continue
+            what = f"a folder no phantom-calib run wrote (no RUN marker, no {record} beside it)"
+        else:
+            what = "a link" if path.is_symlink() else "a file"
+        raise ForeignFolderError(
+            f"{option} {work}: {path} is {what}; `phantom-calib {command}` replaces "
+            f"{name}/ as a whole, so it would be lost: move it away or choose another {option}"
+        )
 
 
 def check_not_in_run_folder(out: str | os.PathLike, *, option: str = OUT_OPTION) -> None:
@@ -623,6 +668,8 @@ class RunOutputs:
     def __init__(self, work: str | os.PathLike, *, folder: str, record: str):
         self.work = Path(work)
         self.folder, self.record = folder, record
+        if folder in RUN_FOLDERS:  # the commands check first; this is the last guard
+            check_replaceable(self.work, (folder,))
         self.work.mkdir(parents=True, exist_ok=True)
         clean_stale(self.work, (folder, record))
         pid = os.getpid()

@@ -17,6 +17,7 @@ from ..io import (
     RunOutputs,
     check_out_apart,
     check_out_folder,
+    check_replaceable,
     input_records,
     locking_work,
     provenance,
@@ -158,6 +159,7 @@ def run_ingest(scans_dir: str | Path, work: str | Path, *, progress=None) -> Ing
     check_out_folder(work, option=WORK_OPTION)  # before the work, not after it
     session = load_session(scans_dir)
     check_out_apart(work, session_inputs(session), what="the scan data", option=WORK_OPTION)
+    check_replaceable(work, ("scans",))
     # review BI: fingerprinted before they are read, so that a source changed during the
     # run leaves results that later commands call stale (after, they were called current)
     inputs = ingest_inputs(session)

@@ -31,7 +31,65 @@ def test_a_new_calibration_removes_the_validation_of_the_old_one(tmp_path, caplo
     _drop_outputs_of_another_fit(tmp_path, "new")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["diagnosis", "diagnosis.json"]
     assert "validation.json and" in caplog.text
+    caplog.clear()
     _drop_outputs_of_another_fit(tmp_path, "new")  # nothing to remove: nothing said
+    assert caplog.text == ""
+    # a validation made from the new calibration stays, without a word (review CG-2: the
+    # keeping was never tested; removing on every call passed)
+    (tmp_path / "validation").mkdir()
+    (tmp_path / "validation.json").write_text(json.dumps({"calibration_run_id": "new"}))
+    _drop_outputs_of_another_fit(tmp_path, "new")
+    assert (tmp_path / "validation").is_dir() and (tmp_path / "validation.json").is_file()
+    assert caplog.text == ""
+
+
+@pytest.mark.parametrize("kind", ["folder", "file"])
+def test_a_run_folder_s_place_holding_what_no_run_wrote_is_refused_and_kept(tmp_path, kind):
+    # review CG-7: a user's own WORK/calibration/ (notes) went with the first calibrate,
+    # which swaps its folder in whole; now refused, before the work, the files untouched
+    from calib_helpers import make_scan_folder
+
+    from calib.io import ForeignFolderError, RunOutputs
+    from calib.workflows.calibrate import run_calibration
+    from calib.workflows.ingest import run_ingest
+
+    scans, work = make_scan_folder(tmp_path / "scans"), tmp_path / "work"
+    mine = work / "calibration"
+    if kind == "folder":
+        mine.mkdir(parents=True)
+        (mine / "my_notes.txt").write_text("mine")
+    else:
+        work.mkdir()
+        mine.write_text("mine")
+    with pytest.raises(ForeignFolderError, match=r"calibration is a (folder no phantom-calib "
+                       r"run wrote|file).*replaces calibration/ as a whole"):  # fmt: skip
+        RunOutputs(work, folder="calibration", record="calibration.json")
+    # calibrate refuses before it reads a scan (the placeholders would fail to read)
+    with pytest.raises(ForeignFolderError, match="phantom-calib calibrate"):
+        run_calibration(scans, work, None)
+    (work / "scans").mkdir()
+    (work / "scans" / "mine.nii.gz").write_text("mine")
+    with pytest.raises(ForeignFolderError, match=r"scans is a folder.*phantom-calib ingest"):
+        run_ingest(scans, work)
+    assert (mine / "my_notes.txt" if kind == "folder" else mine).read_text() == "mine"
+    assert sorted(p.name for p in work.iterdir()) == ["calibration", "scans"]
+
+
+def test_a_run_folder_with_its_marker_its_record_or_nothing_in_it_is_replaced(tmp_path):
+    from calib.io import RunOutputs, write_json_atomic
+
+    for case in ("marker", "record", "empty"):
+        work = tmp_path / case
+        (work / "calibration").mkdir(parents=True)
+        if case == "marker":
+            write_json_atomic(work / "calibration" / "RUN", {"run_id": "old"})
+        elif case == "record":  # an interrupted run's, or an older version's
+            (work / "calibration" / "old.vtu").write_text("...")
+            (work / "calibration.json").write_text("{}")
+        with RunOutputs(work, folder="calibration", record="calibration.json") as run:
+            run.path("new.txt").write_text("new")
+            run.commit({})
+        assert sorted(p.name for p in (work / "calibration").iterdir()) == ["RUN", "new.txt"]
 
 
 def test_the_lock_is_reentrant_and_a_refused_input_leaves_no_folder(tmp_path):
