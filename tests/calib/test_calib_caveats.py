@@ -217,9 +217,11 @@ def test_a_posture_angle_is_said_on_its_nominal_angle_s_branch():
         return SimpleNamespace(gravity_ref=np.array([np.cos(a), 0.0, np.sin(a)]), role=role,
                                posture_plane="transverse", posture_angle_deg=nominal)  # fmt: skip
 
-    for measured in (179.2, -179.2, 180.8):
+    # on the nominal angle's branch, the measured angle itself (review CG-5: "within 1 deg of
+    # 180" passed an implementation returning the nominal angle)
+    for measured, said in ((179.2, 179.2), (-179.2, 180.8), (180.8, 180.8)):
         angle, plane = _posture(work, scan(measured, 180.0))
-        assert abs(angle - 180.0) < 1.0 and plane == "transverse", (measured, angle)
+        assert angle == pytest.approx(said, abs=1e-9) and plane == "transverse", (measured, angle)
     assert _posture(work, scan(0.3, 0.0))[0] == pytest.approx(0.3)
     assert _posture(work, scan(-0.3, 0.0))[0] == pytest.approx(-0.3)  # not 359.7
     # no nominal angle: in (-179.5, 180.5] as before

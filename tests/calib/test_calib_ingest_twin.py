@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 
+import nibabel as nib
 import numpy as np
 import pytest
 
@@ -84,6 +85,19 @@ def test_every_scan_reads_back(twin):
         assert len(doc["fiducials_lps_mm"]) == 3
         surface = imaging.read_ply(folder / "surface.ply")
         assert len(surface.faces) > 1000
+        # review CG-4: the mask (validate reads it) was only checked to exist. It is binary
+        # and holds the body the surface bounds: their volumes agree to half a voxel over
+        # the surface's area (the surface is the mask's boundary, smoothed; measured 0.6 %
+        # on the quick twin's right lateral scan against a 5 % bound)
+        mask = nib.load(folder / "mask.nii.gz")
+        inside = np.asarray(mask.dataobj)
+        assert set(np.unique(inside)) == {0, 1}
+        voxel = np.asarray(mask.header.get_zooms()[:3], float)
+        tri = surface.vertices_lps_mm[surface.faces]
+        enclosed = abs(np.einsum("ij,ij->", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))) / 6.0
+        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        slack = area.sum() * 0.5 * voxel.max()
+        assert abs(inside.sum() * voxel.prod() - enclosed) <= slack, name
         assert (work / "scans" / name / "surface_ref.ply").stat().st_size > 0
     assert _reference(truth) == twin["result"].session.reference.name
     assert not list(work.rglob(".*"))  # no temporary files left behind

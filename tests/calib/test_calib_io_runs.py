@@ -342,3 +342,25 @@ def test_ingest_fingerprints_its_sources_before_it_reads_them(tmp_path, monkeypa
     with pytest.raises(RuntimeError, match="stop here"):
         ingest.run_ingest(make_scan_folder(tmp_path / "scans"), tmp_path / "work")
     assert calls == ["fingerprint", "read the scans"]
+
+
+def test_hand_edited_or_truncated_run_markers_and_records_are_named(tmp_path):
+    # review CG-10: these refusals had no test
+    from calib.io import StaleOutputError, check_run, run_id_of
+
+    (tmp_path / "calibration").mkdir()
+    marker = tmp_path / "calibration" / "RUN"
+    marker.write_text('{"run_id": "2026')  # truncated
+    with pytest.raises(StaleOutputError, match=r"calibration/RUN: not a run marker"):
+        run_id_of(tmp_path / "calibration")
+    marker.write_text('["a list"]')  # valid JSON, not a marker
+    with pytest.raises(StaleOutputError, match=r"calibration/RUN: not a run marker"):
+        run_id_of(tmp_path / "calibration")
+    record = tmp_path / "calibration.json"
+    record.write_text("[1, 2]")
+    with pytest.raises(StaleOutputError, match=r"calibration\.json: expected a JSON object "
+                       r"\(the command's record\), got list"):  # fmt: skip
+        check_run(tmp_path, folder="calibration", record="calibration.json")
+    record.write_text('{"run_id": "a"')
+    with pytest.raises(StaleOutputError, match=r"calibration\.json: not valid JSON"):
+        check_run(tmp_path, folder="calibration", record="calibration.json")

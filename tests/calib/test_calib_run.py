@@ -131,10 +131,36 @@ def test_nipple_objective_has_a_profile_interval(nipple_run):
 
 
 def test_error_maps_and_meshes_are_written(nipple_run):
+    import meshio
+
     doc, _, work = nipple_run
     for rel in doc["scans"]["right_lateral"]["files"]:
         assert (work / rel).is_file(), rel
-    assert (work / "calibration" / "reference_mesh.vtu").is_file()
+    # review CG-3: the files were only checked to exist; read back, each says what the
+    # record says. The error map (what `view` colours): one signed value per vertex of
+    # the scan's surface, its largest |value| the record's max (float32 in the file:
+    # rel 1e-6). Every deformed state: the stress-free reference plus its displacement
+    # (float64 rounding of ~100 mm: 1e-9 mm), and its displacement from the loaded reference
+    # leads every scan back to one loaded reference mesh (measured 4e-15 mm; 1e-9 mm).
+    ref = meshio.read(work / "calibration" / "reference_mesh.vtu")
+    loaded = []
+    for name, scan in doc["scans"].items():
+        if name == "right_lateral":
+            err = meshio.read(work / "calibration" / f"{name}_error.ply").point_data["error_mm"]
+            surface = meshio.read(work / "scans" / name / "surface.ply")
+            assert len(err) == len(surface.points)
+            assert err.min() < 0.0 < err.max()
+            top = scan["surface_error_mm"]["fiducial"]["max"]
+            assert np.abs(err).max() == pytest.approx(top, rel=1e-6)
+        state = work / "calibration" / f"{name}_deformed.vtu"
+        if not state.is_file():  # the reference scan has no FE state
+            continue
+        m = meshio.read(state)
+        assert np.abs(m.points - ref.points - m.point_data["displacement_mm"]).max() <= 1e-9
+        loaded.append(m.points - m.point_data["displacement_from_reference_mm"])
+    assert len(loaded) >= 2
+    for other in loaded[1:]:
+        assert np.abs(other - loaded[0]).max() <= 1e-9
 
 
 def test_calibrate_ends_with_the_validation_report(nipple_run):

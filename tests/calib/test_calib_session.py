@@ -242,6 +242,22 @@ BAD_SESSIONS = [
         r"#2: posture.plane must be one of transverse, sagittal, got 'coronal'",
     ),
     (
+        # review CG-9: the posture's key checks had no test
+        "posture-angle-typo",
+        VALID_TOML.replace("angle_deg = 180", "angle = 180"),
+        r"#2: unknown posture key\(s\) angle; expected plane, angle_deg",
+    ),
+    (
+        "fiducials-true",
+        VALID_TOML.replace("fiducials = 4", "fiducials = true"),
+        r"phantom.fiducials must be an integer from 3 to 7 .*, got True",
+    ),
+    (
+        "scans-entry-not-a-table",
+        'scans = ["left", "right"]\n' + VALID_TOML[: VALID_TOML.index("[[scans]]")],
+        r"\[\[scans\]\] #1 must be a table",
+    ),
+    (
         "posture-not-a-table",
         VALID_TOML.replace('posture = { plane = "transverse", angle_deg = 180 }', "posture = 180"),
         r"#2: posture must be an inline table",

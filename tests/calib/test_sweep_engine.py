@@ -561,3 +561,38 @@ def test_progress_lines_give_a_notebook_text_from_the_sweep_s_events():
     assert len(lines) == 1 + 20 + 1 and lines[-1].startswith("40/40: scenario 140 solved, 3 ")
     with pytest.raises(ValueError, match="every must be a positive number"):
         progress_lines(print, every=0)
+
+
+def test_what_is_no_sweep_store_is_named_and_left_as_it_was(work, reference, tmp_path):
+    # review CG-8: these refusals had no test. A folder of the user's (not a store), with
+    # and without --overwrite; a store of another format, another format version, and one
+    # with an array gone: each named, nothing changed
+    import shutil
+    from dataclasses import replace
+
+    from calib.sweep.store import StoreError
+
+    mine = tmp_path / "notes"
+    mine.mkdir()
+    (mine / "mine.txt").write_text("mine")
+    with pytest.raises(StoreError, match=r"zarr\.json not found: .*notes is not a sweep store"):
+        run_sweep(work, mine, PLAN)
+    with pytest.raises(StoreError, match=r"notes: not a sweep store; overwrite \(--overwrite\)"):
+        run_sweep(work, mine, replace(PLAN, overwrite=True))
+    assert [p.name for p in mine.iterdir()] == ["mine.txt"]
+    out = tmp_path / "s"
+    shutil.copytree(reference[0], out)
+    meta = out / "zarr.json"
+    doc = json.loads(meta.read_text())
+    for attrs, said in (
+        ({"format": "another"}, r"not a \S+ store \(an interrupted creation, or another kind"),
+        ({"format_version": 999}, r"format version 999, this phantom-calib reads"),
+    ):
+        meta.write_text(json.dumps(doc | {"attributes": doc["attributes"] | attrs}))
+        with pytest.raises(StoreError, match=said):
+            run_sweep(work, out, PLAN)
+    meta.write_text(json.dumps(doc))
+    shutil.rmtree(out / "results" / "nipple_mm")
+    with pytest.raises(StoreError, match=r"s: array .*nipple_mm.* missing \(truncated store\)"):
+        run_sweep(work, out, PLAN)
+    assert not (out / "results" / "nipple_mm").exists()
