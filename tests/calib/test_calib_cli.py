@@ -185,10 +185,11 @@ def test_simulate_back_plane_option_agrees_with_auto(simulated, tmp_path):
 
 
 BAD = [
-    (["--nu", "0.5"], r"0\.5"),
-    (["--nu", "0.7"], r"0\.7"),
-    (["--c1", "0"], r"c1"),
-    (["--c1", "-420"], r"c1"),
+    # review CG-11: these matched the value the test passed in, not the option or the range
+    (["--nu", "0.5"], r"nu \(--nu\) must be in \(0, 0\.5\), got 0\.5"),
+    (["--nu", "0.7"], r"nu \(--nu\) must be in \(0, 0\.5\), got 0\.7"),
+    (["--c1", "0"], r"c1_pa \(--c1\) must be a positive stress in Pa, got 0\.0"),
+    (["--c1", "-420"], r"c1_pa \(--c1\) must be a positive stress in Pa, got -420\.0"),
     (["--gravity", "1,0"], r"expected a non-zero vector 'X,Y,Z' of finite length, got '1,0'"),
     (["--gravity", "x,y,z"], r"expected a non-zero vector 'X,Y,Z' of finite length, got 'x,y,z'"),
     (["--gravity", "0,0,0"], r"expected a non-zero vector"),

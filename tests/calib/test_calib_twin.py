@@ -98,7 +98,9 @@ def test_different_seed_differs(twin_a, tmp_path):
     out_a, rec_a = twin_a
     out_c = tmp_path / "twin"
     # Also exercises the effects override: `none` gives a homogeneous neo-Hookean truth.
-    # (Seed 5: seeds 4 and 9 of this preset fail to mesh, see test_twin_truth_mesh_builds.)
+    # (Seed 5: another seed than twin_a's 3. Review CG-20: the comment here said seeds 4
+    # and 9 fail to mesh, from the first commit's mesher; test_twin_truth_mesh_builds
+    # now checks that they build, on the quick preset.)
     rec_c = synthesize(out_c, preset=SMALL_PRESET, seed=5, effects=TruthEffects())
     assert rec_c["effects"]["active"] == []
     for name in ("left_lateral", "right_lateral"):
