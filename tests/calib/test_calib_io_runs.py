@@ -295,11 +295,13 @@ def test_an_interrupted_command_says_what_was_kept(monkeypatch, capsys):
     monkeypatch.setattr(cli, "app", interrupted)
     for command, says in (
         ("validate", "the step that was running kept nothing"),
-        ("sweep", "resume"),
+        ("sweep", "the scenarios solved so far are kept in the store; run the same command"),
     ):
-        with pytest.raises(SystemExit):
+        with pytest.raises(SystemExit) as ended:
             cli.main([command, "w"])
-        assert says in capsys.readouterr().err
+        assert ended.value.code == 130  # the shell's Ctrl-C status kept (review CG-14)
+        err = capsys.readouterr().err
+        assert err.startswith("\ninterrupted: ") and says in err
 
 
 def test_a_file_system_without_flock_runs_unlocked_and_says_so(tmp_path, monkeypatch, caplog):
