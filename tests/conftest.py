@@ -60,6 +60,11 @@ class NotebookChain:
         cells = self.executed[name].cells
         return sum("image/png" in o.get("data", {}) for c in cells for o in c.get("outputs", []))
 
+    def run(self, name: str) -> None:
+        """Execute notebook ``name`` (after the chain) on the chain's outputs."""
+        with pytest.MonkeyPatch.context() as mp:
+            self.executed[name] = execute_notebook(name, self.out, mp)
+
     def require(self, name: str) -> None:
         """Fail the calling test with the notebook's own error if it (or one before) failed."""
         for nb in CHAIN_NOTEBOOKS[: CHAIN_NOTEBOOKS.index(name) + 1]:

@@ -69,19 +69,22 @@ def _at_fit(J, x):
 def test_screening_false_positive_rate_on_correlated_null_residuals(linear):
     # no effect; noise correlated over 8 mm (exponential, nugget 0.1) and a constant offset
     # per scan (+0.1 / -0.05 mm, like a segmentation threshold: absorbed, never an effect).
-    # 200 seeded draws at alpha = 0.05: the family-wise (Holm) rate and each column's
-    # unadjusted rate at most 5 % + 3 binomial se (1.54 %), i.e. 9.6 %.
+    # 400 seeded draws at alpha = 0.05: the family-wise (Holm) rate and each column's
+    # unadjusted rate at most 5 % + 3 binomial se (1.09 %), i.e. 8.3 %: a rate of 10 %
+    # passes with probability 0.14 (review CF-9: 200 draws passed it with 0.47). Long run
+    # (`python benchmarks/bench_rate_tests.py --only diagnose`, 2000 draws): family-wise 4.0 %, the
+    # columns 4.65, 4.4, 4.55 %, the misfit test 1.45 %.
     sample, J, cols, sampler = linear
     offset = np.where(sample.scan == 0, 0.1, -0.05)
     rng = np.random.default_rng(7)
     fw, raw, misfit = [], [], []
-    for _ in range(200):
+    for _ in range(400):
         r = _at_fit(J, sampler.draw(rng)[:, 0] + offset)
         s = screen(_fields(sample, r, J, cols), _points(sample), alpha=0.05)
         fw.append(any(e.significant for e in s.screening.effects))
         raw.append([e.p_value < 0.05 for e in s.screening.effects])
         misfit.append(s.misfit.verdict == "misfit")
-    bound = 0.05 + 3 * np.sqrt(0.05 * 0.95 / 200)
+    bound = 0.05 + 3 * np.sqrt(0.05 * 0.95 / 400)
     assert np.mean(fw) <= bound
     assert np.all(np.mean(raw, axis=0) <= bound), np.mean(raw, axis=0)
     assert np.mean(misfit) <= bound
@@ -1600,12 +1603,15 @@ def test_the_model_mesh_s_own_error_is_projected_out_of_every_test(linear):
     assert {e.name: e for e in s.screening.effects}["bump"].significant
 
 
-def test_with_the_model_mesh_s_error_absorbed_the_false_positive_rate_is_nominal(linear):
+def test_with_the_model_mesh_s_error_absorbed_the_false_positive_rate_is_held(linear):
     # the model mesh's own error in every draw (0.2 mm rms of a smooth shape that shares
     # half its direction with 'tilt'), the correlated noise of the test above, 100 seeded
     # draws: ignored, 'tilt' screens significant far above 5 % (the false namings the
     # column is for); absorbed, the family-wise rate is at most 5 % + 3 binomial se
-    # (11.5 %). The column is given the exact shape: this checks the projection, not how
+    # (8.8 % on 300 draws: a rate of 10 % passes with probability 0.26; review CF-9: 100
+    # draws and 11.5 % passed it with 0.70, and the name said "nominal" where only an
+    # upper bound is checked; long run 2.55 %, `python benchmarks/bench_rate_tests.py
+    # --only absorbed`). The column is given the exact shape: this checks the projection, not how
     # well a coarser mesh's change matches the model mesh's error (measured on twins,
     # docs/diagnose-evidence.md)
     sample, J, cols, sampler = linear
@@ -1615,7 +1621,7 @@ def test_with_the_model_mesh_s_error_absorbed_the_false_positive_rate_is_nominal
     shape = shape / np.sqrt(np.mean(shape**2))
     rng = np.random.default_rng(12)
     fw = {"ignored": [], "absorbed": []}
-    for _ in range(100):
+    for _ in range(300):
         r = _at_fit(J, sampler.draw(rng)[:, 0] + 0.2 * shape)
         fields = _fields(sample, r, J, cols)
         for how, f in (
@@ -1624,7 +1630,7 @@ def test_with_the_model_mesh_s_error_absorbed_the_false_positive_rate_is_nominal
         ):
             s = screen(f, _points(sample), alpha=0.05)
             fw[how].append(any(e.significant for e in s.screening.effects))
-    bound = 0.05 + 3 * np.sqrt(0.05 * 0.95 / 100)
+    bound = 0.05 + 3 * np.sqrt(0.05 * 0.95 / 300)
     assert np.mean(fw["ignored"]) > 0.5, np.mean(fw["ignored"])
     assert np.mean(fw["absorbed"]) <= bound, np.mean(fw["absorbed"])
 

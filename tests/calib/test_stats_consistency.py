@@ -71,15 +71,18 @@ def test_closed_form_on_planted_estimates(setup):
 
 
 def test_false_alarm_rate_on_correlated_null_residuals(setup):
-    # 100 seeded null draws at alpha = 0.05: binomial se 2.2 %, at most 5 + 3 se
+    # 400 seeded null draws at alpha = 0.05: binomial se 1.09 %, at most 5 + 3 se (8.3 %,
+    # 33 alarms). A test at 10 % passes that bar with probability 0.14, at 8 % 0.62 (review
+    # CF-7: 100 draws passed 10 % with 0.70). Long run 4.2 % (2000 draws, this seed:
+    # `python benchmarks/bench_rate_tests.py --only consistency`).
     sample, J, sampler = setup
     rng = np.random.default_rng(11)
     alarms = sum(
         _test(sample, J, _calibrated(sample, J, sampler.draw(rng)[:, 0])[0], 0.05).verdict
         == "inconsistent"
-        for _ in range(100)
+        for _ in range(400)
     )
-    assert alarms / 100 <= 0.05 + 3 * 0.022
+    assert alarms / 400 <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / 400)
 
 
 def test_fires_when_the_scans_ask_for_different_stiffness(setup):

@@ -236,6 +236,9 @@ def test_series_interval_covers_95_percent_on_correlated_noise():
     # exponential noise, l = 10 mm, 1000 points: today's formula covers ~86 % here (bench).
     # 250 seeded draws: binomial se at 95 % is 1.38 %, so a correct method lies in
     # 95 +- 3 se = [90.9, 99.1] % unless something is wrong (3 se: false failure 0.3 %).
+    # It tells the old formula's 86 % apart (passes with probability 0.008), not 92 % (0.73)
+    # or 90 % (0.31); the slow cells' 600 draws pass 92 % with 0.42, 90 % with 0.03 (review
+    # CF-11).
     cov = _coverage("exponential", 10.0, 0.0, 1000, 1, 250, seed=11)
     assert 0.909 <= cov <= 0.991
 

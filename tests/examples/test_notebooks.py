@@ -42,24 +42,41 @@ def test_02_validation_reports_every_validation_scan(tiny_chain_notebooks):
     assert tiny_chain_notebooks.images("02_validation.py") >= 2  # its maps and histograms
 
 
+@pytest.fixture(scope="module")
+def notebook_03(tiny_chain_notebooks):
+    """Notebook 03 run once on the tiny chain's outputs: its summary."""
+    tiny_chain_notebooks.require("01_twin_to_c1.py")
+    tiny_chain_notebooks.run("03_sweep_surrogate.py")
+    return json.loads((tiny_chain_notebooks.out / "03_summary.json").read_text())
+
+
 @pytest.mark.slow  # a 94-scenario sweep and 2,000 MLP iterations: minutes on 2 cores
+def test_03_sweep_surrogate_meets_the_mean_bars_and_beats_the_mlps(notebook_03):
+    # review CG-1: the whole test was a strict expected failure, so only "it runs" was
+    # checked. What holds at the tiny size (measured 2026-12-08: 46 of 48 validation
+    # directions solved, surface mean 0.0030 mm, tumour max 0.013 mm, MLPs 13.7 mm after
+    # 2,000 iterations): issue 12's mean and tumour bars against FE, and ours ahead of the
+    # MLPs. At the quick size (`make notebooks`) every bar holds: 48 of 48, surface mean
+    # 0.00025 mm, max 0.098 mm, tumour max 0.00044 mm.
+    s = notebook_03
+    assert s["n_validation"] >= 44  # the few sagittal directions README's Status names
+    assert s["ours_surface_mean_mm"] <= 0.02 and s["ours_tumour_max_mm"] <= 0.02
+    assert s["ours_surface_mean_mm"] < s["mlps_surface_mean_mm"]
+
+
+@pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    raises=AssertionError,  # the bars; a notebook that fails to run is a failure
+    raises=AssertionError,  # the bars; a notebook that fails to run is an error
     reason="known limit (README, Status): the tiny twin's prestressed sweep leaves a few "
     "sagittal directions near 200 and 345 deg unsolved (a limit point of the clamped rim "
     "pressed through the back plate's plane; no contact is modelled; `phantom-calib sweep` "
-    "prints how many), and the surrogate misses the bars beside the gap",
+    "prints how many), and the surrogate's largest error lies beside the gap (1.77 mm)",
 )
-def test_03_sweep_surrogate_beats_the_dissertation(tiny_chain_notebooks, run_notebook):
-    tiny_chain_notebooks.require("01_twin_to_c1.py")
-    run_notebook("03_sweep_surrogate.py", tiny_chain_notebooks.out)
-    s = json.loads((tiny_chain_notebooks.out / "03_summary.json").read_text())
+def test_03_every_validation_direction_and_the_max_bar_at_the_tiny_size(notebook_03):
     # issue 12's bars against FE on the dissertation plan's 48 validation directions
-    assert s["n_validation"] == 48
-    assert s["ours_surface_mean_mm"] <= 0.02 and s["ours_surface_max_mm"] <= 0.2
-    assert s["ours_tumour_max_mm"] <= 0.02
-    assert s["ours_surface_mean_mm"] < s["mlps_surface_mean_mm"]
+    assert notebook_03["n_validation"] == 48
+    assert notebook_03["ours_surface_max_mm"] <= 0.2
 
 
 @pytest.mark.slow  # two tiny twins calibrated and diagnosed: about 11 minutes on 2 cores
