@@ -66,7 +66,7 @@ def test_ratio_is_student_t_for_independent_equal_modes(k):
     # (u0, u) iid N(0, 1), w = 1/k: T = u0 / sqrt(mean u^2) is exactly t(k)
     # tolerances: the quantile's root is bracketed to xtol = 1e-6 of its first guess
     # (measured 3-4.5e-7 relative off t for k = 1, 4, 25), the tail is Imhof's trapezoid
-    # (measured 1e-8 to 5e-8 off; its bar against adaptive quadrature above is 1e-6)
+    # (measured 1e-8 to 5e-8 off; its bar against adaptive quadrature above is 1e-9)
     omega, w = np.eye(k + 1), np.full(k, 1.0 / k)
     assert ratio_critical_value(omega, w) == pytest.approx(stats.t.ppf(0.975, k), rel=1e-6)
     assert ratio_tail(omega, w, 2.0) == pytest.approx(2 * stats.t.sf(2.0, k), abs=1e-7)
