@@ -1549,7 +1549,11 @@ def test_a_nuisance_beyond_the_registration_is_implausible():
 
 
 def test_the_influence_vector_is_the_screens_one_step_estimate(linear):
-    # two code paths: screen()'s estimate of each column and influence @ r, on one draw
+    # screen()'s estimate of each column is influence @ r (both build on one series
+    # design: this checks how they are put together, sign and conditioning). Review CF-6:
+    # what makes it the one-step estimate is checked apart: a linear unbiased estimate of
+    # the column's size, with c1 and each scan's offset projected out, reads the column's
+    # own field (-dr/dp) as size 1 and c1's field and each offset as 0 (rounding: 1e-12)
     from calib.discrepancy.screen import influence
 
     sample, J, cols, sampler = linear
@@ -1559,6 +1563,9 @@ def test_the_influence_vector_is_the_screens_one_step_estimate(linear):
     for e in s.screening.effects:
         a = influence(fields, _points(sample), e.name)
         assert float(a @ r) == pytest.approx(e.estimate, rel=1e-9, abs=1e-12)
+        assert float(a @ -cols[e.name]) == pytest.approx(1.0, abs=1e-12)
+        nuisances = [J, *(np.where(sample.scan == k, 1.0, 0.0) for k in range(2))]
+        assert np.abs([a @ f for f in nuisances]).max() < 1e-12
 
 
 def _with_discretisation(fields: FieldSet, sample, shape: np.ndarray) -> FieldSet:
