@@ -169,8 +169,12 @@ def test_calibrate_ends_with_the_validation_report(nipple_run):
     assert val["calibration_run_id"] == doc["run_id"] and "validation" in output
     tilt = val["scans"]["tilt_50"]
     # the posture angle comes from the registered gravity, not from session.toml: the twin
-    # poses the 50 deg scan with up to 1 deg of tilt (fem.postures.random_scanner_pose)
-    assert tilt["role"] == "validation" and tilt["posture_angle_deg"] == pytest.approx(50, abs=2)
+    # poses the 50 deg scan with up to 1 deg of tilt (fem.postures.random_scanner_pose,
+    # uniform), registered to the scan's rotation sd (~0.02 deg): 1 deg plus 3 of those
+    # (review CG-16: abs=2 had one degree unexplained)
+    sd = json.loads((work / "scans" / "tilt_50" / "ingest.json").read_text())["rotation_sd_deg"]
+    assert tilt["role"] == "validation"
+    assert tilt["posture_angle_deg"] == pytest.approx(50, abs=1.0 + 3 * sd)
     mean = tilt["surface_error_mm"]["fiducial"]["mean"]
     # the same saved state measured twice (calibrate's evaluation, validate's re-measure)
     same = doc["scans"]["tilt_50"]["surface_error_mm"]["fiducial"]["mean"]
@@ -484,7 +488,9 @@ def test_simulate_on_the_calibrated_mesh_gives_calibrate_s_own_state(nipple_run,
     # the calibrated c1 and a scan's gravity_ref. Review AT: the back plane simulate
     # detected clamped 3 nodes the calibration left free (0.59 mm off its state); with
     # the mesh's own set:back the two code paths solve one problem. Tolerance: both
-    # Newton solves stop at rtol 1e-8 of the load (~1e-9 mm on ~20 mm here)
+    # Newton solves stop at rtol 1e-8 of the load, each at its own last iterate: measured
+    # 5.4e-8 mm apart; the bar 1e-6 mm leaves a factor 20 (review CG-15: the comment said
+    # ~1e-9 mm)
     import meshio
 
     doc, _, work = nipple_run
