@@ -26,6 +26,7 @@ from ..discrepancy import Diagnosis, DiagnosisOptions, diagnose
 from ..io import (
     RunOutputs,
     atomic_write,
+    check_replaceable,
     check_work_writable,
     input_records,
     locking_work,
@@ -266,6 +267,7 @@ def run_diagnosis(work, options: DiagnosisOptions | None = None, *, progress=Non
     wf = read_work(work)
     read = input_records({"calibration": wf.path / "calibration.json"})  # review BK: as read
     check_work_writable(wf.path, f"{FOLDER}/ and {RECORD}")
+    check_replaceable(wf.path, (FOLDER,))  # before the work, not at its end
     d = diagnose(wf, options, progress=say)
     doc = d.to_json()
     with RunOutputs(wf.path, folder=FOLDER, record=RECORD) as run:

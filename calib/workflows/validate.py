@@ -17,6 +17,7 @@ from ..data.work import WorkFolder, read_work
 from ..io import (
     RunOutputs,
     atomic_write,
+    check_replaceable,
     check_work_writable,
     input_records,
     locking_work,
@@ -118,6 +119,7 @@ def run_validation(work: str | Path, *, progress=None, on_validation=None) -> di
     wf = read_work(work)
     read = input_records({"calibration": wf.path / "calibration.json"})  # review BK: as read
     check_work_writable(wf.path, f"{FOLDER}/ and {RECORD}")
+    check_replaceable(wf.path, (FOLDER,))  # before the work, not at its end
     say(f"validating {len(wf.states)} scans at c1 = {wf.c1_pa:.1f} Pa (saved states, no FE)")
     v = validate_work(wf)
     with RunOutputs(wf.path, folder=FOLDER, record=RECORD) as run:

@@ -44,7 +44,9 @@ def test_a_new_calibration_removes_the_validation_of_the_old_one(tmp_path, caplo
 
 
 @pytest.mark.parametrize("kind", ["folder", "file"])
-def test_a_run_folder_s_place_holding_what_no_run_wrote_is_refused_and_kept(tmp_path, kind):
+def test_a_run_folder_s_place_holding_what_no_run_wrote_is_refused_and_kept(
+    tmp_path, kind, monkeypatch
+):
     # review CG-7: a user's own WORK/calibration/ (notes) went with the first calibrate,
     # which swaps its folder in whole; now refused, before the work, the files untouched
     from calib_helpers import make_scan_folder
@@ -73,6 +75,26 @@ def test_a_run_folder_s_place_holding_what_no_run_wrote_is_refused_and_kept(tmp_
         run_ingest(scans, work)
     assert (mine / "my_notes.txt" if kind == "folder" else mine).read_text() == "mine"
     assert sorted(p.name for p in work.iterdir()) == ["calibration", "scans"]
+    # validate and diagnose ask before their work too (it read as a recorder: not run)
+    from types import SimpleNamespace
+
+    import calib.workflows.diagnose as diagnose_mod
+    import calib.workflows.validate as validate_mod
+
+    worked = []
+    for mod, folder, work_fn, run in (
+        (validate_mod, "validation", "validate_work", validate_mod.run_validation),
+        (diagnose_mod, "diagnosis", "diagnose", diagnose_mod.run_diagnosis),
+    ):
+        (work / folder).mkdir()
+        (work / folder / "mine.txt").write_text("mine")
+        monkeypatch.setattr(mod, "read_work", lambda w: SimpleNamespace(path=Path(w)))
+        monkeypatch.setattr(mod, "input_records", lambda files: {})
+        monkeypatch.setattr(mod, work_fn, lambda *a, name=work_fn, **k: worked.append(name))
+        with pytest.raises(ForeignFolderError, match=rf"{folder} is a folder no phantom-calib"):
+            run(work)
+        assert (work / folder / "mine.txt").read_text() == "mine"
+    assert worked == []
 
 
 def test_a_run_folder_with_its_marker_its_record_or_nothing_in_it_is_replaced(tmp_path):
