@@ -219,7 +219,10 @@ def test_detrend_removes_a_plane():
 
 def test_short_range_fit_resists_a_large_scale_misfit():
     # a p2 pattern of 0.4 sigma on 5 mm noise: the short-range (40 mm) estimate stays
-    # near the noise (bench: length ratio 1.14, 10-90 % 0.95-1.36), all lags doubles it
+    # near the noise (bench: length ratio 1.14, 10-90 % 0.95-1.36); all lags lengthen it,
+    # the misfit taken for noise: this draw 2.6 times (review CF-25: "doubles" was said,
+    # "longer" checked; over 30 other seeded draws the factor's median is 1.6, its 10-90 %
+    # 1.1-2.9, so 1.5 is asked of this draw)
     sample = phantom_sample(2000, 1, seed=0)
     truth = NoiseModel("exponential", 0.3, 0.0, 5.0)
     J = sag_sensitivity(sample)
@@ -229,7 +232,7 @@ def test_short_range_fit_resists_a_large_scale_misfit():
     short = estimate_noise(sample, r).best
     long = estimate_noise(sample, r, max_lag_mm=150.0).best
     assert short.length_mm < 1.6 * 5.0
-    assert long.length_mm > short.length_mm
+    assert long.length_mm > 1.5 * short.length_mm
 
 
 def test_noise_model_rejects_bad_parameters():
