@@ -63,9 +63,12 @@ def test_fibonacci_sphere_is_quasi_uniform():
         for h in (0.2, 0.5, 1.0, 1.5):
             share = np.mean(p @ axis > 1.0 - h)
             assert abs(share - h / 2.0) < 0.02
-    # no two points closer than 0.8 x the ideal spacing sqrt(4 pi / n) / 1.1
+    # no two points closer than 0.85 x the spacing sqrt(4 pi / n) of n equal areas: the
+    # lattice's nearest pair lies at 0.872 of it (measured for n = 50 to 1000); 400 uniform
+    # random points put theirs at 0.015 of it (review CG-18: the factors 0.8
+    # and 1 / 1.1 had no source)
     d = np.linalg.norm(p[:, None] - p[None], axis=2) + 10 * np.eye(n)
-    assert d.min() > 0.8 * np.sqrt(4 * np.pi / n) / 1.1
+    assert d.min() > 0.85 * np.sqrt(4 * np.pi / n)
     with pytest.raises(ValueError, match="at least one point, got 0"):
         fibonacci_sphere(0)
 
