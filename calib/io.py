@@ -109,7 +109,13 @@ class ForeignFolderError(FileExistsError):
     """A run folder's place in WORK (``calibration/``, ...) holds something no run wrote."""
 
 
-def check_replaceable(work: str | os.PathLike, folders, *, option: str = WORK_OPTION) -> None:
+def check_replaceable(
+    work: str | os.PathLike,
+    folders,
+    *,
+    option: str = WORK_OPTION,
+    command: str | None = None,
+) -> None:
     """Refuse a WORK whose run folders a command would replace but no run wrote, before work.
 
     A run swaps its folder in whole (:class:`RunOutputs`): whatever ``WORK/calibration/``
@@ -117,7 +123,9 @@ def check_replaceable(work: str | os.PathLike, folders, *, option: str = WORK_OP
     lies beside it (``calibration.json``: an interrupted run, or one of an older version);
     an empty folder loses nothing. Anything else there — a user's own ``calibration/``
     folder of notes, a file of that name — is refused (review CG-7: it was deleted
-    without a word).
+    without a word), and so is a link of that name (the run would put a folder in its
+    place; what it links to was never touched). Files a user adds inside a run's folder
+    go with the next run of its command (README).
 
     Parameters
     ----------
@@ -125,7 +133,10 @@ def check_replaceable(work: str | os.PathLike, folders, *, option: str = WORK_OP
     folders : iterable of str
         The run folders the command writes (keys of :data:`RUN_FOLDERS`).
     option : str
-        How the message names WORK.
+        How the message names WORK (``"WORK"`` for a command that takes it as argument).
+    command : str, optional
+        The command the user ran, where it is not the folder's own (``calibrate``
+        ingests first); default: the folder's command.
 
     Raises
     ------
@@ -133,15 +144,22 @@ def check_replaceable(work: str | os.PathLike, folders, *, option: str = WORK_OP
     """
     work = Path(work)
     for name in folders:
-        path, (record, command) = work / name, RUN_FOLDERS[name]
+        path, (record, own) = work / name, RUN_FOLDERS[name]
         if not (path.exists() or path.is_symlink()):
             continue
-        if path.is_dir() and not path.is_symlink():
+        command = command or own
+        if path.is_symlink():
+            raise ForeignFolderError(
+                f"{option} {work}: {path} is a link (to {os.readlink(path)}); `phantom-calib "
+                f"{command}` writes {name}/ as a folder of its own in its place: remove the "
+                f"link or choose another {option}"
+            )
+        if path.is_dir():
             if (path / "RUN").is_file() or (work / record).is_file() or not any(path.iterdir()):
                 continue
             what = f"a folder no phantom-calib run wrote (no RUN marker, no {record} beside it)"
         else:
-            what = "a link" if path.is_symlink() else "a file"
+            what = "a file"
         raise ForeignFolderError(
             f"{option} {work}: {path} is {what}; `phantom-calib {command}` replaces "
             f"{name}/ as a whole, so it would be lost: move it away or choose another {option}"

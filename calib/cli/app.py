@@ -301,6 +301,7 @@ def calibrate(
     """Fit c1 to the calibration scans; write calibration.json and error maps."""
     from ..fitting import CalibrationOptions
     from ..fitting.options import parse_mesh_check
+    from ..io import check_replaceable
     from ..report.tables import format_calibration
     from ..workflows.calibrate import run_calibration
 
@@ -312,6 +313,8 @@ def calibrate(
             nu=nu, profile_points=profile, mesh_check_ratio=mesh_check,
             mesh_max_dihedral_deg=mesh_max_dihedral, c1_guess_pa=c1_guess,
         )  # fmt: skip
+        # the command validates after the fit: a validation/ no run wrote is refused first
+        check_replaceable(out, ("validation",), command="calibrate")
         doc = run_calibration(scans, out, opts, progress=_indented)
     except (ValueError, OSError, RuntimeError) as exc:
         fail(exc)

@@ -283,7 +283,7 @@ def run_calibration(scans_dir, work, options: CalibrationOptions, *, progress=No
     # review BI, BK: hashed as read, not when the record is written
     session_read = input_records({"session": session.folder / "session.toml"})
     check_out_apart(work, session_inputs(session), what="the scan data", option=WORK_OPTION)
-    check_replaceable(work, ("scans", FOLDER, "validation"))  # it may ingest; it validates
+    check_replaceable(work, ("scans", FOLDER), command="calibrate")  # it may ingest first
     if not session.by_role("calibration"):
         raise SessionError(
             f"{session.folder / 'session.toml'}: no scan has role 'calibration' (calibrate "

@@ -267,7 +267,7 @@ def run_diagnosis(work, options: DiagnosisOptions | None = None, *, progress=Non
     wf = read_work(work)
     read = input_records({"calibration": wf.path / "calibration.json"})  # review BK: as read
     check_work_writable(wf.path, f"{FOLDER}/ and {RECORD}")
-    check_replaceable(wf.path, (FOLDER,))  # before the work, not at its end
+    check_replaceable(wf.path, (FOLDER,), option="WORK")  # before the work, not at its end
     d = diagnose(wf, options, progress=say)
     doc = d.to_json()
     with RunOutputs(wf.path, folder=FOLDER, record=RECORD) as run:

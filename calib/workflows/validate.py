@@ -119,7 +119,7 @@ def run_validation(work: str | Path, *, progress=None, on_validation=None) -> di
     wf = read_work(work)
     read = input_records({"calibration": wf.path / "calibration.json"})  # review BK: as read
     check_work_writable(wf.path, f"{FOLDER}/ and {RECORD}")
-    check_replaceable(wf.path, (FOLDER,))  # before the work, not at its end
+    check_replaceable(wf.path, (FOLDER,), option="WORK")  # before the work, not at its end
     say(f"validating {len(wf.states)} scans at c1 = {wf.c1_pa:.1f} Pa (saved states, no FE)")
     v = validate_work(wf)
     with RunOutputs(wf.path, folder=FOLDER, record=RECORD) as run:

@@ -88,13 +88,41 @@ def test_a_run_folder_s_place_holding_what_no_run_wrote_is_refused_and_kept(
     ):
         (work / folder).mkdir()
         (work / folder / "mine.txt").write_text("mine")
-        monkeypatch.setattr(mod, "read_work", lambda w: SimpleNamespace(path=Path(w)))
+        # a stub work folder that would let the command reach its work (review CH-11)
+        stub = SimpleNamespace(path=work, states={}, c1_pa=420.0)
+        monkeypatch.setattr(mod, "read_work", lambda w, stub=stub: stub)
         monkeypatch.setattr(mod, "input_records", lambda files: {})
         monkeypatch.setattr(mod, work_fn, lambda *a, name=work_fn, **k: worked.append(name))
-        with pytest.raises(ForeignFolderError, match=rf"{folder} is a folder no phantom-calib"):
+        with pytest.raises(ForeignFolderError, match=rf"^WORK .*{folder} is a folder no phantom"):
             run(work)
         assert (work / folder / "mine.txt").read_text() == "mine"
     assert worked == []
+
+
+def test_a_link_in_a_run_folder_s_place_is_refused_and_calibrate_asks_about_validation(tmp_path):
+    # review CH-3: a link was called "lost"; the run would put a folder in its place
+    from typer.testing import CliRunner
+
+    from calib.cli import app
+    from calib.io import ForeignFolderError, RunOutputs
+
+    elsewhere, work = tmp_path / "elsewhere", tmp_path / "work"
+    elsewhere.mkdir()
+    work.mkdir()
+    (work / "calibration").symlink_to(elsewhere)
+    said = r"calibration is a link \(to .*elsewhere\); `phantom-calib calibrate` writes"
+    with pytest.raises(ForeignFolderError, match=said + " calibration/ as a folder of its own"):
+        RunOutputs(work, folder="calibration", record="calibration.json")
+    assert (work / "calibration").is_symlink()
+    # the command validates after its fit: a validation/ no run wrote is refused first
+    (work / "calibration").unlink()
+    (work / "validation").mkdir()
+    (work / "validation" / "mine.txt").write_text("mine")
+    res = CliRunner().invoke(app, ["calibrate", str(tmp_path / "no-session"), "--out", str(work)])
+    assert res.exit_code == 2
+    assert "validation is a folder no phantom-calib run wrote" in res.stderr
+    assert "`phantom-calib calibrate` replaces validation/ as a whole" in res.stderr
+    assert sorted(p.name for p in work.iterdir()) == ["validation"]
 
 
 def test_a_run_folder_with_its_marker_its_record_or_nothing_in_it_is_replaced(tmp_path):
@@ -322,8 +350,9 @@ def test_an_interrupted_command_says_what_was_kept(monkeypatch, capsys):
         with pytest.raises(SystemExit) as ended:
             cli.main([command, "w"])
         assert ended.value.code == 130  # the shell's Ctrl-C status kept (review CG-14)
-        err = capsys.readouterr().err
-        assert err.startswith("\ninterrupted: ") and says in err
+        # the whole line (review CH-10: substrings were checked)
+        kept = cli._INTERRUPTED.get(command, cli._KEPT_NOTHING)
+        assert capsys.readouterr().err == f"\ninterrupted: {kept}\n" and kept.startswith(says)
 
 
 def test_a_file_system_without_flock_runs_unlocked_and_says_so(tmp_path, monkeypatch, caplog):

@@ -480,7 +480,10 @@ def test_a_work_folder_that_cannot_be_written_is_said_before_the_work(tmp_path, 
     worked = []
     for mod, work_fn, run in ((validate_mod, "validate_work", validate_mod.run_validation),
                               (diagnose_mod, "diagnose", diagnose_mod.run_diagnosis)):  # fmt: skip
-        monkeypatch.setattr(mod, "read_work", lambda work: SimpleNamespace(path=Path(work)))
+        # a stub that would let the command reach its work (review CH-11)
+        monkeypatch.setattr(
+            mod, "read_work", lambda w: SimpleNamespace(path=Path(w), states={}, c1_pa=420.0)
+        )
         monkeypatch.setattr(mod, "input_records", lambda files: {})
         monkeypatch.setattr(mod, work_fn, lambda *a, name=work_fn, **k: worked.append(name))
         with pytest.raises(
