@@ -1612,7 +1612,7 @@ def test_the_model_mesh_s_own_error_is_projected_out_of_every_test(linear):
 
 def test_with_the_model_mesh_s_error_absorbed_the_false_positive_rate_is_held(linear):
     # the model mesh's own error in every draw (0.2 mm rms of a smooth shape that shares
-    # half its direction with 'tilt'), the correlated noise of the test above, 100 seeded
+    # half its direction with 'tilt'), the correlated noise of the test above, 300 seeded
     # draws: ignored, 'tilt' screens significant far above 5 % (the false namings the
     # column is for); absorbed, the family-wise rate is at most 5 % + 3 binomial se
     # (8.8 % on 300 draws: a rate of 10 % passes with probability 0.26; review CF-9: 100

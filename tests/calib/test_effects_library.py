@@ -320,8 +320,9 @@ def test_a_recovery_after_the_support_changes_starts_from_rest(phantom, monkeypa
     # the clamped rim's stress-free reference is not unique: a recovery warm-started from
     # a plate on springs converged to another one (README), so a change of support drops
     # the warm start, and the clamped model's recovery is then the one a fresh model
-    # makes: both from rest by one solver, measured identical (0 mm); 1e-9 mm leaves room
-    # for another BLAS's rounding (review CF-15: the bar was 1e-4 mm, its comment said the
+    # makes: both from rest by one solver in one process, measured identical (0 mm):
+    # PARDISO runs in its reproducible mode (tests/fem/test_fem_linalg.py), so 1e-9 mm is
+    # rounding room only (review CF-15: the bar was 1e-4 mm, its comment said the
     # recovery's 1e-5 mm, which a warm start meets too). With springs in the support the
     # inverse Newton has 30 load steps (no other method takes over), else 10.
     import calib.model.forward as forward

@@ -90,7 +90,7 @@ def test_misfit_statistics_follow_f_and_chi2_under_a_known_white_model(setup):
     # chi2(8) at the 1 % level (a seeded draw, measured p 0.03; by chance a test of the
     # right law fails with probability 0.01); the same draws against chi2(7) or chi2(9)
     # give p 8e-11 and 1e-4. F's shape is left to its rejection rate above: at 400 draws
-    # a KS test tells F(8, 16) (p 0.02) from no neighbour (F(12, 16): 0.56)
+    # a KS test against F(8, 16) gives p 0.02, against F(6, 16) 1e-4 but F(12, 16) 0.56
     assert stats.kstest(chi, stats.chi2(8).cdf).pvalue > 0.01
 
 
@@ -198,7 +198,8 @@ def test_screening_false_positive_rate_on_correlated_null_residuals(correlated):
     # family-wise (Holm) rate at most 5 + 3 se = 7.7 % (se 0.89 %): a rate of 10 % passes
     # with probability 0.03 (review CF-8: 150 draws passed it with 0.57). Long run
     # (2000 draws: `python benchmarks/bench_rate_tests.py --only screen`): family-wise
-    # 4.05 %, over the two effects 4.2 %, the columns 5.0, 4.85, 4.55 %.
+    # 4.05 %, over the two effects 4.2 %, the columns 5.0, 4.85, 4.55 % (two-sided p of
+    # the one-sided columns 4.75 and 4.55 %).
     sample, J, sampler, S = correlated
     # 'p2' and 'tilt' are tested one-sided (up, down), 'bump' two-sided; the two-sided p of
     # a one-sided column is 2 min(p, 1 - p): both are held to the same bound.

@@ -584,15 +584,22 @@ def test_what_is_no_sweep_store_is_named_and_left_as_it_was(work, reference, tmp
     shutil.copytree(reference[0], out)
     meta = out / "zarr.json"
     doc = json.loads(meta.read_text())
+
+    def files():  # every file of the store with its bytes (review CH-12: "nothing changed")
+        return {p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+
     for attrs, said in (
         ({"format": "another"}, r"not a \S+ store \(an interrupted creation, or another kind"),
         ({"format_version": 999}, r"format version 999, this phantom-calib reads"),
     ):
         meta.write_text(json.dumps(doc | {"attributes": doc["attributes"] | attrs}))
+        before = files()
         with pytest.raises(StoreError, match=said):
             run_sweep(work, out, PLAN)
+        assert files() == before
     meta.write_text(json.dumps(doc))
     shutil.rmtree(out / "results" / "nipple_mm")
+    before = files()
     with pytest.raises(StoreError, match=r"s: array .*nipple_mm.* missing \(truncated store\)"):
         run_sweep(work, out, PLAN)
-    assert not (out / "results" / "nipple_mm").exists()
+    assert files() == before
