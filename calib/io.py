@@ -147,11 +147,11 @@ def check_replaceable(
         path, (record, own) = work / name, RUN_FOLDERS[name]
         if not (path.exists() or path.is_symlink()):
             continue
-        command = command or own
+        said = command or own
         if path.is_symlink():
             raise ForeignFolderError(
                 f"{option} {work}: {path} is a link (to {os.readlink(path)}); `phantom-calib "
-                f"{command}` writes {name}/ as a folder of its own in its place: remove the "
+                f"{said}` writes {name}/ as a folder of its own in its place: remove the "
                 f"link or choose another {option}"
             )
         if path.is_dir():
@@ -161,7 +161,7 @@ def check_replaceable(
         else:
             what = "a file"
         raise ForeignFolderError(
-            f"{option} {work}: {path} is {what}; `phantom-calib {command}` replaces "
+            f"{option} {work}: {path} is {what}; `phantom-calib {said}` replaces "
             f"{name}/ as a whole, so it would be lost: move it away or choose another {option}"
         )
 

@@ -125,6 +125,17 @@ def test_a_link_in_a_run_folder_s_place_is_refused_and_calibrate_asks_about_vali
     assert sorted(p.name for p in work.iterdir()) == ["validation"]
 
 
+def test_each_folder_is_named_with_its_own_command(tmp_path):
+    # review of 207bac7: the command of the first folder checked named the later ones too
+    from calib.io import ForeignFolderError, check_replaceable
+
+    (tmp_path / "scans").mkdir()
+    (tmp_path / "scans" / "RUN").write_text('{"run_id": "a"}')  # a run's: passes
+    (tmp_path / "diagnosis").write_text("mine")
+    with pytest.raises(ForeignFolderError, match="`phantom-calib diagnose` replaces diagnosis/"):
+        check_replaceable(tmp_path, ("scans", "diagnosis"))
+
+
 def test_a_run_folder_with_its_marker_its_record_or_nothing_in_it_is_replaced(tmp_path):
     from calib.io import RunOutputs, write_json_atomic
 
