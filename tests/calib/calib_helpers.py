@@ -77,3 +77,29 @@ def small_phantom_mesh(*, skin_thickness_mm: float = 3.0):
     phantom = build_phantom(PhantomSpec(resolution_mm=14, n_inclusions=4))
     mesh = mesh_phantom(phantom, size_mm=14, skin_thickness_mm=skin_thickness_mm)
     return phantom, mesh
+
+
+def stub_work_commands(monkeypatch, worked: list) -> list:
+    """``validate`` and ``diagnose`` that read a stub work folder and record their work.
+
+    The stub (no states, a c1) lets each command reach its work, which only appends the
+    work's name to ``worked``: a check a command makes before its work is all that keeps
+    ``worked`` empty. Returns ``(run folder, command)`` pairs: ``command(work)``.
+    """
+    from types import SimpleNamespace
+
+    import calib.workflows.diagnose as diagnose_mod
+    import calib.workflows.validate as validate_mod
+
+    commands = []
+    for mod, folder, work_fn, run in (
+        (validate_mod, "validation", "validate_work", validate_mod.run_validation),
+        (diagnose_mod, "diagnosis", "diagnose", diagnose_mod.run_diagnosis),
+    ):
+        monkeypatch.setattr(
+            mod, "read_work", lambda w: SimpleNamespace(path=Path(w), states={}, c1_pa=420.0)
+        )
+        monkeypatch.setattr(mod, "input_records", lambda files: {})
+        monkeypatch.setattr(mod, work_fn, lambda *a, name=work_fn, **k: worked.append(name))
+        commands.append((folder, run))
+    return commands

@@ -75,24 +75,14 @@ def test_a_run_folder_s_place_holding_what_no_run_wrote_is_refused_and_kept(
         run_ingest(scans, work)
     assert (mine / "my_notes.txt" if kind == "folder" else mine).read_text() == "mine"
     assert sorted(p.name for p in work.iterdir()) == ["calibration", "scans"]
-    # validate and diagnose ask before their work too (it read as a recorder: not run)
-    from types import SimpleNamespace
-
-    import calib.workflows.diagnose as diagnose_mod
-    import calib.workflows.validate as validate_mod
+    # validate and diagnose ask before their work too (their work a recorder: not run;
+    # the stub work folder lets them reach it, review CH-11)
+    from calib_helpers import stub_work_commands
 
     worked = []
-    for mod, folder, work_fn, run in (
-        (validate_mod, "validation", "validate_work", validate_mod.run_validation),
-        (diagnose_mod, "diagnosis", "diagnose", diagnose_mod.run_diagnosis),
-    ):
+    for folder, run in stub_work_commands(monkeypatch, worked):
         (work / folder).mkdir()
         (work / folder / "mine.txt").write_text("mine")
-        # a stub work folder that would let the command reach its work (review CH-11)
-        stub = SimpleNamespace(path=work, states={}, c1_pa=420.0)
-        monkeypatch.setattr(mod, "read_work", lambda w, stub=stub: stub)
-        monkeypatch.setattr(mod, "input_records", lambda files: {})
-        monkeypatch.setattr(mod, work_fn, lambda *a, name=work_fn, **k: worked.append(name))
         with pytest.raises(ForeignFolderError, match=rf"^WORK .*{folder} is a folder no phantom"):
             run(work)
         assert (work / folder / "mine.txt").read_text() == "mine"

@@ -470,22 +470,12 @@ def test_a_work_folder_that_cannot_be_written_is_said_before_the_work(tmp_path, 
     monkeypatch.setattr(calib.io.os, "access", lambda path, mode: False)
     with pytest.raises(PermissionError, match=r"not writable \(this command writes validation/"):
         calib.io.check_work_writable(tmp_path, "validation/")
-    # review CF-24: and the commands ask before their work (the work folder read, its
-    # work replaced by a recorder: neither runs)
-    from pathlib import Path
-
-    import calib.workflows.diagnose as diagnose_mod
-    import calib.workflows.validate as validate_mod
+    # review CF-24: and the commands ask before their work (their work a recorder: neither
+    # runs; the stub work folder lets them reach it, review CH-11)
+    from calib_helpers import stub_work_commands
 
     worked = []
-    for mod, work_fn, run in ((validate_mod, "validate_work", validate_mod.run_validation),
-                              (diagnose_mod, "diagnose", diagnose_mod.run_diagnosis)):  # fmt: skip
-        # a stub that would let the command reach its work (review CH-11)
-        monkeypatch.setattr(
-            mod, "read_work", lambda w: SimpleNamespace(path=Path(w), states={}, c1_pa=420.0)
-        )
-        monkeypatch.setattr(mod, "input_records", lambda files: {})
-        monkeypatch.setattr(mod, work_fn, lambda *a, name=work_fn, **k: worked.append(name))
+    for _, run in stub_work_commands(monkeypatch, worked):
         with pytest.raises(
             PermissionError, match=r"not writable \(this command writes (validation|diagnosis)/"
         ):
