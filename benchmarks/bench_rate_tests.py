@@ -1,12 +1,13 @@
 """Long-run rates of five of the default suite's seeded false-alarm tests (review CF 7-9).
 
 Each such test draws a few hundred null residuals from a seed and bounds the share of
-alarms by the nominal level plus three binomial standard errors. This script runs the
-tests' own loops (their fixtures and helpers, imported from ``tests/calib``) with the
-same seeds for many more draws, so a test's comment can say what its statistic's
-long-run rate is (the chance that its bar passes a doubled rate is binomial arithmetic
-on its draws, in its comment). Not covered: the 60-draw noisier-scan test of
-``test_stats_scores.py``, whose bar is meant to catch a rate of 27-32 %.
+alarms by the nominal level plus three binomial standard errors. This script calls the
+functions those tests draw through (``null_alarms`` and its kin, with the tests'
+fixtures, imported from ``tests/calib``) with the same seeds for many more draws, so a
+test's comment can say what its statistic's long-run rate is (the chance that its bar
+passes a doubled rate is binomial arithmetic on its draws, in its comment). Not covered:
+the 60-draw noisier-scan test of ``test_stats_scores.py``, whose bar is meant to catch a
+rate of 27-32 %.
 
     python benchmarks/bench_rate_tests.py [--draws 2000] [--only NAME,...]
 
@@ -31,102 +32,45 @@ def _fixture(f):
     return f.__wrapped__()  # a pytest fixture's own function
 
 
+def _named(test: str, alarms: dict) -> dict:
+    return {f"{test} ({name})": hits for name, hits in alarms.items()}
+
+
 def consistency(n):
     import test_stats_consistency as T
 
-    sample, J, sampler = _fixture(T.setup)
-    rng = np.random.default_rng(11)
-    hits = [
-        T._test(sample, J, T._calibrated(sample, J, sampler.draw(rng)[:, 0])[0], 0.05).verdict
-        == "inconsistent"
-        for _ in range(n)
-    ]
-    return {"test_stats_consistency::test_false_alarm_rate_on_correlated_null_residuals": hits}
+    name = "test_stats_consistency::test_false_alarm_rate_on_correlated_null_residuals"
+    return _named(name, T.null_alarms(_fixture(T.setup), n))
 
 
 def misfit(n):
     import test_stats_scores as T
 
-    from calib.stats.noise import estimate_noise
-    from calib.stats.scores import misfit_design, misfit_test
-
-    sample, J, _, sampler = _fixture(T.setup)
-    rng = np.random.default_rng(1)
-    design = misfit_design(sample, J)
-    hits = []
-    for _ in range(n):
-        r = T._residual(J, sampler.draw(rng)[:, 0])
-        fit = estimate_noise(sample, r)
-        res = misfit_test(r, J, sample, fit.best, alpha=0.05, alternatives=fit.plausible[1:],
-                          design=design)  # fmt: skip
-        hits.append(res.verdict == "misfit")
-    return {"test_stats_scores::test_misfit_false_alarm_rate_on_correlated_noise": hits}
+    name = "test_stats_scores::test_misfit_false_alarm_rate_on_correlated_noise"
+    return _named(name, T.misfit_null_alarms(_fixture(T.setup), n))
 
 
 def screen(n):
     import test_stats_scores as T
 
-    sample, J, sampler, S = _fixture(T.correlated)
-    rng = np.random.default_rng(3)
-    p, fw = [], []
-    for _ in range(n):
-        res = T._screen_refitted(sampler.draw(rng)[:, 0], sample, J, S, quantile="satterthwaite",
-                                 directions=[1, -1, 0])  # fmt: skip
-        p.append([e.p_value for e in res.effects])
-        fw.append(any(e.significant for e in res.effects))
-    p = np.array(p)
-    joint = [np.nanmin(T._effect_holm(list(q), ["smooth", "smooth", "bump"])) < 0.05 for q in p]
     name = "test_stats_scores::test_screening_false_positive_rate_on_correlated_null_residuals"
-    out = {f"{name} (family-wise)": fw, f"{name} (two effects)": joint}
-    two = np.column_stack([2 * np.minimum(p[:, :2], 1 - p[:, :2]), p[:, 2]])
-    for k, col in enumerate(("p2", "tilt", "bump")):
-        out[f"{name} ({col})"] = list(p[:, k] < 0.05)
-        if k < 2:  # one-sided columns: their two-sided p, which the test holds alike
-            out[f"{name} ({col}, two-sided)"] = list(two[:, k] < 0.05)
-    return out
+    return _named(name, T.screening_null_alarms(_fixture(T.correlated), n)[0])
 
 
 def diagnose(n):
     import test_diagnose as T
 
-    sample, J, cols, sampler = _fixture(T.linear)
-    offset = np.where(sample.scan == 0, 0.1, -0.05)
-    rng = np.random.default_rng(7)
-    fw, raw, mis = [], [], []
-    for _ in range(n):
-        r = T._at_fit(J, sampler.draw(rng)[:, 0] + offset)
-        s = T.screen(T._fields(sample, r, J, cols), T._points(sample), alpha=0.05)
-        fw.append(any(e.significant for e in s.screening.effects))
-        raw.append([e.p_value < 0.05 for e in s.screening.effects])
-        mis.append(s.misfit.verdict == "misfit")
     name = "test_diagnose::test_screening_false_positive_rate_on_correlated_null_residuals"
-    out = {f"{name} (family-wise)": fw, f"{name} (misfit)": mis}
-    for k, col in enumerate(cols):
-        out[f"{name} ({col})"] = [row[k] for row in raw]
-    return out
+    return _named(name, T.screen_null_alarms(_fixture(T.linear), n))
 
 
 def absorbed(n):
     import test_diagnose as T
 
-    from calib.stats.coverage import misfit_pattern
-
-    sample, J, cols, sampler = _fixture(T.linear)
-    _, y, z = sample.points_mm.T
-    other = y * z - np.mean(y * z)
-    shape = misfit_pattern(sample, kind="tilt") + other / np.sqrt(np.mean(other**2))
-    shape = shape / np.sqrt(np.mean(shape**2))
-    rng = np.random.default_rng(12)
-    fw = []
-    for _ in range(n):
-        r = T._at_fit(J, sampler.draw(rng)[:, 0] + 0.2 * shape)
-        f = T._with_discretisation(T._fields(sample, r, J, cols), sample, shape)
-        fw.append(any(e.significant for e in T.screen(f, T._points(sample), alpha=0.05)
-                      .screening.effects))  # fmt: skip
     name = (
         "test_diagnose::test_with_the_model_mesh_s_error_absorbed_the_false_positive_rate_is_held"
     )
-    return {f"{name} (absorbed, family-wise)": fw}
+    return _named(name, T.absorbed_null_alarms(_fixture(T.linear), n))
 
 
 RUNS = {"consistency": consistency, "misfit": misfit, "screen": screen, "diagnose": diagnose,

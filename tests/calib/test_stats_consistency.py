@@ -70,18 +70,28 @@ def test_closed_form_on_planted_estimates(setup):
     assert {"statistic", "dof", "p_value", "verdict", "alpha"} <= set(doc)
 
 
+def null_alarms(setup, draws: int) -> dict[str, list[bool]]:
+    """Per seeded null draw, whether the posture-consistency test alarms at 0.05.
+
+    The test below and ``benchmarks/bench_rate_tests.py`` (its long run) both draw here.
+    """
+    sample, J, sampler = setup
+    rng = np.random.default_rng(11)
+    return {
+        "consistency": [
+            _test(sample, J, _calibrated(sample, J, sampler.draw(rng)[:, 0])[0], 0.05).verdict
+            == "inconsistent"
+            for _ in range(draws)
+        ]
+    }
+
+
 def test_false_alarm_rate_on_correlated_null_residuals(setup):
     # 400 seeded null draws at alpha = 0.05: binomial se 1.09 %, at most 5 + 3 se (8.3 %,
     # 33 alarms). A test at 10 % passes that bar with probability 0.14, at 8 % 0.62 (review
     # CF-7: 100 draws passed 10 % with 0.70). Long run 4.2 % (2000 draws, this seed:
     # `python benchmarks/bench_rate_tests.py --only consistency`).
-    sample, J, sampler = setup
-    rng = np.random.default_rng(11)
-    alarms = sum(
-        _test(sample, J, _calibrated(sample, J, sampler.draw(rng)[:, 0])[0], 0.05).verdict
-        == "inconsistent"
-        for _ in range(400)
-    )
+    alarms = sum(null_alarms(setup, 400)["consistency"])
     assert alarms / 400 <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / 400)
 
 

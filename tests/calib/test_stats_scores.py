@@ -94,22 +94,31 @@ def test_misfit_statistics_follow_f_and_chi2_under_a_known_white_model(setup):
     assert stats.kstest(chi, stats.chi2(8).cdf).pvalue > 0.01
 
 
+def misfit_null_alarms(setup, draws: int) -> dict[str, list[bool]]:
+    """Per seeded null draw, whether the misfit test alarms at 0.05 (noise model fitted).
+
+    The test below and ``benchmarks/bench_rate_tests.py`` (its long run) both draw here.
+    """
+    sample, J, _, sampler = setup
+    rng = np.random.default_rng(1)
+    design = misfit_design(sample, J)
+    alarms = []
+    for _ in range(draws):
+        r = _residual(J, sampler.draw(rng)[:, 0])
+        fit = estimate_noise(sample, r)
+        res = misfit_test(r, J, sample, fit.best, alpha=0.05, alternatives=fit.plausible[1:],
+                          design=design)  # fmt: skip
+        alarms.append(res.verdict == "misfit")
+    return {"misfit": alarms}
+
+
 def test_misfit_false_alarm_rate_on_correlated_noise(setup):
     # correlated noise (exponential 5 mm, nugget 0.2), model estimated from each residual
     # at short range. 600 seeded draws at alpha = 0.05: se 0.89 %, at most 5 + 3 se (7.7 %,
     # 46 alarms): a test at 10 % passes with probability 0.03, at 8 % 0.42 (review CF-8:
     # 150 draws passed 10 % with 0.57). Long run 5.45 % (2000 draws: `python
     # benchmarks/bench_rate_tests.py --only misfit`).
-    sample, J, _, sampler = setup
-    rng = np.random.default_rng(1)
-    design = misfit_design(sample, J)
-    alarms = 0
-    for _ in range(600):
-        r = _residual(J, sampler.draw(rng)[:, 0])
-        fit = estimate_noise(sample, r)
-        res = misfit_test(r, J, sample, fit.best, alpha=0.05, alternatives=fit.plausible[1:],
-                          design=design)  # fmt: skip
-        alarms += res.verdict == "misfit"
+    alarms = sum(misfit_null_alarms(setup, 600)["misfit"])
     assert alarms / 600 <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / 600)
 
 
@@ -192,6 +201,37 @@ def _screen_refitted(x, sample, J, S, **options):
     )
 
 
+def screening_null_alarms(correlated, draws: int) -> tuple[dict[str, list[bool]], object]:
+    """Per seeded null draw, each screening statistic's alarm at 0.05; and the last screen.
+
+    'p2' and 'tilt' are tested one-sided (up, down), 'bump' two-sided; the two-sided p of
+    a one-sided column is 2 min(p, 1 - p). 'two effects': 'p2' and 'tilt' as the two
+    columns of one effect (Bonferroni within, Holm across). The test below and
+    ``benchmarks/bench_rate_tests.py`` (its long run) both draw here.
+    """
+    sample, J, sampler, S = correlated
+    rng = np.random.default_rng(3)
+    p, fw = [], []
+    for _ in range(draws):
+        kw = {"quantile": "satterthwaite", "directions": [1, -1, 0]}
+        res = _screen_refitted(sampler.draw(rng)[:, 0], sample, J, S, **kw)
+        p.append([e.p_value for e in res.effects])
+        fw.append(any(e.significant for e in res.effects))
+    p = np.array(p)
+    two = 2 * np.minimum(p[:, :2], 1 - p[:, :2])
+    out = {
+        "family-wise": fw,
+        "two effects": [
+            np.nanmin(_effect_holm(list(q), ["smooth", "smooth", "bump"])) < 0.05 for q in p
+        ],
+    }
+    for k, col in enumerate(("p2", "tilt", "bump")):
+        out[col] = list(p[:, k] < 0.05)
+        if k < 2:
+            out[f"{col}, two-sided"] = list(two[:, k] < 0.05)
+    return out, res
+
+
 def test_screening_false_positive_rate_on_correlated_null_residuals(correlated):
     # three smooth candidate effects, no effect in the data (600 points, exponential
     # 8 mm). 600 seeded draws: per-effect rejection at alpha = 0.05 (unadjusted) and the
@@ -200,27 +240,12 @@ def test_screening_false_positive_rate_on_correlated_null_residuals(correlated):
     # (2000 draws: `python benchmarks/bench_rate_tests.py --only screen`): family-wise
     # 4.05 %, over the two effects 4.2 %, the columns 5.0, 4.85, 4.55 % (two-sided p of
     # the one-sided columns 4.75 and 4.55 %).
-    sample, J, sampler, S = correlated
-    # 'p2' and 'tilt' are tested one-sided (up, down), 'bump' two-sided; the two-sided p of
-    # a one-sided column is 2 min(p, 1 - p): both are held to the same bound.
-    rng = np.random.default_rng(3)
-    p, fw = [], []
+    # every statistic (each column one- and two-sided, the family-wise rate over the
+    # columns and over the two effects) is held to the same bound
+    alarms, res = screening_null_alarms(correlated, 600)
     bound = 0.05 + 3 * np.sqrt(0.05 * 0.95 / 600)
-    for _ in range(600):
-        kw = {"quantile": "satterthwaite", "directions": [1, -1, 0]}
-        res = _screen_refitted(sampler.draw(rng)[:, 0], sample, J, S, **kw)
-        p.append([e.p_value for e in res.effects])
-        fw.append(any(e.significant for e in res.effects))
-    p = np.array(p)
-    # 'p2' and 'tilt' as the two columns of one effect: the family-wise rate over the two
-    # effects (Bonferroni within, Holm across) is held to the same bound
-    fw_joint = [np.nanmin(_effect_holm(list(q), ["smooth", "smooth", "bump"])) < 0.05 for q in p]
-    assert np.mean(fw_joint) <= bound
-    two = np.column_stack([2 * np.minimum(p[:, :2], 1 - p[:, :2]), p[:, 2]])
-    for q in (p, two):
-        rates = np.mean(q < 0.05, axis=0)
-        assert np.all(rates <= bound), rates
-    assert np.mean(fw) <= bound
+    rates = {name: float(np.mean(a)) for name, a in alarms.items()}
+    assert all(rate <= bound for rate in rates.values()), rates
     assert [e.alternative for e in res.effects] == ["greater", "less", "two-sided"]
 
 
