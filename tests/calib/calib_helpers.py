@@ -103,3 +103,11 @@ def stub_work_commands(monkeypatch, worked: list) -> list:
         monkeypatch.setattr(mod, work_fn, lambda *a, name=work_fn, **k: worked.append(name))
         commands.append((folder, run))
     return commands
+
+
+def polyhedron_volume_mm3(vertices_mm, faces) -> float:
+    """The volume a closed triangle surface bounds (divergence theorem), mm^3."""
+    import numpy as np
+
+    a, b, c = (vertices_mm[faces[:, k]] for k in range(3))
+    return abs(np.einsum("ij,ij->i", a, np.cross(b, c)).sum()) / 6.0

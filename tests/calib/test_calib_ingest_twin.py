@@ -12,6 +12,7 @@ import logging
 import nibabel as nib
 import numpy as np
 import pytest
+from calib_helpers import polyhedron_volume_mm3
 
 import imaging
 import registration
@@ -94,7 +95,7 @@ def test_every_scan_reads_back(twin):
         assert set(np.unique(inside)) == {0, 1}
         voxel = np.asarray(mask.header.get_zooms()[:3], float)
         tri = surface.vertices_lps_mm[surface.faces]
-        enclosed = abs(np.einsum("ij,ij->", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))) / 6.0
+        enclosed = polyhedron_volume_mm3(surface.vertices_lps_mm, surface.faces)
         area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
         slack = area.sum() * 0.5 * voxel.max()
         assert abs(inside.sum() * voxel.prod() - enclosed) <= slack, name

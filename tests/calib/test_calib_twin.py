@@ -8,7 +8,7 @@ import tomllib
 
 import numpy as np
 import pytest
-from calib_helpers import SMALL_PRESET
+from calib_helpers import SMALL_PRESET, polyhedron_volume_mm3
 from typer.testing import CliRunner
 
 import calib.twin.synth
@@ -168,11 +168,6 @@ def test_twin_truth_mesh_builds(seed):
     assert len(mesh.node_set("back")) >= 3
 
 
-def _polyhedron_volume(v, f):
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    return abs(np.einsum("ij,ij->i", a, np.cross(b, c)).sum()) / 6.0  # divergence theorem
-
-
 def test_an_inclusions_twin_meshes_the_spheres_the_renderer_draws():
     # Stiffer inclusions are meshed as conforming spheres (the icospheres of
     # fem.meshing.mesh_phantom): the inclusion region is their union, its volume theirs
@@ -188,7 +183,7 @@ def test_an_inclusions_twin_meshes_the_spheres_the_renderer_draws():
     inside = mesh.region == fem.mesh.REGION_IDS["inclusion"]
     centres, diameters = phantom.inclusion_centres_mm, phantom.inclusion_diameters_mm
     polyhedra = sum(
-        _polyhedron_volume(*sphere_surface(c, r, subdivisions=k))
+        polyhedron_volume_mm3(*sphere_surface(c, r, subdivisions=k))
         for c, r, k in inclusion_spheres(phantom)
     )
     assert mesh.volumes_mm3()[inside].sum() == pytest.approx(polyhedra, rel=1e-9)
